@@ -1,0 +1,45 @@
+"""Prescribed kinematics: the head (a rigid motion about its centre) carries the pinned
+roots and the head sphere.
+
+x(t) = c + T(t) + R(t) (x_rest - c) for pinned vertices; sphere centre c + T(t).
+``static``: R = I, T = 0.  ``shake``: rotation back and forth about z, then y, then x
+(each axis for one ``period``, angle ``amplitude * sin(2 pi t / period)``), repeating.
+``translate``: R = I, T = ``velocity`` * t.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_AXES = (np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0]))
+
+
+def _rotation(axis, angle):
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+
+
+class HeadMotion:
+    def __init__(self, physics):
+        self.kind = physics.head_motion
+        self.center = np.asarray(physics.head_center, float)
+        self.radius = float(physics.head_radius)
+        self.amplitude = float(physics.head_amplitude)
+        self.period = float(physics.head_period)
+        self.velocity = np.asarray(physics.head_velocity, float)
+
+    def transform(self, t):
+        if self.kind == "shake":
+            axis = _AXES[int(np.floor(t / self.period)) % 3]
+            ang = self.amplitude * np.sin(2.0 * np.pi * t / self.period)
+            return _rotation(axis, ang), np.zeros(3)
+        if self.kind == "translate":
+            return np.eye(3), self.velocity * t
+        return np.eye(3), np.zeros(3)
+
+    def pinned_positions(self, x_rest, t):
+        R, T = self.transform(t)
+        return self.center + T + (x_rest - self.center) @ R.T
+
+    def sphere_center(self, t):
+        return self.center + self.transform(t)[1]

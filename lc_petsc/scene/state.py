@@ -1,0 +1,163 @@
+"""Rank-local scene: rest state, masses and per-element arrays of the wisps a rank owns.
+
+``LocalScene.build`` takes this rank's :class:`WispBatch` (from a scene source and the
+partition) and computes, for the enabled terms only:
+
+* stretch elements (i, i+1): rest length Lbar, k_s = E A_e / Lbar (A_e from the mean of
+  the two vertex radii);
+* bend elements (i-1, i, i+1): rest angle via ``bend.angle``, k_b = E I_i / l_i with
+  the Voronoi length l_i = (Lbar_{i-1} + Lbar_i) / 2;
+* twist elements (i .. i+3): rest angle via ``twist.angle``, k_t = G J / Lbar_mid with
+  the middle edge's mean radius;
+* lumped masses: each edge gives 1/2 rho A_e Lbar_e to both of its vertices.
+
+Element arrays store the *first vertex* (``start``) of each element; an element's
+vertices are ``start + 0..k-1``, all in one wisp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict
+
+import numpy as np
+
+from lc_petsc.elements import bend, twist, weights
+
+TERM_K = {"stretch": 2, "bend": 3, "twist": 4}
+
+
+@dataclass
+class TermData:
+    name: str
+    k: int
+    start: np.ndarray       # (n,) local index of the element's first vertex
+    rest: np.ndarray        # (n,) rest length / rest angle
+    stiffness: np.ndarray   # (n,)
+
+    def gather(self, x):
+        """Element positions (n, k, 3) from local positions x (nv, 3)."""
+        return x[self.start[:, None] + np.arange(self.k)]
+
+
+@dataclass
+class LocalScene:
+    first_wisp: int
+    n_wisps_global: int
+    first_vertex: int
+    n_vertices_global: int
+    offsets: np.ndarray         # local wisp offsets (n_wisps_local + 1,)
+    x_rest: np.ndarray          # (nv, 3)
+    radius: np.ndarray
+    pinned: np.ndarray
+    mass: np.ndarray            # (nv,) lumped
+    terms: Dict[str, TermData] = field(default_factory=dict)
+
+    @property
+    def nv(self) -> int:
+        return len(self.x_rest)
+
+    @property
+    def n_wisps(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def bandwidth(self) -> int:
+        """Half bandwidth in vertices of the enabled terms' Hessian (0: mass only)."""
+        return max([TERM_K[t] - 1 for t in self.terms] or [0])
+
+    @staticmethod
+    def starts(offsets, k):
+        """Local first vertices of all k-vertex stencils inside the wisps."""
+        parts = [np.arange(offsets[w], offsets[w + 1] - k + 1) for w in range(len(offsets) - 1)]
+        return (np.concatenate(parts) if parts else np.zeros(0)).astype(np.int64)
+
+    @classmethod
+    def build(cls, batch, material, terms, n_wisps_global, first_vertex, n_vertices_global):
+        """Validate ``batch`` and compute the rest state.  Returns (scene, problems):
+        ``problems`` lists messages (naming wisp and value) instead of raising, so the
+        caller can raise collectively."""
+        problems = []
+        off = batch.offsets
+        x = batch.positions
+        nw = batch.n_wisps
+        wid = np.repeat(np.arange(nw), np.diff(off))
+        for w in range(nw):
+            n = int(off[w + 1] - off[w])
+            if n < 4:
+                problems.append(f"wisp {batch.first_wisp + w} has {n} vertices; a wisp needs at least 4")
+        bad = ~np.isfinite(x).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            w = int(wid[i])
+            problems.append(f"wisp {batch.first_wisp + w}, vertex {i - off[w]} (global vertex "
+                            f"{first_vertex + i}): position {x[i].tolist()} is not finite")
+        bad = ~(np.isfinite(batch.radius) & (batch.radius > 0))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            w = int(wid[i])
+            problems.append(f"wisp {batch.first_wisp + w}, vertex {i - off[w]}: radius "
+                            f"{batch.radius[i]!r} must be finite and positive")
+        E = np.full(nw, float(material.youngs_modulus))
+        if batch.youngs_modulus is not None:
+            E = np.asarray(batch.youngs_modulus, float)
+        rho = np.full(nw, float(material.density))
+        if batch.density is not None:
+            rho = np.asarray(batch.density, float)
+        G = E * (material.G / material.youngs_modulus)
+        for name, arr in (("Young's modulus (stiffness)", E), ("density", rho)):
+            badw = ~(np.isfinite(arr) & (arr > 0))
+            if badw.any():
+                w = int(np.flatnonzero(badw)[0])
+                problems.append(f"wisp {batch.first_wisp + w}: {name} {arr[w]!r} must be finite and positive")
+        if problems:
+            return None, problems
+
+        es = cls.starts(off, 2)
+        Lbar = np.linalg.norm(x[es + 1] - x[es], axis=1)
+        zero = Lbar <= 1e-12 * max(1.0, float(np.abs(x).max(initial=0.0)))
+        if zero.any():
+            j = int(np.flatnonzero(zero)[0])
+            w = int(wid[es[j]])
+            problems.append(f"wisp {batch.first_wisp + w}, edge {es[j] - off[w]}: rest length "
+                            f"{Lbar[j]!r} is zero (coincident vertices)")
+            return None, problems
+        r_e = 0.5 * (batch.radius[es] + batch.radius[es + 1])
+        A_e = np.pi * r_e ** 2
+        m_e = 0.5 * rho[wid[es]] * A_e * Lbar
+        mass = np.zeros(len(x))
+        np.add.at(mass, es, m_e)
+        np.add.at(mass, es + 1, m_e)
+        # edge lookup: local edge index of the edge starting at vertex v
+        edge_of = np.full(len(x), -1, np.int64)
+        edge_of[es] = np.arange(len(es))
+
+        td = {}
+        if "stretch" in terms:
+            td["stretch"] = TermData("stretch", 2, es, Lbar,
+                                     weights.stretch_stiffness(E[wid[es]], r_e, Lbar))
+        if "bend" in terms:
+            s = cls.starts(off, 3)
+            xe = x[s[:, None] + np.arange(3)]
+            vor = 0.5 * (Lbar[edge_of[s]] + Lbar[edge_of[s + 1]])
+            td["bend"] = TermData("bend", 3, s, bend.angle(xe),
+                                  weights.bend_stiffness(E[wid[s]], batch.radius[s + 1], vor))
+        if "twist" in terms:
+            s = cls.starts(off, 4)
+            xe = x[s[:, None] + np.arange(4)]
+            mid = edge_of[s + 1]
+            td["twist"] = TermData("twist", 4, s, twist.angle(xe),
+                                   weights.twist_stiffness(G[wid[s]], r_e[mid], Lbar[mid]))
+        for t in td.values():
+            badk = ~(np.isfinite(t.stiffness) & (t.stiffness >= 0))
+            if badk.any():
+                j = int(np.flatnonzero(badk)[0])
+                w = int(wid[t.start[j]])
+                problems.append(f"wisp {batch.first_wisp + w}: {t.name} stiffness "
+                                f"{t.stiffness[j]!r} of element {t.start[j] - off[w]} is invalid")
+        if problems:
+            return None, problems
+        return cls(first_wisp=batch.first_wisp, n_wisps_global=n_wisps_global,
+                   first_vertex=first_vertex, n_vertices_global=n_vertices_global,
+                   offsets=off.copy(), x_rest=x.copy(), radius=batch.radius.copy(),
+                   pinned=batch.pinned.copy(), mass=mass, terms=td), []

@@ -6,11 +6,16 @@ vertices (3 with twist, 2 with bend, 1 with stretch only, 0 for mass only) and h
 off-process columns.  The block-CSR pattern (every in-wisp pair |i - j| <= b, a *full*
 band, explicit zeros kept) is built once per topology; for SBAIJ only j >= i is stored.
 
-Values.  Element Hessians (n, 3k, 3k) are accumulated into a band array
-B[i, d + b] = block (i, i + d): one fancy assignment puts each term's blocks at their
-start vertex (starts are unique, so no ``np.add.at``), then k^2 contiguous slice-adds; mass / dt^2 and contact blocks go on the diagonal; rows and columns of
-pinned vertices become identity.  A precomputed gather maps B to the CSR value array,
-and ONE ``setValuesBlockedCSR`` call refills the matrix.  No per-element PETSc calls.
+Values.  Each term's elements are padded to one element per local vertex: element v
+starts at vertex v, and the last k - 1 vertices of every wisp get a copy of the wisp's
+last element with zero stiffness (3% more elements, all-zero blocks).  Then one fused
+``gradient_hessian`` call per term writes into a persistent buffer, and block (a, c) of
+every element lands on band row v + a, diagonal c - a, so the whole term is added to the
+band array B[i, d + b] = block (i, i + d) with k^2 contiguous slice-adds: no scatter, no
+per-iteration allocation.  Mass / dt^2 and contact blocks go on the diagonal; rows and
+columns of pinned vertices become identity.  A precomputed gather maps B to the CSR value
+array, and ONE ``setValuesBlockedCSR`` call refills the matrix.  No per-element PETSc
+calls.
 
 Matrix type: ``baij`` (bs 3) unless the options database says ``-mat_type``; ``sbaij``
 and ``aij`` (block size 3) get the same values.
@@ -38,11 +43,15 @@ def base_type(mat_type: str) -> str:
 class Assembler:
     """Owns the band array, the CSR pattern and the PETSc matrix of one rank's wisps."""
 
-    def __init__(self, scene, comm, timers, filter="analytic", mat_type="baij"):
+    def __init__(self, scene, comm, timers, filter="analytic", mat_type="baij", pmat_type=None):
         self.scene, self.comm, self.timers, self.filter = scene, comm, timers, filter
         nv, b = scene.nv, scene.bandwidth
         self.b = b
-        self.B = np.zeros((nv, 2 * b + 1, 3, 3))
+        # Band storage R[i, r, 3 (d + b) + c] = entry (3 i + r, 3 (i + d) + c): an element's
+        # matrix row is then one contiguous run of 3k values here and in its Hessian.
+        self.R = buffer((nv, 3, 3 * (2 * b + 1)))
+        # The same storage seen as blocks: B[i, d + b] = 3x3 block (i, i + d) (a view).
+        self.B = self.R.reshape(nv, 3, 2 * b + 1, 3).transpose(0, 2, 1, 3)
         # wisp bounds per vertex
         wid = np.repeat(np.arange(scene.n_wisps), np.diff(scene.offsets))
         lo = scene.offsets[:-1][wid] if nv else np.zeros(0, np.int64)
@@ -55,15 +64,31 @@ class Assembler:
         jc = np.clip(j, 0, max(nv - 1, 0))
         self.pin_mask = self.valid & (pin[:, None] | (pin[jc] if nv else np.zeros_like(self.valid)))
         self.pinned_idx = np.flatnonzero(pin)
+        self.padded = {name: PaddedTerm(t, nv) for name, t in scene.terms.items()}
         self.mat = self._create_matrix(mat_type)
+        self.pmat = self._create_pmat(pmat_type)
 
     # ------------------------------------------------------------------ pattern
-    def _create_matrix(self, mat_type):
-        sc, nv, b = self.scene, self.scene.nv, self.b
+    def _new_matrix(self, mat_type):
+        sc, nv = self.scene, self.scene.nv
         A = PETSc.Mat().create(comm=self.comm)
         A.setSizes(((3 * nv, 3 * sc.n_vertices_global), (3 * nv, 3 * sc.n_vertices_global)))
         A.setBlockSize(3)
         A.setType(mat_type)
+        return A
+
+    def _preallocate(self, A, kind):
+        nnz = self.block_counts
+        if kind == "aij":
+            nnz = np.repeat(3 * nnz, 3).astype(PETSc.IntType)
+        A.setPreallocationNNZ((nnz, np.zeros_like(nnz)))
+        A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        A.setOption(PETSc.Mat.Option.SYMMETRY_ETERNAL, True)
+
+    def _create_matrix(self, mat_type):
+        sc, nv, b = self.scene, self.scene.nv, self.b
+        A = self._new_matrix(mat_type)
         A.setFromOptions()                          # -mat_type wins
         self.mat_type = base_type(A.getType())
         if self.mat_type not in SUPPORTED_MAT_TYPES:
@@ -72,60 +97,89 @@ class Assembler:
         keep = self.valid.copy()
         if self.mat_type == "sbaij":
             keep[:, :b] = False
-        self.csr_from_band = np.flatnonzero(keep.ravel())
-        counts = keep.sum(axis=1)
-        self.rowptr = np.concatenate([[0], np.cumsum(counts)]).astype(PETSc.IntType)
-        ii, dd = np.nonzero(keep)
-        self.cols = (sc.first_vertex + ii + dd - b).astype(PETSc.IntType)
-        nnz = counts.astype(PETSc.IntType)
-        if self.mat_type == "aij":
-            nnz = np.repeat(3 * nnz, 3).astype(PETSc.IntType)
-        A.setPreallocationNNZ((nnz, np.zeros_like(nnz)))
-        A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
-        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-        A.setOption(PETSc.Mat.Option.SYMMETRY_ETERNAL, True)
+        rows, diags = np.nonzero(keep)
+        self.csr_blocks = rows * (2 * b + 1) + diags     # into B as (nv * (2b+1), 9)
+        # Persistent buffers: fresh 100 MB arrays every Newton iteration cost more in page
+        # faults than the copies themselves.
+        self.blocks = buffer((nv, 2 * b + 1, 3, 3))
+        self.values = buffer((len(rows), 9))
+        self.block_counts = keep.sum(axis=1).astype(PETSc.IntType)
+        self.rowptr = np.concatenate([[0], np.cumsum(self.block_counts)]).astype(PETSc.IntType)
+        self.cols = (sc.first_vertex + rows + diags - b).astype(PETSc.IntType)
+        self._preallocate(A, self.mat_type)
         return A
+
+    def _create_pmat(self, pmat_type):
+        """A second matrix with the same values for the preconditioner (or None).
+
+        PETSc 3.18 extracts each block-Jacobi block from a SeqBAIJ matrix with a column
+        map as wide as the whole matrix (MatCreateSubMatrix_SeqBAIJ_Private), so one
+        block per wisp costs O(wisps x vertices) per setup: about 1 s per Newton
+        iteration for 2,000 wisps on one rank. AIJ extracts contiguous blocks directly.
+        """
+        if pmat_type is None or pmat_type == self.mat_type:
+            return None
+        if self.mat_type != "baij" or pmat_type != "aij":
+            raise ValueError(f"-lc_pmat_type {pmat_type} with -mat_type {self.mat_type}: a "
+                             f"separate preconditioning matrix is only supported as aij next to "
+                             f"a baij operator; use -lc_pmat_type same")
+        P = self._new_matrix("aij")
+        self._preallocate(P, "aij")
+        # Point CSR of the same full band: row (i, r) of the matrix is row r of R[i],
+        # restricted to in-wisp columns, so the values are one gather from R.
+        nv, width = self.R.shape[0], self.R.shape[2]
+        cols_valid = np.repeat(self.valid, 3, axis=1)                    # (nv, width)
+        mask = np.broadcast_to(cols_valid[:, None, :], (nv, 3, width)).reshape(3 * nv, width)
+        col = (3 * (self.scene.first_vertex + np.arange(nv) - self.b))[:, None] + np.arange(width)
+        self.p_rowptr = np.concatenate([[0], np.cumsum(mask.sum(axis=1))]).astype(PETSc.IntType)
+        self.p_cols = np.broadcast_to(col[:, None, :], (nv, 3, width)).reshape(3 * nv, width)[mask]
+        self.p_cols = self.p_cols.astype(PETSc.IntType)
+        self.p_from_band = np.flatnonzero(mask.ravel())
+        self.p_values = buffer(len(self.p_from_band))
+        return P
 
     # ------------------------------------------------------------------ values
     def energy(self, x):
         """Elastic energy of this rank's enabled terms at local positions x (nv, 3)."""
         e = 0.0
         with self.timers("elements"):
-            for name, t in self.scene.terms.items():
-                if len(t.start):
-                    e += float(KERNELS[name].energy(t.gather(x), t.rest, t.stiffness).sum())
+            for name, t in self.padded.items():
+                e += float(KERNELS[name].energy(x[t.index], t.rest, t.stiffness).sum())
         return e
 
     def gradient(self, x):
+        """Elastic gradient (nv, 3) of this rank's enabled terms."""
         g = np.zeros_like(x)
         with self.timers("elements"):
-            for name, t in self.scene.terms.items():
-                if not len(t.start):
-                    continue
-                ge = KERNELS[name].gradient(t.gather(x), t.rest, t.stiffness)
-                for a in range(t.k):
-                    g[t.start + a] += ge[:, a]
+            for name, t in self.padded.items():
+                _add_gradient(g, KERNELS[name].gradient(x[t.index], t.rest, t.stiffness))
         return g
 
-    def hessian_band(self, x):
-        """Zero the band array and add all enabled terms' filtered element Hessians."""
-        B, b = self.B, self.b
-        B[...] = 0.0
+    def assemble(self, x):
+        """Fill the band array with the filtered element Hessians; return the gradient.
+
+        One fused kernel call per term (gradient + filtered Hessian); the filter runs
+        inside it, so its time is reported under ``elements``.
+        """
+        R, b = self.R, self.b
+        g = np.zeros_like(x)
+        with self.timers("assembly"):
+            R[...] = 0.0
         sym = self.mat_type == "sbaij"
-        for name, t in self.scene.terms.items():
-            if not len(t.start):
-                continue
-            with self.timers("filter"):
-                H = KERNELS[name].hessian(t.gather(x), t.rest, t.stiffness, filter=self.filter)
+        for name, t in self.padded.items():
+            with self.timers("elements"):
+                ge, h = KERNELS[name].gradient_hessian(t.positions(x), t.rest, t.stiffness,
+                                                       filter=self.filter, out=t.hessian)
             with self.timers("assembly"):
-                k, nv = t.k, len(B)
-                # scatter element blocks to an array indexed by start vertex (one fancy
-                # assignment), then add each (a, c) block with contiguous slices
-                Hs = np.zeros((nv, k, k, 3, 3))
-                Hs[t.start] = H.reshape(-1, k, 3, k, 3).transpose(0, 1, 3, 2, 4)
+                _add_gradient(g, ge)
+                k, nv = t.k, len(R)
+                rows = h.reshape(nv, k, 3, 3 * k)
+                # Rows of local vertex a of element v sit on band row v + a, from
+                # diagonal -a on (SBAIJ: from diagonal 0, i.e. blocks c >= a).
                 for a in range(k):
-                    for c in range(a if sym else 0, k):
-                        B[a:, c - a + b] += Hs[:nv - a, a, c]
+                    first = a if sym else 0
+                    R[a:, :, 3 * (b - a + first):3 * (b - a + k)] += rows[:nv - a, a, :, 3 * first:]
+        return g
 
     def add_diagonal(self, idx, blocks):
         """Add 3x3 blocks (m, 3, 3) on the diagonal of local vertices idx (unique)."""
@@ -136,13 +190,62 @@ class Assembler:
         self.B[:, self.b, [0, 1, 2], [0, 1, 2]] += diag[:, None]
 
     def commit(self):
-        """Pinned rows/cols -> identity; refill the PETSc matrix with one CSR call."""
+        """Pinned rows/cols -> identity; refill the matrix (and pmat) with one CSR call each."""
         with self.timers("assembly"):
             B, b = self.B, self.b
             B[self.pin_mask] = 0.0
             B[self.pinned_idx, b] = np.eye(3)
-            vals = B.reshape(-1, 3, 3)[self.csr_from_band]
+            np.copyto(self.blocks, B)
+            np.take(self.blocks.reshape(-1, 9), self.csr_blocks, axis=0, out=self.values)
             A = self.mat
-            A.setValuesBlockedCSR(self.rowptr, self.cols, vals.ravel())
+            A.setValuesBlockedCSR(self.rowptr, self.cols, self.values.ravel())
             A.assemble()
+            if self.pmat is not None:
+                np.take(self.R.reshape(-1), self.p_from_band, out=self.p_values)
+                self.pmat.setValuesCSR(self.p_rowptr, self.p_cols, self.p_values)
+                self.pmat.assemble()
         return A
+
+
+class PaddedTerm:
+    """A term's elements padded to one per local vertex (see the module doc).
+
+    ``index`` (nv, k) local vertices of element v (= v + 0..k-1 for real elements);
+    ``rest``, ``stiffness`` (nv,) with zero stiffness on the padding; ``hessian`` the
+    persistent (nv, 3k, 3k) output buffer of the kernel.
+    """
+
+    def __init__(self, term, nv):
+        self.k = term.k
+        v = np.arange(nv)
+        # Element of each vertex: its own, or (padding) the last real one of its wisp.
+        elem = np.searchsorted(term.start, v, side="right") - 1
+        real = term.start[elem] == v
+        self.index = term.start[elem][:, None] + np.arange(term.k)
+        self.rest = term.rest[elem]
+        self.stiffness = np.where(real, term.stiffness[elem], 0.0)
+        self.hessian = buffer((nv, 3 * term.k, 3 * term.k))
+        self._positions = buffer((nv, term.k, 3))
+
+    def positions(self, x):
+        """Element positions (nv, k, 3) gathered from x (nv, 3) into a reused buffer."""
+        return np.take(x, self.index, axis=0, out=self._positions)
+
+
+def buffer(shape):
+    """A zeroed array whose pages are touched now, at build time.
+
+    The operating system maps fresh pages lazily; on the machines measured here the
+    first write to 2 GB of new buffers costs several seconds, which would otherwise land
+    in the first frame.
+    """
+    a = np.empty(shape)
+    a.fill(0.0)
+    return a
+
+
+def _add_gradient(g, ge):
+    """Add padded element gradients ge (nv, k, 3) to vertex gradients g (nv, 3)."""
+    nv, k = ge.shape[:2]
+    for a in range(k):
+        g[a:] += ge[:nv - a, a]

@@ -1,16 +1,23 @@
-"""Validated configuration dataclasses, mirroring the TOML tables of DESIGN section 3.
+"""Validated configuration: dataclasses mirroring the TOML tables of DESIGN section 3,
+and :func:`load_config` reading a scene file into them.
 
-TOML parsing belongs to a later layer; here every table is a dataclass whose
-``validate()`` raises ``ValueError`` naming the offending key and value.  ``SimConfig``
-bundles them and is what :func:`lc_petsc.simulator.build_simulator` takes.
+Every table is a dataclass whose ``validate()`` raises :class:`ConfigError` (a
+``ValueError``) naming the offending key, its value and what is allowed.
+:func:`load_config` adds what only a file can get wrong: unknown tables and keys, wrong
+TOML types, TOML syntax errors, missing files.  ``SimConfig`` bundles the tables and is
+what :func:`lc_petsc.simulator.build_simulator` takes.
 
-Units are CGS (cm, g, s; Young's modulus in dyn/cm^2).
+Units are CGS (cm, g, s; Young's modulus in dyn/cm^2).  Relative paths inside a config
+file (``scene.path``, ``solver.options_file``) are relative to the config file's folder.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, asdict
+import os
+import shlex
+from dataclasses import dataclass, field, asdict, fields
+from pathlib import Path
 from typing import Optional, Sequence
 
 SCENE_KINDS = ("wisp4c", "hairball", "straight", "file")
@@ -18,6 +25,11 @@ PERTURBATIONS = ("none", "smash", "jitter", "straighten")
 TERMS = ("stretch", "bend", "twist", "gravity", "head_collision", "strand_collision")
 HEAD_MOTIONS = ("static", "shake", "translate")
 FILTERS = ("analytic", "numerical", "none")
+IMPLEMENTED_TERMS = tuple(t for t in TERMS if t != "strand_collision")
+
+
+class ConfigError(ValueError):
+    """A configuration problem; the message names the key, the value and what is allowed."""
 
 
 def _positive(name: str, value, allow_zero: bool = False) -> None:
@@ -26,16 +38,16 @@ def _positive(name: str, value, allow_zero: bool = False) -> None:
             raise TypeError
         v = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
+        raise ConfigError(f"{name} must be a number, got {value!r}") from None
     ok = math.isfinite(v) and (v >= 0 if allow_zero else v > 0)
     if not ok:
         kind = "non-negative" if allow_zero else "positive"
-        raise ValueError(f"{name} must be a finite {kind} number, got {value!r}")
+        raise ConfigError(f"{name} must be a finite {kind} number, got {value!r}")
 
 
 def _int_at_least(name: str, value, lo: int) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < lo:
-        raise ValueError(f"{name} must be an integer >= {lo}, got {value!r}")
+        raise ConfigError(f"{name} must be an integer >= {lo}, got {value!r}")
 
 
 @dataclass
@@ -49,6 +61,7 @@ class SceneConfig:
     perturbation: initial-state change of SPEC section 6 applied to free vertices
     (``smash``: x scaled by ``smash_factor``; ``jitter``: uniform offsets in
     [-jitter, jitter] cm; ``straighten``: free vertices put on a vertical line).
+    description: free text (what the scene shows), echoed into the outputs.
     """
 
     kind: str = "wisp4c"
@@ -62,22 +75,27 @@ class SceneConfig:
     perturbation: str = "none"
     smash_factor: float = 0.4
     jitter: float = 0.5
+    description: str = ""
 
     def validate(self) -> None:
         if self.kind not in SCENE_KINDS:
-            raise ValueError(f"scene.kind must be one of {SCENE_KINDS}, got {self.kind!r}")
+            raise ConfigError(f"scene.kind must be one of {SCENE_KINDS}, got {self.kind!r}")
         _int_at_least("scene.n_wisps", self.n_wisps, 1)
-        _int_at_least("scene.n_vertices", self.n_vertices, 1)
+        _int_at_least("scene.n_vertices", self.n_vertices, 4)
         _int_at_least("scene.seed", self.seed, 0)
         _int_at_least("scene.n_pinned", self.n_pinned, 0)
         _positive("scene.segment_length", self.segment_length)
-        if self.kind == "file" and not self.path:
-            raise ValueError("scene.path must name an HDF5 strands file when scene.kind = 'file'")
+        if self.kind == "file":
+            if not self.path:
+                raise ConfigError("scene.path must name an HDF5 strands file when scene.kind = 'file'")
+            if not os.path.isfile(self.path):
+                raise ConfigError(f"scene.path = {self.path!r}: no such file (an HDF5 strands file "
+                                  "with /positions and /wisp_offsets is expected)")
         if len(tuple(self.direction)) != 3 or not all(math.isfinite(float(c)) for c in self.direction) \
                 or math.hypot(*map(float, self.direction)) == 0.0:
-            raise ValueError(f"scene.direction must be a non-zero finite 3-vector, got {self.direction!r}")
+            raise ConfigError(f"scene.direction must be a non-zero finite 3-vector, got {self.direction!r}")
         if self.perturbation not in PERTURBATIONS:
-            raise ValueError(f"scene.perturbation must be one of {PERTURBATIONS}, got {self.perturbation!r}")
+            raise ConfigError(f"scene.perturbation must be one of {PERTURBATIONS}, got {self.perturbation!r}")
         _positive("scene.smash_factor", self.smash_factor)
         _positive("scene.jitter", self.jitter, allow_zero=True)
 
@@ -137,18 +155,21 @@ class PhysicsConfig:
         terms = tuple(self.terms)
         for t in terms:
             if t not in TERMS:
-                raise ValueError(f"physics.terms: unknown term {t!r}; expected some of {TERMS}")
+                raise ConfigError(f"physics.terms: unknown term {t!r}; expected some of {TERMS}")
+            if terms.count(t) > 1:
+                raise ConfigError(f"physics.terms lists {t!r} {terms.count(t)} times; list each term once")
         if "strand_collision" in terms:
-            raise ValueError("physics.terms: 'strand_collision' is not implemented yet")
+            raise ConfigError("physics.terms: 'strand_collision' is not implemented yet; "
+                              f"available: {IMPLEMENTED_TERMS}")
         for name in ("gravity", "head_center", "head_velocity"):
             v = tuple(getattr(self, name))
             if len(v) != 3 or not all(math.isfinite(float(c)) for c in v):
-                raise ValueError(f"physics.{name} must be a finite 3-vector, got {v!r}")
+                raise ConfigError(f"physics.{name} must be a finite 3-vector, got {v!r}")
         _positive("physics.head_radius", self.head_radius)
         _positive("physics.head_margin", self.head_margin, allow_zero=True)
         _positive("physics.head_stiffness", self.head_stiffness)
         if self.head_motion not in HEAD_MOTIONS:
-            raise ValueError(f"physics.head_motion must be one of {HEAD_MOTIONS}, got {self.head_motion!r}")
+            raise ConfigError(f"physics.head_motion must be one of {HEAD_MOTIONS}, got {self.head_motion!r}")
         _positive("physics.head_amplitude", self.head_amplitude, allow_zero=True)
         _positive("physics.head_period", self.head_period)
 
@@ -179,16 +200,88 @@ class TimeConfig:
 
 @dataclass
 class SolverConfig:
-    """``[solver]``: PETSc options string (the command line wins) and Hessian filter."""
+    """``[solver]``: PETSc options and the Hessian filter.
+
+    ``options_file`` (PETSc options, one or more per line, ``#`` comments) is read first,
+    then the ``options`` string; a later option wins over an earlier one, and options
+    on the command line win over both.
+    """
 
     options: str = ""
+    options_file: Optional[str] = None
     filter: str = "analytic"
 
     def validate(self) -> None:
         if not isinstance(self.options, str):
-            raise ValueError(f"solver.options must be a string of PETSc options, got {self.options!r}")
+            raise ConfigError(f"solver.options must be a string of PETSc options, got {self.options!r}")
+        _check_options("solver.options", self.options)
+        if self.options_file is not None:
+            if not os.path.isfile(self.options_file):
+                raise ConfigError(f"solver.options_file = {self.options_file!r}: no such file "
+                                  "(a file of PETSc options is expected)")
+            _check_options(f"solver.options_file ({self.options_file})", self._file_text())
         if self.filter not in FILTERS:
-            raise ValueError(f"solver.filter must be one of {FILTERS}, got {self.filter!r}")
+            raise ConfigError(f"solver.filter must be one of {FILTERS}, got {self.filter!r}")
+
+    def _file_text(self) -> str:
+        lines = Path(self.options_file).read_text().splitlines()
+        return " ".join(line.split("#", 1)[0] for line in lines)
+
+    def effective_options(self) -> str:
+        """The options file's options followed by ``options`` (later ones win)."""
+        parts = [self._file_text()] if self.options_file else []
+        parts.append(self.options)
+        return " ".join(p for p in parts if p.strip())
+
+
+def _check_options(where: str, text: str) -> None:
+    try:
+        toks = shlex.split(text)
+    except ValueError as e:
+        raise ConfigError(f"{where}: cannot parse {text!r}: {e}") from None
+    if toks and not toks[0].startswith("-"):
+        raise ConfigError(f"{where}: expected PETSc options starting with '-', got {toks[0]!r} "
+                          f"in {text!r}")
+
+
+VIEWS = ("front", "side", "top")
+
+
+@dataclass
+class OutputConfig:
+    """``[output]``: what the main job writes (DESIGN section 3).
+
+    ``dir``: output folder ("" = ``out/<config file name>``; ``--out`` wins), relative to
+    the working directory.  Frame 0 (the initial state) and every ``every``-th frame are
+    written to ``frames.h5``.  ``xdmf``: write ``frames.xdmf`` for ParaView.
+    ``previews``: PNG renderings of the frames ``preview_frames`` (simulation frame
+    numbers, rounded down to a written frame; negative counts from the end, -1 = last)
+    and a contact sheet of ``contact_sheet`` panels over time (0: none), seen from
+    ``view`` (``front``: x-y plane, ``side``: z-y, ``top``: x-z).
+    """
+
+    dir: str = ""
+    every: int = 1
+    xdmf: bool = True
+    previews: bool = True
+    preview_frames: Sequence[int] = (0, -1)
+    contact_sheet: int = 12
+    view: str = "front"
+
+    def validate(self) -> None:
+        if not isinstance(self.dir, str):
+            raise ConfigError(f"output.dir must be a string (a folder), got {self.dir!r}")
+        _int_at_least("output.every", self.every, 1)
+        for name in ("xdmf", "previews"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"output.{name} must be true or false, got {getattr(self, name)!r}")
+        for f in self.preview_frames:
+            if isinstance(f, bool) or not isinstance(f, int):
+                raise ConfigError(f"output.preview_frames must be a list of frame numbers (integers), "
+                                  f"got {list(self.preview_frames)!r}")
+        _int_at_least("output.contact_sheet", self.contact_sheet, 0)
+        if self.view not in VIEWS:
+            raise ConfigError(f"output.view must be one of {VIEWS}, got {self.view!r}")
 
 
 @dataclass
@@ -198,11 +291,128 @@ class SimConfig:
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     time: TimeConfig = field(default_factory=TimeConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
 
     def validate(self) -> "SimConfig":
-        for part in (self.scene, self.material, self.physics, self.time, self.solver):
+        for part in (self.scene, self.material, self.physics, self.time, self.solver, self.output):
             part.validate()
+        if self.scene.kind in ("wisp4c", "straight") and self.scene.n_pinned > self.scene.n_vertices:
+            raise ConfigError(f"scene.n_pinned = {self.scene.n_pinned} is more than the wisp's "
+                              f"{self.scene.n_vertices} vertices (scene.n_vertices)")
         return self
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+# --------------------------------------------------------------------------- TOML
+TABLES = {"scene": SceneConfig, "material": MaterialConfig, "physics": PhysicsConfig,
+          "time": TimeConfig, "solver": SolverConfig, "output": OutputConfig}
+# keys holding file paths: resolved relative to the config file's folder
+PATH_KEYS = {("scene", "path"), ("solver", "options_file")}
+
+_TOML_TYPES = {bool: "a boolean (true/false)", int: "an integer", float: "a float",
+               str: "a string", list: "an array", dict: "a table"}
+
+
+def _toml_type(v) -> str:
+    for t, name in _TOML_TYPES.items():
+        if type(v) is t:
+            return name
+    return type(v).__name__
+
+
+def _convert(key: str, annotation: str, value):
+    """Check a TOML value against a field's annotation; return the field value."""
+    base = annotation.replace("Optional[", "").rstrip("]") if annotation.startswith("Optional[") \
+        else annotation
+
+    def fail(expected):
+        raise ConfigError(f"{key} = {value!r}: expected {expected}, got {_toml_type(value)}")
+
+    if base == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            fail("a number")
+        return float(value)
+    if base == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            fail("an integer")
+        return value
+    if base == "bool":
+        if not isinstance(value, bool):
+            fail("true or false")
+        return value
+    if base == "str":
+        if not isinstance(value, str):
+            fail("a string")
+        return value
+    if base == "Sequence[float]":
+        if not isinstance(value, list) or len(value) != 3 or \
+                any(isinstance(c, bool) or not isinstance(c, (int, float)) for c in value):
+            fail("an array of 3 numbers, e.g. [0.0, -981.0, 0.0]")
+        return tuple(float(c) for c in value)
+    if base == "Sequence[str]":
+        if not isinstance(value, list) or any(not isinstance(c, str) for c in value):
+            fail("an array of strings")
+        return tuple(value)
+    if base == "Sequence[int]":
+        if not isinstance(value, list) or any(isinstance(c, bool) or not isinstance(c, int) for c in value):
+            fail("an array of integers")
+        return tuple(value)
+    raise AssertionError(f"no TOML conversion for {key}: {annotation}")   # pragma: no cover
+
+
+def config_from_dict(data: dict, base_dir=None) -> SimConfig:
+    """A validated :class:`SimConfig` from the parsed TOML ``data``.
+
+    Relative paths of :data:`PATH_KEYS` are taken relative to ``base_dir``.
+    """
+    if not isinstance(data, dict):
+        raise ConfigError(f"a config is a set of TOML tables, got {_toml_type(data)}")
+    parts = {}
+    for table, value in data.items():
+        if table not in TABLES:
+            raise ConfigError(f"unknown table [{table}]; allowed tables: "
+                              + ", ".join(f"[{t}]" for t in TABLES))
+        if not isinstance(value, dict):
+            raise ConfigError(f"{table} = {value!r}: expected the table [{table}], got {_toml_type(value)}")
+        cls = TABLES[table]
+        known = {f.name: f for f in fields(cls)}
+        kwargs = {}
+        for key, v in value.items():
+            if key not in known:
+                raise ConfigError(f"unknown key {table}.{key} (= {v!r}); allowed keys of [{table}]: "
+                                  + ", ".join(known))
+            v = _convert(f"{table}.{key}", known[key].type, v)
+            if (table, key) in PATH_KEYS and base_dir is not None:
+                v = str((Path(base_dir) / os.path.expanduser(v)).resolve())
+            kwargs[key] = v
+        parts[table] = cls(**kwargs)
+    return SimConfig(**parts).validate()
+
+
+def load_config(path) -> SimConfig:
+    """Read a TOML scene file (DESIGN section 3) into a validated :class:`SimConfig`.
+
+    Raises :class:`ConfigError` whose message starts with the file name and names the
+    key, its value and what is allowed; a missing or unreadable file and TOML syntax
+    errors are ConfigErrors too.
+    """
+    import tomllib
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read the config file: {e.strerror or e}") from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a UTF-8 text file ({e.reason} at byte {e.start})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: invalid TOML: {e}") from None
+    try:
+        return config_from_dict(data, base_dir=path.resolve().parent)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None

@@ -67,9 +67,12 @@ class Integrator:
         local += self._contact_terms(x, False)[0]
         return self.comm.allreduce(local)
 
-    def gradient(self, x):
+    def gradient(self, x, elastic=None):
+        """grad G at x (pinned rows zeroed); ``elastic`` reuses an elastic gradient."""
         dt = self.cfg.time.dt
-        g = self.scene.mass[:, None] * (x - self.xhat) / dt ** 2 + self.asm.gradient(x) - self.f_ext
+        if elastic is None:
+            elastic = self.asm.gradient(x)
+        g = self.scene.mass[:, None] * (x - self.xhat) / dt ** 2 + elastic - self.f_ext
         _, idx, cg = self._contact_terms(x, False)
         if cg is not None:
             g[idx] += cg[0]
@@ -90,8 +93,7 @@ class Integrator:
         n_it = 0
         for it in range(cfg.time.newton_iterations):
             n_it += 1
-            g = self.gradient(x)
-            asm.hessian_band(x)
+            g = self.gradient(x, elastic=asm.assemble(x))
             with self.timers("assembly"):
                 asm.add_mass(sc.mass / dt ** 2)
             _, idx, cg = self._contact_terms(x, True)

@@ -15,7 +15,8 @@ from lc_petsc.integrator import Integrator
 from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.sources import source_from_config
 from lc_petsc.scene.state import LocalScene
-from lc_petsc.solver import DEFAULTS, LinearSolver, OptionsScope, choose_mat_type
+from lc_petsc.solver import (DEFAULTS, LinearSolver, OptionsScope, choose_mat_type,
+                             choose_pmat_type)
 from lc_petsc.timing import Timers
 
 
@@ -80,13 +81,14 @@ class Simulator:
         parallel.collective_raise(comm, problems)
         self.scene = scene
         x0 = apply_perturbation(batch, cfg.scene)
-        self.scope = OptionsScope(cfg.solver.options, defaults=None)
+        self.scope = OptionsScope(cfg.solver.effective_options(), defaults=None)
         mat_type = choose_mat_type(self.scope)
         with self.scope.active():
             self.assembler = Assembler(scene, self.pcomm, self.timers, filter=cfg.solver.filter,
-                                       mat_type=mat_type)
+                                       mat_type=mat_type,
+                                       pmat_type=choose_pmat_type(self.scope, mat_type))
         self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), self.scope,
-                                   self.assembler.mat_type)
+                                   self.assembler.mat_type, P=self.assembler.pmat)
         self.head = HeadMotion(cfg.physics)
         self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg, self.head)
         self.integrator.x = x0
@@ -118,6 +120,12 @@ class Simulator:
         sizes = np.concatenate(self.comm.allgather(np.diff(self.scene.offsets)))
         return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
 
+    def terms_run(self):
+        """The modelled terms: elastic terms with elements built, plus gravity and head
+        contact when switched on (terms that are off are never evaluated)."""
+        on = set(self.config.physics.terms)
+        return list(self.scene.terms) + [t for t in ("gravity", "head_collision") if t in on]
+
     def summary(self):
         from mpi4py import MPI
         tim = {k: self.comm.allreduce(v, op=MPI.MAX) for k, v in self.timers.as_dict().items()}
@@ -132,6 +140,7 @@ class Simulator:
             "ksp_iterations": list(self.solver.iterations),
             "ksp_reasons": list(self.solver.reasons),
             "converged": all(not r.startswith("DIVERGED") for r in self.solver.reasons),
+            "terms": self.terms_run(),
             "petsc_options": self.solver.describe(),
             "mat_type": self.assembler.mat.getType(),
             "config": self.config.to_dict(),
@@ -140,6 +149,8 @@ class Simulator:
     def close(self):
         self.solver.ksp.destroy()
         self.assembler.mat.destroy()
+        if self.assembler.pmat is not None:
+            self.assembler.pmat.destroy()
         self.integrator.xv.destroy()
         self.integrator.bv.destroy()
 

@@ -133,6 +133,22 @@ def choose_mat_type(scope: OptionsScope, default="baij") -> str:
     return default
 
 
+def choose_pmat_type(scope: OptionsScope, mat_type: str):
+    """Matrix type of a separate preconditioning matrix, or None to use the operator.
+
+    ``-lc_pmat_type aij|same``; by default block Jacobi on a BAIJ operator gets an AIJ
+    copy (same values): see ``Assembler._create_pmat`` for why.
+    """
+    explicit = scope.lookup("lc_pmat_type")
+    if explicit:
+        if explicit not in ("aij", "same"):
+            raise ValueError(f"-lc_pmat_type {explicit!r}: use aij or same")
+        return None if explicit == "same" else explicit
+    pc = (scope.lookup("pc_type") or DEFAULTS["pc_type"]).lower()
+    base = mat_type.lower().replace("mpi", "").replace("seq", "")
+    return "aij" if pc == "bjacobi" and base == "baij" else None
+
+
 def _libpetsc():
     for name in ("libpetsc_real.so.3.18", "libpetsc.so.3.18"):
         try:
@@ -157,7 +173,7 @@ def set_bjacobi_local_blocks(pc, lens):
 
 
 class LinearSolver:
-    def __init__(self, A, wisp_rows, scope: OptionsScope, mat_type: str):
+    def __init__(self, A, wisp_rows, scope: OptionsScope, mat_type: str, P=None):
         self.scope = scope
         # exact per-wisp sub-solves (see module doc); PETSc would pick ICC(0) with a
         # Manteuffel shift for a symmetric matrix, which is not exact here
@@ -166,7 +182,7 @@ class LinearSolver:
         else:
             self.extra = {"sub_pc_type": "ilu"}
         self.ksp = ksp = PETSc.KSP().create(comm=A.getComm())
-        ksp.setOperators(A)
+        ksp.setOperators(A, A if P is None else P)
         with scope.active(self.extra):
             ksp.setType(DEFAULTS["ksp_type"])
             ksp.setTolerances(rtol=float(DEFAULTS["ksp_rtol"]), max_it=int(DEFAULTS["ksp_max_it"]))
@@ -179,8 +195,9 @@ class LinearSolver:
 
     def describe(self):
         pc = self.ksp.getPC()
+        A, P = self.ksp.getOperators()
         return (f"-ksp_type {self.ksp.getType()} -pc_type {pc.getType()} "
-                f"-mat_type {self.ksp.getOperators()[0].getType()} "
+                f"-mat_type {A.getType()} (preconditioner built from {P.getType()}) "
                 f"(options: {self.scope.effective()})")
 
     def solve(self, b, x, frame, newton_it):

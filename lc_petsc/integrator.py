@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from lc_petsc.elements import head_contact
+from lc_petsc.parallel import collectively
 
 
 class Integrator:
@@ -59,12 +60,13 @@ class Integrator:
     def incremental_potential(self, x):
         """G(x), summed over all ranks."""
         dt = self.cfg.time.dt
-        d = (x - self.xhat)[self.free]
-        m = self.scene.mass[self.free]
-        local = 0.5 / dt ** 2 * float(np.sum(m[:, None] * d * d))
-        local += self.asm.energy(x)
-        local -= float(np.sum(self.f_ext[self.free] * x[self.free]))
-        local += self._contact_terms(x, False)[0]
+        with collectively(self.comm, f"frame {self.frame}: incremental potential"):
+            d = (x - self.xhat)[self.free]
+            m = self.scene.mass[self.free]
+            local = 0.5 / dt ** 2 * float(np.sum(m[:, None] * d * d))
+            local += self.asm.energy(x)
+            local -= float(np.sum(self.f_ext[self.free] * x[self.free]))
+            local += self._contact_terms(x, False)[0]
         return self.comm.allreduce(local)
 
     def gradient(self, x, elastic=None):
@@ -93,13 +95,14 @@ class Integrator:
         n_it = 0
         for it in range(cfg.time.newton_iterations):
             n_it += 1
-            g = self.gradient(x, elastic=asm.assemble(x))
-            with self.timers("assembly"):
-                asm.add_mass(sc.mass / dt ** 2)
-            _, idx, cg = self._contact_terms(x, True)
-            if cg is not None:
-                with self.timers("collision"):
-                    asm.add_diagonal(idx, cg[1])
+            with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
+                g = self.gradient(x, elastic=asm.assemble(x))
+                with self.timers("assembly"):
+                    asm.add_mass(sc.mass / dt ** 2)
+                _, idx, cg = self._contact_terms(x, True)
+                if cg is not None:
+                    with self.timers("collision"):
+                        asm.add_diagonal(idx, cg[1])
             asm.commit()
             with self.timers("solve"):
                 self.bv.array[:] = -g.ravel()

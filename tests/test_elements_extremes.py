@@ -474,3 +474,14 @@ def test_error_index_is_global_in_large_batches(term):
     kk = k.copy()
     kk[bad] = -1.0
     _expect_error(lambda *a: mod.hessian(*a), (x, rest, kk), f"{term} stiffness at {bad}", index=bad)
+
+
+@pytest.mark.parametrize("term,k", [("stretch", 2), ("bend", 3), ("twist", 4)])
+def test_empty_batch(term, k):
+    """A rank may hold no element of a term: every kernel takes n = 0."""
+    mod = {"stretch": stretch, "bend": bend, "twist": twist}[term]
+    x = np.zeros((0, k, 3))
+    rest, stiff = np.zeros(0) + 1.0, np.zeros(0)
+    assert mod.energy(x, rest, stiff).shape == (0,)
+    g, h = mod.gradient_hessian(x, rest, stiff)
+    assert g.shape == (0, k, 3) and h.shape == (0, 3 * k, 3 * k)

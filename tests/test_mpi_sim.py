@@ -64,3 +64,22 @@ def summ_rest(cfg):
     from lc_petsc.scene.sources import source_from_config
     src = source_from_config(cfg.scene, cfg.material, cfg.physics)
     return src.load(0, src.n_wisps).positions
+
+
+def test_error_on_the_last_rank_raises_on_every_rank():
+    """A failure inside one rank's local work must not leave the others waiting."""
+    from lc_petsc.parallel import SimulationError
+    from lc_petsc.simulator import build_simulator
+
+    sim = build_simulator(small_hairball_config(n_wisps=4, frames=1))
+    try:
+        if comm.rank == comm.size - 1:
+            def broken(x):
+                raise FloatingPointError("injected failure")
+            sim.assembler.assemble = broken
+        with pytest.raises(SimulationError,
+                           match=rf"frame 0, Newton iteration 0: rank {comm.size - 1}: "
+                                 r"FloatingPointError: injected failure"):
+            sim.step()
+    finally:
+        sim.close()

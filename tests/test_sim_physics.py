@@ -200,13 +200,18 @@ def test_mumps_with_baij_is_refused_with_advice():
         _sim(cfg)
 
 
-def test_one_bjacobi_block_per_wisp():
+def test_one_bjacobi_block_per_wisp(tmp_path):
     cfg = small_hairball_config(n_wisps=4, frames=1)
     sim = _sim(cfg)
     try:
         sim.run()
-        viewer = PETSc.Viewer().createASCII("/dev/null")  # exercise -ksp_view path
+        # What -ksp_view prints: one block per wisp, built from the AIJ copy.
+        log = tmp_path / "ksp_view.txt"
+        viewer = PETSc.Viewer().createASCII(str(log))
         sim.solver.ksp.view(viewer)
+        viewer.destroy()
+        text = log.read_text()
+        assert "type: bjacobi" in text and "number of blocks = 4" in text, text
         pc = sim.solver.ksp.getPC()
         assert pc.getType() == "bjacobi"
         from lc_petsc.solver import _libpetsc

@@ -30,13 +30,20 @@ def test_wisp4c_checked_numbers():
 
 def test_partition_whole_wisps_balanced():
     sizes = np.array([101] * 7 + [20, 300, 5, 5, 101])
-    for P in (1, 2, 3, 5, 20):
+    for P in (1, 2, 3, 5, 12):
         r = parallel.partition(sizes, P)
-        assert r[0] == 0 and r[-1] == len(sizes) and np.all(np.diff(r) >= 0)
+        assert r[0] == 0 and r[-1] == len(sizes) and np.all(np.diff(r) >= 1)
         loads = [sizes[r[p]:r[p + 1]].sum() for p in range(P)]
         assert sum(loads) == sizes.sum()
         if P <= 3:
             assert max(loads) - sizes.sum() / P <= sizes.max()
+
+
+def test_partition_gives_every_rank_a_wisp_or_says_how_many_ranks():
+    # One huge wisp would take every rank's share by vertex count alone.
+    assert list(parallel.partition(np.array([1000, 4, 4, 4]), 4)) == [0, 1, 2, 3, 4]
+    with pytest.raises(ValueError, match=r"2 wisp\(s\) but the run uses 3 MPI ranks.*mpiexec -n 2"):
+        parallel.partition(np.array([50, 50]), 3)
 
 
 def test_hairball_wisps_independent_of_range():

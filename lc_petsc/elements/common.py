@@ -76,7 +76,7 @@ def check_finite(v, n, term, name):
 
 def coordinate_scale(x):
     """Largest coordinate magnitude of each element of x (n, k, 3): round-off reference."""
-    return np.abs(x.reshape(x.shape[0], -1)).max(axis=1)
+    return np.abs(x.reshape(x.shape[0], x.shape[1] * x.shape[2])).max(axis=1, initial=0.0)
 
 
 def edge_lengths(e, scale, term, edge_name, offset=0):

@@ -67,6 +67,7 @@ class Assembler:
         self.padded = {name: PaddedTerm(t, nv) for name, t in scene.terms.items()}
         self.mat = self._create_matrix(mat_type)
         self.pmat = self._create_pmat(pmat_type)
+        self.commit()   # first fill (PETSc's one-off row compression) at build, not frame 0
 
     # ------------------------------------------------------------------ pattern
     def _new_matrix(self, mat_type):
@@ -184,6 +185,17 @@ class Assembler:
     def add_diagonal(self, idx, blocks):
         """Add 3x3 blocks (m, 3, 3) on the diagonal of local vertices idx (unique)."""
         self.B[idx, self.b] += blocks
+
+    def add_band_blocks(self, idx, h00, h01, h11):
+        """Add 2x2 blocks of segments (v, v+1) for the local first vertices v = idx
+        (unique, never a wisp's last vertex): h00 to block (v, v), h01 to (v, v+1) and
+        its transpose to (v+1, v), h11 to (v+1, v+1); all (m, 3, 3).  Used by strand
+        contact (lc_petsc/contact.py); needs a half bandwidth >= 1."""
+        B, b = self.B, self.b
+        B[idx, b] += h00
+        B[idx + 1, b] += h11
+        B[idx, b + 1] += h01
+        B[idx + 1, b - 1] += h01.transpose(0, 2, 1)
 
     def add_mass(self, diag):
         """Add diag (nv,) * I on the diagonal (M / dt^2)."""

@@ -25,7 +25,7 @@ PERTURBATIONS = ("none", "smash", "jitter", "straighten")
 TERMS = ("stretch", "bend", "twist", "gravity", "head_collision", "strand_collision")
 HEAD_MOTIONS = ("static", "shake", "translate")
 FILTERS = ("analytic", "numerical", "none")
-IMPLEMENTED_TERMS = tuple(t for t in TERMS if t != "strand_collision")
+IMPLEMENTED_TERMS = TERMS
 
 
 class ConfigError(ValueError):
@@ -150,6 +150,11 @@ class PhysicsConfig:
     head_amplitude: float = 0.5
     head_period: float = 6.0
     head_velocity: Sequence[float] = (0.0, 0.0, 0.0)
+    # strand_collision (docs/contact.md): penalty 1/2 k (d0 - d)^2 on the distance d of two
+    # segments of different wisps below the thickness d0 (None: twice the smallest vertex
+    # radius of the scene, i.e. twice the tip radius); k in dyn/cm
+    strand_thickness: Optional[float] = None
+    strand_stiffness: float = 1.0e5
 
     def validate(self) -> None:
         terms = tuple(self.terms)
@@ -158,9 +163,6 @@ class PhysicsConfig:
                 raise ConfigError(f"physics.terms: unknown term {t!r}; expected some of {TERMS}")
             if terms.count(t) > 1:
                 raise ConfigError(f"physics.terms lists {t!r} {terms.count(t)} times; list each term once")
-        if "strand_collision" in terms:
-            raise ConfigError("physics.terms: 'strand_collision' is not implemented yet; "
-                              f"available: {IMPLEMENTED_TERMS}")
         for name in ("gravity", "head_center", "head_velocity"):
             v = tuple(getattr(self, name))
             if len(v) != 3 or not all(math.isfinite(float(c)) for c in v):
@@ -172,6 +174,9 @@ class PhysicsConfig:
             raise ConfigError(f"physics.head_motion must be one of {HEAD_MOTIONS}, got {self.head_motion!r}")
         _positive("physics.head_amplitude", self.head_amplitude, allow_zero=True)
         _positive("physics.head_period", self.head_period)
+        if self.strand_thickness is not None:
+            _positive("physics.strand_thickness", self.strand_thickness)
+        _positive("physics.strand_stiffness", self.strand_stiffness)
 
 
 @dataclass

@@ -12,6 +12,13 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
   G(x + alpha dx) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
 * v_{n+1} = (x_{n+1} - x_n) / dt.
+* Strand-strand contact (``strand``, a :class:`lc_petsc.contact.StrandContact`, set by
+  the simulator when ``strand_collision`` is on) adds its penalty to G, its gradient,
+  its band blocks to the Newton matrix and rebuilds the contact matrix every Newton
+  iteration; its calls are collective, so they run outside the rank-local guarded
+  blocks.  After each frame the active pairs and the minimum segment distance at the
+  new positions are recorded (``contact_pairs``, ``contact_deep_pairs`` closer than
+  half the thickness, ``contact_min_distance``).
 """
 
 from __future__ import annotations
@@ -39,6 +46,10 @@ class Integrator:
         self.ksp_iterations = []
         self.line_search_alphas = []
         self.xv, self.bv = assembler.mat.createVecs()
+        self.strand = None
+        self.contact_pairs = []
+        self.contact_deep_pairs = []
+        self.contact_min_distance = []
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian):
@@ -67,7 +78,10 @@ class Integrator:
             local += self.asm.energy(x)
             local -= float(np.sum(self.f_ext[self.free] * x[self.free]))
             local += self._contact_terms(x, False)[0]
-        return self.comm.allreduce(local)
+        total = self.comm.allreduce(local)
+        if self.strand is not None:
+            total += self.strand.energy(x)
+        return total
 
     def gradient(self, x, elastic=None):
         """grad G at x (pinned rows zeroed); ``elastic`` reuses an elastic gradient."""
@@ -103,6 +117,8 @@ class Integrator:
                 if cg is not None:
                     with self.timers("collision"):
                         asm.add_diagonal(idx, cg[1])
+            if self.strand is not None:
+                g += self.strand.assemble(x, asm)
             asm.commit()
             with self.timers("solve"):
                 self.bv.array[:] = -g.ravel()
@@ -130,6 +146,11 @@ class Integrator:
             raise FloatingPointError(f"frame {self.frame}: non-finite position at global vertex "
                                      f"{min(b for b in bad_any if b >= 0)}")
         self.newton_iterations.append(n_it)
+        if self.strand is not None:
+            pairs, deep, dmin = self.strand.measure(x)
+            self.contact_pairs.append(pairs)
+            self.contact_deep_pairs.append(deep)
+            self.contact_min_distance.append(dmin)
         self.v = (x - x_old) / dt
         self.x = x
         self.t = self.t_next

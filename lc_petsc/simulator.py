@@ -3,7 +3,9 @@ assembly + solver -> integrator)."""
 
 from __future__ import annotations
 
+import atexit
 import time
+import weakref
 
 import numpy as np
 from petsc4py import PETSc
@@ -87,11 +89,23 @@ class Simulator:
             self.assembler = Assembler(scene, self.pcomm, self.timers, filter=cfg.solver.filter,
                                        mat_type=mat_type,
                                        pmat_type=choose_pmat_type(self.scope, mat_type))
-        self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), self.scope,
-                                   self.assembler.mat_type, P=self.assembler.pmat)
+        self.strand, operator, pmat = None, self.assembler.mat, self.assembler.pmat
+        if "strand_collision" in cfg.physics.terms:
+            self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, self.scope)
+            operator = self.strand.operator(self.assembler.mat)
+            pmat = self.assembler.mat if pmat is None else pmat
+        self.solver = LinearSolver(operator, 3 * np.diff(scene.offsets), self.scope,
+                                   self.assembler.mat_type, P=pmat)
         self.head = HeadMotion(cfg.physics)
         self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg, self.head)
         self.integrator.x = x0
+        self.integrator.strand = self.strand
+        if self.strand is not None:
+            # A Python-shell operator still alive when petsc4py finalizes crashes the
+            # interpreter at exit: close a simulator that was never closed before that
+            # (atexit runs handlers in reverse order; petsc4py registered earlier).
+            ref = weakref.ref(self)
+            atexit.register(lambda: ref() is not None and ref().close())
         self.wall = 0.0
 
     # ------------------------------------------------------------------ running
@@ -124,7 +138,8 @@ class Simulator:
         """The modelled terms: elastic terms with elements built, plus gravity and head
         contact when switched on (terms that are off are never evaluated)."""
         on = set(self.config.physics.terms)
-        return list(self.scene.terms) + [t for t in ("gravity", "head_collision") if t in on]
+        return list(self.scene.terms) + [t for t in ("gravity", "head_collision", "strand_collision")
+                                         if t in on]
 
     def summary(self):
         from mpi4py import MPI
@@ -144,7 +159,20 @@ class Simulator:
             "petsc_options": self.solver.describe(),
             "mat_type": self.assembler.mat.getType(),
             "config": self.config.to_dict(),
+            **self._contact_summary(),
         }
+
+    def _contact_summary(self):
+        """Strand contact figures (empty when strand_collision is off)."""
+        if self.strand is None:
+            return {}
+        dmin = self.integrator.contact_min_distance
+        return {"contact": {
+            "thickness": self.strand.d0, "stiffness": self.strand.k,
+            "pairs_per_frame": list(self.integrator.contact_pairs),
+            "pairs_below_half_thickness_per_frame": list(self.integrator.contact_deep_pairs),
+            "min_distance_per_frame": [None if not np.isfinite(d) else d for d in dmin],
+            "min_distance": float(min(dmin)) if dmin and np.isfinite(min(dmin)) else None}}
 
     def close(self):
         self.solver.ksp.destroy()
@@ -153,6 +181,25 @@ class Simulator:
             self.assembler.pmat.destroy()
         self.integrator.xv.destroy()
         self.integrator.bv.destroy()
+        if self.strand is not None:
+            self.strand.destroy()
+
+
+def _strand_contact(scene, comm, pcomm, timers, cfg, scope):
+    """The strand-strand contact of ``cfg`` (docs/contact.md); thickness default: twice
+    the smallest vertex radius of the scene."""
+    from mpi4py import MPI
+    from lc_petsc.contact import StrandContact
+    if (scope.lookup("ksp_type") or "").lower() == "preonly":
+        raise ValueError("strand_collision: the operator is the strand matrix plus a contact "
+                         "matrix and the preconditioner is built from the strand matrix only, so "
+                         "-ksp_type preonly would not solve the Newton system; use a Krylov "
+                         "method (e.g. -ksp_type cg)")
+    d0 = cfg.physics.strand_thickness
+    if d0 is None:
+        d0 = 2.0 * comm.allreduce(float(scene.radius.min(initial=np.inf)), op=MPI.MIN)
+    return StrandContact(scene, comm, pcomm, timers, d0, cfg.physics.strand_stiffness,
+                         filter=cfg.solver.filter)
 
 
 def build_simulator(config: SimConfig, comm=None) -> Simulator:

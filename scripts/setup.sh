@@ -4,8 +4,19 @@
 # lc_petsc installed editable. Safe to run again: every step is skipped when already done.
 #
 #   bash scripts/setup.sh            # install
+#   bash scripts/setup.sh --demo     # install, then run configs/hairball_demo.toml under
+#                                    # mpiexec -n 2 into out/hairball_demo (about a minute)
 #   LC_PETSC_VENV=/path bash ...     # put the environment elsewhere
 set -euo pipefail
+
+demo=0
+for arg in "$@"; do
+  case "$arg" in
+    --demo) demo=1 ;;
+    -h|--help) sed -n '2,10p' "$0"; exit 0 ;;
+    *) echo "setup: unknown argument '$arg' (expected --demo)" >&2; exit 2 ;;
+  esac
+done
 
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 venv=${LC_PETSC_VENV:-$here/.venv}
@@ -50,10 +61,22 @@ if [ ! -f "$stamp" ] || [ "$here/pyproject.toml" -nt "$stamp" ]; then
   touch "$stamp"
 fi
 
-"$venv/bin/python" - <<'PY'
+LC_NUMPY="$numpy_version" "$venv/bin/python" - <<'PY'
+import os
 import numpy, petsc4py
 from petsc4py import PETSc
+import h5py, matplotlib, tqdm  # noqa: F401  (the main job's dependencies)
 import lc_petsc
+assert numpy.__version__ == os.environ["LC_NUMPY"], (
+    f"pip replaced Debian's NumPy {os.environ['LC_NUMPY']} by {numpy.__version__}")
 print(f"setup: ok: lc_petsc {lc_petsc.__version__}, PETSc {'.'.join(map(str, PETSc.Sys.getVersion()))}, "
       f"petsc4py {petsc4py.__version__}, NumPy {numpy.__version__}")
 PY
+
+if [ "$demo" -eq 1 ]; then
+  echo "setup: running the demo: mpiexec -n 2 drivers/simulate.py configs/hairball_demo.toml --out out/hairball_demo"
+  cd "$here"
+  OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 \
+    mpiexec --oversubscribe -n 2 "$venv/bin/python" drivers/simulate.py configs/hairball_demo.toml \
+    --out out/hairball_demo
+fi

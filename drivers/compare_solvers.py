@@ -1,0 +1,87 @@
+"""Solver comparison on the same Newton systems (issue 6, SPEC 5; paper's Table 3).
+
+  mpiexec -n P python drivers/compare_solvers.py [--wisps 250 500 1000 2000]
+      [--sets default mumps_cholesky ...] [--sets-dir configs/solvers] [--budget 60]
+      [--frames 1] [--config SCENE.toml] [--no-head-contact] [--no-reference]
+      [--skip-after-budget]
+      [--out out/compare_solvers] [PETSc options ...]
+
+For each hairball size (or the scene of ``--config``; ``--wisps`` then sets
+``scene.n_wisps``), the simulator runs ``--frames`` frames with its own solver while every
+Newton system (matrix + right-hand side) is recorded; every option set
+(``configs/solvers/*.opts``: drop a file there to add one) then solves exactly those
+systems.  Reported per set: setup and solve time, Krylov iterations, converged reason,
+true relative residual, error against a MUMPS LU solve of the same system, RSS growth.
+A set that exceeds ``--budget`` seconds (per size) is stopped and reported as such.
+PETSc options on the command line apply to EVERY set (they win over the sets' files).
+
+Outputs in --out: rows.csv (one row per set and system), summary.csv, results.json,
+table.md (paper's Table 3 layout, ratios against ``default``), time_vs_wisps.png.
+"""
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+import petsc4py
+
+petsc4py.init(sys.argv)
+from mpi4py import MPI  # noqa: E402
+
+from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,  # noqa: E402
+                             TimeConfig, load_config)
+from lc_petsc.studies.compare import hairball_config, run_comparison  # noqa: E402
+from lc_petsc.studies.systems import option_sets  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def base_config(head_contact=True, newton=3):
+    terms = ("stretch", "bend", "twist", "gravity") + (("head_collision",) if head_contact else ())
+    return SimConfig(scene=SceneConfig(kind="hairball", n_wisps=250),
+                     material=MaterialConfig(youngs_modulus=1.0e9),
+                     physics=PhysicsConfig(terms=terms, head_motion="shake"),
+                     time=TimeConfig(dt=1.0 / 30.0, frames=1, newton_iterations=newton))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--wisps", type=int, nargs="+", default=[250, 500])
+    ap.add_argument("--sets", nargs="+", default=None, help="option set names (default: all)")
+    ap.add_argument("--sets-dir", default=str(ROOT / "configs" / "solvers"))
+    ap.add_argument("--budget", type=float, default=60.0, help="seconds per set and size")
+    ap.add_argument("--frames", type=int, default=1, help="frames recorded (3 systems each)")
+    ap.add_argument("--newton", type=int, default=3)
+    ap.add_argument("--config", default=None, help="scene TOML instead of the hairball")
+    ap.add_argument("--no-head-contact", action="store_true")
+    ap.add_argument("--skip-after-budget", action="store_true",
+                    help="a set stopped by the budget at one size is not run at larger sizes "
+                         "(reported as over budget)")
+    ap.add_argument("--no-reference", action="store_true", help="skip the direct reference solves")
+    ap.add_argument("--out", default="out/compare_solvers")
+    args, _ = ap.parse_known_args(argv)
+    comm = MPI.COMM_WORLD
+    sets = option_sets(args.sets_dir, args.sets)
+    if args.config:
+        base = load_config(args.config)
+        base.time.newton_iterations = args.newton
+    else:
+        base = base_config(not args.no_head_contact, args.newton)
+    log = print if comm.rank == 0 else (lambda *a, **k: None)
+    log(f"{comm.size} rank(s); sets: {', '.join(sets)}; budget {args.budget:g} s per set and size")
+    cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)
+    run_comparison(lambda n: hairball_config(base, n), args.wisps, sets, comm, args.out,
+                   budget_s=args.budget, frames=args.frames, reference=not args.no_reference,
+                   skip_after_budget=args.skip_after_budget,
+                   log=lambda *a: (log(*a), sys.stdout.flush()),
+                   meta={"command": cmd, "sets": sets, "head_contact": not args.no_head_contact})
+    log(f"wrote {args.out}/table.md, summary.csv, rows.csv, results.json"
+        + (", time_vs_wisps.png" if len(set(args.wisps)) > 1 else ""))
+    if comm.rank == 0:
+        print((Path(args.out) / "table.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

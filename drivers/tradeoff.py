@@ -1,0 +1,92 @@
+"""Speed versus accuracy (issue 6): what fewer Newton iterations, looser Krylov
+tolerances, bigger steps, a cheaper filter or a line search cost in accuracy.
+
+  mpiexec -n P python drivers/tradeoff.py [--scene hairball|smash|jitter|CONFIG.toml]
+      [--wisps 10] [--duration 1.0] [--axes newton ksp_rtol dt filter line_search]
+      [--ref-dt 0.008333] [--ref-tol 1e-9] [--set NAME] [--cost wall_per_sim_s|cpu_per_sim_s] [--out out/tradeoff]
+      [PETSc options ...]
+
+A reference trajectory (Newton with the unfiltered Hessian and the line search to
+max|dx| < --ref-tol cm, at most 100 iterations, GMRES since that Hessian may be
+indefinite, falling back to the analytic filter if that fails; Krylov rtol 1e-12;
+dt = --ref-dt, default 1/120) and variants along each axis (Newton
+iterations 1, 2, 3, 6, 12; ksp rtol 1e-2 .. 1e-10; dt 1/30, 1/60, 1/120; filter
+analytic, numerical, none; line search on), all from the base setting dt 1/30, 3 Newton
+iterations, rtol 1e-6, analytic filter, no line search.  Positions and energies are
+compared at the common output times (every 1/30 s).  ``--set NAME`` runs every
+variant with the solver set configs/solvers/NAME.opts (the reference keeps the default
+exact per-wisp solver).
+
+Outputs in --out: tradeoff.csv, tradeoff.json, pareto.png (cost vs RMS error, front
+highlighted, unstable variants listed), recommendations.md.  Unstable variants (NaN,
+failed solves, blow-up) are rows with status "unstable", the failure kind, frame and
+message: the study never stops for them.
+"""
+
+import argparse
+import shlex
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import petsc4py
+
+petsc4py.init(sys.argv)
+from mpi4py import MPI  # noqa: E402
+
+from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,  # noqa: E402
+                             TimeConfig, load_config)
+from lc_petsc.studies.systems import read_options_file  # noqa: E402
+from lc_petsc.studies.tradeoff import (BASE, default_variants, reference_settings,  # noqa: E402
+                                       run_study)
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def scene_config(scene, wisps=20):
+    """Built-in study scenes: a small shaking hairball, the Smash and Jitter wisps."""
+    if scene == "hairball":
+        return SimConfig(scene=SceneConfig(kind="hairball", n_wisps=wisps, seed=3),
+                         material=MaterialConfig(youngs_modulus=1.0e9),
+                         physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity", "head_collision"),
+                                               head_motion="shake", head_amplitude=0.5, head_period=1.0))
+    if scene in ("smash", "jitter"):
+        return SimConfig(scene=SceneConfig(kind="wisp4c", perturbation=scene, smash_factor=0.4),
+                         material=MaterialConfig(youngs_modulus=3.9e9),
+                         physics=PhysicsConfig(terms=("stretch", "bend", "twist")))
+    return load_config(scene)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", default="hairball")
+    ap.add_argument("--wisps", type=int, default=10)
+    ap.add_argument("--duration", type=float, default=1.0, help="simulated seconds")
+    ap.add_argument("--axes", nargs="+", default=None,
+                    choices=["newton", "ksp_rtol", "dt", "filter", "line_search"])
+    ap.add_argument("--ref-dt", type=float, default=1.0 / 120.0)
+    ap.add_argument("--ref-tol", type=float, default=1e-9)
+    ap.add_argument("--set", default=None, help="solver set of configs/solvers for every run")
+    ap.add_argument("--blowup", type=float, default=5.0)
+    ap.add_argument("--cost", default="wall_per_sim_s", choices=["wall_per_sim_s", "cpu_per_sim_s"],
+                    help="cost axis of the Pareto plot and the recommendations")
+    ap.add_argument("--out", default="out/tradeoff")
+    args, _ = ap.parse_known_args(argv)
+    comm = MPI.COMM_WORLD
+    cfg = scene_config(args.scene, args.wisps)
+    opts = read_options_file(ROOT / "configs" / "solvers" / f"{args.set}.opts") if args.set else ""
+    base = replace(BASE, options=opts)
+    ref = reference_settings(args.ref_dt, args.ref_tol)   # the default exact solver, whatever --set
+    log = print if comm.rank == 0 else (lambda *a, **k: None)
+    cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)
+    run_study(cfg, default_variants(base, args.axes), comm, args.out, duration=args.duration,
+              ref=ref, blowup=args.blowup, cost=args.cost, log=lambda *a: (log(*a), sys.stdout.flush()),
+              meta={"command": cmd, "scene": args.scene if args.scene != "hairball"
+                    else f"hairball {args.wisps} wisps", "solver_set": args.set})
+    if comm.rank == 0:
+        print((Path(args.out) / "recommendations.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,364 @@
+"""The main job (DESIGN section 3): one scene file in, frames + XDMF + previews + summary out.
+
+``mpiexec -n P python drivers/simulate.py CONFIG.toml [--frames N] [--out DIR] [--quiet]
+[PETSc options ...]``; ``drivers/simulate.py`` only calls :func:`main`.
+
+Order of work, and what a failure at each step leaves behind:
+
+1. command line and config file are checked on every rank (each rank reads the small
+   TOML file; they all reach the same verdict).  Any problem is printed once, by rank 0,
+   as ``simulate.py: error: <file>: <key> = <value>: <what is allowed>``; every rank
+   exits with status 2; nothing is written.
+2. PETSc is initialised with the remaining command-line options, which override the
+   config's solver options; the simulator is built (scene, partition, matrix, KSP).
+   Problems found here (a bad strands file, a matrix type a solver refuses, a PETSc
+   option PETSc rejects) are collective: reported once, exit status 2, nothing written.
+3. Only then is the output folder created and ``frames.h5`` opened; frame 0 (the
+   initial state) is written, then every ``output.every``-th frame.  A run that fails
+   part-way (a diverged linear solve, a non-finite position) keeps the frames written so
+   far, writes ``frames.xdmf`` and ``summary.json`` with ``"error"`` set, and exits 3.
+4. Rank 0 renders the previews from ``frames.h5``, writes ``summary.json`` and prints
+   the report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
+PROG = "simulate.py"
+
+
+class UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that raises instead of printing/exiting (so only rank 0 reports)."""
+
+    def error(self, message):
+        raise UsageError(message)
+
+
+def make_parser():
+    p = _Parser(
+        prog=PROG, allow_abbrev=False, add_help=False,
+        usage="mpiexec -n P python drivers/simulate.py CONFIG.toml [--frames N] [--out DIR] "
+              "[--quiet] [PETSc options ...]",
+        description="Run the scene CONFIG.toml and write frames.h5, frames.xdmf, previews and "
+                    "summary.json to the output folder.",
+        epilog="Every other option (single dash, e.g. -ksp_type cg -pc_type hypre -log_view) "
+               "goes to PETSc and overrides the config's [solver] options.")
+    p.add_argument("config", metavar="CONFIG.toml", help="scene file (see configs/)")
+    p.add_argument("--frames", type=int, metavar="N", help="run N frames instead of time.frames")
+    p.add_argument("--out", metavar="DIR", help="output folder (default: output.dir, "
+                                                 "else out/<config name>)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--restart", metavar="CHECKPOINT", help=argparse.SUPPRESS)
+    p.add_argument("-h", "--help", action="store_true", help="show this help and exit")
+    return p
+
+
+def _say(comm, text, stream=None):
+    if comm.rank == 0:
+        print(text, file=stream or sys.stdout, flush=True)
+
+
+def _fail(comm, message, code=EXIT_USAGE):
+    _say(comm, f"{PROG}: error: {message}", sys.stderr)
+    return code
+
+
+def parse_command_line(argv):
+    """(args, petsc_argv) from ``argv``; raises UsageError."""
+    if "-h" in argv or "--help" in argv:
+        return argparse.Namespace(help=True), []
+    args, extra = make_parser().parse_known_args(argv)
+    if args.help:
+        return args, []
+    if args.frames is not None and args.frames < 0:
+        raise UsageError(f"--frames must be an integer >= 0, got {args.frames}")
+    if args.restart is not None:
+        raise UsageError("--restart: checkpoints are not implemented yet")
+    if extra and not extra[0].startswith("-"):
+        hint = ""
+        if str(args.config).startswith("-") or not str(args.config).endswith(".toml"):
+            hint = " (give CONFIG.toml before the PETSc options)"
+        raise UsageError(f"unexpected argument {extra[0]!r}{hint}")
+    if any(t.endswith(".toml") for t in extra):
+        raise UsageError(f"give CONFIG.toml before the PETSc options (got {args.config!r} "
+                         f"as the config and {[t for t in extra if t.endswith('.toml')][0]!r} "
+                         "among the PETSc options)")
+    return args, extra
+
+
+def output_dir(args, cfg):
+    if args.out:
+        return Path(args.out)
+    if cfg.output.dir:
+        return Path(cfg.output.dir)
+    return Path("out") / Path(args.config).stem
+
+
+OUR_FILES = ("frames.h5", "frames.xdmf", "summary.json", "contact_sheet.png")
+
+
+def _prepare_output(comm, out):
+    """Create the output folder (rank 0) and remove outputs of an earlier run there."""
+    problem = None
+    if comm.rank == 0:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            for name in OUR_FILES:
+                (out / name).unlink(missing_ok=True)
+            if (out / "previews").is_dir():
+                for p in (out / "previews").glob("frame_*.png"):
+                    p.unlink()
+        except OSError as e:
+            problem = f"output folder {str(out)!r}: {e.strerror or e}"
+    problem = comm.bcast(problem)
+    return problem
+
+
+def petsc_options_used(sim, command_line):
+    """Options in effect: code defaults < sub-solver defaults < config < command line."""
+    from lc_petsc.solver import DEFAULTS
+    used = dict(DEFAULTS)
+    used.update(sim.solver.extra)
+    used.update(sim.scope.layers)
+    used.update(command_line)
+    used["mat_type"] = sim.assembler.mat_type
+    return dict(sorted(used.items()))
+
+
+def _options_string(d):
+    return " ".join(f"-{k} {v}".rstrip() for k, v in d.items())
+
+
+def main(argv=None, comm=None):
+    """Run the main job on ``comm`` (default COMM_WORLD); returns the exit status (the
+    same on every rank)."""
+    from mpi4py import MPI
+    comm = MPI.COMM_WORLD if comm is None else comm
+    argv = sys.argv[1:] if argv is None else list(argv)
+
+    # 1. command line and config: checked on every rank, reported once
+    from lc_petsc.config import ConfigError, load_config
+    try:
+        args, petsc_argv = parse_command_line(argv)
+        if args.help:
+            if comm.rank == 0:
+                make_parser().print_help()
+            return EXIT_OK
+        cfg = load_config(args.config)
+        if args.frames is not None:
+            cfg.time.frames = args.frames
+        command_line = dict(_petsc_options(petsc_argv))
+    except (UsageError, ConfigError) as e:
+        return _fail(comm, str(e))
+
+    # 2. PETSc with the command-line options, then the simulator (collective checks)
+    import petsc4py
+    if "petsc4py.PETSc" not in sys.modules:
+        # (a second init after PETSc is imported re-registers PETSc's exit handler, which
+        # then hangs at exit when it ran on some ranks only; options are set below instead)
+        petsc4py.init([sys.argv[0]] + petsc_argv, comm=comm)
+    from petsc4py import PETSc
+    from lc_petsc.simulator import build_simulator
+    from lc_petsc.solver import SolverError
+    opts = PETSc.Options()
+    already = opts.getAll()          # PETSC_OPTIONS, or an earlier init in this process
+    added = []
+    for k, v in command_line.items():    # needed when PETSc was initialised before (tests)
+        if not opts.hasName(k):
+            opts.setValue(k, v)
+            added.append(k)      # removed again on return: several runs in one process
+        elif (already.get(k) or "") != v:
+            opts.setValue(k, v)
+    try:
+        given = {k: (v or "") for k, v in already.items()}
+        given.update(command_line)
+        return _run(comm, args, cfg, given, build_simulator, SolverError, PETSc)
+    except Exception:
+        # a bug, not a user error: show it, and do not leave the other ranks waiting
+        if comm.size > 1:
+            import traceback
+            traceback.print_exc()
+            sys.stderr.flush()
+            comm.Abort(1)
+        raise
+    finally:
+        for k in added:
+            opts.delValue(k)
+
+
+def _petsc_options(tokens):
+    """['-a', '1', '-flag', '-b', 'x'] -> [('a', '1'), ('flag', ''), ('b', 'x')].
+
+    (lc_petsc.solver.parse_options does the same for strings, but importing it would
+    initialise PETSc before petsc4py.init has the command line.)"""
+    out, i = [], 0
+    while i < len(tokens):
+        t = tokens[i]
+        if not t.startswith("-") or len(t) < 2:
+            raise UsageError(f"unexpected argument {t!r} (PETSc options start with '-')")
+        val = ""
+        if i + 1 < len(tokens) and not _looks_like_option(tokens[i + 1]):
+            val = tokens[i + 1]
+            i += 1
+        out.append((t.lstrip("-"), val))
+        i += 1
+    return out
+
+
+def _looks_like_option(tok):
+    if not tok.startswith("-"):
+        return False
+    try:
+        float(tok)
+        return False
+    except ValueError:
+        return True
+
+
+def _run(comm, args, cfg, command_line, build_simulator, SolverError, PETSc):
+    from lc_petsc import __version__
+    from lc_petsc.diagnostics import shape_measures, term_warnings
+    from lc_petsc.io.frames import FramesWriter
+    from lc_petsc.io.summary import format_report, write_summary
+    from lc_petsc.io.xdmf import write_xdmf
+
+    import h5py  # noqa: F401  (imported before the clocks start)
+    t_setup = time.perf_counter()
+    try:
+        sim = build_simulator(cfg, comm=comm)
+    except (ValueError, SolverError) as e:
+        return _fail(comm, str(e))
+    except PETSc.Error as e:
+        return _fail(comm, f"PETSc rejected the solver set-up ({e}); see PETSc's message above")
+    try:
+        warnings = term_warnings(sim)
+        for w in warnings:
+            _say(comm, f"{PROG}: warning: {w}", sys.stderr)
+        out = output_dir(args, cfg)
+        problem = _prepare_output(comm, out)
+        if problem:
+            return _fail(comm, problem)
+        setup_time = comm.allreduce(time.perf_counter() - t_setup, op=_mpi_max())
+
+        frames, every = cfg.time.frames, cfg.output.every
+        sc = sim.scene
+        r0 = int(sim.ranges[comm.rank])
+        config_dict = cfg.to_dict()
+        attrs = {"config": config_dict, "config_file": str(Path(args.config).resolve()),
+                 "terms": sim.terms_run(), "dt": cfg.time.dt, "every": every, "frames": frames,
+                 "description": cfg.scene.description, "lc_petsc_version": __version__}
+        h5_path = out / "frames.h5"
+        error = None
+        with sim.timers("io"):
+            writer = FramesWriter(h5_path, comm, n_wisps=sim.n_wisps, n_vertices=sim.n_vertices,
+                                  first_wisp=r0, first_vertex=sc.first_vertex, local_offsets=sc.offsets,
+                                  rest_positions=sc.x_rest, pinned=sc.pinned, n_out=1 + frames // every,
+                                  attrs=attrs)
+            writer.write_frame(0.0, sim.x)
+        times = [0.0]
+        bar = _progress(comm, args, frames, Path(args.config).stem)
+        t_loop = time.perf_counter()
+        try:
+            for _ in range(frames):
+                sim.step()
+                it = sim.integrator
+                if it.frame % every == 0:
+                    with sim.timers("io"):
+                        writer.write_frame(it.t, sim.x)
+                    times.append(it.t)
+                if bar is not None:
+                    bar.set_postfix_str(f"Newton {it.newton_iterations[-1]}, "
+                                        f"KSP {sim.solver.iterations[-1] if sim.solver.iterations else 0}",
+                                        refresh=False)
+                    bar.update(1)
+        except (SolverError, FloatingPointError) as e:
+            error = str(e)
+        finally:
+            if bar is not None:
+                bar.close()
+            with sim.timers("io"):
+                writer.close()
+        loop_time = comm.allreduce(time.perf_counter() - t_loop, op=_mpi_max())
+        summary = sim.summary()
+        summary["step_time_s"] = summary["wall_time_s"]
+        summary["wall_time_s"] = loop_time
+        shape = shape_measures(comm, sim.x, sc.x_rest, sc.offsets)
+        used = petsc_options_used(sim, command_line)
+        summary.update({
+            "config_file": str(Path(args.config).resolve()),
+            "description": cfg.scene.description,
+            "lc_petsc_version": __version__,
+            "setup_time_s": setup_time,
+            "time_per_frame_s": summary["wall_time_s"] / max(summary["frames"], 1),
+            "solver": summary["petsc_options"],
+            "petsc_options": _options_string(used),
+            "petsc_options_used": used,
+            "petsc_options_command_line": dict(command_line),
+            "warnings": warnings,
+            "shape": shape,
+            "error": error,
+        })
+        if error:
+            summary["converged"] = False
+        if comm.rank == 0:
+            files = ["frames.h5"]
+            t0 = time.perf_counter()
+            if cfg.output.xdmf:
+                write_xdmf(out / "frames.xdmf", h5_path, times, sim.n_vertices, sim.n_wisps,
+                           name=Path(args.config).stem)
+                files.append("frames.xdmf")
+            t_xdmf = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            if cfg.output.previews and writer.written:
+                files += [os.path.relpath(p, out) for p in _previews(cfg, out, h5_path, writer, frames,
+                                                                     Path(args.config).stem)]
+            t_prev = time.perf_counter() - t0
+            files.append("summary.json")
+            summary["output"] = {"dir": str(out), "every": every, "frames_written": writer.written,
+                                 "files": files, "xdmf_s": t_xdmf, "previews_s": t_prev}
+            write_summary(out / "summary.json", summary)
+            print(format_report(summary), flush=True)
+            if error:
+                print(f"{PROG}: error: {error}", file=sys.stderr, flush=True)
+        comm.Barrier()
+        return EXIT_RUN_FAILED if error else EXIT_OK
+    finally:
+        sim.close()
+
+
+def _previews(cfg, out, h5_path, writer, frames, title):
+    from lc_petsc.io.previews import render_previews
+    from lc_petsc.scene.kinematics import HeadMotion
+    every, n = cfg.output.every, writer.written
+    rows = []
+    for f in cfg.output.preview_frames:
+        fa = frames + 1 + f if f < 0 else f
+        rows.append(min(max(fa, 0) // every, n - 1))
+    head = None
+    if "head_collision" in cfg.physics.terms or cfg.scene.kind == "hairball":
+        hm = HeadMotion(cfg.physics)
+        head = lambda t: (hm.sphere_center(t), hm.radius)   # noqa: E731
+    return render_previews(h5_path, out, rows, contact_panels=cfg.output.contact_sheet,
+                           view=cfg.output.view, title=title, head=head, every=every)
+
+
+def _progress(comm, args, frames, name):
+    if comm.rank != 0 or args.quiet or not sys.stderr.isatty() or frames == 0:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=frames, unit="frame", desc=name, dynamic_ncols=True, file=sys.stderr)
+
+
+def _mpi_max():
+    from mpi4py import MPI
+    return MPI.MAX

@@ -1,0 +1,341 @@
+"""Strand-strand contact across MPI ranks: broad phase, ghost exchange, assembly.
+
+See docs/contact.md for the design and its cost.  In short, per Newton iteration
+(:meth:`StrandContact.assemble`) and for every energy evaluation of the line search
+(:meth:`StrandContact.energy`):
+
+1. **Occupancy.** Each rank lists the cells of a uniform grid (cell size = the largest
+   segment box extent + 2 d0 over all ranks, one allreduce) touched by its segments'
+   boxes inflated by d0, and the lists are allgathered (about 28k cells per rank of the
+   2K hairball on 2 ranks, vs 100k segments).  One box per rank, the first plan, selects
+   3x more ghosts here: a rank's wisps span a spherical cap whose box covers much of
+   the other ranks' hair (measured at rest on 2 ranks: 30% of rank 1's segments vs 9%).
+2. **Ghosts.** A pair of segments on ranks q < r is computed by rank q (the owner of the
+   segment with the smaller global index: ranks own increasing vertex ranges), so rank
+   r sends to every lower rank q, with one ``alltoall``, the segments whose box touches
+   a cell occupied by q: only segments that can be within d0 of one of q's.
+3. **Broad phase.** ``scipy.spatial.cKDTree`` over the segment midpoints of the local +
+   ghost segments, ``query_pairs`` with radius d0 + 2 h_max (h_max the largest half
+   segment length *at these positions*), which contains every pair closer than d0, then
+   an exact box-overlap test inflated by d0.  Rebuilt from the current positions at
+   every call, so no margin for motion is needed: the search is exact, not predictive.
+   Pairs of the same wisp are excluded (no self-contact; see docs/contact.md).
+4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` on the candidates, the
+   smaller global segment first (so the arithmetic of a pair does not depend on the
+   partition); active pairs have d < d0.
+5. **Assembly.** Per active pair, each segment gets its gradient (2 x 3), its own 2x2
+   blocks of the 12x12 Hessian (these lie in the strand band: same wisp, adjacent
+   vertices) and two preallocation counts: 35 numbers added (ADD_VALUES) into a PETSc
+   Vec of block size 35 indexed by the segment's first global vertex.  One Vec assembly
+   brings off-process contributions to their owners, which add them to the gradient and
+   to the band (:meth:`Assembler.add_band_blocks`), so the operator *and* the per-wisp
+   preconditioner see them.  The cross blocks (segment A x segment B) go into a
+   separate BAIJ (bs 3) contact matrix C, created per Newton iteration with exact
+   per-row preallocation from those counts and filled with one
+   ``setValuesBlockedRCV(ADD_VALUES)``; PETSc ships off-process rows at assembly.
+   The KSP operator is the Python shell A + C (:class:`SumOperator`).
+
+Pinned vertices get no contact gradient, band or C entries (their rows/columns stay
+identity).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from petsc4py import PETSc
+
+from lc_petsc.elements import segment_contact
+from lc_petsc.parallel import collectively
+
+NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
+
+
+def _mpi_max():
+    from mpi4py import MPI
+    return MPI.MAX
+
+
+def _corner_cells(lo, hi, cell):
+    """Keys (n, 8) of the grid cells of the 8 corners of boxes lo, hi (n, 3)."""
+    a = np.floor(lo / cell).astype(np.int64) + (1 << 20)
+    b = np.floor(hi / cell).astype(np.int64) + (1 << 20)
+    out = np.empty((len(lo), 8), np.int64)
+    for c in range(8):
+        v = [b[:, k] if (c >> k) & 1 else a[:, k] for k in range(3)]
+        out[:, c] = (v[0] << 42) | (v[1] << 21) | v[2]
+    return out
+
+
+class SumOperator:
+    """Python-shell context of the KSP operator A + C (C may be None)."""
+
+    def __init__(self, A):
+        self.A, self.C = A, None
+
+    def mult(self, mat, x, y):
+        self.A.mult(x, y)
+        if self.C is not None:
+            self.C.multAdd(x, y, y)
+
+    def getDiagonal(self, mat, d):       # C has no diagonal blocks
+        self.A.getDiagonal(d)
+
+
+class StrandContact:
+    """Contact between segments of different wisps, for one rank's wisps.
+
+    ``comm``: mpi4py communicator; ``pcomm``: the PETSc one (same group).
+    ``thickness`` d0 (cm), ``stiffness`` k (dyn/cm), ``filter`` the Hessian filter of
+    :mod:`segment_contact` (``analytic`` = Gauss-Newton).
+    """
+
+    def __init__(self, scene, comm, pcomm, timers, thickness, stiffness, filter="analytic"):
+        if scene.bandwidth < 1:
+            raise ValueError("strand_collision needs the stretch term (the contact blocks of a "
+                             "segment live in the strand band); add 'stretch' to physics.terms")
+        self.scene, self.comm, self.pcomm, self.timers = scene, comm, pcomm, timers
+        self.d0, self.k, self.filter = float(thickness), float(stiffness), filter
+        nv = scene.nv
+        self.seg = np.concatenate([np.arange(scene.offsets[w], scene.offsets[w + 1] - 1)
+                                   for w in range(scene.n_wisps)]).astype(np.int64)
+        wid = np.repeat(np.arange(scene.n_wisps), np.diff(scene.offsets))
+        self.seg_wisp = (scene.first_wisp + wid[self.seg]).astype(np.int64)
+        self.seg_gv = (scene.first_vertex + self.seg).astype(np.int64)
+        free = ~scene.pinned
+        self.seg_free = np.stack([free[self.seg], free[self.seg + 1]], axis=1)
+        self.N = int(scene.n_vertices_global)
+        self.P_rest = np.stack([scene.x_rest[self.seg], scene.x_rest[self.seg + 1]], axis=1)
+        self.vec = PETSc.Vec().createMPI((NB * nv, NB * self.N), bsize=NB, comm=pcomm)
+        self.C = None
+        self.last_pairs, self.last_min_distance = 0, np.inf
+        self.ghosts_received = []
+        self.cross_pairs = []           # active pairs straddling ranks, per assemble
+        self.op_ctx = None
+        self.S = None
+
+    def operator(self, A):
+        """The KSP operator: a Python shell Mat computing (A + C) x, C the current
+        contact matrix (updated by every :meth:`assemble`)."""
+        self.op_ctx = SumOperator(A)
+        S = PETSc.Mat().createPython(A.getSizes(), context=self.op_ctx, comm=self.pcomm)
+        S.setUp()
+        self.S = S
+        return S
+
+    # ------------------------------------------------------------- exchange
+    def _gather_segments(self, x):
+        """Local + ghost segments: (P (m, 2, 3), global first vertex, wisp, free (m, 2),
+        owner rank, n_local)."""
+        comm, d0 = self.comm, self.d0
+        P = np.stack([x[self.seg], x[self.seg + 1]], axis=1)
+        lo, hi = P.min(axis=1), P.max(axis=1)
+        # Occupancy cells (see the module doc): cell size >= every segment box inflated
+        # by 2 d0, so such a box touches at most 2 cells per axis (its 8 corners' cells).
+        send = [None]
+        if comm.size > 1:
+            ext = float((hi - lo).max(initial=0.0))
+            cell = comm.allreduce(max(ext + 2.0 * d0, 1e-6), op=_mpi_max())
+            occ = comm.allgather(np.unique(_corner_cells(lo - d0, hi + d0, cell)))
+            send = []
+            if comm.rank > 0:
+                keys = _corner_cells(lo, hi, cell)
+        for q in range(comm.size if comm.size > 1 else 0):
+            if q >= comm.rank:
+                send.append(None)
+                continue
+            m = np.isin(keys, occ[q]).any(axis=1)
+            send.append(np.concatenate([P[m].reshape(-1, 6), self.seg_gv[m, None],
+                                        self.seg_wisp[m, None], self.seg_free[m],
+                                        self.P_rest[m].reshape(-1, 6)], axis=1))
+        recv = comm.alltoall(send) if comm.size > 1 else [None]
+        parts = [r for r in recv if r is not None and len(r)]
+        self.ghosts_received.append(int(sum(len(r) for r in parts)))
+        owner = [np.full(len(self.seg), comm.rank)]
+        for q, r in enumerate(recv):
+            if r is not None and len(r):
+                owner.append(np.full(len(r), q))
+        G = np.concatenate(parts) if parts else np.zeros((0, 16))
+        Pall = np.concatenate([P, G[:, :6].reshape(-1, 2, 3)])
+        Prest = np.concatenate([self.P_rest, G[:, 10:16].reshape(-1, 2, 3)])
+        gv = np.concatenate([self.seg_gv, G[:, 6].astype(np.int64)])
+        wisp = np.concatenate([self.seg_wisp, G[:, 7].astype(np.int64)])
+        free = np.concatenate([self.seg_free, G[:, 8:10].astype(bool)])
+        return Pall, Prest, gv, wisp, free, np.concatenate(owner), len(self.seg)
+
+    @staticmethod
+    def candidates(P, wisp, n_local, d0):
+        """Index pairs (i, j), i < j, of segments of different wisps that may be closer
+        than d0 (at least one of them local).
+
+        Each segment is covered by ``c`` sample points (centres of c equal pieces, c = 1
+        unless it is longer than twice the cap h = min(largest, 1.5 x median half length)), so
+        every point of a segment is within h of a sample; a kd-tree ``query_pairs`` on
+        the samples with radius d0 + 2 h therefore finds every pair closer than d0, and
+        one stretched segment cannot blow the radius up for everybody.  Survivors pass
+        an exact box-overlap test inflated by d0."""
+        from scipy.spatial import cKDTree
+        if len(P) < 2:
+            return np.zeros((0, 2), np.int64)
+        e = P[:, 1] - P[:, 0]
+        half = 0.5 * np.sqrt(np.einsum("ij,ij->i", e, e))
+        h = max(min(float(half.max()), 1.5 * float(np.median(half))), 1e-12)
+        c = np.maximum(np.ceil(half / h), 1).astype(np.int64)
+        if c.max() == 1:
+            pts, owner = 0.5 * (P[:, 0] + P[:, 1]), None
+        else:
+            owner = np.repeat(np.arange(len(P)), c)
+            first = np.concatenate([[0], np.cumsum(c)[:-1]])
+            frac = (np.arange(len(owner)) - first[owner] + 0.5) / c[owner]
+            pts = P[owner, 0] + frac[:, None] * e[owner]
+        pairs = cKDTree(pts).query_pairs(d0 + 2.0 * h, output_type="ndarray")
+        i, j = pairs[:, 0], pairs[:, 1]
+        if owner is not None:
+            i, j = owner[i], owner[j]
+        keep = (wisp[i] != wisp[j]) & ((i < n_local) | (j < n_local))
+        i, j = i[keep], j[keep]
+        lo, hi = P.min(axis=1), P.max(axis=1)
+        for a in range(3):
+            ok = (hi[i, a] + d0 >= lo[j, a]) & (lo[i, a] - d0 <= hi[j, a])
+            i, j = i[ok], j[ok]
+        if owner is not None:           # a pair may be found through several samples
+            ij = np.unique(np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1), axis=0)
+            return ij
+        return np.stack([i, j], axis=1)
+
+    def _pairs(self, x, active=True):
+        """Pairs as (X (n, 4, 3), gvA, gvB, freeA, freeB, ownerA, ownerB, d), the segment
+        with the smaller global index first.  ``active``: only pairs closer than d0 that
+        are not exempt; otherwise every non-exempt candidate."""
+        P, Prest, gv, wisp, free, owner, n_local = self._gather_segments(x)
+        ij = self.candidates(P, wisp, n_local, self.d0)
+        i, j = ij[:, 0], ij[:, 1]
+        swap = gv[i] > gv[j]
+        i, j = np.where(swap, j, i), np.where(swap, i, j)
+        X = np.concatenate([P[i], P[j]], axis=1)
+        d = segment_contact.distance(X) if len(X) else np.zeros(0)
+        keep = d < self.d0 if active else np.ones(len(d), bool)
+        # exemption: pairs already within the thickness in the rest pose (docs/contact.md)
+        sel = np.flatnonzero(keep)
+        if len(sel):
+            Xr = np.concatenate([Prest[i[sel]], Prest[j[sel]]], axis=1)
+            keep[sel] = segment_contact.distance(Xr) >= self.d0
+        i, j = i[keep], j[keep]
+        return X[keep], gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[keep]
+
+    # ------------------------------------------------------------- public
+    def energy(self, x):
+        """Contact energy summed over all ranks (collective)."""
+        with self.timers("collision"):
+            with collectively(self.comm, "strand contact (energy)"):
+                X = self._pairs(x)[0]
+                e = float(segment_contact.energy(X, self.d0, self.k).sum()) if len(X) else 0.0
+            return self.comm.allreduce(e)
+
+    def measure(self, x):
+        """(active pairs, pairs closer than d0 / 2, minimum distance over candidate
+        pairs) over all ranks (exempt pairs excluded); the minimum is inf when no two
+        segments of different wisps are within the search radius."""
+        from mpi4py import MPI
+        with self.timers("collision"):
+            with collectively(self.comm, "strand contact (measure)"):
+                d = self._pairs(x, active=False)[-1]
+            n, deep = self.comm.allreduce(np.array([np.sum(d < self.d0), np.sum(d < 0.5 * self.d0)]))
+            dmin = self.comm.allreduce(float(d.min(initial=np.inf)), op=MPI.MIN)
+        return int(n), int(deep), dmin
+
+    def assemble(self, x, asm):
+        """Contact gradient (nv, 3) (pinned rows zero) of this rank's vertices; adds the
+        band blocks to ``asm`` (before its ``commit``) and rebuilds the contact matrix C.
+        Collective."""
+        from mpi4py import MPI
+        sc, b = self.scene, asm.b
+        with self.timers("collision"):
+            with collectively(self.comm, "strand contact"):
+                X, gA, gB, fA, fB, oA, oB, d = self._pairs(x)
+                m = len(X)
+                g, H = segment_contact.gradient_hessian(X, self.d0, self.k, filter=self.filter) \
+                    if m else (np.zeros((0, 4, 3)), np.zeros((0, 12, 12)))
+                free = np.concatenate([fA, fB], axis=1)                          # (m, 4)
+                pin = np.flatnonzero(~free.all(axis=1))
+                if len(pin):          # pinned vertices: no contact rows or columns
+                    fr = np.repeat(free[pin], 3, axis=1).astype(float)
+                    g[pin] *= free[pin, :, None]
+                    H[pin] *= fr[:, :, None] * fr[:, None, :]
+                rows = np.zeros((2 * m, NB))
+                for side, (o, own, oth) in enumerate(((0, oA, oB), (2, oB, oA))):
+                    R = rows[side * m:(side + 1) * m]
+                    R[:, 0:6] = g[:, o:o + 2].reshape(m, 6)
+                    Hs = H[:, 3 * o:3 * o + 6, 3 * o:3 * o + 6]
+                    R[:, 6:15] = Hs[:, 0:3, 0:3].reshape(m, 9)
+                    R[:, 15:24] = Hs[:, 0:3, 3:6].reshape(m, 9)
+                    R[:, 24:33] = Hs[:, 3:6, 3:6].reshape(m, 9)
+                    R[:, 33] = np.where(own == oth, 2.0, 0.0)
+                    R[:, 34] = np.where(own == oth, 0.0, 2.0)
+                idx = np.concatenate([gA, gB]).astype(PETSc.IntType)
+                self.last_min_distance = float(d.min(initial=np.inf))
+            vec = self.vec
+            vec.zeroEntries()
+            if m:
+                vec.setValuesBlocked(idx, rows.ravel(), addv=PETSc.InsertMode.ADD_VALUES)
+            vec.assemblyBegin()
+            vec.assemblyEnd()
+            loc = vec.getArray(readonly=True).reshape(-1, NB)
+            gc = np.zeros_like(x)
+            gc += loc[:, 0:3]
+            gc[1:] += loc[:-1, 3:6]                     # a wisp's last row is all zero
+            hit = np.flatnonzero(loc[:, 33] + loc[:, 34])       # segment rows with pairs
+            Lh = loc[hit]
+            asm.add_band_blocks(hit, Lh[:, 6:15].reshape(-1, 3, 3), Lh[:, 15:24].reshape(-1, 3, 3),
+                                Lh[:, 24:33].reshape(-1, 3, 3))
+            gc[sc.pinned] = 0.0
+            # contact matrix: exact preallocation from the counts, cross blocks only
+            nv = sc.nv
+            dn = np.zeros(nv)
+            on = np.zeros(nv)
+            dn += loc[:, 33]
+            dn[1:] += loc[:-1, 33]
+            on += loc[:, 34]
+            on[1:] += loc[:-1, 34]
+            n_global, n_cross = self.comm.allreduce(np.array([m, int(np.sum(oA != oB))]))
+            self.last_pairs = int(n_global)
+            self.cross_pairs.append(int(n_cross))
+            self.last_min_distance = self.comm.allreduce(self.last_min_distance, op=MPI.MIN)
+            self._rebuild_matrix(n_global, dn, on, X, H, gA, gB)
+        return gc
+
+    def _rebuild_matrix(self, n_global, dn, on, X, H, gA, gB):
+        if self.C is not None:
+            self.C.destroy()
+            self.C = None
+        if self.op_ctx is not None:
+            self.op_ctx.C = None
+        if n_global == 0:
+            return
+        nv, N = self.scene.nv, self.N
+        d_nnz = np.minimum(dn, nv).astype(PETSc.IntType)
+        o_nnz = np.minimum(on, N - nv).astype(PETSc.IntType)
+        C = PETSc.Mat().createBAIJ(size=((3 * nv, 3 * N), (3 * nv, 3 * N)), bsize=3,
+                                   nnz=(d_nnz, o_nnz), comm=self.pcomm)
+        C.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+        m = len(X)
+        if m:
+            ra = np.stack([gA, gA + 1], axis=1).astype(PETSc.IntType)
+            rb = np.stack([gB, gB + 1], axis=1).astype(PETSc.IntType)
+            add = PETSc.InsertMode.ADD_VALUES
+            C.setValuesBlockedRCV(ra, rb, np.ascontiguousarray(H[:, 0:6, 6:12]).reshape(m, 36), addv=add)
+            C.setValuesBlockedRCV(rb, ra, np.ascontiguousarray(H[:, 6:12, 0:6]).reshape(m, 36), addv=add)
+        C.assemble()
+        self.C = C
+        if self.op_ctx is not None:
+            self.op_ctx.C = C
+
+    def destroy(self):
+        if self.S is not None:
+            self.S.destroy()
+            self.S = None
+        if self.op_ctx is not None:
+            self.op_ctx.C = None
+        if self.C is not None:
+            self.C.destroy()
+            self.C = None
+        self.vec.destroy()

@@ -1,0 +1,136 @@
+"""Run diagnostics, collective over the simulator's communicator:
+
+* :func:`term_warnings`: terms that are switched on but can have no effect in the
+  scene (the main job prints them and records them in summary.json);
+* :func:`shape_measures`: the curl-shape measure used to choose and test the material
+  parameters of the shipped scenes (mean curl radius and mean root-to-tip length of
+  the wisps, relative to the rest shape).
+
+Curl radius of a wisp: slide a window of ``turn`` consecutive vertices (5 = one turn of
+the 4C helix) along it; the window's centroid lies on the coil axis, the axis direction
+is the difference of the neighbouring windows' centroids, and the window's radius is the
+mean distance of its vertices from that axis.  The wisp's curl radius is the mean over
+its windows.  It is invariant to rigid motion, so the head may move.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _reduce(comm, values, op):
+    buf = np.array(values, float)
+    comm.Allreduce(_in_place(), buf, op=op)
+    return buf
+
+
+def _in_place():
+    from mpi4py import MPI
+    return MPI.IN_PLACE
+
+
+def wisp_curl_radius(x, turn=5):
+    """Mean coil radius of one wisp's vertices x (n, 3) (NaN if fewer than turn + 2)."""
+    n = len(x)
+    if n < turn + 2:
+        return float("nan")
+    c = np.lib.stride_tricks.sliding_window_view(x, (turn, 3))[:, 0].mean(axis=1)  # (n-turn+1, 3)
+    a = c[2:] - c[:-2]
+    norm = np.linalg.norm(a, axis=1, keepdims=True)
+    a = np.divide(a, norm, out=np.zeros_like(a), where=norm > 0)
+    win = np.lib.stride_tricks.sliding_window_view(x, (turn, 3))[1:-1, 0]        # (m, turn, 3)
+    d = win - c[1:-1, None, :]
+    perp = d - np.einsum("mtk,mk->mt", d, a)[..., None] * a[:, None, :]
+    return float(np.linalg.norm(perp, axis=2).mean())
+
+
+def shape_measures(comm, x, x_rest, offsets, turn=5):
+    """Mean curl radius and mean root-to-tip length of all wisps, now (x) and at rest.
+
+    ``x``, ``x_rest``: this rank's positions; ``offsets``: its local wisp offsets.
+    Returns a dict with ``curl_radius``, ``curl_radius_rest``, ``curl_radius_ratio``,
+    ``wisp_length``, ``wisp_length_rest``, ``wisp_length_ratio`` and the largest
+    per-wisp deviation of each ratio from 1 (``*_max_dev``); radius entries are None
+    when the wisps are not curled (rest curl radius below 1e-6 of their length).
+    """
+    sums = np.zeros(8)   # r, r_rest, nr, L, L_rest, nL, max|r/r0-1|, max|L/L0-1|
+    for w in range(len(offsets) - 1):
+        a, b = int(offsets[w]), int(offsets[w + 1])
+        L = float(np.linalg.norm(x[b - 1] - x[a]))
+        L0 = float(np.linalg.norm(x_rest[b - 1] - x_rest[a]))
+        sums[3:6] += (L, L0, 1)
+        if L0 > 0:
+            sums[7] = max(sums[7], abs(L / L0 - 1))
+        r0 = wisp_curl_radius(x_rest[a:b], turn)
+        if np.isfinite(r0) and r0 > 1e-6 * max(L0, 1e-300):
+            r = wisp_curl_radius(x[a:b], turn)
+            sums[0:3] += (r, r0, 1)
+            sums[6] = max(sums[6], abs(r / r0 - 1))
+    tot = _reduce(comm, sums[:6], _sum())
+    mx = _reduce(comm, sums[6:], _max())
+    out = {"wisp_length": tot[3] / max(tot[5], 1), "wisp_length_rest": tot[4] / max(tot[5], 1)}
+    out["wisp_length_ratio"] = out["wisp_length"] / out["wisp_length_rest"] if tot[4] > 0 else None
+    out["wisp_length_max_dev"] = float(mx[1])
+    if tot[2] > 0:
+        out.update(curl_radius=tot[0] / tot[2], curl_radius_rest=tot[1] / tot[2],
+                   curl_radius_ratio=tot[0] / tot[1], curl_radius_max_dev=float(mx[0]))
+    else:
+        out.update(curl_radius=None, curl_radius_rest=None, curl_radius_ratio=None,
+                   curl_radius_max_dev=None)
+    return out
+
+
+def _max():
+    from mpi4py import MPI
+    return MPI.MAX
+
+
+def _sum():
+    from mpi4py import MPI
+    return MPI.SUM
+
+
+def term_warnings(sim):
+    """Messages for terms (and head settings) that are on but can have no effect."""
+    cfg, sc, comm = sim.config, sim.scene, sim.comm
+    phys = cfg.physics
+    terms = set(phys.terms)
+    out = []
+    n_free = int(comm.allreduce(int((~sc.pinned).sum())))
+    if n_free == 0:
+        out.append("every vertex is pinned: no term has an effect (nothing moves but the head)")
+    if "gravity" in terms and not np.any(np.asarray(phys.gravity, float)):
+        out.append("physics.terms has 'gravity' but physics.gravity is [0, 0, 0]: it has no effect")
+    if not terms & {"stretch", "bend", "twist"}:
+        out.append("physics.terms has no elastic term (stretch, bend, twist): the vertices move "
+                   "independently")
+    has_pins = bool(comm.allreduce(int(sc.pinned.any())))
+    if "head_collision" in terms and n_free:
+        # The pinned roots move rigidly with the head, so a wisp anchored at pinned vertices
+        # stays within its arc length of them: if that never reaches the sphere, contact
+        # can never happen (free wisps without pins may fall anywhere: not checked).
+        reach = 1
+        if phys.head_motion != "translate" or not np.any(phys.head_velocity):
+            reach = 0
+            R = phys.head_radius + phys.head_margin
+            c = np.asarray(phys.head_center, float)
+            for w in range(sc.n_wisps):
+                a, b = int(sc.offsets[w]), int(sc.offsets[w + 1])
+                pin = sc.pinned[a:b]
+                x = sc.x_rest[a:b]
+                if not pin.any():
+                    reach = 1
+                    break
+                arc = float(np.linalg.norm(np.diff(x, axis=0), axis=1).sum())
+                gap = float(np.min(np.linalg.norm(x[pin] - c, axis=1)) - R)
+                if gap <= arc:
+                    reach = 1
+                    break
+        if not comm.allreduce(reach, op=_max()):
+            out.append("physics.terms has 'head_collision' but no wisp can reach the head sphere "
+                       f"(radius {phys.head_radius + phys.head_margin:g} cm at {list(phys.head_center)}): "
+                       "it has no effect")
+    if phys.head_motion != "static" and not has_pins and "head_collision" not in terms:
+        out.append(f"physics.head_motion = {phys.head_motion!r} has no effect: no vertex is pinned "
+                   "and head_collision is off")
+    return out

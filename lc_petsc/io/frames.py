@@ -1,0 +1,153 @@
+"""``frames.h5`` (DESIGN section 3), written collectively: every rank writes the rows of
+the vertices it owns, nothing is gathered.
+
+Layout (plain h5py reads it):
+
+* ``/positions`` float64 (n_frames, n_vertices, 3), global vertex order, cm;
+* ``/time`` float64 (n_frames,), s;
+* ``/wisp_offsets`` int64 (n_wisps + 1,);
+* ``/rest_positions`` float64 (n_vertices, 3); ``/pinned`` bool (n_vertices,);
+* extension: ``/polylines`` int64 (2 n_wisps + n_vertices,), the XDMF "Mixed" topology
+  of the wisps (for every wisp: 2 = polyline, its vertex count, its vertex indices),
+  which ``frames.xdmf`` points at;
+* root attributes: ``config`` (the resolved config as JSON), ``terms``, ``dt``,
+  ``every`` (frame ``k`` of the file is simulation frame ``k * every``), ``frames``
+  (simulation frames planned), ``ranks``, ``format``.
+
+Frame 0 of the file is the initial state (t = 0, after the scene's perturbation).
+With an MPI-enabled h5py (Debian's, under mpiexec) the file is opened with the ``mpio``
+driver on the simulator's communicator and every write is collective (ranks without
+vertices take part with an empty selection).  The frame datasets are chunked one frame
+per chunk, allocated for the planned frame count and shrunk to the frames written on
+close, so a run that stops early still leaves a consistent file.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+FORMAT = "lc_petsc frames 1"
+
+
+def _h5py():
+    import h5py
+    return h5py
+
+
+class FramesWriter:
+    """Collective writer of one run's ``frames.h5``.
+
+    ``comm``: the simulator's mpi4py communicator; ``first_vertex``/``positions`` of
+    this rank's vertices; ``first_wisp``/``local_offsets`` of this rank's wisps.
+    """
+
+    def __init__(self, path, comm, *, n_wisps, n_vertices, first_wisp, first_vertex,
+                 local_offsets, rest_positions, pinned, n_out, attrs):
+        h5py = _h5py()
+        self.comm, self.path = comm, str(path)
+        self.parallel = bool(h5py.get_config().mpi)
+        if comm.size > 1 and not self.parallel:
+            raise RuntimeError("frames.h5 with several ranks needs an MPI-enabled h5py "
+                               "(Debian's python3-h5py-mpi, run under mpiexec)")
+        self.nv, self.v0 = int(n_vertices), int(first_vertex)
+        self.nv_local = len(rest_positions)
+        self.n_out, self.written = int(n_out), 0
+        kw = {"driver": "mpio", "comm": comm} if self.parallel else {}
+        self.f = f = h5py.File(self.path, "w", **kw)
+        self._dxpl = h5py.h5p.create(h5py.h5p.DATASET_XFER)
+        if self.parallel:
+            self._dxpl.set_dxpl_mpio(h5py.h5fd.MPIO_COLLECTIVE)
+        nv = self.nv
+        # frame datasets: one frame per chunk (at most 2**16 vertices), no fill writes
+        self.positions = self._dataset("positions", (self.n_out, nv, 3), np.float64,
+                                       maxshape=(None, nv, 3), chunks=(1, max(1, min(nv, 1 << 16)), 3))
+        self.time = self._dataset("time", (self.n_out,), np.float64, maxshape=(None,),
+                                  chunks=(max(1, min(self.n_out, 4096)),))
+        offs = self._dataset("wisp_offsets", (n_wisps + 1,), np.int64)
+        rest = self._dataset("rest_positions", (nv, 3), np.float64)
+        pin = self._dataset("pinned", (nv,), np.bool_)
+        poly = self._dataset("polylines", (2 * n_wisps + nv,), np.int64)
+        # static data: each rank its own rows
+        lo = np.asarray(local_offsets, np.int64)
+        nw_local = len(lo) - 1
+        self._write(offs, (first_wisp,), self.v0 + lo[:-1])
+        self._write(offs, (n_wisps,), np.array([nv], np.int64) if comm.rank == 0 else np.zeros(0, np.int64))
+        self._write(rest, (self.v0, 0), np.asarray(rest_positions, np.float64))
+        self._write(pin, (self.v0,), np.asarray(pinned, np.bool_))
+        parts = []
+        for w in range(nw_local):
+            n = int(lo[w + 1] - lo[w])
+            parts.append(np.concatenate([[2, n], self.v0 + lo[w] + np.arange(n)]))
+        self._write(poly, (2 * first_wisp + self.v0,),
+                    np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64))
+        for k, v in attrs.items():             # collective: the same values on every rank
+            f.attrs[k] = json.dumps(v) if isinstance(v, (dict, list, tuple)) else v
+        f.attrs["format"] = FORMAT
+        f.attrs["ranks"] = comm.size
+        self.positions.attrs["units"] = "cm"
+        self.time.attrs["units"] = "s"
+
+    def _dataset(self, name, shape, dtype, maxshape=None, chunks=None):
+        h5py = _h5py()
+        dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
+        return self.f.create_dataset(name, shape=shape, dtype=dtype, maxshape=maxshape,
+                                     chunks=chunks, dcpl=dcpl)
+
+    def _write(self, dset, start, data):
+        """Write ``data`` at ``start`` (a corner) of ``dset``; collective in parallel,
+        an empty ``data`` takes part with an empty selection."""
+        h5py = _h5py()
+        data = np.ascontiguousarray(data, dtype=dset.dtype)
+        fs = dset.id.get_space()
+        if data.size:
+            count = data.shape + tuple(dset.shape[len(data.shape):])
+            fs.select_hyperslab(tuple(start) + (0,) * (len(dset.shape) - len(start)), count)
+            ms = h5py.h5s.create_simple(data.shape)
+        else:
+            fs.select_none()
+            ms = h5py.h5s.create_simple((1,))
+            ms.select_none()
+            data = np.zeros(1, dtype=dset.dtype)
+        dset.id.write(ms, fs, data, dxpl=self._dxpl)
+
+    def write_frame(self, t, x_local):
+        """Append one frame: this rank's positions (nv_local, 3) at time ``t``."""
+        k = self.written
+        if k >= self.n_out:
+            raise RuntimeError(f"frames.h5: more frames than the {self.n_out} planned")
+        self._write(self.positions, (k, self.v0, 0), np.asarray(x_local)[None])
+        self._write(self.time, (k,), np.array([t]) if self.comm.rank == 0 else np.zeros(0))
+        self.written += 1
+
+    def close(self):
+        """Shrink the frame datasets to the frames written; close the file."""
+        if self.f is None:
+            return
+        if self.written < self.n_out:
+            self.positions.resize(self.written, axis=0)
+            self.time.resize(self.written, axis=0)
+        self.f.close()
+        self.f = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def read_frames(path, frames=None):
+    """Read ``frames.h5`` (serially) into a dict of arrays; ``frames`` selects rows of
+    ``/positions`` and ``/time`` (default: all)."""
+    h5py = _h5py()
+    with h5py.File(path, "r") as f:
+        sel = slice(None) if frames is None else np.asarray(frames)
+        out = {k: f[k][...] for k in ("wisp_offsets", "rest_positions", "pinned")}
+        out["time"] = f["time"][...][sel]
+        out["positions"] = f["positions"][sel] if frames is None else \
+            np.stack([f["positions"][int(i)] for i in np.atleast_1d(frames)])
+        out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+    return out

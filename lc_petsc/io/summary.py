@@ -1,0 +1,81 @@
+"""``summary.json`` (DESIGN section 3) and the short human-readable report on stdout."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return o
+
+
+def write_summary(path, summary):
+    """Write ``summary`` as JSON (atomically: a reader never sees half a file)."""
+    tmp = f"{path}.tmp"
+    with open(tmp, "w") as fh:
+        json.dump(_jsonable(summary), fh, indent=1)
+        fh.write("\n")
+    os.replace(tmp, path)
+
+
+def _fmt_s(s):
+    return f"{s * 1e3:.1f} ms" if s < 1.0 else f"{s:.2f} s"
+
+
+def format_report(s) -> str:
+    """A few lines for a person: what ran, how long, where the time went, did it converge."""
+    frames = s["frames"]
+    wall = s["wall_time_s"]
+    per = wall / frames if frames else 0.0
+    cfg = s.get("config", {})
+    name = s.get("config_file", "")
+    lines = [f"lc_petsc: {name}  ({s['wisps']} wisps, {s['dofs']} DoFs, {s['ranks']} rank(s), "
+             f"matrix {s.get('mat_type', '?')})",
+             f"  terms: {', '.join(s.get('terms', []))}"]
+    dt = cfg.get("time", {}).get("dt")
+    sim_t = f", {frames * dt:.3g} s simulated" if dt else ""
+    lines.append(f"  frames: {frames}{sim_t}; wall time {_fmt_s(wall)} "
+                 f"({_fmt_s(per)} per frame); setup {_fmt_s(s.get('setup_time_s', 0.0))}")
+    tim = s.get("timings_s", {})
+    lines.append("  phases (max over ranks): " + ", ".join(
+        f"{k} {_fmt_s(v)} ({100 * v / max(wall, 1e-300):.0f}%)" for k, v in tim.items() if v > 0))
+    newton = s.get("newton_iterations", [])
+    ksp = s.get("ksp_iterations", [])
+    if newton:
+        lines.append(f"  Newton iterations per frame: min {min(newton)}, mean {np.mean(newton):.2f}, "
+                     f"max {max(newton)} ({sum(newton)} solves)")
+    if ksp:
+        lines.append(f"  KSP iterations per solve: min {min(ksp)}, mean {np.mean(ksp):.1f}, max {max(ksp)}")
+    reasons = s.get("ksp_reasons", [])
+    counts = {r: reasons.count(r) for r in sorted(set(reasons))}
+    conv = "yes" if s.get("converged") else "NO"
+    lines.append(f"  converged: {conv}" + (f" ({', '.join(f'{k} x{v}' for k, v in counts.items())})"
+                                            if counts else ""))
+    if s.get("error"):
+        lines.append(f"  error: {s['error']}")
+    shape = s.get("shape") or {}
+    parts = []
+    if shape.get("curl_radius_ratio") is not None:
+        parts.append(f"curl radius {shape['curl_radius_ratio']:.3f}")
+    if shape.get("wisp_length_ratio") is not None:
+        parts.append(f"wisp length (root to tip) {shape['wisp_length_ratio']:.3f}")
+    if parts:
+        lines.append("  shape at the end / rest (mean over wisps): " + ", ".join(parts))
+    for w in s.get("warnings", []):
+        lines.append(f"  warning: {w}")
+    out = s.get("output", {})
+    if out:
+        lines.append(f"  output: {out.get('dir')}  ({out.get('frames_written')} frames in "
+                     f"frames.h5, every {out.get('every')}; " + ", ".join(out.get("files", [])) + ")")
+    return "\n".join(lines)

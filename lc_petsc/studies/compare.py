@@ -1,0 +1,183 @@
+"""Solver comparison (issue 6): record a scene's Newton systems once, replay them with
+every named option set, summarise per set and scene size, write CSV/JSON/markdown/PNG.
+
+Used by ``drivers/compare_solvers.py``; see docs/studies.md.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lc_petsc.simulator import build_simulator
+from lc_petsc.studies import report
+from lc_petsc.studies.systems import (SystemRecorder, direct_solutions, peak_rss_mib,
+                                      replay)
+
+ROW_COLUMNS = ["wisps", "dofs", "ranks", "set", "system", "frame", "newton_it", "status",
+               "setup_s", "solve_s", "total_s", "iterations", "reason", "true_rel_residual",
+               "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib", "mat_type", "message",
+               "options"]
+SUMMARY_COLUMNS = ["wisps", "dofs", "ranks", "set", "status", "n_systems", "n_ok", "setup_s",
+                   "solve_s", "total_s", "ratio_vs_default", "iterations_first",
+                   "iterations_mean", "max_true_rel_residual", "max_rel_error_vs_direct",
+                   "rss_delta_mib", "budget_s", "message"]
+
+
+def record(config, comm, frames=1, max_systems=None):
+    """Run ``frames`` frames of ``config`` with the simulator's own solver, recording
+    every Newton system.  Returns (systems, wisp_rows, info)."""
+    sim = build_simulator(config, comm)
+    rec = SystemRecorder(sim, max_systems=max_systems)
+    t0 = time.perf_counter()
+    try:
+        sim.run(frames)
+        info = {"wisps": sim.n_wisps, "dofs": 3 * sim.n_vertices, "ranks": comm.size,
+                "record_wall_s": time.perf_counter() - t0,
+                "sim_ksp_iterations": list(sim.solver.iterations),
+                "sim_solver": sim.solver.describe()}
+        rec.detach()
+        systems, rows = rec.systems, rec.wisp_rows
+    finally:
+        sim.close()
+    return systems, rows, info
+
+
+def summarise(rows, budget_s):
+    """One summary row per (wisps, set) from the per-system rows; ratios vs ``default``."""
+    out = []
+    keys = list(dict.fromkeys((r["wisps"], r["set"]) for r in rows))
+    for wisps, name in keys:
+        rs = [r for r in rows if r["wisps"] == wisps and r["set"] == name]
+        ok = [r for r in rs if r["status"] == "ok"]
+        statuses = {r["status"] for r in rs}
+        status = "ok" if statuses == {"ok"} else next(
+            s for s in ("error", "diverged", "budget") if s in statuses)
+        its = [r["iterations"] for r in ok]
+        s = {"wisps": wisps, "dofs": rs[0].get("dofs"), "ranks": rs[0].get("ranks"),
+             "set": name, "status": status, "n_systems": len(rs), "n_ok": len(ok),
+             "budget_s": budget_s,
+             "message": next((r.get("message") for r in rs if r.get("message")), "")}
+        if ok:
+            s.update(setup_s=sum(r["setup_s"] for r in ok), solve_s=sum(r["solve_s"] for r in ok),
+                     total_s=sum(r["total_s"] for r in ok), iterations_first=its[0],
+                     iterations_mean=float(np.mean(its)),
+                     max_true_rel_residual=max(r["true_rel_residual"] for r in ok),
+                     max_rel_error_vs_direct=max((r.get("rel_error_vs_direct") or 0.0) for r in ok),
+                     rss_delta_mib=max(r["rss_delta_mib"] for r in ok))
+        if status == "budget":
+            s["time_spent_s"] = budget_s
+        out.append(s)
+    for s in out:
+        d = next((x for x in out if x["wisps"] == s["wisps"] and x["set"] == "default"), None)
+        if d and d.get("total_s") and s.get("total_s") and s["status"] == "ok":
+            s["ratio_vs_default"] = s["total_s"] / d["total_s"]
+        elif d and d.get("total_s") and s["status"] == "budget":
+            s["ratio_vs_default"] = f">{budget_s / d['total_s']:.3g}"
+    return out
+
+
+def table3(summary):
+    """Markdown in the layout of the paper's Table 3: one row per solver set, per wisp
+    count the time of the recorded systems, the ratio against ``default`` and the Krylov
+    iterations of the first system."""
+    sizes = sorted({s["wisps"] for s in summary})
+    sets = list(dict.fromkeys(s["set"] for s in summary))
+    header = ["solver set"] + [f"{n} wisps: time (s), x default, its" for n in sizes]
+    body = []
+    for name in sets:
+        cells = [name]
+        for n in sizes:
+            s = next((x for x in summary if x["set"] == name and x["wisps"] == n), None)
+            if s is None:
+                cells.append("-")
+            elif s["status"] == "ok":
+                r = s.get("ratio_vs_default")
+                cells.append(f"{report.fmt(s['total_s'])}, {report.fmt(r)}x, {s['iterations_first']}")
+            elif s["status"] == "budget":
+                cells.append(f"> {s['budget_s']:g} (budget), {s.get('ratio_vs_default', '-')}x")
+            else:
+                cells.append(f"{s['status']}: {s.get('message', '')[:60]}")
+        body.append(cells)
+    return report.markdown_table(header, body)
+
+
+def details_table(summary):
+    header = ["wisps", "set", "status", "setup (s)", "solve (s)", "total (s)", "x default",
+              "its (first/mean)", "true rel. residual", "error vs direct", "RSS delta (MiB)"]
+    body = []
+    for s in summary:
+        body.append([s["wisps"], s["set"], s["status"], report.fmt(s.get("setup_s")),
+                     report.fmt(s.get("solve_s")), report.fmt(s.get("total_s")),
+                     report.fmt(s.get("ratio_vs_default")),
+                     f"{s.get('iterations_first', '-')}/{report.fmt(s.get('iterations_mean'))}",
+                     report.fmt(s.get("max_true_rel_residual")),
+                     report.fmt(s.get("max_rel_error_vs_direct")),
+                     report.fmt(s.get("rss_delta_mib"))])
+    return report.markdown_table(header, body)
+
+
+def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frames=1,
+                   max_systems=None, reference=True, log=print, meta=None,
+                   skip_after_budget=False):
+    """The whole study: for each size, record once, replay with each set; write
+    ``rows.csv``, ``summary.csv``, ``results.json``, ``table.md`` and (with more than
+    one size) ``time_vs_wisps.png`` into ``out_dir`` (rank 0).  Returns the summary."""
+    out = Path(out_dir)
+    if comm.rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+    rows, infos = [], []
+    for n in sizes:
+        cfg = make_config(n)
+        systems, wisp_rows, info = record(cfg, comm, frames=frames, max_systems=max_systems)
+        infos.append(info)
+        log(f"[{n} wisps] {info['dofs']} DoFs: recorded {len(systems)} Newton systems in "
+            f"{info['record_wall_s']:.2f} s (simulator's KSP iterations {info['sim_ksp_iterations']})")
+        refs = direct_solutions(systems, comm) if reference else None
+        for name, opts in sets.items():
+            over = next((r["wisps"] for r in rows if r["set"] == name and r["status"] == "budget"), None)
+            if skip_after_budget and over is not None:
+                rs = [{"set": name, "options": opts, "system": i, "status": "budget",
+                       "message": f"skipped: over the budget at {over} wisps"}
+                      for i in range(len(systems))]
+            else:
+                rs = replay(systems, wisp_rows, name, opts, comm, budget_s=budget_s, references=refs)
+            for r in rs:
+                r.update(wisps=info["wisps"], dofs=info["dofs"], ranks=comm.size)
+            rows += rs
+            tot = sum(r.get("total_s", 0.0) for r in rs)
+            log(f"  {name:18s} {','.join(sorted({r['status'] for r in rs})):8s} "
+                f"{tot:8.3f} s  its {[r.get('iterations') for r in rs]}  "
+                f"err {max((r.get('rel_error_vs_direct') or 0.0) for r in rs):.1e}")
+        for x in refs or []:
+            x.destroy()
+        for s in systems:
+            s.A.destroy()
+            s.b.destroy()
+    summary = summarise(rows, budget_s)
+    if comm.rank == 0:
+        report.write_csv(rows, out / "rows.csv", ROW_COLUMNS)
+        report.write_csv(summary, out / "summary.csv", SUMMARY_COLUMNS)
+        report.write_json({"meta": dict(meta or {}, budget_s=budget_s, frames=frames,
+                                        peak_rss_mib_rank0=peak_rss_mib()),
+                           "scenes": infos, "summary": summary, "rows": rows},
+                          out / "results.json")
+        md = ["# Solver comparison\n",
+              "Same recorded Newton systems for every set; time = setup + solve summed over "
+              "them (max over ranks). Layout of the paper's Table 3.\n",
+              table3(summary), "\n## Details\n", details_table(summary)]
+        if meta and meta.get("command"):
+            md.insert(1, f"Command: `{meta['command']}`\n")
+        (out / "table.md").write_text("\n".join(md))
+        if len(set(sizes)) > 1:
+            report.plot_time_vs_size(summary, out / "time_vs_wisps.png")
+    return summary
+
+
+def hairball_config(base, n_wisps):
+    cfg = copy.deepcopy(base)
+    cfg.scene.n_wisps = int(n_wisps)
+    return cfg

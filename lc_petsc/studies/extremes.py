@@ -1,0 +1,187 @@
+"""Stability at the extremes (issue 6): the catalogue's hard cases, each with a stated
+expectation, run and judged pass/fail with figures.  Used by ``scripts/extremes.py``.
+
+Expectations:
+* ``recovers``: the run finishes and ends near its rest shape (no gravity, so the rest
+  shape is the equilibrium): RMS distance from rest <= ``rms_tol`` x wisp length and
+  curl-radius retention within ``1 +- retention_tol``;
+* ``finite``: the run finishes (no NaN, no failed linear solve, no blow-up) and the
+  largest stretch strain stays below ``strain_tol``;
+* ``info``: no expectation of ours (e.g. the paper's "unfiltered Newton diverges"): the
+  outcome is reported, a clean failure counts as a pass, only a crash of the study fails.
+"""
+
+from __future__ import annotations
+
+import copy
+import tempfile
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig
+from lc_petsc.studies import report
+from lc_petsc.studies.measures import curl_radius, stretch_strain, wisp_lengths
+from lc_petsc.studies.tradeoff import Settings, run_trajectory
+
+
+@dataclass
+class Case:
+    name: str
+    what: str
+    config: SimConfig
+    settings: Settings
+    frames: int
+    expect: str = "recovers"          # recovers | finite | info
+    rms_tol: float = 0.05
+    retention_tol: float = 0.1
+    strain_tol: float = 0.5
+    meta: dict = field(default_factory=dict)
+
+
+def wisp(perturbation="none", factor=0.4, gravity=False, n_vertices=101, E=3.9e9, radius=None,
+         jitter=0.5):
+    terms = ("stretch", "bend", "twist") + (("gravity",) if gravity else ())
+    mat = MaterialConfig(youngs_modulus=E)
+    if radius is not None:
+        mat.root_radius = mat.tip_radius = radius
+    return SimConfig(scene=SceneConfig(kind="wisp4c", n_vertices=n_vertices, perturbation=perturbation,
+                                       smash_factor=factor, jitter=jitter),
+                     material=mat, physics=PhysicsConfig(terms=terms))
+
+
+def helix_file(path, helix_radius=0.1, n_vertices=101, per_turn=5, rise=0.1, stem=3, stem_len=0.6):
+    """A 4C-like wisp with a helix of ``helix_radius`` cm, hanging along -y, as an
+    HDF5 strands file (DESIGN 3)."""
+    import h5py
+    x = np.zeros((n_vertices, 3))
+    x[:stem, 1] = -stem_len * np.arange(stem)
+    k = np.arange(n_vertices - stem)
+    th = 2 * np.pi / per_turn * k
+    x[stem:, 0] = helix_radius * (np.cos(th) - 1.0)
+    x[stem:, 2] = helix_radius * np.sin(th)
+    x[stem:, 1] = -stem_len * stem - rise * k
+    with h5py.File(path, "w") as f:
+        f["positions"] = x
+        f["wisp_offsets"] = np.array([0, n_vertices], np.int64)
+    return str(path)
+
+
+def catalogue(quick=False, tmpdir=None):
+    """The hard cases of issue 6.  ``quick`` shortens every run (for tests)."""
+    q = (lambda n: max(3, n // 10)) if quick else (lambda n: n)
+    tmpdir = Path(tmpdir or tempfile.mkdtemp(prefix="lc_extremes_"))
+    dt30 = Settings()
+    cases = [Case("smash60", "Smash: free x scaled by 0.4 (60% compression), no gravity",
+                  wisp("smash", 0.4), dt30, q(100))]
+    for pct in (30, 40):
+        for f in ("analytic", "numerical", "none"):
+            cases.append(Case(f"compress{pct}_{f}", f"{pct}% compression, filter {f}",
+                              wisp("smash", 1 - pct / 100), replace(dt30, filter=f), q(100),
+                              expect="recovers" if f != "none" else "info"))
+    cases.append(Case("compress40_none_cg_pbjacobi",
+                      "40% compression, filter none, dt 1 s, CG + point-block Jacobi "
+                      "(CG needs an SPD matrix: the filters guarantee one)",
+                      wisp("smash", 0.6), replace(dt30, dt=1.0, filter="none",
+                                                  options="-pc_type pbjacobi -ksp_max_it 5000"),
+                      3, expect="info"))
+    cases.append(Case("jitter", "Jitter: uniform offsets in [-0.5, 0.5] cm, no gravity",
+                      wisp("jitter"), dt30, q(200)))
+    cases.append(Case("straighten", "Straighten: 20-vertex curl on a vertical line (bends = pi), "
+                      "gravity on", wisp("straighten", gravity=True, n_vertices=20), dt30, q(40),
+                      expect="finite"))
+    cases.append(Case("curl_radius_1mm", "helix radius 1 mm (0.1 cm) instead of 5 mm, gravity on",
+                      SimConfig(scene=SceneConfig(kind="file", path=helix_file(tmpdir / "helix1mm.h5")),
+                                material=MaterialConfig(youngs_modulus=3.9e9, root_radius=0.35,
+                                                        tip_radius=0.07),
+                                physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity"))),
+                      dt30, q(60), expect="finite"))
+    cases.append(Case("dt_1_10", "dt = 1/10 s, gravity on", wisp(gravity=True),
+                      replace(dt30, dt=0.1), q(30), expect="finite"))
+    for ratio in (1e4, 1e6, 1e8):
+        r = 2.0 / np.sqrt(ratio)         # k_s / k_b = 4 / r^2 (equal edge and Voronoi lengths)
+        cases.append(Case(f"stiffness_ratio_{ratio:.0e}",
+                          f"stretch/bend stiffness ratio ~{ratio:.0e} (uniform radius {r:.2e} cm), "
+                          "gravity on", wisp(gravity=True, radius=r), dt30, q(30), expect="finite",
+                          meta={"radius_cm": r}))
+    cases.append(Case("stiffness_ratio_1e+08_line_search",
+                      "stiffness ratio ~1e8 as above, with the Armijo line search on G",
+                      wisp(gravity=True, radius=2e-4), replace(dt30, line_search=True), q(30),
+                      expect="finite", meta={"radius_cm": 2e-4}))
+    cases.append(Case("wisp_1000_vertices", "a 4C wisp of 1,000 vertices, gravity on",
+                      wisp(gravity=True, n_vertices=1000), dt30, q(10), expect="finite"))
+    return cases
+
+
+def judge(case: Case, res, traj, geo):
+    """Figures and pass/fail of one case (rank 0)."""
+    rest, offsets, pinned = geo
+    L = float(np.mean(wisp_lengths(rest, offsets)))
+    fig = {"frames_run": res.get("frames_run"), "wall_s": res.get("wall_s"),
+           "newton_total": res.get("newton_total"), "ksp_iterations_max": res.get("ksp_iterations_max"),
+           "status": res["status"], "failure": res["failure"], "failed_frame": res["failed_frame"],
+           "message": res["message"]}
+    if traj and traj["positions"]:
+        x = traj["positions"][-1]
+        fig["final_rms_from_rest"] = float(np.sqrt(np.mean(np.sum((x - rest) ** 2, axis=1)))) / L
+        later = traj["positions"][1:] or traj["positions"]     # not the perturbed start
+        fig["max_stretch_strain"] = max(stretch_strain(p, rest, offsets) for p in later)
+        r0, r1 = curl_radius(rest, offsets, ~pinned), curl_radius(x, offsets, ~pinned)
+        fig["curl_retention"] = (r1 / r0) if (r0 and r1) else None
+    ok = res["status"] == "ok"
+    ret = fig.get("curl_retention")
+    if not ok:
+        fig["outcome"] = f"failed ({res['failure']} at frame {res['failed_frame']})"
+    elif fig.get("final_rms_from_rest", np.inf) <= case.rms_tol and ret is not None \
+            and abs(ret - 1.0) <= case.retention_tol:
+        fig["outcome"] = "recovered"
+    else:
+        fig["outcome"] = (f"finite, not recovered (strain up to {report.fmt(fig.get('max_stretch_strain'))}, "
+                          f"curl retention {report.fmt(ret)})")
+    if case.expect == "recovers":
+        passed = ok and fig.get("final_rms_from_rest", np.inf) <= case.rms_tol and \
+            ret is not None and abs(ret - 1.0) <= case.retention_tol
+        expectation = (f"recovers: RMS distance from rest <= {case.rms_tol:g} L and curl "
+                       f"retention 1 +- {case.retention_tol:g} after {case.frames} frames")
+    elif case.expect == "finite":
+        passed = ok and fig.get("max_stretch_strain", np.inf) <= case.strain_tol
+        expectation = f"stays finite (no failure) with stretch strain <= {case.strain_tol:g}"
+    else:
+        passed = True
+        expectation = "reported (no expectation; the paper: unfiltered Newton diverges)"
+    return dict(case=case.name, what=case.what, expect=case.expect, expectation=expectation,
+                passed=bool(passed), settings=case.settings.label(), **case.meta, **fig)
+
+
+def run_cases(cases, comm, out_dir=None, log=print):
+    rows = []
+    for c in cases:
+        cfg = copy.deepcopy(c.config)
+        duration = c.frames * c.settings.dt
+        res, traj, geo = run_trajectory(cfg, c.settings, duration, c.settings.dt, comm)
+        if comm.rank != 0:
+            continue
+        row = judge(c, res, traj, geo)
+        rows.append(row)
+        log(f"{'PASS' if row['passed'] else 'FAIL'} {c.name:28s} {row['outcome'][:40]:40s} "
+            f"rms-from-rest {report.fmt(row.get('final_rms_from_rest'))}  "
+            f"curl {report.fmt(row.get('curl_retention'))}  strain {report.fmt(row.get('max_stretch_strain'))}  "
+            f"{row['wall_s'] or 0:.2f} s  {row['failure']} {row['message'][:90]}")
+    if comm.rank == 0 and out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        cols = ["case", "passed", "expect", "outcome", "status", "failure", "failed_frame", "frames_run",
+                "final_rms_from_rest", "curl_retention", "max_stretch_strain", "newton_total",
+                "ksp_iterations_max", "wall_s", "settings", "what", "expectation", "message"]
+        report.write_csv(rows, out / "extremes.csv", cols)
+        report.write_json(rows, out / "extremes.json")
+        (out / "extremes.md").write_text("# Stability at the extremes\n\n" + report.markdown_table(
+            ["case", "expectation", "result", "outcome", "RMS from rest (L)", "curl retention",
+             "max strain", "wall (s)", "failure"],
+            [[r["case"], r["expectation"], "PASS" if r["passed"] else "FAIL", r["outcome"],
+              report.fmt(r.get("final_rms_from_rest")), report.fmt(r.get("curl_retention")),
+              report.fmt(r.get("max_stretch_strain")), report.fmt(r.get("wall_s")),
+              (f"{r['failure']} at frame {r['failed_frame']}: {r['message'][:80]}" if r["failure"] else "")]
+             for r in rows]))
+    return rows

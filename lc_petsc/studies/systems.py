@@ -1,0 +1,257 @@
+"""Record a simulator's Newton systems once; replay them with any named solver set.
+
+:class:`SystemRecorder` wraps ``sim.solver.solve`` from outside (no core change): at
+every Newton solve it copies the operator (``sim.assembler.mat``, the recorded matrix
+type, BAIJ by default) and the right-hand side, plus the frame's start positions (for
+GAMG's rigid-body near-null space).  :func:`replay` then solves exactly those systems
+with one option set (``configs/solvers/*.opts``), timing setup and solve separately,
+so that differences between sets are the solver's alone.
+
+Options are layered exactly as in the simulator (:class:`lc_petsc.solver.OptionsScope`:
+code defaults < the set's options < the command line), the KSP is
+:class:`lc_petsc.solver.LinearSolver` itself (per-wisp block Jacobi blocks included) and
+the matrix type comes from :func:`lc_petsc.solver.choose_mat_type`.  One persistent
+operator per set is refilled for each system (``MatCopy`` with the same nonzero
+pattern), so a direct solver's symbolic factorisation is reused across systems as it
+would be in a run.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from petsc4py import PETSc
+
+from lc_petsc.solver import (LinearSolver, OptionsScope, choose_mat_type, choose_pmat_type,
+                             reason_name)
+
+
+@dataclass
+class RecordedSystem:
+    A: PETSc.Mat
+    b: PETSc.Vec
+    coords: np.ndarray          # (local vertices, 3): positions at the frame's start
+    frame: int
+    newton_it: int
+
+
+class SystemRecorder:
+    """Copy every Newton system ``sim`` solves (up to ``max_systems``)."""
+
+    def __init__(self, sim, max_systems=None):
+        self.sim = sim
+        self.max_systems = max_systems
+        self.systems: list[RecordedSystem] = []
+        self.wisp_rows = 3 * np.diff(sim.scene.offsets)
+        self._orig = sim.solver.solve
+
+        def solve(b, x, frame, newton_it):
+            if self.max_systems is None or len(self.systems) < self.max_systems:
+                self.systems.append(RecordedSystem(
+                    sim.assembler.mat.copy(), b.copy(), np.array(sim.integrator.x, float),
+                    int(frame), int(newton_it)))
+            return self._orig(b, x, frame, newton_it)
+
+        sim.solver.solve = solve
+
+    def detach(self):
+        self.sim.solver.solve = self._orig
+
+    def destroy(self):
+        for s in self.systems:
+            s.A.destroy()
+            s.b.destroy()
+        self.systems = []
+
+
+def read_options_file(path) -> str:
+    """The options of a PETSc options file (``#`` comments dropped), one string."""
+    lines = Path(path).read_text().splitlines()
+    return " ".join(line.split("#", 1)[0] for line in lines).strip()
+
+
+def option_sets(folder, names=None) -> dict:
+    """``{name: options string}`` of ``folder/*.opts`` (``names``: a subset, in order)."""
+    found = {p.stem: read_options_file(p) for p in sorted(Path(folder).glob("*.opts"))}
+    if names is None:
+        order = ["default"] + [n for n in found if n != "default"]
+        return {n: found[n] for n in order if n in found}
+    missing = [n for n in names if n not in found]
+    if missing:
+        raise ValueError(f"no option set(s) {missing} in {folder}; available: {sorted(found)}")
+    return {n: found[n] for n in names}
+
+
+def current_rss_mib() -> float:
+    """Resident set size of this process now (MiB), from /proc/self/statm."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+    except OSError:   # pragma: no cover - non-Linux
+        return float("nan")
+
+
+def peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+class BudgetExceeded(Exception):
+    """Raised from a KSP monitor when a set has used up its time budget."""
+
+
+def _max(comm, v):
+    from mpi4py import MPI
+    return comm.allreduce(v, op=MPI.MAX)
+
+
+def _convert(A, mat_type):
+    base = mat_type.lower().replace("mpi", "").replace("seq", "")
+    cur = A.getType().lower().replace("mpi", "").replace("seq", "")
+    # NB petsc4py's A.convert(t) without ``out`` converts IN PLACE: pass a new Mat
+    return A.copy() if base == cur else A.convert(mat_type, PETSc.Mat())
+
+
+def direct_solutions(systems, comm):
+    """Reference solutions x* = A^-1 b (MUMPS LU on AIJ) of every recorded system."""
+    out = []
+    for s in systems:
+        A = _convert(s.A, "aij")
+        ksp = PETSc.KSP().create(comm=A.getComm())
+        ksp.setOperators(A)
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType("mumps")
+        x = s.b.duplicate()
+        ksp.solve(s.b, x)
+        out.append(x)
+        ksp.destroy()
+        A.destroy()
+    return out
+
+
+def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=None,
+           check_every=10):
+    """Solve ``systems`` with the option set ``options``; one row (dict) per system.
+
+    Times are maxima over ranks.  When the set's accumulated setup + solve time passes
+    ``budget_s`` (checked inside the Krylov loop every ``check_every`` iterations and
+    between systems, collectively), the current solve is stopped and it and every
+    remaining system get ``status = "budget"``: reported, not dropped.
+    """
+    rows = []
+    scope = OptionsScope(options)
+    base = {"set": name, "options": options}
+    try:
+        mat_type = choose_mat_type(scope)
+        pmat_type = choose_pmat_type(scope, mat_type)
+    except ValueError as e:
+        return [dict(base, system=i, status="error", message=str(e)) for i in range(len(systems))]
+    rss0 = _max(comm, current_rss_mib())
+    A = _convert(systems[0].A, mat_type)
+    P = _convert(systems[0].A, pmat_type) if pmat_type else None
+    ls = None
+    spent = 0.0
+    t_start = [0.0]
+    try:
+        pc_type = (scope.lookup("pc_type") or "").lower()
+        near_null = None
+        if pc_type == "gamg":
+            c = PETSc.Vec().createMPI((systems[0].coords.size, PETSc.DECIDE), bsize=3,
+                                      comm=A.getComm())
+            c.array[:] = systems[0].coords.ravel()
+            near_null = PETSc.NullSpace().createRigidBody(c)
+            A.setNearNullSpace(near_null)
+            c.destroy()
+        t0 = time.perf_counter()
+        try:
+            ls = LinearSolver(A, wisp_rows, scope, mat_type, P=P)
+        except (PETSc.Error, ValueError) as e:
+            msg = f"cannot create the solver: {type(e).__name__} {getattr(e, 'ierr', e)}"
+            return [dict(base, system=i, status="error", message=msg) for i in range(len(systems))]
+        t_create = _max(comm, time.perf_counter() - t0)
+        ksp = ls.ksp
+
+        def monitor(k, its, rnorm):
+            if its and its % check_every == 0:
+                over = spent + time.perf_counter() - t_start[0] > budget_s
+                if comm.allreduce(int(over)):
+                    raise BudgetExceeded(f"time budget {budget_s:g} s used up at Krylov iteration {its}")
+
+        ksp.setMonitor(monitor)
+        x = systems[0].b.duplicate()
+        stopped = None
+        for i, s in enumerate(systems):
+            row = dict(base, system=i, frame=s.frame, newton_it=s.newton_it,
+                       mat_type=A.getType(), dofs=A.getSize()[0])
+            if stopped is not None:
+                rows.append(dict(row, status="budget", message=stopped))
+                continue
+            if i > 0:   # refill the persistent operator(s): same pattern, new values
+                for M, t in ((A, mat_type), (P, pmat_type)):
+                    if M is not None:
+                        src = _convert(s.A, t)
+                        src.copy(M, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+                        src.destroy()
+                # mark the operators as changed so that KSPSetUp (timed as setup) redoes
+                # the preconditioner; otherwise KSPSolve would do it inside the solve time
+                ksp.setOperators(A, A if P is None else P)
+            x.set(0.0)
+            comm.Barrier()
+            t_start[0] = time.perf_counter()
+            try:
+                with scope.active(ls.extra):
+                    ksp.setUp()
+                    t_setup = _max(comm, time.perf_counter() - t_start[0])
+                    t1 = time.perf_counter()
+                    ksp.solve(s.b, x)
+                t_solve = _max(comm, time.perf_counter() - t1)
+            except BudgetExceeded as e:
+                stopped = str(e)
+                spent += _max(comm, time.perf_counter() - t_start[0])
+                rows.append(dict(row, status="budget", message=stopped,
+                                 iterations=int(ksp.getIterationNumber())))
+                continue
+            except PETSc.Error as e:
+                rows.append(dict(row, status="error", message=f"PETSc error {e.ierr}"))
+                stopped = f"stopped after a PETSc error in system {i}"
+                continue
+            spent += t_setup + t_solve
+            reason = ksp.getConvergedReason()
+            r = s.b.duplicate()
+            s.A.mult(x, r)
+            r.aypx(-1.0, s.b)
+            bn = s.b.norm()
+            row.update(status="ok" if reason > 0 else "diverged",
+                       setup_s=t_setup, solve_s=t_solve, total_s=t_setup + t_solve,
+                       create_s=t_create if i == 0 else 0.0,
+                       iterations=int(ksp.getIterationNumber()), reason=reason_name(reason),
+                       true_rel_residual=r.norm() / bn if bn > 0 else 0.0)
+            r.destroy()
+            if reason <= 0:
+                row["message"] = f"{reason_name(reason)} in system {i}"
+            if references is not None:
+                d = x.duplicate()
+                d.waxpy(-1.0, references[i], x)
+                xn = references[i].norm()
+                row["rel_error_vs_direct"] = d.norm() / xn if xn > 0 else d.norm()
+                d.destroy()
+            row["rss_delta_mib"] = _max(comm, current_rss_mib()) - rss0
+            row["peak_rss_mib"] = _max(comm, peak_rss_mib())
+            rows.append(row)
+            if spent > budget_s and i + 1 < len(systems):
+                stopped = f"time budget {budget_s:g} s used up after system {i}"
+        x.destroy()
+    finally:
+        if ls is not None:
+            ls.ksp.destroy()
+        A.destroy()
+        if P is not None:
+            P.destroy()
+    return rows

@@ -1,0 +1,270 @@
+"""Speed versus accuracy (issue 6): a reference trajectory, variants along each axis,
+errors at common output times, cost, Pareto front, recommendations.
+
+Used by ``drivers/tradeoff.py`` and ``scripts/extremes.py``; see docs/studies.md.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+from petsc4py import PETSc
+
+from lc_petsc.parallel import SimulationError
+from lc_petsc.simulator import build_simulator
+from lc_petsc.solver import SolverError
+from lc_petsc.studies import report
+from lc_petsc.studies.measures import (BlowUp, TrajectoryRecorder, compare_trajectories,
+                                       quality)
+
+# What a variant's run may die of; these become results (status "unstable"), anything
+# else is a bug and propagates.
+FAILURES = (SimulationError, FloatingPointError, SolverError, PETSc.Error, ArithmeticError,
+            RuntimeWarning, np.linalg.LinAlgError)
+
+
+@dataclass(frozen=True)
+class Settings:
+    dt: float = 1.0 / 30.0
+    newton_iterations: int = 3
+    newton_tol: Optional[float] = None
+    ksp_rtol: float = 1e-6
+    filter: str = "analytic"
+    line_search: bool = False
+    options: str = ""               # extra PETSc options (e.g. a solver set)
+
+    def label(self):
+        parts = [f"dt=1/{round(1 / self.dt)}", f"N={self.newton_iterations}",
+                 f"rtol={self.ksp_rtol:.0e}", self.filter]
+        if self.newton_tol is not None:
+            parts.append(f"tol={self.newton_tol:g}")
+        if self.line_search:
+            parts.append("LS")
+        return " ".join(parts)
+
+
+BASE = Settings()
+
+
+def default_variants(base: Settings = BASE, axes=None):
+    """[(axis, name, Settings)] along each axis of issue 6; the base appears once."""
+    out = [("base", "base", base)]
+    ax = {
+        "newton": [(f"newton {n}", replace(base, newton_iterations=n)) for n in (1, 2, 3, 6, 12)],
+        "ksp_rtol": [(f"rtol {r:.0e}", replace(base, ksp_rtol=r)) for r in (1e-2, 1e-4, 1e-6, 1e-8, 1e-10)],
+        "dt": [(f"dt 1/{d}", replace(base, dt=1.0 / d)) for d in (30, 60, 120)],
+        "filter": [(f"filter {f}", replace(base, filter=f)) for f in ("analytic", "numerical", "none")],
+        "line_search": [("line search", replace(base, line_search=True))],
+    }
+    for a in (axes or ax):
+        for name, s in ax[a]:
+            if s != base:
+                out.append((a, name, s))
+    return out
+
+
+def reference_settings(dt=1.0 / 120.0, newton_tol=1e-9, max_newton=100, filter="none",
+                       line_search=True):
+    """The reference: BDF-1 solved to max|dx| < ``newton_tol`` cm.
+
+    The filter changes only the Newton matrix, not the solution of a frame, so the
+    reference uses the unfiltered (true) Hessian with the line search: measured on the
+    shaking hairball, it converges quadratically (|dx| 1e-14 cm after ~10 iterations)
+    where the filtered Newton contracts by only ~0.93 per iteration (4e-4 cm after 40).
+    Its Krylov solver is GMRES (:data:`REFERENCE_KSP`), since that Hessian may be
+    indefinite.  :func:`run_study` falls back to :func:`reference_fallback` (analytic
+    filter, CG) if it fails.
+    """
+    return Settings(dt=dt, newton_iterations=max_newton, newton_tol=newton_tol, ksp_rtol=1e-12,
+                    filter=filter, line_search=line_search, options=REFERENCE_KSP)
+
+
+# The unfiltered Hessian can be indefinite: CG then stops with DIVERGED_INDEFINITE_PC
+# (measured on the shaking 20-wisp hairball, frame 28 at dt 1/120).  GMRES with the
+# default exact per-wisp block Jacobi converges in one iteration on any nonsingular
+# system (as does MUMPS LU, measured: same Newton counts, slower).
+REFERENCE_KSP = "-ksp_type gmres -ksp_max_it 200"
+
+
+def reference_fallback(ref: Settings) -> Settings:
+    return replace(ref, filter="analytic", newton_iterations=max(ref.newton_iterations, 200),
+                   options=ref.options.replace(REFERENCE_KSP, "").strip())
+
+
+def configure(base_cfg, s: Settings, duration):
+    cfg = copy.deepcopy(base_cfg)
+    cfg.time.dt = s.dt
+    cfg.time.frames = int(round(duration / s.dt))
+    cfg.time.newton_iterations = s.newton_iterations
+    cfg.time.newton_tol = s.newton_tol
+    cfg.time.line_search = s.line_search
+    cfg.solver.filter = s.filter
+    cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options,
+                                              f"-ksp_rtol {s.ksp_rtol:g}") if x)
+    return cfg
+
+
+def run_trajectory(base_cfg, s: Settings, duration, out_dt, comm, blowup=5.0):
+    """Run one setting; capture every ``out_dt`` seconds.  Never raises for the
+    failures of :data:`FAILURES` or a blow-up: returns status ``unstable`` with when
+    and how it failed (the trajectory up to then is kept)."""
+    every = out_dt / s.dt
+    if abs(every - round(every)) > 1e-6 or round(every) < 1:
+        raise ValueError(f"dt = {s.dt:g} does not divide the output interval {out_dt:g}")
+    cfg = configure(base_cfg, s, duration)
+    res = {"status": "ok", "failure": "", "failed_frame": None, "failed_time": None, "message": ""}
+    sim = None
+    rec = None
+    t0 = time.perf_counter()
+    cpu = 0.0
+    try:
+        sim = build_simulator(cfg, comm)
+        rec = TrajectoryRecorder(sim, every=int(round(every)), blowup=blowup)
+        c0 = time.process_time()
+        try:
+            sim.run(cfg.time.frames, callback=rec)
+        finally:
+            cpu = time.process_time() - c0
+    except FAILURES as e:
+        kind = "blow-up" if isinstance(e, BlowUp) else type(e).__name__
+        frame = sim.integrator.frame if sim is not None else None
+        res.update(status="unstable", failure=kind, failed_frame=frame,
+                   failed_time=None if frame is None else frame * s.dt,
+                   message=" ".join(str(e).split())[:400])
+    total = time.perf_counter() - t0
+    if sim is not None:
+        summ = sim.summary()
+        res.update(wall_s=summ["wall_time_s"], frames_run=sim.integrator.frame,
+                   newton_total=int(sum(summ["newton_iterations"])),
+                   ksp_iterations_mean=float(np.mean(summ["ksp_iterations"])) if summ["ksp_iterations"] else None,
+                   ksp_iterations_max=max(summ["ksp_iterations"], default=None),
+                   timings_s=summ["timings_s"], cpu_s=_max(comm, cpu))
+        sim.close()
+    res["total_wall_s"] = total
+    traj = None
+    if rec is not None and comm.rank == 0:
+        traj = {"times": rec.times, "positions": rec.positions, "energies": rec.energies}
+    geo = (rec.rest, rec.offsets, rec.pinned) if rec is not None else None
+    return res, traj, geo
+
+
+def _max(comm, v):
+    from mpi4py import MPI
+    return comm.allreduce(v, op=MPI.MAX)
+
+
+COSTS = {"wall_per_sim_s": "wall time per simulated second (s)",
+         "cpu_per_sim_s": "CPU time per simulated second (s, max over ranks; robust to a shared machine)"}
+
+
+def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0,
+              ref: Settings = None, targets=(0.1, 0.03, 0.01, 0.003, 0.001), log=print,
+              meta=None, blowup=5.0, cost="wall_per_sim_s"):
+    """Reference + variants; writes tradeoff.csv, tradeoff.json, pareto.png and
+    recommendations.md to ``out_dir`` (rank 0).  Returns the rows (rank 0; None elsewhere)."""
+    out = Path(out_dir)
+    if comm.rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+    ref = ref or reference_settings()
+    rres, rtraj, geo = run_trajectory(base_cfg, ref, duration, out_dt, comm, blowup)
+    if rres["status"] != "ok":
+        log(f"reference ({ref.label()}) failed ({rres['failure']}: {rres['message'][:100]}); "
+            "falling back to the analytic filter")
+        ref = reference_fallback(ref)
+        rres, rtraj, geo = run_trajectory(base_cfg, ref, duration, out_dt, comm, blowup)
+    if rres["status"] != "ok":
+        raise RuntimeError(f"the reference trajectory ({ref.label()}) failed: {rres['message']}")
+    log(f"reference ({ref.label()}): {rres['wall_s']:.2f} s, Newton iterations {rres['newton_total']} "
+        f"over {rres['frames_run']} steps")
+    rows = []
+    rq = None
+    if comm.rank == 0:
+        rest, offsets, pinned = geo
+        rq = quality(rtraj, rest, offsets, pinned)
+    for axis, name, s in variants:
+        res, traj, _ = run_trajectory(base_cfg, s, duration, out_dt, comm, blowup)
+        if comm.rank != 0:
+            continue
+        row = {"variant": name, "axis": axis, "label": s.label(), **asdict(s), **res}
+        row.pop("timings_s", None)
+        row["stable"] = res["status"] == "ok"
+        n_out = max(len(traj["times"]) - 1, 1) if traj else 1
+        if res.get("wall_s") is not None and res.get("frames_run"):
+            simulated = res["frames_run"] * s.dt
+            row["wall_per_sim_s"] = res["wall_s"] / simulated
+            row["wall_per_frame_s"] = res["wall_s"] / n_out
+            row["cpu_per_sim_s"] = res["cpu_s"] / simulated
+            row["cpu_per_frame_s"] = res["cpu_s"] / n_out
+        if traj and len(traj["times"]) > 1:
+            row.update(compare_trajectories(traj, rtraj, rest, offsets, pinned))
+            row.update(quality(traj, rest, offsets, pinned))
+        row["ref_max_stretch_strain"] = rq["max_stretch_strain"]
+        row["ref_curl_retention"] = rq["curl_retention"]
+        if not row["stable"]:   # errors of a partial trajectory are not comparable
+            for k in ("rms_rel_error", "max_rel_error", "final_rms_rel_error", "energy_rel_error"):
+                row[k + "_until_failure"] = row.pop(k, None)
+        rows.append(row)
+        log(f"  {name:16s} {res['status']:8s} {row.get('wall_per_sim_s') or float('nan'):8.3f} s/sim-s  "
+            f"rms err {row.get('rms_rel_error', float('nan')):.2e}  "
+            f"{res['failure']} {res['message'][:80]}")
+    if comm.rank != 0:
+        return None
+    cols = ["variant", "axis", "label", "status", "stable", "wall_per_sim_s", "wall_per_frame_s",
+            "cpu_per_sim_s", "cpu_per_frame_s", "newton_total",
+            "rms_rel_error", "max_rel_error", "final_rms_rel_error", "energy_rel_error",
+            "max_stretch_strain", "curl_retention", "ref_max_stretch_strain",
+            "ref_curl_retention", "failure", "failed_frame", "failed_time", "message"]
+    report.write_csv(rows, out / "tradeoff.csv", cols)
+    recs = recommend(rows, targets, cost=cost)
+    report.write_json({"meta": dict(meta or {}, duration=duration, out_dt=out_dt),
+                       "reference": dict(asdict(ref), **{k: v for k, v in rres.items() if k != "timings_s"},
+                                         **rq),
+                       "variants": rows, "recommendations": recs}, out / "tradeoff.json")
+    report.plot_pareto(rows, out / "pareto.png", cost=cost, cost_label=COSTS[cost],
+                       title=f"speed vs accuracy: {(meta or {}).get('scene', '')}, {duration:g} s simulated")
+    (out / "recommendations.md").write_text(markdown(rows, recs, ref, meta, cost))
+    return rows
+
+
+def recommend(rows, targets, error="rms_rel_error", cost="wall_per_sim_s"):
+    """For each target error, the cheapest stable variant reaching it (or None)."""
+    out = []
+    for t in targets:
+        ok = [r for r in rows if r.get("stable") and r.get(error) is not None
+              and r[error] <= t and r.get(cost)]
+        best = min(ok, key=lambda r: r[cost]) if ok else None
+        out.append({"target": t, "variant": best["variant"] if best else None,
+                    "label": best["label"] if best else None,
+                    "cost": best[cost] if best else None, "error": best[error] if best else None})
+    return out
+
+
+def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s"):
+    lines = ["# Speed versus accuracy\n"]
+    if meta and meta.get("command"):
+        lines.append(f"Command: `{meta['command']}`\n")
+    lines.append(f"Reference: {ref.label()}. Errors at the common output times; position "
+                 f"errors relative to the wisp length; cost = {COSTS[cost]}.\n")
+    lines.append("## Recommendations (cheapest stable setting reaching the target RMS error)\n")
+    lines.append(report.markdown_table(
+        ["target RMS error", "variant", "settings", f"cost ({cost})", "RMS error"],
+        [[report.fmt(r["target"]), r["variant"] or "none reaches it", r["label"] or "-",
+          report.fmt(r["cost"]), report.fmt(r["error"])] for r in recs]))
+    lines.append("\n## All variants\n")
+    lines.append(report.markdown_table(
+        ["variant", "status", "wall s/sim-s", "wall s/frame", "CPU s/sim-s", "Newton its",
+         "RMS err", "max err", "energy err",
+         "max strain", "curl retention", "failure"],
+        [[r["variant"], r["status"], report.fmt(r.get("wall_per_sim_s")),
+          report.fmt(r.get("wall_per_frame_s")), report.fmt(r.get("cpu_per_sim_s")),
+          report.fmt(r.get("newton_total")), report.fmt(r.get("rms_rel_error")),
+          report.fmt(r.get("max_rel_error")), report.fmt(r.get("energy_rel_error")),
+          report.fmt(r.get("max_stretch_strain")), report.fmt(r.get("curl_retention")),
+          (f"{r['failure']} at frame {r['failed_frame']}" if not r["stable"] else "")]
+         for r in rows]))
+    return "\n".join(lines)

@@ -1,0 +1,43 @@
+"""Stability at the extremes (issue 6): the catalogue's hard cases with their stated
+expectations, PASS/FAIL and figures.
+
+  python scripts/extremes.py [--quick] [--only NAME ...] [--out out/extremes] [PETSc options]
+
+Cases (lc_petsc/studies/extremes.py): Smash 60%; compression 30% and 40% with each
+filter (analytic, numerical, none); filter none + CG/point-block Jacobi at dt 1 s;
+Jitter; Straighten; curl radius 1 mm; dt 1/10 s; stretch/bend stiffness ratio 1e4, 1e6,
+1e8; a 1,000-vertex wisp.  Single wisps: run on one rank.  Writes extremes.csv,
+extremes.json and extremes.md to --out; exit status 1 if a case fails its expectation.
+"""
+
+import argparse
+import sys
+
+import petsc4py
+
+petsc4py.init(sys.argv)
+from mpi4py import MPI  # noqa: E402
+
+from lc_petsc.studies.extremes import catalogue, run_cases  # noqa: E402
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="a tenth of the frames")
+    ap.add_argument("--only", nargs="+", default=None, help="case names (prefixes)")
+    ap.add_argument("--out", default="out/extremes")
+    args, _ = ap.parse_known_args(argv)
+    comm = MPI.COMM_WORLD
+    cases = catalogue(quick=args.quick)
+    if args.only:
+        cases = [c for c in cases if any(c.name.startswith(p) for p in args.only)]
+    rows = run_cases(cases, comm, args.out,
+                     log=(lambda *a: (print(*a), sys.stdout.flush())) if comm.rank == 0 else (lambda *a: None))
+    if comm.rank == 0:
+        n_fail = sum(not r["passed"] for r in rows)
+        print(f"{len(rows) - n_fail}/{len(rows)} cases pass; wrote {args.out}/extremes.md")
+    return int(comm.bcast(n_fail if comm.rank == 0 else None) > 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,56 @@
+"""Write the example strands file configs/data/fringe.h5 (DESIGN section 3, "Strands
+from a file") used by configs/from_file.toml.
+
+A fringe of 24 curly wisps hanging from a horizontal bar 8 cm long: lengths 40 to 101
+vertices, coil radius 0.3 to 0.7 cm, 4 to 7 vertices per turn, left- and right-handed,
+each with its own tapering /radius and the first 3 vertices /pinned.  Deterministic
+(seeded), so the committed file can be regenerated bit for bit:
+
+  .venv/bin/python scripts/make_groom.py [OUT.h5]
+"""
+
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+
+def wisp(n, coil_radius, per_turn, rise, handed, root):
+    k = np.arange(n)
+    stem = 3
+    x = np.zeros((n, 3))
+    x[:stem, 1] = -0.5 * k[:stem]
+    th = handed * 2 * np.pi / per_turn * (k[stem:] - stem)
+    x[stem:, 0] = coil_radius * (np.cos(th) - 1.0)
+    x[stem:, 2] = coil_radius * np.sin(th)
+    x[stem:, 1] = -0.5 * stem - rise * (k[stem:] - stem + 1)
+    return x + root
+
+
+def main(out):
+    rng = np.random.default_rng(2023)
+    xs, radii, pins = [], [], []
+    for w in range(24):
+        n = int(rng.integers(40, 102))
+        x = wisp(n, coil_radius=rng.uniform(0.3, 0.7), per_turn=int(rng.integers(4, 8)),
+                 rise=rng.uniform(0.08, 0.2), handed=1 if w % 2 else -1,
+                 root=np.array([-4.0 + 8.0 * w / 23, 0.0, 0.3 * rng.standard_normal()]))
+        xs.append(x)
+        radii.append(np.linspace(rng.uniform(0.06, 0.1), 0.03, n))
+        p = np.zeros(n, bool)
+        p[:3] = True
+        pins.append(p)
+    offsets = np.concatenate([[0], np.cumsum([len(x) for x in xs])]).astype(np.int64)
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    with h5py.File(out, "w", track_order=False) as f:
+        f.create_dataset("positions", data=np.concatenate(xs))
+        f.create_dataset("wisp_offsets", data=offsets)
+        f.create_dataset("radius", data=np.concatenate(radii))
+        f.create_dataset("pinned", data=np.concatenate(pins))
+        f.attrs["description"] = "lc_petsc example groom: a fringe of 24 curly wisps"
+    print(f"wrote {out}: {len(xs)} wisps, {offsets[-1]} vertices")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1] if len(sys.argv) > 1 else str(Path(__file__).resolve().parents[1] / "configs/data/fringe.h5"))

@@ -1,0 +1,177 @@
+"""TOML configs and the main job's command line: every class of bad input is reported
+once, names key, value and what is allowed, exits non-zero, dumps no traceback and
+writes nothing."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lc_petsc.batch import main
+from lc_petsc.config import ConfigError, SimConfig, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = sorted((ROOT / "configs").glob("*.toml"))
+CATALOGUE = {"hairball_2k", "hairball_4k", "hairball_8k", "hairball_demo", "smash", "jitter",
+             "straighten", "compression_30", "compression_40", "cantilever", "from_file"}
+SELF = MPI.COMM_SELF
+MPI_ENV = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OMPI_MCA_rmaps_base_oversubscribe="1")
+
+GOOD = """
+[scene]
+kind = "wisp4c"
+n_vertices = 12
+[physics]
+terms = ["stretch", "bend", "twist", "gravity"]
+[time]
+frames = 2
+"""
+
+
+def test_catalogue_complete_documented_and_valid():
+    assert {p.stem for p in CONFIGS} == CATALOGUE
+    for p in CONFIGS:
+        text = p.read_text()
+        assert text.startswith(f"# {p.stem}: "), f"{p.name} must open with a comment on what it shows"
+        assert "What it shows" in text or "what it shows" in text.lower(), p.name
+        cfg = load_config(p)
+        assert isinstance(cfg, SimConfig)
+        assert cfg.scene.description, p.name
+
+
+def test_scene_terms_only_what_is_needed():
+    cfg = {p.stem: load_config(p) for p in CONFIGS}
+    for name in ("smash", "jitter", "compression_30", "compression_40"):
+        assert set(cfg[name].physics.terms) == {"stretch", "bend", "twist"}, name   # no gravity, no contact
+    assert "twist" not in cfg["cantilever"].physics.terms
+    assert "head_collision" not in cfg["from_file"].physics.terms
+    for n in ("2k", "4k", "8k"):
+        c = cfg[f"hairball_{n}"]
+        assert c.scene.n_wisps == int(n[0]) * 1000 and c.time.frames == 540
+        assert c.physics.head_motion == "shake" and "head_collision" in c.physics.terms
+
+
+def test_paths_relative_to_the_config_file(tmp_path):
+    cfg = load_config(ROOT / "configs" / "from_file.toml")
+    assert cfg.scene.path == str(ROOT / "configs" / "data" / "fringe.h5")
+    demo = load_config(ROOT / "configs" / "hairball_demo.toml")
+    assert demo.solver.options_file == str(ROOT / "configs" / "solvers" / "paper.opts")
+    assert "-pc_type bjacobi" in demo.solver.effective_options()
+    # the options string comes after the file, so it wins
+    (tmp_path / "x.opts").write_text("-ksp_rtol 1e-3  # comment\n-pc_type none\n")
+    (tmp_path / "c.toml").write_text('[solver]\noptions_file = "x.opts"\noptions = "-ksp_rtol 1e-9"\n')
+    c = load_config(tmp_path / "c.toml")
+    from lc_petsc.solver import parse_options
+    assert dict(parse_options(c.solver.effective_options()))["ksp_rtol"] == "1e-9"
+
+
+# (class of bad input, TOML text or None for a missing file, the message's parts)
+BAD = [
+    ("unknown table", GOOD + "[physic]\nterms = []\n", ["unknown table [physic]", "[physics]"]),
+    ("unknown key", GOOD.replace("frames = 2", "frames = 2\nnewton_iters = 3"),
+     ["unknown key time.newton_iters", "newton_iterations"]),
+    ("wrong type", GOOD.replace("frames = 2", 'frames = "2"'), ["time.frames = '2'", "expected an integer"]),
+    ("wrong type (vector)", GOOD.replace('"gravity"]', '"gravity"]\ngravity = [0, -981]'),
+     ["physics.gravity = [0, -981]", "an array of 3 numbers"]),
+    ("negative dt", GOOD.replace("frames = 2", "frames = 2\ndt = -0.01"),
+     ["time.dt", "-0.01", "positive"]),
+    ("zero density", GOOD + "[material]\ndensity = 0\n", ["material.density", "got 0", "positive"]),
+    ("Newton count < 1", GOOD.replace("frames = 2", "frames = 2\nnewton_iterations = 0"),
+     ["time.newton_iterations", ">= 1", "got 0"]),
+    ("unknown term", GOOD.replace('"gravity"]', '"gravity", "bending"]'),
+     ["physics.terms", "'bending'", "stretch"]),
+    ("missing strands file", '[scene]\nkind = "file"\npath = "nowhere.h5"\n',
+     ["scene.path", "nowhere.h5", "no such file"]),
+    ("missing options file", GOOD + '[solver]\noptions_file = "none.opts"\n',
+     ["solver.options_file", "none.opts", "no such file"]),
+    ("bad enum", GOOD + '[output]\nview = "iso"\n', ["output.view", "'iso'", "front"]),
+    ("TOML syntax", GOOD + "[time\n", ["invalid TOML"]),
+    ("missing config file", None, ["no such config file"]),
+]
+
+
+def _run_main(capsys, argv, comm=SELF):
+    code = main(argv, comm=comm)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.mark.parametrize("case, text, parts", BAD, ids=[b[0] for b in BAD])
+def test_bad_config_is_reported_once_without_traceback_or_output(tmp_path, capsys, case, text, parts):
+    cfg = tmp_path / "bad.toml"
+    if text is not None:
+        cfg.write_text(text)
+    out_dir = tmp_path / "out"
+    code, out, err = _run_main(capsys, [str(cfg), "--out", str(out_dir), "--quiet"])
+    assert code == 2
+    assert err.count("error:") == 1 and "Traceback" not in err + out, err
+    assert str(cfg) in err or case == "missing config file"
+    for p in parts or []:
+        assert p in err, (p, err)
+    assert not out_dir.exists(), "no partial output"
+    if text is not None and case not in ("TOML syntax",):
+        with pytest.raises(ConfigError):
+            load_config(cfg)
+
+
+@pytest.mark.parametrize("argv, part", [
+    (["--frames", "-1"], "--frames must be an integer >= 0"),
+    (["--frames", "two"], "invalid int value: 'two'"),
+    (["stray"], "unexpected argument 'stray'"),
+    (["--restart", "latest"], "--restart: checkpoints are not implemented yet"),
+])
+def test_bad_command_line(tmp_path, capsys, argv, part):
+    (tmp_path / "c.toml").write_text(GOOD)
+    code, out, err = _run_main(capsys, [str(tmp_path / "c.toml")] + argv + ["--out", str(tmp_path / "o")])
+    assert code == 2 and part in err and "Traceback" not in err and not (tmp_path / "o").exists(), err
+
+
+def test_problems_found_while_building_are_reported_once(tmp_path, capsys):
+    """A strands file without /wisp_offsets and a solver that refuses the matrix type
+    are found after the TOML checks, still before any output."""
+    with h5py.File(tmp_path / "s.h5", "w") as f:
+        f["positions"] = np.zeros((8, 3))
+    (tmp_path / "a.toml").write_text('[scene]\nkind = "file"\npath = "s.h5"\n')
+    code, out, err = _run_main(capsys, [str(tmp_path / "a.toml"), "--out", str(tmp_path / "o")])
+    assert code == 2 and "missing dataset /wisp_offsets" in err and "Traceback" not in err
+    (tmp_path / "b.toml").write_text(GOOD + '[solver]\noptions = "-pc_type cholesky '
+                                     '-pc_factor_mat_solver_type mumps -mat_type baij"\n')
+    code, out, err = _run_main(capsys, [str(tmp_path / "b.toml"), "--out", str(tmp_path / "o")])
+    assert code == 2 and "MUMPS does not accept BAIJ" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_command_line_exit_status_under_mpiexec(tmp_path):
+    """The real CLI on 2 ranks: one message, non-zero exit, no traceback, no output."""
+    (tmp_path / "bad.toml").write_text(GOOD.replace("frames = 2", "frames = 2\ndt = 0"))
+    cmd = ["mpiexec", "--oversubscribe", "-n", "2", sys.executable, str(ROOT / "drivers" / "simulate.py"),
+           str(tmp_path / "bad.toml"), "--out", str(tmp_path / "o")]
+    p = subprocess.run(cmd, capture_output=True, text=True, env=MPI_ENV, timeout=120, cwd=tmp_path)
+    assert p.returncode != 0
+    assert p.stderr.count("simulate.py: error:") == 1, p.stderr
+    assert "time.dt must be a finite positive number, got 0.0" in p.stderr
+    assert "Traceback" not in p.stderr + p.stdout
+    assert not (tmp_path / "o").exists()
+
+
+def test_help(capsys):
+    code, out, err = _run_main(capsys, ["--help"])
+    assert code == 0 and "CONFIG.toml" in out and "PETSc" in out
+
+
+def test_every_config_key_is_documented_in_the_readme():
+    from dataclasses import fields
+    from lc_petsc.config import TABLES
+    readme = (ROOT / "README.md").read_text()
+    table = readme[readme.index("## Config reference"):]
+    for name, cls in TABLES.items():
+        for f in fields(cls):
+            assert f"`{name}.{f.name}`" in table, f"{name}.{f.name} is not in the README's config table"
+    for p in CONFIGS:
+        assert f"`{p.stem}`" in readme or p.stem.startswith("compression"), p.stem

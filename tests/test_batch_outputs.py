@@ -1,0 +1,175 @@
+"""The main job end to end: the demo scene under mpiexec -n 2 at a reduced frame count,
+frames.h5 layout (identical on 1 and 2 ranks up to round-off), frames.xdmf read back by
+VTK's XDMF reader (the reader ParaView uses), previews, summary.json, report, a run
+that fails part-way."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lc_petsc.batch import main
+
+ROOT = Path(__file__).resolve().parents[1]
+MPI_ENV = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OMPI_MCA_rmaps_base_oversubscribe="1")
+DEMO_FRAMES = 4
+
+SMALL = """
+[scene]
+kind = "hairball"
+n_wisps = 5
+seed = 3
+[material]
+youngs_modulus = 2.5e8
+[physics]
+terms = ["stretch", "bend", "twist", "gravity", "head_collision"]
+head_motion = "shake"
+head_period = 0.4
+[time]
+frames = 8
+[output]
+every = 2
+preview_frames = [0, -1]
+contact_sheet = 4
+"""
+
+
+def _mpiexec(n, args, cwd):
+    cmd = ["mpiexec", "--oversubscribe", "-n", str(n), sys.executable,
+           str(ROOT / "drivers" / "simulate.py")] + args
+    return subprocess.run(cmd, capture_output=True, text=True, env=MPI_ENV, timeout=150, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """configs/hairball_demo.toml on 2 ranks, DEMO_FRAMES frames, a PETSc override."""
+    d = tmp_path_factory.mktemp("demo")
+    p = _mpiexec(2, [str(ROOT / "configs" / "hairball_demo.toml"), "--frames", str(DEMO_FRAMES),
+                     "--out", str(d / "out"), "-ksp_rtol", "1e-8"], cwd=d)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    return d / "out", p
+
+
+def test_demo_end_to_end(demo):
+    out, p = demo
+    names = {"frames.h5", "frames.xdmf", "summary.json", "contact_sheet.png", "previews"}
+    assert names <= {q.name for q in out.iterdir()}
+    s = json.loads((out / "summary.json").read_text())
+    for key in ("dofs", "wisps", "ranks", "frames", "wall_time_s", "timings_s", "newton_iterations",
+                "ksp_iterations", "ksp_reasons", "converged", "petsc_options", "config"):
+        assert key in s, key
+    assert set(s["timings_s"]) >= {"elements", "filter", "assembly", "solve", "collision", "io"}
+    assert s["wisps"] == 300 and s["dofs"] == 300 * 101 * 3 and s["ranks"] == 2
+    assert s["frames"] == DEMO_FRAMES and s["converged"] and s["error"] is None
+    assert s["newton_iterations"] == [3] * DEMO_FRAMES
+    assert s["terms"] == ["stretch", "bend", "twist", "gravity", "head_collision"]
+    # config options file < command line; the options actually used are recorded
+    assert s["petsc_options_used"]["ksp_rtol"] == "1e-8"
+    assert s["petsc_options_used"]["pc_type"] == "bjacobi"
+    assert "-ksp_rtol 1e-8" in s["petsc_options"]
+    assert s["config"]["scene"]["n_wisps"] == 300 and s["config"]["time"]["frames"] == DEMO_FRAMES
+    assert s["timings_s"]["io"] > 0 and s["timings_s"]["collision"] > 0
+    # report on stdout, once
+    assert p.stdout.count("lc_petsc: ") == 1 and "converged: yes" in p.stdout
+    assert "per frame" in p.stdout and "phases" in p.stdout
+    assert "Traceback" not in p.stderr
+
+
+def test_frames_file_layout(demo):
+    out, _ = demo
+    with h5py.File(out / "frames.h5", "r") as f:
+        nv = 300 * 101
+        assert f["positions"].shape == (DEMO_FRAMES + 1, nv, 3) and f["positions"].dtype == np.float64
+        assert f["time"].shape == (DEMO_FRAMES + 1,) and f["time"].dtype == np.float64
+        assert np.allclose(f["time"][...], np.arange(DEMO_FRAMES + 1) / 30.0)
+        off = f["wisp_offsets"][...]
+        assert off.dtype == np.int64 and np.array_equal(off, 101 * np.arange(301))
+        assert f["rest_positions"].shape == (nv, 3) and f["pinned"].dtype == np.bool_
+        assert f["pinned"][...].sum() == 4 * 300
+        assert np.array_equal(f["positions"][0], f["rest_positions"][...])
+        X = f["positions"][-1]
+        pin = f["pinned"][...]
+        assert np.all(np.isfinite(X)) and np.abs(X[~pin] - f["rest_positions"][...][~pin]).max() > 0.01
+        cfg = json.loads(f.attrs["config"])
+        assert cfg["scene"]["kind"] == "hairball" and f.attrs["every"] == 1
+
+
+def test_xdmf_read_back_by_vtk(demo):
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as SDDP
+    from vtkmodules.vtkIOXdmf2 import vtkXdmfReader
+    out, _ = demo
+    with h5py.File(out / "frames.h5", "r") as f:
+        X, T = f["positions"][...], f["time"][...]
+    r = vtkXdmfReader()
+    r.SetFileName(str(out / "frames.xdmf"))
+    r.UpdateInformation()
+    steps = r.GetOutputInformation(0).Get(SDDP.TIME_STEPS())
+    assert np.allclose(steps, T)
+    for k in [len(T) - 1, 0, 2]:        # out of order: no cached frame comes back
+        r.UpdateTimeStep(T[k])
+        g = r.GetOutputDataObject(0)
+        assert g.GetNumberOfCells() == 300
+        assert all(g.GetCellType(c) == 4 and g.GetCell(c).GetNumberOfPoints() == 101   # VTK_POLY_LINE
+                   for c in (0, 150, 299))
+        P = vtk_to_numpy(g.GetPoints().GetData())
+        assert np.array_equal(P, X[k]), k
+
+
+def test_previews_written(demo):
+    import matplotlib.image as mpimg
+    out, _ = demo
+    files = sorted((out / "previews").glob("frame_*.png"))
+    assert [q.name for q in files] == [f"frame_{i:05d}.png" for i in sorted({0, DEMO_FRAMES})]
+    for q in files + [out / "contact_sheet.png"]:
+        img = mpimg.imread(q)
+        assert q.stat().st_size > 10_000 and img.shape[0] > 300 and img.shape[1] > 300
+        assert img[..., :3].std() > 0.05, f"{q.name} is blank"
+
+
+def test_frames_identical_on_1_and_2_ranks(tmp_path):
+    (tmp_path / "s.toml").write_text(SMALL)
+    p = _mpiexec(2, ["s.toml", "--out", "two", "--quiet"], cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-3000:]
+    cwd = os.getcwd()
+    try:
+        os.chdir(tmp_path)
+        assert main(["s.toml", "--out", "one", "--quiet"], comm=MPI.COMM_SELF) == 0
+    finally:
+        os.chdir(cwd)
+    with h5py.File(tmp_path / "one" / "frames.h5") as a, h5py.File(tmp_path / "two" / "frames.h5") as b:
+        assert set(a) == set(b) == {"positions", "time", "wisp_offsets", "rest_positions", "pinned",
+                                    "polylines"}
+        for k in a:
+            assert a[k].shape == b[k].shape and a[k].dtype == b[k].dtype, k
+            if k == "positions":
+                scale = np.abs(a[k][...]).max()
+                assert np.abs(a[k][...] - b[k][...]).max() <= 1e-10 * scale
+            else:
+                assert np.array_equal(a[k][...], b[k][...]), k
+        assert a["positions"].shape[0] == 1 + 8 // 2
+        assert {k: v for k, v in a.attrs.items() if k != "ranks"} == \
+            {k: v for k, v in b.attrs.items() if k != "ranks"}
+        assert (a.attrs["ranks"], b.attrs["ranks"]) == (1, 2)
+
+
+def test_run_failing_part_way_keeps_frames_and_says_so(tmp_path, capsys):
+    (tmp_path / "s.toml").write_text(SMALL)
+    out = tmp_path / "o"
+    code = main([str(tmp_path / "s.toml"), "--out", str(out), "--quiet",
+                 "-pc_type", "none", "-ksp_max_it", "2"], comm=MPI.COMM_SELF)
+    o, err = capsys.readouterr()
+    assert code == 3
+    assert "DIVERGED_MAX_IT" in err and "Traceback" not in err
+    s = json.loads((out / "summary.json").read_text())
+    assert not s["converged"] and "DIVERGED_MAX_IT" in s["error"]
+    with h5py.File(out / "frames.h5") as f:
+        assert f["positions"].shape[0] == f["time"].shape[0] == 1    # the initial state only
+    assert (out / "frames.xdmf").exists()

@@ -1,0 +1,131 @@
+"""Model only what the scene needs: a term that is off is not computed (no kernel call),
+not allocated (no element arrays, no buffers, a narrower matrix band) and adds no phase
+time; the summary names the terms that ran; a term that is on but can have no effect is
+warned about."""
+
+import tracemalloc
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig
+from lc_petsc.diagnostics import term_warnings
+from lc_petsc.elements import bend, head_contact, stretch, twist
+from lc_petsc.simulator import build_simulator
+
+SELF = MPI.COMM_SELF
+KERNEL_FUNCS = ("energy", "gradient", "hessian", "gradient_hessian")
+
+
+def _counting(monkeypatch):
+    """Count calls of every kernel function of every element module (and head contact)."""
+    calls = {}
+    for mod in (stretch, bend, twist, head_contact):
+        for name in dir(mod):
+            fn = getattr(mod, name)
+            if callable(fn) and not name.startswith("_") and getattr(fn, "__module__", "") == mod.__name__:
+                key = (mod.__name__.rsplit(".", 1)[1], name)
+                calls[key] = 0
+
+                def wrap(*a, _fn=fn, _key=key, **k):
+                    calls[_key] += 1
+                    return _fn(*a, **k)
+                monkeypatch.setattr(mod, name, wrap)
+    return calls
+
+
+def _hairball(terms, n_wisps=4, frames=3):
+    return SimConfig(scene=SceneConfig(kind="hairball", n_wisps=n_wisps, seed=2),
+                     material=MaterialConfig(youngs_modulus=2.5e8),
+                     physics=PhysicsConfig(terms=terms, head_motion="shake", head_period=0.5),
+                     time=TimeConfig(frames=frames))
+
+
+def _run(cfg):
+    tracemalloc.start()
+    try:
+        sim = build_simulator(cfg, comm=SELF)
+        sim.run()
+        snap = tracemalloc.take_snapshot()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    s = sim.summary()
+    info = sim.assembler.mat.getInfo()
+    out = dict(summary=s, nz=info["nz_allocated"], peak=peak, scene_terms=set(sim.scene.terms),
+               padded=set(sim.assembler.padded), snap=snap)
+    sim.close()
+    return out
+
+
+def _bytes_from(snap, fragment):
+    return sum(st.size for st in snap.statistics("filename") if fragment in st.traceback[0].filename)
+
+
+def test_term_off_is_not_computed_allocated_or_timed(monkeypatch):
+    calls = _counting(monkeypatch)
+    full = _run(_hairball(("stretch", "bend", "twist", "gravity", "head_collision")))
+    on = dict(calls)
+    for k in calls:
+        calls[k] = 0
+    lean = _run(_hairball(("stretch", "bend", "gravity")))
+    off = dict(calls)
+    # call counts: twist and head contact run when on, never when off
+    assert on[("twist", "gradient_hessian")] > 0 and on[("head_contact", "active")] > 0
+    assert all(v == 0 for (m, _), v in off.items() if m in ("twist", "head_contact")), off
+    assert off[("bend", "gradient_hessian")] == on[("bend", "gradient_hessian")] > 0
+    # phase timings: no contact time at all without head_collision
+    assert full["summary"]["timings_s"]["collision"] > 0
+    assert lean["summary"]["timings_s"]["collision"] == 0.0
+    # allocation: no twist elements or buffers; the band narrows from 3 to 2 blocks
+    assert "twist" in full["scene_terms"] and "twist" in full["padded"]
+    assert "twist" not in lean["scene_terms"] and "twist" not in lean["padded"]
+    assert lean["nz"] / full["nz"] == pytest.approx(5 / 7, rel=0.03)   # (2b+1) blocks per row
+    assert _bytes_from(lean["snap"], "elements/twist.py") == 0
+    assert _bytes_from(lean["snap"], "elements/head_contact.py") == 0
+    nv = 4 * 101
+    twist_buffer = nv * 12 * 12 * 8          # its filtered Hessians, one per vertex
+    assert full["peak"] - lean["peak"] > twist_buffer
+    # the summary says which terms ran
+    assert full["summary"]["terms"] == ["stretch", "bend", "twist", "gravity", "head_collision"]
+    assert lean["summary"]["terms"] == ["stretch", "bend", "gravity"]
+
+
+def test_gravity_off_has_no_external_force():
+    cfg = SimConfig(scene=SceneConfig(kind="wisp4c", n_vertices=15),
+                    physics=PhysicsConfig(terms=("stretch", "bend", "twist")), time=TimeConfig(frames=2))
+    sim = build_simulator(cfg, comm=SELF)
+    try:
+        assert not np.any(sim.integrator.f_ext)
+        sim.run()
+        assert np.abs(sim.x - sim.scene.x_rest).max() < 1e-9      # at rest, nothing pulls
+        assert sim.summary()["terms"] == ["stretch", "bend", "twist"]
+    finally:
+        sim.close()
+
+
+@pytest.mark.parametrize("physics, scene, expect", [
+    (dict(terms=("stretch", "bend", "gravity"), gravity=(0.0, 0.0, 0.0)), {}, "physics.gravity is [0, 0, 0]"),
+    (dict(terms=("stretch", "bend", "gravity", "head_collision"), head_center=(0.0, 100.0, 0.0)), {},
+     "no wisp can reach the head sphere"),
+    (dict(terms=("gravity",)), {}, "no elastic term"),
+    (dict(terms=("stretch", "bend"), head_motion="shake"), dict(n_pinned=0), "head_motion = 'shake' has no effect"),
+])
+def test_warn_when_a_term_can_have_no_effect(physics, scene, expect):
+    cfg = SimConfig(scene=SceneConfig(kind="wisp4c", n_vertices=12, **scene), physics=PhysicsConfig(**physics))
+    sim = build_simulator(cfg, comm=SELF)
+    try:
+        w = term_warnings(sim)
+        assert any(expect in m for m in w), w
+    finally:
+        sim.close()
+
+
+def test_no_warning_when_every_term_can_act():
+    cfg = _hairball(("stretch", "bend", "twist", "gravity", "head_collision"), frames=1)
+    sim = build_simulator(cfg, comm=SELF)
+    try:
+        assert term_warnings(sim) == []
+    finally:
+        sim.close()

@@ -1,0 +1,176 @@
+"""Strand-strand contact in the simulator: crossing wisps pushed together, momentum,
+configuration.  Scenes are small array sources (monkeypatched scene source)."""
+
+import numpy as np
+import pytest
+
+import lc_petsc.simulator as simmod
+from lc_petsc.config import (ConfigError, MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,
+                             SolverConfig, TimeConfig, config_from_dict)
+from lc_petsc.scene.sources import ArraySource
+
+N = 21          # vertices per wisp
+D0 = 0.2        # contact thickness (cm)
+
+
+def crossing_source(gap=1.0):
+    """Wisp A along x at y = 0, wisp B along z at y = gap, crossing above A's middle; no
+    pinned vertices."""
+    s = (np.arange(N) - (N - 1) / 2) * 0.5
+    A = np.stack([s, np.zeros(N), np.zeros(N)], 1)
+    B = np.stack([np.full(N, 0.13), np.full(N, gap), s + 0.07], 1)
+    return ArraySource(np.concatenate([A, B]), [0, N, 2 * N], pinned=np.zeros(2 * N, bool),
+                       root_radius=0.05, tip_radius=0.05)
+
+
+def crossing_config(frames, gravity=True, **physics):
+    terms = ("stretch", "bend", "strand_collision") + (("gravity",) if gravity else ())
+    return SimConfig(scene=SceneConfig(kind="straight"), material=MaterialConfig(youngs_modulus=1e9),
+                     physics=PhysicsConfig(terms=terms, strand_thickness=D0, strand_stiffness=1e5,
+                                           **physics),
+                     time=TimeConfig(frames=frames),
+                     solver=SolverConfig(options="-ksp_rtol 1e-12 -ksp_max_it 5000"))
+
+
+@pytest.fixture
+def crossing(monkeypatch):
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: crossing_source())
+
+
+def run_crossing(frames, speed, gravity=True):
+    """A moves up and B down at ``speed`` cm/s; returns (positions per frame, momentum
+    before, after, total mass, summary)."""
+    from mpi4py import MPI
+    sim = simmod.build_simulator(crossing_config(frames, gravity), comm=MPI.COMM_SELF)
+    try:
+        v = np.zeros_like(sim.x)
+        v[:N, 1], v[N:, 1] = speed, -speed
+        sim.integrator.v = v
+        m = sim.scene.mass
+        p0 = (m[:, None] * v).sum(axis=0)
+        X = [sim.x.copy()]
+        for _ in range(frames):
+            sim.step()
+            X.append(sim.x.copy())
+        p1 = (m[:, None] * sim.integrator.v).sum(axis=0)
+        return np.array(X), p0, p1, m.sum(), sim.summary()
+    finally:
+        sim.close()
+
+
+def crossing_separation(X):
+    """Signed vertical separation of the wisps where they cross: B above A is > 0."""
+    ya = np.array([np.interp(0.13, x[:N, 0], x[:N, 1]) for x in X])
+    yb = np.array([np.interp(0.0, x[N:, 2], x[N:, 1]) for x in X])
+    return yb - ya
+
+
+def test_crossing_wisps_pushed_together_do_not_pass_through(crossing):
+    frames, speed = 30, 2.5
+    X, p0, p1, mass, summ = run_crossing(frames, speed)
+    sep = crossing_separation(X)
+    c = summ["contact"]
+    dmin = c["min_distance"]
+    print(f"\nseparation at the crossing: start {sep[0]:.3f}, min {sep.min():.4f}, end {sep[-1]:.4f}; "
+          f"min segment distance {dmin:.4f} (d0 = {D0}); pairs per frame {c['pairs_per_frame']}")
+    # without contact they would meet after 6 frames and be 1.5 cm apart the other way
+    assert sum(c["pairs_per_frame"]) > 0
+    assert np.all(sep > 0.5 * D0), sep.min()
+    assert dmin > 0.5 * D0
+    # momentum: the change equals the external impulse (gravity), to the solve tolerance
+    g = np.array([0.0, -981.0, 0.0])
+    impulse = mass * g * frames * (1.0 / 30.0)
+    err = np.abs((p1 - p0) - impulse).max() / (mass * speed)
+    print(f"momentum change - external impulse, relative to m v: {err:.2e}")
+    assert err < 1e-8
+
+
+def test_contact_is_the_only_thing_stopping_them(crossing, monkeypatch):
+    """Control run without strand_collision: the wisps pass through each other."""
+    from mpi4py import MPI
+    cfg = crossing_config(30)
+    cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        v = np.zeros_like(sim.x)
+        v[:N, 1], v[N:, 1] = 2.5, -2.5
+        sim.integrator.v = v
+        sim.run(30)
+        sep = crossing_separation([sim.x])[0]
+    finally:
+        sim.close()
+    assert sep < -0.5
+
+
+def test_momentum_without_external_forces(crossing):
+    X, p0, p1, mass, summ = run_crossing(12, 2.5, gravity=False)
+    assert sum(summ["contact"]["pairs_per_frame"]) > 0
+    assert np.abs(p1 - p0).max() < 1e-8 * mass * 2.5
+
+
+def test_contact_energy_matches_gradient_in_the_simulator(crossing):
+    """The integrator's contact gradient is the derivative of its contact energy."""
+    from mpi4py import MPI
+    sim = simmod.build_simulator(crossing_config(1), comm=MPI.COMM_SELF)
+    try:
+        x = sim.x.copy()
+        x[N:, 1] -= 0.9            # B at 0.1 above A: in contact
+        sim.assembler.assemble(x)
+        g = sim.strand.assemble(x, sim.assembler)
+        rng = np.random.default_rng(0)
+        dx = rng.normal(size=x.shape) * 1e-6
+        e = sim.strand.energy
+        fd = (e(x + dx) - e(x - dx)) / 2
+        assert sim.strand.last_pairs > 0
+        assert abs(fd - np.sum(g * dx)) < 1e-6 * abs(fd)
+    finally:
+        sim.close()
+
+
+def test_strand_contact_config():
+    base = {"physics": {"terms": ["stretch", "bend", "strand_collision"],
+                        "strand_thickness": 0.1, "strand_stiffness": 2.0e4}}
+    cfg = config_from_dict(base)
+    assert cfg.physics.strand_thickness == 0.1 and cfg.physics.strand_stiffness == 2.0e4
+    for key, bad in (("strand_thickness", -0.1), ("strand_stiffness", 0.0)):
+        d = {"physics": dict(base["physics"], **{key: bad})}
+        with pytest.raises(ConfigError, match=f"physics.{key}"):
+            config_from_dict(d)
+    with pytest.raises(ConfigError, match="strand_thickness"):
+        config_from_dict({"physics": {"strand_thickness": "thin"}})
+
+
+def test_preonly_with_contact_is_refused(crossing):
+    from mpi4py import MPI
+    cfg = crossing_config(1)
+    cfg.solver.options = "-ksp_type preonly -pc_type lu"
+    with pytest.raises(ValueError, match="preonly"):
+        simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+
+
+@pytest.mark.parametrize("stretched", [False, True])
+def test_broad_phase_finds_every_pair_closer_than_the_thickness(stretched):
+    """kd-tree candidates contain every pair of segments of different wisps closer than
+    d0 (brute force over all pairs), also with a few very long segments."""
+    from lc_petsc.contact import StrandContact
+    from lc_petsc.elements import segment_contact as sc
+    rng = np.random.default_rng(11)
+    n = 600
+    P0 = rng.uniform(0, 4, size=(n, 3))
+    P = np.stack([P0, P0 + rng.normal(size=(n, 3)) * 0.2], axis=1)
+    if stretched:
+        P[:5, 1] = P[:5, 0] + rng.normal(size=(5, 3)) * 2.0
+    wisp = np.arange(n) // 10
+    d0 = 0.15
+    ij = StrandContact.candidates(P, wisp, n, d0)
+    found = set(map(tuple, ij))
+    i, j = np.triu_indices(n, 1)
+    keep = wisp[i] != wisp[j]
+    i, j = i[keep], j[keep]
+    d = sc.distance(np.concatenate([P[i], P[j]], axis=1))
+    close = set(zip(i[d < d0].tolist(), j[d < d0].tolist()))
+    assert len(close) > 20
+    assert close <= found
+    # only local-involving pairs: with the last 100 segments as ghosts none is ghost-ghost
+    ij = StrandContact.candidates(P, wisp, n - 100, d0)
+    assert np.all((ij[:, 0] < n - 100) | (ij[:, 1] < n - 100))

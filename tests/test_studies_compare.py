@@ -1,0 +1,103 @@
+"""Solver comparison (drivers/compare_solvers.py, lc_petsc/studies): recorded systems,
+replay per option set, budget stop, output files."""
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig
+from lc_petsc.studies.compare import record, run_comparison
+from lc_petsc.studies.systems import option_sets, replay
+
+ROOT = Path(__file__).resolve().parents[1]
+comm = MPI.COMM_WORLD
+
+
+def hairball(n):
+    return SimConfig(scene=SceneConfig(kind="hairball", n_wisps=n, seed=7),
+                     material=MaterialConfig(youngs_modulus=1.0e9),
+                     physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity", "head_collision"),
+                                           head_motion="shake", head_amplitude=0.3, head_period=0.5),
+                     time=TimeConfig(frames=1))
+
+
+def test_shipped_option_sets_parse_and_include_the_issue_sets():
+    sets = option_sets(ROOT / "configs" / "solvers")
+    assert list(sets)[0] == "default"
+    for name in ("default", "bjacobi_rank", "pbjacobi", "cg_none", "mumps_cholesky",
+                 "hypre_boomeramg", "gamg"):
+        assert name in sets and sets[name].startswith("-"), name
+    assert "#" not in sets["hypre_boomeramg"]
+    with pytest.raises(ValueError, match="no option set"):
+        option_sets(ROOT / "configs" / "solvers", ["default", "nonexistent"])
+
+
+@pytest.mark.mpi
+def test_replay_same_systems_every_set_agrees_and_budget_stops():
+    systems, wisp_rows, info = record(hairball(3), comm)
+    assert len(systems) == 3 and info["dofs"] == 3 * 303
+    sets = option_sets(ROOT / "configs" / "solvers", ["default", "bjacobi_rank", "mumps_cholesky"])
+    from lc_petsc.studies.systems import direct_solutions
+    refs = direct_solutions(systems, comm)
+    for name, opts in sets.items():
+        rows = replay(systems, wisp_rows, name, opts, comm, budget_s=30, references=refs)
+        assert [r["status"] for r in rows] == ["ok"] * 3, rows
+        for r in rows:
+            assert r["true_rel_residual"] < 1e-8 and r["rel_error_vs_direct"] < 1e-8, (name, r)
+            assert r["setup_s"] >= 0 and r["solve_s"] > 0
+        if name != "mumps_cholesky":   # exact per-wisp (or per-rank) blocks: one CG iteration
+            assert all(r["iterations"] == 1 for r in rows)
+    # a set over budget is stopped inside its Krylov loop and reported, not dropped
+    slow = replay(systems, wisp_rows, "slow", "-pc_type none -ksp_rtol 1e-14 -ksp_max_it 1000000",
+                  comm, budget_s=0.0)
+    assert [r["status"] for r in slow] == ["budget"] * 3
+    assert "budget" in slow[0]["message"] and slow[0]["iterations"] == 10
+    for s in systems:
+        s.A.destroy()
+        s.b.destroy()
+
+
+def test_comparison_outputs(tmp_path):
+    sets = option_sets(ROOT / "configs" / "solvers", ["default", "mumps_cholesky", "pbjacobi"])
+    summary = run_comparison(hairball, [2, 3], sets, comm, tmp_path, budget_s=30, log=lambda *a: None,
+                             meta={"command": "pytest"})
+    assert {(s["wisps"], s["set"]) for s in summary} == {(n, k) for n in (2, 3) for k in sets}
+    rows = list(csv.DictReader(open(tmp_path / "rows.csv")))
+    assert len(rows) == 2 * 3 * 3
+    for col in ("wisps", "set", "system", "status", "setup_s", "solve_s", "iterations", "reason",
+                "true_rel_residual", "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib"):
+        assert col in rows[0], col
+    for r in rows:
+        assert r["status"] == "ok" and r["reason"].startswith("CONVERGED")
+        assert float(r["rel_error_vs_direct"]) < (1e-3 if r["set"] == "pbjacobi" else 1e-8)
+    d = [r for r in rows if r["set"] == "default"]
+    assert all(int(r["iterations"]) == 1 for r in d)
+    p = [r for r in rows if r["set"] == "pbjacobi"]
+    assert all(int(r["iterations"]) > 10 for r in p)
+    summ = list(csv.DictReader(open(tmp_path / "summary.csv")))
+    ratios = {(int(s["wisps"]), s["set"]): float(s["ratio_vs_default"]) for s in summ}
+    assert ratios[(3, "default")] == 1.0 and ratios[(3, "pbjacobi")] > 1.0
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert len(data["rows"]) == 18 and data["scenes"][1]["dofs"] == 3 * 303
+    assert data["meta"]["budget_s"] == 30
+    md = (tmp_path / "table.md").read_text()
+    assert "| solver set | 2 wisps: time (s), x default, its | 3 wisps:" in md
+    assert "| default | " in md and "| mumps_cholesky | " in md and "1x, 1 |" in md
+    png = tmp_path / "time_vs_wisps.png"
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_budget_stops_are_reported_and_can_skip_larger_sizes(tmp_path):
+    sets = {"slow": "-pc_type none -ksp_rtol 1e-14 -ksp_max_it 1000000"}
+    summary = run_comparison(hairball, [2, 3], sets, comm, tmp_path, budget_s=0.0, reference=False,
+                             log=lambda *a: None, skip_after_budget=True)
+    assert [s["status"] for s in summary] == ["budget", "budget"]
+    rows = list(csv.DictReader(open(tmp_path / "rows.csv")))
+    assert rows[0]["message"].startswith("time budget 0 s used up at Krylov iteration 10")
+    assert all(r["message"] == "skipped: over the budget at 2 wisps" for r in rows if r["wisps"] == "3")
+    md = (tmp_path / "table.md").read_text()
+    assert "> 0 (budget)" in md

@@ -1,0 +1,95 @@
+"""Speed versus accuracy (drivers/tradeoff.py, lc_petsc/studies/tradeoff.py): errors
+against a reference, outputs, and an unstable variant reported instead of crashing."""
+
+import csv
+import json
+from dataclasses import replace
+
+import numpy as np
+from mpi4py import MPI
+
+from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig
+from lc_petsc.studies.measures import compare_trajectories, curl_radius, stretch_strain
+from lc_petsc.studies.report import pareto_front
+from lc_petsc.studies.tradeoff import BASE, default_variants, reference_settings, run_study
+
+comm = MPI.COMM_WORLD
+
+
+def smash(factor=0.6):
+    return SimConfig(scene=SceneConfig(kind="wisp4c", perturbation="smash", smash_factor=factor),
+                     material=MaterialConfig(youngs_modulus=3.9e9),
+                     physics=PhysicsConfig(terms=("stretch", "bend", "twist")))
+
+
+def test_measures_on_known_geometry():
+    from lc_petsc.scene.geometry import wisp4c
+    x = wisp4c(101)
+    off = np.array([0, 101])
+    assert stretch_strain(x, x, off) == 0.0
+    assert abs(stretch_strain(1.1 * x, x, off) - 0.1) < 1e-12
+    r = curl_radius(x, off)
+    # circumradius of 3 helix vertices (72 deg apart, rise 0.1) is a bit above 0.5 cm
+    assert 0.5 < r < 0.6
+    assert abs(curl_radius(2 * x, off) / r - 2) < 1e-12
+    ref = {"times": [0.0, 0.1], "positions": [x, x], "energies": [1.0, 2.0]}
+    var = {"times": [0.0, 0.1], "positions": [x, x + [0.3, 0.0, 0.4]], "energies": [1.0, 1.5]}
+    e = compare_trajectories(var, ref, x, off, np.zeros(101, bool))
+    L = np.linalg.norm(np.diff(x, axis=0), axis=1).sum()
+    assert abs(e["max_rel_error"] - 0.5 / L) < 1e-12
+    assert abs(e["rms_rel_error"] - np.sqrt(0.25 / 2) / L) < 1e-12
+    assert abs(e["energy_rel_error"] - 0.25) < 1e-12 and e["n_common_times"] == 2
+    assert pareto_front([(1, 5), (2, 3), (3, 4), (0.5, 9), (4, 1)]) == [3, 0, 1, 4]
+
+
+def test_variants_cover_the_axes():
+    v = default_variants()
+    names = [n for _, n, _ in v]
+    assert names[0] == "base" and len(names) == len(set(names))
+    for n in ("newton 1", "newton 12", "rtol 1e-02", "rtol 1e-10", "dt 1/120", "filter none",
+              "filter numerical", "line search"):
+        assert n in names
+    assert sum(s == BASE for _, _, s in v) == 1
+
+
+def test_study_outputs_and_unstable_variant(tmp_path):
+    # filter none on a 40% compression: the unfiltered Hessian is indefinite, CG with a
+    # point-block Jacobi preconditioner detects it (DIVERGED_INDEFINITE_MAT): unstable
+    unstable = replace(BASE, filter="none", options="-pc_type pbjacobi -ksp_max_it 5000")
+    variants = [("base", "base", BASE),
+                ("newton", "newton 1", replace(BASE, newton_iterations=1)),
+                ("dt", "dt 1/60", replace(BASE, dt=1 / 60)),
+                ("filter", "none+pbjacobi", unstable)]
+    rows = run_study(smash(0.6), variants, comm, tmp_path, duration=4 / 30,
+                     ref=reference_settings(dt=1 / 60), log=lambda *a: None,
+                     meta={"command": "pytest", "scene": "smash 40%"})
+    by = {r["variant"]: r for r in rows}
+    assert [r["variant"] for r in rows] == ["base", "newton 1", "dt 1/60", "none+pbjacobi"]
+    bad = by["none+pbjacobi"]
+    assert bad["status"] == "unstable" and not bad["stable"]
+    assert bad["failure"] == "SolverError" and bad["failed_frame"] == 0
+    assert "DIVERGED_INDEFINITE" in bad["message"]
+    for k in ("base", "newton 1", "dt 1/60"):
+        r = by[k]
+        assert r["stable"] and r["n_common_times"] == 5
+        assert 0 < r["rms_rel_error"] <= r["max_rel_error"] < 1
+        assert r["wall_per_sim_s"] > 0 and r["wall_per_frame_s"] > 0
+        assert 0.5 < r["curl_retention"] < 1.5
+    assert by["newton 1"]["rms_rel_error"] > by["base"]["rms_rel_error"]
+    assert by["dt 1/60"]["rms_rel_error"] < by["base"]["rms_rel_error"]
+    csv_rows = list(csv.DictReader(open(tmp_path / "tradeoff.csv")))
+    assert [r["variant"] for r in csv_rows] == [r["variant"] for r in rows]
+    for col in ("status", "wall_per_sim_s", "wall_per_frame_s", "rms_rel_error", "max_rel_error",
+                "energy_rel_error", "max_stretch_strain", "curl_retention", "failure",
+                "failed_frame", "message", "dt", "newton_iterations", "ksp_rtol", "filter", "line_search"):
+        assert col in csv_rows[0], col
+    assert csv_rows[3]["status"] == "unstable" and csv_rows[3]["rms_rel_error"] == ""
+    data = json.loads((tmp_path / "tradeoff.json").read_text())
+    assert data["reference"]["filter"] == "none" and data["reference"]["status"] == "ok"
+    rec = {r["target"]: r for r in data["recommendations"]}
+    assert rec[0.1]["variant"] in ("base", "newton 1", "dt 1/60")
+    assert rec[0.1]["variant"] != "none+pbjacobi"
+    md = (tmp_path / "recommendations.md").read_text()
+    assert "| target RMS error |" in md and "SolverError at frame 0" in md
+    png = tmp_path / "pareto.png"
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"

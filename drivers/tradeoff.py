@@ -35,7 +35,7 @@ petsc4py.init(sys.argv)
 from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,  # noqa: E402
-                             TimeConfig, load_config)
+                             load_config)
 from lc_petsc.studies.systems import read_options_file  # noqa: E402
 from lc_petsc.studies.tradeoff import (BASE, default_variants, reference_settings,  # noqa: E402
                                        run_study)

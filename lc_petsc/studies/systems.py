@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 import resource
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -208,6 +208,7 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
             try:
                 with scope.active(ls.extra):
                     ksp.setUp()
+                    ksp.getPC().setUpOnBlocks()   # block Jacobi factors its blocks here
                     t_setup = _max(comm, time.perf_counter() - t_start[0])
                     t1 = time.perf_counter()
                     ksp.solve(s.b, x)

@@ -2,7 +2,7 @@
 
   mpiexec -n P python drivers/compare_solvers.py [--wisps 250 500 1000 2000]
       [--sets default mumps_cholesky ...] [--sets-dir configs/solvers] [--budget 60]
-      [--frames 1] [--config SCENE.toml] [--no-head-contact] [--no-reference]
+      [--frames 1] [--config SCENE.toml] [--no-head-contact] [--strand-contact] [--no-reference]
       [--skip-after-budget]
       [--out out/compare_solvers] [PETSc options ...]
 
@@ -37,8 +37,9 @@ from lc_petsc.studies.systems import option_sets  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def base_config(head_contact=True, newton=3):
-    terms = ("stretch", "bend", "twist", "gravity") + (("head_collision",) if head_contact else ())
+def base_config(head_contact=True, newton=3, strand_contact=False):
+    terms = ("stretch", "bend", "twist", "gravity") + (("head_collision",) if head_contact else ()) \
+        + (("strand_collision",) if strand_contact else ())
     return SimConfig(scene=SceneConfig(kind="hairball", n_wisps=250),
                      material=MaterialConfig(youngs_modulus=1.0e9),
                      physics=PhysicsConfig(terms=terms, head_motion="shake"),
@@ -55,6 +56,9 @@ def main(argv=None):
     ap.add_argument("--newton", type=int, default=3)
     ap.add_argument("--config", default=None, help="scene TOML instead of the hairball")
     ap.add_argument("--no-head-contact", action="store_true")
+    ap.add_argument("--strand-contact", action="store_true",
+                    help="strand-strand contact on (the paper's hairball): the recorded "
+                         "systems are the assembled strand + contact matrices")
     ap.add_argument("--skip-after-budget", action="store_true",
                     help="a set stopped by the budget at one size is not run at larger sizes "
                          "(reported as over budget)")
@@ -67,7 +71,7 @@ def main(argv=None):
         base = load_config(args.config)
         base.time.newton_iterations = args.newton
     else:
-        base = base_config(not args.no_head_contact, args.newton)
+        base = base_config(not args.no_head_contact, args.newton, args.strand_contact)
     log = print if comm.rank == 0 else (lambda *a, **k: None)
     log(f"{comm.size} rank(s); sets: {', '.join(sets)}; budget {args.budget:g} s per set and size")
     cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)
@@ -75,7 +79,8 @@ def main(argv=None):
                    budget_s=args.budget, frames=args.frames, reference=not args.no_reference,
                    skip_after_budget=args.skip_after_budget,
                    log=lambda *a: (log(*a), sys.stdout.flush()),
-                   meta={"command": cmd, "sets": sets, "head_contact": not args.no_head_contact})
+                   meta={"command": cmd, "sets": sets, "head_contact": not args.no_head_contact,
+                         "strand_contact": args.strand_contact})
     log(f"wrote {args.out}/table.md, summary.csv, rows.csv, results.json"
         + (", time_vs_wisps.png" if len(set(args.wisps)) > 1 else ""))
     if comm.rank == 0:

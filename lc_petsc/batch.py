@@ -19,6 +19,14 @@ Order of work, and what a failure at each step leaves behind:
    far, writes ``frames.xdmf`` and ``summary.json`` with ``"error"`` set, and exits 3.
 4. Rank 0 renders the previews from ``frames.h5``, writes ``summary.json`` and prints
    the report.
+
+Checkpoints and restart (:mod:`lc_petsc.io.checkpoint`): every ``output.checkpoint_every``
+frames, and when SIGTERM or SIGUSR1 arrives (at any rank: a flag is allreduced at every
+frame end, the current frame is finished, a checkpoint written, exit status 75).
+``--restart FILE|latest`` loads a checkpoint onto the current partition (any rank
+count), checks the config (differences are an error unless ``--force``), reopens
+``frames.h5`` keeping its rows up to the checkpoint's frame and continues to
+``time.frames`` (or ``--frames``) in total.
 """
 
 from __future__ import annotations
@@ -29,7 +37,14 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
+EXIT_PREEMPTED = 75         # EX_TEMPFAIL: stopped by SIGTERM/SIGUSR1 after a checkpoint; restart
+# config keys a restart may change: they touch neither the trajectory nor frames.h5's rows
+RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.previews",
+                     "output.preview_frames", "output.contact_sheet", "output.view",
+                     "output.checkpoint_every", "output.checkpoints_kept"}
 PROG = "simulate.py"
 
 
@@ -48,7 +63,7 @@ def make_parser():
     p = _Parser(
         prog=PROG, allow_abbrev=False, add_help=False,
         usage="mpiexec -n P python drivers/simulate.py CONFIG.toml [--frames N] [--out DIR] "
-              "[--quiet] [PETSc options ...]",
+              "[--restart CHECKPOINT|latest [--force]] [--quiet] [PETSc options ...]",
         description="Run the scene CONFIG.toml and write frames.h5, frames.xdmf, previews and "
                     "summary.json to the output folder.",
         epilog="Every other option (single dash, e.g. -ksp_type cg -pc_type hypre -log_view) "
@@ -58,7 +73,12 @@ def make_parser():
     p.add_argument("--out", metavar="DIR", help="output folder (default: output.dir, "
                                                  "else out/<config name>)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--restart", metavar="CHECKPOINT", help=argparse.SUPPRESS)
+    p.add_argument("--restart", metavar="CHECKPOINT|latest",
+                   help="continue from a checkpoint file, or from the newest valid one in "
+                        "<output folder>/checkpoints ('latest'); --frames / time.frames is the "
+                        "total frame count")
+    p.add_argument("--force", action="store_true",
+                   help="with --restart: accept a config that differs from the checkpoint's")
     p.add_argument("-h", "--help", action="store_true", help="show this help and exit")
     return p
 
@@ -82,8 +102,8 @@ def parse_command_line(argv):
         return args, []
     if args.frames is not None and args.frames < 0:
         raise UsageError(f"--frames must be an integer >= 0, got {args.frames}")
-    if args.restart is not None:
-        raise UsageError("--restart: checkpoints are not implemented yet")
+    if args.force and args.restart is None:
+        raise UsageError("--force only applies with --restart")
     if extra and not extra[0].startswith("-"):
         hint = ""
         if str(args.config).startswith("-") or not str(args.config).endswith(".toml"):
@@ -107,14 +127,23 @@ def output_dir(args, cfg):
 OUR_FILES = ("frames.h5", "frames.xdmf", "summary.json", "contact_sheet.png")
 
 
-def _prepare_output(comm, out):
-    """Create the output folder (rank 0) and remove outputs of an earlier run there."""
+def _prepare_output(comm, out, restart=False):
+    """Create the output folder (rank 0) and remove outputs of an earlier run there
+    (on a restart ``frames.h5`` and the checkpoints stay; a new run removes the old
+    checkpoints too, since they belong to the frames.h5 it replaces)."""
+    from lc_petsc.io.checkpoint import checkpoint_folder
     problem = None
     if comm.rank == 0:
         try:
             out.mkdir(parents=True, exist_ok=True)
             for name in OUR_FILES:
-                (out / name).unlink(missing_ok=True)
+                if not (restart and name == "frames.h5"):
+                    (out / name).unlink(missing_ok=True)
+            ck = checkpoint_folder(out)
+            if ck.is_dir():
+                for p in ck.iterdir():
+                    if p.name.endswith(".h5.tmp") or (not restart and p.name.startswith("checkpoint_")):
+                        p.unlink()
             if (out / "previews").is_dir():
                 for p in (out / "previews").glob("frame_*.png"):
                     p.unlink()
@@ -157,6 +186,10 @@ def main(argv=None, comm=None):
         cfg = load_config(args.config)
         if args.frames is not None:
             cfg.time.frames = args.frames
+        try:
+            cfg_text = Path(args.config).read_text()
+        except (OSError, UnicodeDecodeError):
+            cfg_text = ""
         command_line = dict(_petsc_options(petsc_argv))
     except (UsageError, ConfigError) as e:
         return _fail(comm, str(e))
@@ -182,7 +215,7 @@ def main(argv=None, comm=None):
     try:
         given = {k: (v or "") for k, v in already.items()}
         given.update(command_line)
-        return _run(comm, args, cfg, given, build_simulator, SolverError, PETSc)
+        return _run(comm, args, cfg, given, build_simulator, SolverError, PETSc, cfg_text)
     except Exception:
         # a bug, not a user error: show it, and do not leave the other ranks waiting
         if comm.size > 1:
@@ -225,7 +258,7 @@ def _looks_like_option(tok):
         return True
 
 
-def _run(comm, args, cfg, command_line, build_simulator, SolverError, PETSc):
+def _run(comm, args, cfg, command_line, build_simulator, SolverError, PETSc, cfg_text=""):
     from lc_petsc import __version__
     from lc_petsc.diagnostics import shape_measures, term_warnings
     from lc_petsc.io.frames import FramesWriter
@@ -245,37 +278,61 @@ def _run(comm, args, cfg, command_line, build_simulator, SolverError, PETSc):
         for w in warnings:
             _say(comm, f"{PROG}: warning: {w}", sys.stderr)
         out = output_dir(args, cfg)
-        problem = _prepare_output(comm, out)
-        if problem:
-            return _fail(comm, problem)
-        setup_time = comm.allreduce(time.perf_counter() - t_setup, op=_mpi_max())
-
         frames, every = cfg.time.frames, cfg.output.every
         sc = sim.scene
         r0 = int(sim.ranges[comm.rank])
         config_dict = cfg.to_dict()
+        restart = None
+        if args.restart is not None:
+            restart, problem = _load_restart(comm, args, cfg, sim, out, config_dict)
+            if problem:
+                return _fail(comm, problem)
+        problem = _prepare_output(comm, out, restart=restart is not None)
+        if problem:
+            return _fail(comm, problem)
+        setup_time = comm.allreduce(time.perf_counter() - t_setup, op=_mpi_max())
+        ckpt = _Checkpointer(comm, sim, cfg, out, config_dict, cfg_text,
+                             petsc_options_used(sim, command_line), __version__)
         attrs = {"config": config_dict, "config_file": str(Path(args.config).resolve()),
                  "terms": sim.terms_run(), "dt": cfg.time.dt, "every": every, "frames": frames,
                  "description": cfg.scene.description, "lc_petsc_version": __version__}
         h5_path = out / "frames.h5"
         error = None
-        with sim.timers("io"):
-            writer = FramesWriter(h5_path, comm, n_wisps=sim.n_wisps, n_vertices=sim.n_vertices,
-                                  first_wisp=r0, first_vertex=sc.first_vertex, local_offsets=sc.offsets,
-                                  rest_positions=sc.x_rest, pinned=sc.pinned, n_out=1 + frames // every,
-                                  attrs=attrs)
-            writer.write_frame(0.0, sim.x)
-        times = [0.0]
-        bar = _progress(comm, args, frames, Path(args.config).stem)
+        start = 0 if restart is None else restart["frame"]
+        try:
+            with sim.timers("io"):
+                writer = FramesWriter(h5_path, comm, n_wisps=sim.n_wisps, n_vertices=sim.n_vertices,
+                                      first_wisp=r0, first_vertex=sc.first_vertex, local_offsets=sc.offsets,
+                                      rest_positions=sc.x_rest, pinned=sc.pinned, n_out=1 + frames // every,
+                                      attrs=attrs,
+                                      resume_rows=None if restart is None else start // every + 1)
+                if restart is None:
+                    writer.write_frame(0.0, sim.x)
+        except ValueError as e:
+            return _fail(comm, str(e))
+        times = [0.0] if restart is None else list(writer.times_kept)
+        if restart is not None:
+            _say(comm, f"{PROG}: restarting from {restart['path']} at frame {start} (t = {restart['time']:.6g} s"
+                       f", written on {restart['attrs']['ranks']} rank(s), now {comm.size})")
+        bar = _progress(comm, args, frames - start, Path(args.config).stem)
+        preempt = _Preemption()
         t_loop = time.perf_counter()
         try:
-            for _ in range(frames):
+            for _ in range(frames - start):
                 sim.step()
                 it = sim.integrator
                 if it.frame % every == 0:
                     with sim.timers("io"):
                         writer.write_frame(it.t, sim.x)
                     times.append(it.t)
+                stop = preempt.agreed(comm)
+                if stop or (cfg.output.checkpoint_every and it.frame % cfg.output.checkpoint_every == 0):
+                    with sim.timers("io"):
+                        writer.flush()          # the frames a checkpoint vouches for are on disk
+                        ckpt.write(it)
+                if stop:
+                    error = "preempted"
+                    break
                 if bar is not None:
                     bar.set_postfix_str(f"Newton {it.newton_iterations[-1]}, "
                                         f"KSP {sim.solver.iterations[-1] if sim.solver.iterations else 0}",
@@ -284,10 +341,14 @@ def _run(comm, args, cfg, command_line, build_simulator, SolverError, PETSc):
         except (SolverError, FloatingPointError) as e:
             error = str(e)
         finally:
+            preempt.restore()
             if bar is not None:
                 bar.close()
             with sim.timers("io"):
                 writer.close()
+        preempted = preempt.signal_name if error == "preempted" else None
+        if preempted:
+            error = None
         loop_time = comm.allreduce(time.perf_counter() - t_loop, op=_mpi_max())
         summary = sim.summary()
         summary["step_time_s"] = summary["wall_time_s"]
@@ -299,7 +360,13 @@ def _run(comm, args, cfg, command_line, build_simulator, SolverError, PETSc):
             "description": cfg.scene.description,
             "lc_petsc_version": __version__,
             "setup_time_s": setup_time,
-            "time_per_frame_s": summary["wall_time_s"] / max(summary["frames"], 1),
+            "time_per_frame_s": summary["wall_time_s"] / max(summary["frames"] - start, 1),
+            "frames_this_run": summary["frames"] - start,
+            "restart": None if restart is None else {
+                "checkpoint": str(restart["path"]), "frame": start,
+                "ranks_before": restart["attrs"]["ranks"], "skipped": restart["skipped"]},
+            "checkpoints": ckpt.written,
+            "preempted": preempted,
             "solver": summary["petsc_options"],
             "petsc_options": _options_string(used),
             "petsc_options_used": used,
@@ -330,10 +397,123 @@ def _run(comm, args, cfg, command_line, build_simulator, SolverError, PETSc):
             print(format_report(summary), flush=True)
             if error:
                 print(f"{PROG}: error: {error}", file=sys.stderr, flush=True)
+            if preempted:
+                last = ckpt.written[-1]["path"] if ckpt.written else "?"
+                print(f"{PROG}: {preempted} received: stopped after frame {sim.integrator.frame}, "
+                      f"checkpoint {last} written; continue with --restart latest "
+                      f"(exit status {EXIT_PREEMPTED})", file=sys.stderr, flush=True)
         comm.Barrier()
+        if preempted:
+            return EXIT_PREEMPTED
         return EXIT_RUN_FAILED if error else EXIT_OK
     finally:
         sim.close()
+
+
+def _load_restart(comm, args, cfg, sim, out, config_dict):
+    """(checkpoint dict, None) or (None, problem) for ``--restart``; collective."""
+    from lc_petsc.io.checkpoint import (CheckpointError, checkpoint_folder, config_differences,
+                                        find_latest, load_checkpoint)
+    skipped = []
+    try:
+        if args.restart == "latest":
+            ck, skipped = find_latest(checkpoint_folder(out), comm, sim.scene, sim.n_wisps,
+                                      sim.n_vertices, sim.head)
+            for m in skipped:
+                _say(comm, f"{PROG}: warning: skipping an invalid checkpoint: {m}", sys.stderr)
+            if skipped:
+                _say(comm, f"{PROG}: warning: falling back to {ck['path']}, the newest valid checkpoint",
+                     sys.stderr)
+        else:
+            ck = load_checkpoint(args.restart, comm, sim.scene, sim.n_wisps, sim.n_vertices, sim.head)
+    except CheckpointError as e:
+        return None, str(e)
+    ck["skipped"] = skipped
+    diff = config_differences(ck["attrs"]["config"], config_dict, ignore=RESTART_FREE_KEYS)
+    if diff and not args.force:
+        return None, (f"{ck['path']}: the config differs from the checkpoint's in "
+                      f"{', '.join(diff)}; restart with the same config or add --force")
+    if diff:
+        _say(comm, f"{PROG}: warning: --force: config differs from the checkpoint's in {', '.join(diff)}",
+             sys.stderr)
+    if ck["attrs"]["every"] != cfg.output.every:
+        return None, (f"{ck['path']}: output.every = {cfg.output.every} but the run's frames.h5 was "
+                      f"written with {ck['attrs']['every']}; it cannot be appended to")
+    if cfg.time.frames <= ck["frame"]:
+        return None, (f"{ck['path']}: the checkpoint is at frame {ck['frame']}, the run ends at frame "
+                      f"{cfg.time.frames} (time.frames / --frames is the total): nothing to do")
+    from mpi4py import MPI
+    same_rest = np.array_equal(ck["rest"], sim.scene.x_rest) and np.array_equal(ck["pinned"], sim.scene.pinned)
+    if not comm.allreduce(int(not same_rest), op=MPI.MAX) == 0:
+        if not args.force:
+            return None, (f"{ck['path']}: the checkpoint's rest positions or pinned vertices differ "
+                          "from the scene's; restart with the same scene or add --force")
+        _say(comm, f"{PROG}: warning: --force: rest state differs from the checkpoint's; the scene's is used",
+             sys.stderr)
+    it = sim.integrator
+    it.x, it.v = np.array(ck["x"]), np.array(ck["v"])
+    it.t, it.frame = ck["time"], ck["frame"]
+    return ck, None
+
+
+class _Checkpointer:
+    """Writes checkpoints of the running job (see lc_petsc.io.checkpoint)."""
+
+    def __init__(self, comm, sim, cfg, out, config_dict, cfg_text, petsc_options, version):
+        self.comm, self.sim, self.cfg, self.out = comm, sim, cfg, out
+        self.config_dict, self.cfg_text = config_dict, cfg_text
+        self.petsc_options, self.version = petsc_options, version
+        self.written, self.last_frame = [], None
+
+    def write(self, it):
+        from lc_petsc.io.checkpoint import write_checkpoint
+        if self.last_frame == it.frame:
+            return
+        sim, cfg = self.sim, self.cfg
+        path, secs, size = write_checkpoint(
+            self.out, self.comm, frame=it.frame, t=it.t, x=it.x, v=it.v, scene=sim.scene,
+            n_wisps=sim.n_wisps, n_vertices=sim.n_vertices, head=sim.head, dt=cfg.time.dt,
+            every=cfg.output.every, config_dict=self.config_dict, config_toml=self.cfg_text,
+            petsc_options=self.petsc_options, keep=cfg.output.checkpoints_kept, version=self.version)
+        self.written.append({"frame": it.frame, "path": str(path), "seconds": secs, "bytes": size})
+        self.last_frame = it.frame
+
+
+class _Preemption:
+    """SIGTERM / SIGUSR1 set a flag (main thread only); :meth:`agreed` allreduces it at
+    a frame end, so a signal that reached some ranks only stops all of them together."""
+
+    SIGNALS = ("SIGTERM", "SIGUSR1")
+
+    def __init__(self):
+        import signal
+        import threading
+        self.flag, self.signal_name, self.previous = 0, None, {}
+        if threading.current_thread() is threading.main_thread():
+            for name in self.SIGNALS:
+                sig = getattr(signal, name)
+                self.previous[sig] = signal.signal(sig, self._handler)
+
+    def _handler(self, signum, frame):
+        import signal
+        self.flag = 1
+        self.signal_name = signal.Signals(signum).name
+
+    def agreed(self, comm):
+        from mpi4py import MPI
+        stop = comm.allreduce(self.flag, op=MPI.MAX)
+        if stop and self.signal_name is None:
+            self.signal_name = "SIGTERM/SIGUSR1 (on another rank)"
+        if stop:
+            names = [n for n in comm.allgather(self.signal_name) if n and "another" not in n]
+            self.signal_name = names[0] if names else self.signal_name
+        return bool(stop)
+
+    def restore(self):
+        import signal
+        for sig, h in self.previous.items():
+            signal.signal(sig, h)
+        self.previous = {}
 
 
 def _previews(cfg, out, h5_path, writer, frames, title):

@@ -263,6 +263,9 @@ class OutputConfig:
     numbers, rounded down to a written frame; negative counts from the end, -1 = last)
     and a contact sheet of ``contact_sheet`` panels over time (0: none), seen from
     ``view`` (``front``: x-y plane, ``side``: z-y, ``top``: x-z).
+    ``checkpoint_every``: write a restart checkpoint to ``<dir>/checkpoints`` every that
+    many simulation frames (0: none; see :mod:`lc_petsc.io.checkpoint`);
+    ``checkpoints_kept``: how many of the newest checkpoints are kept.
     """
 
     dir: str = ""
@@ -272,6 +275,8 @@ class OutputConfig:
     preview_frames: Sequence[int] = (0, -1)
     contact_sheet: int = 12
     view: str = "front"
+    checkpoint_every: int = 0
+    checkpoints_kept: int = 2
 
     def validate(self) -> None:
         if not isinstance(self.dir, str):
@@ -287,6 +292,8 @@ class OutputConfig:
         _int_at_least("output.contact_sheet", self.contact_sheet, 0)
         if self.view not in VIEWS:
             raise ConfigError(f"output.view must be one of {VIEWS}, got {self.view!r}")
+        _int_at_least("output.checkpoint_every", self.checkpoint_every, 0)
+        _int_at_least("output.checkpoints_kept", self.checkpoints_kept, 1)
 
 
 @dataclass

@@ -36,6 +36,25 @@ def _h5py():
     return h5py
 
 
+def write_rows(dset, start, data, dxpl):
+    """Write ``data`` at ``start`` (a corner) of ``dset`` through the low-level API;
+    collective when ``dxpl`` says so, an empty ``data`` takes part with an empty
+    selection (h5py's high-level API would skip the call and deadlock the others)."""
+    h5py = _h5py()
+    data = np.ascontiguousarray(data, dtype=dset.dtype)
+    fs = dset.id.get_space()
+    if data.size:
+        count = data.shape + tuple(dset.shape[len(data.shape):])
+        fs.select_hyperslab(tuple(start) + (0,) * (len(dset.shape) - len(start)), count)
+        ms = h5py.h5s.create_simple(data.shape)
+    else:
+        fs.select_none()
+        ms = h5py.h5s.create_simple((1,))
+        ms.select_none()
+        data = np.zeros(1, dtype=dset.dtype)
+    dset.id.write(ms, fs, data, dxpl=dxpl)
+
+
 class FramesWriter:
     """Collective writer of one run's ``frames.h5``.
 
@@ -44,7 +63,7 @@ class FramesWriter:
     """
 
     def __init__(self, path, comm, *, n_wisps, n_vertices, first_wisp, first_vertex,
-                 local_offsets, rest_positions, pinned, n_out, attrs):
+                 local_offsets, rest_positions, pinned, n_out, attrs, resume_rows=None):
         h5py = _h5py()
         self.comm, self.path = comm, str(path)
         self.parallel = bool(h5py.get_config().mpi)
@@ -54,11 +73,15 @@ class FramesWriter:
         self.nv, self.v0 = int(n_vertices), int(first_vertex)
         self.nv_local = len(rest_positions)
         self.n_out, self.written = int(n_out), 0
+        self.times_kept = []           # times of the frames kept from before a restart
         kw = {"driver": "mpio", "comm": comm} if self.parallel else {}
-        self.f = f = h5py.File(self.path, "w", **kw)
         self._dxpl = h5py.h5p.create(h5py.h5p.DATASET_XFER)
         if self.parallel:
             self._dxpl.set_dxpl_mpio(h5py.h5fd.MPIO_COLLECTIVE)
+        if resume_rows is not None:
+            self._resume(kw, n_wisps, int(resume_rows), attrs)
+            return
+        self.f = f = h5py.File(self.path, "w", **kw)
         nv = self.nv
         # frame datasets: one frame per chunk (at most 2**16 vertices), no fill writes
         self.positions = self._dataset("positions", (self.n_out, nv, 3), np.float64,
@@ -89,29 +112,55 @@ class FramesWriter:
         self.positions.attrs["units"] = "cm"
         self.time.attrs["units"] = "s"
 
+    def _resume(self, kw, n_wisps, rows, attrs):
+        """Reopen an existing ``frames.h5`` (restart): keep its first ``rows`` frames,
+        write the next frame at row ``rows`` (later rows are overwritten), resize the
+        frame datasets to ``n_out`` rows.  A file that does not fit is a ValueError."""
+        h5py = _h5py()
+        try:
+            self.f = f = h5py.File(self.path, "r+", **kw)
+        except (OSError, FileNotFoundError) as e:
+            raise ValueError(f"{self.path}: cannot reopen the run's frames file to append to it "
+                             f"({e}); restart with --out naming the folder of the checkpointed run") from None
+        try:
+            self.positions, self.time = f["positions"], f["time"]
+            have = self.positions.shape[0]
+            if self.positions.shape[1] != self.nv or f["wisp_offsets"].shape[0] != n_wisps + 1:
+                raise ValueError(f"{self.path}: has {f['wisp_offsets'].shape[0] - 1} wisps and "
+                                 f"{self.positions.shape[1]} vertices, the scene {n_wisps} and {self.nv}")
+            if have < rows:
+                raise ValueError(f"{self.path}: holds {have} frame row(s), the checkpoint needs the "
+                                 f"first {rows}; it does not belong to this checkpoint's run")
+            self.times_kept = [float(t) for t in f["time"][:rows]]
+        except Exception:
+            f.close()
+            raise
+        self.positions.resize(max(self.n_out, rows), axis=0)
+        self.time.resize(max(self.n_out, rows), axis=0)
+        self.n_out = max(self.n_out, rows)
+        self.written = rows
+        for k, v in attrs.items():
+            f.attrs[k] = json.dumps(v) if isinstance(v, (dict, list, tuple)) else v
+        f.attrs["ranks"] = self.comm.size
+
     def _dataset(self, name, shape, dtype, maxshape=None, chunks=None):
         h5py = _h5py()
         dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
         dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
+        if chunks is not None:
+            # all chunks allocated now: writing a frame then changes no HDF5 metadata, so
+            # the file flushed at a checkpoint stays readable if the run is killed later
+            dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
         return self.f.create_dataset(name, shape=shape, dtype=dtype, maxshape=maxshape,
                                      chunks=chunks, dcpl=dcpl)
 
     def _write(self, dset, start, data):
-        """Write ``data`` at ``start`` (a corner) of ``dset``; collective in parallel,
-        an empty ``data`` takes part with an empty selection."""
-        h5py = _h5py()
-        data = np.ascontiguousarray(data, dtype=dset.dtype)
-        fs = dset.id.get_space()
-        if data.size:
-            count = data.shape + tuple(dset.shape[len(data.shape):])
-            fs.select_hyperslab(tuple(start) + (0,) * (len(dset.shape) - len(start)), count)
-            ms = h5py.h5s.create_simple(data.shape)
-        else:
-            fs.select_none()
-            ms = h5py.h5s.create_simple((1,))
-            ms.select_none()
-            data = np.zeros(1, dtype=dset.dtype)
-        dset.id.write(ms, fs, data, dxpl=self._dxpl)
+        write_rows(dset, start, data, self._dxpl)
+
+    def flush(self):
+        """Collective: push everything written so far to the file (H5Fflush, which with
+        the mpio driver ends in MPI_File_sync)."""
+        self.f.flush()
 
     def write_frame(self, t, x_local):
         """Append one frame: this rank's positions (nv_local, 3) at time ``t``."""

@@ -38,6 +38,7 @@ def record(config, comm, frames=1, max_systems=None):
         info = {"wisps": sim.n_wisps, "dofs": 3 * sim.n_vertices, "ranks": comm.size,
                 "record_wall_s": time.perf_counter() - t0,
                 "sim_ksp_iterations": list(sim.solver.iterations),
+                "strand_contact_pairs": list(getattr(sim.integrator, "contact_pairs", [])),
                 "sim_solver": sim.solver.describe()}
         rec.detach()
         systems, rows = rec.systems, rec.wisp_rows
@@ -135,7 +136,8 @@ def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frame
         systems, wisp_rows, info = record(cfg, comm, frames=frames, max_systems=max_systems)
         infos.append(info)
         log(f"[{n} wisps] {info['dofs']} DoFs: recorded {len(systems)} Newton systems in "
-            f"{info['record_wall_s']:.2f} s (simulator's KSP iterations {info['sim_ksp_iterations']})")
+            f"{info['record_wall_s']:.2f} s (simulator's KSP iterations {info['sim_ksp_iterations']}"
+            + (f", strand contact pairs {info['strand_contact_pairs']})" if info["strand_contact_pairs"] else ")"))
         refs = direct_solutions(systems, comm) if reference else None
         for name, opts in sets.items():
             over = next((r["wisps"] for r in rows if r["set"] == name and r["status"] == "budget"), None)

@@ -38,6 +38,7 @@ class RecordedSystem:
     coords: np.ndarray          # (local vertices, 3): positions at the frame's start
     frame: int
     newton_it: int
+    coupled: bool = False       # strand contact couples wisps: the pattern varies
 
 
 class SystemRecorder:
@@ -52,9 +53,15 @@ class SystemRecorder:
 
         def solve(b, x, frame, newton_it):
             if self.max_systems is None or len(self.systems) < self.max_systems:
+                A = sim.assembler.mat.copy()
+                # strand contact: the simulator's operator is the shell A + C (C the
+                # contact matrix, coupling wisps); record the assembled sum
+                C = getattr(getattr(sim, "strand", None), "C", None)
+                if C is not None:
+                    A.axpy(1.0, C, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
                 self.systems.append(RecordedSystem(
-                    sim.assembler.mat.copy(), b.copy(), np.array(sim.integrator.x, float),
-                    int(frame), int(newton_it)))
+                    A, b.copy(), np.array(sim.integrator.x, float), int(frame), int(newton_it),
+                    coupled=C is not None))
             return self._orig(b, x, frame, newton_it)
 
         sim.solver.solve = solve
@@ -193,7 +200,19 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
             if stopped is not None:
                 rows.append(dict(row, status="budget", message=stopped))
                 continue
-            if i > 0:   # refill the persistent operator(s): same pattern, new values
+            if i > 0 and any(x.coupled for x in systems):
+                # contact changes the pattern from system to system: new operators
+                # (direct solvers redo their symbolic factorisation, as they must)
+                newA = _convert(s.A, mat_type)
+                newP = _convert(s.A, pmat_type) if pmat_type else None
+                if near_null is not None:
+                    newA.setNearNullSpace(near_null)
+                ksp.setOperators(newA, newA if newP is None else newP)
+                A.destroy()
+                if P is not None:
+                    P.destroy()
+                A, P = newA, newP
+            elif i > 0:   # refill the persistent operator(s): same pattern, new values
                 for M, t in ((A, mat_type), (P, pmat_type)):
                     if M is not None:
                         src = _convert(s.A, t)

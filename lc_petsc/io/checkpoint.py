@@ -1,0 +1,382 @@
+"""Restart checkpoints: ``<out>/checkpoints/checkpoint_FFFFFF.h5`` (FFFFFF = frame).
+
+Layout (format ``lc_petsc checkpoint``, ``format_version`` 1; plain h5py reads it):
+
+* ``/positions``, ``/velocities`` float64 (n_vertices, 3), global vertex order;
+* ``/rest_positions`` float64 (n_vertices, 3), ``/pinned`` bool (n_vertices,);
+* ``/wisp_offsets`` int64 (n_wisps + 1,);
+* ``/head_state`` float64 (16,): t, the head's rotation R (row-major 3x3), translation
+  T and centre c at t (the head kinematics are a function of t, so this is a record and
+  a consistency check, not extra state);
+* root attributes: ``format``, ``format_version``, ``frame``, ``time``, ``dt``,
+  ``every`` (output.every), ``frames_rows`` (rows of ``frames.h5`` that belong to frames
+  <= ``frame``), ``n_wisps``, ``n_vertices``, ``ranks``, ``config`` (resolved config,
+  JSON), ``config_toml`` (the config file's text), ``config_sha256``,
+  ``petsc_options`` (JSON), ``lc_petsc_version``, ``contact_state``, ``meta_sha256``
+  (over the attributes above).  Every dataset has a ``sha256`` attribute.
+
+Contact state: none is carried between frames (strand contact rebuilds its broad phase
+from the positions at every call, head contact is a function of positions and t), so
+x, v, t and frame are the whole dynamic state; ``contact_state`` says so.
+
+**Written collectively** with the ``mpio`` driver: every rank writes the rows of its
+own vertices (contiguous datasets, no fill writes); rank 0 writes the small global
+datasets; nothing is gathered.
+
+**Checksums, on any rank count.** A vertex dataset's ``sha256`` is the SHA-256 of the
+concatenated SHA-256 digests of its wisps' rows (C order, native little-endian bytes),
+in global wisp order.  Wisps are never split across ranks in any partition, so each
+rank hashes its own wisps, the 32-byte digests (64 kB for 2,000 wisps) are gathered to
+rank 0, which combines them: the same value whatever the rank count of the writer or
+the reader.  Small global datasets are hashed whole.
+
+**Atomic and durable.** The file is written to ``.checkpoint_FFFFFF.h5.tmp`` in the same
+folder, flushed (``H5Fflush``: ``MPI_File_sync`` under mpio), closed, ``fsync``-ed by
+rank 0, renamed over the final name (``os.replace``, atomic on POSIX) and the folder is
+``fsync``-ed.  A kill at any moment leaves either no new checkpoint (a stray ``.tmp``,
+ignored and removed by the next run) or a complete one; older checkpoints are
+untouched until the new one is in place, then all but the newest ``keep`` are removed.
+
+**Loading** (:func:`load_checkpoint`, collective): rank 0 opens the file serially and
+checks the format, version, counts against the scene, the attribute checksum and the
+small datasets; then every rank reads its rows for the *current* partition and the
+vertex datasets' digests are combined and compared.  Any failure is a
+:class:`CheckpointError` on every rank naming the file (and the dataset).
+:func:`find_latest` walks the checkpoints newest first and returns the first valid one
+with the messages of those it skipped.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+
+FORMAT = "lc_petsc checkpoint"
+FORMAT_VERSION = 1
+FOLDER = "checkpoints"
+PAUSE_ENV = "LC_PETSC_TEST_CHECKPOINT_PAUSE"   # test hook, "FRAME:SECONDS": sleep inside the write
+VERTEX_DATASETS = ("positions", "velocities", "rest_positions", "pinned")
+GLOBAL_DATASETS = ("wisp_offsets", "head_state")
+META_KEYS = ("format", "format_version", "frame", "time", "dt", "every", "frames_rows",
+             "n_wisps", "n_vertices", "config", "config_sha256", "lc_petsc_version")
+CONTACT_STATE = "none: contact is recomputed from positions and time at every call"
+_NAME = re.compile(r"^checkpoint_(\d+)\.h5$")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used; the message names the file (and dataset)."""
+
+
+def _h5py():
+    import h5py
+    return h5py
+
+
+def checkpoint_folder(out) -> Path:
+    return Path(out) / FOLDER
+
+
+def checkpoint_path(out, frame) -> Path:
+    return checkpoint_folder(out) / f"checkpoint_{int(frame):06d}.h5"
+
+
+def list_checkpoints(folder):
+    """Checkpoint files in ``folder``, newest (highest frame) first."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    found = [(int(m.group(1)), folder / p) for p in os.listdir(folder) if (m := _NAME.match(p))]
+    return [p for _, p in sorted(found, reverse=True)]
+
+
+def config_sha256(config_dict) -> str:
+    return hashlib.sha256(json.dumps(config_dict, sort_keys=True).encode()).hexdigest()
+
+
+def _normal(d):
+    return json.loads(json.dumps(d))
+
+
+def config_differences(saved, current, ignore=()):
+    """Dotted keys whose values differ between two config dicts (``ignore``: keys that
+    do not change the trajectory or the frames file's layout)."""
+    def flat(d, pre=""):
+        out = {}
+        for k, v in d.items():
+            key = f"{pre}{k}"
+            if isinstance(v, dict):
+                out.update(flat(v, key + "."))
+            else:
+                out[key] = v
+        return out
+    a, b = flat(_normal(saved)), flat(_normal(current))
+    return [k for k in sorted(set(a) | set(b)) if k not in ignore and a.get(k, "<absent>") != b.get(k, "<absent>")]
+
+
+def head_state(head, t) -> np.ndarray:
+    R, T = head.transform(t)
+    return np.concatenate([[t], np.asarray(R, float).ravel(), np.asarray(T, float),
+                           np.asarray(head.center, float)])
+
+
+def _wisp_digests(data, local_offsets) -> np.ndarray:
+    data = np.ascontiguousarray(data)
+    rows = data.reshape(len(data), -1)
+    out = np.empty((len(local_offsets) - 1, 32), np.uint8)
+    for w in range(len(local_offsets) - 1):
+        out[w] = np.frombuffer(hashlib.sha256(rows[local_offsets[w]:local_offsets[w + 1]].tobytes()).digest(),
+                               np.uint8)
+    return out
+
+
+def _combine(comm, digests):
+    """SHA-256 over all ranks' per-wisp digests in rank (= global wisp) order; on rank 0
+    (None elsewhere)."""
+    parts = comm.gather(digests, root=0)
+    if comm.rank != 0:
+        return None
+    return hashlib.sha256(np.concatenate(parts).tobytes()).hexdigest()
+
+
+def _whole(data) -> str:
+    return hashlib.sha256(np.ascontiguousarray(data).tobytes()).hexdigest()
+
+
+def _meta_digest(attrs) -> str:
+    meta = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in attrs.items() if k in META_KEYS}
+    return hashlib.sha256(json.dumps(meta, sort_keys=True).encode()).hexdigest()
+
+
+def _fsync_path(path, directory=False):
+    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _pause(frame):
+    spec = os.environ.get(PAUSE_ENV)
+    if spec:
+        f, s = spec.split(":")
+        if int(f) == int(frame):
+            time.sleep(float(s))
+
+
+def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, head, dt, every,
+                     config_dict, config_toml, petsc_options, keep, version):
+    """Collectively write the checkpoint of ``frame`` into ``<out>/checkpoints``; keep the
+    newest ``keep``.  ``x``/``v``: this rank's rows; ``scene``: the rank's LocalScene.
+    Returns (path, seconds, bytes) on every rank."""
+    h5py = _h5py()
+    t0 = time.perf_counter()
+    folder = checkpoint_folder(out)
+    final = checkpoint_path(out, frame)
+    tmp = folder / f".{final.name}.tmp"
+    problem = None
+    if comm.rank == 0:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            tmp.unlink(missing_ok=True)
+        except OSError as e:
+            problem = f"checkpoint folder {str(folder)!r}: {e.strerror or e}"
+    problem = comm.bcast(problem)
+    if problem:
+        raise OSError(problem)
+    lo = np.asarray(scene.offsets, np.int64)
+    local = {"positions": np.asarray(x, np.float64), "velocities": np.asarray(v, np.float64),
+             "rest_positions": np.asarray(scene.x_rest, np.float64), "pinned": np.asarray(scene.pinned, np.bool_)}
+    digests = {k: _combine(comm, _wisp_digests(a, lo)) for k, a in local.items()}
+    sizes = np.concatenate(comm.allgather(np.diff(lo)))
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    hs = head_state(head, t)
+    digests.update({"wisp_offsets": _whole(offsets), "head_state": _whole(hs)})
+    digests = comm.bcast(digests)          # attributes are written collectively: same values
+    attrs = {"format": FORMAT, "format_version": FORMAT_VERSION, "frame": int(frame), "time": float(t),
+             "dt": float(dt), "every": int(every), "frames_rows": int(frame) // int(every) + 1,
+             "n_wisps": int(n_wisps), "n_vertices": int(n_vertices), "ranks": comm.size,
+             "config": json.dumps(config_dict, sort_keys=True), "config_toml": config_toml,
+             "config_sha256": config_sha256(config_dict), "petsc_options": json.dumps(petsc_options),
+             "lc_petsc_version": version, "contact_state": CONTACT_STATE}
+    attrs["meta_sha256"] = _meta_digest(attrs)
+
+    parallel = bool(h5py.get_config().mpi)
+    kw = {"driver": "mpio", "comm": comm} if parallel else {}
+    dxpl = h5py.h5p.create(h5py.h5p.DATASET_XFER)
+    if parallel:
+        dxpl.set_dxpl_mpio(h5py.h5fd.MPIO_COLLECTIVE)
+    from lc_petsc.io.frames import write_rows
+    v0 = int(scene.first_vertex)
+    with h5py.File(str(tmp), "w", **kw) as f:
+        def dataset(name, shape, dtype):
+            dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+            dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
+            dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+            d = f.create_dataset(name, shape=shape, dtype=dtype, dcpl=dcpl)
+            d.attrs["sha256"] = digests[name]
+            return d
+        for name in VERTEX_DATASETS:
+            a = local[name]
+            d = dataset(name, (n_vertices,) + a.shape[1:], a.dtype)
+            write_rows(d, (v0,), a, dxpl)
+            if name == "positions":
+                _pause(frame)
+        for name, a in (("wisp_offsets", offsets), ("head_state", hs)):
+            d = dataset(name, a.shape, a.dtype)
+            write_rows(d, (0,), a if comm.rank == 0 else a[:0], dxpl)
+        for k, val in attrs.items():
+            f.attrs[k] = val
+        f.flush()
+    problem = None
+    if comm.rank == 0:
+        try:
+            _fsync_path(tmp)
+            os.replace(tmp, final)
+            _fsync_path(folder, directory=True)
+            for old in list_checkpoints(folder)[max(int(keep), 1):]:
+                old.unlink(missing_ok=True)
+        except OSError as e:
+            problem = f"checkpoint {str(final)!r}: {e.strerror or e}"
+    problem = comm.bcast(problem)
+    if problem:
+        raise OSError(problem)
+    size = comm.bcast(final.stat().st_size if comm.rank == 0 else None)
+    return final, time.perf_counter() - t0, size
+
+
+def remove_stale(folder, comm, everything=False):
+    """Rank 0 removes ``.tmp`` leftovers of killed writers (and, with ``everything``,
+    the checkpoints: a new run in this folder replaces frames.h5 they belong to)."""
+    if comm.rank == 0 and Path(folder).is_dir():
+        for p in Path(folder).iterdir():
+            if p.name.endswith(".h5.tmp") or (everything and _NAME.match(p.name)):
+                p.unlink(missing_ok=True)
+    comm.Barrier()
+
+
+def _attr(v):
+    if isinstance(v, bytes):
+        return v.decode()
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _precheck(path, n_wisps, n_vertices, offsets, head):
+    """Rank 0, serial: format, version, counts, attribute and small-dataset checksums.
+    Returns the attributes; raises CheckpointError."""
+    h5py = _h5py()
+    name = str(path)
+    if not os.path.exists(name):
+        raise CheckpointError(f"{name}: no such checkpoint file")
+    if not h5py.is_hdf5(name):
+        raise CheckpointError(f"{name}: not an lc_petsc checkpoint (not an HDF5 file)")
+    try:
+        f = h5py.File(name, "r")
+    except OSError as e:
+        raise CheckpointError(f"{name}: unreadable or truncated HDF5 file ({e})") from None
+    with f:
+        try:
+            attrs = {k: _attr(v) for k, v in f.attrs.items()}
+        except OSError as e:
+            raise CheckpointError(f"{name}: unreadable attributes ({e})") from None
+        if attrs.get("format") != FORMAT:
+            raise CheckpointError(f"{name}: not an lc_petsc checkpoint (format attribute "
+                                  f"{attrs.get('format')!r}, expected {FORMAT!r})")
+        ver = attrs.get("format_version")
+        if not isinstance(ver, int) or ver > FORMAT_VERSION:
+            raise CheckpointError(f"{name}: checkpoint format version {ver} is newer than this "
+                                  f"lc_petsc reads (version {FORMAT_VERSION}); use a newer lc_petsc")
+        if attrs.get("meta_sha256") != _meta_digest(attrs):
+            raise CheckpointError(f"{name}: corrupt checkpoint: the attributes (frame, time, config) "
+                                  "do not match their checksum meta_sha256")
+        if attrs["n_wisps"] != n_wisps or attrs["n_vertices"] != n_vertices:
+            raise CheckpointError(f"{name}: the checkpoint has {attrs['n_wisps']} wisps and "
+                                  f"{attrs['n_vertices']} vertices, the scene {n_wisps} wisps and "
+                                  f"{n_vertices} vertices")
+        for k in VERTEX_DATASETS + GLOBAL_DATASETS:
+            if k not in f:
+                raise CheckpointError(f"{name}: corrupt checkpoint: dataset /{k} is missing")
+        for k in GLOBAL_DATASETS:
+            try:
+                a = f[k][...]
+                ok = _attr(f[k].attrs.get("sha256")) == _whole(a)
+            except OSError as e:
+                raise CheckpointError(f"{name}: corrupt checkpoint: dataset /{k} unreadable ({e})") from None
+            if not ok:
+                raise CheckpointError(f"{name}: corrupt checkpoint: dataset /{k} fails its checksum")
+            if k == "wisp_offsets" and not np.array_equal(a, offsets):
+                raise CheckpointError(f"{name}: the checkpoint's wisp sizes (/wisp_offsets) differ "
+                                      "from the scene's")
+            if k == "head_state" and not np.allclose(a, head_state(head, attrs["time"]), rtol=1e-12, atol=1e-12):
+                raise CheckpointError(f"{name}: the head state stored at t = {attrs['time']} differs "
+                                      "from the configured head motion's")
+        attrs["digests"] = {k: _attr(f[k].attrs.get("sha256")) for k in VERTEX_DATASETS}
+        return attrs
+
+
+def load_checkpoint(path, comm, scene, n_wisps, n_vertices, head):
+    """Collectively load ``path`` for the current partition (``scene``: this rank's
+    LocalScene).  Returns a dict: ``x``, ``v`` (this rank's rows), ``frame``, ``time``,
+    ``attrs`` (root attributes, ``config`` parsed), ``path``.  Raises
+    :class:`CheckpointError` on every rank."""
+    h5py = _h5py()
+    lo = np.asarray(scene.offsets, np.int64)
+    sizes = np.concatenate(comm.allgather(np.diff(lo)))
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    res = None
+    if comm.rank == 0:
+        try:
+            res = _precheck(path, n_wisps, n_vertices, offsets, head)
+        except CheckpointError as e:
+            res = e
+    res = comm.bcast(res)
+    if isinstance(res, CheckpointError):
+        raise CheckpointError(str(res))
+    attrs = res
+    name = str(path)
+    parallel = bool(h5py.get_config().mpi)
+    kw = {"driver": "mpio", "comm": comm} if parallel else {}
+    v0, nv = int(scene.first_vertex), len(scene.x_rest)
+    data, err = {}, None
+    try:
+        with h5py.File(name, "r", **kw) as f:
+            for k in VERTEX_DATASETS:
+                data[k] = f[k][v0:v0 + nv]
+    except Exception as e:  # noqa: BLE001 - reported collectively below
+        err = f"{name}: corrupt checkpoint: cannot read its datasets ({e})"
+    errs = [m for m in comm.allgather(err) if m]
+    if errs:
+        raise CheckpointError(errs[0])
+    bad = None
+    for k in VERTEX_DATASETS:
+        h = _combine(comm, _wisp_digests(data[k], lo))
+        if comm.rank == 0 and bad is None and h != attrs["digests"][k]:
+            bad = k
+    bad = comm.bcast(bad)
+    if bad:
+        raise CheckpointError(f"{name}: corrupt checkpoint: dataset /{bad} fails its checksum (sha256)")
+    attrs["config"] = json.loads(attrs["config"])
+    attrs["petsc_options"] = json.loads(attrs["petsc_options"])
+    return {"x": data["positions"], "v": data["velocities"], "rest": data["rest_positions"],
+            "pinned": data["pinned"],
+            "frame": int(attrs["frame"]), "time": float(attrs["time"]), "attrs": attrs, "path": Path(name)}
+
+
+def find_latest(folder, comm, scene, n_wisps, n_vertices, head):
+    """The newest valid checkpoint in ``folder``: (loaded dict, [messages of the newer
+    ones rejected]).  None valid: CheckpointError listing why."""
+    rejected = []
+    for p in comm.bcast(list_checkpoints(folder) if comm.rank == 0 else None):
+        try:
+            return load_checkpoint(p, comm, scene, n_wisps, n_vertices, head), rejected
+        except CheckpointError as e:
+            rejected.append(str(e))
+    why = ("; ".join(rejected)) if rejected else "there are none"
+    raise CheckpointError(f"--restart latest: no valid checkpoint in {str(folder)!r} ({why})")

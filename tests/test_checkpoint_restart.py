@@ -1,0 +1,288 @@
+"""Checkpoint and restart of the main job (issue 5): equivalence with a straight run
+(serial: bitwise; 2 -> 3 and 3 -> 1 ranks through mpiexec: 1e-12 relative), frames.h5
+holding every frame once and in order, SIGKILL while a checkpoint is written, SIGTERM,
+corruption and truncation, fallback of ``--restart latest``, keeping the last K, and
+the errors a user can meet."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from lc_petsc.batch import EXIT_PREEMPTED, main
+from lc_petsc.config import ConfigError, config_from_dict
+
+ROOT = Path(__file__).resolve().parents[1]
+DRIVER = str(ROOT / "drivers" / "simulate.py")
+MPI_ENV = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OMPI_MCA_rmaps_base_oversubscribe="1")
+
+SCENE = """
+[scene]
+kind = "hairball"
+n_wisps = 5
+seed = 3
+[material]
+youngs_modulus = 2.5e8
+[physics]
+terms = ["stretch", "bend", "twist", "gravity", "head_collision"]
+head_motion = "shake"
+head_period = 0.4
+[time]
+frames = {frames}
+[output]
+every = {every}
+previews = false
+xdmf = false
+checkpoint_every = {ce}
+checkpoints_kept = {kept}
+"""
+
+
+def _config(tmp_path, name="s.toml", frames=6, every=1, ce=2, kept=2, **subs):
+    text = SCENE.format(frames=frames, every=every, ce=ce, kept=kept)
+    for k, v in subs.items():
+        text = text.replace(k, v)
+    p = tmp_path / name
+    p.write_text(text)
+    return str(p)
+
+
+def _frames(out):
+    with h5py.File(Path(out) / "frames.h5", "r") as f:
+        return f["positions"][...], f["time"][...]
+
+
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory):
+    """The reference: 6 frames straight, serial (frames.h5 positions and times)."""
+    d = tmp_path_factory.mktemp("straight")
+    cfg = _config(d, ce=0)
+    assert main([cfg, "--out", str(d / "out"), "--quiet"]) == 0
+    return _frames(d / "out")
+
+
+def _mpiexec(n, args, cwd, env=MPI_ENV):
+    cmd = ["mpiexec", "--oversubscribe", "-n", str(n), sys.executable, DRIVER] + args
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120, cwd=cwd)
+    return p
+
+
+def _check_each_frame_once(out, ref_pos, ref_time, rtol=0.0):
+    pos, t = _frames(out)
+    assert pos.shape == ref_pos.shape and t.shape == ref_time.shape
+    assert np.all(np.diff(t) > 0), f"times not increasing: {t}"
+    np.testing.assert_allclose(t, ref_time, rtol=1e-15, atol=0)
+    if rtol == 0.0:
+        assert np.array_equal(pos, ref_pos), "positions differ from the straight run"
+    else:
+        err = np.abs(pos - ref_pos).max() / np.abs(ref_pos).max()
+        assert err <= rtol, f"relative difference {err:.2e} > {rtol:g}"
+
+
+def test_serial_restart_is_bitwise_equal(tmp_path, straight, capsys):
+    cfg = _config(tmp_path)
+    out = str(tmp_path / "out")
+    assert main([cfg, "--out", out, "--quiet", "--frames", "3"]) == 0     # checkpoint at 2
+    assert main([cfg, "--out", out, "--quiet", "--restart", "latest"]) == 0
+    assert "restarting from" in capsys.readouterr().out
+    _check_each_frame_once(out, *straight)
+    # explicit file, from frame 2: frames 3.. are overwritten, not duplicated
+    ck = Path(out) / "checkpoints" / "checkpoint_000002.h5"
+    assert not ck.exists()          # kept 2: 4 and 6 remain
+    names = sorted(p.name for p in (Path(out) / "checkpoints").iterdir())
+    assert names == ["checkpoint_000004.h5", "checkpoint_000006.h5"]
+    assert main([cfg, "--out", out, "--quiet", "--restart", str(Path(out) / "checkpoints" /
+                                                               "checkpoint_000004.h5")]) == 0
+    _check_each_frame_once(out, *straight)
+
+
+def test_every_two_restart_from_odd_frame(tmp_path):
+    """output.every = 2 and a checkpoint at frame 3 (between written frames)."""
+    ref = tmp_path / "ref"
+    cfg = _config(tmp_path, every=2, ce=3, frames=8)
+    assert main([cfg, "--out", str(ref), "--quiet"]) == 0
+    out = str(tmp_path / "out")
+    assert main([cfg, "--out", out, "--quiet", "--frames", "5"]) == 0     # checkpoint at 3
+    ck = Path(out) / "checkpoints" / "checkpoint_000003.h5"
+    assert main([cfg, "--out", out, "--quiet", "--restart", str(ck)]) == 0
+    _check_each_frame_once(out, *_frames(ref))
+
+
+def test_two_to_three_and_three_to_one_ranks(tmp_path, straight):
+    cfg = _config(tmp_path)
+    a = tmp_path / "a"
+    p = _mpiexec(2, [cfg, "--out", str(a), "--quiet", "--frames", "4"], tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    p = _mpiexec(3, [cfg, "--out", str(a), "--quiet", "--restart", "latest"], tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "written on 2 rank(s), now 3" in p.stdout
+    _check_each_frame_once(a, *straight, rtol=1e-12)
+    b = tmp_path / "b"
+    p = _mpiexec(3, [cfg, "--out", str(b), "--quiet", "--frames", "2"], tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert main([cfg, "--out", str(b), "--quiet", "--restart", "latest"]) == 0
+    _check_each_frame_once(b, *straight, rtol=1e-12)
+
+
+def _wait_for(path, proc, timeout=60):
+    t0 = time.time()
+    while not Path(path).exists():
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        assert time.time() - t0 < timeout, f"{path} never appeared"
+        time.sleep(0.02)
+
+
+def test_sigkill_while_writing_keeps_previous_checkpoint(tmp_path, straight):
+    cfg = _config(tmp_path, kept=1)
+    out = tmp_path / "out"
+    env = dict(os.environ, LC_PETSC_TEST_CHECKPOINT_PAUSE="4:60")
+    proc = subprocess.Popen([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(out / "checkpoints" / ".checkpoint_000004.h5.tmp", proc)
+        time.sleep(0.3)                       # inside the write: positions written, paused
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate()
+    assert proc.returncode == -signal.SIGKILL
+    names = sorted(p.name for p in (out / "checkpoints").iterdir())
+    assert names == [".checkpoint_000004.h5.tmp", "checkpoint_000002.h5"]
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    _check_each_frame_once(out, *straight)
+    assert not (out / "checkpoints" / ".checkpoint_000004.h5.tmp").exists()
+
+
+def test_sigterm_writes_final_checkpoint_that_restarts(tmp_path):
+    frames = 150
+    cfg = _config(tmp_path, frames=frames, every=3, ce=0)
+    ref = tmp_path / "ref"
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for(out / "frames.h5", proc)
+    time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    so, se = proc.communicate(timeout=60)
+    assert proc.returncode == EXIT_PREEMPTED, se[-2000:]
+    assert "SIGTERM received: stopped after frame" in se and "--restart latest" in se
+    cks = list((out / "checkpoints").glob("checkpoint_*.h5"))
+    assert len(cks) == 1
+    k = int(cks[0].stem.split("_")[1])
+    assert 0 < k < frames
+    assert main([cfg, "--out", str(ref), "--quiet"]) == 0
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    _check_each_frame_once(out, *_frames(ref))
+
+
+def _flip(path, dataset, at=100):
+    with h5py.File(path, "r") as f:
+        off = f[dataset].id.get_offset()
+    with open(path, "r+b") as fh:
+        fh.seek(off + at)
+        b = fh.read(1)
+        fh.seek(off + at)
+        fh.write(bytes([b[0] ^ 0x5A]))
+
+
+def test_corruption_detected_and_latest_falls_back(tmp_path, straight, capsys):
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "4"]) == 0
+    ck4 = out / "checkpoints" / "checkpoint_000004.h5"
+    _flip(ck4, "velocities")
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", str(ck4)]) == 2
+    err = capsys.readouterr().err
+    assert str(ck4) in err and "/velocities fails its checksum" in err
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    err = capsys.readouterr().err
+    assert "skipping an invalid checkpoint" in err and "/velocities" in err
+    assert "falling back to" in err and "checkpoint_000002.h5" in err
+    _check_each_frame_once(out, *straight)
+
+
+def test_truncated_and_flipped_positions_rejected(tmp_path, capsys):
+    cfg = _config(tmp_path, ce=1, kept=3, frames=3)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet"]) == 0
+    c3, c2 = out / "checkpoints" / "checkpoint_000003.h5", out / "checkpoints" / "checkpoint_000002.h5"
+    size = c3.stat().st_size
+    with open(c3, "r+b") as fh:
+        fh.truncate(size - 1000)
+    _flip(c2, "positions", at=8 * 3 * 17)
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", str(c3), "--frames", "4"]) == 2
+    err = capsys.readouterr().err
+    assert str(c3) in err and ("truncated" in err or "unreadable" in err or "corrupt" in err), err
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest", "--frames", "4"]) == 0
+    err = capsys.readouterr().err
+    assert "/positions fails its checksum" in err and "checkpoint_000001.h5" in err
+
+
+def test_clear_errors(tmp_path, capsys):
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "2"]) == 0
+    ck = out / "checkpoints" / "checkpoint_000002.h5"
+    capsys.readouterr()
+
+    def err(args):
+        assert main([cfg, "--out", str(out), "--quiet"] + args) == 2
+        return capsys.readouterr().err
+
+    assert "no such checkpoint file" in err(["--restart", str(tmp_path / "nope.h5")])
+    assert "not an lc_petsc checkpoint" in err(["--restart", cfg])
+    assert "not an lc_petsc checkpoint" in err(["--restart", str(out / "frames.h5")])
+    assert "nothing to do" in err(["--restart", str(ck), "--frames", "2"])
+    assert "--force only applies with --restart" in err(["--force"])
+    newer = tmp_path / "newer.h5"
+    newer.write_bytes(ck.read_bytes())
+    with h5py.File(newer, "r+") as f:
+        f.attrs["format_version"] = 99
+    assert "format version 99 is newer" in err(["--restart", str(newer)])
+    # a different scene: wisp / vertex counts
+    other = _config(tmp_path, name="other.toml", **{"n_wisps = 5": "n_wisps = 6"})
+    assert main([other, "--out", str(out), "--quiet", "--restart", str(ck)]) == 2
+    assert "5 wisps and 505 vertices, the scene 6 wisps and 606 vertices" in capsys.readouterr().err
+    # a different config: named keys; --force accepts it
+    diff = _config(tmp_path, name="diff.toml", **{"youngs_modulus = 2.5e8": "youngs_modulus = 3e8",
+                                                  "head_period = 0.4": "head_period = 0.4\nhead_stiffness = 2e5"})
+    assert main([diff, "--out", str(out), "--quiet", "--restart", str(ck)]) == 2
+    e = capsys.readouterr().err
+    assert "material.youngs_modulus, physics.head_stiffness" in e and "--force" in e
+    assert main([diff, "--out", str(out), "--quiet", "--restart", str(ck), "--force", "--frames", "3"]) == 0
+    # a different rest state (pinned vertices) with --force: warned about, the scene's is used
+    pins = _config(tmp_path, name="pins.toml", **{"seed = 3": "seed = 3\nn_pinned = 5"})
+    assert main([pins, "--out", str(out), "--quiet", "--restart", str(ck), "--force", "--frames", "3"]) == 0
+    e = capsys.readouterr().err
+    assert "scene.n_pinned" in e and "rest state differs" in e
+    # output-only keys may change
+    more = _config(tmp_path, name="more.toml", ce=1, kept=5)
+    assert main([more, "--out", str(out), "--quiet", "--restart", "latest", "--frames", "4"]) == 0
+
+
+def test_checkpoint_contents_and_config_keys(tmp_path):
+    cfg = _config(tmp_path, frames=2, ce=2)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "-ksp_rtol", "1e-9"]) == 0
+    with h5py.File(out / "checkpoints" / "checkpoint_000002.h5", "r") as f:
+        a = dict(f.attrs)
+        assert a["format"] == "lc_petsc checkpoint" and a["format_version"] == 1
+        assert a["frame"] == 2 and a["n_wisps"] == 5 and a["n_vertices"] == 505
+        assert "ksp_rtol" in a["petsc_options"] and "[scene]" in a["config_toml"]
+        assert len(a["config_sha256"]) == 64 and a["lc_petsc_version"]
+        for k in ("positions", "velocities", "rest_positions", "pinned", "wisp_offsets", "head_state"):
+            assert len(f[k].attrs["sha256"]) == 64
+        assert f["head_state"][0] == a["time"]
+    base = {"output": {"checkpoint_every": -1}}
+    with pytest.raises(ConfigError, match="output.checkpoint_every must be an integer >= 0"):
+        config_from_dict(base)
+    with pytest.raises(ConfigError, match="output.checkpoints_kept must be an integer >= 1"):
+        config_from_dict({"output": {"checkpoints_kept": 0}})

@@ -1,0 +1,116 @@
+"""Checkpoints on every rank of COMM_WORLD (run by tests/test_mpi_launch.py under
+mpiexec -n 2 and -n 3): a SIGUSR1 that reaches one rank only stops every rank after
+the same frame with a checkpoint and exit status 75; the restart on the same ranks
+continues to the serial result with each frame once; a corrupt dataset is rejected
+on every rank with the same status."""
+
+import os
+import shutil
+import signal
+import tempfile
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lc_petsc.batch import EXIT_PREEMPTED, main
+from lc_petsc.integrator import Integrator
+
+pytestmark = pytest.mark.mpi
+comm = MPI.COMM_WORLD
+
+SCENE = """
+[scene]
+kind = "hairball"
+n_wisps = 4
+seed = 7
+[material]
+youngs_modulus = 2.5e8
+[physics]
+terms = ["stretch", "bend", "twist", "gravity", "head_collision"]
+head_motion = "shake"
+head_period = 0.4
+[time]
+frames = 5
+[output]
+previews = false
+xdmf = false
+checkpoint_every = 0
+"""
+
+
+@pytest.fixture
+def shared_dir():
+    d = comm.bcast(tempfile.mkdtemp(prefix="lc_mpi_ckpt_") if comm.rank == 0 else None)
+    cfg = os.path.join(d, "s.toml")
+    if comm.rank == 0:
+        with open(cfg, "w") as f:
+            f.write(SCENE)
+    comm.Barrier()
+    yield d, cfg
+    comm.Barrier()
+    if comm.rank == 0:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def _agree(ok, msg):
+    ok, msg = comm.bcast((ok, msg))
+    assert ok, msg
+
+
+def test_signal_on_one_rank_stops_all(shared_dir, monkeypatch):
+    d, cfg = shared_dir
+    out = os.path.join(d, "out")
+    step = Integrator.step
+
+    def step_and_signal(self):
+        step(self)
+        if self.frame == 2 and comm.rank == comm.size - 1:
+            signal.raise_signal(signal.SIGUSR1)
+
+    monkeypatch.setattr(Integrator, "step", step_and_signal)
+    code = main([cfg, "--out", out, "--quiet"], comm=comm)
+    monkeypatch.setattr(Integrator, "step", step)
+    assert comm.allgather(code) == [EXIT_PREEMPTED] * comm.size
+    names = comm.bcast(sorted(os.listdir(os.path.join(out, "checkpoints"))) if comm.rank == 0 else None)
+    assert names == ["checkpoint_000002.h5"]
+    code = main([cfg, "--out", out, "--quiet", "--restart", "latest"], comm=comm)
+    assert comm.allgather(code) == [0] * comm.size
+    ok, msg = True, ""
+    if comm.rank == 0:
+        ref = os.path.join(d, "ref")
+        assert main([cfg, "--out", ref, "--quiet"], comm=MPI.COMM_SELF) == 0
+        with h5py.File(os.path.join(out, "frames.h5"), "r") as a, \
+                h5py.File(os.path.join(ref, "frames.h5"), "r") as b:
+            if a["positions"].shape != b["positions"].shape or not np.array_equal(a["time"][...], b["time"][...]):
+                ok, msg = False, f"frames: {a['positions'].shape} {a['time'][...]} vs {b['time'][...]}"
+            else:
+                err = np.abs(a["positions"][...] - b["positions"][...]).max() / np.abs(b["positions"][...]).max()
+                ok, msg = err <= 1e-10, f"positions differ by {err:.2e} on {comm.size} ranks"
+    _agree(ok, msg)
+
+
+def test_corrupt_checkpoint_rejected_on_every_rank(shared_dir, capsys):
+    d, cfg = shared_dir
+    out = os.path.join(d, "out")
+    ck = os.path.join(out, "checkpoints", "checkpoint_000002.h5")
+    over = os.path.join(d, "c.toml")
+    if comm.rank == 0:
+        with open(over, "w") as f:
+            f.write(SCENE.replace("checkpoint_every = 0", "checkpoint_every = 2"))
+    comm.Barrier()
+    assert comm.allgather(main([over, "--out", out, "--quiet", "--frames", "2"], comm=comm)) == [0] * comm.size
+    if comm.rank == 0:
+        with h5py.File(ck, "r") as f:
+            off = f["positions"].id.get_offset()
+        with open(ck, "r+b") as fh:      # a byte in the last rank's rows
+            fh.seek(off + 350 * 24 + 8)
+            fh.write(b"\xff")
+    comm.Barrier()
+    capsys.readouterr()
+    code = main([over, "--out", out, "--quiet", "--restart", ck, "--frames", "3"], comm=comm)
+    assert comm.allgather(code) == [2] * comm.size
+    err = capsys.readouterr().err
+    if comm.rank == 0:
+        assert "/positions fails its checksum" in err and ck in err, err

@@ -61,7 +61,7 @@ def test_paths_relative_to_the_config_file(tmp_path):
     cfg = load_config(ROOT / "configs" / "from_file.toml")
     assert cfg.scene.path == str(ROOT / "configs" / "data" / "fringe.h5")
     demo = load_config(ROOT / "configs" / "hairball_demo.toml")
-    assert demo.solver.options_file == str(ROOT / "configs" / "solvers" / "paper.opts")
+    assert demo.solver.options_file == str(ROOT / "configs" / "solvers" / "default.opts")
     assert "-pc_type bjacobi" in demo.solver.effective_options()
     # the options string comes after the file, so it wins
     (tmp_path / "x.opts").write_text("-ksp_rtol 1e-3  # comment\n-pc_type none\n")

@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lc_petsc.options import option_pairs
+
 EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
 EXIT_PREEMPTED = 75         # EX_TEMPFAIL: stopped by SIGTERM/SIGUSR1 after a checkpoint; restart
 # config keys a restart may change: they touch neither the trajectory nor frames.h5's rows
@@ -230,32 +232,11 @@ def main(argv=None, comm=None):
 
 
 def _petsc_options(tokens):
-    """['-a', '1', '-flag', '-b', 'x'] -> [('a', '1'), ('flag', ''), ('b', 'x')].
-
-    (lc_petsc.solver.parse_options does the same for strings, but importing it would
-    initialise PETSc before petsc4py.init has the command line.)"""
-    out, i = [], 0
-    while i < len(tokens):
-        t = tokens[i]
-        if not t.startswith("-") or len(t) < 2:
-            raise UsageError(f"unexpected argument {t!r} (PETSc options start with '-')")
-        val = ""
-        if i + 1 < len(tokens) and not _looks_like_option(tokens[i + 1]):
-            val = tokens[i + 1]
-            i += 1
-        out.append((t.lstrip("-"), val))
-        i += 1
-    return out
-
-
-def _looks_like_option(tok):
-    if not tok.startswith("-"):
-        return False
+    """['-a', '1', '-flag', '-b', 'x'] -> [('a', '1'), ('flag', ''), ('b', 'x')]."""
     try:
-        float(tok)
-        return False
-    except ValueError:
-        return True
+        return option_pairs(tokens, what="command line")
+    except ValueError as e:
+        raise UsageError(f"{e} (PETSc options start with '-')") from None
 
 
 def _run(comm, args, cfg, command_line, build_simulator, SolverError, PETSc, cfg_text=""):

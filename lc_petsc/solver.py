@@ -32,6 +32,8 @@ from contextlib import contextmanager
 import numpy as np
 from petsc4py import PETSc
 
+from lc_petsc.options import option_pairs
+
 DEFAULTS = {"ksp_type": "cg", "ksp_rtol": "1e-6", "ksp_max_it": "1000", "pc_type": "bjacobi"}
 
 _REASONS = {getattr(PETSc.KSP.ConvergedReason, n): n for n in dir(PETSc.KSP.ConvergedReason)
@@ -48,29 +50,7 @@ def reason_name(r: int) -> str:
 
 def parse_options(text: str):
     """'-a 1 -flag -b x' -> [('a', '1'), ('flag', ''), ('b', 'x')] (leading dashes removed)."""
-    toks = shlex.split(text or "")
-    out, i = [], 0
-    while i < len(toks):
-        t = toks[i]
-        if not t.startswith("-") or len(t) < 2:
-            raise ValueError(f"solver.options: expected an option starting with '-', got {t!r}")
-        key, val = t.lstrip("-"), ""
-        if i + 1 < len(toks) and not _is_option(toks[i + 1]):
-            val = toks[i + 1]
-            i += 1
-        out.append((key, val))
-        i += 1
-    return out
-
-
-def _is_option(tok):
-    if not tok.startswith("-"):
-        return False
-    try:
-        float(tok)
-        return False
-    except ValueError:
-        return True
+    return option_pairs(shlex.split(text or ""), what="solver.options")
 
 
 class OptionsScope:

@@ -1,11 +1,17 @@
 """Shared builders for the simulator tests (tests/test_sim_*.py, tests/test_mpi_*.py)."""
 
+import os
+
 import numpy as np
 from mpi4py import MPI
 
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,
                              SolverConfig, TimeConfig)
 from lc_petsc.simulator import build_simulator
+
+#: Environment for mpiexec launched by tests: root allowed, more ranks than cores allowed.
+MPI_ENV = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OMPI_MCA_rmaps_base_oversubscribe="1")
 
 
 def small_hairball_config(n_wisps=4, options="", terms=("stretch", "bend", "twist", "gravity",

@@ -2,7 +2,6 @@
 once, names key, value and what is allowed, exits non-zero, dumps no traceback and
 writes nothing."""
 
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -20,8 +19,7 @@ CONFIGS = sorted((ROOT / "configs").glob("*.toml"))
 CATALOGUE = {"hairball_2k", "hairball_4k", "hairball_8k", "hairball_demo", "smash", "jitter",
              "straighten", "compression_30", "compression_40", "cantilever", "from_file"}
 SELF = MPI.COMM_SELF
-MPI_ENV = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-               OMPI_MCA_rmaps_base_oversubscribe="1")
+from sim_helpers import MPI_ENV  # noqa: E402
 
 GOOD = """
 [scene]

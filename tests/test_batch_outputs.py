@@ -17,8 +17,7 @@ from mpi4py import MPI
 from lc_petsc.batch import main
 
 ROOT = Path(__file__).resolve().parents[1]
-MPI_ENV = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-               OMPI_MCA_rmaps_base_oversubscribe="1")
+from sim_helpers import MPI_ENV  # noqa: E402
 DEMO_FRAMES = 4
 
 SMALL = """

@@ -20,8 +20,7 @@ from lc_petsc.config import ConfigError, config_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 DRIVER = str(ROOT / "drivers" / "simulate.py")
-MPI_ENV = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-               OMPI_MCA_rmaps_base_oversubscribe="1")
+from sim_helpers import MPI_ENV  # noqa: E402
 
 SCENE = """
 [scene]

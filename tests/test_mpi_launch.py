@@ -1,19 +1,19 @@
 """Runs the mpi-marked tests under mpiexec with 2 and 3 ranks from the serial suite."""
 
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from sim_helpers import MPI_ENV
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize("ranks", [2, 3])
 def test_mpi_suite(ranks):
-    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-               OMPI_MCA_rmaps_base_oversubscribe="1")
+    env = MPI_ENV
     cmd = ["mpiexec", "--oversubscribe", "-n", str(ranks), sys.executable, "-m", "pytest",
            "-m", "mpi", "-q", "-p", "no:cacheprovider", "tests/"]
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=150)

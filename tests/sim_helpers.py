@@ -45,3 +45,26 @@ def serial_reference(config, frames=None):
 
 def rel_diff(a, b):
     return float(np.abs(a - b).max() / np.abs(b).max())
+
+
+def hairball_toml(n_wisps=5, seed=3, frames=5, output=""):
+    """A small shaking-head hairball scene file (TOML text) for driver tests.
+
+    ``output``: the lines of its ``[output]`` table.
+    """
+    return f"""
+[scene]
+kind = "hairball"
+n_wisps = {n_wisps}
+seed = {seed}
+[material]
+youngs_modulus = 2.5e8
+[physics]
+terms = ["stretch", "bend", "twist", "gravity", "head_collision"]
+head_motion = "shake"
+head_period = 0.4
+[time]
+frames = {frames}
+[output]
+{output}
+"""

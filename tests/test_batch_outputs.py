@@ -17,27 +17,10 @@ from mpi4py import MPI
 from lc_petsc.batch import main
 
 ROOT = Path(__file__).resolve().parents[1]
-from sim_helpers import MPI_ENV  # noqa: E402
+from sim_helpers import MPI_ENV, hairball_toml  # noqa: E402
 DEMO_FRAMES = 4
 
-SMALL = """
-[scene]
-kind = "hairball"
-n_wisps = 5
-seed = 3
-[material]
-youngs_modulus = 2.5e8
-[physics]
-terms = ["stretch", "bend", "twist", "gravity", "head_collision"]
-head_motion = "shake"
-head_period = 0.4
-[time]
-frames = 8
-[output]
-every = 2
-preview_frames = [0, -1]
-contact_sheet = 4
-"""
+SMALL = hairball_toml(frames=8, output="every = 2\npreview_frames = [0, -1]\ncontact_sheet = 4")
 
 
 def _mpiexec(n, args, cwd):

@@ -20,28 +20,11 @@ from lc_petsc.config import ConfigError, config_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 DRIVER = str(ROOT / "drivers" / "simulate.py")
-from sim_helpers import MPI_ENV  # noqa: E402
+from sim_helpers import MPI_ENV, hairball_toml  # noqa: E402
 
-SCENE = """
-[scene]
-kind = "hairball"
-n_wisps = 5
-seed = 3
-[material]
-youngs_modulus = 2.5e8
-[physics]
-terms = ["stretch", "bend", "twist", "gravity", "head_collision"]
-head_motion = "shake"
-head_period = 0.4
-[time]
-frames = {frames}
-[output]
-every = {every}
-previews = false
-xdmf = false
-checkpoint_every = {ce}
-checkpoints_kept = {kept}
-"""
+SCENE = hairball_toml(frames="{frames}",
+                      output="every = {every}\npreviews = false\nxdmf = false\n"
+                             "checkpoint_every = {ce}\ncheckpoints_kept = {kept}")
 
 
 def _config(tmp_path, name="s.toml", frames=6, every=1, ce=2, kept=2, **subs):

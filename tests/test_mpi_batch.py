@@ -14,26 +14,12 @@ from mpi4py import MPI
 
 from lc_petsc.batch import main
 
+from sim_helpers import hairball_toml  # noqa: E402
+
 pytestmark = pytest.mark.mpi
 comm = MPI.COMM_WORLD
 
-SCENE = """
-[scene]
-kind = "hairball"
-n_wisps = {n}
-seed = 5
-[material]
-youngs_modulus = 2.5e8
-[physics]
-terms = ["stretch", "bend", "twist", "gravity", "head_collision"]
-head_motion = "shake"
-head_period = 0.4
-[time]
-frames = 5
-[output]
-every = 2
-previews = false
-"""
+SCENE = hairball_toml(n_wisps="{n}", seed=5, output="every = 2\npreviews = false")
 
 
 @pytest.fixture

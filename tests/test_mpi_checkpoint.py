@@ -17,27 +17,13 @@ from mpi4py import MPI
 from lc_petsc.batch import EXIT_PREEMPTED, main
 from lc_petsc.integrator import Integrator
 
+from sim_helpers import hairball_toml  # noqa: E402
+
 pytestmark = pytest.mark.mpi
 comm = MPI.COMM_WORLD
 
-SCENE = """
-[scene]
-kind = "hairball"
-n_wisps = 4
-seed = 7
-[material]
-youngs_modulus = 2.5e8
-[physics]
-terms = ["stretch", "bend", "twist", "gravity", "head_collision"]
-head_motion = "shake"
-head_period = 0.4
-[time]
-frames = 5
-[output]
-previews = false
-xdmf = false
-checkpoint_every = 0
-"""
+SCENE = hairball_toml(n_wisps=4, seed=7,
+                      output="previews = false\nxdmf = false\ncheckpoint_every = 0")
 
 
 @pytest.fixture

@@ -169,6 +169,19 @@ def _pause(frame):
             time.sleep(float(s))
 
 
+def _on_root(comm, action, what):
+    """Run a file-system ``action`` on rank 0; an OSError there is raised on every rank."""
+    problem = None
+    if comm.rank == 0:
+        try:
+            action()
+        except OSError as e:
+            problem = f"{what}: {e.strerror or e}"
+    problem = comm.bcast(problem)
+    if problem:
+        raise OSError(problem)
+
+
 def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, head, dt, every,
                      config_dict, config_toml, petsc_options, keep, version):
     """Collectively write the checkpoint of ``frame`` into ``<out>/checkpoints``; keep the
@@ -179,16 +192,10 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
     folder = checkpoint_folder(out)
     final = checkpoint_path(out, frame)
     tmp = folder / f".{final.name}.tmp"
-    problem = None
-    if comm.rank == 0:
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            tmp.unlink(missing_ok=True)
-        except OSError as e:
-            problem = f"checkpoint folder {str(folder)!r}: {e.strerror or e}"
-    problem = comm.bcast(problem)
-    if problem:
-        raise OSError(problem)
+    def prepare():
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp.unlink(missing_ok=True)
+    _on_root(comm, prepare, f"checkpoint folder {str(folder)!r}")
     lo = np.asarray(scene.offsets, np.int64)
     local = {"positions": np.asarray(x, np.float64), "velocities": np.asarray(v, np.float64),
              "rest_positions": np.asarray(scene.x_rest, np.float64), "pinned": np.asarray(scene.pinned, np.bool_)}
@@ -233,19 +240,13 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
         for k, val in attrs.items():
             f.attrs[k] = val
         f.flush()
-    problem = None
-    if comm.rank == 0:
-        try:
-            _fsync_path(tmp)
-            os.replace(tmp, final)
-            _fsync_path(folder, directory=True)
-            for old in list_checkpoints(folder)[max(int(keep), 1):]:
-                old.unlink(missing_ok=True)
-        except OSError as e:
-            problem = f"checkpoint {str(final)!r}: {e.strerror or e}"
-    problem = comm.bcast(problem)
-    if problem:
-        raise OSError(problem)
+    def publish():
+        _fsync_path(tmp)
+        os.replace(tmp, final)
+        _fsync_path(folder, directory=True)
+        for old in list_checkpoints(folder)[max(int(keep), 1):]:
+            old.unlink(missing_ok=True)
+    _on_root(comm, publish, f"checkpoint {str(final)!r}")
     size = comm.bcast(final.stat().st_size if comm.rank == 0 else None)
     return final, time.perf_counter() - t0, size
 

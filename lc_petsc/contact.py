@@ -14,10 +14,10 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    segment with the smaller global index: ranks own increasing vertex ranges), so rank
    r sends to every lower rank q, with one ``alltoall``, the segments whose box touches
    a cell occupied by q: only segments that can be within d0 of one of q's.
-3. **Broad phase.** ``scipy.spatial.cKDTree`` over the segment midpoints of the local +
-   ghost segments, ``query_pairs`` with radius d0 + 2 h_max (h_max the largest half
-   segment length *at these positions*), which contains every pair closer than d0, then
-   an exact box-overlap test inflated by d0.  Rebuilt from the current positions at
+3. **Broad phase.** ``scipy.spatial.cKDTree`` over sample points of the local + ghost
+   segments (midpoints; long segments get several), ``query_pairs`` with radius d0 + 2h
+   (:meth:`StrandContact.candidates`), which contains every pair closer than d0, then an
+   exact box-overlap test inflated by d0.  Rebuilt from the current positions at
    every call, so no margin for motion is needed: the search is exact, not predictive.
    Pairs of the same wisp are excluded (no self-contact; see docs/contact.md).
 4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` on the candidates, the
@@ -30,10 +30,13 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    brings off-process contributions to their owners, which add them to the gradient and
    to the band (:meth:`Assembler.add_band_blocks`), so the operator *and* the per-wisp
    preconditioner see them.  The cross blocks (segment A x segment B) go into a
-   separate BAIJ (bs 3) contact matrix C, created per Newton iteration with exact
-   per-row preallocation from those counts and filled with one
+   separate contact matrix C (the strand matrix's type), created per Newton iteration
+   with exact per-row preallocation from those counts and filled with
    ``setValuesBlockedRCV(ADD_VALUES)``; PETSc ships off-process rows at assembly.
-   The KSP operator is the Python shell A + C (:class:`SumOperator`).
+6. **System.** :meth:`StrandContact.system`: the Newton matrix A + C, assembled into a
+   new matrix by ``MatAXPY`` with a different nonzero pattern (A keeps its fixed
+   pattern), and the preconditioning matrix (``-lc_contact_pc``: that matrix, or the
+   strand matrix alone).
 
 Pinned vertices get no contact gradient, band or C entries (their rows/columns stay
 identity).
@@ -55,6 +58,11 @@ def _mpi_max():
     return MPI.MAX
 
 
+def _mpi_min():
+    from mpi4py import MPI
+    return MPI.MIN
+
+
 def _corner_cells(lo, hi, cell):
     """Keys (n, 8) of the grid cells of the 8 corners of boxes lo, hi (n, 3)."""
     a = np.floor(lo / cell).astype(np.int64) + (1 << 20)
@@ -66,21 +74,6 @@ def _corner_cells(lo, hi, cell):
     return out
 
 
-class SumOperator:
-    """Python-shell context of the KSP operator A + C (C may be None)."""
-
-    def __init__(self, A):
-        self.A, self.C = A, None
-
-    def mult(self, mat, x, y):
-        self.A.mult(x, y)
-        if self.C is not None:
-            self.C.multAdd(x, y, y)
-
-    def getDiagonal(self, mat, d):       # C has no diagonal blocks
-        self.A.getDiagonal(d)
-
-
 class StrandContact:
     """Contact between segments of different wisps, for one rank's wisps.
 
@@ -89,7 +82,8 @@ class StrandContact:
     :mod:`segment_contact` (``analytic`` = Gauss-Newton).
     """
 
-    def __init__(self, scene, comm, pcomm, timers, thickness, stiffness, filter="analytic"):
+    def __init__(self, scene, comm, pcomm, timers, thickness, stiffness, filter="analytic",
+                 mat_type="baij", coupled_pc=True):
         if scene.bandwidth < 1:
             raise ValueError("strand_collision needs the stretch term (the contact blocks of a "
                              "segment live in the strand band); add 'stretch' to physics.terms")
@@ -106,21 +100,32 @@ class StrandContact:
         self.N = int(scene.n_vertices_global)
         self.P_rest = np.stack([scene.x_rest[self.seg], scene.x_rest[self.seg + 1]], axis=1)
         self.vec = PETSc.Vec().createMPI((NB * nv, NB * self.N), bsize=NB, comm=pcomm)
-        self.C = None
+        self.mat_type, self.coupled_pc = mat_type, bool(coupled_pc)
+        self.C = None                   # contact cross blocks (pattern changes every call)
+        self.op = None                  # the assembled Newton matrix A + C
         self.last_pairs, self.last_min_distance = 0, np.inf
         self.ghosts_received = []
         self.cross_pairs = []           # active pairs straddling ranks, per assemble
-        self.op_ctx = None
-        self.S = None
+        self._active_cache = None
 
-    def operator(self, A):
-        """The KSP operator: a Python shell Mat computing (A + C) x, C the current
-        contact matrix (updated by every :meth:`assemble`)."""
-        self.op_ctx = SumOperator(A)
-        S = PETSc.Mat().createPython(A.getSizes(), context=self.op_ctx, comm=self.pcomm)
-        S.setUp()
-        self.S = S
-        return S
+    def system(self, A, strand_pmat=None):
+        """(operator, preconditioning matrix) of the Newton system after
+        :meth:`assemble` and the strand matrix A's ``commit``: the operator is A + C,
+        assembled into a new matrix (``MatAXPY`` with a different nonzero pattern, which
+        merges the patterns in one pass; A keeps its fixed pattern); the
+        preconditioning matrix is the same matrix (``coupled_pc``: block Jacobi then
+        factors each rank's block *with* the contact couplings between its wisps) or the
+        strand matrix alone (``strand_pmat``, else A: one exact block per wisp, blind to
+        the couplings).  Collective."""
+        with self.timers("collision"):
+            if self.op is not None:
+                self.op.destroy()
+                self.op = None
+            op = A
+            if self.C is not None:
+                op = self.op = A.duplicate(copy=True)
+                op.axpy(1.0, self.C, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+        return op, (op if self.coupled_pc else (strand_pmat or A))
 
     # ------------------------------------------------------------- exchange
     def _gather_segments(self, x):
@@ -168,11 +173,12 @@ class StrandContact:
         than d0 (at least one of them local).
 
         Each segment is covered by ``c`` sample points (centres of c equal pieces, c = 1
-        unless it is longer than twice the cap h = min(largest, 1.5 x median half length)), so
-        every point of a segment is within h of a sample; a kd-tree ``query_pairs`` on
-        the samples with radius d0 + 2 h therefore finds every pair closer than d0, and
-        one stretched segment cannot blow the radius up for everybody.  Survivors pass
-        an exact box-overlap test inflated by d0."""
+        unless it is longer than twice h = min(largest, 1.5 x median half length)), so every point
+        of a segment is within h of a sample; a kd-tree ``query_pairs`` on the samples
+        with radius d0 + 2 h therefore finds every pair closer than d0, and a stretched
+        segment neither inflates the radius for everybody nor is missed.  Only pairs
+        involving a multi-sample segment can be found twice, so only those are
+        de-duplicated.  Survivors pass an exact box-overlap test inflated by d0."""
         from scipy.spatial import cKDTree
         if len(P) < 2:
             return np.zeros((0, 2), np.int64)
@@ -180,32 +186,47 @@ class StrandContact:
         half = 0.5 * np.sqrt(np.einsum("ij,ij->i", e, e))
         h = max(min(float(half.max()), 1.5 * float(np.median(half))), 1e-12)
         c = np.maximum(np.ceil(half / h), 1).astype(np.int64)
-        if c.max() == 1:
-            pts, owner = 0.5 * (P[:, 0] + P[:, 1]), None
-        else:
-            owner = np.repeat(np.arange(len(P)), c)
-            first = np.concatenate([[0], np.cumsum(c)[:-1]])
-            frac = (np.arange(len(owner)) - first[owner] + 0.5) / c[owner]
-            pts = P[owner, 0] + frac[:, None] * e[owner]
-        pairs = cKDTree(pts).query_pairs(d0 + 2.0 * h, output_type="ndarray")
-        i, j = pairs[:, 0], pairs[:, 1]
-        if owner is not None:
-            i, j = owner[i], owner[j]
-        keep = (wisp[i] != wisp[j]) & ((i < n_local) | (j < n_local))
+        multi = np.flatnonzero(c > 1)
+        pts = 0.5 * (P[:, 0] + P[:, 1])
+        owner = np.arange(len(P))
+        if len(multi):                  # extra samples of the long segments, appended
+            cm = c[multi]
+            o = np.repeat(multi, cm)
+            first = np.concatenate([[0], np.cumsum(cm)[:-1]])
+            frac = (np.arange(len(o)) - np.repeat(first, cm) + 0.5) / c[o]
+            pts = np.concatenate([np.delete(pts, multi, axis=0), P[o, 0] + frac[:, None] * e[o]])
+            owner = np.concatenate([np.delete(owner, multi), o])
+        # unbalanced, non-compact: 3x faster to build, and faster to query here (measured)
+        tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
+        pairs = tree.query_pairs(d0 + 2.0 * h, output_type="ndarray")
+        i, j = owner[pairs[:, 0]], owner[pairs[:, 1]]
+        keep = wisp[i] != wisp[j]
+        if n_local < len(P):
+            keep &= (i < n_local) | (j < n_local)
         i, j = i[keep], j[keep]
-        lo, hi = P.min(axis=1), P.max(axis=1)
+        lo = np.minimum(P[:, 0], P[:, 1]) - 0.5 * d0
+        hi = np.maximum(P[:, 0], P[:, 1]) + 0.5 * d0
+        ok = np.ones(len(i), bool)
         for a in range(3):
-            ok = (hi[i, a] + d0 >= lo[j, a]) & (lo[i, a] - d0 <= hi[j, a])
-            i, j = i[ok], j[ok]
-        if owner is not None:           # a pair may be found through several samples
-            ij = np.unique(np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1), axis=0)
-            return ij
-        return np.stack([i, j], axis=1)
+            ok &= (hi[i, a] >= lo[j, a]) & (lo[i, a] <= hi[j, a])
+        i, j = i[ok], j[ok]
+        ij = np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1)
+        if len(multi):                  # a pair may be found through several samples
+            dup = (c[i] > 1) | (c[j] > 1)
+            ij = np.concatenate([ij[~dup], np.unique(ij[dup], axis=0)])
+        return ij
 
     def _pairs(self, x, active=True):
         """Pairs as (X (n, 4, 3), gvA, gvB, freeA, freeB, ownerA, ownerB, d), the segment
         with the smaller global index first.  ``active``: only pairs closer than d0 that
-        are not exempt; otherwise every non-exempt candidate."""
+        are not exempt; otherwise also every candidate at d >= d0 (for the minimum
+        distance; exemption only concerns pairs closer than d0).  The active pairs of
+        the last call are kept: the line search evaluates the energy at the point just
+        assembled."""
+        if active and self._active_cache is not None:
+            same = np.array_equal(self._active_cache[0], x)
+            if self.comm.allreduce(int(same), op=_mpi_min()):       # the same on all ranks
+                return self._active_cache[1]
         P, Prest, gv, wisp, free, owner, n_local = self._gather_segments(x)
         ij = self.candidates(P, wisp, n_local, self.d0)
         i, j = ij[:, 0], ij[:, 1]
@@ -213,14 +234,19 @@ class StrandContact:
         i, j = np.where(swap, j, i), np.where(swap, i, j)
         X = np.concatenate([P[i], P[j]], axis=1)
         d = segment_contact.distance(X) if len(X) else np.zeros(0)
-        keep = d < self.d0 if active else np.ones(len(d), bool)
+        keep = d < self.d0
         # exemption: pairs already within the thickness in the rest pose (docs/contact.md)
         sel = np.flatnonzero(keep)
         if len(sel):
             Xr = np.concatenate([Prest[i[sel]], Prest[j[sel]]], axis=1)
             keep[sel] = segment_contact.distance(Xr) >= self.d0
+        if not active:
+            keep |= d >= self.d0
         i, j = i[keep], j[keep]
-        return X[keep], gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[keep]
+        out = X[keep], gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[keep]
+        if active:
+            self._active_cache = (x.copy(), out)
+        return out
 
     # ------------------------------------------------------------- public
     def energy(self, x):
@@ -304,18 +330,27 @@ class StrandContact:
         return gc
 
     def _rebuild_matrix(self, n_global, dn, on, X, H, gA, gB):
+        """C: the cross blocks (segment A x segment B and its transpose) of the active
+        pairs, in a matrix of the strand matrix's type (for SBAIJ the A x B blocks only:
+        A's wisp precedes B's, so they are all above the diagonal)."""
         if self.C is not None:
             self.C.destroy()
             self.C = None
-        if self.op_ctx is not None:
-            self.op_ctx.C = None
         if n_global == 0:
             return
         nv, N = self.scene.nv, self.N
-        d_nnz = np.minimum(dn, nv).astype(PETSc.IntType)
-        o_nnz = np.minimum(on, N - nv).astype(PETSc.IntType)
-        C = PETSc.Mat().createBAIJ(size=((3 * nv, 3 * N), (3 * nv, 3 * N)), bsize=3,
-                                   nnz=(d_nnz, o_nnz), comm=self.pcomm)
+        upper = self.mat_type == "sbaij"
+        d_nnz = np.minimum(dn, nv)             # (an upper bound for SBAIJ as well)
+        o_nnz = np.minimum(on, N - nv)
+        size = ((3 * nv, 3 * N), (3 * nv, 3 * N))
+        if self.mat_type == "aij":
+            C = PETSc.Mat().createAIJ(size=size, bsize=3, comm=self.pcomm,
+                                      nnz=(np.repeat(3 * d_nnz, 3).astype(PETSc.IntType),
+                                           np.repeat(3 * o_nnz, 3).astype(PETSc.IntType)))
+        else:
+            create = PETSc.Mat().createSBAIJ if upper else PETSc.Mat().createBAIJ
+            C = create(size=size, bsize=3, comm=self.pcomm,
+                       nnz=(d_nnz.astype(PETSc.IntType), o_nnz.astype(PETSc.IntType)))
         C.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
         m = len(X)
         if m:
@@ -323,19 +358,13 @@ class StrandContact:
             rb = np.stack([gB, gB + 1], axis=1).astype(PETSc.IntType)
             add = PETSc.InsertMode.ADD_VALUES
             C.setValuesBlockedRCV(ra, rb, np.ascontiguousarray(H[:, 0:6, 6:12]).reshape(m, 36), addv=add)
-            C.setValuesBlockedRCV(rb, ra, np.ascontiguousarray(H[:, 6:12, 0:6]).reshape(m, 36), addv=add)
+            if not upper:
+                C.setValuesBlockedRCV(rb, ra, np.ascontiguousarray(H[:, 6:12, 0:6]).reshape(m, 36), addv=add)
         C.assemble()
         self.C = C
-        if self.op_ctx is not None:
-            self.op_ctx.C = C
 
     def destroy(self):
-        if self.S is not None:
-            self.S.destroy()
-            self.S = None
-        if self.op_ctx is not None:
-            self.op_ctx.C = None
-        if self.C is not None:
-            self.C.destroy()
-            self.C = None
-        self.vec.destroy()
+        for m in (self.op, self.C, self.vec):
+            if m is not None:
+                m.destroy()
+        self.op = self.C = self.vec = None

@@ -120,6 +120,8 @@ class Integrator:
             if self.strand is not None:
                 g += self.strand.assemble(x, asm)
             asm.commit()
+            if self.strand is not None:         # the Newton matrix is A + C (contact.py)
+                self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat))
             with self.timers("solve"):
                 self.bv.array[:] = -g.ravel()
                 self.solver.solve(self.bv, self.xv, self.frame, it)

@@ -3,9 +3,7 @@ assembly + solver -> integrator)."""
 
 from __future__ import annotations
 
-import atexit
 import time
-import weakref
 
 import numpy as np
 from petsc4py import PETSc
@@ -89,23 +87,16 @@ class Simulator:
             self.assembler = Assembler(scene, self.pcomm, self.timers, filter=cfg.solver.filter,
                                        mat_type=mat_type,
                                        pmat_type=choose_pmat_type(self.scope, mat_type))
-        self.strand, operator, pmat = None, self.assembler.mat, self.assembler.pmat
+        self.strand = None
         if "strand_collision" in cfg.physics.terms:
-            self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, self.scope)
-            operator = self.strand.operator(self.assembler.mat)
-            pmat = self.assembler.mat if pmat is None else pmat
-        self.solver = LinearSolver(operator, 3 * np.diff(scene.offsets), self.scope,
-                                   self.assembler.mat_type, P=pmat)
+            self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, self.scope,
+                                          self.assembler.mat_type)
+        self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), self.scope,
+                                   self.assembler.mat_type, P=self.assembler.pmat)
         self.head = HeadMotion(cfg.physics)
         self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg, self.head)
         self.integrator.x = x0
         self.integrator.strand = self.strand
-        if self.strand is not None:
-            # A Python-shell operator still alive when petsc4py finalizes crashes the
-            # interpreter at exit: close a simulator that was never closed before that
-            # (atexit runs handlers in reverse order; petsc4py registered earlier).
-            ref = weakref.ref(self)
-            atexit.register(lambda: ref() is not None and ref().close())
         self.wall = 0.0
 
     # ------------------------------------------------------------------ running
@@ -185,21 +176,38 @@ class Simulator:
             self.strand.destroy()
 
 
-def _strand_contact(scene, comm, pcomm, timers, cfg, scope):
+CONTACT_PC = ("coupled", "strands")
+
+
+def _strand_contact(scene, comm, pcomm, timers, cfg, scope, mat_type):
     """The strand-strand contact of ``cfg`` (docs/contact.md); thickness default: twice
-    the smallest vertex radius of the scene."""
+    the smallest vertex radius of the scene.
+
+    ``-lc_contact_pc coupled|strands``: the preconditioning matrix is the whole Newton
+    matrix A + C, or the strand matrix A without the contact couplings between wisps.
+    Default: ``strands`` for block Jacobi (one exact block per wisp; an ILU(0) of the
+    coupled rank block was measured to be indefinite, DIVERGED_INDEFINITE_PC, on the
+    2,000-wisp hairball), ``coupled`` for every other preconditioner (a direct solver
+    then solves the Newton system exactly, AMG sees the whole matrix)."""
     from mpi4py import MPI
     from lc_petsc.contact import StrandContact
-    if (scope.lookup("ksp_type") or "").lower() == "preonly":
-        raise ValueError("strand_collision: the operator is the strand matrix plus a contact "
-                         "matrix and the preconditioner is built from the strand matrix only, so "
-                         "-ksp_type preonly would not solve the Newton system; use a Krylov "
-                         "method (e.g. -ksp_type cg)")
+    bjacobi = (scope.lookup("pc_type") or DEFAULTS["pc_type"]).lower() == "bjacobi"
+    contact_pc = scope.lookup("lc_contact_pc") or ("strands" if bjacobi else "coupled")
+    if contact_pc not in CONTACT_PC:
+        raise ValueError(f"-lc_contact_pc {contact_pc!r}: use coupled (precondition with the "
+                         f"whole Newton matrix, contact couplings included) or strands (the "
+                         f"strand matrix alone)")
+    if contact_pc == "strands" and (scope.lookup("ksp_type") or "").lower() == "preonly":
+        raise ValueError("strand_collision with -lc_contact_pc strands: the preconditioner is "
+                         "built from the strand matrix only, so -ksp_type preonly would not "
+                         "solve the Newton system; use a Krylov method (e.g. -ksp_type cg) or "
+                         "-lc_contact_pc coupled")
     d0 = cfg.physics.strand_thickness
     if d0 is None:
         d0 = 2.0 * comm.allreduce(float(scene.radius.min(initial=np.inf)), op=MPI.MIN)
     return StrandContact(scene, comm, pcomm, timers, d0, cfg.physics.strand_stiffness,
-                         filter=cfg.solver.filter)
+                         filter=cfg.solver.filter, mat_type=mat_type,
+                         coupled_pc=contact_pc == "coupled")
 
 
 def build_simulator(config: SimConfig, comm=None) -> Simulator:

@@ -2,14 +2,14 @@
 phase breakdown, CG iterations per Newton solve, contact pairs per frame, minimum
 segment distance over the run.
 
-  mpiexec -n 1 .venv/bin/python scripts/bench_contact.py [--wisps 2000] [--frames 100]
-  mpiexec -n 2 .venv/bin/python scripts/bench_contact.py [PETSc options]
+  mpiexec -n 1 .venv/bin/python scripts/bench_contact.py [--frames 100] [--config CONFIG] [PETSc options]
+  mpiexec -n 2 .venv/bin/python scripts/bench_contact.py --frames 100
 
-Scene: the hairball of SPEC 6 (4C wisps, radius 0.35 -> 0.07 cm scaled by
-sqrt(2000 / N)), head shaking (rotation about z, y, x in turn), gravity, head contact
-and strand contact (thickness d0 = twice the tip radius unless --thickness), dt = 1/30,
-3 Newton iterations.  Phase times are maxima over ranks.  ``--json FILE`` writes the
-per-frame figures.
+Scene: --config (default configs/hairball_2k.toml: the paper's 2,000-wisp hairball, head
+turning about z, y, x, gravity, head and strand contact with d0 = twice the tip radius,
+dt = 1/30, 3 Newton iterations), with strand_collision switched on if the config has it
+off.  ``--wisps``, ``--stiffness``, ``--thickness`` override the config.  Phase times
+are maxima over ranks.  ``--json FILE`` writes the per-frame figures.
 """
 
 import argparse
@@ -17,15 +17,17 @@ import json
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import petsc4py
 
 petsc4py.init(sys.argv)
 from mpi4py import MPI  # noqa: E402
 
-from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,  # noqa: E402
-                             TimeConfig)
+from lc_petsc.config import load_config  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def timed_frame(sim, comm):
@@ -43,25 +45,24 @@ def timed_frame(sim, comm):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--wisps", type=int, default=2000)
+    ap.add_argument("--config", default=str(ROOT / "configs" / "hairball_2k.toml"))
     ap.add_argument("--frames", type=int, default=100)
-    ap.add_argument("--youngs", type=float, default=1.0e9)
+    ap.add_argument("--wisps", type=int, default=None)
     ap.add_argument("--thickness", type=float, default=None)
-    ap.add_argument("--stiffness", type=float, default=1.0e5)
-    ap.add_argument("--period", type=float, default=1.0, help="head motion period per axis (s)")
-    ap.add_argument("--amplitude", type=float, default=0.5, help="head rotation amplitude (rad)")
+    ap.add_argument("--stiffness", type=float, default=None)
     ap.add_argument("--json", default=None)
     args, _ = ap.parse_known_args()
     comm = MPI.COMM_WORLD
-    cfg = SimConfig(scene=SceneConfig(kind="hairball", n_wisps=args.wisps, seed=1),
-                    material=MaterialConfig(youngs_modulus=args.youngs),
-                    physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity",
-                                                 "head_collision", "strand_collision"),
-                                          head_motion="shake", head_period=args.period,
-                                          head_amplitude=args.amplitude,
-                                          strand_thickness=args.thickness,
-                                          strand_stiffness=args.stiffness),
-                    time=TimeConfig(dt=1.0 / 30.0, frames=args.frames, newton_iterations=3))
+    cfg = load_config(args.config)
+    if "strand_collision" not in cfg.physics.terms:
+        cfg.physics.terms = tuple(cfg.physics.terms) + ("strand_collision",)
+    if args.wisps is not None:
+        cfg.scene.n_wisps = args.wisps
+    if args.thickness is not None:
+        cfg.physics.strand_thickness = args.thickness
+    if args.stiffness is not None:
+        cfg.physics.strand_stiffness = args.stiffness
+    cfg.time.frames = args.frames
     t0 = time.perf_counter()
     sim = build_simulator(cfg)
     comm.Barrier()
@@ -90,7 +91,7 @@ def main():
         dmin = min(r["dmin"] for r in rows)
         print(f"\nhairball {s['wisps']} wisps, {s['dofs']} DoFs, {comm.size} rank(s), "
               f"{len(rows)} frames; d0 = {d0:.4f} cm, k = {sim.strand.k:g} dyn/cm, "
-              f"E = {args.youngs:g}; solver {s['petsc_options']}")
+              f"E = {cfg.material.youngs_modulus:g}; config {args.config}; solver {s['petsc_options']}")
         print(f"build: {t_build:.2f} s; first frame {rows[0]['wall']:.2f} s")
         print(f"wall per frame (frames after the first): median {statistics.median(walls):.2f} s, "
               f"mean {statistics.mean(walls):.2f} s, max {max(walls):.2f} s")

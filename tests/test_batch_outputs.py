@@ -51,7 +51,9 @@ def test_demo_end_to_end(demo):
     assert s["wisps"] == 300 and s["dofs"] == 300 * 101 * 3 and s["ranks"] == 2
     assert s["frames"] == DEMO_FRAMES and s["converged"] and s["error"] is None
     assert s["newton_iterations"] == [3] * DEMO_FRAMES
-    assert s["terms"] == ["stretch", "bend", "twist", "gravity", "head_collision"]
+    assert s["terms"] == ["stretch", "bend", "twist", "gravity", "head_collision", "strand_collision"]
+    c = s["contact"]
+    assert len(c["pairs_per_frame"]) == DEMO_FRAMES and c["thickness"] == pytest.approx(0.14)
     # config options file < command line; the options actually used are recorded
     assert s["petsc_options_used"]["ksp_rtol"] == "1e-8"
     assert s["petsc_options_used"]["pc_type"] == "bjacobi"

@@ -140,10 +140,10 @@ def test_strand_contact_config():
         config_from_dict({"physics": {"strand_thickness": "thin"}})
 
 
-def test_preonly_with_contact_is_refused(crossing):
+def test_preonly_with_strand_only_preconditioner_is_refused(crossing):
     from mpi4py import MPI
     cfg = crossing_config(1)
-    cfg.solver.options = "-ksp_type preonly -pc_type lu"
+    cfg.solver.options = "-ksp_type preonly -pc_type lu -lc_contact_pc strands"
     with pytest.raises(ValueError, match="preonly"):
         simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
 
@@ -174,3 +174,45 @@ def test_broad_phase_finds_every_pair_closer_than_the_thickness(stretched):
     # only local-involving pairs: with the last 100 segments as ghosts none is ghost-ghost
     ij = StrandContact.candidates(P, wisp, n - 100, d0)
     assert np.all((ij[:, 0] < n - 100) | (ij[:, 1] < n - 100))
+
+
+def _crossing_positions(options, frames=8):
+    from mpi4py import MPI
+    cfg = crossing_config(frames)
+    cfg.solver.options = options
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        v = np.zeros_like(sim.x)
+        v[:N, 1], v[N:, 1] = 5.0, -5.0
+        sim.integrator.v = v
+        sim.run()
+        return sim.x.copy(), sim.summary()
+    finally:
+        sim.close()
+
+
+def test_direct_solve_of_the_assembled_contact_system(crossing):
+    """The Newton matrix with contact is assembled (A + C), so a direct solver on it
+    (the coupled preconditioning matrix, the default for non-block-Jacobi solvers) is an
+    exact solve: one application, and the same trajectory as CG to a tight tolerance."""
+    x_cg, s_cg = _crossing_positions("-ksp_rtol 1e-13 -ksp_max_it 5000")
+    x_lu, s_lu = _crossing_positions("-ksp_type preonly -pc_type lu -pc_factor_mat_solver_type mumps")
+    assert sum(s_lu["contact"]["pairs_per_frame"]) > 0
+    assert s_lu["contact"]["pairs_per_frame"] == s_cg["contact"]["pairs_per_frame"]
+    assert "CONVERGED_ITS" in set(s_lu["ksp_reasons"])
+    err = np.abs(x_lu - x_cg).max() / np.abs(x_cg).max()
+    assert err < 1e-9, err
+    # CG preconditioned by the coupled matrix's LU converges in one iteration
+    _, s_one = _crossing_positions("-pc_type lu -pc_factor_mat_solver_type mumps")
+    assert max(s_one["ksp_iterations"]) <= 1, s_one["ksp_iterations"]
+    # ... and by the strand matrix alone it needs more, since contact couples the wisps
+    _, s_str = _crossing_positions("-pc_type lu -pc_factor_mat_solver_type mumps -lc_contact_pc strands")
+    assert max(s_str["ksp_iterations"]) > 1, s_str["ksp_iterations"]
+
+
+def test_bad_contact_preconditioner_option_is_refused(crossing):
+    from mpi4py import MPI
+    cfg = crossing_config(1)
+    cfg.solver.options = "-lc_contact_pc both"
+    with pytest.raises(ValueError, match="lc_contact_pc 'both'.*coupled.*strands"):
+        simmod.build_simulator(cfg, comm=MPI.COMM_SELF)

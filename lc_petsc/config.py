@@ -155,6 +155,9 @@ class PhysicsConfig:
     # radius of the scene, i.e. twice the tip radius); k in dyn/cm
     strand_thickness: Optional[float] = None
     strand_stiffness: float = 1.0e5
+    # after each frame's Newton iterations, push pairs closer than d0 / 2 apart
+    # (StrandContact.separate)
+    strand_separation: bool = True
 
     def validate(self) -> None:
         terms = tuple(self.terms)
@@ -177,6 +180,9 @@ class PhysicsConfig:
         if self.strand_thickness is not None:
             _positive("physics.strand_thickness", self.strand_thickness)
         _positive("physics.strand_stiffness", self.strand_stiffness)
+        if not isinstance(self.strand_separation, bool):
+            raise ConfigError(f"physics.strand_separation must be true or false, "
+                              f"got {self.strand_separation!r}")
 
 
 @dataclass

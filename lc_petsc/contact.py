@@ -101,12 +101,18 @@ class StrandContact:
         self.P_rest = np.stack([scene.x_rest[self.seg], scene.x_rest[self.seg + 1]], axis=1)
         self.vec = PETSc.Vec().createMPI((NB * nv, NB * self.N), bsize=NB, comm=pcomm)
         self.mat_type, self.coupled_pc = mat_type, bool(coupled_pc)
+        # separation (see :meth:`separate`): positions + inverse mass per vertex, and the
+        # position corrections, indexed by global vertex
+        self.state = PETSc.Vec().createMPI((5 * nv, 5 * self.N), bsize=5, comm=pcomm)
+        self.correction = PETSc.Vec().createMPI((4 * nv, 4 * self.N), bsize=4, comm=pcomm)
+        self.inverse_mass = np.where(scene.pinned, 0.0, 1.0 / scene.mass)
         self.C = None                   # contact cross blocks (pattern changes every call)
         self.op = None                  # the assembled Newton matrix A + C
         self.last_pairs, self.last_min_distance = 0, np.inf
         self.ghosts_received = []
         self.cross_pairs = []           # active pairs straddling ranks, per assemble
         self._active_cache = None
+        self.last_separation = (0, 0, 0)
 
     def system(self, A, strand_pmat=None):
         """(operator, preconditioning matrix) of the Newton system after
@@ -269,6 +275,81 @@ class StrandContact:
             dmin = self.comm.allreduce(float(d.min(initial=np.inf)), op=MPI.MIN)
         return int(n), int(deep), dmin
 
+    def separate(self, x, floor=0.5, target=0.6, max_iterations=20):
+        """Positions (nv, 3) with no pair closer than ``floor`` d0: pairs closer than
+        (floor + target) / 2 d0 are pushed apart towards ``target`` d0 (rest-exempt pairs
+        excepted) until none is closer than ``floor`` d0 (1 + 1e-3); returns (positions,
+        pairs that were closer than ``floor`` d0, iterations).  Collective.  The gap
+        between the threshold and the target keeps projected pairs away from the
+        threshold, so round-off cannot flip a pair's fate (runs on different rank counts
+        stay equal to round-off).
+
+        Run once per frame after the Newton iterations: a fixed number of Newton steps
+        does not converge the contact set (docs/contact.md), and its last step, never
+        re-assembled, can push pairs deep into each other.  Jacobi iterations of the
+        mass-weighted projection :func:`segment_contact.separation` over the pairs closer
+        than d0 at the start (every pair that can come closer than d0 / 2 while vertices
+        move by less than d0 / 4).  Each pair's correction is divided by the largest
+        number of violating pairs at one of its four vertices, counted over all ranks,
+        so a vertex shared by several pairs is not overshot, the result does not depend
+        on the partition, and linear momentum is conserved (pinned vertices excepted).
+        Counts and corrections are summed by global vertex in PETSc Vecs (off-process
+        vertices travel to their owners); the pair vertices' positions and counts come
+        back through one VecScatter."""
+        d0, nv = self.d0, self.scene.nv
+        with self.timers("collision"):
+            with collectively(self.comm, "strand contact (separation)"):
+                gA, gB = self._pairs(x)[1:3]
+                V, inv = np.unique(np.stack([gA, gA + 1, gB, gB + 1], axis=1), return_inverse=True)
+                inv = inv.reshape(-1, 4)
+            x = x.copy()
+            st = self.state.array.reshape(nv, 5)         # x, y, z, 1 / mass, count
+            st[:, 3] = self.inverse_mass
+            idx = PETSc.IS().createBlock(5, V.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+            loc = PETSc.Vec().createSeq(5 * len(V), bsize=5, comm=PETSc.COMM_SELF)
+            scatter = PETSc.Scatter().create(self.state, idx, loc, None)
+            Vi = V.astype(PETSc.IntType)
+            first = below = it = 0
+
+            def add_by_vertex(values):          # (len(V), 4) summed by global vertex
+                self.correction.zeroEntries()
+                self.correction.setValuesBlocked(Vi, values.ravel(), addv=PETSc.InsertMode.ADD_VALUES)
+                self.correction.assemblyBegin()
+                self.correction.assemblyEnd()
+                return self.correction.array.reshape(nv, 4)
+
+            try:
+                for it in range(max_iterations + 1):
+                    st[:, :3] = x
+                    scatter.scatter(self.state, loc, addv=PETSc.InsertMode.INSERT_VALUES)
+                    Y = loc.array.reshape(-1, 5)
+                    P4 = Y[inv, :3]
+                    d = segment_contact.distance(P4) if len(P4) else np.zeros(0)
+                    hit = np.flatnonzero(d < 0.5 * (floor + target) * d0)
+                    below = self.comm.allreduce(int(np.sum(d < floor * d0 * (1.0 + 1e-3))))
+                    if it == 0:
+                        first = below
+                    if below == 0 or it == max_iterations:
+                        break
+                    acc = np.zeros((len(V), 4))
+                    acc[:, 3] = np.bincount(inv[hit].ravel(), minlength=len(V))
+                    st[:, 4] = add_by_vertex(acc)[:, 3]
+                    scatter.scatter(self.state, loc, addv=PETSc.InsertMode.INSERT_VALUES)
+                    count = loc.array.reshape(-1, 5)[:, 4]
+                    with collectively(self.comm, "strand contact (separation)"):
+                        dx = segment_contact.separation(P4[hit], Y[inv[hit], 3], target * d0)
+                        dx /= np.maximum(count[inv[hit]].max(axis=1, initial=1.0), 1.0)[:, None, None]
+                        acc[:] = 0.0
+                        for c in range(3):
+                            acc[:, c] = np.bincount(inv[hit].ravel(), weights=dx[:, :, c].ravel(),
+                                                    minlength=len(V))
+                    x += add_by_vertex(acc)[:, :3]
+            finally:
+                for obj in (scatter, loc, idx):
+                    obj.destroy()
+        self.last_separation = (first, it, below)
+        return x, first, it
+
     def assemble(self, x, asm):
         """Contact gradient (nv, 3) (pinned rows zero) of this rank's vertices; adds the
         band blocks to ``asm`` (before its ``commit``) and rebuilds the contact matrix C.
@@ -364,7 +445,7 @@ class StrandContact:
         self.C = C
 
     def destroy(self):
-        for m in (self.op, self.C, self.vec):
+        for m in (self.op, self.C, self.vec, self.state, self.correction):
             if m is not None:
                 m.destroy()
-        self.op = self.C = self.vec = None
+        self.op = self.C = self.vec = self.state = self.correction = None

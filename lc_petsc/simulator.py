@@ -162,6 +162,7 @@ class Simulator:
             "thickness": self.strand.d0, "stiffness": self.strand.k,
             "pairs_per_frame": list(self.integrator.contact_pairs),
             "pairs_below_half_thickness_per_frame": list(self.integrator.contact_deep_pairs),
+            "pairs_separated_per_frame": list(self.integrator.contact_separated),
             "min_distance_per_frame": [None if not np.isfinite(d) else d for d in dmin],
             "min_distance": float(min(dmin)) if dmin and np.isfinite(min(dmin)) else None}}
 

@@ -144,3 +144,38 @@ def test_bad_input_raises():
         sc.energy(np.zeros((1, 3, 3)), D0, K)
     with pytest.raises(ValueError, match="filter"):
         sc.hessian(np.zeros((1, 4, 3)) + np.arange(4)[None, :, None], D0, K, filter="bogus")
+
+
+def test_separation_reaches_the_target_and_conserves_momentum():
+    """The projection takes pairs below the target to it (to first order: exactly for
+    translations along the normal), moves nothing else, and sum m dx = 0."""
+    rng = np.random.default_rng(5)
+    n = 200
+    x = rng.normal(size=(n, 4, 3))
+    x[:, 2:] = x[:, :2] + rng.normal(size=(n, 2, 3)) * 0.05 + 0.02   # close pairs
+    d = sc.distance(x)
+    target = np.median(d)
+    m = rng.uniform(0.5, 2.0, size=(n, 4))
+    dx = sc.separation(x, 1.0 / m, target)
+    below = d < target
+    assert below.sum() > 50 and np.all(dx[~below] == 0.0)
+    assert np.abs((m[:, :, None] * dx).sum(axis=1)).max() < 1e-14
+    d1 = sc.distance(x + dx)
+    assert np.all(d1[below] > d[below])
+    # first order: the new distance is within O(step^2) of the target
+    step = np.linalg.norm(dx, axis=2).max(axis=1)
+    assert np.all(np.abs(d1[below] - target) <= 2.0 * step[below] ** 2 / np.maximum(d[below], 1e-3) + 1e-12)
+    # a pure translation of B along the normal: exact
+    y = np.array([[[0, 0, 0], [1, 0, 0], [0.5, 0.05, -1], [0.5, 0.05, 1]]], float)
+    dy = sc.separation(y, np.ones((1, 4)), 0.2)
+    assert sc.distance(y + dy)[0] == pytest.approx(0.2, rel=1e-12)
+    # pinned vertices (inverse mass 0) do not move; all pinned: nothing moves
+    im = np.ones((1, 4))
+    im[0, :2] = 0.0
+    dy = sc.separation(y, im, 0.2)
+    assert np.all(dy[0, :2] == 0.0) and sc.distance(y + dy)[0] == pytest.approx(0.2, rel=1e-12)
+    assert np.all(sc.separation(y, np.zeros((1, 4)), 0.2) == 0.0)
+    with pytest.raises(ValueError, match="inverse_mass"):
+        sc.separation(y, -np.ones((1, 4)), 0.2)
+    with pytest.raises(ValueError, match="inverse_mass"):
+        sc.separation(y, np.ones((2, 4)), 0.2)

@@ -138,6 +138,10 @@ def test_strand_contact_config():
             config_from_dict(d)
     with pytest.raises(ConfigError, match="strand_thickness"):
         config_from_dict({"physics": {"strand_thickness": "thin"}})
+    assert cfg.physics.strand_separation is True
+    assert config_from_dict({"physics": {"strand_separation": False}}).physics.strand_separation is False
+    with pytest.raises(ConfigError, match="strand_separation"):
+        config_from_dict({"physics": {"strand_separation": "yes"}})
 
 
 def test_preonly_with_strand_only_preconditioner_is_refused(crossing):
@@ -216,3 +220,37 @@ def test_bad_contact_preconditioner_option_is_refused(crossing):
     cfg.solver.options = "-lc_contact_pc both"
     with pytest.raises(ValueError, match="lc_contact_pc 'both'.*coupled.*strands"):
         simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+
+
+def test_separation_keeps_pairs_apart_where_the_penalty_alone_does_not(monkeypatch):
+    """Wisp B dropped across a pinned wisp A onto a soft penalty (k = 600 dyn/cm: B's
+    weight would sink it deeper than d0 / 2).  With the penalty alone, B comes closer
+    than d0 / 2 and then falls through A; with the end-of-frame separation (the
+    default) no pair is ever closer than d0 / 2 and B rests on A."""
+    from mpi4py import MPI
+    base = crossing_source(gap=0.21)
+    pin = np.zeros(2 * N, bool)
+    pin[:N] = True
+    src = ArraySource(base.positions, [0, N, 2 * N], pinned=pin, root_radius=0.05, tip_radius=0.05)
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: src)
+
+    def run(separation):
+        cfg = crossing_config(30, strand_separation=separation)
+        cfg.physics.strand_stiffness = 600.0
+        cfg.time.dt = 1.0 / 240.0
+        sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+        try:
+            sim.run()
+            return sim.summary()["contact"], crossing_separation([sim.x])[0]
+        finally:
+            sim.close()
+
+    off, sep_off = run(False)
+    on, sep_on = run(True)
+    print(f"\npenalty alone: min distance {off['min_distance']:.4f}, B - A at the end {sep_off:.3f}; "
+          f"with separation: {on['min_distance']:.4f}, {sep_on:.3f} (d0 = {D0})")
+    assert off["min_distance"] < 0.5 * D0 and sep_off < 0.0           # fell through A
+    assert max(off["pairs_below_half_thickness_per_frame"]) > 0 and off["pairs_separated_per_frame"] == []
+    assert on["min_distance"] >= 0.5 * D0 and sep_on > 0.5 * D0       # rests on A
+    assert max(on["pairs_below_half_thickness_per_frame"]) == 0
+    assert sum(on["pairs_separated_per_frame"]) > 0

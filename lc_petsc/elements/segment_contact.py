@@ -59,7 +59,7 @@ PARALLEL_TOL = 1e-10
 _ZERO_DIST = 1e-14
 
 __all__ = ["FILTERS", "PARALLEL_TOL", "closest_points", "distance", "energy", "gradient",
-           "hessian", "gradient_hessian"]
+           "hessian", "gradient_hessian", "separation"]
 
 
 def _dot(a, b):
@@ -208,3 +208,28 @@ def gradient_hessian(x, thickness, stiffness, filter="analytic", hessian=True):
         Hx = (V * np.maximum(lam, 0.0)[:, None, :]) @ V.transpose(0, 2, 1)
     H[ia] = Hx
     return g, H
+
+
+def separation(x, inverse_mass, target):
+    """Displacements (n, 4, 3) that take each pair closer than ``target`` to distance
+    ``target`` to first order: the mass-weighted projection of position-based dynamics
+    onto d = target,
+
+        dx_a = (target - d) m_a^-1 w_a n / sum_b m_b^-1 w_b^2     (w, n as in grad d),
+
+    zero for pairs at or beyond ``target`` and for pairs whose four inverse masses
+    (n, 4) are zero (pinned).  Sum_a m_a dx_a = 0 when no vertex is pinned (sum w = 0):
+    no momentum is created.  ``target`` scalar or (n,)."""
+    x = check_positions(x, 4, "segment_contact.separation")
+    n = len(x)
+    im = np.asarray(inverse_mass, float)
+    if im.shape != (n, 4) or not np.all(np.isfinite(im)) or np.any(im < 0):
+        raise ValueError(f"segment_contact.separation: inverse_mass must be finite, >= 0 and of "
+                         f"shape ({n}, 4), got shape {im.shape}")
+    tgt = check_per_element(target, n, "segment_contact.separation", "target", positive=True)
+    s, t, u, d, *_ = closest_points(x)
+    nrm = _normal(x, u, d)
+    w = _weights(s, t)
+    denom = np.einsum("ij,ij->i", im, w * w)
+    lam = np.where((d < tgt) & (denom > 0), (tgt - d) / np.where(denom > 0, denom, 1.0), 0.0)
+    return (lam[:, None] * im * w)[:, :, None] * nrm[:, None, :]

@@ -14,8 +14,8 @@ import numpy as np
 
 from lc_petsc.simulator import build_simulator
 from lc_petsc.studies import report
-from lc_petsc.studies.systems import (SystemRecorder, direct_solutions, peak_rss_mib,
-                                      replay)
+from lc_petsc.studies.systems import (SystemRecorder, destroy_systems, direct_solutions,
+                                      peak_rss_mib, replay)
 
 ROW_COLUMNS = ["wisps", "dofs", "ranks", "set", "system", "frame", "newton_it", "status",
                "setup_s", "solve_s", "total_s", "iterations", "reason", "true_rel_residual",
@@ -156,9 +156,7 @@ def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frame
                 f"err {max((r.get('rel_error_vs_direct') or 0.0) for r in rs):.1e}")
         for x in refs or []:
             x.destroy()
-        for s in systems:
-            s.A.destroy()
-            s.b.destroy()
+        destroy_systems(systems)
     summary = summarise(rows, budget_s)
     if comm.rank == 0:
         report.write_csv(rows, out / "rows.csv", ROW_COLUMNS)

@@ -3,7 +3,8 @@
 :class:`SystemRecorder` wraps ``sim.solver.solve`` from outside (no core change): at
 every Newton solve it copies the operator (``sim.assembler.mat``, the recorded matrix
 type, BAIJ by default) and the right-hand side, plus the frame's start positions (for
-GAMG's rigid-body near-null space).  :func:`replay` then solves exactly those systems
+GAMG's rigid-body near-null space) and, with strand contact, the strand matrix alone (the
+simulator's preconditioning matrix).  :func:`replay` then solves exactly those systems
 with one option set (``configs/solvers/*.opts``), timing setup and solve separately,
 so that differences between sets are the solver's alone.
 
@@ -28,7 +29,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.solver import (LinearSolver, OptionsScope, choose_mat_type, choose_pmat_type,
-                             reason_name)
+                             reason_name, wisp_block_mode)
 
 
 @dataclass
@@ -39,6 +40,9 @@ class RecordedSystem:
     frame: int
     newton_it: int
     coupled: bool = False       # strand contact couples wisps: the pattern varies
+    # coupled systems: the strand matrix without the contact matrix C, i.e. the
+    # simulator's preconditioning matrix (no entry couples two wisps)
+    wisp_local: PETSc.Mat | None = None
 
 
 class SystemRecorder:
@@ -55,13 +59,16 @@ class SystemRecorder:
             if self.max_systems is None or len(self.systems) < self.max_systems:
                 A = sim.assembler.mat.copy()
                 # strand contact: the simulator's operator is the shell A + C (C the
-                # contact matrix, coupling wisps); record the assembled sum
+                # contact matrix, coupling wisps); record the assembled sum, and A alone
+                # for the per-wisp block Jacobi (built from A in the simulator too)
                 C = getattr(getattr(sim, "strand", None), "C", None)
+                wisp_local = None
                 if C is not None:
+                    wisp_local = A.copy()
                     A.axpy(1.0, C, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
                 self.systems.append(RecordedSystem(
                     A, b.copy(), np.array(sim.integrator.x, float), int(frame), int(newton_it),
-                    coupled=C is not None))
+                    coupled=C is not None, wisp_local=wisp_local))
             return self._orig(b, x, frame, newton_it)
 
         sim.solver.solve = solve
@@ -70,10 +77,15 @@ class SystemRecorder:
         self.sim.solver.solve = self._orig
 
     def destroy(self):
-        for s in self.systems:
-            s.A.destroy()
-            s.b.destroy()
+        destroy_systems(self.systems)
         self.systems = []
+
+
+def destroy_systems(systems):
+    for s in systems:
+        for m in (s.A, s.b, s.wisp_local):
+            if m is not None:
+                m.destroy()
 
 
 def read_options_file(path) -> str:
@@ -158,11 +170,21 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
     try:
         mat_type = choose_mat_type(scope)
         pmat_type = choose_pmat_type(scope, mat_type)
+        wisp_blocks = wisp_block_mode(scope)
     except ValueError as e:
         return [dict(base, system=i, status="error", message=str(e)) for i in range(len(systems))]
+
+    def pmat_of(s):
+        """The preconditioning matrix of system ``s`` (None: the operator).  The per-wisp
+        block Jacobi gets the strand matrix without the contact matrix, as in the
+        simulator (``fused`` requires it; ``separate`` extracts the same blocks anyway)."""
+        if wisp_blocks and s.wisp_local is not None:
+            return _convert(s.wisp_local, pmat_type or mat_type)
+        return _convert(s.A, pmat_type) if pmat_type else None
+
     rss0 = _max(comm, current_rss_mib())
     A = _convert(systems[0].A, mat_type)
-    P = _convert(systems[0].A, pmat_type) if pmat_type else None
+    P = pmat_of(systems[0])
     ls = None
     spent = 0.0
     t_start = [0.0]
@@ -204,7 +226,7 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
                 # contact changes the pattern from system to system: new operators
                 # (direct solvers redo their symbolic factorisation, as they must)
                 newA = _convert(s.A, mat_type)
-                newP = _convert(s.A, pmat_type) if pmat_type else None
+                newP = pmat_of(s)
                 if near_null is not None:
                     newA.setNearNullSpace(near_null)
                 ksp.setOperators(newA, newA if newP is None else newP)

@@ -69,7 +69,8 @@ def test_comparison_outputs(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "rows.csv")))
     assert len(rows) == 2 * 3 * 3
     for col in ("wisps", "set", "system", "status", "setup_s", "solve_s", "iterations", "reason",
-                "true_rel_residual", "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib"):
+                "true_rel_residual", "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib",
+                "set_peak_mib", "memory_window"):
         assert col in rows[0], col
     for r in rows:
         assert r["status"] == "ok" and r["reason"].startswith("CONVERGED")
@@ -150,3 +151,20 @@ def test_coupled_systems_record_the_assembled_contact_operator():
     assert all(r["rel_error_vs_direct"] < 1e-9 for r in m)
     C.destroy()
     rec.destroy()
+
+
+def test_memory_window_reports_a_sets_own_peak_after_an_earlier_set_freed_memory():
+    """The memory columns are per set: memory an earlier set freed is given back to the
+    OS before the next one and the peak RSS is reset, so a later set's 100 MB show up
+    (with ru_maxrss and plain RSS growth they would be hidden by the earlier 200 MB)."""
+    import numpy as np
+    from lc_petsc.studies.systems import current_rss_mib, start_memory_window, window_peak_rss_mib
+    assert start_memory_window()
+    first = np.ones(200 * 2 ** 20 // 8)     # an earlier set: 200 MiB, touched, freed
+    del first
+    assert start_memory_window()
+    rss0 = current_rss_mib()
+    assert window_peak_rss_mib() < rss0 + 10
+    later = np.ones(100 * 2 ** 20 // 8)
+    assert 95 < window_peak_rss_mib() - rss0 < 115
+    del later

@@ -19,12 +19,13 @@ from lc_petsc.studies.systems import (SystemRecorder, destroy_systems, direct_so
 
 ROW_COLUMNS = ["wisps", "dofs", "ranks", "set", "system", "frame", "newton_it", "status",
                "setup_s", "solve_s", "total_s", "iterations", "reason", "true_rel_residual",
-               "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib", "mat_type", "message",
+               "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib", "set_peak_mib", "memory_window",
+               "mat_type", "message",
                "options"]
 SUMMARY_COLUMNS = ["wisps", "dofs", "ranks", "set", "status", "n_systems", "n_ok", "setup_s",
                    "solve_s", "total_s", "ratio_vs_default", "iterations_first",
                    "iterations_mean", "max_true_rel_residual", "max_rel_error_vs_direct",
-                   "rss_delta_mib", "budget_s", "message"]
+                   "rss_delta_mib", "set_peak_mib", "budget_s", "message"]
 
 
 def record(config, comm, frames=1, max_systems=None):
@@ -68,7 +69,8 @@ def summarise(rows, budget_s):
                      iterations_mean=float(np.mean(its)),
                      max_true_rel_residual=max(r["true_rel_residual"] for r in ok),
                      max_rel_error_vs_direct=max((r.get("rel_error_vs_direct") or 0.0) for r in ok),
-                     rss_delta_mib=max(r["rss_delta_mib"] for r in ok))
+                     rss_delta_mib=max(r["rss_delta_mib"] for r in ok),
+                     set_peak_mib=max(r["set_peak_mib"] for r in ok))
         if status == "budget":
             s["time_spent_s"] = budget_s
         out.append(s)
@@ -108,7 +110,8 @@ def table3(summary):
 
 def details_table(summary):
     header = ["wisps", "set", "status", "setup (s)", "solve (s)", "total (s)", "x default",
-              "its (first/mean)", "true rel. residual", "error vs direct", "RSS delta (MiB)"]
+              "its (first/mean)", "true rel. residual", "error vs direct", "RSS delta (MiB)",
+              "peak over start (MiB)"]
     body = []
     for s in summary:
         body.append([s["wisps"], s["set"], s["status"], report.fmt(s.get("setup_s")),
@@ -117,7 +120,7 @@ def details_table(summary):
                      f"{s.get('iterations_first', '-')}/{report.fmt(s.get('iterations_mean'))}",
                      report.fmt(s.get("max_true_rel_residual")),
                      report.fmt(s.get("max_rel_error_vs_direct")),
-                     report.fmt(s.get("rss_delta_mib"))])
+                     report.fmt(s.get("rss_delta_mib")), report.fmt(s.get("set_peak_mib"))])
     return report.markdown_table(header, body)
 
 

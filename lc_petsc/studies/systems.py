@@ -19,6 +19,7 @@ would be in a run.
 
 from __future__ import annotations
 
+import ctypes
 import os
 import resource
 import time
@@ -117,7 +118,34 @@ def current_rss_mib() -> float:
 
 
 def peak_rss_mib() -> float:
+    """Peak resident set size of this process over its whole life (MiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def start_memory_window() -> bool:
+    """Make the next RSS growth and peak a set's own: give freed heap pages back to the
+    OS (glibc ``malloc_trim``), so that memory an earlier set freed is not silently
+    reused, and reset the peak RSS (``VmHWM``: 5 written to /proc/self/clear_refs,
+    Linux >= 4.0).  False where either is unavailable: the figures are then lower bounds."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:   # pragma: no cover - not Linux/glibc, or not permitted
+        return False
+
+
+def window_peak_rss_mib() -> float:
+    """Peak RSS (MiB) since the last :func:`start_memory_window` (``VmHWM``)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:   # pragma: no cover - non-Linux
+        pass
+    return float("nan")
 
 
 class BudgetExceeded(Exception):
@@ -127,6 +155,11 @@ class BudgetExceeded(Exception):
 def _max(comm, v):
     from mpi4py import MPI
     return comm.allreduce(v, op=MPI.MAX)
+
+
+def _min(comm, v):
+    from mpi4py import MPI
+    return comm.allreduce(v, op=MPI.MIN)
 
 
 def _convert(A, mat_type):
@@ -182,7 +215,10 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
             return _convert(s.wisp_local, pmat_type or mat_type)
         return _convert(s.A, pmat_type) if pmat_type else None
 
-    rss0 = _max(comm, current_rss_mib())
+    comm.Barrier()
+    exact_memory = _min(comm, int(start_memory_window())) == 1
+    rss0_local = current_rss_mib()
+    rss0 = _max(comm, rss0_local)
     A = _convert(systems[0].A, mat_type)
     P = pmat_of(systems[0])
     ls = None
@@ -285,7 +321,10 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
                 row["rel_error_vs_direct"] = d.norm() / xn if xn > 0 else d.norm()
                 d.destroy()
             row["rss_delta_mib"] = _max(comm, current_rss_mib()) - rss0
-            row["peak_rss_mib"] = _max(comm, peak_rss_mib())
+            row["peak_rss_mib"] = _max(comm, window_peak_rss_mib())
+            # the set's own peak above what the process held before it (max over ranks)
+            row["set_peak_mib"] = _max(comm, window_peak_rss_mib() - rss0_local)
+            row["memory_window"] = exact_memory
             rows.append(row)
             if spent > budget_s and i + 1 < len(systems):
                 stopped = f"time budget {budget_s:g} s used up after system {i}"

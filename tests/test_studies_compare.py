@@ -168,3 +168,20 @@ def test_memory_window_reports_a_sets_own_peak_after_an_earlier_set_freed_memory
     later = np.ones(100 * 2 ** 20 // 8)
     assert 95 < window_peak_rss_mib() - rss0 < 115
     del later
+
+
+def test_repeats_give_median_times_and_a_stopped_set_runs_once(tmp_path):
+    sets = {"default": option_sets(ROOT / "configs" / "solvers", ["default"])["default"],
+            # never converges, never breaks down: stopped by the budget
+            "slow": "-ksp_type richardson -ksp_richardson_scale 1e-12 -pc_type none "
+                    "-ksp_max_it 100000000"}
+    summary = run_comparison(hairball, [2], sets, comm, tmp_path, budget_s=0.5, reference=False,
+                             log=lambda *a: None, repeats=3)
+    d, slow = summary
+    assert d["status"] == "ok" and d["repeats"] == 3 and len(d["total_s_repeats"]) == 3
+    assert d["total_s"] == pytest.approx(sorted(d["total_s_repeats"])[1])
+    assert slow["status"] == "budget"
+    rows = list(csv.DictReader(open(tmp_path / "rows.csv")))
+    assert sorted({r["repeat"] for r in rows if r["set"] == "default"}) == ["0", "1", "2"]
+    assert {r["repeat"] for r in rows if r["set"] == "slow"} == {"0"}
+    assert "median of 3 replays" in (tmp_path / "table.md").read_text()

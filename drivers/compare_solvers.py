@@ -2,7 +2,7 @@
 
   mpiexec -n P python drivers/compare_solvers.py [--wisps 250 500 1000 2000]
       [--sets default mumps_cholesky ...] [--sets-dir configs/solvers] [--budget 60]
-      [--frames 1] [--repeats 1] [--config SCENE.toml] [--no-head-contact] [--strand-contact] [--no-reference]
+      [--frames 1] [--systems N] [--repeats 1] [--config SCENE.toml] [--no-head-contact] [--strand-contact] [--no-reference]
       [--skip-after-budget]
       [--out out/compare_solvers] [PETSc options ...]
 
@@ -56,6 +56,9 @@ def main(argv=None):
     ap.add_argument("--sets-dir", default=str(ROOT / "configs" / "solvers"))
     ap.add_argument("--budget", type=float, default=60.0, help="seconds per set and size")
     ap.add_argument("--frames", type=int, default=1, help="frames recorded (3 systems each)")
+    ap.add_argument("--systems", type=int, default=None,
+                    help="record only the first N Newton systems (e.g. 1 to let a slow set "
+                         "run to convergence on one system within the budget)")
     ap.add_argument("--repeats", type=int, default=1,
                     help="replay each set this many times (sets interleaved); times are medians")
     ap.add_argument("--newton", type=int, default=3)
@@ -82,7 +85,7 @@ def main(argv=None):
     cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)
     run_comparison(lambda n: hairball_config(base, n), args.wisps, sets, comm, args.out,
                    budget_s=args.budget, frames=args.frames, reference=not args.no_reference,
-                   repeats=args.repeats,
+                   repeats=args.repeats, max_systems=args.systems,
                    skip_after_budget=args.skip_after_budget,
                    log=lambda *a: (log(*a), sys.stdout.flush()),
                    meta={"command": cmd, "sets": sets, "repeats": args.repeats, "head_contact": not args.no_head_contact,

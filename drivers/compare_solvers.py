@@ -2,7 +2,7 @@
 
   mpiexec -n P python drivers/compare_solvers.py [--wisps 250 500 1000 2000]
       [--sets default mumps_cholesky ...] [--sets-dir configs/solvers] [--budget 60]
-      [--frames 1] [--config SCENE.toml] [--no-head-contact] [--strand-contact] [--no-reference]
+      [--frames 1] [--systems N] [--repeats 1] [--config SCENE.toml] [--no-head-contact] [--strand-contact] [--no-reference]
       [--skip-after-budget]
       [--out out/compare_solvers] [PETSc options ...]
 
@@ -13,6 +13,9 @@ Newton system (matrix + right-hand side) is recorded; every option set
 systems.  Reported per set: setup and solve time, Krylov iterations, converged reason,
 true relative residual, error against a MUMPS LU solve of the same system, RSS growth.
 A set that exceeds ``--budget`` seconds (per size) is stopped and reported as such.
+``--repeats N`` replays every set N times on the same systems (the sets interleaved, so
+that a load change on a shared machine hits all of them) and reports median times; a
+set stopped by the budget is not repeated.
 PETSc options on the command line apply to EVERY set (they win over the sets' files).
 
 Outputs in --out: rows.csv (one row per set and system), summary.csv, results.json,
@@ -53,6 +56,11 @@ def main(argv=None):
     ap.add_argument("--sets-dir", default=str(ROOT / "configs" / "solvers"))
     ap.add_argument("--budget", type=float, default=60.0, help="seconds per set and size")
     ap.add_argument("--frames", type=int, default=1, help="frames recorded (3 systems each)")
+    ap.add_argument("--systems", type=int, default=None,
+                    help="record only the first N Newton systems (e.g. 1 to let a slow set "
+                         "run to convergence on one system within the budget)")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="replay each set this many times (sets interleaved); times are medians")
     ap.add_argument("--newton", type=int, default=3)
     ap.add_argument("--config", default=None, help="scene TOML instead of the hairball")
     ap.add_argument("--no-head-contact", action="store_true")
@@ -77,9 +85,10 @@ def main(argv=None):
     cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)
     run_comparison(lambda n: hairball_config(base, n), args.wisps, sets, comm, args.out,
                    budget_s=args.budget, frames=args.frames, reference=not args.no_reference,
+                   repeats=args.repeats, max_systems=args.systems,
                    skip_after_budget=args.skip_after_budget,
                    log=lambda *a: (log(*a), sys.stdout.flush()),
-                   meta={"command": cmd, "sets": sets, "head_contact": not args.no_head_contact,
+                   meta={"command": cmd, "sets": sets, "repeats": args.repeats, "head_contact": not args.no_head_contact,
                          "strand_contact": args.strand_contact})
     log(f"wrote {args.out}/table.md, summary.csv, rows.csv, results.json"
         + (", time_vs_wisps.png" if len(set(args.wisps)) > 1 else ""))

@@ -33,10 +33,9 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    separate contact matrix C (the strand matrix's type), created per Newton iteration
    with exact per-row preallocation from those counts and filled with
    ``setValuesBlockedRCV(ADD_VALUES)``; PETSc ships off-process rows at assembly.
-6. **System.** :meth:`StrandContact.system`: the Newton matrix A + C, assembled into a
-   new matrix by ``MatAXPY`` with a different nonzero pattern (A keeps its fixed
-   pattern), and the preconditioning matrix (``-lc_contact_pc``: that matrix, or the
-   strand matrix alone).
+6. **System.** :meth:`StrandContact.system`: the Newton operator A + C (a Python shell,
+   or assembled by ``MatAXPY`` when the preconditioner needs the whole matrix,
+   ``-lc_contact_pc coupled``) and the preconditioning matrix.
 
 Pinned vertices get no contact gradient, band or C entries (their rows/columns stay
 identity).
@@ -74,6 +73,23 @@ def _corner_cells(lo, hi, cell):
     return out
 
 
+class SumOperator:
+    """Python-shell context of the Newton operator A + C (C may be None): two matvecs,
+    measured faster per CG iteration than one matvec with the assembled sum (see
+    :meth:`StrandContact.system`)."""
+
+    def __init__(self, A):
+        self.A, self.C = A, None
+
+    def mult(self, mat, x, y):
+        self.A.mult(x, y)
+        if self.C is not None:
+            self.C.multAdd(x, y, y)
+
+    def getDiagonal(self, mat, d):       # C has no diagonal blocks
+        self.A.getDiagonal(d)
+
+
 class StrandContact:
     """Contact between segments of different wisps, for one rank's wisps.
 
@@ -107,7 +123,8 @@ class StrandContact:
         self.correction = PETSc.Vec().createMPI((4 * nv, 4 * self.N), bsize=4, comm=pcomm)
         self.inverse_mass = np.where(scene.pinned, 0.0, 1.0 / scene.mass)
         self.C = None                   # contact cross blocks (pattern changes every call)
-        self.op = None                  # the assembled Newton matrix A + C
+        self.op = None                  # the assembled Newton matrix A + C (coupled_pc)
+        self.shell = self.shell_ctx = None      # the shell A + C (strand-only pmat)
         self.last_pairs, self.last_min_distance = 0, np.inf
         self.ghosts_received = []
         self.cross_pairs = []           # active pairs straddling ranks, per assemble
@@ -115,23 +132,36 @@ class StrandContact:
         self.last_separation = (0, 0, 0)
 
     def system(self, A, strand_pmat=None):
-        """(operator, preconditioning matrix) of the Newton system after
-        :meth:`assemble` and the strand matrix A's ``commit``: the operator is A + C,
-        assembled into a new matrix (``MatAXPY`` with a different nonzero pattern, which
-        merges the patterns in one pass; A keeps its fixed pattern); the
-        preconditioning matrix is the same matrix (``coupled_pc``: block Jacobi then
-        factors each rank's block *with* the contact couplings between its wisps) or the
-        strand matrix alone (``strand_pmat``, else A: one exact block per wisp, blind to
-        the couplings).  Collective."""
+        """(operator, preconditioning matrix) of the Newton system A + C, after
+        :meth:`assemble` and the strand matrix A's ``commit``.  Collective.
+
+        * ``coupled_pc``: the sum is assembled into a new matrix (``MatAXPY`` with a
+          different nonzero pattern; A keeps its fixed pattern) that is both operator
+          and preconditioning matrix, so a direct solver or AMG sees the contact
+          couplings.
+        * otherwise: the operator is a Python-shell matrix applying A x + C x, and the
+          preconditioning matrix is the strand matrix (``strand_pmat``, else A): one
+          exact block per wisp, blind to the couplings.  Measured on the 2,000-wisp
+          hairball, 1 rank: 13 ms per shell matvec against 25 ms for the assembled sum
+          (whose ``MatAXPY`` also costs 0.44 s per Newton iteration, inserting entry by
+          entry), hence the shell wherever the sum need not be assembled."""
         with self.timers("collision"):
             if self.op is not None:
                 self.op.destroy()
                 self.op = None
+            if not self.coupled_pc:
+                if self.shell is None:
+                    self.shell_ctx = SumOperator(A)
+                    self.shell = PETSc.Mat().createPython(A.getSizes(), context=self.shell_ctx,
+                                                          comm=self.pcomm)
+                    self.shell.setUp()
+                self.shell_ctx.C = self.C
+                return self.shell, (strand_pmat or A)
             op = A
             if self.C is not None:
                 op = self.op = A.duplicate(copy=True)
                 op.axpy(1.0, self.C, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
-        return op, (op if self.coupled_pc else (strand_pmat or A))
+            return op, op
 
     # ------------------------------------------------------------- exchange
     def _gather_segments(self, x):
@@ -445,7 +475,9 @@ class StrandContact:
         self.C = C
 
     def destroy(self):
-        for m in (self.op, self.C, self.vec, self.state, self.correction):
+        if self.shell_ctx is not None:
+            self.shell_ctx.C = None
+        for m in (self.shell, self.op, self.C, self.vec, self.state, self.correction):
             if m is not None:
                 m.destroy()
-        self.op = self.C = self.vec = self.state = self.correction = None
+        self.shell = self.op = self.C = self.vec = self.state = self.correction = None

@@ -3,7 +3,9 @@ assembly + solver -> integrator)."""
 
 from __future__ import annotations
 
+import atexit
 import time
+import weakref
 
 import numpy as np
 from petsc4py import PETSc
@@ -86,7 +88,9 @@ class Simulator:
         with self.scope.active():
             self.assembler = Assembler(scene, self.pcomm, self.timers, filter=cfg.solver.filter,
                                        mat_type=mat_type,
-                                       pmat_type=choose_pmat_type(self.scope, mat_type))
+                                       pmat_type=choose_pmat_type(
+                                           self.scope, mat_type,
+                                           strand_contact="strand_collision" in cfg.physics.terms))
         self.strand = None
         if "strand_collision" in cfg.physics.terms:
             self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, self.scope,
@@ -97,6 +101,12 @@ class Simulator:
         self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg, self.head)
         self.integrator.x = x0
         self.integrator.strand = self.strand
+        if self.strand is not None:
+            # A Python-shell operator still alive when petsc4py finalizes crashes the
+            # interpreter at exit: close a simulator that was never closed before that
+            # (atexit runs handlers in reverse order; petsc4py registered earlier).
+            ref = weakref.ref(self)
+            atexit.register(lambda: ref() is not None and ref().close())
         self.wall = 0.0
 
     # ------------------------------------------------------------------ running

@@ -4,16 +4,34 @@ Defaults set in code (the options database, i.e. the config's ``solver.options``
 then the command line, override them; the command line wins over the config):
 
 * ``-ksp_type cg -ksp_rtol 1e-6 -ksp_max_it 1000``;
-* ``-pc_type bjacobi`` with **one block per wisp**: ``PCBJacobiSetLocalBlocks`` is called
-  through ctypes on ``pc.handle`` (petsc4py 3.18 has no binding) with the 3 n_w rows of
-  each local wisp, before ``setFromOptions``.  Each block is solved exactly: the
-  default sub-solver ``-sub_pc_type ilu`` (ILU(0)) on a full band has no fill outside
-  the band, so it *is* the LU factorisation (SPEC 1).  PETSc's own default for a
-  symmetric matrix, ICC(0) with a Manteuffel shift, is *not* exact here (measured:
-  CG stalls at 1000 iterations on a 4C wisp), and PETSc's native SBAIJ (bs 3)
-  Cholesky/ICC were also measured to be inexact on these matrices, so for
-  ``-mat_type sbaij`` the per-wisp blocks default to MUMPS Cholesky
-  (``-sub_pc_type cholesky -sub_pc_factor_mat_solver_type mumps``).
+* ``-pc_type bjacobi`` with **one exact block per wisp** (the paper's preconditioner).
+  The preconditioning matrix never couples two wisps (strand-contact cross blocks live
+  in a separate matrix C of the operator, see lc_petsc/contact.py), so its rank-local
+  diagonal block is block diagonal by wisp, and *one* factorisation of that rank block
+  is the set of per-wisp factorisations.  Hence two ways to build the same
+  preconditioner, chosen by ``-lc_wisp_blocks``:
+
+  - ``fused`` (default): one block-Jacobi block per rank (``PCBJacobiSetLocalBlocks``
+    with one block), one factorisation per Newton iteration and one pair of
+    triangular solves per application;
+  - ``separate``: PETSc's own block per wisp (``PCBJacobiSetLocalBlocks`` with the
+    3 n_w rows of each local wisp): one sub-KSP, sub-matrix and factorisation per
+    wisp (about 1,000 per rank of the 2,000-wisp hairball; several times slower).
+
+  ``PCBJacobiSetLocalBlocks`` is called through ctypes on ``pc.handle`` (petsc4py 3.18
+  has no binding), before ``setFromOptions``.  Each wisp is solved exactly: the default
+  sub-solver ``-sub_pc_type ilu`` (ILU(0), natural ordering) on a full band has no fill
+  outside the band, so it *is* the LU factorisation (SPEC 1); and a factorisation of a
+  block-diagonal matrix never mixes its blocks, so fused and separate agree to
+  round-off for any factorisation sub-solver (tests/test_sim_wisp_blocks.py).  PETSc's
+  own default for a symmetric matrix, ICC(0) with a Manteuffel shift, is *not* exact
+  here (measured: CG stalls at 1000 iterations on a 4C wisp), and PETSc's native SBAIJ
+  (bs 3) Cholesky/ICC were also measured to be inexact on these matrices, so for
+  ``-mat_type sbaij`` the sub-solver defaults to MUMPS Cholesky
+  (``-sub_pc_type cholesky -sub_pc_factor_mat_solver_type mumps``): with ``fused`` one
+  MUMPS factorisation of the rank's block-diagonal matrix, exact as well.
+  ``-pc_bjacobi_blocks`` / ``-pc_bjacobi_local_blocks`` (e.g.
+  configs/solvers/bjacobi_rank.opts) replace the per-wisp blocks altogether.
 
 Matrix type: MUMPS refuses BAIJ and GAMG refuses BAIJ, so when such a solver is asked
 for without ``-mat_type``, :func:`choose_mat_type` picks ``sbaij`` (MUMPS Cholesky) or
@@ -35,6 +53,7 @@ from petsc4py import PETSc
 from lc_petsc.options import option_pairs
 
 DEFAULTS = {"ksp_type": "cg", "ksp_rtol": "1e-6", "ksp_max_it": "1000", "pc_type": "bjacobi"}
+WISP_BLOCK_MODES = ("fused", "separate")
 
 _REASONS = {getattr(PETSc.KSP.ConvergedReason, n): n for n in dir(PETSc.KSP.ConvergedReason)
             if n.isupper() or n.startswith(("CONVERGED", "DIVERGED", "ITERATING"))}
@@ -113,11 +132,22 @@ def choose_mat_type(scope: OptionsScope, default="baij") -> str:
     return default
 
 
-def choose_pmat_type(scope: OptionsScope, mat_type: str):
+def choose_pmat_type(scope: OptionsScope, mat_type: str, strand_contact: bool = False):
     """Matrix type of a separate preconditioning matrix, or None to use the operator.
 
-    ``-lc_pmat_type aij|same``; by default block Jacobi on a BAIJ operator gets an AIJ
-    copy (same values): see ``Assembler._create_pmat`` for why.
+    ``-lc_pmat_type aij|same``; by default an AIJ copy (same values) is made only where
+    block Jacobi would extract several blocks per rank from a BAIJ operator (separate
+    per-wisp blocks, or blocks set by ``-pc_bjacobi_*blocks``): see
+    ``Assembler._create_pmat`` for why.  The fused per-wisp blocks factor the operator's
+    rank block itself (no extraction, and BAIJ's 3x3-block ILU(0) is the cheaper one),
+    except with ``strand_contact``: CG then runs tens to hundreds of iterations, and
+    the block ILU's explicit 3x3 pivot inverses (badly conditioned for stretch-dominated
+    blocks) put enough round-off into each application that runs on different rank
+    counts drift apart 30x faster (measured: 1.5e-10 vs 5.5e-12 relative after 10
+    frames of tests/test_mpi_contact.py on 2 ranks) for about the same time per CG
+    iteration (11.3 vs 12.5 ms per application at 606k DoFs, plus 0.45 s per frame to
+    fill the copy); the point ILU of the AIJ copy is the same factorisation without
+    that round-off.
     """
     explicit = scope.lookup("lc_pmat_type")
     if explicit:
@@ -126,7 +156,22 @@ def choose_pmat_type(scope: OptionsScope, mat_type: str):
         return None if explicit == "same" else explicit
     pc = (scope.lookup("pc_type") or DEFAULTS["pc_type"]).lower()
     base = mat_type.lower().replace("mpi", "").replace("seq", "")
-    return "aij" if pc == "bjacobi" and base == "baij" else None
+    extracts = pc == "bjacobi" and (wisp_block_mode(scope) != "fused" or strand_contact)
+    return "aij" if extracts and base == "baij" else None
+
+
+def wisp_block_mode(scope: OptionsScope):
+    """``"fused"`` or ``"separate"`` (``-lc_wisp_blocks``, default fused) when the
+    preconditioner is the per-wisp block Jacobi; None for another ``-pc_type`` or when
+    ``-pc_bjacobi_blocks`` / ``-pc_bjacobi_local_blocks`` set the blocks instead."""
+    mode = scope.lookup("lc_wisp_blocks") or WISP_BLOCK_MODES[0]
+    if mode not in WISP_BLOCK_MODES:
+        raise ValueError(f"-lc_wisp_blocks {mode!r}: use fused (one factorisation of all the "
+                         f"rank's wisps, the default) or separate (one PETSc block per wisp)")
+    pc = (scope.lookup("pc_type") or DEFAULTS["pc_type"]).lower()
+    if pc != "bjacobi" or scope.lookup("pc_bjacobi_blocks") or scope.lookup("pc_bjacobi_local_blocks"):
+        return None
+    return mode
 
 
 def _libpetsc():
@@ -153,8 +198,12 @@ def set_bjacobi_local_blocks(pc, lens):
 
 
 class LinearSolver:
+    """The KSP of the Newton systems.  ``P`` (default: ``A``) must not couple two wisps
+    when the per-wisp block Jacobi is ``fused`` (see the module doc)."""
+
     def __init__(self, A, wisp_rows, scope: OptionsScope, mat_type: str, P=None):
         self.scope = scope
+        self.wisp_blocks = wisp_block_mode(scope)
         # exact per-wisp sub-solves (see module doc); PETSc would pick ICC(0) with a
         # Manteuffel shift for a symmetric matrix, which is not exact here
         if mat_type == "sbaij":
@@ -168,7 +217,10 @@ class LinearSolver:
             ksp.setTolerances(rtol=float(DEFAULTS["ksp_rtol"]), max_it=int(DEFAULTS["ksp_max_it"]))
             pc = ksp.getPC()
             pc.setType(DEFAULTS["pc_type"])
-            set_bjacobi_local_blocks(pc, wisp_rows)
+            if self.wisp_blocks == "separate":
+                set_bjacobi_local_blocks(pc, wisp_rows)
+            elif self.wisp_blocks == "fused":
+                set_bjacobi_local_blocks(pc, [int(np.sum(wisp_rows))])
             ksp.setFromOptions()
         self.iterations = []
         self.reasons = []
@@ -176,7 +228,8 @@ class LinearSolver:
     def describe(self):
         pc = self.ksp.getPC()
         A, P = self.ksp.getOperators()
-        return (f"-ksp_type {self.ksp.getType()} -pc_type {pc.getType()} "
+        blocks = f" -lc_wisp_blocks {self.wisp_blocks}" if self.wisp_blocks else ""
+        return (f"-ksp_type {self.ksp.getType()} -pc_type {pc.getType()}{blocks} "
                 f"-mat_type {A.getType()} (preconditioner built from {P.getType()}) "
                 f"(options: {self.scope.effective()})")
 

@@ -7,6 +7,8 @@ from mpi4py import MPI
 
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,
                              SolverConfig, TimeConfig)
+from lc_petsc.scene import geometry
+from lc_petsc.scene.sources import ArraySource
 from lc_petsc.simulator import build_simulator
 
 #: Environment for mpiexec launched by tests: root allowed, more ranks than cores allowed.
@@ -21,6 +23,35 @@ def small_hairball_config(n_wisps=4, options="", terms=("stretch", "bend", "twis
         material=MaterialConfig(youngs_modulus=1.0e9),
         physics=PhysicsConfig(terms=terms, head_motion="shake", head_amplitude=0.3, head_period=0.5),
         time=TimeConfig(frames=frames, **time),
+        solver=SolverConfig(options=options))
+
+
+def touching_wisps_source(n_wisps=6, n_vertices=30):
+    """Six short 4C wisps hanging from a row of roots 0.9 cm apart (coil diameter 1 cm):
+    neighbours touch and interleave, so contact pairs form between wisps 1-2 and 3-4,
+    which sit on different ranks with 3 ranks (and 2-3 with 2 ranks).  Used with
+    ``touching_wisps_config`` by monkeypatching ``lc_petsc.simulator.source_from_config``."""
+    wisps = [geometry.wisp4c(n_vertices, root=(0.9 * w, 16.0, 0.0), spin=1.3 * w)
+             for w in range(n_wisps)]
+    pos = np.concatenate(wisps)
+    off = np.arange(n_wisps + 1) * n_vertices
+    pin = np.zeros(len(pos), bool)
+    for w in range(n_wisps):
+        pin[w * n_vertices: w * n_vertices + 4] = True
+    return ArraySource(pos, off, pinned=pin, root_radius=0.08, tip_radius=0.05)
+
+
+def touching_wisps_config(frames, options="-ksp_rtol 1e-14 -ksp_max_it 5000"):
+    """Strand contact on the ``touching_wisps_source`` scene, head shaking.  The default
+    tight tolerance: with contact CG takes several iterations, and comparisons to 1e-10
+    must not depend on where round-off stops it."""
+    return SimConfig(
+        scene=SceneConfig(kind="straight"),
+        material=MaterialConfig(youngs_modulus=2.0e7),
+        physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity", "strand_collision"),
+                              head_motion="shake", head_amplitude=0.3, head_period=0.5,
+                              strand_thickness=0.12, strand_stiffness=1.0e4),
+        time=TimeConfig(frames=frames),
         solver=SolverConfig(options=options))
 
 

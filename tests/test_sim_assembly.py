@@ -66,16 +66,19 @@ def test_matrix_matches_dense_reference(mat_type, terms):
 
 
 def test_preconditioning_matrix_is_an_exact_aij_copy():
-    """Default BAIJ operator + block Jacobi: the PC is built from an AIJ copy (same values).
-
-    And -lc_pmat_type same (the BAIJ operator itself) reaches the same Newton iterate.
+    """BAIJ operator + separate per-wisp blocks: the PC is built from an AIJ copy (same
+    values).  And -lc_pmat_type same (the BAIJ operator itself) reaches the same Newton
+    iterate.  (The default, fused blocks, factors the operator itself:
+    tests/test_sim_wisp_blocks.py.)
     """
     cfg = SimConfig(scene=SceneConfig(kind="hairball", n_wisps=3, perturbation="jitter", jitter=0.2),
                     physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity")),
                     time=TimeConfig(frames=2))
-    sims = [build_simulator(cfg, comm=MPI.COMM_SELF),
-            build_simulator(dataclasses.replace(cfg, solver=SolverConfig(options="-lc_pmat_type same")),
-                            comm=MPI.COMM_SELF)]
+    separate = "-lc_wisp_blocks separate"
+    sims = [build_simulator(dataclasses.replace(cfg, solver=SolverConfig(options=separate)),
+                            comm=MPI.COMM_SELF),
+            build_simulator(dataclasses.replace(
+                cfg, solver=SolverConfig(options=separate + " -lc_pmat_type same")), comm=MPI.COMM_SELF)]
     try:
         A, P = sims[0].solver.ksp.getOperators()
         assert A.getType() == "seqbaij" and P.getType() == "seqaij"

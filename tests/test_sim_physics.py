@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 from mpi4py import MPI
-from petsc4py import PETSc
 
 from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, SolverConfig, TimeConfig
 from lc_petsc.elements import bend, twist
@@ -198,30 +197,3 @@ def test_mumps_with_baij_is_refused_with_advice():
         options="-mat_type baij -ksp_type preonly -pc_type cholesky -pc_factor_mat_solver_type mumps")
     with pytest.raises(ValueError, match=r"MUMPS does not accept BAIJ.*-mat_type sbaij or -mat_type aij"):
         _sim(cfg)
-
-
-def test_one_bjacobi_block_per_wisp(tmp_path):
-    cfg = small_hairball_config(n_wisps=4, frames=1)
-    sim = _sim(cfg)
-    try:
-        sim.run()
-        # What -ksp_view prints: one block per wisp, built from the AIJ copy.
-        log = tmp_path / "ksp_view.txt"
-        viewer = PETSc.Viewer().createASCII(str(log))
-        sim.solver.ksp.view(viewer)
-        viewer.destroy()
-        text = log.read_text()
-        assert "type: bjacobi" in text and "number of blocks = 4" in text, text
-        pc = sim.solver.ksp.getPC()
-        assert pc.getType() == "bjacobi"
-        from lc_petsc.solver import _libpetsc
-        import ctypes
-        lib = _libpetsc()
-        n = ctypes.c_int32()
-        first = ctypes.c_int32()
-        sub = ctypes.c_void_p()
-        ierr = lib.PCBJacobiGetSubKSP(ctypes.c_void_p(pc.handle), ctypes.byref(n), ctypes.byref(first),
-                                      ctypes.byref(sub))
-        assert ierr == 0 and n.value == 4
-    finally:
-        sim.close()

@@ -69,7 +69,8 @@ def test_comparison_outputs(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "rows.csv")))
     assert len(rows) == 2 * 3 * 3
     for col in ("wisps", "set", "system", "status", "setup_s", "solve_s", "iterations", "reason",
-                "true_rel_residual", "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib"):
+                "true_rel_residual", "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib",
+                "set_peak_mib", "memory_window"):
         assert col in rows[0], col
     for r in rows:
         assert r["status"] == "ok" and r["reason"].startswith("CONVERGED")
@@ -107,7 +108,10 @@ def test_coupled_systems_record_the_assembled_contact_operator():
     """With strand contact the simulator's operator is the shell A + C; the recorder
     stores the assembled sum (here C is a stand-in coupling two wisps' root-free
     vertices), replays it with new operators per system, and the per-wisp block Jacobi
-    is no longer exact (more than one CG iteration) while MUMPS still is."""
+    is no longer exact (more than one CG iteration) while MUMPS still is.  The per-wisp
+    blocks are built from the strand matrix without C, as in the simulator: fused and
+    separate (both from the AIJ copy, as the simulator does with strand contact) give
+    the same iterations and solutions."""
     from types import SimpleNamespace
     from petsc4py import PETSc
     from lc_petsc.simulator import build_simulator
@@ -135,9 +139,50 @@ def test_coupled_systems_record_the_assembled_contact_operator():
     sets = option_sets(ROOT / "configs" / "solvers", ["default", "mumps_cholesky"])
     d = replay(systems, rec.wisp_rows, "default", sets["default"], MPI.COMM_SELF, references=refs)
     m = replay(systems, rec.wisp_rows, "mumps", sets["mumps_cholesky"], MPI.COMM_SELF, references=refs)
+    sep = replay(systems, rec.wisp_rows, "separate", "-lc_wisp_blocks separate -lc_pmat_type aij",
+                 MPI.COMM_SELF, references=refs)
+    assert all(s.wisp_local is not None and s.wisp_local.getValue(3 * 50, 3 * 151) == 0.0
+               for s in systems)
+    assert [r["iterations"] for r in sep] == [r["iterations"] for r in d]
+    assert [r["rel_error_vs_direct"] for r in sep] == pytest.approx(
+        [r["rel_error_vs_direct"] for r in d], rel=1e-9, abs=1e-14)
     assert all(r["status"] == "ok" for r in d + m), [(r["set"], r["status"], r.get("message")) for r in d + m]
     assert max(r["iterations"] for r in d) > 1
     assert all(r["rel_error_vs_direct"] < 1e-4 for r in d)
     assert all(r["rel_error_vs_direct"] < 1e-9 for r in m)
     C.destroy()
     rec.destroy()
+
+
+def test_memory_window_reports_a_sets_own_peak_after_an_earlier_set_freed_memory():
+    """The memory columns are per set: memory an earlier set freed is given back to the
+    OS before the next one and the peak RSS is reset, so a later set's 100 MB show up
+    (with ru_maxrss and plain RSS growth they would be hidden by the earlier 200 MB)."""
+    import numpy as np
+    from lc_petsc.studies.systems import current_rss_mib, start_memory_window, window_peak_rss_mib
+    assert start_memory_window()
+    first = np.ones(200 * 2 ** 20 // 8)     # an earlier set: 200 MiB, touched, freed
+    del first
+    assert start_memory_window()
+    rss0 = current_rss_mib()
+    assert window_peak_rss_mib() < rss0 + 10
+    later = np.ones(100 * 2 ** 20 // 8)
+    assert 95 < window_peak_rss_mib() - rss0 < 115
+    del later
+
+
+def test_repeats_give_median_times_and_a_stopped_set_runs_once(tmp_path):
+    sets = {"default": option_sets(ROOT / "configs" / "solvers", ["default"])["default"],
+            # never converges, never breaks down: stopped by the budget
+            "slow": "-ksp_type richardson -ksp_richardson_scale 1e-12 -pc_type none "
+                    "-ksp_max_it 100000000"}
+    summary = run_comparison(hairball, [2], sets, comm, tmp_path, budget_s=0.5, reference=False,
+                             log=lambda *a: None, repeats=3)
+    d, slow = summary
+    assert d["status"] == "ok" and d["repeats"] == 3 and len(d["total_s_repeats"]) == 3
+    assert d["total_s"] == pytest.approx(sorted(d["total_s_repeats"])[1])
+    assert slow["status"] == "budget"
+    rows = list(csv.DictReader(open(tmp_path / "rows.csv")))
+    assert sorted({r["repeat"] for r in rows if r["set"] == "default"}) == ["0", "1", "2"]
+    assert {r["repeat"] for r in rows if r["set"] == "slow"} == {"0"}
+    assert "median of 3 replays" in (tmp_path / "table.md").read_text()

@@ -14,17 +14,19 @@ import numpy as np
 
 from lc_petsc.simulator import build_simulator
 from lc_petsc.studies import report
-from lc_petsc.studies.systems import (SystemRecorder, direct_solutions, peak_rss_mib,
-                                      replay)
+from lc_petsc.studies.systems import (SystemRecorder, destroy_systems, direct_solutions,
+                                      peak_rss_mib, replay)
 
-ROW_COLUMNS = ["wisps", "dofs", "ranks", "set", "system", "frame", "newton_it", "status",
+ROW_COLUMNS = ["wisps", "dofs", "ranks", "set", "repeat", "system", "frame", "newton_it", "status",
                "setup_s", "solve_s", "total_s", "iterations", "reason", "true_rel_residual",
-               "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib", "mat_type", "message",
+               "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib", "set_peak_mib", "memory_window",
+               "mat_type", "message",
                "options"]
-SUMMARY_COLUMNS = ["wisps", "dofs", "ranks", "set", "status", "n_systems", "n_ok", "setup_s",
-                   "solve_s", "total_s", "ratio_vs_default", "iterations_first",
+SUMMARY_COLUMNS = ["wisps", "dofs", "ranks", "set", "status", "n_systems", "n_ok", "repeats",
+                   "setup_s", "solve_s", "total_s", "total_s_repeats", "ratio_vs_default",
+                   "iterations_first",
                    "iterations_mean", "max_true_rel_residual", "max_rel_error_vs_direct",
-                   "rss_delta_mib", "budget_s", "message"]
+                   "rss_delta_mib", "set_peak_mib", "budget_s", "message"]
 
 
 def record(config, comm, frames=1, max_systems=None):
@@ -48,11 +50,17 @@ def record(config, comm, frames=1, max_systems=None):
 
 
 def summarise(rows, budget_s):
-    """One summary row per (wisps, set) from the per-system rows; ratios vs ``default``."""
+    """One summary row per (wisps, set) from the per-system rows; ratios vs ``default``.
+
+    With several repeats (``repeat`` column) the times are the medians over the repeats
+    in which every system was solved (``total_s_repeats`` lists them; a set stopped in
+    its first repeat: the systems it solved); status, iterations, residuals and errors
+    come from the first repeat."""
     out = []
     keys = list(dict.fromkeys((r["wisps"], r["set"]) for r in rows))
     for wisps, name in keys:
-        rs = [r for r in rows if r["wisps"] == wisps and r["set"] == name]
+        every = [r for r in rows if r["wisps"] == wisps and r["set"] == name]
+        rs = [r for r in every if r.get("repeat", 0) == 0]
         ok = [r for r in rs if r["status"] == "ok"]
         statuses = {r["status"] for r in rs}
         status = "ok" if statuses == {"ok"} else next(
@@ -63,12 +71,20 @@ def summarise(rows, budget_s):
              "budget_s": budget_s,
              "message": next((r.get("message") for r in rs if r.get("message")), "")}
         if ok:
-            s.update(setup_s=sum(r["setup_s"] for r in ok), solve_s=sum(r["solve_s"] for r in ok),
-                     total_s=sum(r["total_s"] for r in ok), iterations_first=its[0],
-                     iterations_mean=float(np.mean(its)),
+            per_repeat = {}
+            for r in every:
+                per_repeat.setdefault(r.get("repeat", 0), []).append(r)
+            complete = [g for g in per_repeat.values()
+                        if len(g) == len(rs) and all(r["status"] == "ok" for r in g)] or [ok]
+            med = {k: float(np.median([sum(r[k] for r in g) for g in complete]))
+                   for k in ("setup_s", "solve_s", "total_s")}
+            s.update(med, repeats=len(complete),
+                     total_s_repeats=[sum(r["total_s"] for r in g) for g in complete],
+                     iterations_first=its[0], iterations_mean=float(np.mean(its)),
                      max_true_rel_residual=max(r["true_rel_residual"] for r in ok),
                      max_rel_error_vs_direct=max((r.get("rel_error_vs_direct") or 0.0) for r in ok),
-                     rss_delta_mib=max(r["rss_delta_mib"] for r in ok))
+                     rss_delta_mib=max(r["rss_delta_mib"] for r in every if r["status"] == "ok"),
+                     set_peak_mib=max(r["set_peak_mib"] for r in every if r["status"] == "ok"))
         if status == "budget":
             s["time_spent_s"] = budget_s
         out.append(s)
@@ -108,7 +124,8 @@ def table3(summary):
 
 def details_table(summary):
     header = ["wisps", "set", "status", "setup (s)", "solve (s)", "total (s)", "x default",
-              "its (first/mean)", "true rel. residual", "error vs direct", "RSS delta (MiB)"]
+              "its (first/mean)", "true rel. residual", "error vs direct", "RSS delta (MiB)",
+              "peak over start (MiB)"]
     body = []
     for s in summary:
         body.append([s["wisps"], s["set"], s["status"], report.fmt(s.get("setup_s")),
@@ -117,14 +134,15 @@ def details_table(summary):
                      f"{s.get('iterations_first', '-')}/{report.fmt(s.get('iterations_mean'))}",
                      report.fmt(s.get("max_true_rel_residual")),
                      report.fmt(s.get("max_rel_error_vs_direct")),
-                     report.fmt(s.get("rss_delta_mib"))])
+                     report.fmt(s.get("rss_delta_mib")), report.fmt(s.get("set_peak_mib"))])
     return report.markdown_table(header, body)
 
 
 def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frames=1,
                    max_systems=None, reference=True, log=print, meta=None,
-                   skip_after_budget=False):
-    """The whole study: for each size, record once, replay with each set; write
+                   skip_after_budget=False, repeats=1):
+    """The whole study: for each size, record once, replay with each set (``repeats``
+    times, the sets interleaved; summaries report median times); write
     ``rows.csv``, ``summary.csv``, ``results.json``, ``table.md`` and (with more than
     one size) ``time_vs_wisps.png`` into ``out_dir`` (rank 0).  Returns the summary."""
     out = Path(out_dir)
@@ -139,26 +157,30 @@ def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frame
             f"{info['record_wall_s']:.2f} s (simulator's KSP iterations {info['sim_ksp_iterations']}"
             + (f", strand contact pairs {info['strand_contact_pairs']})" if info["strand_contact_pairs"] else ")"))
         refs = direct_solutions(systems, comm) if reference else None
-        for name, opts in sets.items():
-            over = next((r["wisps"] for r in rows if r["set"] == name and r["status"] == "budget"), None)
-            if skip_after_budget and over is not None:
-                rs = [{"set": name, "options": opts, "system": i, "status": "budget",
-                       "message": f"skipped: over the budget at {over} wisps"}
-                      for i in range(len(systems))]
-            else:
-                rs = replay(systems, wisp_rows, name, opts, comm, budget_s=budget_s, references=refs)
-            for r in rs:
-                r.update(wisps=info["wisps"], dofs=info["dofs"], ranks=comm.size)
-            rows += rs
-            tot = sum(r.get("total_s", 0.0) for r in rs)
-            log(f"  {name:18s} {','.join(sorted({r['status'] for r in rs})):8s} "
-                f"{tot:8.3f} s  its {[r.get('iterations') for r in rs]}  "
-                f"err {max((r.get('rel_error_vs_direct') or 0.0) for r in rs):.1e}")
+        for rep in range(repeats):
+            for name, opts in sets.items():
+                here = [r for r in rows if r["set"] == name and r["wisps"] == info["wisps"]]
+                if rep > 0 and any(r["status"] != "ok" for r in here):
+                    continue        # stopped or failed in the first repeat: once is enough
+                over = next((r["wisps"] for r in rows if r["set"] == name and r["status"] == "budget"), None)
+                if skip_after_budget and over is not None:
+                    rs = [{"set": name, "options": opts, "system": i, "status": "budget",
+                           "message": f"skipped: over the budget at {over} wisps"}
+                          for i in range(len(systems))]
+                else:
+                    rs = replay(systems, wisp_rows, name, opts, comm, budget_s=budget_s,
+                                references=refs)
+                for r in rs:
+                    r.update(wisps=info["wisps"], dofs=info["dofs"], ranks=comm.size, repeat=rep)
+                rows += rs
+                tot = sum(r.get("total_s", 0.0) for r in rs)
+                log(f"  {name:18s} {','.join(sorted({r['status'] for r in rs})):8s} "
+                    f"{tot:8.3f} s  its {[r.get('iterations') for r in rs]}  "
+                    f"err {max((r.get('rel_error_vs_direct') or 0.0) for r in rs):.1e}"
+                    + (f"  (repeat {rep + 1}/{repeats})" if repeats > 1 else ""))
         for x in refs or []:
             x.destroy()
-        for s in systems:
-            s.A.destroy()
-            s.b.destroy()
+        destroy_systems(systems)
     summary = summarise(rows, budget_s)
     if comm.rank == 0:
         report.write_csv(rows, out / "rows.csv", ROW_COLUMNS)
@@ -169,7 +191,8 @@ def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frame
                           out / "results.json")
         md = ["# Solver comparison\n",
               "Same recorded Newton systems for every set; time = setup + solve summed over "
-              "them (max over ranks). Layout of the paper's Table 3.\n",
+              "them (max over ranks)" + (f", median of {repeats} replays" if repeats > 1 else "")
+              + ". Layout of the paper's Table 3.\n",
               table3(summary), "\n## Details\n", details_table(summary)]
         if meta and meta.get("command"):
             md.insert(1, f"Command: `{meta['command']}`\n")

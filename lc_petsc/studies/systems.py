@@ -3,7 +3,8 @@
 :class:`SystemRecorder` wraps ``sim.solver.solve`` from outside (no core change): at
 every Newton solve it copies the operator (``sim.assembler.mat``, the recorded matrix
 type, BAIJ by default) and the right-hand side, plus the frame's start positions (for
-GAMG's rigid-body near-null space).  :func:`replay` then solves exactly those systems
+GAMG's rigid-body near-null space) and, with strand contact, the strand matrix alone (the
+simulator's preconditioning matrix).  :func:`replay` then solves exactly those systems
 with one option set (``configs/solvers/*.opts``), timing setup and solve separately,
 so that differences between sets are the solver's alone.
 
@@ -18,6 +19,7 @@ would be in a run.
 
 from __future__ import annotations
 
+import ctypes
 import os
 import resource
 import time
@@ -28,7 +30,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.solver import (LinearSolver, OptionsScope, choose_mat_type, choose_pmat_type,
-                             reason_name)
+                             reason_name, wisp_block_mode)
 
 
 @dataclass
@@ -39,6 +41,9 @@ class RecordedSystem:
     frame: int
     newton_it: int
     coupled: bool = False       # strand contact couples wisps: the pattern varies
+    # coupled systems: the strand matrix without the contact matrix C, i.e. the
+    # simulator's preconditioning matrix (no entry couples two wisps)
+    wisp_local: PETSc.Mat | None = None
 
 
 class SystemRecorder:
@@ -55,13 +60,16 @@ class SystemRecorder:
             if self.max_systems is None or len(self.systems) < self.max_systems:
                 A = sim.assembler.mat.copy()
                 # strand contact: the simulator's operator is the shell A + C (C the
-                # contact matrix, coupling wisps); record the assembled sum
+                # contact matrix, coupling wisps); record the assembled sum, and A alone
+                # for the per-wisp block Jacobi (built from A in the simulator too)
                 C = getattr(getattr(sim, "strand", None), "C", None)
+                wisp_local = None
                 if C is not None:
+                    wisp_local = A.copy()
                     A.axpy(1.0, C, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
                 self.systems.append(RecordedSystem(
                     A, b.copy(), np.array(sim.integrator.x, float), int(frame), int(newton_it),
-                    coupled=C is not None))
+                    coupled=C is not None, wisp_local=wisp_local))
             return self._orig(b, x, frame, newton_it)
 
         sim.solver.solve = solve
@@ -70,10 +78,15 @@ class SystemRecorder:
         self.sim.solver.solve = self._orig
 
     def destroy(self):
-        for s in self.systems:
-            s.A.destroy()
-            s.b.destroy()
+        destroy_systems(self.systems)
         self.systems = []
+
+
+def destroy_systems(systems):
+    for s in systems:
+        for m in (s.A, s.b, s.wisp_local):
+            if m is not None:
+                m.destroy()
 
 
 def read_options_file(path) -> str:
@@ -105,7 +118,34 @@ def current_rss_mib() -> float:
 
 
 def peak_rss_mib() -> float:
+    """Peak resident set size of this process over its whole life (MiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def start_memory_window() -> bool:
+    """Make the next RSS growth and peak a set's own: give freed heap pages back to the
+    OS (glibc ``malloc_trim``), so that memory an earlier set freed is not silently
+    reused, and reset the peak RSS (``VmHWM``: 5 written to /proc/self/clear_refs,
+    Linux >= 4.0).  False where either is unavailable: the figures are then lower bounds."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:   # pragma: no cover - not Linux/glibc, or not permitted
+        return False
+
+
+def window_peak_rss_mib() -> float:
+    """Peak RSS (MiB) since the last :func:`start_memory_window` (``VmHWM``)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:   # pragma: no cover - non-Linux
+        pass
+    return float("nan")
 
 
 class BudgetExceeded(Exception):
@@ -115,6 +155,11 @@ class BudgetExceeded(Exception):
 def _max(comm, v):
     from mpi4py import MPI
     return comm.allreduce(v, op=MPI.MAX)
+
+
+def _min(comm, v):
+    from mpi4py import MPI
+    return comm.allreduce(v, op=MPI.MIN)
 
 
 def _convert(A, mat_type):
@@ -157,12 +202,26 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
     base = {"set": name, "options": options}
     try:
         mat_type = choose_mat_type(scope)
-        pmat_type = choose_pmat_type(scope, mat_type)
+        pmat_type = choose_pmat_type(scope, mat_type,           # as the simulator does
+                                     strand_contact=any(s.coupled for s in systems))
+        wisp_blocks = wisp_block_mode(scope)
     except ValueError as e:
         return [dict(base, system=i, status="error", message=str(e)) for i in range(len(systems))]
-    rss0 = _max(comm, current_rss_mib())
+
+    def pmat_of(s):
+        """The preconditioning matrix of system ``s`` (None: the operator).  The per-wisp
+        block Jacobi gets the strand matrix without the contact matrix, as in the
+        simulator (``fused`` requires it; ``separate`` extracts the same blocks anyway)."""
+        if wisp_blocks and s.wisp_local is not None:
+            return _convert(s.wisp_local, pmat_type or mat_type)
+        return _convert(s.A, pmat_type) if pmat_type else None
+
+    comm.Barrier()
+    exact_memory = _min(comm, int(start_memory_window())) == 1
+    rss0_local = current_rss_mib()
+    rss0 = _max(comm, rss0_local)
     A = _convert(systems[0].A, mat_type)
-    P = _convert(systems[0].A, pmat_type) if pmat_type else None
+    P = pmat_of(systems[0])
     ls = None
     spent = 0.0
     t_start = [0.0]
@@ -204,7 +263,7 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
                 # contact changes the pattern from system to system: new operators
                 # (direct solvers redo their symbolic factorisation, as they must)
                 newA = _convert(s.A, mat_type)
-                newP = _convert(s.A, pmat_type) if pmat_type else None
+                newP = pmat_of(s)
                 if near_null is not None:
                     newA.setNearNullSpace(near_null)
                 ksp.setOperators(newA, newA if newP is None else newP)
@@ -263,7 +322,10 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
                 row["rel_error_vs_direct"] = d.norm() / xn if xn > 0 else d.norm()
                 d.destroy()
             row["rss_delta_mib"] = _max(comm, current_rss_mib()) - rss0
-            row["peak_rss_mib"] = _max(comm, peak_rss_mib())
+            row["peak_rss_mib"] = _max(comm, window_peak_rss_mib())
+            # the set's own peak above what the process held before it (max over ranks)
+            row["set_peak_mib"] = _max(comm, window_peak_rss_mib() - rss0_local)
+            row["memory_window"] = exact_memory
             rows.append(row)
             if spent > budget_s and i + 1 < len(systems):
                 stopped = f"time budget {budget_s:g} s used up after system {i}"

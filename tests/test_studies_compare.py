@@ -11,7 +11,7 @@ from mpi4py import MPI
 
 from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig
 from lc_petsc.studies.compare import record, run_comparison
-from lc_petsc.studies.systems import option_sets, replay
+from lc_petsc.studies.systems import destroy_systems, option_sets, replay
 
 ROOT = Path(__file__).resolve().parents[1]
 comm = MPI.COMM_WORLD
@@ -56,9 +56,7 @@ def test_replay_same_systems_every_set_agrees_and_budget_stops():
                   comm, budget_s=0.0)
     assert [r["status"] for r in slow] == ["budget"] * 3
     assert "budget" in slow[0]["message"] and slow[0]["iterations"] == 10
-    for s in systems:
-        s.A.destroy()
-        s.b.destroy()
+    destroy_systems(systems)
 
 
 def test_comparison_outputs(tmp_path):

@@ -128,7 +128,7 @@ class StrandContact:
         self.last_pairs, self.last_min_distance = 0, np.inf
         self.ghosts_received = []
         self.cross_pairs = []           # active pairs straddling ranks, per assemble
-        self._active_cache = None
+        self._pairs_cache = None          # (x, active, pairs) of the last _pairs call
         self.last_separation = (0, 0, 0)
 
     def system(self, A, strand_pmat=None):
@@ -256,13 +256,18 @@ class StrandContact:
         """Pairs as (X (n, 4, 3), gvA, gvB, freeA, freeB, ownerA, ownerB, d), the segment
         with the smaller global index first.  ``active``: only pairs closer than d0 that
         are not exempt; otherwise also every candidate at d >= d0 (for the minimum
-        distance; exemption only concerns pairs closer than d0).  The active pairs of
-        the last call are kept: the line search evaluates the energy at the point just
-        assembled."""
-        if active and self._active_cache is not None:
-            same = np.array_equal(self._active_cache[0], x)
+        distance; exemption only concerns pairs closer than d0).  The result of the last
+        call is kept: the line search evaluates the energy at the point just assembled,
+        and the separation works on the pairs the end-of-frame measurement just found
+        (a collective check that the positions are bit-identical on every rank)."""
+        if self._pairs_cache is not None and (active or not self._pairs_cache[1]):
+            same = np.array_equal(self._pairs_cache[0], x)
             if self.comm.allreduce(int(same), op=_mpi_min()):       # the same on all ranks
-                return self._active_cache[1]
+                out, was_active = self._pairs_cache[2], self._pairs_cache[1]
+                if active and not was_active:
+                    keep = out[-1] < self.d0
+                    out = tuple(a[keep] for a in out)
+                return out
         P, Prest, gv, wisp, free, owner, n_local = self._gather_segments(x)
         ij = self.candidates(P, wisp, n_local, self.d0)
         i, j = ij[:, 0], ij[:, 1]
@@ -280,8 +285,7 @@ class StrandContact:
             keep |= d >= self.d0
         i, j = i[keep], j[keep]
         out = X[keep], gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[keep]
-        if active:
-            self._active_cache = (x.copy(), out)
+        self._pairs_cache = (x.copy(), active, out)
         return out
 
     # ------------------------------------------------------------- public

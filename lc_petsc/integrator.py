@@ -16,11 +16,12 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   the simulator when ``strand_collision`` is on) adds its penalty to G, its gradient,
   its band blocks to the Newton matrix and rebuilds the contact matrix every Newton
   iteration; its calls are collective, so they run outside the rank-local guarded
-  blocks.  After the Newton iterations, pairs closer than half the thickness are pushed
-  apart (``physics.strand_separation``, :meth:`StrandContact.separate`; the pairs found
-  are counted in ``contact_separated``), then the active pairs and the minimum segment
-  distance at the new positions are recorded (``contact_pairs``, ``contact_deep_pairs``
-  closer than half the thickness, ``contact_min_distance``).
+  blocks.  After the Newton iterations the active pairs and the minimum segment
+  distance are measured; pairs closer than half the thickness are pushed apart
+  (``physics.strand_separation``, :meth:`StrandContact.separate`, at most 3 rounds of
+  separate + measure; the pairs found are counted in ``contact_separated``), and the
+  figures at the final positions are recorded (``contact_pairs``,
+  ``contact_deep_pairs`` closer than half the thickness, ``contact_min_distance``).
 """
 
 from __future__ import annotations
@@ -152,10 +153,18 @@ class Integrator:
                                      f"{min(b for b in bad_any if b >= 0)}")
         self.newton_iterations.append(n_it)
         if self.strand is not None:
-            if cfg.physics.strand_separation:
-                x, n_sep, _ = self.strand.separate(x)
-                self.contact_separated.append(n_sep)
             pairs, deep, dmin = self.strand.measure(x)
+            if cfg.physics.strand_separation:
+                n_sep = 0
+                # a separation's corrections can bring pairs it did not see within d0/2,
+                # and its Jacobi rounds are capped: re-measure, and separate again if so
+                for _ in range(3):
+                    if deep == 0:
+                        break
+                    x, n, _ = self.strand.separate(x)
+                    n_sep = max(n_sep, n)
+                    pairs, deep, dmin = self.strand.measure(x)
+                self.contact_separated.append(n_sep)
             self.contact_pairs.append(pairs)
             self.contact_deep_pairs.append(deep)
             self.contact_min_distance.append(dmin)

@@ -73,12 +73,14 @@ def main():
         pairs = sim.integrator.contact_pairs[-1]
         dmin = sim.integrator.contact_min_distance[-1]
         deep = sim.integrator.contact_deep_pairs[-1]
+        sep = sim.strand.last_separation          # (pairs < d0/2 found, Jacobi rounds, left)
         rows.append({"frame": f, "wall": wall, "phases": ph, "ksp": its, "pairs": pairs, "dmin": dmin,
-                     "deep": deep, "ghosts": sim.strand.ghosts_received[-1]})
+                     "deep": deep, "separated": sep, "ghosts": sim.strand.ghosts_received[-1]})
         if comm.rank == 0:
             print(f"frame {f:3d}: {wall:6.2f} s  collision {ph['collision']:5.2f}  solve "
                   f"{ph['solve']:5.2f}  elements {ph['elements']:5.2f}  assembly {ph['assembly']:5.2f}"
-                  f"  CG {its}  pairs {pairs} (< d0/2: {deep})  dmin {dmin:.4f}", flush=True)
+                  f"  CG {its}  pairs {pairs} (< d0/2: {deep}; separated {sep[0]} in {sep[1]} rounds)"
+                  f"  dmin {dmin:.4f}", flush=True)
     s = sim.summary()
     if comm.rank == 0:
         d0 = sim.strand.d0

@@ -17,8 +17,9 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
 3. **Broad phase.** ``scipy.spatial.cKDTree`` over sample points of the local + ghost
    segments (midpoints; long segments get several), ``query_pairs`` with radius d0 + 2h
    (:meth:`StrandContact.candidates`), which contains every pair closer than d0, then an
-   exact box-overlap test inflated by d0.  Rebuilt from the current positions at
-   every call, so no margin for motion is needed: the search is exact, not predictive.
+   exact box-overlap test inflated by d0.  Rebuilt from the current positions (reused
+   only for bit-identical positions), so no margin for motion is needed: the search
+   is exact, not predictive.
    Pairs of the same wisp are excluded (no self-contact; see docs/contact.md).
 4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` on the candidates, the
    smaller global segment first (so the arithmetic of a pair does not depend on the
@@ -161,6 +162,7 @@ class StrandContact:
             if self.C is not None:
                 op = self.op = A.duplicate(copy=True)
                 op.axpy(1.0, self.C, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+                op.setOption(PETSc.Mat.Option.SYMMETRIC, True)      # MatAXPY drops the flag
             return op, op
 
     # ------------------------------------------------------------- exchange
@@ -259,7 +261,8 @@ class StrandContact:
         distance; exemption only concerns pairs closer than d0).  The result of the last
         call is kept: the line search evaluates the energy at the point just assembled,
         and the separation works on the pairs the end-of-frame measurement just found
-        (a collective check that the positions are bit-identical on every rank)."""
+        (each rank compares x with its cached copy bit for bit, and the cache is used
+        only if that holds on every rank)."""
         if self._pairs_cache is not None and (active or not self._pairs_cache[1]):
             same = np.array_equal(self._pairs_cache[0], x)
             if self.comm.allreduce(int(same), op=_mpi_min()):       # the same on all ranks
@@ -309,7 +312,7 @@ class StrandContact:
             dmin = self.comm.allreduce(float(d.min(initial=np.inf)), op=MPI.MIN)
         return int(n), int(deep), dmin
 
-    def separate(self, x, floor=0.5, target=0.6, max_iterations=20):
+    def separate(self, x, floor=0.5, target=0.6, max_iterations=20, max_step=0.25):
         """Positions (nv, 3) with no pair closer than ``floor`` d0: pairs closer than
         (floor + target) / 2 d0 are pushed apart towards ``target`` d0 (rest-exempt pairs
         excepted) until none is closer than ``floor`` d0 (1 + 1e-3); returns (positions,
@@ -322,8 +325,8 @@ class StrandContact:
         does not converge the contact set (docs/contact.md), and its last step, never
         re-assembled, can push pairs deep into each other.  Jacobi iterations of the
         mass-weighted projection :func:`segment_contact.separation` over the pairs closer
-        than d0 at the start (every pair that can come closer than d0 / 2 while vertices
-        move by less than d0 / 4).  Each pair's correction is divided by the largest
+        than d0 at the start; a pair's correction per round is scaled down so that no
+        vertex moves more than ``max_step`` d0 (pinned partners can demand more).  Each pair's correction is divided by the largest
         number of violating pairs at one of its four vertices, counted over all ranks,
         so a vertex shared by several pairs is not overshot, the result does not depend
         on the partition, and linear momentum is conserved (pinned vertices excepted).
@@ -339,10 +342,8 @@ class StrandContact:
             x = x.copy()
             st = self.state.array.reshape(nv, 5)         # x, y, z, 1 / mass, count
             st[:, 3] = self.inverse_mass
-            idx = PETSc.IS().createBlock(5, V.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
-            loc = PETSc.Vec().createSeq(5 * len(V), bsize=5, comm=PETSc.COMM_SELF)
-            scatter = PETSc.Scatter().create(self.state, idx, loc, None)
             Vi = V.astype(PETSc.IntType)
+            idx = loc = scatter = None
             first = below = it = 0
 
             def add_by_vertex(values):          # (len(V), 4) summed by global vertex
@@ -353,6 +354,9 @@ class StrandContact:
                 return self.correction.array.reshape(nv, 4)
 
             try:
+                idx = PETSc.IS().createBlock(5, Vi, comm=PETSc.COMM_SELF)
+                loc = PETSc.Vec().createSeq(5 * len(V), bsize=5, comm=PETSc.COMM_SELF)
+                scatter = PETSc.Scatter().create(self.state, idx, loc, None)
                 for it in range(max_iterations + 1):
                     st[:, :3] = x
                     scatter.scatter(self.state, loc, addv=PETSc.InsertMode.INSERT_VALUES)
@@ -372,7 +376,14 @@ class StrandContact:
                     count = loc.array.reshape(-1, 5)[:, 4]
                     with collectively(self.comm, "strand contact (separation)"):
                         dx = segment_contact.separation(P4[hit], Y[inv[hit], 3], target * d0)
-                        dx /= np.maximum(count[inv[hit]].max(axis=1, initial=1.0), 1.0)[:, None, None]
+                        # at most max_step d0 per pair (a pair with pinned vertices can ask
+                        # for more), then / the largest count at its vertices: a vertex then
+                        # moves at most max_step d0 per round; one factor per pair keeps
+                        # sum m dx = 0
+                        step = np.sqrt(np.einsum("pvc,pvc->pv", dx, dx)).max(axis=1, initial=0.0)
+                        scale = np.minimum(1.0, max_step * d0 / np.maximum(step, 1e-300))
+                        scale /= np.maximum(count[inv[hit]].max(axis=1, initial=1.0), 1.0)
+                        dx *= scale[:, None, None]
                         acc[:] = 0.0
                         for c in range(3):
                             acc[:, c] = np.bincount(inv[hit].ravel(), weights=dx[:, :, c].ravel(),
@@ -380,7 +391,8 @@ class StrandContact:
                     x += add_by_vertex(acc)[:, :3]
             finally:
                 for obj in (scatter, loc, idx):
-                    obj.destroy()
+                    if obj is not None:
+                        obj.destroy()
         self.last_separation = (first, it, below)
         return x, first, it
 
@@ -448,6 +460,8 @@ class StrandContact:
         """C: the cross blocks (segment A x segment B and its transpose) of the active
         pairs, in a matrix of the strand matrix's type (for SBAIJ the A x B blocks only:
         A's wisp precedes B's, so they are all above the diagonal)."""
+        if self.shell_ctx is not None:      # never leave a destroyed C inside the shell
+            self.shell_ctx.C = None
         if self.C is not None:
             self.C.destroy()
             self.C = None

@@ -156,6 +156,7 @@ class Integrator:
             pairs, deep, dmin = self.strand.measure(x)
             if cfg.physics.strand_separation:
                 n_sep = 0
+                self.strand.last_separation = (0, 0, 0)
                 # a separation's corrections can bring pairs it did not see within d0/2,
                 # and its Jacobi rounds are capped: re-measure, and separate again if so
                 for _ in range(3):

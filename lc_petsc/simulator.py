@@ -90,7 +90,7 @@ class Simulator:
                                        mat_type=mat_type,
                                        pmat_type=choose_pmat_type(
                                            self.scope, mat_type,
-                                           strand_contact="strand_collision" in cfg.physics.terms))
+                                           strand_contact=_strands_preconditioner(cfg, self.scope)))
         self.strand = None
         if "strand_collision" in cfg.physics.terms:
             self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, self.scope,
@@ -190,6 +190,18 @@ class Simulator:
 CONTACT_PC = ("coupled", "strands")
 
 
+def _contact_pc(scope):
+    """``-lc_contact_pc``, or its default: ``strands`` for block Jacobi, else ``coupled``."""
+    bjacobi = (scope.lookup("pc_type") or DEFAULTS["pc_type"]).lower() == "bjacobi"
+    return scope.lookup("lc_contact_pc") or ("strands" if bjacobi else "coupled")
+
+
+def _strands_preconditioner(cfg, scope):
+    """Strand contact with the strand matrix as preconditioning matrix (the AIJ copy is
+    then worth making, see choose_pmat_type)."""
+    return "strand_collision" in cfg.physics.terms and _contact_pc(scope) == "strands"
+
+
 def _strand_contact(scene, comm, pcomm, timers, cfg, scope, mat_type):
     """The strand-strand contact of ``cfg`` (docs/contact.md); thickness default: twice
     the smallest vertex radius of the scene.
@@ -202,8 +214,7 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, scope, mat_type):
     then solves the Newton system exactly, AMG sees the whole matrix)."""
     from mpi4py import MPI
     from lc_petsc.contact import StrandContact
-    bjacobi = (scope.lookup("pc_type") or DEFAULTS["pc_type"]).lower() == "bjacobi"
-    contact_pc = scope.lookup("lc_contact_pc") or ("strands" if bjacobi else "coupled")
+    contact_pc = _contact_pc(scope)
     if contact_pc not in CONTACT_PC:
         raise ValueError(f"-lc_contact_pc {contact_pc!r}: use coupled (precondition with the "
                          f"whole Newton matrix, contact couplings included) or strands (the "

@@ -6,7 +6,8 @@ then the command line, override them; the command line wins over the config):
 * ``-ksp_type cg -ksp_rtol 1e-6 -ksp_max_it 1000``;
 * ``-pc_type bjacobi`` with **one exact block per wisp** (the paper's preconditioner).
   The preconditioning matrix never couples two wisps (strand-contact cross blocks live
-  in a separate matrix C of the operator, see lc_petsc/contact.py), so its rank-local
+  in a separate matrix C of the operator, see lc_petsc/contact.py; only the opt-in
+  ``-lc_contact_pc coupled`` puts them in), so its rank-local
   diagonal block is block diagonal by wisp, and *one* factorisation of that rank block
   is the set of per-wisp factorisations.  Hence two ways to build the same
   preconditioner, chosen by ``-lc_wisp_blocks``:
@@ -199,7 +200,9 @@ def set_bjacobi_local_blocks(pc, lens):
 
 class LinearSolver:
     """The KSP of the Newton systems.  ``P`` (default: ``A``) must not couple two wisps
-    when the per-wisp block Jacobi is ``fused`` (see the module doc)."""
+    when the per-wisp block Jacobi is ``fused`` (see the module doc); with strand
+    contact and ``-lc_contact_pc coupled`` it does, and the fused block is then an
+    ILU(0) of the coupled rank matrix, not per-wisp LUs (docs/contact.md)."""
 
     def __init__(self, A, wisp_rows, scope: OptionsScope, mat_type: str, P=None):
         self.scope = scope

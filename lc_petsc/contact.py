@@ -325,14 +325,14 @@ class StrandContact:
         does not converge the contact set (docs/contact.md), and its last step, never
         re-assembled, can push pairs deep into each other.  Jacobi iterations of the
         mass-weighted projection :func:`segment_contact.separation` over the pairs closer
-        than d0 at the start; a pair's correction per round is scaled down so that no
-        vertex moves more than ``max_step`` d0 (pinned partners can demand more).  Each pair's correction is divided by the largest
-        number of violating pairs at one of its four vertices, counted over all ranks,
-        so a vertex shared by several pairs is not overshot, the result does not depend
-        on the partition, and linear momentum is conserved (pinned vertices excepted).
-        Counts and corrections are summed by global vertex in PETSc Vecs (off-process
-        vertices travel to their owners); the pair vertices' positions and counts come
-        back through one VecScatter."""
+        than d0 at the start.  Per round, each pair's correction is capped at
+        ``max_step`` d0 (a pair with pinned vertices can demand more) and divided by
+        the largest number of violating pairs at one of its four vertices, counted over
+        all ranks: no vertex moves more than ``max_step`` d0 per round, the result does
+        not depend on the partition, and linear momentum is conserved (pinned vertices
+        excepted).  Counts and corrections are summed by global vertex in PETSc Vecs
+        (off-process vertices travel to their owners); the pair vertices' positions and
+        counts come back through a VecScatter."""
         d0, nv = self.d0, self.scene.nv
         with self.timers("collision"):
             with collectively(self.comm, "strand contact (separation)"):

@@ -4,10 +4,11 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
 (:meth:`StrandContact.assemble`) and for every energy evaluation of the line search
 (:meth:`StrandContact.energy`):
 
-1. **Occupancy.** Each rank lists the cells of a uniform grid (cell size = the largest
-   segment box extent + 2 d0 over all ranks, one allreduce) touched by its segments'
-   boxes inflated by d0, and the lists are allgathered (about 28k cells per rank of the
-   2K hairball on 2 ranks, vs 100k segments).  One box per rank, the first plan, selects
+1. **Occupancy.** Each rank lists the cells of a uniform grid over the scene (cell
+   size = the largest segment box extent + 2 d0 over all ranks, one allreduce, and
+   at least 1/128 of the scene's extent) touched by its segments' boxes inflated by
+   d0, found through a boolean array over the cells, and the lists are allgathered
+   (about 28k cells per rank of the 2K hairball on 2 ranks, vs 100k segments).  One box per rank, the first plan, selects
    3x more ghosts here: a rank's wisps span a spherical cap whose box covers much of
    the other ranks' hair (measured at rest on 2 ranks: 30% of rank 1's segments vs 9%).
 2. **Ghosts.** A pair of segments on ranks q < r is computed by rank q (the owner of the
@@ -53,25 +54,48 @@ from lc_petsc.parallel import collectively
 NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
 
 
-def _mpi_max():
-    from mpi4py import MPI
-    return MPI.MAX
-
-
 def _mpi_min():
     from mpi4py import MPI
     return MPI.MIN
 
 
-def _corner_cells(lo, hi, cell):
-    """Keys (n, 8) of the grid cells of the 8 corners of boxes lo, hi (n, 3)."""
-    a = np.floor(lo / cell).astype(np.int64) + (1 << 20)
-    b = np.floor(hi / cell).astype(np.int64) + (1 << 20)
-    out = np.empty((len(lo), 8), np.int64)
-    for c in range(8):
-        v = [b[:, k] if (c >> k) & 1 else a[:, k] for k in range(3)]
-        out[:, c] = (v[0] << 42) | (v[1] << 21) | v[2]
-    return out
+class _OccupancyGrid:
+    """A uniform grid common to all ranks over every segment box inflated by d0 (one
+    ``Allreduce``).  The cell size is at least the largest box extent + 2 d0, so an
+    inflated box touches at most 2 cells per axis, i.e. exactly the cells of its 8
+    corners, and at least 1/128 of the scene's extent (at most 129^3 cells: the
+    occupancy of a rank is a boolean array over all cells)."""
+
+    def __init__(self, lo, hi, d0, comm):
+        from mpi4py import MPI
+        buf = np.concatenate([-lo.min(axis=0, initial=np.inf), hi.max(axis=0, initial=-np.inf),
+                              [(hi - lo).max(initial=0.0)]])
+        comm.Allreduce(MPI.IN_PLACE, buf, op=MPI.MAX)
+        self.empty = not np.all(np.isfinite(buf))          # no segment on any rank
+        if self.empty:
+            return
+        lo_all, hi_all = -buf[:3], buf[3:6]
+        self.cell = max(buf[6] + 2.0 * d0, float((hi_all - lo_all).max()) / 128.0, 1e-6)
+        self.origin = lo_all - d0
+        self.dims = np.floor((hi_all + d0 - self.origin) / self.cell).astype(np.int64) + 1
+        self.size = int(np.prod(self.dims))
+
+    def corner_cells(self, lo, hi):
+        """Flat cell ids (n, 8) of the 8 corners of boxes lo, hi (n, 3)."""
+        top = self.dims - 1
+        a = np.clip(np.floor((lo - self.origin) / self.cell).astype(np.int64), 0, top)
+        b = np.clip(np.floor((hi - self.origin) / self.cell).astype(np.int64), 0, top)
+        out = np.empty((len(lo), 8), np.int64)
+        for c in range(8):
+            v = [b[:, k] if (c >> k) & 1 else a[:, k] for k in range(3)]
+            out[:, c] = (v[0] * self.dims[1] + v[1]) * self.dims[2] + v[2]
+        return out
+
+    def mask(self, cells):
+        """Boolean occupancy (size,) of the flat cell ids ``cells``."""
+        m = np.zeros(self.size, bool)
+        m[cells.ravel()] = True
+        return m
 
 
 class SumOperator:
@@ -172,21 +196,22 @@ class StrandContact:
         comm, d0 = self.comm, self.d0
         P = np.stack([x[self.seg], x[self.seg + 1]], axis=1)
         lo, hi = P.min(axis=1), P.max(axis=1)
-        # Occupancy cells (see the module doc): cell size >= every segment box inflated
-        # by 2 d0, so such a box touches at most 2 cells per axis (its 8 corners' cells).
+        # Occupancy (see the module doc and _OccupancyGrid): the cells touched by this
+        # rank's boxes inflated by d0, as sorted flat ids
         send = [None]
         if comm.size > 1:
-            ext = float((hi - lo).max(initial=0.0))
-            cell = comm.allreduce(max(ext + 2.0 * d0, 1e-6), op=_mpi_max())
-            occ = comm.allgather(np.unique(_corner_cells(lo - d0, hi + d0, cell)))
+            grid = _OccupancyGrid(lo, hi, d0, comm)
+            own = np.zeros(0, np.int32) if grid.empty else \
+                np.flatnonzero(grid.mask(grid.corner_cells(lo - d0, hi + d0))).astype(np.int32)
+            occ = comm.allgather(own)
             send = []
-            if comm.rank > 0:
-                keys = _corner_cells(lo, hi, cell)
+            if comm.rank > 0 and not grid.empty:
+                keys = grid.corner_cells(lo, hi)
         for q in range(comm.size if comm.size > 1 else 0):
-            if q >= comm.rank:
+            if q >= comm.rank or grid.empty:
                 send.append(None)
                 continue
-            m = np.isin(keys, occ[q]).any(axis=1)
+            m = grid.mask(occ[q])[keys].any(axis=1)
             send.append(np.concatenate([P[m].reshape(-1, 6), self.seg_gv[m, None],
                                         self.seg_wisp[m, None], self.seg_free[m],
                                         self.P_rest[m].reshape(-1, 6)], axis=1))

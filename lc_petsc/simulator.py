@@ -66,6 +66,7 @@ def apply_perturbation(batch, scene_cfg, rest_lengths_fn=None):
 class Simulator:
     def __init__(self, config: SimConfig, comm=None):
         self.config = config.validate()
+        parallel.limit_blas_threads()
         self.comm = comm = _mpi_comm(comm)
         self.pcomm = PETSc.Comm(comm)
         self.timers = Timers()

@@ -19,7 +19,7 @@ then the command line, override them; the command line wins over the config):
     3 n_w rows of each local wisp): one sub-KSP, sub-matrix and factorisation per
     wisp (about 1,000 per rank of the 2,000-wisp hairball; several times slower).
 
-  ``PCBJacobiSetLocalBlocks`` is called through ctypes on ``pc.handle`` (petsc4py 3.18
+  ``PCBJacobiSetLocalBlocks`` is called through ctypes (lc_petsc/petsc_capi.py; petsc4py 3.18
   has no binding), before ``setFromOptions``.  Each wisp is solved exactly: the default
   sub-solver ``-sub_pc_type ilu`` (ILU(0), natural ordering) on a full band has no fill
   outside the band, so it *is* the LU factorisation (SPEC 1); and a factorisation of a
@@ -44,7 +44,6 @@ naming frame, Newton iteration, reason and the options (no retry).
 
 from __future__ import annotations
 
-import ctypes
 import shlex
 from contextlib import contextmanager
 
@@ -52,6 +51,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.options import option_pairs
+from lc_petsc.petsc_capi import bjacobi_set_local_blocks
 
 DEFAULTS = {"ksp_type": "cg", "ksp_rtol": "1e-6", "ksp_max_it": "1000", "pc_type": "bjacobi"}
 WISP_BLOCK_MODES = ("fused", "separate")
@@ -175,29 +175,6 @@ def wisp_block_mode(scope: OptionsScope):
     return mode
 
 
-def _libpetsc():
-    for name in ("libpetsc_real.so.3.18", "libpetsc.so.3.18"):
-        try:
-            return ctypes.CDLL(name, mode=ctypes.RTLD_GLOBAL)
-        except OSError:
-            continue
-    raise OSError("cannot load libpetsc_real.so.3.18 for PCBJacobiSetLocalBlocks")
-
-
-def set_bjacobi_local_blocks(pc, lens):
-    """PCBJacobiSetLocalBlocks(pc, len(lens), lens) via ctypes (lens in matrix rows)."""
-    lib = _libpetsc()
-    arr = np.ascontiguousarray(lens, dtype=PETSc.IntType)
-    ctype = ctypes.c_int32 if PETSc.IntType == np.int32 else ctypes.c_int64
-    fn = lib.PCBJacobiSetLocalBlocks
-    fn.restype = ctypes.c_int
-    fn.argtypes = [ctypes.c_void_p, ctype, ctypes.c_void_p]
-    ierr = fn(ctypes.c_void_p(pc.handle), ctype(len(arr)),
-              arr.ctypes.data_as(ctypes.c_void_p) if len(arr) else None)
-    if ierr != 0:
-        raise SolverError(f"PCBJacobiSetLocalBlocks failed with PETSc error {ierr}")
-
-
 class LinearSolver:
     """The KSP of the Newton systems.  ``P`` (default: ``A``) must not couple two wisps
     when the per-wisp block Jacobi is ``fused`` (see the module doc); with strand
@@ -221,9 +198,9 @@ class LinearSolver:
             pc = ksp.getPC()
             pc.setType(DEFAULTS["pc_type"])
             if self.wisp_blocks == "separate":
-                set_bjacobi_local_blocks(pc, wisp_rows)
+                bjacobi_set_local_blocks(pc, wisp_rows)
             elif self.wisp_blocks == "fused":
-                set_bjacobi_local_blocks(pc, [int(np.sum(wisp_rows))])
+                bjacobi_set_local_blocks(pc, [int(np.sum(wisp_rows))])
             ksp.setFromOptions()
         self.iterations = []
         self.reasons = []

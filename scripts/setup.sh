@@ -22,7 +22,7 @@ here=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 venv=${LC_PETSC_VENV:-$here/.venv}
 petsc_dir=/usr/lib/petscdir/petsc3.18/x86_64-linux-gnu-real
 debs=(python3-petsc4py-real python3-mpi4py python3-h5py-mpi python3-numpy python3-scipy
-      python3-venv python3-pip openmpi-bin)
+      python3-threadpoolctl python3-venv python3-pip openmpi-bin)
 
 sudo_cmd=()
 if [ "$(id -u)" -ne 0 ]; then sudo_cmd=(sudo); fi

@@ -1,0 +1,81 @@
+"""The few PETSc C functions petsc4py 3.18 does not bind, called through ctypes.
+
+* ``PCBJacobiSetLocalBlocks`` (the per-wisp block Jacobi, lc_petsc/solver.py);
+* ``MatSeqAIJGetArray`` / ``MatSeqBAIJGetArray`` and their ``Restore``: the value array
+  of a rank's diagonal block, written in place by lc_petsc/assembly.py (one NumPy
+  gather into PETSc's memory instead of ``MatSetValues*CSR``, which searches every
+  column index again).
+
+Every call checks PETSc's error code and raises :class:`PetscCallError` naming the
+function.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from contextlib import contextmanager
+from functools import lru_cache
+
+import numpy as np
+from petsc4py import PETSc
+
+#: C function returning the value array of each supported sequential matrix type
+_GET_ARRAY = {"seqaij": "MatSeqAIJGetArray", "seqbaij": "MatSeqBAIJGetArray"}
+
+
+class PetscCallError(RuntimeError):
+    """A PETSc C function called through ctypes returned an error code."""
+
+
+@lru_cache(maxsize=1)
+def libpetsc():
+    for name in ("libpetsc_real.so.3.18", "libpetsc.so.3.18"):
+        try:
+            return ctypes.CDLL(name, mode=ctypes.RTLD_GLOBAL)
+        except OSError:
+            continue
+    raise OSError("cannot load libpetsc_real.so.3.18 (Debian's PETSc 3.18, installed by "
+                  "scripts/setup.sh)")
+
+
+def _call(name, argtypes, *args):
+    fn = getattr(libpetsc(), name)
+    fn.restype = ctypes.c_int
+    fn.argtypes = argtypes
+    ierr = fn(*args)
+    if ierr != 0:
+        raise PetscCallError(f"{name} failed with PETSc error {ierr}")
+
+
+def bjacobi_set_local_blocks(pc, lens):
+    """PCBJacobiSetLocalBlocks(pc, len(lens), lens) (lens in matrix rows)."""
+    arr = np.ascontiguousarray(lens, dtype=PETSc.IntType)
+    ctype = ctypes.c_int32 if PETSc.IntType == np.int32 else ctypes.c_int64
+    _call("PCBJacobiSetLocalBlocks", [ctypes.c_void_p, ctype, ctypes.c_void_p],
+          ctypes.c_void_p(pc.handle), ctype(len(arr)),
+          arr.ctypes.data_as(ctypes.c_void_p) if len(arr) else None)
+
+
+def has_value_array(mat) -> bool:
+    """Whether :func:`value_array` supports ``mat`` (a SeqAIJ or SeqBAIJ matrix)."""
+    return mat.getType() in _GET_ARRAY
+
+
+@contextmanager
+def value_array(mat, n):
+    """The value array (n,) of the sequential matrix ``mat`` (SeqAIJ: row-major CSR
+    order; SeqBAIJ: block CSR order, each block column-major), writable in place.
+    Restoring it (on exit) marks the matrix as changed; the caller checks that ``n``
+    is the matrix's number of stored values."""
+    get = _GET_ARRAY.get(mat.getType())
+    if get is None:
+        raise TypeError(f"value_array: unsupported matrix type {mat.getType()} "
+                        f"(expected one of {', '.join(_GET_ARRAY)})")
+    ptr = ctypes.POINTER(ctypes.c_double)()
+    args = ([ctypes.c_void_p, ctypes.POINTER(ctypes.POINTER(ctypes.c_double))],
+            ctypes.c_void_p(mat.handle), ctypes.byref(ptr))
+    _call(get, *args)
+    try:
+        yield np.ctypeslib.as_array(ptr, shape=(n,)) if n else np.zeros(0)
+    finally:
+        _call(get.replace("Get", "Restore"), *args)

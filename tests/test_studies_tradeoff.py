@@ -93,3 +93,28 @@ def test_study_outputs_and_unstable_variant(tmp_path):
     assert "| target RMS error |" in md and "SolverError at frame 0" in md
     png = tmp_path / "pareto.png"
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_driver_base_reference_on_the_krylov_axis(tmp_path):
+    """--ref base (for scenes too large for a converged reference): the reference is the
+    base setting with Krylov rtol 1e-10, and --rtols picks the axis's values.  (The
+    variants use point-block Jacobi, with which CG's tolerance matters; the default
+    per-wisp blocks are exact without contact.)"""
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    cmd = [sys.executable, str(root / "drivers" / "tradeoff.py"), "--scene", "hairball",
+           "--wisps", "3", "--duration", str(4 / 30), "--axes", "ksp_rtol", "--rtols", "1e-2",
+           "1e-4", "--ref", "base", "--set", "pbjacobi", "--out", str(tmp_path)]
+    proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    data = json.loads((tmp_path / "tradeoff.json").read_text())
+    ref = data["reference"]
+    assert ref["ksp_rtol"] == 1e-10 and ref["newton_iterations"] == 3 and ref["filter"] == "analytic"
+    assert ref["dt"] == BASE.dt and ref["status"] == "ok"
+    by = {r["variant"]: r for r in data["variants"]}
+    assert list(by) == ["base", "rtol 1e-02", "rtol 1e-04"]
+    assert all(r["stable"] and r["n_common_times"] == 5 for r in by.values())
+    # looser Krylov solves move the trajectory further from the reference
+    assert 0 < by["base"]["rms_rel_error"] < by["rtol 1e-02"]["rms_rel_error"] < 0.1

@@ -148,7 +148,9 @@ def choose_pmat_type(scope: OptionsScope, mat_type: str, strand_contact: bool = 
     frames of tests/test_mpi_contact.py on 2 ranks) for about the same time per CG
     iteration (11.3 vs 12.5 ms per application at 606k DoFs, plus 0.45 s per frame to
     fill the copy); the point ILU of the AIJ copy is the same factorisation without
-    that round-off.
+    that round-off.  (Re-measured on an AMD EPYC, 2026-12-01, the ranking reversed:
+    the drift is dominated by the chaotic 3-iteration Newton map with contact, not by
+    the factorisation; docs/architecture.md.)
     """
     explicit = scope.lookup("lc_pmat_type")
     if explicit:

@@ -9,12 +9,13 @@ Scene: --config (default configs/hairball_2k.toml: the paper's 2,000-wisp hairba
 turning about z, y, x, gravity, head and strand contact with d0 = twice the tip radius,
 dt = 1/30, 3 Newton iterations), with strand_collision switched on if the config has it
 off.  ``--wisps``, ``--stiffness``, ``--thickness`` override the config.  Phase times
-are maxima over ranks.  ``--json FILE`` writes the per-frame figures.
+are maxima over ranks.  ``--json FILE`` writes the per-frame figures; give the files
+of several runs (e.g. 1 and 2 ranks) to scripts/report_contact.py for a table side by
+side and a plot.
 """
 
 import argparse
 import json
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -26,6 +27,7 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import load_config  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
+from lc_petsc.studies.contact_report import summarize, summary_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -83,32 +85,17 @@ def main():
                   f"  dmin {dmin:.4f}", flush=True)
     s = sim.summary()
     if comm.rank == 0:
-        d0 = sim.strand.d0
-        steady = rows[1:] or rows
-        walls = [r["wall"] for r in steady]
-        med = {k: statistics.median(r["phases"][k] for r in steady) for k in steady[0]["phases"]}
-        tot = {k: sum(r["phases"][k] for r in rows) for k in rows[0]["phases"]}
-        wall_tot = sum(r["wall"] for r in rows)
-        its = [i for r in rows for i in r["ksp"]]
-        dmin = min(r["dmin"] for r in rows)
+        run = {"ranks": comm.size, "d0": sim.strand.d0, "build": t_build, "config": args.config,
+               "petsc_options": s["petsc_options"], "frames": rows}
         print(f"\nhairball {s['wisps']} wisps, {s['dofs']} DoFs, {comm.size} rank(s), "
-              f"{len(rows)} frames; d0 = {d0:.4f} cm, k = {sim.strand.k:g} dyn/cm, "
-              f"E = {cfg.material.youngs_modulus:g}; config {args.config}; solver {s['petsc_options']}")
-        print(f"build: {t_build:.2f} s; first frame {rows[0]['wall']:.2f} s")
-        print(f"wall per frame (frames after the first): median {statistics.median(walls):.2f} s, "
-              f"mean {statistics.mean(walls):.2f} s, max {max(walls):.2f} s")
-        print("median per frame by phase: " + ", ".join(f"{k} {v:.2f}" for k, v in med.items() if v > 0))
-        print(f"collision share of the frame (whole run): {tot['collision'] / wall_tot:.1%}")
-        print(f"CG iterations per Newton solve: first frame {rows[0]['ksp']}, median "
-              f"{statistics.median(its):.0f}, max {max(its)}")
-        print(f"contact pairs per frame: first {rows[0]['pairs']}, median "
-              f"{statistics.median(r['pairs'] for r in rows):.0f}, max {max(r['pairs'] for r in rows)}")
-        print(f"pairs closer than d0/2 per frame: {[r['deep'] for r in rows]}")
-        print(f"minimum segment distance over the run: {dmin:.4f} cm = {dmin / d0:.3f} d0 "
-              f"({'above' if dmin > 0.5 * d0 else 'BELOW'} half the thickness)")
+              f"{len(rows)} frames; d0 = {sim.strand.d0:.4f} cm, k = {sim.strand.k:g} dyn/cm, "
+              f"E = {cfg.material.youngs_modulus:g}; config {args.config}; solver {s['petsc_options']}; "
+              f"build {t_build:.2f} s\n")
+        print(summary_table([summarize(run)]))
+        print(f"pairs closer than d0/2 at the end of each frame: {[r['deep'] for r in rows]}")
         if args.json:
             with open(args.json, "w") as fh:
-                json.dump({"ranks": comm.size, "d0": d0, "build": t_build, "frames": rows}, fh)
+                json.dump(run, fh)
     sim.close()
 
 

@@ -92,6 +92,9 @@ def test_example_groom_file_matches_its_generator(tmp_path):
     mod = runpy.run_path(str(ROOT / "scripts" / "make_groom.py"), run_name="not_main")
     mod["main"](str(tmp_path / "g.h5"))
     with h5py.File(tmp_path / "g.h5") as a, h5py.File(ROOT / "configs" / "data" / "fringe.h5") as b:
-        for k in ("positions", "wisp_offsets", "radius", "pinned"):
+        for k in ("wisp_offsets", "radius", "pinned"):
             assert np.array_equal(a[k][...], b[k][...]), k
+        # NumPy's SIMD sin/cos differ in the last ulp between CPUs (AVX-512 or not):
+        # measured 8.9e-16 cm on an AMD EPYC against the file written elsewhere
+        np.testing.assert_allclose(a["positions"][...], b["positions"][...], rtol=0, atol=1e-13)
         assert len(np.unique(np.diff(b["wisp_offsets"][...]))) > 5     # wisps of unequal size

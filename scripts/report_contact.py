@@ -1,0 +1,47 @@
+"""Table and plot of strand-contact benchmark runs side by side (issue 7).
+
+  .venv/bin/python scripts/report_contact.py out/bench_contact_1r_100.json \
+      out/bench_contact_2r_100.json --out out/bench_contact
+
+Reads the ``--json`` files of scripts/bench_contact.py (one per rank count) and writes
+``<out>.md`` (a markdown table, one column per run, and the issue's targets) and
+``<out>.png`` (wall time and phases, CG iterations, contact pairs and minimum distance
+per frame); the table is printed too.
+"""
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from lc_petsc.studies.contact_report import plot_runs, summarize, summary_table
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", help="JSON files written by bench_contact.py --json")
+    ap.add_argument("--out", default="out/bench_contact",
+                    help="output path without extension (writes .md and .png)")
+    args = ap.parse_args(argv)
+    runs = []
+    for path in args.runs:
+        try:
+            runs.append(json.loads(Path(path).read_text()))
+        except (OSError, json.JSONDecodeError) as e:
+            ap.exit(2, f"report_contact: cannot read {path}: {e}; give the files written by "
+                       f"bench_contact.py --json\n")
+        if not {"ranks", "d0", "frames"} <= set(runs[-1]):
+            ap.exit(2, f"report_contact: {path} is not a bench_contact.py --json file "
+                       f"(needs ranks, d0, frames)\n")
+    table = summary_table([summarize(r) for r in runs])
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sources = ", ".join(f"`{p}`" for p in args.runs)
+    out.with_suffix(".md").write_text(f"Strand-contact benchmark ({sources})\n\n{table}")
+    plot_runs(runs, out.with_suffix(".png"))
+    print(table)
+    print(f"wrote {out.with_suffix('.md')} and {out.with_suffix('.png')}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -16,6 +16,7 @@ side and a plot.
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -75,8 +76,12 @@ def main():
         pairs = sim.integrator.contact_pairs[-1]
         dmin = sim.integrator.contact_min_distance[-1]
         deep = sim.integrator.contact_deep_pairs[-1]
-        sep = sim.strand.last_separation          # (pairs < d0/2 found, Jacobi rounds, left)
-        rows.append({"frame": f, "wall": wall, "phases": ph, "ksp": its, "pairs": pairs, "dmin": dmin,
+        # (pairs < d0/2 found: the most over the frame's separation calls; Jacobi rounds and
+        # pairs left of the last call)
+        found = sim.integrator.contact_separated[-1] if sim.integrator.contact_separated else 0
+        sep = (found,) + tuple(sim.strand.last_separation[1:])
+        rows.append({"frame": f, "wall": wall, "phases": ph, "ksp": its, "pairs": pairs,
+                     "dmin": dmin if math.isfinite(dmin) else None,     # None: no pair in range
                      "deep": deep, "separated": sep, "ghosts": sim.strand.ghosts_received[-1]})
         if comm.rank == 0:
             print(f"frame {f:3d}: {wall:6.2f} s  collision {ph['collision']:5.2f}  solve "
@@ -86,6 +91,7 @@ def main():
     s = sim.summary()
     if comm.rank == 0:
         run = {"ranks": comm.size, "d0": sim.strand.d0, "build": t_build, "config": args.config,
+               "wisps": s["wisps"], "dofs": s["dofs"],
                "petsc_options": s["petsc_options"], "frames": rows}
         print(f"\nhairball {s['wisps']} wisps, {s['dofs']} DoFs, {comm.size} rank(s), "
               f"{len(rows)} frames; d0 = {sim.strand.d0:.4f} cm, k = {sim.strand.k:g} dyn/cm, "

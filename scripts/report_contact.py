@@ -23,24 +23,26 @@ def main(argv=None):
     ap.add_argument("--out", default="out/bench_contact",
                     help="output path without extension (writes .md and .png)")
     args = ap.parse_args(argv)
-    runs = []
+    runs, summaries = [], []
     for path in args.runs:
         try:
             runs.append(json.loads(Path(path).read_text()))
         except (OSError, json.JSONDecodeError) as e:
             ap.exit(2, f"report_contact: cannot read {path}: {e}; give the files written by "
                        f"bench_contact.py --json\n")
-        if not {"ranks", "d0", "frames"} <= set(runs[-1]):
-            ap.exit(2, f"report_contact: {path} is not a bench_contact.py --json file "
-                       f"(needs ranks, d0, frames)\n")
-    table = summary_table([summarize(r) for r in runs])
+        try:
+            summaries.append(summarize(runs[-1]))
+        except ValueError as e:
+            ap.exit(2, f"report_contact: {path}: {e}\n")
+    table = summary_table(summaries)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    md, png = out.parent / (out.name + ".md"), out.parent / (out.name + ".png")
     sources = ", ".join(f"`{p}`" for p in args.runs)
-    out.with_suffix(".md").write_text(f"Strand-contact benchmark ({sources})\n\n{table}")
-    plot_runs(runs, out.with_suffix(".png"))
+    md.write_text(f"Strand-contact benchmark ({sources})\n\n{table}")
+    plot_runs(runs, png)
     print(table)
-    print(f"wrote {out.with_suffix('.md')} and {out.with_suffix('.png')}")
+    print(f"wrote {md} and {png}")
 
 
 if __name__ == "__main__":

@@ -181,8 +181,8 @@ def test_broad_phase_finds_every_pair_closer_than_the_thickness(stretched):
 
 
 def _crossing_positions(options, frames=8):
-    """Positions after ``frames`` of the crossing wisps approaching at 2 x 2.5 cm/s (in
-    contact from frame 5).  Not 5 cm/s: the predicted positions of frame 3 then cross
+    """Positions after ``frames`` of the crossing wisps approaching at 2.5 cm/s each (5 cm/s
+    relative; in contact from frame 5).  Not 5 cm/s each: the predicted positions of frame 3 then cross
     exactly (distance 0, the contact normal undefined), and round-off decides on which
     side the wisps end up (a different side with MUMPS than with CG on an AMD EPYC)."""
     from mpi4py import MPI

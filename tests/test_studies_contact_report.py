@@ -45,7 +45,7 @@ def test_targets_are_judged_on_two_ranks_and_said_plainly():
     slow1 = summarize(synthetic_run(1, walls=[9.0, 12.0, 11.0], collision=[4.0, 5.0, 5.0]))
     table = summary_table([fast, slow1])
     assert table.index("| 1 rank |") < table.index("| 2 ranks |")      # sorted by ranks
-    assert "judged on 2 rank(s)" in table
+    assert "judged on the first run on 2 rank(s)" in table
     assert "6.50 s, met" in table and "not met" not in table
     slow2 = summarize(synthetic_run(2, walls=[9.0, 9.0, 10.0], collision=[5.0, 5.0, 5.0],
                                     deep=[0, 3, 0], dmin=0.06))
@@ -54,12 +54,39 @@ def test_targets_are_judged_on_two_ranks_and_said_plainly():
     assert "53.6%, **not met**" in table                      # contact share 15 / 28
     assert "1 frame(s) ending below, **not met**" in table    # a pair closer than d0/2
     one = summary_table([slow1])                # no 2-rank run: the time target cannot be met
-    assert "judged on 1 rank(s)" in one and "11.50 s, **not met**" in one
+    assert "judged on the first run on 1 rank(s)" in one and "11.50 s, **not met**" in one
 
 
-def test_empty_run_is_refused():
+def test_bad_runs_are_refused_with_what_is_wrong():
     with pytest.raises(ValueError, match="no frames"):
         summarize({"ranks": 1, "d0": 0.1, "frames": []})
+    with pytest.raises(ValueError, match="JSON object, got list"):
+        summarize([1, 2])
+    with pytest.raises(ValueError, match=r"lacks \['d0', 'ranks'\]"):
+        summarize({"frames": [{}]})
+    run = synthetic_run(2, [5.0, 6.0], [1.0, 1.0])
+    del run["frames"][1]["ksp"]
+    with pytest.raises(ValueError, match="frame row 1 lacks"):
+        summarize(run)
+    run = synthetic_run(2, [5.0, 6.0], [1.0, 1.0], d0=0.14)
+    run["d0"] = 0
+    with pytest.raises(ValueError, match="d0 must be a positive number"):
+        summarize(run)
+
+
+def test_frames_without_pairs_in_range_and_scene_label(tmp_path):
+    run = synthetic_run(2, [5.0, 6.0, 7.0], [1.0, 1.0, 1.0])
+    run["frames"][0]["dmin"] = None              # bench_contact writes None for no pair in range
+    run.update(wisps=2000, dofs=606000)
+    s = summarize(run)
+    assert s["dmin_cm"] == pytest.approx(0.081) and s["scene"] == "2,000-wisp hairball (606,000 DoFs)"
+    assert summary_table([s]).startswith("| 2,000-wisp hairball (606,000 DoFs) with contact | 2 ranks |")
+    for f in run["frames"]:
+        f["dmin"] = None
+    s = summarize(run)
+    assert s["dmin_cm"] == float("inf") and "0 frame(s) ending below, met" in summary_table([s])
+    plot_runs([run], tmp_path / "none.png")
+    assert (tmp_path / "none.png").stat().st_size > 20_000
 
 
 def test_plot_writes_a_png(tmp_path):
@@ -84,15 +111,16 @@ def test_bench_contact_json_feeds_the_report(tmp_path):
     assert run["ranks"] == 1 and len(run["frames"]) == 2
     assert all(len(r["ksp"]) == 3 for r in run["frames"])        # 3 Newton solves per frame
     assert "collision share of the run" in bench.stdout
+    assert run["wisps"] == 12 and run["dofs"] == 12 * 101 * 3
     rep = subprocess.run([sys.executable, str(ROOT / "scripts" / "report_contact.py"), str(js),
-                          "--out", str(tmp_path / "rep")], capture_output=True, text=True,
+                          "--out", str(tmp_path / "rep_1.5")], capture_output=True, text=True,
                          timeout=120)
     assert rep.returncode == 0, rep.stdout + rep.stderr
-    assert (tmp_path / "rep.png").stat().st_size > 20_000
-    md = (tmp_path / "rep.md").read_text()
-    assert "| 1 rank |" in md and "Targets (issue 7)" in md
+    assert (tmp_path / "rep_1.5.png").stat().st_size > 20_000
+    md = (tmp_path / "rep_1.5.md").read_text()
+    assert "| 12-wisp hairball (3,636 DoFs) with contact | 1 rank |" in md and "Targets (issue 7)" in md
     bad = tmp_path / "bad.json"
     bad.write_text('{"frames": []}')
     rep = subprocess.run([sys.executable, str(ROOT / "scripts" / "report_contact.py"), str(bad)],
                          capture_output=True, text=True, timeout=120)
-    assert rep.returncode == 2 and "not a bench_contact.py --json file" in rep.stderr
+    assert rep.returncode == 2 and "lacks ['d0', 'ranks']" in rep.stderr and "bad.json" in rep.stderr

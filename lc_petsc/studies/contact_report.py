@@ -54,7 +54,6 @@ def summarize(run):
     return {
         "ranks": int(run["ranks"]),
         "frames": len(rows),
-        "build_s": float(run.get("build", float("nan"))),
         "first_frame_s": rows[0]["wall"],
         "wall_median_s": statistics.median(walls),
         "wall_p10_s": float(np.percentile(walls, 10)),
@@ -80,7 +79,7 @@ def summarize(run):
 
 
 def _scene(run):
-    """'hairball of N wisps (M DoFs)' when the run says, else 'hairball'."""
+    """'N-wisp hairball (M DoFs)' when the run says, else 'hairball'."""
     if "wisps" in run and "dofs" in run:
         return f"{run['wisps']:,}-wisp hairball ({run['dofs']:,} DoFs)"
     return "hairball"

@@ -46,7 +46,9 @@ EXIT_PREEMPTED = 75         # EX_TEMPFAIL: stopped by SIGTERM/SIGUSR1 after a ch
 # config keys a restart may change: they touch neither the trajectory nor frames.h5's rows
 RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.previews",
                      "output.preview_frames", "output.contact_sheet", "output.view",
-                     "output.checkpoint_every", "output.checkpoints_kept"}
+                     "output.checkpoint_every", "output.checkpoints_kept",
+                     "output.usd", "output.render_hairs", "output.render_hair_seed",
+                     "output.render_hair_spread"}
 PROG = "simulate.py"
 
 
@@ -371,9 +373,13 @@ def _run(comm, args, cfg, command_line, build_simulator, SolverError, PETSc, cfg
                 files += [os.path.relpath(p, out) for p in _previews(cfg, out, h5_path, writer, frames,
                                                                      Path(args.config).stem)]
             t_prev = time.perf_counter() - t0
+            # USD export for DCC tools (frames.usdc), from the closed frames.h5
+            from lc_petsc.io.usd import export_run
+            usd_files, t_usd = export_run(cfg.output, h5_path, out)
+            files += usd_files
             files.append("summary.json")
             summary["output"] = {"dir": str(out), "every": every, "frames_written": writer.written,
-                                 "files": files, "xdmf_s": t_xdmf, "previews_s": t_prev}
+                                 "files": files, "xdmf_s": t_xdmf, "previews_s": t_prev, "usd_s": t_usd}
             write_summary(out / "summary.json", summary)
             print(format_report(summary), flush=True)
             if error:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, asdict, fields
 from pathlib import Path
 from typing import Optional, Sequence
 
-SCENE_KINDS = ("wisp4c", "hairball", "straight", "file")
+SCENE_KINDS = ("wisp4c", "hairball", "straight", "file", "usd")
 PERTURBATIONS = ("none", "smash", "jitter", "straighten")
 TERMS = ("stretch", "bend", "twist", "gravity", "head_collision", "strand_collision")
 HEAD_MOTIONS = ("static", "shake", "translate")
@@ -57,7 +57,9 @@ class SceneConfig:
     kind: ``wisp4c`` (one 101-vertex 4C wisp hanging from the origin along -y),
     ``hairball`` (``n_wisps`` 4C wisps on the upper half of the head sphere),
     ``straight`` (one straight strand of ``n_vertices`` from the origin along
-    ``direction``), ``file`` (HDF5 strands file at ``path``, DESIGN section 3).
+    ``direction``), ``file`` (HDF5 strands file at ``path``, DESIGN section 3), ``usd``
+    (BasisCurves of the USD file at ``path``, optionally only those at or under
+    ``prim_path``; :mod:`lc_petsc.scene.usd_source`).
     perturbation: initial-state change of SPEC section 6 applied to free vertices
     (``smash``: x scaled by ``smash_factor``; ``jitter``: uniform offsets in
     [-jitter, jitter] cm; ``straighten``: free vertices put on a vertical line).
@@ -70,6 +72,7 @@ class SceneConfig:
     seed: int = 0
     n_pinned: int = 4
     path: Optional[str] = None
+    prim_path: Optional[str] = None         # usd: a BasisCurves prim or an ancestor of some
     segment_length: float = 0.6            # straight strands and the 4C stem
     direction: Sequence[float] = (0.0, -1.0, 0.0)   # straight strand direction
     perturbation: str = "none"
@@ -91,6 +94,20 @@ class SceneConfig:
             if not os.path.isfile(self.path):
                 raise ConfigError(f"scene.path = {self.path!r}: no such file (an HDF5 strands file "
                                   "with /positions and /wisp_offsets is expected)")
+        if self.kind == "usd":
+            if not self.path:
+                raise ConfigError("scene.path must name a USD file (.usd, .usda, .usdc) when "
+                                  "scene.kind = 'usd'")
+            if not os.path.isfile(self.path):
+                raise ConfigError(f"scene.path = {self.path!r}: no such file (a USD file with "
+                                  "BasisCurves is expected)")
+        if self.prim_path is not None:
+            if self.kind != "usd":
+                raise ConfigError(f"scene.prim_path = {self.prim_path!r} only applies to scene.kind = "
+                                  f"'usd', not {self.kind!r}")
+            if not isinstance(self.prim_path, str) or not self.prim_path.startswith("/"):
+                raise ConfigError(f"scene.prim_path must be an absolute USD prim path such as "
+                                  f"'/Groom/wisps', got {self.prim_path!r}")
         if len(tuple(self.direction)) != 3 or not all(math.isfinite(float(c)) for c in self.direction) \
                 or math.hypot(*map(float, self.direction)) == 0.0:
             raise ConfigError(f"scene.direction must be a non-zero finite 3-vector, got {self.direction!r}")
@@ -272,6 +289,10 @@ class OutputConfig:
     ``checkpoint_every``: write a restart checkpoint to ``<dir>/checkpoints`` every that
     many simulation frames (0: none; see :mod:`lc_petsc.io.checkpoint`);
     ``checkpoints_kept``: how many of the newest checkpoints are kept.
+    ``usd``: write ``frames.usdc`` (BasisCurves for DCC tools, :mod:`lc_petsc.io.usd`)
+    from ``frames.h5`` at the end of the run; ``render_hairs``: N interpolated hairs
+    per wisp in it (0: none), offsets seeded by ``render_hair_seed`` and spread over
+    ``render_hair_spread`` x the wisp radius (:mod:`lc_petsc.io.render_hairs`).
     """
 
     dir: str = ""
@@ -283,12 +304,16 @@ class OutputConfig:
     view: str = "front"
     checkpoint_every: int = 0
     checkpoints_kept: int = 2
+    usd: bool = True
+    render_hairs: int = 0
+    render_hair_seed: int = 0
+    render_hair_spread: float = 1.0
 
     def validate(self) -> None:
         if not isinstance(self.dir, str):
             raise ConfigError(f"output.dir must be a string (a folder), got {self.dir!r}")
         _int_at_least("output.every", self.every, 1)
-        for name in ("xdmf", "previews"):
+        for name in ("xdmf", "previews", "usd"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"output.{name} must be true or false, got {getattr(self, name)!r}")
         for f in self.preview_frames:
@@ -300,6 +325,12 @@ class OutputConfig:
             raise ConfigError(f"output.view must be one of {VIEWS}, got {self.view!r}")
         _int_at_least("output.checkpoint_every", self.checkpoint_every, 0)
         _int_at_least("output.checkpoints_kept", self.checkpoints_kept, 1)
+        _int_at_least("output.render_hairs", self.render_hairs, 0)
+        _int_at_least("output.render_hair_seed", self.render_hair_seed, 0)
+        _positive("output.render_hair_spread", self.render_hair_spread)
+        if self.render_hairs and not self.usd:
+            raise ConfigError(f"output.render_hairs = {self.render_hairs} needs output.usd = true "
+                              "(render hairs are written into the USD export only)")
 
 
 @dataclass

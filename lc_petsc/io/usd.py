@@ -1,0 +1,258 @@
+"""USD export of a run (DESIGN section 3, "USD export"): ``frames.usdc`` from ``frames.h5``,
+for DCC tools (Houdini, Blender, Maya, Unreal, usdview) through Pixar's ``pxr``.
+
+Stage layout (``metersPerUnit`` 0.01: centimetres; up axis Y; default prim ``/Groom``):
+
+* ``/Groom/wisps``: ``UsdGeom.BasisCurves``, type ``linear``, one curve per wisp in global
+  wisp order.  ``curveVertexCounts`` = diff of ``/wisp_offsets``; ``points`` (float32)
+  time-sampled at every written frame, with the rest pose as its default (un-animated)
+  value; ``widths`` = 2 x the radii (vertex interpolation); ``primvars:wisp_index``
+  (int, uniform: the wisp of each curve); ``primvars:pinned`` (int 0/1, vertex: the
+  pinned roots, read back by the ``usd`` scene kind); ``extent`` time-sampled.
+* ``/Groom/head``: ``UsdGeom.Sphere`` of the head radius with the head's motion
+  (:class:`lc_petsc.scene.kinematics.HeadMotion`) as a time-sampled ``xformOp:transform``;
+  present when the scene has a head sphere (head contact on, or a hairball).
+* ``/Groom/render_hairs`` (``output.render_hairs`` > 0): a second linear BasisCurves of
+  N interpolated hairs per wisp (:mod:`lc_petsc.io.render_hairs`), ``primvars:guide_wisp``
+  (int, uniform), time-sampled ``points``.
+
+Time: row k of ``frames.h5`` (simulation frame k * every) is time code k;
+``timeCodesPerSecond`` = ``framesPerSecond`` = 1 / (dt * every), so a DCC plays the run
+at its real speed; start and end time codes are 0 and n_frames - 1.
+
+Radii are not in ``frames.h5``: they are rebuilt from the resolved config stored in its
+``config`` attribute with the scene source the run used (a strands or USD file must
+still be at its path).  The export streams: one frame is read, converted and appended
+to the crate file at a time (``Usd.Stage.Save`` per frame writes the new samples and
+frees them), so memory stays at a few frames whatever the run length.  The file is
+written as ``<name>.tmp.usdc`` and renamed when complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+
+USD_NAME = "frames.usdc"
+
+
+def _config_tables(config_dict):
+    """Scene, material, physics and output dataclasses from a resolved config dict
+    (keys unknown to this version are dropped, missing ones take their defaults)."""
+    from lc_petsc import config as C
+    out = {}
+    for name, cls in (("scene", C.SceneConfig), ("material", C.MaterialConfig),
+                      ("physics", C.PhysicsConfig), ("output", C.OutputConfig)):
+        known = {f.name for f in fields(cls)}
+        out[name] = cls(**{k: v for k, v in config_dict.get(name, {}).items() if k in known})
+    return out
+
+
+def has_head_sphere(physics, scene) -> bool:
+    """The scene has a head sphere to show: head contact is modelled, or it is a hairball
+    (the same rule as the previews)."""
+    return "head_collision" in tuple(physics.terms) or scene.kind == "hairball"
+
+
+def scene_radius(tables, sizes):
+    """Per-vertex radii (n_vertices,) of the run's scene, rebuilt from its config with the
+    scene source the run used; ``sizes`` (n_wisps,) from frames.h5 must match."""
+    from lc_petsc.scene.sources import source_from_config
+    scene = tables["scene"]
+    try:
+        source = source_from_config(scene, tables["material"], tables["physics"])
+    except (OSError, ValueError) as e:
+        raise ValueError(f"cannot rebuild the wisps' radii from the run's scene ({scene.kind}"
+                         f"{', ' + str(scene.path) if scene.path else ''}): {e}") from None
+    if not np.array_equal(np.asarray(source.sizes), sizes):
+        raise ValueError(f"the run's scene ({scene.kind}) now has {len(source.sizes)} wisps of other "
+                         f"sizes than the {len(sizes)} of frames.h5; was its strands file changed?")
+    return np.asarray(source.load(0, source.n_wisps).radius, float)
+
+
+def head_matrix(motion, t):
+    """USD row-vector matrix (4x4) of the head at time ``t``: p -> c + T + R p."""
+    R, T = motion.transform(t)
+    M = np.eye(4)
+    M[:3, :3] = R.T
+    M[3, :3] = motion.center + T
+    return M
+
+
+def _define_curves(stage, path, counts, widths, Vt, UsdGeom, Sdf):
+    curves = UsdGeom.BasisCurves.Define(stage, path)
+    curves.CreateTypeAttr(UsdGeom.Tokens.linear)
+    curves.CreateWrapAttr(UsdGeom.Tokens.nonperiodic)
+    curves.CreateCurveVertexCountsAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(counts, np.int32)))
+    curves.CreateWidthsAttr(Vt.FloatArray.FromNumpy(np.ascontiguousarray(widths, np.float32)))
+    curves.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+    return curves
+
+
+def _int_primvar(curves, name, values, interpolation, Vt, UsdGeom, Sdf):
+    pv = UsdGeom.PrimvarsAPI(curves.GetPrim()).CreatePrimvar(name, Sdf.ValueTypeNames.IntArray,
+                                                             interpolation)
+    pv.Set(Vt.IntArray.FromNumpy(np.ascontiguousarray(values, np.int32)))
+    return pv
+
+
+def _extent(p32, half_width):
+    lo = p32.min(axis=0) - half_width
+    hi = p32.max(axis=0) + half_width
+    return np.stack([lo, hi]).astype(np.float32)
+
+
+def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed=None,
+              render_hair_spread=None, stride=1, progress=None):
+    """Write the USD export of ``frames_path`` (a closed ``frames.h5``) to ``usd_path``
+    (default ``frames.usdc`` beside it).  ``render_hairs`` (hairs per wisp), the seed and
+    the spread default to the run's ``output`` config; ``stride`` k writes every k-th
+    row of frames.h5 (time codes stay row numbers).  ``progress``: callable(done, total)
+    or None.  Returns a dict of what was written and how long it took (seconds)."""
+    import h5py
+    from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+    from lc_petsc.io.render_hairs import RenderHairs, root_normals
+    from lc_petsc.scene.kinematics import HeadMotion
+
+    t_start = time.perf_counter()
+    frames_path = Path(frames_path)
+    usd_path = Path(usd_path) if usd_path is not None else frames_path.with_name(USD_NAME)
+    if usd_path.suffix not in (".usd", ".usdc", ".usda"):
+        raise ValueError(f"USD output {str(usd_path)!r}: the name must end in .usdc, .usd or .usda")
+    if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
+        raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
+    try:
+        f = h5py.File(frames_path, "r")
+    except OSError as e:
+        raise ValueError(f"{frames_path}: cannot open the frames file ({e})") from None
+    with f:
+        for key in ("positions", "time", "wisp_offsets", "rest_positions", "pinned"):
+            if key not in f:
+                raise ValueError(f"{frames_path}: not an lc_petsc frames file (no /{key})")
+        if "config" not in f.attrs or "dt" not in f.attrs:
+            raise ValueError(f"{frames_path}: has no 'config'/'dt' attributes (not written by the main job)")
+        config_dict = json.loads(f.attrs["config"])
+        tables = _config_tables(config_dict)
+        dt, every = float(f.attrs["dt"]), int(f.attrs.get("every", 1))
+        offsets = np.asarray(f["wisp_offsets"][...], np.int64)
+        sizes = np.diff(offsets)
+        rest = np.asarray(f["rest_positions"][...], float)
+        pinned = np.asarray(f["pinned"][...], bool)
+        times = np.asarray(f["time"][...], float)
+        n_rows = len(times)
+        rows = list(range(0, n_rows, int(stride)))
+        radius = scene_radius(tables, sizes)
+        out_cfg = tables["output"]
+        n_hairs = out_cfg.render_hairs if render_hairs is None else render_hairs
+        seed = out_cfg.render_hair_seed if render_hair_seed is None else render_hair_seed
+        spread = out_cfg.render_hair_spread if render_hair_spread is None else render_hair_spread
+        if isinstance(n_hairs, bool) or not isinstance(n_hairs, (int, np.integer)) or n_hairs < 0:
+            raise ValueError(f"render hairs per wisp must be an integer >= 0, got {n_hairs!r}")
+        if not (np.isfinite(spread) and spread > 0):
+            raise ValueError(f"render hair spread must be a positive number, got {spread!r}")
+
+        tmp = usd_path.with_name(usd_path.stem + ".tmp" + usd_path.suffix)
+        tmp.unlink(missing_ok=True)
+        stage = Usd.Stage.CreateNew(str(tmp))
+        try:
+            UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+            UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+            tcps = 1.0 / (dt * every)
+            stage.SetTimeCodesPerSecond(tcps)
+            stage.SetFramesPerSecond(tcps)
+            stage.SetStartTimeCode(0.0)
+            stage.SetEndTimeCode(float(max(n_rows - 1, 0)))
+            root = UsdGeom.Xform.Define(stage, "/Groom")
+            stage.SetDefaultPrim(root.GetPrim())
+            stage.GetRootLayer().customLayerData = {
+                "lc_petsc:frames_file": str(frames_path.resolve()), "lc_petsc:dt": dt,
+                "lc_petsc:every": every, "lc_petsc:description": str(tables["scene"].description)}
+
+            wisps = _define_curves(stage, "/Groom/wisps", sizes, 2.0 * radius, Vt, UsdGeom, Sdf)
+            _int_primvar(wisps, "wisp_index", np.arange(len(sizes)), UsdGeom.Tokens.uniform, Vt, UsdGeom, Sdf)
+            _int_primvar(wisps, "pinned", pinned.astype(np.int32), UsdGeom.Tokens.vertex, Vt, UsdGeom, Sdf)
+            pts_attr = wisps.GetPointsAttr()
+            pts_attr.Set(Vt.Vec3fArray.FromNumpy(rest.astype(np.float32)))     # default: rest pose
+            ext_attr = wisps.CreateExtentAttr()
+            half_w = float(radius.max(initial=0.0))
+
+            head = motion = None
+            if has_head_sphere(tables["physics"], tables["scene"]):
+                motion = HeadMotion(tables["physics"])
+                head = UsdGeom.Sphere.Define(stage, "/Groom/head")
+                head.CreateRadiusAttr(motion.radius)
+                head.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-motion.radius), Gf.Vec3f(motion.radius)]))
+                head.CreateDisplayColorAttr(Vt.Vec3fArray([Gf.Vec3f(0.72, 0.62, 0.55)]))
+                head_op = head.AddTransformOp()
+
+            hairs = None
+            if n_hairs > 0:
+                hairs = RenderHairs(offsets, radius, n_hairs, seed=seed, spread=spread)
+                hc = _define_curves(stage, "/Groom/render_hairs", hairs.curve_vertex_counts(),
+                                    hairs.widths(), Vt, UsdGeom, Sdf)
+                _int_primvar(hc, "guide_wisp", hairs.guide_wisp(), UsdGeom.Tokens.uniform, Vt, UsdGeom, Sdf)
+                hair_attr, hair_ext = hc.GetPointsAttr(), hc.CreateExtentAttr()
+                normal_rest = root_normals(rest, offsets)
+                hair_buf = np.empty((hairs.n_points, 3), np.float32)
+            stage.Save()
+
+            t_hairs = 0.0
+            for done, k in enumerate(rows):
+                x = np.asarray(f["positions"][k], float)
+                p32 = x.astype(np.float32)
+                pts_attr.Set(Vt.Vec3fArray.FromNumpy(p32), float(k))
+                ext_attr.Set(Vt.Vec3fArray.FromNumpy(_extent(p32, half_w)), float(k))
+                if head is not None:
+                    head_op.Set(Gf.Matrix4d(head_matrix(motion, times[k]).tolist()), float(k))
+                if hairs is not None:
+                    t0 = time.perf_counter()
+                    R = (motion or HeadMotion(tables["physics"])).transform(times[k])[0]
+                    hairs.points(x, normal_rest @ R.T, out=hair_buf)
+                    hair_attr.Set(Vt.Vec3fArray.FromNumpy(hair_buf), float(k))
+                    hair_ext.Set(Vt.Vec3fArray.FromNumpy(_extent(hair_buf, half_w)), float(k))
+                    t_hairs += time.perf_counter() - t0
+                stage.Save()             # appends this frame's samples to the file, frees them
+                if progress is not None:
+                    progress(done + 1, len(rows))
+            del stage
+            os.replace(tmp, usd_path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+    return {"path": str(usd_path), "frames": len(rows), "wisps": int(len(sizes)),
+            "points": int(offsets[-1]), "render_hairs": int(n_hairs) * int(len(sizes)),
+            "render_hair_points": int(n_hairs) * int(offsets[-1]),
+            "time_codes_per_second": 1.0 / (dt * every), "bytes": usd_path.stat().st_size,
+            "seconds": time.perf_counter() - t_start, "render_hair_seconds": t_hairs}
+
+
+def export_run(output, frames_path, out_dir):
+    """The main job's USD export (rank 0, after ``frames.h5`` is closed): writes
+    ``out_dir/frames.usdc`` when ``output.usd`` is on, else removes a stale one.  A
+    failure is reported on stderr as a warning; the run's other outputs are unaffected.
+    Returns (files written relative to ``out_dir``, seconds)."""
+    t0 = time.perf_counter()
+    target = Path(out_dir) / USD_NAME
+    if not output.usd:
+        target.unlink(missing_ok=True)
+        return [], 0.0
+    try:
+        from pxr import Tf
+        failures = (OSError, ValueError, Tf.ErrorException)
+    except ImportError as e:
+        print(f"simulate.py: warning: no USD export ({e}; install usd-core or set output.usd = false)",
+              file=sys.stderr, flush=True)
+        return [], time.perf_counter() - t0
+    try:
+        write_usd(frames_path, target)
+    except failures as e:
+        print(f"simulate.py: warning: USD export failed, frames.h5 is intact: {e}", file=sys.stderr,
+              flush=True)
+        return [], time.perf_counter() - t0
+    return [USD_NAME], time.perf_counter() - t0

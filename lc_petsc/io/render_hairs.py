@@ -125,13 +125,14 @@ def root_normals(x_rest, offsets):
 
 def hair_offsets(n_wisps, n_hairs, seed=0, first_wisp=0):
     """Disc coordinates (a, b), each (n_wisps, n_hairs), uniform in the unit disc; wisp
-    w draws from ``default_rng([seed, first_wisp + w])``."""
+    w draws from ``default_rng([seed, first_wisp + w])``, hair h the stream's pair h
+    (radius sqrt(q0), angle 2 pi q1): adding hairs keeps the first ones."""
     a = np.empty((n_wisps, n_hairs))
     b = np.empty((n_wisps, n_hairs))
     for w in range(n_wisps):
         rng = np.random.default_rng([int(seed), int(first_wisp + w)])
-        rho = np.sqrt(rng.uniform(size=n_hairs))
-        phi = rng.uniform(0.0, 2.0 * np.pi, size=n_hairs)
+        q = rng.uniform(size=(n_hairs, 2))        # hair h: the stream's pair h
+        rho, phi = np.sqrt(q[:, 0]), 2.0 * np.pi * q[:, 1]
         a[w], b[w] = rho * np.cos(phi), rho * np.sin(phi)
     return a, b
 

@@ -173,6 +173,10 @@ def source_from_config(scene, material, physics) -> SceneSource:
     rr, tr = material.root_radius, material.tip_radius
     if scene.kind == "file":
         return FileSource(scene.path, n_pinned=scene.n_pinned, root_radius=rr, tip_radius=tr)
+    if scene.kind == "usd":
+        from lc_petsc.scene.usd_source import UsdSource
+        return UsdSource(scene.path, prim_path=scene.prim_path, n_pinned=scene.n_pinned,
+                         root_radius=rr, tip_radius=tr)
     if scene.kind == "hairball" and material.radius_scale_with_count:
         s = min(1.0, float(np.sqrt(2000.0 / scene.n_wisps)))
         rr, tr = rr * s, tr * s

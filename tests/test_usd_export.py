@@ -1,0 +1,192 @@
+"""USD export (lc_petsc.io.usd, drivers/to_usd.py, output.usd of the main job): frames.usdc
+read back with Pixar's pxr: points exact to float32, counts, widths, primvars, time codes,
+stage units and up axis, the head's animated transform, render-hair counts; the
+converter command; a USD export that cannot be written loses nothing else."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+from pxr import Usd, UsdGeom
+
+from lc_petsc.batch import main
+from lc_petsc.config import PhysicsConfig
+from lc_petsc.io.usd import head_matrix, write_usd
+from lc_petsc.scene import geometry
+from lc_petsc.scene.kinematics import HeadMotion
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).parent))
+from sim_helpers import hairball_toml  # noqa: E402
+
+N_HAIRS = 3
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A 5-wisp shaking hairball, 6 frames written every 2, with 3 render hairs per wisp."""
+    d = tmp_path_factory.mktemp("usd_run")
+    (d / "s.toml").write_text(hairball_toml(frames=6, output=f"every = 2\npreviews = false\n"
+                                                              f"render_hairs = {N_HAIRS}"))
+    assert main([str(d / "s.toml"), "--out", str(d / "out"), "--quiet"], comm=MPI.COMM_SELF) == 0
+    return d / "out"
+
+
+def _frames(out):
+    with h5py.File(out / "frames.h5") as f:
+        return {k: f[k][...] for k in ("positions", "time", "wisp_offsets", "rest_positions", "pinned")} | \
+            {"config": json.loads(f.attrs["config"])}
+
+
+def test_export_read_back(run):
+    F = _frames(run)
+    stage = Usd.Stage.Open(str(run / "frames.usdc"))
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
+    dt = F["config"]["time"]["dt"]
+    assert stage.GetTimeCodesPerSecond() == pytest.approx(1.0 / (dt * 2), rel=1e-12)
+    assert stage.GetFramesPerSecond() == stage.GetTimeCodesPerSecond()
+    n = len(F["time"])
+    assert n == 4 and stage.GetStartTimeCode() == 0 and stage.GetEndTimeCode() == n - 1
+    assert stage.GetDefaultPrim().GetPath() == "/Groom"
+    c = UsdGeom.BasisCurves(stage.GetPrimAtPath("/Groom/wisps"))
+    assert c.GetTypeAttr().Get() == "linear"
+    assert list(c.GetCurveVertexCountsAttr().Get()) == np.diff(F["wisp_offsets"]).tolist()
+    pts = c.GetPointsAttr()
+    assert pts.GetTimeSamples() == list(range(n))
+    for k in range(n):
+        P = np.asarray(pts.Get(k))
+        assert P.dtype == np.float32 and np.array_equal(P, F["positions"][k].astype(np.float32)), k
+        # time code k is row k: its seconds are k / timeCodesPerSecond
+        assert k / stage.GetTimeCodesPerSecond() == pytest.approx(F["time"][k], abs=1e-12)
+    assert np.array_equal(np.asarray(pts.Get()), F["rest_positions"].astype(np.float32))   # default: rest
+    # widths: 2 x the hairball radii (0.35 -> 0.07 along each 101-vertex wisp)
+    radius = np.tile(geometry.tapered_radius(101, 0.35, 0.07), 5)
+    assert c.GetWidthsInterpolation() == "vertex"
+    assert np.array_equal(np.asarray(c.GetWidthsAttr().Get()), (2 * radius).astype(np.float32))
+    pv = UsdGeom.PrimvarsAPI(c.GetPrim())
+    assert list(pv.GetPrimvar("wisp_index").Get()) == list(range(5))
+    assert pv.GetPrimvar("wisp_index").GetInterpolation() == "uniform"
+    assert np.array_equal(np.asarray(pv.GetPrimvar("pinned").Get()) != 0, F["pinned"])
+    # extent holds every point at every frame
+    for k in range(n):
+        lo, hi = np.asarray(c.GetExtentAttr().Get(k))
+        P = F["positions"][k]
+        assert np.all(lo <= P.min(0)) and np.all(hi >= P.max(0))
+
+
+def test_export_head_transform(run):
+    """The head sphere's transform carries the pinned roots: M(t) applied to
+    (x_rest - c) is each pinned vertex at t (the same rigid motion, independently)."""
+    F = _frames(run)
+    stage = Usd.Stage.Open(str(run / "frames.usdc"))
+    head = UsdGeom.Sphere(stage.GetPrimAtPath("/Groom/head"))
+    phys = F["config"]["physics"]
+    assert head.GetRadiusAttr().Get() == phys["head_radius"]
+    c = np.asarray(phys["head_center"])
+    pin = F["pinned"]
+    moved = 0
+    for k in range(len(F["time"])):
+        M = np.array(head.ComputeLocalToWorldTransform(k))
+        local = F["rest_positions"][pin] - c
+        world = local @ M[:3, :3] + M[3, :3]
+        assert np.abs(world - F["positions"][k][pin]).max() < 1e-9, k
+        moved += not np.allclose(M, np.eye(4))
+    assert moved >= 2          # the head did turn
+
+
+def test_head_matrix_convention():
+    hm = HeadMotion(PhysicsConfig(head_motion="shake", head_center=(1.0, 2.0, 3.0), head_amplitude=0.4))
+    p = np.array([0.3, -0.2, 0.9])
+    M = head_matrix(hm, 2.1)
+    assert np.allclose(np.append(p, 1.0) @ M, np.append(hm.pinned_positions(p + hm.center, 2.1), 1.0))
+
+
+def test_export_render_hairs(run):
+    F = _frames(run)
+    stage = Usd.Stage.Open(str(run / "frames.usdc"))
+    h = UsdGeom.BasisCurves(stage.GetPrimAtPath("/Groom/render_hairs"))
+    counts = np.asarray(h.GetCurveVertexCountsAttr().Get())
+    assert len(counts) == 5 * N_HAIRS and np.all(counts == 101)
+    guide = np.asarray(UsdGeom.PrimvarsAPI(h.GetPrim()).GetPrimvar("guide_wisp").Get())
+    assert guide.tolist() == np.repeat(np.arange(5), N_HAIRS).tolist()
+    radius = np.tile(geometry.tapered_radius(101, 0.35, 0.07), 5)
+    for k in (0, 3):
+        H = np.asarray(h.GetPointsAttr().Get(k)).reshape(5, N_HAIRS, 101, 3)
+        X = F["positions"][k].reshape(5, 1, 101, 3)
+        d = np.linalg.norm(H - X, axis=-1)
+        # within the wisp radius (spread 1), plus float32 rounding of |x| <= 60 cm
+        assert np.all(d <= radius.reshape(5, 1, 101) + 1e-5)
+        assert d.max() > 0.2 * radius.max()       # and not all on the guide
+
+
+def test_converter_matches_job_and_stride(run, tmp_path):
+    out = tmp_path / "conv.usda"
+    p = subprocess.run([sys.executable, str(ROOT / "drivers" / "to_usd.py"), str(run / "frames.h5"),
+                        "--out", str(out), "--render-hairs", "2", "--stride", "2", "--quiet"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "2 frames of 5 wisps, 10 render hairs" in p.stdout
+    a = Usd.Stage.Open(str(out))
+    b = Usd.Stage.Open(str(run / "frames.usdc"))
+    pa = UsdGeom.BasisCurves(a.GetPrimAtPath("/Groom/wisps")).GetPointsAttr()
+    pb = UsdGeom.BasisCurves(b.GetPrimAtPath("/Groom/wisps")).GetPointsAttr()
+    assert pa.GetTimeSamples() == [0.0, 2.0]
+    assert np.array_equal(np.asarray(pa.Get(2)), np.asarray(pb.Get(2)))
+    ha = UsdGeom.BasisCurves(a.GetPrimAtPath("/Groom/render_hairs"))
+    assert len(ha.GetCurveVertexCountsAttr().Get()) == 10
+    # the first 2 hairs of each wisp are the job's first 2 (same seed, same stream)
+    Ha = np.asarray(ha.GetPointsAttr().Get(2)).reshape(5, 2, 101, 3)
+    Hb = np.asarray(UsdGeom.BasisCurves(b.GetPrimAtPath("/Groom/render_hairs")).GetPointsAttr().Get(2))
+    assert np.array_equal(Ha, Hb.reshape(5, N_HAIRS, 101, 3)[:, :2])
+
+
+def test_converter_errors(tmp_path):
+    bad = tmp_path / "x.h5"
+    with h5py.File(bad, "w") as f:
+        f["positions"] = np.zeros((1, 4, 3))
+    p = subprocess.run([sys.executable, str(ROOT / "drivers" / "to_usd.py"), str(bad)],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "not an lc_petsc frames file (no /time)" in p.stderr
+    p = subprocess.run([sys.executable, str(ROOT / "drivers" / "to_usd.py"), str(tmp_path / "none.h5")],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "cannot open the frames file" in p.stderr
+    assert not list(tmp_path.glob("*.usd*"))
+
+
+def test_write_usd_argument_errors(run, tmp_path):
+    with pytest.raises(ValueError, match="must end in .usdc, .usd or .usda"):
+        write_usd(run / "frames.h5", tmp_path / "a.abc")
+    with pytest.raises(ValueError, match="stride must be an integer >= 1"):
+        write_usd(run / "frames.h5", tmp_path / "a.usdc", stride=0)
+    with pytest.raises(ValueError, match="render hairs per wisp must be an integer >= 0"):
+        write_usd(run / "frames.h5", tmp_path / "a.usdc", render_hairs=-1)
+    assert not list(tmp_path.iterdir())
+
+
+def test_job_usd_off_and_failure_keeps_outputs(tmp_path, capsys):
+    (tmp_path / "s.toml").write_text(hairball_toml(frames=2, output="previews = false\nusd = false"))
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "frames.usdc").write_text("stale")               # an earlier run's export goes
+    assert main([str(tmp_path / "s.toml"), "--out", str(out), "--quiet"], comm=MPI.COMM_SELF) == 0
+    assert not (out / "frames.usdc").exists()
+    s = json.loads((out / "summary.json").read_text())
+    assert "frames.usdc" not in s["output"]["files"] and s["output"]["usd_s"] == 0.0
+    # a scene whose strands file vanished after the run: no USD, a warning, the rest intact
+    from lc_petsc.io.usd import export_run
+    from lc_petsc.config import OutputConfig
+    with h5py.File(out / "frames.h5", "r+") as f:
+        cfg = json.loads(f.attrs["config"])
+        cfg["scene"].update(kind="file", path=str(tmp_path / "gone.h5"))
+        f.attrs["config"] = json.dumps(cfg)
+    files, _ = export_run(OutputConfig(), out / "frames.h5", out)
+    assert files == [] and not list(out.glob("*.usdc"))
+    assert "USD export failed, frames.h5 is intact" in capsys.readouterr().err
+    with h5py.File(out / "frames.h5") as f:
+        assert f["positions"].shape[0] == 3

@@ -66,6 +66,7 @@ import os
 import numpy, petsc4py
 from petsc4py import PETSc
 import h5py, matplotlib, tqdm  # noqa: F401  (the main job's dependencies)
+from pxr import Usd, UsdGeom, Vt, Gf  # noqa: F401  (usd-core, beside Debian's NumPy)
 import lc_petsc
 assert numpy.__version__ == os.environ["LC_NUMPY"], (
     f"pip replaced Debian's NumPy {os.environ['LC_NUMPY']} by {numpy.__version__}")

@@ -214,9 +214,9 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
                     t0 = time.perf_counter()
                     R = (motion or HeadMotion(tables["physics"])).transform(times[k])[0]
                     hairs.points(x, normal_rest @ R.T, out=hair_buf)
+                    t_hairs += time.perf_counter() - t0
                     hair_attr.Set(Vt.Vec3fArray.FromNumpy(hair_buf), float(k))
                     hair_ext.Set(Vt.Vec3fArray.FromNumpy(_extent(hair_buf, half_w)), float(k))
-                    t_hairs += time.perf_counter() - t0
                 stage.Save()             # appends this frame's samples to the file, frees them
                 if progress is not None:
                     progress(done + 1, len(rows))

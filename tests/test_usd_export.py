@@ -190,3 +190,23 @@ def test_job_usd_off_and_failure_keeps_outputs(tmp_path, capsys):
     assert "USD export failed, frames.h5 is intact" in capsys.readouterr().err
     with h5py.File(out / "frames.h5") as f:
         assert f["positions"].shape[0] == 3
+
+
+def test_job_on_two_ranks_writes_the_same_export(run, tmp_path):
+    """Under mpiexec -n 2 rank 0 writes frames.usdc once the collective frames.h5 is
+    closed: the same curves as the 1-rank run, points to the frames' round-off."""
+    from sim_helpers import MPI_ENV
+    (tmp_path / "s.toml").write_text(hairball_toml(frames=6, output=f"every = 2\npreviews = false\n"
+                                                                     f"render_hairs = {N_HAIRS}"))
+    p = subprocess.run(["mpiexec", "--oversubscribe", "-n", "2", sys.executable,
+                        str(ROOT / "drivers" / "simulate.py"), "s.toml", "--out", "two", "--quiet"],
+                       capture_output=True, text=True, env=MPI_ENV, timeout=150, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-3000:]
+    a = Usd.Stage.Open(str(run / "frames.usdc"))
+    b = Usd.Stage.Open(str(tmp_path / "two" / "frames.usdc"))
+    for prim in ("/Groom/wisps", "/Groom/render_hairs"):
+        ca, cb = UsdGeom.BasisCurves(a.GetPrimAtPath(prim)), UsdGeom.BasisCurves(b.GetPrimAtPath(prim))
+        assert list(ca.GetCurveVertexCountsAttr().Get()) == list(cb.GetCurveVertexCountsAttr().Get())
+        assert ca.GetPointsAttr().GetTimeSamples() == cb.GetPointsAttr().GetTimeSamples() == [0, 1, 2, 3]
+        for k in range(4):
+            assert np.abs(np.asarray(ca.GetPointsAttr().Get(k)) - np.asarray(cb.GetPointsAttr().Get(k))).max() < 1e-5

@@ -85,7 +85,7 @@ def head_matrix(motion, t):
     return M
 
 
-def _define_curves(stage, path, counts, widths, Vt, UsdGeom, Sdf):
+def _define_curves(stage, path, counts, widths, Vt, UsdGeom):
     curves = UsdGeom.BasisCurves.Define(stage, path)
     curves.CreateTypeAttr(UsdGeom.Tokens.linear)
     curves.CreateWrapAttr(UsdGeom.Tokens.nonperiodic)
@@ -174,7 +174,7 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
                 "lc_petsc:frames_file": str(frames_path.resolve()), "lc_petsc:dt": dt,
                 "lc_petsc:every": every, "lc_petsc:description": str(tables["scene"].description)}
 
-            wisps = _define_curves(stage, "/Groom/wisps", sizes, 2.0 * radius, Vt, UsdGeom, Sdf)
+            wisps = _define_curves(stage, "/Groom/wisps", sizes, 2.0 * radius, Vt, UsdGeom)
             _int_primvar(wisps, "wisp_index", np.arange(len(sizes)), UsdGeom.Tokens.uniform, Vt, UsdGeom, Sdf)
             _int_primvar(wisps, "pinned", pinned.astype(np.int32), UsdGeom.Tokens.vertex, Vt, UsdGeom, Sdf)
             pts_attr = wisps.GetPointsAttr()
@@ -195,7 +195,7 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
             if n_hairs > 0:
                 hairs = RenderHairs(offsets, radius, n_hairs, seed=seed, spread=spread)
                 hc = _define_curves(stage, "/Groom/render_hairs", hairs.curve_vertex_counts(),
-                                    hairs.widths(), Vt, UsdGeom, Sdf)
+                                    hairs.widths(), Vt, UsdGeom)
                 _int_primvar(hc, "guide_wisp", hairs.guide_wisp(), UsdGeom.Tokens.uniform, Vt, UsdGeom, Sdf)
                 hair_attr, hair_ext = hc.GetPointsAttr(), hc.CreateExtentAttr()
                 normal_rest = root_normals(rest, offsets)

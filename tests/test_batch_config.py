@@ -17,7 +17,7 @@ from lc_petsc.config import ConfigError, SimConfig, load_config
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "configs").glob("*.toml"))
 CATALOGUE = {"hairball_2k", "hairball_4k", "hairball_8k", "hairball_demo", "smash", "jitter",
-             "straighten", "compression_30", "compression_40", "cantilever", "from_file"}
+             "straighten", "compression_30", "compression_40", "cantilever", "from_file", "from_usd"}
 SELF = MPI.COMM_SELF
 from sim_helpers import MPI_ENV  # noqa: E402
 

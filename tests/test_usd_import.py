@@ -251,3 +251,18 @@ def test_round_trip_export_import_simulate(tmp_path, monkeypatch):
     assert np.abs(Y - Z).max() <= 1e-12 * np.abs(Z).max()
     # the lower wisps (2..4) follow the original run closely
     assert np.abs(Y - X)[2 * 101:].max() < 1e-4
+
+
+def test_shipped_usd_groom_is_the_fringe():
+    """configs/from_usd.toml reads data/fringe.usda (Z up, metres, Catmull-Rom, under a
+    transform) back into fringe.h5's wisps, radii and pins."""
+    from lc_petsc.config import load_config
+    root = Path(__file__).resolve().parents[1] / "configs"
+    cfg = load_config(root / "from_usd.toml")
+    src = source_from_config(cfg.scene, cfg.material, cfg.physics)
+    with h5py.File(root / "data" / "fringe.h5") as f:
+        x, off, r, pin = (f[k][...] for k in ("positions", "wisp_offsets", "radius", "pinned"))
+    assert np.array_equal(src.offsets, off)
+    assert np.abs(src.positions - x).max() < 2e-6 * np.abs(x).max()      # float32 of metres
+    assert np.allclose(src.radius, r, rtol=1e-6)
+    assert np.array_equal(src.pinned, pin)

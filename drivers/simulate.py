@@ -5,9 +5,9 @@
 
 PETSc options on the command line override the config's [solver] options.  Outputs in
 DIR (default: output.dir of the config, else out/<config name>): frames.h5, frames.xdmf,
-previews/*.png, contact_sheet.png, summary.json.  Exit status: 0 done, 2 bad command
-line or config (reported once, nothing written), 3 the run failed part-way (frames so
-far and summary.json kept).  All the work is in lc_petsc/batch.py.
+previews/*.png, contact_sheet.png, frames.usdc (USD for DCC tools), summary.json.
+Exit status: 0 done, 2 bad command line or config (reported once, nothing written), 3
+the run failed part-way (frames so far and summary.json kept).  All the work is in lc_petsc/batch.py.
 """
 
 import sys

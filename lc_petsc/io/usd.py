@@ -24,8 +24,9 @@ Radii are not in ``frames.h5``: they are rebuilt from the resolved config stored
 ``config`` attribute with the scene source the run used (a strands or USD file must
 still be at its path).  The export streams: one frame is read, converted and appended
 to the crate file at a time (``Usd.Stage.Save`` per frame writes the new samples and
-frees them), so memory stays at a few frames whatever the run length.  The file is
-written as ``<name>.tmp.usdc`` and renamed when complete.
+frees them), so memory stays at a few frames whatever the run length (a text ``.usda``
+is saved once at the end and held in memory until then).  The file is written as
+``<name>.tmp.<ext>`` and renamed when complete.
 """
 
 from __future__ import annotations
@@ -157,6 +158,9 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
         if not (np.isfinite(spread) and spread > 0):
             raise ValueError(f"render hair spread must be a positive number, got {spread!r}")
 
+        # a crate file (.usdc, .usd) takes the frames one by one; a text .usda is written
+        # whole, so it is saved once at the end
+        incremental = usd_path.suffix != ".usda"
         tmp = usd_path.with_name(usd_path.stem + ".tmp" + usd_path.suffix)
         tmp.unlink(missing_ok=True)
         stage = Usd.Stage.CreateNew(str(tmp))
@@ -182,9 +186,9 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
             ext_attr = wisps.CreateExtentAttr()
             half_w = float(radius.max(initial=0.0))
 
-            head = motion = None
+            motion = HeadMotion(tables["physics"])     # moves the head and the hairs' root frames
+            head = None
             if has_head_sphere(tables["physics"], tables["scene"]):
-                motion = HeadMotion(tables["physics"])
                 head = UsdGeom.Sphere.Define(stage, "/Groom/head")
                 head.CreateRadiusAttr(motion.radius)
                 head.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-motion.radius), Gf.Vec3f(motion.radius)]))
@@ -212,14 +216,16 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
                     head_op.Set(Gf.Matrix4d(head_matrix(motion, times[k]).tolist()), float(k))
                 if hairs is not None:
                     t0 = time.perf_counter()
-                    R = (motion or HeadMotion(tables["physics"])).transform(times[k])[0]
+                    R = motion.transform(times[k])[0]
                     hairs.points(x, normal_rest @ R.T, out=hair_buf)
                     t_hairs += time.perf_counter() - t0
                     hair_attr.Set(Vt.Vec3fArray.FromNumpy(hair_buf), float(k))
                     hair_ext.Set(Vt.Vec3fArray.FromNumpy(_extent(hair_buf, half_w)), float(k))
-                stage.Save()             # appends this frame's samples to the file, frees them
+                if incremental:
+                    stage.Save()         # appends this frame's samples to the file, frees them
                 if progress is not None:
                     progress(done + 1, len(rows))
+            stage.Save()
             del stage
             os.replace(tmp, usd_path)
         except BaseException:

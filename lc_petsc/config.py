@@ -24,7 +24,7 @@ SCENE_KINDS = ("wisp4c", "hairball", "straight", "file")
 PERTURBATIONS = ("none", "smash", "jitter", "straighten")
 TERMS = ("stretch", "bend", "twist", "gravity", "head_collision", "strand_collision")
 HEAD_MOTIONS = ("static", "shake", "translate")
-FILTERS = ("analytic", "numerical", "none")
+from lc_petsc.elements.common import FILTERS  # noqa: E402  (the kernels accept these)
 IMPLEMENTED_TERMS = TERMS
 
 
@@ -185,6 +185,12 @@ class PhysicsConfig:
                               f"got {self.strand_separation!r}")
 
 
+#: Newton's first iterate: x_n + dt v_n, or that projected onto the rest edge lengths.
+INITIAL_GUESSES = ("inertial", "follow_the_leader")
+#: How a Newton step updates positions: x + dx, or with the edge lengths retracted.
+NEWTON_UPDATES = ("linear", "edge_retraction")
+
+
 @dataclass
 class TimeConfig:
     """``[time]``: BDF-1 step and Newton settings.
@@ -199,7 +205,10 @@ class TimeConfig:
     frames: int = 1
     newton_iterations: int = 3
     newton_tol: Optional[float] = None
+    newton_increment_tol: Optional[float] = None
     line_search: bool = False
+    initial_guess: str = "inertial"
+    newton_update: str = "linear"
 
     def validate(self) -> None:
         _positive("time.dt", self.dt)
@@ -207,6 +216,14 @@ class TimeConfig:
         _int_at_least("time.newton_iterations", self.newton_iterations, 1)
         if self.newton_tol is not None:
             _positive("time.newton_tol", self.newton_tol)
+        if self.newton_increment_tol is not None:
+            _positive("time.newton_increment_tol", self.newton_increment_tol)
+        if self.initial_guess not in INITIAL_GUESSES:
+            raise ConfigError(f"time.initial_guess must be one of {INITIAL_GUESSES}, "
+                              f"got {self.initial_guess!r}")
+        if self.newton_update not in NEWTON_UPDATES:
+            raise ConfigError(f"time.newton_update must be one of {NEWTON_UPDATES}, "
+                              f"got {self.newton_update!r}")
 
 
 @dataclass

@@ -54,6 +54,11 @@ class Integrator:
         self.contact_deep_pairs = []
         self.contact_min_distance = []
         self.contact_separated = []
+        self.wisp_length = wisp_lengths(scene)
+        self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
+        self.newton_increment = []      # per frame: the last step's relative increment
+        self.newton_converged = []      # per frame: met the tolerances (None: none set)
+        self.history = None             # a list: per-iteration measures are appended
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian):
@@ -110,11 +115,15 @@ class Integrator:
         pin = ~self.free
         if pin.any():
             x[pin] = self.head.pinned_positions(sc.x_rest[pin], self.t_next)
+        if cfg.time.initial_guess == "follow_the_leader":
+            x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
         n_it = 0
+        converged = None
         for it in range(cfg.time.newton_iterations):
             n_it += 1
             with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
-                g = self.gradient(x, elastic=asm.assemble(x))
+                elastic = asm.assemble(x)
+                g = self.gradient(x, elastic=elastic)
                 with self.timers("assembly"):
                     asm.add_mass(sc.mass / dt ** 2)
                 _, idx, cg = self._contact_terms(x, True)
@@ -136,15 +145,17 @@ class Integrator:
                 G0 = self.incremental_potential(x)
                 slope = self.comm.allreduce(float(np.sum(g * dx)))
                 for _ in range(20):
-                    if self.incremental_potential(x + alpha * dx) <= G0 + 1e-4 * alpha * slope:
+                    if self.incremental_potential(self.update(x, alpha * dx)) <= G0 + 1e-4 * alpha * slope:
                         break
                     alpha *= 0.5
                 self.line_search_alphas.append(alpha)
-            x = x + alpha * dx
-            if cfg.time.newton_tol is not None:
-                step = self.comm.allreduce(float(np.abs(alpha * dx).max(initial=0.0)), op=_max())
-                if step < cfg.time.newton_tol:
-                    break
+            x_prev, x = x, self.update(x, alpha * dx)
+            increment = self.relative_increment(x - x_prev)
+            if self.history is not None:
+                self._record_iteration(it, x_prev, x, g, elastic, increment, alpha)
+            converged = self._newton_converged(x - x_prev, increment)
+            if converged:
+                break
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
         first_bad = sc.first_vertex + int(badv[0]) if len(badv) else -1
         bad_any = self.comm.allgather(first_bad)
@@ -152,6 +163,8 @@ class Integrator:
             raise FloatingPointError(f"frame {self.frame}: non-finite position at global vertex "
                                      f"{min(b for b in bad_any if b >= 0)}")
         self.newton_iterations.append(n_it)
+        self.newton_increment.append(increment)
+        self.newton_converged.append(converged)
         if self.strand is not None:
             pairs, deep, dmin = self.strand.measure(x)
             if cfg.physics.strand_separation:
@@ -173,6 +186,109 @@ class Integrator:
         self.x = x
         self.t = self.t_next
         self.frame += 1
+
+
+    def update(self, x, step):
+        """The next Newton iterate from x and the (scaled) step: x + step, or with
+        ``time.newton_update = "edge_retraction"`` the same step with each free edge's
+        length set to its linearised value (:func:`retract_edge_lengths`)."""
+        if self.cfg.time.newton_update == "edge_retraction":
+            return retract_edge_lengths(x, step, self.free, self.scene.offsets)
+        return x + step
+
+    # -------------------------------------------------------------- convergence
+    def relative_increment(self, dx):
+        """max_i |dx_i| / (rest length of vertex i's wisp), over all ranks."""
+        local = float((np.linalg.norm(dx, axis=1) / self.wisp_length).max(initial=0.0))
+        return self.comm.allreduce(local, op=_max())
+
+    def _newton_converged(self, step, increment):
+        """True/False against the tolerances that are set (both when both are), None
+        when neither is (a fixed iteration count)."""
+        t = self.cfg.time
+        if t.newton_increment_tol is None and t.newton_tol is None:
+            return None
+        ok = True
+        if t.newton_increment_tol is not None:
+            ok = increment < t.newton_increment_tol
+        if t.newton_tol is not None:
+            absolute = self.comm.allreduce(float(np.abs(step).max(initial=0.0)), op=_max())
+            ok = ok and absolute < t.newton_tol
+        return ok
+
+    def relative_residual(self, x, g, elastic):
+        """|grad G| / (|M (x - xhat)/dt^2| + |grad V| + |f_ext|), 2-norms over the free
+        vertices of all ranks (head and strand contact forces count in grad G only)."""
+        dt = self.cfg.time.dt
+        f = self.free
+        inertia = self.scene.mass[f, None] * (x - self.xhat)[f] / dt ** 2
+        parts = np.array([np.sum(g * g), np.sum(inertia ** 2), np.sum(elastic[f] ** 2),
+                          np.sum(self.f_ext[f] ** 2)])
+        parts = np.sqrt(self.comm.allreduce(parts))
+        scale = parts[1:].sum()
+        return float(parts[0] / scale) if scale > 0 else 0.0
+
+    def _record_iteration(self, it, x_old, x_new, g, elastic, increment, alpha):
+        """Append iteration ``it``'s measures to ``self.history`` (diagnostics: costs a
+        residual reduction and two evaluations of G)."""
+        self.history.append(dict(
+            frame=self.frame, iteration=it, increment=increment, alpha=alpha,
+            residual=self.relative_residual(x_old, g, elastic),
+            energy_decrease=self.incremental_potential(x_old) - self.incremental_potential(x_new)))
+
+
+def follow_the_leader(x, free, offsets, rest_edge):
+    """Length-preserving prediction (Mueller et al. 2012): walking from each wisp's root,
+    every free vertex is put at its rest edge length from its predecessor, in the
+    direction of its predicted position.  x (nv, 3) predicted positions, free (nv,)
+    bool, offsets (n_wisps + 1,), rest_edge (nv - 1,) rest length of edge (v, v + 1)
+    (edges across wisps unused).  Returns the new positions (nv, 3)."""
+    x = x.copy()
+    off = np.asarray(offsets)
+    sizes = np.diff(off)
+    for j in range(1, int(sizes.max(initial=0))):
+        v = off[:-1][sizes > j] + j
+        v = v[free[v]]
+        d = x[v] - x[v - 1]
+        n = np.linalg.norm(d, axis=1)
+        ok = n > 0
+        x[v[ok]] = x[v[ok] - 1] + d[ok] * (rest_edge[v[ok] - 1] / n[ok])[:, None]
+    return x
+
+
+def retract_edge_lengths(x, dx, free, offsets):
+    """x + dx with every edge ending at a free vertex rebuilt from the root: direction
+    that of e + de, length |e| + eh . de (its first-order change).  A linearised step
+    that turns an edge by an angle phi lengthens it by |e| phi^2 / 2, which the stiff
+    stretch term pulls back in the next iteration; this update keeps the step's
+    rotation and its first-order length change only.  It equals x + dx to second order
+    in dx (Newton's convergence rate is kept) and has the same fixed points.
+    x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,).  Returns (nv, 3)."""
+    out = x + dx
+    off = np.asarray(offsets)
+    sizes = np.diff(off)
+    for j in range(1, int(sizes.max(initial=0))):
+        v = off[:-1][sizes > j] + j
+        v = v[free[v]]
+        e = x[v] - x[v - 1]
+        de = dx[v] - dx[v - 1]
+        L = np.linalg.norm(e, axis=1)
+        new = e + de
+        n = np.linalg.norm(new, axis=1)
+        length = L + np.einsum("ij,ij->i", e, de) / L
+        ok = (n > 0) & (length > 0)
+        out[v[ok]] = out[v[ok] - 1] + new[ok] * (length[ok] / n[ok])[:, None]
+        out[v[~ok]] = out[v[~ok] - 1] + new[~ok]
+    return out
+
+
+def wisp_lengths(scene):
+    """Rest arc length of each vertex's wisp, shape (nv,)."""
+    seg = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
+    csum = np.concatenate([[0.0], np.cumsum(seg)])
+    off = scene.offsets
+    per_wisp = csum[off[1:] - 1] - csum[off[:-1]]
+    return np.repeat(per_wisp, np.diff(off))
 
 
 def _max():

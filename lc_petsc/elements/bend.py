@@ -104,8 +104,9 @@ def _kernel(filter):
             return
         lam, q = frame.eigensystem(d, k)
         qs = q.transpose(1, 2, 0)
-        if filter == "none":
-            gram(_to_vertices(qs[:3], qs[3:], frame), lam, out=h)
+        if filter in ("none", "abs"):
+            gram(_to_vertices(qs[:3], qs[3:], frame), lam if filter == "none" else np.abs(lam),
+                 out=h)
             return
         # Numerical: the exact Hessian in T (S Hhat S), projected with eigh.
         lam_t, q_t = np.linalg.eigh(gram(np.concatenate([qs[:3] / frame.lu, qs[3:] / frame.lv]),

@@ -60,6 +60,8 @@ def _kernel(filter):
         perp = k * (1.0 - rest_length / L)
         if filter == "analytic":
             perp = np.maximum(perp, 0.0)
+        elif filter == "abs":
+            perp = np.abs(perp)
         he = (k - perp)[:, None, None] * (eh[:, :, None] * eh[:, None, :])
         he[:, [0, 1, 2], [0, 1, 2]] += perp[:, None]
         if filter == "numerical":

@@ -259,6 +259,9 @@ def _kernel(filter):
                                                 bot[:, keep] * (root / frame.lv))
             plus, _ = _balanced_columns(*_out_of_plane(geo, d))
             gram(np.concatenate([in_plane, plus], axis=1), out=h)
+        elif filter == "abs":
+            columns, weights = _exact_columns(geo, d, k)
+            gram(columns, np.abs(weights), out=h)
         else:
             gram(*_exact_columns(geo, d, k), out=h)
             if filter == "numerical":

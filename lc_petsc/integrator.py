@@ -257,29 +257,34 @@ def follow_the_leader(x, free, offsets, rest_edge):
 
 
 def retract_edge_lengths(x, dx, free, offsets):
-    """x + dx with every edge ending at a free vertex rebuilt from the root: direction
-    that of e + de, length |e| + eh . de (its first-order change).  A linearised step
+    """x + dx with the length of every edge that ends at a free vertex set to its
+    first-order value |e| + eh . de (direction that of e + de), the corrections
+    accumulated from the root (or the last pinned vertex) outwards.  A linearised step
     that turns an edge by an angle phi lengthens it by |e| phi^2 / 2, which the stiff
-    stretch term pulls back in the next iteration; this update keeps the step's
-    rotation and its first-order length change only.  It equals x + dx to second order
-    in dx (Newton's convergence rate is kept) and has the same fixed points.
+    stretch term pulls back in the next iteration; this update keeps the step's rotation
+    and its first-order length change only.  It equals x + dx to second order in dx (so
+    Newton's convergence rate is kept) and has the same fixed points.
     x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,).  Returns (nv, 3)."""
     out = x + dx
-    off = np.asarray(offsets)
-    sizes = np.diff(off)
-    for j in range(1, int(sizes.max(initial=0))):
-        v = off[:-1][sizes > j] + j
-        v = v[free[v]]
-        e = x[v] - x[v - 1]
-        de = dx[v] - dx[v - 1]
-        L = np.linalg.norm(e, axis=1)
-        new = e + de
-        n = np.linalg.norm(new, axis=1)
-        length = L + np.einsum("ij,ij->i", e, de) / L
-        ok = (n > 0) & (length > 0)
-        out[v[ok]] = out[v[ok] - 1] + new[ok] * (length[ok] / n[ok])[:, None]
-        out[v[~ok]] = out[v[~ok] - 1] + new[~ok]
-    return out
+    nv = len(x)
+    if nv < 2:
+        return out
+    e = x[1:] - x[:-1]
+    new = out[1:] - out[:-1]
+    L = np.linalg.norm(e, axis=1)
+    n = np.linalg.norm(new, axis=1)
+    length = L + np.einsum("ij,ij->i", e, new - e) / np.where(L > 0, L, 1.0)
+    ok = (n > 0) & (L > 0) & (length > 0)
+    correction = np.zeros_like(x)
+    correction[1:][ok] = new[ok] * (length[ok] / n[ok] - 1.0)[:, None]
+    # edges into pinned vertices and across wisps are not corrected; the sums restart
+    # at every wisp's first vertex and at pinned vertices
+    reset = ~free.copy()
+    reset[np.asarray(offsets)[:-1]] = True
+    correction[reset] = 0.0
+    total = np.cumsum(correction, axis=0)
+    last_reset = np.maximum.accumulate(np.where(reset, np.arange(nv), 0))
+    return out + total - total[last_reset]
 
 
 def wisp_lengths(scene):

@@ -37,6 +37,8 @@ class Settings:
     filter: str = "analytic"
     line_search: bool = False
     options: str = ""               # extra PETSc options (e.g. a solver set)
+    newton_update: str = "linear"
+    initial_guess: str = "inertial"
 
     def label(self):
         parts = [f"dt=1/{round(1 / self.dt)}", f"N={self.newton_iterations}",
@@ -45,6 +47,10 @@ class Settings:
             parts.append(f"tol={self.newton_tol:g}")
         if self.line_search:
             parts.append("LS")
+        if self.newton_update != "linear":
+            parts.append(self.newton_update)
+        if self.initial_guess != "inertial":
+            parts.append(self.initial_guess)
         return " ".join(parts)
 
 
@@ -63,6 +69,11 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
         "dt": [(f"dt 1/{d}", replace(base, dt=1.0 / d)) for d in (30, 60, 120)],
         "filter": [(f"filter {f}", replace(base, filter=f)) for f in ("analytic", "numerical", "none")],
         "line_search": [("line search", replace(base, line_search=True))],
+        "newton_update": [
+            (f"{u} N={n}", replace(base, newton_update=u, newton_iterations=n))
+            for u in ("linear", "edge_retraction") for n in (2, 3, 4, 6)]
+        + [("retraction+ftl N=3", replace(base, newton_update="edge_retraction",
+                                          initial_guess="follow_the_leader"))],
     }
     for a in (axes or ax):
         for name, s in ax[a]:
@@ -114,6 +125,8 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.newton_iterations = s.newton_iterations
     cfg.time.newton_tol = s.newton_tol
     cfg.time.line_search = s.line_search
+    cfg.time.newton_update = s.newton_update
+    cfg.time.initial_guess = s.initial_guess
     cfg.solver.filter = s.filter
     cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options,
                                               f"-ksp_rtol {s.ksp_rtol:g}") if x)

@@ -24,7 +24,10 @@ SCENE_KINDS = ("wisp4c", "hairball", "straight", "file")
 PERTURBATIONS = ("none", "smash", "jitter", "straighten")
 TERMS = ("stretch", "bend", "twist", "gravity", "head_collision", "strand_collision")
 HEAD_MOTIONS = ("static", "shake", "translate")
-from lc_petsc.elements.common import FILTERS  # noqa: E402  (the kernels accept these)
+from lc_petsc.elements.common import FILTERS as ELEMENT_FILTERS  # noqa: E402
+#: solver.filter: an element filter, or the exact Hessian with the analytic filter as
+#: fallback when the Newton matrix is indefinite
+FILTERS = ELEMENT_FILTERS + ("exact_or_analytic",)
 IMPLEMENTED_TERMS = TERMS
 
 

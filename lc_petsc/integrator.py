@@ -30,6 +30,7 @@ import numpy as np
 
 from lc_petsc.elements import head_contact
 from lc_petsc.parallel import collectively
+from lc_petsc.solver import SolverError
 
 
 class Integrator:
@@ -59,6 +60,7 @@ class Integrator:
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
         self.history = None             # a list: per-iteration measures are appended
+        self.hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian):
@@ -119,36 +121,23 @@ class Integrator:
             x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
         n_it = 0
         converged = None
+        increment = np.inf
+        self.hessian_fallbacks.append(0)
         for it in range(cfg.time.newton_iterations):
             n_it += 1
-            with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
-                elastic = asm.assemble(x)
-                g = self.gradient(x, elastic=elastic)
-                with self.timers("assembly"):
-                    asm.add_mass(sc.mass / dt ** 2)
-                _, idx, cg = self._contact_terms(x, True)
-                if cg is not None:
-                    with self.timers("collision"):
-                        asm.add_diagonal(idx, cg[1])
-            if self.strand is not None:
-                g += self.strand.assemble(x, asm)
-            asm.commit()
-            if self.strand is not None:         # the Newton matrix is A + C (contact.py)
-                self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat))
-            with self.timers("solve"):
-                self.bv.array[:] = -g.ravel()
-                self.solver.solve(self.bv, self.xv, self.frame, it)
-                dx = self.xv.array.reshape(-1, 3).copy()
-            dx[pin] = 0.0
+            exact = self._exact_hessian(increment)
+            g, elastic = self._assemble_system(x, it, filter="none" if exact else None)
+            dx = self._solve_step(g, it, may_fail=exact)
             alpha = 1.0
-            if cfg.time.line_search:
-                G0 = self.incremental_potential(x)
-                slope = self.comm.allreduce(float(np.sum(g * dx)))
-                for _ in range(20):
-                    if self.incremental_potential(self.update(x, alpha * dx)) <= G0 + 1e-4 * alpha * slope:
-                        break
-                    alpha *= 0.5
-                self.line_search_alphas.append(alpha)
+            if exact and dx is not None:
+                alpha = self._line_search(x, g, dx, EXACT_HALVINGS)
+            if dx is None or alpha is None:     # no exact Newton step: a filtered one
+                self.hessian_fallbacks[-1] += 1
+                g, elastic = self._assemble_system(x, it)
+                dx = self._solve_step(g, it)
+                alpha = 1.0
+            if cfg.time.line_search and not exact:
+                alpha = self._line_search(x, g, dx, 20, give_up=False)
             x_prev, x = x, self.update(x, alpha * dx)
             increment = self.relative_increment(x - x_prev)
             if self.history is not None:
@@ -195,6 +184,78 @@ class Integrator:
         if self.cfg.time.newton_update == "edge_retraction":
             return retract_edge_lengths(x, step, self.free, self.scene.offsets)
         return x + step
+
+    # -------------------------------------------------------------- Newton system
+    def _assemble_system(self, x, it, filter=None):
+        """Fill the Newton matrix at x (element Hessians with ``filter``, default the
+        assembler's); returns (grad G, elastic gradient)."""
+        asm, sc, dt = self.asm, self.scene, self.cfg.time.dt
+        chosen = asm.filter
+        if filter is not None:
+            asm.filter = filter
+        try:
+            with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
+                elastic = asm.assemble(x)
+                g = self.gradient(x, elastic=elastic)
+                with self.timers("assembly"):
+                    asm.add_mass(sc.mass / dt ** 2)
+                _, idx, cg = self._contact_terms(x, True)
+                if cg is not None:
+                    with self.timers("collision"):
+                        asm.add_diagonal(idx, cg[1])
+        finally:
+            asm.filter = chosen
+        if self.strand is not None:
+            g += self.strand.assemble(x, asm)
+        asm.commit()
+        if self.strand is not None:         # the Newton matrix is A + C (contact.py)
+            self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat))
+        return g, elastic
+
+    def _exact_hessian(self, increment):
+        """Whether this iteration assembles the exact Hessian: ``solver.filter =
+        "exact_or_analytic"`` once the last relative increment is below
+        ``solver.exact_hessian_below`` (near the solution, where it is mostly positive
+        definite)."""
+        s = self.cfg.solver
+        return s.filter == "exact_or_analytic" and increment < EXACT_BELOW
+
+    def _line_search(self, x, g, dx, halvings, give_up=True):
+        """Armijo backtracking on G along update(x, alpha dx): alpha halves from 1 until
+        G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx.  After ``halvings``
+        halvings, or for an ascent direction, returns None (``give_up``) or the last
+        alpha.  Collective; the alphas are recorded."""
+        slope = self.comm.allreduce(float(np.sum(g * dx)))
+        if give_up and slope >= 0.0:
+            return None
+        G0 = self.incremental_potential(x)
+        alpha = 1.0
+        for _ in range(halvings):
+            if self.incremental_potential(self.update(x, alpha * dx)) <= G0 + 1e-4 * alpha * slope:
+                break
+            alpha *= 0.5
+        else:
+            if give_up:
+                return None
+        self.line_search_alphas.append(alpha)
+        return alpha
+
+    def _solve_step(self, g, it, may_fail=False):
+        """The Newton step dx (pinned rows zero).  With ``may_fail`` (the exact Hessian)
+        returns None instead when CG finds the matrix or preconditioner indefinite (that
+        solve is then not recorded: another one replaces it)."""
+        with self.timers("solve"):
+            self.bv.array[:] = -g.ravel()
+            try:
+                self.solver.solve(self.bv, self.xv, self.frame, it)
+            except SolverError:
+                if not (may_fail and "INDEFINITE" in self.solver.reasons[-1]):
+                    raise
+                self.solver.forget_last()
+                return None
+            dx = self.xv.array.reshape(-1, 3).copy()
+        dx[~self.free] = 0.0
+        return dx
 
     # -------------------------------------------------------------- convergence
     def relative_increment(self, dx):
@@ -294,6 +355,14 @@ def wisp_lengths(scene):
     off = scene.offsets
     per_wisp = csum[off[1:] - 1] - csum[off[:-1]]
     return np.repeat(per_wisp, np.diff(off))
+
+
+#: solver.filter "exact_or_analytic": the exact Hessian is tried once the last relative
+#: increment is below EXACT_BELOW, and its step kept if Armijo's condition holds within
+#: EXACT_HALVINGS halvings (measured, docs/newton.md: 3e-3 and 6 reach 1e-6 in the fewest
+#: iterations of 1e-2 / 3e-3 / always and 2 / 6 halvings on the hairball and smash).
+EXACT_BELOW = 3e-3
+EXACT_HALVINGS = 6
 
 
 def _max():

@@ -60,7 +60,7 @@ class Integrator:
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
         self.history = None             # a list: per-iteration measures are appended
-        self.hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
+        self.exact_hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian):
@@ -122,7 +122,7 @@ class Integrator:
         n_it = 0
         converged = None
         increment = np.inf
-        self.hessian_fallbacks.append(0)
+        self.exact_hessian_fallbacks.append(0)
         for it in range(cfg.time.newton_iterations):
             n_it += 1
             exact = self._exact_hessian(increment)
@@ -132,7 +132,7 @@ class Integrator:
             if exact and dx is not None:
                 alpha = self._line_search(x, g, dx, EXACT_HALVINGS)
             if dx is None or alpha is None:     # no exact Newton step: a filtered one
-                self.hessian_fallbacks[-1] += 1
+                self.exact_hessian_fallbacks[-1] += 1
                 g, elastic = self._assemble_system(x, it)
                 dx = self._solve_step(g, it)
                 alpha = 1.0

@@ -161,6 +161,10 @@ class Simulator:
             "wall_time_s": self.comm.allreduce(self.wall, op=MPI.MAX),
             "timings_s": tim,
             "newton_iterations": list(self.integrator.newton_iterations),
+            "newton_converged": list(self.integrator.newton_converged),
+            "newton_increment": [None if not np.isfinite(v) else float(v)
+                                 for v in self.integrator.newton_increment],
+            "newton_exact_fallbacks": list(self.integrator.exact_hessian_fallbacks),
             "ksp_iterations": list(self.solver.iterations),
             "ksp_reasons": list(self.solver.reasons),
             "converged": all(not r.startswith("DIVERGED") for r in self.solver.reasons),

@@ -73,6 +73,9 @@ def main(argv=None):
     ap.add_argument("--ref", default="converged", choices=["converged", "base"],
                     help="converged: Newton to --ref-tol at --ref-dt; base: the base setting "
                          "with Krylov rtol 1e-10")
+    ap.add_argument("--ref-method", default="unfiltered", choices=["unfiltered", "exact_or_analytic"],
+                    help="converged reference: unfiltered Hessian + line search (GMRES), or the "
+                         "exact-or-analytic Hessian with the edge retraction (docs/newton.md)")
     ap.add_argument("--rtols", type=float, nargs="+", default=list(KSP_RTOLS),
                     help="Krylov tolerances of the ksp_rtol axis")
     ap.add_argument("--set", default=None, help="solver set of configs/solvers for every run")
@@ -86,7 +89,8 @@ def main(argv=None):
     opts = read_options_file(ROOT / "configs" / "solvers" / f"{args.set}.opts") if args.set else ""
     base = replace(BASE, options=opts)
     # the default exact solver, whatever --set
-    ref = reference_settings(args.ref_dt, args.ref_tol) if args.ref == "converged" else base_reference()
+    ref = (reference_settings(args.ref_dt, args.ref_tol, method=args.ref_method)
+           if args.ref == "converged" else base_reference())
     log = print if comm.rank == 0 else (lambda *a, **k: None)
     cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)
     run_study(cfg, default_variants(base, args.axes, args.rtols), comm, args.out, duration=args.duration,

@@ -122,18 +122,20 @@ class Integrator:
         n_it = 0
         converged = None
         increment = np.inf
+        if self.history is not None:
+            self._force_scale = self.frame_force_scale()
         self.exact_hessian_fallbacks.append(0)
         for it in range(cfg.time.newton_iterations):
             n_it += 1
             exact = self._exact_hessian(increment)
-            g, elastic = self._assemble_system(x, it, filter="none" if exact else None)
+            g = self._assemble_system(x, it, filter="none" if exact else None)
             dx = self._solve_step(g, it, may_fail=exact)
             alpha = 1.0
             if exact and dx is not None:
                 alpha = self._line_search(x, g, dx, EXACT_HALVINGS)
             if dx is None or alpha is None:     # no exact Newton step: a filtered one
                 self.exact_hessian_fallbacks[-1] += 1
-                g, elastic = self._assemble_system(x, it)
+                g = self._assemble_system(x, it)
                 dx = self._solve_step(g, it)
                 alpha = 1.0
             if cfg.time.line_search and not exact:
@@ -141,7 +143,7 @@ class Integrator:
             x_prev, x = x, self.update(x, alpha * dx)
             increment = self.relative_increment(x - x_prev)
             if self.history is not None:
-                self._record_iteration(it, x_prev, x, g, elastic, increment, alpha)
+                self._record_iteration(it, x_prev, x, g, increment, alpha)
             converged = self._newton_converged(x - x_prev, increment)
             if converged:
                 break
@@ -188,15 +190,14 @@ class Integrator:
     # -------------------------------------------------------------- Newton system
     def _assemble_system(self, x, it, filter=None):
         """Fill the Newton matrix at x (element Hessians with ``filter``, default the
-        assembler's); returns (grad G, elastic gradient)."""
+        assembler's); returns grad G."""
         asm, sc, dt = self.asm, self.scene, self.cfg.time.dt
         chosen = asm.filter
         if filter is not None:
             asm.filter = filter
         try:
             with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
-                elastic = asm.assemble(x)
-                g = self.gradient(x, elastic=elastic)
+                g = self.gradient(x, elastic=asm.assemble(x))
                 with self.timers("assembly"):
                     asm.add_mass(sc.mass / dt ** 2)
                 _, idx, cg = self._contact_terms(x, True)
@@ -210,7 +211,7 @@ class Integrator:
         asm.commit()
         if self.strand is not None:         # the Newton matrix is A + C (contact.py)
             self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat))
-        return g, elastic
+        return g
 
     def _exact_hessian(self, increment):
         """Whether this iteration assembles the exact Hessian: ``solver.filter =
@@ -277,25 +278,30 @@ class Integrator:
             ok = ok and absolute < t.newton_tol
         return ok
 
-    def relative_residual(self, x, g, elastic):
-        """|grad G| / (|M (x - xhat)/dt^2| + |grad V| + |f_ext|), 2-norms over the free
-        vertices of all ranks (head and strand contact forces count in grad G only)."""
-        dt = self.cfg.time.dt
+    def frame_force_scale(self):
+        """The frame's force scale |f_ext| + |M v_n| / dt + |grad V(x_n)| (2-norms over
+        the free vertices of all ranks): external, inertial and elastic forces at the
+        start of the frame, the yardstick of :meth:`relative_residual`."""
         f = self.free
-        inertia = self.scene.mass[f, None] * (x - self.xhat)[f] / dt ** 2
-        parts = np.array([np.sum(g * g), np.sum(inertia ** 2), np.sum(elastic[f] ** 2),
-                          np.sum(self.f_ext[f] ** 2)])
-        parts = np.sqrt(self.comm.allreduce(parts))
-        scale = parts[1:].sum()
-        return float(parts[0] / scale) if scale > 0 else 0.0
+        elastic = self.asm.gradient(self.x)
+        parts = np.array([np.sum(self.f_ext[f] ** 2),
+                          np.sum((self.scene.mass[f, None] * self.v[f]) ** 2) / self.cfg.time.dt ** 2,
+                          np.sum(elastic[f] ** 2)])
+        return float(np.sqrt(self.comm.allreduce(parts)).sum())
 
-    def _record_iteration(self, it, x_old, x_new, g, elastic, increment, alpha):
+    def relative_residual(self, g):
+        """|grad G| (2-norm, all ranks) relative to the frame's force scale."""
+        norm = np.sqrt(self.comm.allreduce(float(np.sum(g * g))))
+        return norm / self._force_scale if self._force_scale > 0 else norm
+
+    def _record_iteration(self, it, x_old, x_new, g, increment, alpha):
         """Append iteration ``it``'s measures to ``self.history`` (diagnostics: costs a
         residual reduction and two evaluations of G)."""
+        G_old, G_new = self.incremental_potential(x_old), self.incremental_potential(x_new)
         self.history.append(dict(
             frame=self.frame, iteration=it, increment=increment, alpha=alpha,
-            residual=self.relative_residual(x_old, g, elastic),
-            energy_decrease=self.incremental_potential(x_old) - self.incremental_potential(x_new)))
+            residual=self.relative_residual(g), energy=G_new,
+            energy_decrease=G_old - G_new))
 
 
 def follow_the_leader(x, free, offsets, rest_edge):

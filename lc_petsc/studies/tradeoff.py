@@ -39,12 +39,15 @@ class Settings:
     options: str = ""               # extra PETSc options (e.g. a solver set)
     newton_update: str = "linear"
     initial_guess: str = "inertial"
+    newton_increment_tol: Optional[float] = None
 
     def label(self):
         parts = [f"dt=1/{round(1 / self.dt)}", f"N={self.newton_iterations}",
                  f"rtol={self.ksp_rtol:.0e}", self.filter]
         if self.newton_tol is not None:
             parts.append(f"tol={self.newton_tol:g}")
+        if self.newton_increment_tol is not None:
+            parts.append(f"inc<{self.newton_increment_tol:g}")
         if self.line_search:
             parts.append("LS")
         if self.newton_update != "linear":
@@ -73,7 +76,10 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
             (f"{u} N={n}", replace(base, newton_update=u, newton_iterations=n))
             for u in ("linear", "edge_retraction") for n in (2, 3, 4, 6)]
         + [("retraction+ftl N=3", replace(base, newton_update="edge_retraction",
-                                          initial_guess="follow_the_leader"))],
+                                          initial_guess="follow_the_leader"))]
+        + [(f"exact_or_analytic inc<{t:g}",
+            replace(base, filter="exact_or_analytic", newton_update="edge_retraction",
+                    newton_iterations=30, newton_increment_tol=t)) for t in (1e-3, 1e-4, 1e-6)],
     }
     for a in (axes or ax):
         for name, s in ax[a]:
@@ -83,7 +89,7 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
 
 
 def reference_settings(dt=1.0 / 120.0, newton_tol=1e-9, max_newton=100, filter="none",
-                       line_search=True):
+                       line_search=True, method="unfiltered"):
     """The reference: BDF-1 solved to max|dx| < ``newton_tol`` cm.
 
     The filter changes only the Newton matrix, not the solution of a frame, so the
@@ -93,7 +99,17 @@ def reference_settings(dt=1.0 / 120.0, newton_tol=1e-9, max_newton=100, filter="
     Its Krylov solver is GMRES (:data:`REFERENCE_KSP`), since that Hessian may be
     indefinite.  :func:`run_study` falls back to :func:`reference_fallback` (analytic
     filter, CG) if it fails.
+
+    ``method="exact_or_analytic"``: instead, the exact Hessian near the solution with
+    the analytic filter as fallback and the edge-length retraction (docs/newton.md), CG,
+    no line search beyond the exact steps' own; it converges in many more frames.
     """
+    if method == "exact_or_analytic":
+        return Settings(dt=dt, newton_iterations=max_newton, newton_tol=newton_tol,
+                        ksp_rtol=1e-12, filter="exact_or_analytic",
+                        newton_update="edge_retraction")
+    if method != "unfiltered":
+        raise ValueError(f"reference method {method!r}: use unfiltered or exact_or_analytic")
     return Settings(dt=dt, newton_iterations=max_newton, newton_tol=newton_tol, ksp_rtol=1e-12,
                     filter=filter, line_search=line_search, options=REFERENCE_KSP)
 
@@ -127,6 +143,7 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.line_search = s.line_search
     cfg.time.newton_update = s.newton_update
     cfg.time.initial_guess = s.initial_guess
+    cfg.time.newton_increment_tol = s.newton_increment_tol
     cfg.solver.filter = s.filter
     cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options,
                                               f"-ksp_rtol {s.ksp_rtol:g}") if x)
@@ -165,6 +182,7 @@ def run_trajectory(base_cfg, s: Settings, duration, out_dt, comm, blowup=5.0):
         summ = sim.summary()
         res.update(wall_s=summ["wall_time_s"], frames_run=sim.integrator.frame,
                    newton_total=int(sum(summ["newton_iterations"])),
+                   newton_unconverged_frames=sum(c is False for c in summ["newton_converged"]),
                    ksp_iterations_mean=float(np.mean(summ["ksp_iterations"])) if summ["ksp_iterations"] else None,
                    ksp_iterations_max=max(summ["ksp_iterations"], default=None),
                    timings_s=summ["timings_s"], cpu_s=_max(comm, cpu))
@@ -204,7 +222,8 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
     if rres["status"] != "ok":
         raise RuntimeError(f"the reference trajectory ({ref.label()}) failed: {rres['message']}")
     log(f"reference ({ref.label()}): {rres['wall_s']:.2f} s, Newton iterations {rres['newton_total']} "
-        f"over {rres['frames_run']} steps")
+        f"over {rres['frames_run']} steps, {rres['newton_unconverged_frames']} frames not converged "
+        f"to the tolerance")
     rows = []
     rq = None
     if comm.rank == 0:

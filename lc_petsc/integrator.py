@@ -134,6 +134,7 @@ class Integrator:
             if exact and dx is not None:
                 alpha = self._line_search(x, g, dx, EXACT_HALVINGS)
             if dx is None or alpha is None:     # no exact Newton step: a filtered one
+                exact = False
                 self.exact_hessian_fallbacks[-1] += 1
                 g = self._assemble_system(x, it)
                 dx = self._solve_step(g, it)

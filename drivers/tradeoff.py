@@ -3,17 +3,22 @@ tolerances, bigger steps, a cheaper filter or a line search cost in accuracy.
 
   mpiexec -n P python drivers/tradeoff.py [--scene hairball|smash|jitter|CONFIG.toml]
       [--wisps 10] [--duration 1.0] [--axes newton ksp_rtol dt filter line_search newton_update]
-      [--ref-dt 0.008333] [--ref-tol 1e-9] [--ref converged|base] [--rtols 1e-2 1e-4 ...]
+      [--ref-dt 0.008333] [--ref-tol 1e-9] [--ref converged|base]
+      [--ref-method exact_or_analytic|unfiltered] [--rtols 1e-2 1e-4 ...]
       [--set NAME] [--cost wall_per_sim_s|cpu_per_sim_s] [--out out/tradeoff]
       [PETSc options ...]
 
-A reference trajectory (Newton with the unfiltered Hessian and the line search to
-max|dx| < --ref-tol cm, at most 100 iterations, GMRES since that Hessian may be
-indefinite, falling back to the analytic filter if that fails; Krylov rtol 1e-12;
-dt = --ref-dt, default 1/120) and variants along each axis (Newton
-iterations 1, 2, 3, 6, 12; ksp rtol 1e-2 .. 1e-10; dt 1/30, 1/60, 1/120; filter
-analytic, numerical, none; line search on), all from the base setting dt 1/30, 3 Newton
-iterations, rtol 1e-6, analytic filter, no line search.  Positions and energies are
+A reference trajectory (Newton to max|dx| < --ref-tol cm, at most 100 iterations, with
+the exact Hessian near the solution, the analytic filter otherwise and the edge
+retraction (--ref-method exact_or_analytic, docs/newton.md), or the unfiltered Hessian
+with the line search and GMRES (--ref-method unfiltered); falling back to the analytic
+filter if that fails; Krylov rtol 1e-12; dt = --ref-dt, default 1/120) and variants
+along each axis (Newton iterations 1, 2, 3, 6, 12; ksp rtol 1e-2 .. 1e-10; dt 1/30,
+1/60, 1/120; filter analytic, numerical, none; line search on; newton_update: linear
+and edge retraction at 2, 3, 4, 6 iterations, the follow-the-leader guess, and
+exact_or_analytic to increments of 1e-3, 1e-4, 1e-6 wisp lengths with a cap of 30),
+all from the base setting dt 1/30, 3 Newton iterations, rtol 1e-6, analytic filter, no
+line search, the config's default Newton update.  Positions and energies are
 compared at the common output times (every 1/30 s).  ``--set NAME`` runs every
 variant with the solver set configs/solvers/NAME.opts (the reference keeps the default
 exact per-wisp solver).  ``--ref base`` replaces the reference with the base setting
@@ -73,9 +78,11 @@ def main(argv=None):
     ap.add_argument("--ref", default="converged", choices=["converged", "base"],
                     help="converged: Newton to --ref-tol at --ref-dt; base: the base setting "
                          "with Krylov rtol 1e-10")
-    ap.add_argument("--ref-method", default="unfiltered", choices=["unfiltered", "exact_or_analytic"],
-                    help="converged reference: unfiltered Hessian + line search (GMRES), or the "
-                         "exact-or-analytic Hessian with the edge retraction (docs/newton.md)")
+    ap.add_argument("--ref-method", default="exact_or_analytic",
+                    choices=["exact_or_analytic", "unfiltered"],
+                    help="converged reference: the exact-or-analytic Hessian with the edge "
+                         "retraction (docs/newton.md), or the unfiltered Hessian with the line "
+                         "search and GMRES (the reference before)")
     ap.add_argument("--rtols", type=float, nargs="+", default=list(KSP_RTOLS),
                     help="Krylov tolerances of the ksp_rtol axis")
     ap.add_argument("--set", default=None, help="solver set of configs/solvers for every run")

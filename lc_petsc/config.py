@@ -211,7 +211,7 @@ class TimeConfig:
     newton_increment_tol: Optional[float] = None
     line_search: bool = False
     initial_guess: str = "inertial"
-    newton_update: str = "linear"
+    newton_update: str = "edge_retraction"
 
     def validate(self) -> None:
         _positive("time.dt", self.dt)

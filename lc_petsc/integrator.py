@@ -185,7 +185,7 @@ class Integrator:
         ``time.newton_update = "edge_retraction"`` the same step with each free edge's
         length set to its linearised value (:func:`retract_edge_lengths`)."""
         if self.cfg.time.newton_update == "edge_retraction":
-            return retract_edge_lengths(x, step, self.free, self.scene.offsets)
+            return retract_edge_lengths(x, step, self.free, self.scene.offsets, self.scene.mass)
         return x + step
 
     # -------------------------------------------------------------- Newton system
@@ -324,18 +324,24 @@ def follow_the_leader(x, free, offsets, rest_edge):
     return x
 
 
-def retract_edge_lengths(x, dx, free, offsets):
+def retract_edge_lengths(x, dx, free, offsets, mass=None):
     """x + dx with the length of every edge that ends at a free vertex set to its
     first-order value |e| + eh . de (direction that of e + de), the corrections
     accumulated from the root (or the last pinned vertex) outwards.  A linearised step
     that turns an edge by an angle phi lengthens it by |e| phi^2 / 2, which the stiff
     stretch term pulls back in the next iteration; this update keeps the step's rotation
     and its first-order length change only.  It equals x + dx to second order in dx (so
-    Newton's convergence rate is kept) and has the same fixed points.
-    x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,).  Returns (nv, 3)."""
+    Newton's convergence rate is kept) and has the same fixed points.  On a wisp with no
+    pinned vertex the mass-weighted mean correction is removed (``mass`` given): the
+    step then changes the wisp's momentum as x + dx does.  Each wisp's result depends on
+    that wisp alone (rank-count invariant to the last bit).
+    x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
+    Returns (nv, 3)."""
     out = x + dx
     nv = len(x)
-    if nv < 2:
+    off = np.asarray(offsets)
+    sizes = np.diff(off)
+    if nv < 2 or len(sizes) == 0:
         return out
     e = x[1:] - x[:-1]
     new = out[1:] - out[:-1]
@@ -348,11 +354,23 @@ def retract_edge_lengths(x, dx, free, offsets):
     # edges into pinned vertices and across wisps are not corrected; the sums restart
     # at every wisp's first vertex and at pinned vertices
     reset = ~free.copy()
-    reset[np.asarray(offsets)[:-1]] = True
+    reset[off[:-1]] = True
     correction[reset] = 0.0
-    total = np.cumsum(correction, axis=0)
+    wisp = np.repeat(np.arange(len(sizes)), sizes)
+    pos = np.arange(nv) - off[:-1][wisp]
+    table = np.zeros((len(sizes), int(sizes.max()), 3))
+    table[wisp, pos] = correction
+    np.cumsum(table, axis=1, out=table)
     last_reset = np.maximum.accumulate(np.where(reset, np.arange(nv), 0))
-    return out + total - total[last_reset]
+    total = table[wisp, pos] - table[wisp, pos - (np.arange(nv) - last_reset)]
+    if mass is not None:
+        unpinned = np.bincount(wisp, weights=(~free).astype(float), minlength=len(sizes)) == 0
+        if unpinned.any():
+            m = np.bincount(wisp, weights=mass, minlength=len(sizes))
+            mean = np.stack([np.bincount(wisp, weights=mass * total[:, c], minlength=len(sizes))
+                             for c in range(3)], axis=1) / np.where(m > 0, m, 1.0)[:, None]
+            total[unpinned[wisp]] -= mean[wisp[unpinned[wisp]]]
+    return out + total
 
 
 def wisp_lengths(scene):

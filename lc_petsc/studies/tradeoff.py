@@ -15,6 +15,7 @@ from typing import Optional
 import numpy as np
 from petsc4py import PETSc
 
+from lc_petsc.config import TimeConfig
 from lc_petsc.parallel import SimulationError
 from lc_petsc.simulator import build_simulator
 from lc_petsc.solver import SolverError
@@ -37,8 +38,9 @@ class Settings:
     filter: str = "analytic"
     line_search: bool = False
     options: str = ""               # extra PETSc options (e.g. a solver set)
-    newton_update: str = "linear"
-    initial_guess: str = "inertial"
+    # the config's defaults
+    newton_update: str = TimeConfig.newton_update
+    initial_guess: str = TimeConfig.initial_guess
     newton_increment_tol: Optional[float] = None
 
     def label(self):
@@ -89,20 +91,19 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
 
 
 def reference_settings(dt=1.0 / 120.0, newton_tol=1e-9, max_newton=100, filter="none",
-                       line_search=True, method="unfiltered"):
+                       line_search=True, method="exact_or_analytic"):
     """The reference: BDF-1 solved to max|dx| < ``newton_tol`` cm.
 
     The filter changes only the Newton matrix, not the solution of a frame, so the
-    reference uses the unfiltered (true) Hessian with the line search: measured on the
-    shaking hairball, it converges quadratically (|dx| 1e-14 cm after ~10 iterations)
-    where the filtered Newton contracts by only ~0.93 per iteration (4e-4 cm after 40).
-    Its Krylov solver is GMRES (:data:`REFERENCE_KSP`), since that Hessian may be
-    indefinite.  :func:`run_study` falls back to :func:`reference_fallback` (analytic
-    filter, CG) if it fails.
-
-    ``method="exact_or_analytic"``: instead, the exact Hessian near the solution with
-    the analytic filter as fallback and the edge-length retraction (docs/newton.md), CG,
-    no line search beyond the exact steps' own; it converges in many more frames.
+    reference may use the exact Hessian.  ``method="exact_or_analytic"`` (default): the
+    exact Hessian near the solution with the analytic filter as fallback and the
+    edge-length retraction (docs/newton.md), CG; measured on the 10-wisp hairball at
+    dt 1/30 every frame converged, in 579 Newton iterations over 30 frames.
+    ``method="unfiltered"`` (the reference before): the unfiltered Hessian (``filter``)
+    with the line search, solved by GMRES (:data:`REFERENCE_KSP`) since it may be
+    indefinite; on the same run it used 2,239 iterations and stalled in frames where the
+    line search found no decrease (docs/newton.md).  :func:`run_study` falls back to
+    :func:`reference_fallback` (analytic filter, CG) if the reference fails.
     """
     if method == "exact_or_analytic":
         return Settings(dt=dt, newton_iterations=max_newton, newton_tol=newton_tol,
@@ -131,6 +132,7 @@ REFERENCE_KSP = "-ksp_type gmres -ksp_max_it 200"
 
 def reference_fallback(ref: Settings) -> Settings:
     return replace(ref, filter="analytic", newton_iterations=max(ref.newton_iterations, 200),
+                   newton_update="linear",
                    options=ref.options.replace(REFERENCE_KSP, "").strip())
 
 

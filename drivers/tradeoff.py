@@ -63,13 +63,18 @@ def scene_config(scene, wisps=20):
         return SimConfig(scene=SceneConfig(kind="wisp4c", perturbation=scene, smash_factor=0.4),
                          material=MaterialConfig(youngs_modulus=3.9e9),
                          physics=PhysicsConfig(terms=("stretch", "bend", "twist")))
-    return load_config(scene)
+    cfg = load_config(scene)
+    if wisps is not None and cfg.scene.kind == "hairball":
+        cfg.scene.n_wisps = wisps       # e.g. the demo hairball cut to a study size
+    return cfg
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default="hairball")
-    ap.add_argument("--wisps", type=int, default=10)
+    ap.add_argument("--wisps", type=int, default=None,
+                    help="wisps of the built-in hairball (default 10) or of a hairball CONFIG.toml "
+                         "(default: its own count)")
     ap.add_argument("--duration", type=float, default=1.0, help="simulated seconds")
     ap.add_argument("--axes", nargs="+", default=None,
                     choices=["newton", "ksp_rtol", "dt", "filter", "line_search", "newton_update"])
@@ -92,6 +97,8 @@ def main(argv=None):
     ap.add_argument("--out", default="out/tradeoff")
     args, _ = ap.parse_known_args(argv)
     comm = MPI.COMM_WORLD
+    if args.wisps is None and args.scene == "hairball":
+        args.wisps = 10
     cfg = scene_config(args.scene, args.wisps)
     opts = read_options_file(ROOT / "configs" / "solvers" / f"{args.set}.opts") if args.set else ""
     base = replace(BASE, options=opts)

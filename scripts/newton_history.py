@@ -4,8 +4,11 @@ smash, variants side by side (docs/newton.md).
   .venv/bin/python scripts/newton_history.py [--scenes hairball10 smash] [--frames 10]
       [--iterations 30] [--tol 1e-6] [--variant NAME=SPEC ...] [--out out/newton]
 
-SPEC: comma-separated key=value: filter=analytic|numerical|none|..., guess=...,
-ls=0|1 (line search), terms=stretch+gravity, head=0 (no head contact), options="-ksp..".
+SPEC: comma-separated key=value: filter=analytic|numerical|none|abs|exact_or_analytic,
+update=linear|edge_retraction, guess=inertial|follow_the_leader, ls=0|1 (line search),
+terms=stretch+gravity, head=0 (no head contact), strands=0, options=-ksp_type gmres.
+hairball10 is configs/hairball_demo.toml cut to 10 wisps without strand contact (head
+contact and the shaking head kept); smash is configs/smash.toml.
 Outputs in --out: newton.csv (every iteration), newton.json, newton.md (table),
 newton_<scene>.png (increment per iteration: frame 0 and the median over frames).
 """
@@ -26,13 +29,19 @@ from lc_petsc.studies.newton import run_study  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 
 DEFAULT_VARIANTS = [
-    "analytic=filter=analytic",
-    "analytic LS=filter=analytic,ls=1",
-    "stretch+gravity=filter=analytic,terms=stretch+gravity",
-    "no twist=filter=analytic,terms=stretch+bend+gravity+head_collision",
-    "no head=filter=analytic,head=0",
-    "numerical=filter=numerical",
-    "none LS gmres=filter=none,ls=1,options=-ksp_type gmres",
+    "paper (analytic, linear)=filter=analytic,update=linear",
+    "analytic, linear, LS=filter=analytic,update=linear,ls=1",
+    "stretch+gravity only=filter=analytic,update=linear,terms=stretch+gravity",
+    "no twist=filter=analytic,update=linear,terms=stretch+bend+gravity+head_collision",
+    "no head contact=filter=analytic,update=linear,head=0",
+    "numerical, linear=filter=numerical,update=linear",
+    "abs, linear=filter=abs,update=linear",
+    "exact + LS (GMRES), linear=filter=none,update=linear,ls=1,options=-ksp_type gmres",
+    "analytic, linear, FTL guess=filter=analytic,update=linear,guess=follow_the_leader",
+    "exact_or_analytic, linear=filter=exact_or_analytic,update=linear",
+    "analytic, retraction (default)=filter=analytic,update=edge_retraction",
+    "abs, retraction=filter=abs,update=edge_retraction",
+    "exact_or_analytic, retraction=filter=exact_or_analytic,update=edge_retraction",
 ]
 
 

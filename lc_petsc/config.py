@@ -199,9 +199,11 @@ class TimeConfig:
     """``[time]``: BDF-1 step and Newton settings.
 
     Newton stops after ``newton_iterations`` iterations or as soon as the largest vertex
-    increment is below ``newton_tol`` cm (``None``: fixed count, the paper's setting),
-    whichever comes first.  ``line_search`` enables Armijo backtracking on the
-    incremental potential G.
+    increment relative to its wisp's rest length is below ``newton_increment_tol``
+    and/or the absolute one below ``newton_tol`` cm (``None``: fixed count, the paper's
+    setting), whichever comes first.  ``line_search`` enables Armijo backtracking on the
+    incremental potential G.  ``newton_update`` and ``initial_guess``: see
+    lc_petsc/integrator.py and docs/newton.md.
     """
 
     dt: float = 1.0 / 30.0

@@ -7,10 +7,22 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
 * Initial iterate: xhat for free vertices; pinned vertices are moved to their prescribed
   position at t_{n+1} first, so their Newton increments are zero (identity rows/cols,
   zero right-hand side) and the prescribed motion enters through the elements.
-* Termination: ``newton_iterations`` steps (default 3, the paper) or, when
-  ``newton_tol`` is set, as soon as max_i |dx_i| < newton_tol (cm), whichever first.
+* Initial iterate ``time.initial_guess``: ``inertial`` (the above) or
+  ``follow_the_leader`` (projected onto the rest edge lengths, :func:`follow_the_leader`).
+* Update ``time.newton_update``: ``linear`` (x + alpha dx) or ``edge_retraction``
+  (default; :func:`retract_edge_lengths`: a linearised rotation does not stretch the
+  stiff edges, the oscillation that kept the paper's Newton from converging,
+  docs/newton.md).
+* Termination: ``newton_iterations`` steps (default 3, the paper) or, when a tolerance
+  is set, as soon as the last step's largest vertex increment relative to its wisp's
+  rest length is below ``newton_increment_tol`` (and/or the absolute one below
+  ``newton_tol`` cm); per frame ``newton_converged`` and ``newton_increment`` record it.
+* ``solver.filter = "exact_or_analytic"``: once the relative increment is below
+  :data:`EXACT_BELOW` the exact Hessian is assembled and its step kept when CG finds no
+  indefiniteness and Armijo holds within :data:`EXACT_HALVINGS` halvings; otherwise the
+  iteration re-assembles with the analytic filter (``exact_hessian_fallbacks``).
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
-  G(x + alpha dx) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
+  G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
 * v_{n+1} = (x_{n+1} - x_n) / dt.
 * Strand-strand contact (``strand``, a :class:`lc_petsc.contact.StrandContact`, set by
   the simulator when ``strand_collision`` is on) adds its penalty to G, its gradient,

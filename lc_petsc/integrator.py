@@ -191,7 +191,6 @@ class Integrator:
         self.t = self.t_next
         self.frame += 1
 
-
     def update(self, x, step):
         """The next Newton iterate from x and the (scaled) step: x + step, or with
         ``time.newton_update = "edge_retraction"`` the same step with each free edge's
@@ -202,12 +201,14 @@ class Integrator:
 
     # -------------------------------------------------------------- Newton system
     def _assemble_system(self, x, it, filter=None):
-        """Fill the Newton matrix at x (element Hessians with ``filter``, default the
-        assembler's); returns grad G."""
+        """Fill the Newton matrix at x (element and strand-contact Hessians with
+        ``filter``, default the configured one); returns grad G."""
         asm, sc, dt = self.asm, self.scene, self.cfg.time.dt
         chosen = asm.filter
         if filter is not None:
             asm.filter = filter
+            if self.strand is not None:
+                self.strand.filter = filter
         try:
             with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
                 g = self.gradient(x, elastic=asm.assemble(x))
@@ -217,10 +218,12 @@ class Integrator:
                 if cg is not None:
                     with self.timers("collision"):
                         asm.add_diagonal(idx, cg[1])
+            if self.strand is not None:
+                g += self.strand.assemble(x, asm)
         finally:
             asm.filter = chosen
-        if self.strand is not None:
-            g += self.strand.assemble(x, asm)
+            if self.strand is not None:
+                self.strand.filter = chosen
         asm.commit()
         if self.strand is not None:         # the Newton matrix is A + C (contact.py)
             self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat))

@@ -121,39 +121,31 @@ def test_convergence_rate_stretch_only_retraction():
     assert (_iterations(cfg("linear"), 1e-6)[0] or 99) > 15
 
 
+def _summary(cfg):
+    sim = build_simulator(cfg, COMM)
+    try:
+        sim.run()
+        return sim.summary()
+    finally:
+        sim.close()
+
+
 def test_stopping_rule_and_summary():
     cfg = _smash(frames=3, newton_iterations=30, newton_increment_tol=1e-7,
                  newton_update="edge_retraction")
     cfg.solver = SolverConfig(filter="exact_or_analytic")
-    sim = build_simulator(cfg, COMM)
-    try:
-        sim.run()
-        s = sim.summary()
-    finally:
-        sim.close()
+    s = _summary(cfg)
     assert s["newton_converged"] == [True, True, True]
     assert all(v < 1e-7 for v in s["newton_increment"])
     assert all(n < 30 for n in s["newton_iterations"])
     assert len(s["newton_exact_fallbacks"]) == 3
     assert s["converged"]               # the replaced indefinite solves are not recorded
     # the cap stops it: not converged, and the last increment says how far it is
-    cfg = _smash(frames=1, newton_iterations=3, newton_increment_tol=1e-7)
-    sim = build_simulator(cfg, COMM)
-    try:
-        sim.run()
-        s = sim.summary()
-    finally:
-        sim.close()
+    s = _summary(_smash(frames=1, newton_iterations=3, newton_increment_tol=1e-7))
     assert s["newton_converged"] == [False] and s["newton_iterations"] == [3]
     assert s["newton_increment"][0] > 1e-7
     # no tolerance: a fixed count, converged is null
-    cfg = _smash(frames=1, newton_iterations=2)
-    sim = build_simulator(cfg, COMM)
-    try:
-        sim.run()
-        assert sim.summary()["newton_converged"] == [None]
-    finally:
-        sim.close()
+    assert _summary(_smash(frames=1, newton_iterations=2))["newton_converged"] == [None]
 
 
 @pytest.mark.parametrize("key,value,match", [

@@ -72,6 +72,7 @@ class Integrator:
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
         self.history = None             # a list: per-iteration measures are appended
+        self._force_scale = 0.0         # the frame's force scale (with a history only)
         self.exact_hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
 
     # -------------------------------------------------------------- potential
@@ -120,7 +121,7 @@ class Integrator:
 
     # -------------------------------------------------------------- one frame
     def step(self):
-        cfg, sc, asm = self.cfg, self.scene, self.asm
+        cfg, sc = self.cfg, self.scene
         dt = cfg.time.dt
         self.t_next = self.t + dt
         x_old = self.x.copy()

@@ -14,7 +14,6 @@ newton_<scene>.png (increment per iteration: frame 0 and the median over frames)
 """
 
 import argparse
-import copy
 import sys
 from pathlib import Path
 
@@ -69,7 +68,7 @@ def main(argv=None):
     comm = MPI.COMM_WORLD
     log = print if comm.rank == 0 else (lambda *_: None)
     scenes = [(Path(s).stem, scene(s)) for s in a.scenes]
-    summary = run_study(scenes, variants, comm, a.out, a.iterations, a.frames, a.tol, log)
+    run_study(scenes, variants, comm, a.out, a.iterations, a.frames, a.tol, log)
     if comm.rank == 0:
         print((Path(a.out) / "newton.md").read_text())
 

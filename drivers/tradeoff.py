@@ -2,18 +2,23 @@
 tolerances, bigger steps, a cheaper filter or a line search cost in accuracy.
 
   mpiexec -n P python drivers/tradeoff.py [--scene hairball|smash|jitter|CONFIG.toml]
-      [--wisps 10] [--duration 1.0] [--axes newton ksp_rtol dt filter line_search]
-      [--ref-dt 0.008333] [--ref-tol 1e-9] [--ref converged|base] [--rtols 1e-2 1e-4 ...]
+      [--wisps 10] [--duration 1.0] [--axes newton ksp_rtol dt filter line_search newton_update]
+      [--ref-dt 0.008333] [--ref-tol 1e-9] [--ref converged|base]
+      [--ref-method exact_or_analytic|unfiltered] [--rtols 1e-2 1e-4 ...]
       [--set NAME] [--cost wall_per_sim_s|cpu_per_sim_s] [--out out/tradeoff]
       [PETSc options ...]
 
-A reference trajectory (Newton with the unfiltered Hessian and the line search to
-max|dx| < --ref-tol cm, at most 100 iterations, GMRES since that Hessian may be
-indefinite, falling back to the analytic filter if that fails; Krylov rtol 1e-12;
-dt = --ref-dt, default 1/120) and variants along each axis (Newton
-iterations 1, 2, 3, 6, 12; ksp rtol 1e-2 .. 1e-10; dt 1/30, 1/60, 1/120; filter
-analytic, numerical, none; line search on), all from the base setting dt 1/30, 3 Newton
-iterations, rtol 1e-6, analytic filter, no line search.  Positions and energies are
+A reference trajectory (Newton to max|dx| < --ref-tol cm, at most 100 iterations, with
+the exact Hessian near the solution, the analytic filter otherwise and the edge
+retraction (--ref-method exact_or_analytic, docs/newton.md), or the unfiltered Hessian
+with the line search and GMRES (--ref-method unfiltered); falling back to the analytic
+filter if that fails; Krylov rtol 1e-12; dt = --ref-dt, default 1/120) and variants
+along each axis (Newton iterations 1, 2, 3, 6, 12; ksp rtol 1e-2 .. 1e-10; dt 1/30,
+1/60, 1/120; filter analytic, numerical, none; line search on; newton_update: linear
+and edge retraction at 2, 3, 4, 6 iterations, the follow-the-leader guess, and
+exact_or_analytic to increments of 1e-3, 1e-4, 1e-6 wisp lengths with a cap of 30),
+all from the base setting dt 1/30, 3 Newton iterations, rtol 1e-6, analytic filter, no
+line search, the config's default Newton update.  Positions and energies are
 compared at the common output times (every 1/30 s).  ``--set NAME`` runs every
 variant with the solver set configs/solvers/NAME.opts (the reference keeps the default
 exact per-wisp solver).  ``--ref base`` replaces the reference with the base setting
@@ -58,21 +63,31 @@ def scene_config(scene, wisps=20):
         return SimConfig(scene=SceneConfig(kind="wisp4c", perturbation=scene, smash_factor=0.4),
                          material=MaterialConfig(youngs_modulus=3.9e9),
                          physics=PhysicsConfig(terms=("stretch", "bend", "twist")))
-    return load_config(scene)
+    cfg = load_config(scene)
+    if wisps is not None and cfg.scene.kind == "hairball":
+        cfg.scene.n_wisps = wisps       # e.g. the demo hairball cut to a study size
+    return cfg
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default="hairball")
-    ap.add_argument("--wisps", type=int, default=10)
+    ap.add_argument("--wisps", type=int, default=None,
+                    help="wisps of the built-in hairball (default 10) or of a hairball CONFIG.toml "
+                         "(default: its own count)")
     ap.add_argument("--duration", type=float, default=1.0, help="simulated seconds")
     ap.add_argument("--axes", nargs="+", default=None,
-                    choices=["newton", "ksp_rtol", "dt", "filter", "line_search"])
+                    choices=["newton", "ksp_rtol", "dt", "filter", "line_search", "newton_update"])
     ap.add_argument("--ref-dt", type=float, default=1.0 / 120.0)
     ap.add_argument("--ref-tol", type=float, default=1e-9)
     ap.add_argument("--ref", default="converged", choices=["converged", "base"],
                     help="converged: Newton to --ref-tol at --ref-dt; base: the base setting "
                          "with Krylov rtol 1e-10")
+    ap.add_argument("--ref-method", default="exact_or_analytic",
+                    choices=["exact_or_analytic", "unfiltered"],
+                    help="converged reference: the exact-or-analytic Hessian with the edge "
+                         "retraction (docs/newton.md), or the unfiltered Hessian with the line "
+                         "search and GMRES (the reference before)")
     ap.add_argument("--rtols", type=float, nargs="+", default=list(KSP_RTOLS),
                     help="Krylov tolerances of the ksp_rtol axis")
     ap.add_argument("--set", default=None, help="solver set of configs/solvers for every run")
@@ -82,11 +97,14 @@ def main(argv=None):
     ap.add_argument("--out", default="out/tradeoff")
     args, _ = ap.parse_known_args(argv)
     comm = MPI.COMM_WORLD
+    if args.wisps is None and args.scene == "hairball":
+        args.wisps = 10
     cfg = scene_config(args.scene, args.wisps)
     opts = read_options_file(ROOT / "configs" / "solvers" / f"{args.set}.opts") if args.set else ""
     base = replace(BASE, options=opts)
     # the default exact solver, whatever --set
-    ref = reference_settings(args.ref_dt, args.ref_tol) if args.ref == "converged" else base_reference()
+    ref = (reference_settings(args.ref_dt, args.ref_tol, method=args.ref_method)
+           if args.ref == "converged" else base_reference())
     log = print if comm.rank == 0 else (lambda *a, **k: None)
     cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)
     run_study(cfg, default_variants(base, args.axes, args.rtols), comm, args.out, duration=args.duration,

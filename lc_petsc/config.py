@@ -24,7 +24,10 @@ SCENE_KINDS = ("wisp4c", "hairball", "straight", "file", "usd")
 PERTURBATIONS = ("none", "smash", "jitter", "straighten")
 TERMS = ("stretch", "bend", "twist", "gravity", "head_collision", "strand_collision")
 HEAD_MOTIONS = ("static", "shake", "translate")
-FILTERS = ("analytic", "numerical", "none")
+from lc_petsc.elements.common import FILTERS as ELEMENT_FILTERS  # noqa: E402
+#: solver.filter: an element filter, or the exact Hessian with the analytic filter as
+#: fallback when the Newton matrix is indefinite
+FILTERS = ELEMENT_FILTERS + ("exact_or_analytic",)
 IMPLEMENTED_TERMS = TERMS
 
 
@@ -202,21 +205,32 @@ class PhysicsConfig:
                               f"got {self.strand_separation!r}")
 
 
+#: Newton's first iterate: x_n + dt v_n, or that projected onto the rest edge lengths.
+INITIAL_GUESSES = ("inertial", "follow_the_leader")
+#: How a Newton step updates positions: x + dx, or with the edge lengths retracted.
+NEWTON_UPDATES = ("linear", "edge_retraction")
+
+
 @dataclass
 class TimeConfig:
     """``[time]``: BDF-1 step and Newton settings.
 
     Newton stops after ``newton_iterations`` iterations or as soon as the largest vertex
-    increment is below ``newton_tol`` cm (``None``: fixed count, the paper's setting),
-    whichever comes first.  ``line_search`` enables Armijo backtracking on the
-    incremental potential G.
+    increment relative to its wisp's rest length is below ``newton_increment_tol``
+    and/or the absolute one below ``newton_tol`` cm (``None``: fixed count, the paper's
+    setting), whichever comes first.  ``line_search`` enables Armijo backtracking on the
+    incremental potential G.  ``newton_update`` and ``initial_guess``: see
+    lc_petsc/integrator.py and docs/newton.md.
     """
 
     dt: float = 1.0 / 30.0
     frames: int = 1
     newton_iterations: int = 3
     newton_tol: Optional[float] = None
+    newton_increment_tol: Optional[float] = None
     line_search: bool = False
+    initial_guess: str = "inertial"
+    newton_update: str = "edge_retraction"
 
     def validate(self) -> None:
         _positive("time.dt", self.dt)
@@ -224,6 +238,14 @@ class TimeConfig:
         _int_at_least("time.newton_iterations", self.newton_iterations, 1)
         if self.newton_tol is not None:
             _positive("time.newton_tol", self.newton_tol)
+        if self.newton_increment_tol is not None:
+            _positive("time.newton_increment_tol", self.newton_increment_tol)
+        if self.initial_guess not in INITIAL_GUESSES:
+            raise ConfigError(f"time.initial_guess must be one of {INITIAL_GUESSES}, "
+                              f"got {self.initial_guess!r}")
+        if self.newton_update not in NEWTON_UPDATES:
+            raise ConfigError(f"time.newton_update must be one of {NEWTON_UPDATES}, "
+                              f"got {self.newton_update!r}")
 
 
 @dataclass

@@ -7,10 +7,22 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
 * Initial iterate: xhat for free vertices; pinned vertices are moved to their prescribed
   position at t_{n+1} first, so their Newton increments are zero (identity rows/cols,
   zero right-hand side) and the prescribed motion enters through the elements.
-* Termination: ``newton_iterations`` steps (default 3, the paper) or, when
-  ``newton_tol`` is set, as soon as max_i |dx_i| < newton_tol (cm), whichever first.
+* Initial iterate ``time.initial_guess``: ``inertial`` (the above) or
+  ``follow_the_leader`` (projected onto the rest edge lengths, :func:`follow_the_leader`).
+* Update ``time.newton_update``: ``linear`` (x + alpha dx) or ``edge_retraction``
+  (default; :func:`retract_edge_lengths`: a linearised rotation does not stretch the
+  stiff edges, the oscillation that kept the paper's Newton from converging,
+  docs/newton.md).
+* Termination: ``newton_iterations`` steps (default 3, the paper) or, when a tolerance
+  is set, as soon as the last step's largest vertex increment relative to its wisp's
+  rest length is below ``newton_increment_tol`` (and/or the absolute one below
+  ``newton_tol`` cm); per frame ``newton_converged`` and ``newton_increment`` record it.
+* ``solver.filter = "exact_or_analytic"``: once the relative increment is below
+  :data:`EXACT_BELOW` the exact Hessian is assembled and its step kept when CG finds no
+  indefiniteness and Armijo holds within :data:`EXACT_HALVINGS` halvings; otherwise the
+  iteration re-assembles with the analytic filter (``exact_hessian_fallbacks``).
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
-  G(x + alpha dx) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
+  G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
 * v_{n+1} = (x_{n+1} - x_n) / dt.
 * Strand-strand contact (``strand``, a :class:`lc_petsc.contact.StrandContact`, set by
   the simulator when ``strand_collision`` is on) adds its penalty to G, its gradient,
@@ -30,6 +42,7 @@ import numpy as np
 
 from lc_petsc.elements import head_contact
 from lc_petsc.parallel import collectively
+from lc_petsc.solver import SolverError
 
 
 class Integrator:
@@ -54,6 +67,13 @@ class Integrator:
         self.contact_deep_pairs = []
         self.contact_min_distance = []
         self.contact_separated = []
+        self.wisp_length = wisp_lengths(scene)
+        self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
+        self.newton_increment = []      # per frame: the last step's relative increment
+        self.newton_converged = []      # per frame: met the tolerances (None: none set)
+        self.history = None             # a list: per-iteration measures are appended
+        self._force_scale = 0.0         # the frame's force scale (with a history only)
+        self.exact_hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian):
@@ -101,7 +121,7 @@ class Integrator:
 
     # -------------------------------------------------------------- one frame
     def step(self):
-        cfg, sc, asm = self.cfg, self.scene, self.asm
+        cfg, sc = self.cfg, self.scene
         dt = cfg.time.dt
         self.t_next = self.t + dt
         x_old = self.x.copy()
@@ -110,41 +130,37 @@ class Integrator:
         pin = ~self.free
         if pin.any():
             x[pin] = self.head.pinned_positions(sc.x_rest[pin], self.t_next)
+        if cfg.time.initial_guess == "follow_the_leader":
+            x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
         n_it = 0
+        converged = None
+        increment = np.inf
+        if self.history is not None:
+            self._force_scale = self.frame_force_scale()
+        self.exact_hessian_fallbacks.append(0)
         for it in range(cfg.time.newton_iterations):
             n_it += 1
-            with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
-                g = self.gradient(x, elastic=asm.assemble(x))
-                with self.timers("assembly"):
-                    asm.add_mass(sc.mass / dt ** 2)
-                _, idx, cg = self._contact_terms(x, True)
-                if cg is not None:
-                    with self.timers("collision"):
-                        asm.add_diagonal(idx, cg[1])
-            if self.strand is not None:
-                g += self.strand.assemble(x, asm)
-            asm.commit()
-            if self.strand is not None:         # the Newton matrix is A + C (contact.py)
-                self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat))
-            with self.timers("solve"):
-                self.bv.array[:] = -g.ravel()
-                self.solver.solve(self.bv, self.xv, self.frame, it)
-                dx = self.xv.array.reshape(-1, 3).copy()
-            dx[pin] = 0.0
+            exact = self._exact_hessian(increment)
+            g = self._assemble_system(x, it, filter="none" if exact else None)
+            dx = self._solve_step(g, it, may_fail=exact)
             alpha = 1.0
-            if cfg.time.line_search:
-                G0 = self.incremental_potential(x)
-                slope = self.comm.allreduce(float(np.sum(g * dx)))
-                for _ in range(20):
-                    if self.incremental_potential(x + alpha * dx) <= G0 + 1e-4 * alpha * slope:
-                        break
-                    alpha *= 0.5
-                self.line_search_alphas.append(alpha)
-            x = x + alpha * dx
-            if cfg.time.newton_tol is not None:
-                step = self.comm.allreduce(float(np.abs(alpha * dx).max(initial=0.0)), op=_max())
-                if step < cfg.time.newton_tol:
-                    break
+            if exact and dx is not None:
+                alpha = self._line_search(x, g, dx, EXACT_HALVINGS)
+            if dx is None or alpha is None:     # no exact Newton step: a filtered one
+                exact = False
+                self.exact_hessian_fallbacks[-1] += 1
+                g = self._assemble_system(x, it)
+                dx = self._solve_step(g, it)
+                alpha = 1.0
+            if cfg.time.line_search and not exact:
+                alpha = self._line_search(x, g, dx, 20, give_up=False)
+            x_prev, x = x, self.update(x, alpha * dx)
+            increment = self.relative_increment(x - x_prev)
+            if self.history is not None:
+                self._record_iteration(it, x_prev, x, g, increment, alpha)
+            converged = self._newton_converged(x - x_prev, increment)
+            if converged:
+                break
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
         first_bad = sc.first_vertex + int(badv[0]) if len(badv) else -1
         bad_any = self.comm.allgather(first_bad)
@@ -152,6 +168,8 @@ class Integrator:
             raise FloatingPointError(f"frame {self.frame}: non-finite position at global vertex "
                                      f"{min(b for b in bad_any if b >= 0)}")
         self.newton_iterations.append(n_it)
+        self.newton_increment.append(increment)
+        self.newton_converged.append(converged)
         if self.strand is not None:
             pairs, deep, dmin = self.strand.measure(x)
             if cfg.physics.strand_separation:
@@ -173,6 +191,219 @@ class Integrator:
         self.x = x
         self.t = self.t_next
         self.frame += 1
+
+    def update(self, x, step):
+        """The next Newton iterate from x and the (scaled) step: x + step, or with
+        ``time.newton_update = "edge_retraction"`` the same step with each free edge's
+        length set to its linearised value (:func:`retract_edge_lengths`)."""
+        if self.cfg.time.newton_update == "edge_retraction":
+            return retract_edge_lengths(x, step, self.free, self.scene.offsets, self.scene.mass)
+        return x + step
+
+    # -------------------------------------------------------------- Newton system
+    def _assemble_system(self, x, it, filter=None):
+        """Fill the Newton matrix at x (element and strand-contact Hessians with
+        ``filter``, default the configured one); returns grad G."""
+        asm, sc, dt = self.asm, self.scene, self.cfg.time.dt
+        chosen = asm.filter
+        if filter is not None:
+            asm.filter = filter
+            if self.strand is not None:
+                self.strand.filter = filter
+        try:
+            with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
+                g = self.gradient(x, elastic=asm.assemble(x))
+                with self.timers("assembly"):
+                    asm.add_mass(sc.mass / dt ** 2)
+                _, idx, cg = self._contact_terms(x, True)
+                if cg is not None:
+                    with self.timers("collision"):
+                        asm.add_diagonal(idx, cg[1])
+            if self.strand is not None:
+                g += self.strand.assemble(x, asm)
+        finally:
+            asm.filter = chosen
+            if self.strand is not None:
+                self.strand.filter = chosen
+        asm.commit()
+        if self.strand is not None:         # the Newton matrix is A + C (contact.py)
+            self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat))
+        return g
+
+    def _exact_hessian(self, increment):
+        """Whether this iteration assembles the exact Hessian: ``solver.filter =
+        "exact_or_analytic"`` once the last relative increment is below
+        ``solver.exact_hessian_below`` (near the solution, where it is mostly positive
+        definite)."""
+        s = self.cfg.solver
+        return s.filter == "exact_or_analytic" and increment < EXACT_BELOW
+
+    def _line_search(self, x, g, dx, halvings, give_up=True):
+        """Armijo backtracking on G along update(x, alpha dx): alpha halves from 1 until
+        G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx.  After ``halvings``
+        halvings, or for an ascent direction, returns None (``give_up``) or the last
+        alpha.  Collective; the alphas are recorded."""
+        slope = self.comm.allreduce(float(np.sum(g * dx)))
+        if give_up and slope >= 0.0:
+            return None
+        G0 = self.incremental_potential(x)
+        alpha = 1.0
+        for _ in range(halvings):
+            if self.incremental_potential(self.update(x, alpha * dx)) <= G0 + 1e-4 * alpha * slope:
+                break
+            alpha *= 0.5
+        else:
+            if give_up:
+                return None
+        self.line_search_alphas.append(alpha)
+        return alpha
+
+    def _solve_step(self, g, it, may_fail=False):
+        """The Newton step dx (pinned rows zero).  With ``may_fail`` (the exact Hessian)
+        returns None instead when CG finds the matrix or preconditioner indefinite (that
+        solve is then not recorded: another one replaces it)."""
+        with self.timers("solve"):
+            self.bv.array[:] = -g.ravel()
+            try:
+                self.solver.solve(self.bv, self.xv, self.frame, it)
+            except SolverError:
+                if not (may_fail and "INDEFINITE" in self.solver.reasons[-1]):
+                    raise
+                self.solver.forget_last()
+                return None
+            dx = self.xv.array.reshape(-1, 3).copy()
+        dx[~self.free] = 0.0
+        return dx
+
+    # -------------------------------------------------------------- convergence
+    def relative_increment(self, dx):
+        """max_i |dx_i| / (rest length of vertex i's wisp), over all ranks."""
+        local = float((np.linalg.norm(dx, axis=1) / self.wisp_length).max(initial=0.0))
+        return self.comm.allreduce(local, op=_max())
+
+    def _newton_converged(self, step, increment):
+        """True/False against the tolerances that are set (both when both are), None
+        when neither is (a fixed iteration count)."""
+        t = self.cfg.time
+        if t.newton_increment_tol is None and t.newton_tol is None:
+            return None
+        ok = True
+        if t.newton_increment_tol is not None:
+            ok = increment < t.newton_increment_tol
+        if t.newton_tol is not None:
+            absolute = self.comm.allreduce(float(np.abs(step).max(initial=0.0)), op=_max())
+            ok = ok and absolute < t.newton_tol
+        return ok
+
+    def frame_force_scale(self):
+        """The frame's force scale |f_ext| + |M v_n| / dt + |grad V(x_n)| (2-norms over
+        the free vertices of all ranks): external, inertial and elastic forces at the
+        start of the frame, the yardstick of :meth:`relative_residual`."""
+        f = self.free
+        elastic = self.asm.gradient(self.x)
+        parts = np.array([np.sum(self.f_ext[f] ** 2),
+                          np.sum((self.scene.mass[f, None] * self.v[f]) ** 2) / self.cfg.time.dt ** 2,
+                          np.sum(elastic[f] ** 2)])
+        return float(np.sqrt(self.comm.allreduce(parts)).sum())
+
+    def relative_residual(self, g):
+        """|grad G| (2-norm, all ranks) relative to the frame's force scale."""
+        norm = np.sqrt(self.comm.allreduce(float(np.sum(g * g))))
+        return norm / self._force_scale if self._force_scale > 0 else norm
+
+    def _record_iteration(self, it, x_old, x_new, g, increment, alpha):
+        """Append iteration ``it``'s measures to ``self.history`` (diagnostics: costs a
+        residual reduction and two evaluations of G)."""
+        G_old, G_new = self.incremental_potential(x_old), self.incremental_potential(x_new)
+        self.history.append(dict(
+            frame=self.frame, iteration=it, increment=increment, alpha=alpha,
+            residual=self.relative_residual(g), energy=G_new,
+            energy_decrease=G_old - G_new))
+
+
+def follow_the_leader(x, free, offsets, rest_edge):
+    """Length-preserving prediction (Mueller et al. 2012): walking from each wisp's root,
+    every free vertex is put at its rest edge length from its predecessor, in the
+    direction of its predicted position.  x (nv, 3) predicted positions, free (nv,)
+    bool, offsets (n_wisps + 1,), rest_edge (nv - 1,) rest length of edge (v, v + 1)
+    (edges across wisps unused).  Returns the new positions (nv, 3)."""
+    x = x.copy()
+    off = np.asarray(offsets)
+    sizes = np.diff(off)
+    for j in range(1, int(sizes.max(initial=0))):
+        v = off[:-1][sizes > j] + j
+        v = v[free[v]]
+        d = x[v] - x[v - 1]
+        n = np.linalg.norm(d, axis=1)
+        ok = n > 0
+        x[v[ok]] = x[v[ok] - 1] + d[ok] * (rest_edge[v[ok] - 1] / n[ok])[:, None]
+    return x
+
+
+def retract_edge_lengths(x, dx, free, offsets, mass=None):
+    """x + dx with the length of every edge that ends at a free vertex set to its
+    first-order value |e| + eh . de (direction that of e + de), the corrections
+    accumulated from the root (or the last pinned vertex) outwards.  A linearised step
+    that turns an edge by an angle phi lengthens it by |e| phi^2 / 2, which the stiff
+    stretch term pulls back in the next iteration; this update keeps the step's rotation
+    and its first-order length change only.  It equals x + dx to second order in dx (so
+    Newton's convergence rate is kept) and has the same fixed points.  On a wisp with no
+    pinned vertex the mass-weighted mean correction is removed (``mass`` given): the
+    step then changes the wisp's momentum as x + dx does.  Each wisp's result depends on
+    that wisp alone (rank-count invariant to the last bit).
+    x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
+    Returns (nv, 3)."""
+    out = x + dx
+    nv = len(x)
+    off = np.asarray(offsets)
+    sizes = np.diff(off)
+    if nv < 2 or len(sizes) == 0:
+        return out
+    e = x[1:] - x[:-1]
+    new = out[1:] - out[:-1]
+    L = np.linalg.norm(e, axis=1)
+    n = np.linalg.norm(new, axis=1)
+    length = L + np.einsum("ij,ij->i", e, new - e) / np.where(L > 0, L, 1.0)
+    ok = (n > 0) & (L > 0) & (length > 0)
+    correction = np.zeros_like(x)
+    correction[1:][ok] = new[ok] * (length[ok] / n[ok] - 1.0)[:, None]
+    # edges into pinned vertices and across wisps are not corrected; the sums restart
+    # at every wisp's first vertex and at pinned vertices
+    reset = ~free.copy()
+    reset[off[:-1]] = True
+    correction[reset] = 0.0
+    wisp = np.repeat(np.arange(len(sizes)), sizes)
+    pos = np.arange(nv) - off[:-1][wisp]
+    table = np.zeros((len(sizes), int(sizes.max()), 3))
+    table[wisp, pos] = correction
+    np.cumsum(table, axis=1, out=table)
+    last_reset = np.maximum.accumulate(np.where(reset, np.arange(nv), 0))
+    total = table[wisp, pos] - table[wisp, pos - (np.arange(nv) - last_reset)]
+    if mass is not None:
+        unpinned = np.bincount(wisp, weights=(~free).astype(float), minlength=len(sizes)) == 0
+        if unpinned.any():
+            m = np.bincount(wisp, weights=mass, minlength=len(sizes))
+            mean = np.stack([np.bincount(wisp, weights=mass * total[:, c], minlength=len(sizes))
+                             for c in range(3)], axis=1) / np.where(m > 0, m, 1.0)[:, None]
+            total[unpinned[wisp]] -= mean[wisp[unpinned[wisp]]]
+    return out + total
+
+
+def wisp_lengths(scene):
+    """Rest arc length of each vertex's wisp, shape (nv,)."""
+    seg = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
+    csum = np.concatenate([[0.0], np.cumsum(seg)])
+    off = scene.offsets
+    per_wisp = csum[off[1:] - 1] - csum[off[:-1]]
+    return np.repeat(per_wisp, np.diff(off))
+
+
+#: solver.filter "exact_or_analytic": the exact Hessian is tried once the last relative
+#: increment is below EXACT_BELOW, and its step kept if Armijo's condition holds within
+#: EXACT_HALVINGS halvings (measured, docs/newton.md: 3e-3 and 6 reach 1e-6 in the fewest
+#: iterations of 1e-2 / 3e-3 / always and 2 / 6 halvings on the hairball and smash).
+EXACT_BELOW = 3e-3
+EXACT_HALVINGS = 6
 
 
 def _max():

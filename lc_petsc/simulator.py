@@ -63,6 +63,12 @@ def apply_perturbation(batch, scene_cfg, rest_lengths_fn=None):
     return x
 
 
+def element_filter(solver_filter):
+    """The element kernels' filter of ``solver.filter`` (``exact_or_analytic`` assembles
+    the exact Hessian first, see Integrator)."""
+    return "analytic" if solver_filter == "exact_or_analytic" else solver_filter
+
+
 class Simulator:
     def __init__(self, config: SimConfig, comm=None):
         self.config = config.validate()
@@ -87,7 +93,8 @@ class Simulator:
         self.scope = OptionsScope(cfg.solver.effective_options(), defaults=None)
         mat_type = choose_mat_type(self.scope)
         with self.scope.active():
-            self.assembler = Assembler(scene, self.pcomm, self.timers, filter=cfg.solver.filter,
+            self.assembler = Assembler(scene, self.pcomm, self.timers,
+                                       filter=element_filter(cfg.solver.filter),
                                        mat_type=mat_type,
                                        pmat_type=choose_pmat_type(
                                            self.scope, mat_type,
@@ -154,6 +161,10 @@ class Simulator:
             "wall_time_s": self.comm.allreduce(self.wall, op=MPI.MAX),
             "timings_s": tim,
             "newton_iterations": list(self.integrator.newton_iterations),
+            "newton_converged": list(self.integrator.newton_converged),
+            "newton_increment": [None if not np.isfinite(v) else float(v)
+                                 for v in self.integrator.newton_increment],
+            "newton_exact_fallbacks": list(self.integrator.exact_hessian_fallbacks),
             "ksp_iterations": list(self.solver.iterations),
             "ksp_reasons": list(self.solver.reasons),
             "converged": all(not r.startswith("DIVERGED") for r in self.solver.reasons),
@@ -229,7 +240,7 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, scope, mat_type):
     if d0 is None:
         d0 = 2.0 * comm.allreduce(float(scene.radius.min(initial=np.inf)), op=MPI.MIN)
     return StrandContact(scene, comm, pcomm, timers, d0, cfg.physics.strand_stiffness,
-                         filter=cfg.solver.filter, mat_type=mat_type,
+                         filter=element_filter(cfg.solver.filter), mat_type=mat_type,
                          coupled_pc=contact_pc == "coupled")
 
 

@@ -215,6 +215,11 @@ class LinearSolver:
                 f"-mat_type {A.getType()} (preconditioner built from {P.getType()}) "
                 f"(options: {self.scope.effective()})")
 
+    def forget_last(self):
+        """Drop the last solve's record (a solve the caller replaces by another one)."""
+        self.iterations.pop()
+        self.reasons.pop()
+
     def solve(self, b, x, frame, newton_it):
         with self.scope.active(self.extra):
             self.ksp.solve(b, x)

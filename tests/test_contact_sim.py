@@ -37,11 +37,12 @@ def crossing(monkeypatch):
     monkeypatch.setattr(simmod, "source_from_config", lambda *a: crossing_source())
 
 
-def run_crossing(frames, speed, gravity=True):
+def run_crossing(frames, speed, gravity=True, cfg=None):
     """A moves up and B down at ``speed`` cm/s; returns (positions per frame, momentum
     before, after, total mass, summary)."""
     from mpi4py import MPI
-    sim = simmod.build_simulator(crossing_config(frames, gravity), comm=MPI.COMM_SELF)
+    cfg = cfg or crossing_config(frames, gravity)
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
     try:
         v = np.zeros_like(sim.x)
         v[:N, 1], v[N:, 1] = speed, -speed
@@ -83,6 +84,29 @@ def test_crossing_wisps_pushed_together_do_not_pass_through(crossing):
     err = np.abs((p1 - p0) - impulse).max() / (mass * speed)
     print(f"momentum change - external impulse, relative to m v: {err:.2e}")
     assert err < 1e-8
+
+
+def test_converged_newton_with_contact(crossing):
+    """exact_or_analytic (the exact contact Hessian in its exact iterations) with the
+    edge retraction to 1e-8 wisp lengths: every frame without contact pairs converges
+    (in at most 7 iterations, measured), momentum is kept (the retraction's corrections
+    are mean-free on these unpinned wisps).  Known limitations (docs/newton.md): the two
+    frames in which the pairs come into contact do not converge within 30 iterations
+    with any filter or update (increments ~1e-2: the penalty's active set changes
+    between iterations), and with 30 iterations the wisps pass through each other here
+    whatever the filter or update (the finite penalty's minimum is on the other side;
+    3 iterations stop before that)."""
+    cfg = crossing_config(12, gravity=False)
+    cfg.time.newton_iterations = 30
+    cfg.time.newton_increment_tol = 1e-8
+    cfg.time.newton_update = "edge_retraction"
+    cfg.solver.filter = "exact_or_analytic"
+    X, p0, p1, mass, summ = run_crossing(12, 2.5, cfg=cfg)
+    assert sum(summ["contact"]["pairs_per_frame"]) > 0
+    pairs = summ["contact"]["pairs_per_frame"]
+    assert all(c or n > 0 for c, n in zip(summ["newton_converged"], pairs)), summ["newton_iterations"]
+    assert max(n for n, p in zip(summ["newton_iterations"], pairs) if p == 0) <= 7
+    assert np.abs(p1 - p0).max() < 1e-8 * mass * 2.5
 
 
 def test_contact_is_the_only_thing_stopping_them(crossing, monkeypatch):

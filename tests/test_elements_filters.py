@@ -356,7 +356,7 @@ def test_twist_spec_split_is_far_stiffer_near_planar_than_shipped_filter():
 
 
 def test_filter_names():
-    assert tuple(FILTERS) == ("analytic", "numerical", "none")
+    assert tuple(FILTERS) == ("analytic", "numerical", "none", "abs")
     rng = np.random.default_rng(160)
     for term, mod in MODULES.items():
         x, rest, k = eh.random_case(term, rng, 3, 1.0)

@@ -36,6 +36,25 @@ def test_rank_invariance_hairball_10_frames():
         assert np.abs(ref - summ_rest(cfg)).max() > 0.5
 
 
+def test_rank_invariance_converged_newton():
+    """exact_or_analytic + edge retraction to a relative increment of 1e-6: every
+    decision (exact step kept or not, converged or not) is collective, so the parallel
+    run takes the serial run's iterations and reaches its positions (measured: frames 2
+    and 3 converge in 21 and 14 iterations, frames 0 and 1 hit the cap of 30; two exact
+    steps are replaced by filtered ones in frame 0)."""
+    cfg = small_hairball_config(n_wisps=5, frames=4, newton_iterations=30,
+                                newton_increment_tol=1e-6, newton_update="edge_retraction")
+    cfg.solver.filter = "exact_or_analytic"
+    X, summ = run_positions(cfg)
+    ref, ref_summ = serial_reference(cfg)
+    _check(X, ref, 1e-9)
+    if comm.rank == 0:
+        assert summ["newton_iterations"] == ref_summ["newton_iterations"]
+        assert summ["newton_converged"] == ref_summ["newton_converged"]
+        assert summ["newton_exact_fallbacks"] == ref_summ["newton_exact_fallbacks"]
+        assert sum(summ["newton_converged"]) >= 2 and sum(summ["newton_exact_fallbacks"]) >= 1
+
+
 @pytest.mark.parametrize("options", [
     "-lc_wisp_blocks separate",
     "-mat_type sbaij",

@@ -85,7 +85,7 @@ def test_study_outputs_and_unstable_variant(tmp_path):
         assert col in csv_rows[0], col
     assert csv_rows[3]["status"] == "unstable" and csv_rows[3]["rms_rel_error"] == ""
     data = json.loads((tmp_path / "tradeoff.json").read_text())
-    assert data["reference"]["filter"] == "none" and data["reference"]["status"] == "ok"
+    assert data["reference"]["filter"] == "exact_or_analytic" and data["reference"]["status"] == "ok"
     rec = {r["target"]: r for r in data["recommendations"]}
     assert rec[0.1]["variant"] in ("base", "newton 1", "dt 1/60")
     assert rec[0.1]["variant"] != "none+pbjacobi"

@@ -12,7 +12,9 @@ D = [[I, -I, 0], [0, -I, I]].
 Filters: "analytic" keeps the positive closed-form eigenpairs, S Hhat^+ S. It is the exact
 PSD projection of the Hessian in T when |e0| = |e1|; otherwise it is PSD but not the
 nearest PSD matrix (documented and measured in docs/elements.md). "numerical" projects
-the exact 6x6 Hessian in T with numpy.linalg.eigh (the paper's baseline). At a straight or
+the exact 6x6 Hessian in T with numpy.linalg.eigh (the paper's baseline). "abs" keeps all
+closed-form eigenpairs with their eigenvalues' absolute values, S |Hhat| S: PSD, the exact
+Hessian wherever that is PSD (Sylvester), |H_T| itself when |e0| = |e1|. At a straight or
 folded bend (sin theta < STRAIGHT_TOL) the degenerate rule of the angle module applies:
 zero gradient, isotropic PSD Hessian, the same for every filter.
 
@@ -104,8 +106,9 @@ def _kernel(filter):
             return
         lam, q = frame.eigensystem(d, k)
         qs = q.transpose(1, 2, 0)
-        if filter == "none":
-            gram(_to_vertices(qs[:3], qs[3:], frame), lam, out=h)
+        if filter in ("none", "abs"):
+            gram(_to_vertices(qs[:3], qs[3:], frame), lam if filter == "none" else np.abs(lam),
+                 out=h)
             return
         # Numerical: the exact Hessian in T (S Hhat S), projected with eigh.
         lam_t, q_t = np.linalg.eigh(gram(np.concatenate([qs[:3] / frame.lu, qs[3:] / frame.lv]),

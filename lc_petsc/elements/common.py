@@ -7,7 +7,7 @@ elements in Python.
 import numpy as np
 
 #: Hessian filters every kernel accepts.
-FILTERS = ("analytic", "numerical", "none")
+FILTERS = ("analytic", "numerical", "none", "abs")
 
 #: Elements per chunk: small enough that a chunk's temporaries stay in cache, large
 #: enough that NumPy's per-call overhead is amortised (measured in bench_elements.py).

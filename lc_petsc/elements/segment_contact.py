@@ -43,6 +43,8 @@ Hessian filters (``filter=``; same names as the element kernels):
   (d -> 0, where d is not differentiable) the curvature term uses max(d, 1e-8 d0).
 * ``"numerical"``: the exact Hessian with its negative eigenvalues clamped to 0 (batched
   ``eigh``): the nearest PSD matrix, the reference.
+* ``"abs"``: the exact Hessian with its eigenvalues replaced by their absolute values
+  (batched ``eigh``).
 
 Hessians are (n, 12, 12) in vertex-major order (row 3 v + c: coordinate c of point v).
 """
@@ -203,9 +205,10 @@ def gradient_hessian(x, thickness, stiffness, filter="analytic", hessian=True):
     psi1 = -(kk[ia] * gap[ia])
     Hx = H[ia] + psi1[:, None, None] * hessd
     Hx = 0.5 * (Hx + Hx.transpose(0, 2, 1))
-    if filter == "numerical":
+    if filter in ("numerical", "abs"):
         lam, V = np.linalg.eigh(Hx)
-        Hx = (V * np.maximum(lam, 0.0)[:, None, :]) @ V.transpose(0, 2, 1)
+        lam = np.maximum(lam, 0.0) if filter == "numerical" else np.abs(lam)
+        Hx = (V * lam[:, None, :]) @ V.transpose(0, 2, 1)
     H[ia] = Hx
     return g, H
 

@@ -7,7 +7,8 @@ Edge e = x1 - x0 with length L = |e| and rest length Lbar:
 Hessian in e: k eh eh^T + k (1 - Lbar/L) (I - eh eh^T). The perpendicular eigenvalue
 k (1 - Lbar/L) (multiplicity 2) is negative under compression; the filters clamp it at 0
 ("analytic" in closed form, "numerical" through numpy.linalg.eigh of the 3x3 Hessian in
-e; both are the exact projection). The vertex Hessian is D^T H D with D = [-I, I], i.e.
+e; both are the exact projection); "abs" replaces it by its absolute value
+k |1 - Lbar/L| (Chen et al. 2024), the exact Hessian wherever that is PSD. The vertex Hessian is D^T H D with D = [-I, I], i.e.
 [[H, -H], [-H, H]].
 
 Shapes: x (n, 2, 3); rest_length, stiffness (n,) or scalars; energy (n,); gradient
@@ -60,6 +61,8 @@ def _kernel(filter):
         perp = k * (1.0 - rest_length / L)
         if filter == "analytic":
             perp = np.maximum(perp, 0.0)
+        elif filter == "abs":
+            perp = np.abs(perp)
         he = (k - perp)[:, None, None] * (eh[:, :, None] * eh[:, None, :])
         he[:, [0, 1, 2], [0, 1, 2]] += perp[:, None]
         if filter == "numerical":

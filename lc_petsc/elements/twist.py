@@ -31,6 +31,10 @@ Filters:
   Hessian. See docs/elements.md.)
 * "numerical": the exact 12x12 Hessian projected onto the PSD cone with numpy.linalg.eigh
   (the exact projection; the W-space split has no exact projection to compare with).
+* "abs": the exact Hessian's pieces with absolute weights: the four in-plane pairs with
+  |eigenvalue| and each out-of-plane rank-2 term as its PSD part plus its negated
+  negative part (the two are orthogonal). PSD and rank <= 8; like "analytic" it equals
+  the exact Hessian at rest, not wherever that is PSD.
 
 Degenerate rule: when |a| < DEGENERATE_TOL |e0| or |b| < DEGENERATE_TOL |e2| an outer edge
 is collinear with the middle one and the torsion is undefined; such elements contribute
@@ -259,6 +263,9 @@ def _kernel(filter):
                                                 bot[:, keep] * (root / frame.lv))
             plus, _ = _balanced_columns(*_out_of_plane(geo, d))
             gram(np.concatenate([in_plane, plus], axis=1), out=h)
+        elif filter == "abs":
+            columns, weights = _exact_columns(geo, d, k)
+            gram(columns, np.abs(weights), out=h)
         else:
             gram(*_exact_columns(geo, d, k), out=h)
             if filter == "numerical":

@@ -54,7 +54,15 @@ def format_report(s) -> str:
     ksp = s.get("ksp_iterations", [])
     if newton:
         lines.append(f"  Newton iterations per frame: min {min(newton)}, mean {np.mean(newton):.2f}, "
-                     f"max {max(newton)} ({sum(newton)} solves)")
+                     f"max {max(newton)} ({len(ksp)} solves)")
+    conv_frames = [c for c in s.get("newton_converged", []) if c is not None]
+    incs = [v for v in s.get("newton_increment", []) if v is not None]
+    if conv_frames:
+        lines.append(f"  Newton converged (time.newton_increment_tol / newton_tol) in "
+                     f"{sum(conv_frames)} of {len(conv_frames)} frames")
+    if incs:
+        lines.append(f"  last Newton increment / wisp length: median {np.median(incs):.2e}, "
+                     f"max {max(incs):.2e}")
     if ksp:
         lines.append(f"  KSP iterations per solve: min {min(ksp)}, mean {np.mean(ksp):.1f}, max {max(ksp)}")
     reasons = s.get("ksp_reasons", [])

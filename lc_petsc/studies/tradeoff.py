@@ -15,6 +15,7 @@ from typing import Optional
 import numpy as np
 from petsc4py import PETSc
 
+from lc_petsc.config import TimeConfig
 from lc_petsc.parallel import SimulationError
 from lc_petsc.simulator import build_simulator
 from lc_petsc.solver import SolverError
@@ -37,14 +38,24 @@ class Settings:
     filter: str = "analytic"
     line_search: bool = False
     options: str = ""               # extra PETSc options (e.g. a solver set)
+    # the config's defaults
+    newton_update: str = TimeConfig.newton_update
+    initial_guess: str = TimeConfig.initial_guess
+    newton_increment_tol: Optional[float] = None
 
     def label(self):
         parts = [f"dt=1/{round(1 / self.dt)}", f"N={self.newton_iterations}",
                  f"rtol={self.ksp_rtol:.0e}", self.filter]
         if self.newton_tol is not None:
             parts.append(f"tol={self.newton_tol:g}")
+        if self.newton_increment_tol is not None:
+            parts.append(f"inc<{self.newton_increment_tol:g}")
         if self.line_search:
             parts.append("LS")
+        if self.newton_update != "linear":
+            parts.append(self.newton_update)
+        if self.initial_guess != "inertial":
+            parts.append(self.initial_guess)
         return " ".join(parts)
 
 
@@ -63,6 +74,14 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
         "dt": [(f"dt 1/{d}", replace(base, dt=1.0 / d)) for d in (30, 60, 120)],
         "filter": [(f"filter {f}", replace(base, filter=f)) for f in ("analytic", "numerical", "none")],
         "line_search": [("line search", replace(base, line_search=True))],
+        "newton_update": [
+            (f"{u} N={n}", replace(base, newton_update=u, newton_iterations=n))
+            for u in ("linear", "edge_retraction") for n in (2, 3, 4, 6)]
+        + [("retraction+ftl N=3", replace(base, newton_update="edge_retraction",
+                                          initial_guess="follow_the_leader"))]
+        + [(f"exact_or_analytic inc<{t:g}",
+            replace(base, filter="exact_or_analytic", newton_update="edge_retraction",
+                    newton_iterations=30, newton_increment_tol=t)) for t in (1e-3, 1e-4, 1e-6)],
     }
     for a in (axes or ax):
         for name, s in ax[a]:
@@ -72,17 +91,26 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
 
 
 def reference_settings(dt=1.0 / 120.0, newton_tol=1e-9, max_newton=100, filter="none",
-                       line_search=True):
+                       line_search=True, method="exact_or_analytic"):
     """The reference: BDF-1 solved to max|dx| < ``newton_tol`` cm.
 
     The filter changes only the Newton matrix, not the solution of a frame, so the
-    reference uses the unfiltered (true) Hessian with the line search: measured on the
-    shaking hairball, it converges quadratically (|dx| 1e-14 cm after ~10 iterations)
-    where the filtered Newton contracts by only ~0.93 per iteration (4e-4 cm after 40).
-    Its Krylov solver is GMRES (:data:`REFERENCE_KSP`), since that Hessian may be
-    indefinite.  :func:`run_study` falls back to :func:`reference_fallback` (analytic
-    filter, CG) if it fails.
+    reference may use the exact Hessian.  ``method="exact_or_analytic"`` (default): the
+    exact Hessian near the solution with the analytic filter as fallback and the
+    edge-length retraction (docs/newton.md), CG; measured on the 10-wisp hairball at
+    dt 1/30 every frame converged, in 579 Newton iterations over 30 frames.
+    ``method="unfiltered"`` (the reference before): the unfiltered Hessian (``filter``)
+    with the line search, solved by GMRES (:data:`REFERENCE_KSP`) since it may be
+    indefinite; on the same run it used 2,239 iterations and stalled in frames where the
+    line search found no decrease (docs/newton.md).  :func:`run_study` falls back to
+    :func:`reference_fallback` (analytic filter, CG) if the reference fails.
     """
+    if method == "exact_or_analytic":
+        return Settings(dt=dt, newton_iterations=max_newton, newton_tol=newton_tol,
+                        ksp_rtol=1e-12, filter="exact_or_analytic",
+                        newton_update="edge_retraction")
+    if method != "unfiltered":
+        raise ValueError(f"reference method {method!r}: use unfiltered or exact_or_analytic")
     return Settings(dt=dt, newton_iterations=max_newton, newton_tol=newton_tol, ksp_rtol=1e-12,
                     filter=filter, line_search=line_search, options=REFERENCE_KSP)
 
@@ -104,6 +132,7 @@ REFERENCE_KSP = "-ksp_type gmres -ksp_max_it 200"
 
 def reference_fallback(ref: Settings) -> Settings:
     return replace(ref, filter="analytic", newton_iterations=max(ref.newton_iterations, 200),
+                   newton_update="linear",
                    options=ref.options.replace(REFERENCE_KSP, "").strip())
 
 
@@ -114,6 +143,9 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.newton_iterations = s.newton_iterations
     cfg.time.newton_tol = s.newton_tol
     cfg.time.line_search = s.line_search
+    cfg.time.newton_update = s.newton_update
+    cfg.time.initial_guess = s.initial_guess
+    cfg.time.newton_increment_tol = s.newton_increment_tol
     cfg.solver.filter = s.filter
     cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options,
                                               f"-ksp_rtol {s.ksp_rtol:g}") if x)
@@ -152,6 +184,7 @@ def run_trajectory(base_cfg, s: Settings, duration, out_dt, comm, blowup=5.0):
         summ = sim.summary()
         res.update(wall_s=summ["wall_time_s"], frames_run=sim.integrator.frame,
                    newton_total=int(sum(summ["newton_iterations"])),
+                   newton_unconverged_frames=sum(c is False for c in summ["newton_converged"]),
                    ksp_iterations_mean=float(np.mean(summ["ksp_iterations"])) if summ["ksp_iterations"] else None,
                    ksp_iterations_max=max(summ["ksp_iterations"], default=None),
                    timings_s=summ["timings_s"], cpu_s=_max(comm, cpu))
@@ -191,7 +224,8 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
     if rres["status"] != "ok":
         raise RuntimeError(f"the reference trajectory ({ref.label()}) failed: {rres['message']}")
     log(f"reference ({ref.label()}): {rres['wall_s']:.2f} s, Newton iterations {rres['newton_total']} "
-        f"over {rres['frames_run']} steps")
+        f"over {rres['frames_run']} steps, {rres['newton_unconverged_frames']} frames not converged "
+        f"to the tolerance")
     rows = []
     rq = None
     if comm.rank == 0:

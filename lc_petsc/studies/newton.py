@@ -1,0 +1,184 @@
+"""Newton convergence histories: per frame and iteration, the largest vertex increment
+relative to its wisp's length, the relative residual force and the decrease of the
+incremental potential G, for variants of one scene side by side (filter, terms, line
+search, head contact, initial guess).  Used by ``scripts/newton_history.py``; findings
+in docs/newton.md.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lc_petsc.simulator import build_simulator
+from lc_petsc.studies import report
+
+#: Variant keys (``key=value`` pairs joined by commas) and the config fields they set.
+VARIANT_KEYS = {
+    "filter": ("solver", "filter", str),
+    "guess": ("time", "initial_guess", str),
+    "update": ("time", "newton_update", str),
+    "guess": ("time", "initial_guess", str),
+    "update": ("time", "newton_update", str),
+    "ls": ("time", "line_search", lambda v: v in ("1", "true", "yes", "on")),
+    "terms": ("physics", "terms", lambda v: tuple(v.split("+"))),
+    "options": ("solver", "options", str),
+}
+
+
+def parse_variant(text):
+    """``"filter=none,ls=1,terms=stretch+gravity"`` -> {key: value}.  ``head=0`` drops
+    head contact, ``strands=0`` strand contact (shortcuts for ``terms``)."""
+    out = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        key, sep, value = part.partition("=")
+        if not sep or key not in (*VARIANT_KEYS, "head", "strands"):
+            raise ValueError(f"variant part {part!r}: use key=value with key one of "
+                             f"{', '.join((*VARIANT_KEYS, 'head', 'strands'))}")
+        out[key] = value
+    return out
+
+
+def configure(base_cfg, variant: dict, iterations, frames):
+    """A copy of ``base_cfg`` with the variant applied, ``iterations`` Newton iterations
+    and no tolerance (every iteration is recorded)."""
+    cfg = copy.deepcopy(base_cfg)
+    cfg.time.frames = frames
+    cfg.time.newton_iterations = iterations
+    cfg.time.newton_tol = None
+    cfg.time.newton_increment_tol = None
+    for key, value in variant.items():
+        if key in ("head", "strands"):
+            term = "head_collision" if key == "head" else "strand_collision"
+            if value in ("0", "false", "no", "off"):
+                cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != term)
+            continue
+        section, name, conv = VARIANT_KEYS[key]
+        setattr(getattr(cfg, section), name, conv(value))
+    return cfg.validate()
+
+
+def run_history(cfg, comm, log=None):
+    """Run ``cfg`` recording every Newton iteration; returns (history rows, wall s)."""
+    sim = build_simulator(cfg, comm)
+    sim.integrator.history = rows = []
+    t0 = time.perf_counter()
+    try:
+        for f in range(cfg.time.frames):
+            sim.step()
+            if log is not None:
+                last = [r for r in rows if r["frame"] == f]
+                log(f"    frame {f}: increment {last[-1]['increment']:.2e} after "
+                    f"{len(last)} iterations")
+    finally:
+        wall = time.perf_counter() - t0
+        sim.close()
+    return rows, wall
+
+
+def iterations_to(rows, tol):
+    """Per frame, the first iteration (1-based) whose relative increment is below
+    ``tol`` (None: never within the recorded iterations)."""
+    frames = sorted({r["frame"] for r in rows})
+    out = []
+    for f in frames:
+        its = [r for r in rows if r["frame"] == f]
+        hit = [r["iteration"] + 1 for r in its if r["increment"] < tol]
+        out.append(hit[0] if hit else None)
+    return out
+
+
+def summarize(name, rows, tol, wall):
+    """One table row: iterations to ``tol`` (median, worst, frames never reaching it)
+    and frame 0's first increments."""
+    its = iterations_to(rows, tol)
+    reached = [i for i in its if i is not None]
+    cap = max(r["iteration"] for r in rows) + 1
+    # a frame that never reached tol counts as more than the cap
+    full = sorted(i if i is not None else cap + 1 for i in its)
+    f0 = [r["increment"] for r in rows if r["frame"] == 0]
+    res0 = [r["residual"] for r in rows if r["frame"] == 0]
+    return {"variant": name, "frames": len(its), "reached": len(reached),
+            "median_iterations": float(np.median(full)) if full else None,
+            "worst_iterations": max(full) if full else None,
+            "never": len(its) - len(reached), "cap": cap, "wall_s": wall,
+            "frame0_increments": [float(v) for v in f0[:12]],
+            "frame0_residuals": [float(v) for v in res0[:12]],
+            # G went up by more than its round-off
+            "energy_increases": int(sum(r["energy_decrease"] < -1e-10 * abs(r["energy"])
+                                        for r in rows))}
+
+
+def plot_histories(histories, path, title, tol):
+    """Left: frame 0's relative increment per iteration; right: the median over frames."""
+    plt = report._plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for name, rows in histories.items():
+        f0 = [r["increment"] for r in rows if r["frame"] == 0]
+        axes[0].semilogy(np.arange(1, len(f0) + 1), np.maximum(f0, 1e-17), marker=".", label=name)
+        n = max(r["iteration"] for r in rows) + 1
+        med = [np.median([r["increment"] for r in rows if r["iteration"] == i]) for i in range(n)]
+        axes[1].semilogy(np.arange(1, n + 1), np.maximum(med, 1e-17), marker=".", label=name)
+    for ax, t in zip(axes, ("frame 0", "median over frames")):
+        ax.axhline(tol, color="k", lw=0.8, ls="--")
+        ax.set_xlabel("Newton iteration")
+        ax.set_ylabel("largest increment / wisp length")
+        ax.set_title(t)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_study(scenes, variants, comm, out_dir, iterations=30, frames=10, tol=1e-6, log=print):
+    """For each (scene name, config) and (variant name, spec): record the histories;
+    write newton.csv (every iteration), newton.json, newton.md and one plot per scene
+    (rank 0).  Returns the summary rows (rank 0; None elsewhere)."""
+    out = Path(out_dir)
+    if comm.rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+    summary, all_rows = [], []
+    for scene, base in scenes:
+        histories = {}
+        for name, spec in variants:
+            log(f"{scene}: {name}")
+            rows, wall = run_history(configure(base, parse_variant(spec), iterations, frames),
+                                     comm, log)
+            histories[name] = rows
+            s = summarize(name, rows, tol, wall)
+            s["scene"] = scene
+            s["spec"] = spec
+            summary.append(s)
+            all_rows += [dict(r, scene=scene, variant=name) for r in rows]
+            log(f"  {name}: median {s['median_iterations']}, worst {s['worst_iterations']} "
+                f"iterations to {tol:g} ({s['never']} of {s['frames']} frames never), {wall:.1f} s")
+        if comm.rank == 0:
+            plot_histories(histories, out / f"newton_{scene}.png",
+                           f"{scene}: Newton increments ({frames} frames)", tol)
+    if comm.rank != 0:
+        return None
+    report.write_csv(all_rows, out / "newton.csv",
+                     ["scene", "variant", "frame", "iteration", "increment", "residual",
+                      "energy", "energy_decrease", "alpha"])
+    report.write_json({"tol": tol, "iterations": iterations, "frames": frames,
+                       "summary": summary}, out / "newton.json")
+    (out / "newton.md").write_text(markdown(summary, tol))
+    return summary
+
+
+def markdown(summary, tol):
+    head = ["scene", "variant", "median its", "worst its", "frames never", "frame 0 increments 1..6",
+            "frame 0 residuals 1..6", "G increased", "wall s"]
+    body = [[s["scene"], s["variant"], report.fmt(s["median_iterations"]),
+             report.fmt(s["worst_iterations"]), f"{s['never']}/{s['frames']}",
+             " ".join(f"{v:.1e}" for v in s["frame0_increments"][:6]),
+             " ".join(f"{v:.1e}" for v in s["frame0_residuals"][:6]),
+             str(s["energy_increases"]), f"{s['wall_s']:.1f}"] for s in summary]
+    return (f"# Newton iterations to a largest increment of {tol:g} wisp lengths\n\n"
+            f"(a frame that never gets there counts as cap + 1)\n\n"
+            + report.markdown_table(head, body) + "\n")

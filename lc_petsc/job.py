@@ -132,7 +132,8 @@ class Job:
         self.command_line = dict(command_line)
         self.out = output_dir(args, cfg)
         self.name = Path(args.config).stem
-        self.warnings = list(config_warnings)
+        self.config_warnings = list(config_warnings)
+        self.warnings = []
         self.lock = None
         self.sim = None
         self.writer = None
@@ -207,7 +208,7 @@ class Job:
     def _validate(self):
         """Step 2 (after the build): warnings, restart, frames.h5, disk space; raises Refused."""
         from lc_petsc.diagnostics import term_warnings
-        for w in term_warnings(self.sim):
+        for w in self.config_warnings + term_warnings(self.sim):
             self._warn(w)
         rows_kept = 0
         if self.args.restart is not None:

@@ -107,8 +107,9 @@ class OptionsScope:
                       if k not in self.used and not option_used(k))
 
     def effective(self):
-        keys = set(self.layers)
-        return {k: self.lookup(k) for k in sorted(keys)}
+        """The layered options' values in effect (without marking them as used)."""
+        db = PETSc.Options().getAll()
+        return {k: (db[k] or "") if k in db else self.layers[k] for k in sorted(self.layers)}
 
     @contextmanager
     def active(self, extra=None):

@@ -21,7 +21,7 @@ What each step leaves behind when it fails:
    permission error) ends the loop on every rank with exit status 3.
 5. **finish**: ``frames.h5`` closed (the frames so far stay readable), ``frames.xdmf``,
    previews, ``summary.json`` (with ``error``) and the report; an output that cannot be
-   written is reported and the others are still tried.  Exit 0, 3 (failed), 75
+   written is reported (exit 3) and the others are still tried.  Exit 0, 3 (failed), 75
    (stopped by a signal after a checkpoint).
 """
 
@@ -428,7 +428,7 @@ class Job:
             summary["converged"] = False
         if comm.rank == 0:
             self._write_outputs(summary)
-        comm.Barrier()
+        self.error = comm.bcast(self.error)
         if self.error:
             return EXIT_RUN_FAILED
         return EXIT_PREEMPTED if preempted else EXIT_OK
@@ -508,9 +508,9 @@ class Job:
                 problems.append(f"previews in {out}: {getattr(e, 'strerror', None) or e}")
         t_prev = time.perf_counter() - t0
         files.append("summary.json")
-        for p in problems:
-            self.warnings.append(f"output not written: {p}")
-            print(f"{PROG}: error: output not written: {p}", file=sys.stderr, flush=True)
+        if problems and not self.error:
+            self.error = summary["error"] = f"output error: {problems[0]}"
+            summary["converged"] = False
         summary["output"] = {"dir": str(out), "every": cfg.output.every,
                              "frames_written": writer.written if writer is not None else 0,
                              "files": files, "xdmf_s": t_xdmf, "previews_s": t_prev,
@@ -520,6 +520,7 @@ class Job:
         except OSError as e:
             print(f"{PROG}: error: {out / 'summary.json'} could not be written ({e.strerror or e}); "
                   "the run's figures are in the report below", file=sys.stderr, flush=True)
+            self.error = self.error or f"output error: {out / 'summary.json'}: {e.strerror or e}"
             try:
                 os.unlink(f"{out / 'summary.json'}.tmp")
             except OSError:

@@ -284,14 +284,22 @@ def test_full_disk_while_writing_a_checkpoint(tmp_path, small_volume, monkeypatc
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
 
 
-def test_summary_that_cannot_be_written_is_reported(tmp_path, capsys):
-    cfg = _smash(tmp_path, frames=3, ce=0)
+def test_outputs_that_cannot_be_written_are_reported(tmp_path, capsys):
+    cfg = _smash(tmp_path, frames=3, ce=0, previews="true")
     out = tmp_path / "out"
     (out / "summary.json.tmp").mkdir(parents=True)     # the summary's temporary name is taken
-    assert main([cfg, "--out", str(out), "--quiet"]) == 0
+    assert main([cfg, "--out", str(out), "--quiet"]) == 3
     cap = capsys.readouterr()
     assert "summary.json could not be written" in cap.err and "Traceback" not in cap.err
     assert "frames: 3" in cap.out                       # the report is still printed
+    (out / "summary.json.tmp").rmdir()
+    (out / "frames.xdmf.tmp").mkdir()                   # the XDMF cannot be written
+    assert main([cfg, "--out", str(out), "--quiet"]) == 3
+    cap = capsys.readouterr()
+    assert "frames.xdmf" in cap.err and "Traceback" not in cap.err
+    s = json.loads((out / "summary.json").read_text())
+    assert "frames.xdmf" in s["error"] and s["output"]["not_written"]
+    assert (out / "contact_sheet.png").exists()         # the other outputs are written
 
 
 # ------------------------------------------------------------------------ Ctrl-C

@@ -29,6 +29,13 @@ from lc_petsc.elements.common import FILTERS as ELEMENT_FILTERS  # noqa: E402
 #: fallback when the Newton matrix is indefinite
 FILTERS = ELEMENT_FILTERS + ("exact_or_analytic",)
 IMPLEMENTED_TERMS = TERMS
+#: time.frames above this is refused (a billion frames at 1/30 s is a year of motion)
+MAX_FRAMES = 10 ** 9
+#: time.dt below this is refused: the mass term M/dt^2 then swamps every elastic term in
+#: double precision (at dt = 1e-300 it overflows to inf)
+MIN_DT = 1.0e-6
+#: moduli above this are refused (steel is 2e12 dyn/cm^2; 1e300 overflows the Hessians)
+MAX_MODULUS = 1.0e15
 
 
 class ConfigError(ValueError):
@@ -140,6 +147,12 @@ class MaterialConfig:
         _positive("material.youngs_modulus", self.youngs_modulus)
         if self.shear_modulus is not None:
             _positive("material.shear_modulus", self.shear_modulus)
+        for name in ("youngs_modulus", "shear_modulus"):
+            v = getattr(self, name)
+            if v is not None and float(v) > MAX_MODULUS:
+                raise ConfigError(f"material.{name} = {v!r} dyn/cm^2 is beyond {MAX_MODULUS:g} (steel is "
+                                  "2e12; hair keratin about 4e10): the element Hessians would lose all "
+                                  "precision; give the modulus in dyn/cm^2 (CGS)")
         _positive("material.density", self.density)
         _positive("material.root_radius", self.root_radius)
         _positive("material.tip_radius", self.tip_radius)
@@ -234,7 +247,15 @@ class TimeConfig:
 
     def validate(self) -> None:
         _positive("time.dt", self.dt)
+        if float(self.dt) < MIN_DT:
+            raise ConfigError(f"time.dt = {self.dt!r} s is below {MIN_DT:g} s: the inertia term M/dt^2 "
+                              "would swamp every elastic force in double precision; steps are in "
+                              "seconds (1/30 is a video frame)")
         _int_at_least("time.frames", self.frames, 0)
+        if self.frames > MAX_FRAMES:
+            raise ConfigError(f"time.frames = {self.frames!r} is more than {MAX_FRAMES:,} frames "
+                              f"({MAX_FRAMES * float(self.dt) / 86400:.3g} days of simulated time at "
+                              f"time.dt = {self.dt:g} s); run fewer frames")
         _int_at_least("time.newton_iterations", self.newton_iterations, 1)
         if self.newton_tol is not None:
             _positive("time.newton_tol", self.newton_tol)
@@ -357,6 +378,8 @@ class OutputConfig:
 
 @dataclass
 class SimConfig:
+    #: warnings for keys of the file that have no effect (set by config_from_dict; not a field)
+    key_warnings = ()
     scene: SceneConfig = field(default_factory=SceneConfig)
     material: MaterialConfig = field(default_factory=MaterialConfig)
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
@@ -400,6 +423,11 @@ def _convert(key: str, annotation: str, value):
 
     def fail(expected):
         raise ConfigError(f"{key} = {value!r}: expected {expected}, got {_toml_type(value)}")
+
+    for text in (value if isinstance(value, list) else [value]):
+        if isinstance(text, str) and "\x00" in text:
+            raise ConfigError(f"{key} = {value!r}: contains a NUL character (\\0), which the HDF5 "
+                              "outputs cannot hold; remove it")
 
     if base == "float":
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -459,7 +487,52 @@ def config_from_dict(data: dict, base_dir=None) -> SimConfig:
                 v = str((Path(base_dir) / os.path.expanduser(v)).resolve())
             kwargs[key] = v
         parts[table] = cls(**kwargs)
-    return SimConfig(**parts).validate()
+    cfg = SimConfig(**parts).validate()
+    cfg.key_warnings = keys_without_effect(cfg, data)
+    return cfg
+
+
+#: keys that only act for some settings: (table, key) -> (predicate on the config, when)
+_CONDITIONAL_KEYS = {
+    ("scene", "n_wisps"): (lambda c: c.scene.kind == "hairball", "scene.kind = 'hairball'"),
+    ("scene", "n_vertices"): (lambda c: c.scene.kind in ("wisp4c", "straight"),
+                              "scene.kind = 'wisp4c' or 'straight'"),
+    ("scene", "seed"): (lambda c: c.scene.kind == "hairball" or c.scene.perturbation == "jitter",
+                        "scene.kind = 'hairball' or scene.perturbation = 'jitter'"),
+    ("scene", "path"): (lambda c: c.scene.kind == "file", "scene.kind = 'file'"),
+    ("scene", "segment_length"): (lambda c: c.scene.kind == "straight", "scene.kind = 'straight'"),
+    ("scene", "direction"): (lambda c: c.scene.kind == "straight", "scene.kind = 'straight'"),
+    ("scene", "smash_factor"): (lambda c: c.scene.perturbation == "smash", "scene.perturbation = 'smash'"),
+    ("scene", "jitter"): (lambda c: c.scene.perturbation == "jitter", "scene.perturbation = 'jitter'"),
+    ("material", "radius_scale_with_count"): (lambda c: c.scene.kind == "hairball",
+                                              "scene.kind = 'hairball'"),
+    ("physics", "head_amplitude"): (lambda c: c.physics.head_motion == "shake",
+                                    "physics.head_motion = 'shake'"),
+    ("physics", "head_period"): (lambda c: c.physics.head_motion == "shake",
+                                 "physics.head_motion = 'shake'"),
+    ("physics", "head_velocity"): (lambda c: c.physics.head_motion == "translate",
+                                   "physics.head_motion = 'translate'"),
+    ("physics", "head_stiffness"): (lambda c: "head_collision" in c.physics.terms,
+                                    "'head_collision' in physics.terms"),
+    ("physics", "head_margin"): (lambda c: "head_collision" in c.physics.terms,
+                                 "'head_collision' in physics.terms"),
+    ("physics", "gravity"): (lambda c: "gravity" in c.physics.terms, "'gravity' in physics.terms"),
+    ("physics", "strand_thickness"): (lambda c: "strand_collision" in c.physics.terms,
+                                      "'strand_collision' in physics.terms"),
+    ("physics", "strand_stiffness"): (lambda c: "strand_collision" in c.physics.terms,
+                                      "'strand_collision' in physics.terms"),
+    ("physics", "strand_separation"): (lambda c: "strand_collision" in c.physics.terms,
+                                       "'strand_collision' in physics.terms"),
+}
+
+
+def keys_without_effect(cfg: SimConfig, data: dict):
+    """Warnings for keys set in the TOML ``data`` that the chosen scene and terms ignore."""
+    out = []
+    for (table, key), (applies, when) in _CONDITIONAL_KEYS.items():
+        if key in (data.get(table) or {}) and not applies(cfg):
+            out.append(f"{table}.{key} is set but has no effect: it only acts with {when}")
+    return out
 
 
 def load_config(path) -> SimConfig:
@@ -471,6 +544,8 @@ def load_config(path) -> SimConfig:
     """
     import tomllib
     path = Path(path)
+    if path.exists() and not path.is_file():
+        raise ConfigError(f"{path}: not a regular file (a TOML scene file is expected)")
     try:
         raw = path.read_bytes()
     except FileNotFoundError:

@@ -85,6 +85,11 @@ def _max():
     return MPI.MAX
 
 
+def _min():
+    from mpi4py import MPI
+    return MPI.MIN
+
+
 def _sum():
     from mpi4py import MPI
     return MPI.SUM
@@ -130,6 +135,25 @@ def term_warnings(sim):
             out.append("physics.terms has 'head_collision' but no wisp can reach the head sphere "
                        f"(radius {phys.head_radius + phys.head_margin:g} cm at {list(phys.head_center)}): "
                        "it has no effect")
+    if "head_collision" in terms and n_free:
+        # free vertices that start inside the sphere get the full penalty force at once
+        # (k times the depth) and are thrown out in the first frames
+        R = phys.head_radius + phys.head_margin
+        c = np.asarray(phys.head_center, float)
+        depth = R - np.linalg.norm(sim.x - c, axis=1)
+        inside = (~sc.pinned) & (depth > 1e-9 * R)
+        n_in = int(comm.allreduce(int(inside.sum())))
+        if n_in:
+            wisp_of = np.searchsorted(sc.offsets, np.arange(len(depth)), side="right") - 1
+            wisps = np.unique(wisp_of[inside]) + sc.first_wisp
+            n_w = int(comm.allreduce(len(wisps)))
+            first_w = int(comm.allreduce(int(wisps[0]) if len(wisps) else 1 << 62, op=_min()))
+            deepest = float(comm.allreduce(float(depth[inside].max(initial=0.0)), op=_max()))
+            out.append(f"{n_in} free vertices of {n_w} wisp(s) (the first: wisp {first_w}) start "
+                       f"inside the head sphere (physics.head_radius + physics.head_margin = {R:g} cm "
+                       f"at physics.head_center = {list(phys.head_center)}), up to {deepest:.3g} cm "
+                       "deep: head_collision will push them out violently in the first frames; move "
+                       "the wisps or the sphere")
     if phys.head_motion != "static" and not has_pins and "head_collision" not in terms:
         out.append(f"physics.head_motion = {phys.head_motion!r} has no effect: no vertex is pinned "
                    "and head_collision is off")

@@ -1,6 +1,7 @@
 """The few PETSc C functions petsc4py 3.18 does not bind, called through ctypes.
 
 * ``PCBJacobiSetLocalBlocks`` (the per-wisp block Jacobi, lc_petsc/solver.py);
+* ``PetscOptionsUsed`` (options given but never used are reported, lc_petsc/solver.py);
 * ``MatSeqAIJGetArray`` / ``MatSeqBAIJGetArray`` and their ``Restore``: the value array
   of a rank's diagonal block, written in place by lc_petsc/assembly.py (one NumPy
   gather into PETSc's memory instead of ``MatSetValues*CSR``, which searches every
@@ -54,6 +55,15 @@ def bjacobi_set_local_blocks(pc, lens):
     _call("PCBJacobiSetLocalBlocks", [ctypes.c_void_p, ctype, ctypes.c_void_p],
           ctypes.c_void_p(pc.handle), ctype(len(arr)),
           arr.ctypes.data_as(ctypes.c_void_p) if len(arr) else None)
+
+
+def option_used(name) -> bool:
+    """Whether the option ``name`` (without the dash) of the global options database
+    has been queried by anything since it was set (``PetscOptionsUsed``)."""
+    flag = ctypes.c_int(0)
+    _call("PetscOptionsUsed", [ctypes.c_void_p, ctypes.c_char_p, ctypes.POINTER(ctypes.c_int)],
+          None, str(name).encode(), ctypes.byref(flag))
+    return bool(flag.value)
 
 
 def has_value_array(mat) -> bool:

@@ -127,6 +127,18 @@ class Simulator:
         self.integrator.step()
         self.wall += time.perf_counter() - t0
 
+    def restore(self, state):
+        """Continue from a saved state (a loaded checkpoint): ``state["x"]``,
+        ``state["v"]`` this rank's positions and velocities (n_local, 3), ``state["time"]``,
+        ``state["frame"]``."""
+        it = self.integrator
+        x, v = np.array(state["x"], float), np.array(state["v"], float)
+        if x.shape != it.x.shape or v.shape != it.x.shape:
+            raise ValueError(f"restore: positions {x.shape} / velocities {v.shape}, this rank "
+                             f"has {it.x.shape}")
+        it.x, it.v = x, v
+        it.t, it.frame = float(state["time"]), int(state["frame"])
+
     def run(self, frames=None, callback=None):
         n = self.config.time.frames if frames is None else frames
         for _ in range(n):

@@ -39,7 +39,11 @@ for without ``-mat_type``, :func:`choose_mat_type` picks ``sbaij`` (MUMPS Choles
 ``aij``; an explicit ``-mat_type baij`` with them is an error naming the options to use.
 
 Every solve's converged reason is checked; a diverged solve raises :class:`SolverError`
-naming frame, Newton iteration, reason and the options (no retry).
+naming frame, Newton iteration, reason and the options (no retry).  A solve that
+reports CONVERGED_ITS ran no residual test (``-ksp_type preonly``, ``-ksp_norm_type
+none``): its true residual is computed (one matrix product) and a solve above
+``-ksp_rtol`` is recorded in ``not_reduced`` (the job then reports the run as not
+converged).
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.options import option_pairs
-from lc_petsc.petsc_capi import bjacobi_set_local_blocks
+from lc_petsc.petsc_capi import bjacobi_set_local_blocks, option_used
 
 DEFAULTS = {"ksp_type": "cg", "ksp_rtol": "1e-6", "ksp_max_it": "1000", "pc_type": "bjacobi"}
 WISP_BLOCK_MODES = ("fused", "separate")
@@ -78,22 +82,34 @@ class OptionsScope:
 
     Entering inserts the config/default options the database does not already hold;
     leaving removes exactly those again, so several simulators in one process (tests)
-    do not leak options into each other.
+    do not leak options into each other.  Which of them PETSc (or :meth:`lookup`) used
+    while they were in the database is recorded first, for :meth:`unused_options`.
     """
 
     def __init__(self, config_options: str = "", defaults=None):
         self.layers = dict(defaults or {})
         self.layers.update(dict(parse_options(config_options)))
+        self.used = set()
 
     def lookup(self, key):
         opts = PETSc.Options()
         if opts.hasName(key):
             return opts.getString(key, "")
+        if key in self.layers:
+            self.used.add(key)
         return self.layers.get(key)
 
+    def unused_options(self, given=()):
+        """Options of the config (``solver.*``) and ``given`` (the command line) that
+        nothing ever read: typos, or options of a solver that is not selected (PETSc's
+        ``-options_left``)."""
+        return sorted(k for k in set(self.layers) | set(given)
+                      if k not in self.used and not option_used(k))
+
     def effective(self):
-        keys = set(self.layers)
-        return {k: self.lookup(k) for k in sorted(keys)}
+        """The layered options' values in effect (without marking them as used)."""
+        db = PETSc.Options().getAll()
+        return {k: (db[k] or "") if k in db else self.layers[k] for k in sorted(self.layers)}
 
     @contextmanager
     def active(self, extra=None):
@@ -109,6 +125,8 @@ class OptionsScope:
             yield
         finally:
             for k in added:
+                if option_used(k):
+                    self.used.add(k)
                 opts.delValue(k)
 
 
@@ -206,6 +224,8 @@ class LinearSolver:
             ksp.setFromOptions()
         self.iterations = []
         self.reasons = []
+        self.rtol = float(ksp.getTolerances()[0])
+        self.not_reduced = []        # (solve index, true relative residual) of unchecked solves
 
     def describe(self):
         pc = self.ksp.getPC()
@@ -220,6 +240,18 @@ class LinearSolver:
         self.iterations.pop()
         self.reasons.pop()
 
+    def _true_residual(self, b, x):
+        """||b - A x|| / ||b|| (0 for b = 0)."""
+        A, _ = self.ksp.getOperators()
+        r = b.duplicate()
+        try:
+            A.mult(x, r)
+            r.aypx(-1.0, b)
+            nb = b.norm()
+            return float(r.norm() / nb) if nb > 0 else 0.0
+        finally:
+            r.destroy()
+
     def solve(self, b, x, frame, newton_it):
         with self.scope.active(self.extra):
             self.ksp.solve(b, x)
@@ -227,6 +259,11 @@ class LinearSolver:
         its = self.ksp.getIterationNumber()
         self.iterations.append(int(its))
         self.reasons.append(reason_name(r))
+        if r == PETSc.KSP.ConvergedReason.CONVERGED_ITS:
+            # no residual test ran (preonly, -ksp_norm_type none): check the true residual
+            ratio = self._true_residual(b, x)
+            if not ratio <= self.rtol:
+                self.not_reduced.append((len(self.reasons) - 1, ratio))
         if r < 0:
             raise SolverError(
                 f"linear solve failed at frame {frame}, Newton iteration {newton_it}: "

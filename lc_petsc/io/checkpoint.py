@@ -196,6 +196,8 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
         folder.mkdir(parents=True, exist_ok=True)
         tmp.unlink(missing_ok=True)
     _on_root(comm, prepare, f"checkpoint folder {str(folder)!r}")
+    from lc_petsc.io.disk import check_space
+    check_space(comm, folder, checkpoint_bytes(n_wisps, n_vertices), str(final))
     lo = np.asarray(scene.offsets, np.int64)
     local = {"positions": np.asarray(x, np.float64), "velocities": np.asarray(v, np.float64),
              "rest_positions": np.asarray(scene.x_rest, np.float64), "pinned": np.asarray(scene.pinned, np.bool_)}
@@ -218,8 +220,30 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
     dxpl = h5py.h5p.create(h5py.h5p.DATASET_XFER)
     if parallel:
         dxpl.set_dxpl_mpio(h5py.h5fd.MPIO_COLLECTIVE)
-    from lc_petsc.io.frames import write_rows
     v0 = int(scene.first_vertex)
+    try:
+        _write_file(h5py, tmp, kw, local, digests, n_vertices, v0, offsets, hs, attrs, dxpl, comm, frame)
+    except (OSError, RuntimeError) as e:
+        from lc_petsc.io.frames import _h5_error
+        raise _h5_error(tmp, e) from None
+    def publish():
+        _fsync_path(tmp)
+        os.replace(tmp, final)
+        _fsync_path(folder, directory=True)
+        for old in list_checkpoints(folder)[max(int(keep), 1):]:
+            old.unlink(missing_ok=True)
+    _on_root(comm, publish, f"checkpoint {str(final)!r}")
+    size = comm.bcast(final.stat().st_size if comm.rank == 0 else None)
+    return final, time.perf_counter() - t0, size
+
+
+def checkpoint_bytes(n_wisps, n_vertices) -> int:
+    """Upper estimate of a checkpoint's size (measured: 73 bytes per vertex + 30 kB)."""
+    return 73 * int(n_vertices) + 8 * (int(n_wisps) + 1) + 64 * 1024
+
+
+def _write_file(h5py, tmp, kw, local, digests, n_vertices, v0, offsets, hs, attrs, dxpl, comm, frame):
+    from lc_petsc.io.frames import write_rows
     with h5py.File(str(tmp), "w", **kw) as f:
         def dataset(name, shape, dtype):
             dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
@@ -240,15 +264,6 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
         for k, val in attrs.items():
             f.attrs[k] = val
         f.flush()
-    def publish():
-        _fsync_path(tmp)
-        os.replace(tmp, final)
-        _fsync_path(folder, directory=True)
-        for old in list_checkpoints(folder)[max(int(keep), 1):]:
-            old.unlink(missing_ok=True)
-    _on_root(comm, publish, f"checkpoint {str(final)!r}")
-    size = comm.bcast(final.stat().st_size if comm.rank == 0 else None)
-    return final, time.perf_counter() - t0, size
 
 
 def remove_stale(folder, comm, everything=False):
@@ -276,6 +291,8 @@ def _precheck(path, n_wisps, n_vertices, offsets, head):
     name = str(path)
     if not os.path.exists(name):
         raise CheckpointError(f"{name}: no such checkpoint file")
+    if not os.path.isfile(name):
+        raise CheckpointError(f"{name}: not an lc_petsc checkpoint (not a regular file)")
     if not h5py.is_hdf5(name):
         raise CheckpointError(f"{name}: not an lc_petsc checkpoint (not an HDF5 file)")
     try:

@@ -18,13 +18,22 @@ Frame 0 of the file is the initial state (t = 0, after the scene's perturbation)
 With an MPI-enabled h5py (Debian's, under mpiexec) the file is opened with the ``mpio``
 driver on the simulator's communicator and every write is collective (ranks without
 vertices take part with an empty selection).  The frame datasets are chunked one frame
-per chunk, allocated for the planned frame count and shrunk to the frames written on
-close, so a run that stops early still leaves a consistent file.
+per chunk and extendable (``maxshape`` None along frames): they start empty and grow
+by one row per frame written (the chunks of the new row are allocated then), so the
+file's size follows what the run has written, not the planned frame count.  A restart
+cuts the file to the rows it keeps when it reopens it.  (Growing ahead and shrinking
+on close was tried: shrinking a grown dataset hangs H5Fclose under the mpio driver of
+Debian's HDF5 1.10 on 2 ranks.)  The metadata is flushed at every checkpoint, so a run
+killed later leaves a file that is readable up to that point at least.  Before every
+frame the free space is checked (:mod:`lc_petsc.io.disk`: libhdf5 does not survive a
+full disk), collectively.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import re
 
 import numpy as np
 
@@ -55,38 +64,108 @@ def write_rows(dset, start, data, dxpl):
     dset.id.write(ms, fs, data, dxpl=dxpl)
 
 
+def frame_bytes(n_vertices) -> int:
+    """Bytes one frame adds to ``frames.h5`` (positions and time)."""
+    return 24 * int(n_vertices) + 8
+
+
+def static_bytes(n_wisps, n_vertices) -> int:
+    """Bytes of ``frames.h5``'s datasets written once (offsets, rest state, topology)."""
+    nv, nw = int(n_vertices), int(n_wisps)
+    return 8 * (nw + 1) + 25 * nv + 8 * (2 * nw + nv) + 64 * 1024
+
+
+def _h5_error(path, e):
+    """OutputError naming the file and libhdf5's reason (errno text when it has one)."""
+    from lc_petsc.io.disk import OutputError
+    text = str(e)
+    m = re.search(r"error message = '([^']*)'", text)
+    why = m.group(1) if m else text.split(" (", 1)[0] if text else type(e).__name__
+    return OutputError(f"{path}: {why}", hdf5_broken=True)
+
+
+def resumable_problem(path, n_wisps, n_vertices, rows):
+    """Why ``path`` cannot be appended to by a restart needing its first ``rows`` frame
+    rows, or None.  Serial and read-only (rank 0, before anything is changed)."""
+    h5py = _h5py()
+    path = str(path)
+    hint = "; restart with --out naming the folder of the checkpointed run"
+    if not os.path.isfile(path):
+        return f"{path}: the run's frames file is missing, --restart appends to it{hint}"
+    if not h5py.is_hdf5(path):
+        return f"{path}: not an HDF5 file, cannot append the restarted frames to it{hint}"
+    try:
+        with h5py.File(path, "r") as f:
+            for k in ("positions", "time", "wisp_offsets"):
+                if not isinstance(f.get(k), h5py.Dataset):
+                    return f"{path}: no dataset /{k}, not an lc_petsc frames file{hint}"
+            pos = f["positions"]
+            if pos.ndim != 3 or pos.shape[1:] != (n_vertices, 3) or f["wisp_offsets"].shape != (n_wisps + 1,):
+                return (f"{path}: has {f['wisp_offsets'].shape[0] - 1} wisps and /positions "
+                        f"{pos.shape}, the scene {n_wisps} wisps and {n_vertices} vertices")
+            if pos.maxshape[0] is not None or f["time"].maxshape[0] is not None:
+                return f"{path}: /positions or /time is not extendable, cannot append to it"
+            if pos.shape[0] < rows or f["time"].shape[0] < rows:
+                return (f"{path}: holds {pos.shape[0]} frame row(s), the checkpoint needs the first "
+                        f"{rows}; it does not belong to this checkpoint's run")
+    except OSError as e:
+        return f"{path}: unreadable or truncated HDF5 file ({str(e).split(' (')[0]}){hint}"
+    return None
+
+
 class FramesWriter:
     """Collective writer of one run's ``frames.h5``.
 
     ``comm``: the simulator's mpi4py communicator; ``first_vertex``/``positions`` of
-    this rank's vertices; ``first_wisp``/``local_offsets`` of this rank's wisps.
+    this rank's vertices; ``first_wisp``/``local_offsets`` of this rank's wisps;
+    ``n_out``: the planned number of frame rows (the datasets never grow beyond it).
+    Every h5py failure is an :class:`lc_petsc.io.disk.OutputError` naming the file;
+    after one, :attr:`broken` is set and the file must not be closed (libhdf5 would
+    crash): the caller stops the run.
     """
 
     def __init__(self, path, comm, *, n_wisps, n_vertices, first_wisp, first_vertex,
                  local_offsets, rest_positions, pinned, n_out, attrs, resume_rows=None):
         h5py = _h5py()
         self.comm, self.path = comm, str(path)
+        self.folder = os.path.dirname(os.path.abspath(self.path))
         self.parallel = bool(h5py.get_config().mpi)
         if comm.size > 1 and not self.parallel:
             raise RuntimeError("frames.h5 with several ranks needs an MPI-enabled h5py "
                                "(Debian's python3-h5py-mpi, run under mpiexec)")
         self.nv, self.v0 = int(n_vertices), int(first_vertex)
         self.nv_local = len(rest_positions)
-        self.n_out, self.written = int(n_out), 0
+        self.n_out, self.written, self.capacity = int(n_out), 0, 0
+        self.f, self.broken = None, False
         self.times_kept = []           # times of the frames kept from before a restart
+        # no chunk cache: a frame goes to the file when written, so the space checked
+        # before the write is the space it takes
         kw = {"driver": "mpio", "comm": comm} if self.parallel else {}
+        if not self.parallel:          # (mpio writes go to the file, no cache)
+            kw["rdcc_nbytes"] = 0
         self._dxpl = h5py.h5p.create(h5py.h5p.DATASET_XFER)
         if self.parallel:
             self._dxpl.set_dxpl_mpio(h5py.h5fd.MPIO_COLLECTIVE)
-        if resume_rows is not None:
-            self._resume(kw, n_wisps, int(resume_rows), attrs)
-            return
+        try:
+            if resume_rows is not None:
+                self._resume(kw, n_wisps, int(resume_rows), attrs)
+            else:
+                self._create(kw, n_wisps, first_wisp, local_offsets, rest_positions, pinned, attrs)
+        except (OSError, RuntimeError, KeyError) as e:
+            self.broken = self.f is not None
+            err = _h5_error(self.path, e)
+            err.hdf5_broken = self.broken
+            raise err from None
+
+    def _create(self, kw, n_wisps, first_wisp, local_offsets, rest_positions, pinned, attrs):
+        h5py = _h5py()
+        comm = self.comm
         self.f = f = h5py.File(self.path, "w", **kw)
         nv = self.nv
-        # frame datasets: one frame per chunk (at most 2**16 vertices), no fill writes
-        self.positions = self._dataset("positions", (self.n_out, nv, 3), np.float64,
+        # frame datasets: one frame per chunk (at most 2**16 vertices), empty, extendable
+        self.positions = self._dataset("positions", (0, nv, 3), np.float64,
                                        maxshape=(None, nv, 3), chunks=(1, max(1, min(nv, 1 << 16)), 3))
-        self.time = self._dataset("time", (self.n_out,), np.float64, maxshape=(None,),
+        self.time = self._dataset("time", (0,), np.float64, maxshape=(None,),
                                   chunks=(max(1, min(self.n_out, 4096)),))
         offs = self._dataset("wisp_offsets", (n_wisps + 1,), np.int64)
         rest = self._dataset("rest_positions", (nv, 3), np.float64)
@@ -114,8 +193,8 @@ class FramesWriter:
 
     def _resume(self, kw, n_wisps, rows, attrs):
         """Reopen an existing ``frames.h5`` (restart): keep its first ``rows`` frames,
-        write the next frame at row ``rows`` (later rows are overwritten), resize the
-        frame datasets to ``n_out`` rows.  A file that does not fit is a ValueError."""
+        write the next frame at row ``rows`` (later rows are overwritten).  A file that
+        does not fit is a ValueError (:func:`resumable_problem` checks it beforehand)."""
         h5py = _h5py()
         try:
             self.f = f = h5py.File(self.path, "r+", **kw)
@@ -134,9 +213,12 @@ class FramesWriter:
             self.times_kept = [float(t) for t in f["time"][:rows]]
         except Exception:
             f.close()
+            self.f = None
             raise
-        self.positions.resize(max(self.n_out, rows), axis=0)
-        self.time.resize(max(self.n_out, rows), axis=0)
+        if have != rows:            # later rows are rewritten by this run
+            self.positions.resize(rows, axis=0)
+            self.time.resize(rows, axis=0)
+        self.capacity = rows
         self.n_out = max(self.n_out, rows)
         self.written = rows
         for k, v in attrs.items():
@@ -148,8 +230,7 @@ class FramesWriter:
         dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
         dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
         if chunks is not None:
-            # all chunks allocated now: writing a frame then changes no HDF5 metadata, so
-            # the file flushed at a checkpoint stays readable if the run is killed later
+            # chunks allocated when the dataset grows, not at the first write
             dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
         return self.f.create_dataset(name, shape=shape, dtype=dtype, maxshape=maxshape,
                                      chunks=chunks, dcpl=dcpl)
@@ -157,29 +238,56 @@ class FramesWriter:
     def _write(self, dset, start, data):
         write_rows(dset, start, data, self._dxpl)
 
+    def _grow(self):
+        """One more row in the frame datasets."""
+        self.capacity = self.written + 1
+        self.positions.resize(self.capacity, axis=0)
+        self.time.resize(self.capacity, axis=0)
+
     def flush(self):
         """Collective: push everything written so far to the file (H5Fflush, which with
         the mpio driver ends in MPI_File_sync)."""
-        self.f.flush()
+        self._guarded(self.f.flush)
+
+    def _guarded(self, action):
+        try:
+            action()
+        except (OSError, RuntimeError) as e:
+            self.broken = True
+            raise _h5_error(self.path, e) from None
 
     def write_frame(self, t, x_local):
-        """Append one frame: this rank's positions (nv_local, 3) at time ``t``."""
+        """Append one frame: this rank's positions (nv_local, 3) at time ``t``.  The
+        free space is checked first (collective); an OutputError if it does not fit."""
+        from lc_petsc.io.disk import check_space
         k = self.written
-        if k >= self.n_out:
-            raise RuntimeError(f"frames.h5: more frames than the {self.n_out} planned")
-        self._write(self.positions, (k, self.v0, 0), np.asarray(x_local)[None])
-        self._write(self.time, (k,), np.array([t]) if self.comm.rank == 0 else np.zeros(0))
+        grow = k >= self.capacity
+        check_space(self.comm, self.folder, frame_bytes(self.nv), self.path)
+
+        def write():
+            if grow:
+                self._grow()
+            self._write(self.positions, (k, self.v0, 0), np.asarray(x_local)[None])
+            self._write(self.time, (k,), np.array([t]) if self.comm.rank == 0 else np.zeros(0))
+        self._guarded(write)
         self.written += 1
 
     def close(self):
-        """Shrink the frame datasets to the frames written; close the file."""
-        if self.f is None:
+        """Shrink the frame datasets to the frames written; close the file.  A broken
+        file (an h5py failure before) is left alone: libhdf5 cannot close it."""
+        if self.f is None or self.broken:
             return
-        if self.written < self.n_out:
-            self.positions.resize(self.written, axis=0)
-            self.time.resize(self.written, axis=0)
-        self.f.close()
-        self.f = None
+
+        def close():
+            if self.written < self.positions.shape[0]:
+                self.positions.resize(self.written, axis=0)
+                self.time.resize(self.written, axis=0)
+            self.f.close()
+        try:
+            self._guarded(close)
+        finally:
+            if not self.broken:
+                self.f = None
 
     def __enter__(self):
         return self

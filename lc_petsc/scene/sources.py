@@ -88,28 +88,131 @@ class ArraySource(SceneSource):
             density=None if self.dens is None else self.dens[w0:w1].copy())
 
 
+#: memory a run needs per vertex, a lower estimate (element Hessians and gradients, the
+#: BAIJ matrix and its ILU factor, the state vectors); the check below refuses a file
+#: whose vertex count cannot fit in the machine's memory even at this rate
+BYTES_PER_VERTEX = 4096
+#: rows read at a time when the whole of a dataset is checked (constant memory)
+_CHECK_ROWS = 1 << 20
+#: dataset -> (kinds allowed, their description), numpy dtype kinds
+_KINDS = {"positions": ("f", "real floating-point numbers (float32/float64)"),
+          "wisp_offsets": ("iu", "integers"),
+          "radius": ("f", "real floating-point numbers"),
+          "pinned": ("biu", "booleans (or integers 0/1)"),
+          "youngs_modulus": ("f", "real floating-point numbers"),
+          "density": ("f", "real floating-point numbers")}
+
+
+def machine_memory() -> int:
+    """Physical memory of this machine in bytes."""
+    import os
+    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def _chunks(dset, n):
+    for a in range(0, n, _CHECK_ROWS):
+        yield dset[a:min(n, a + _CHECK_ROWS)]
+
+
+def check_strands_file(path):
+    """Validate the strands file ``path`` before anything large is read; returns the wisp
+    offsets (n_wisps + 1,).  Every problem is a one-line ValueError naming the file and
+    the dataset: not HDF5, empty or truncated; a dataset that is missing, a group, a soft
+    or external link, stored in external files or virtual; the wrong type (complex,
+    strings, float offsets or pins); the wrong shape or length; values out of range; a
+    vertex count whose run cannot fit in this machine's memory."""
+    import os
+    import h5py
+    where = f"strands file {path}"
+    try:
+        size = os.path.getsize(path)
+    except OSError as e:
+        raise ValueError(f"{where}: cannot be read ({e.strerror or e})") from None
+    if size == 0:
+        raise ValueError(f"{where}: the file is empty (0 bytes), not an HDF5 strands file")
+    try:
+        if not h5py.is_hdf5(path):
+            raise ValueError(f"{where}: not an HDF5 file (a strands file has /positions and /wisp_offsets)")
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise ValueError(f"{where}: unreadable or truncated HDF5 file ({str(e).split(' (')[0]})") from None
+    try:
+        with f:
+            dsets = {}
+            for name in _KINDS:
+                link = f.get(name, getlink=True)
+                if link is None:
+                    if name in ("positions", "wisp_offsets"):
+                        raise ValueError(f"{where}: missing dataset /{name}")
+                    continue
+                if isinstance(link, (h5py.SoftLink, h5py.ExternalLink)):
+                    kind = "a soft link" if isinstance(link, h5py.SoftLink) else "an external link"
+                    raise ValueError(f"{where}: /{name} is {kind}; store the dataset itself in the file")
+                d = f.get(name)
+                if not isinstance(d, h5py.Dataset):
+                    raise ValueError(f"{where}: /{name} is a {type(d).__name__.lower()}, not a dataset")
+                if d.is_virtual or d.id.get_create_plist().get_external_count() > 0:
+                    raise ValueError(f"{where}: /{name} keeps its data in other files (external or "
+                                     "virtual storage); store the dataset itself in the file")
+                kinds, what = _KINDS[name]
+                if d.dtype.kind not in kinds or d.dtype.fields is not None:
+                    raise ValueError(f"{where}: /{name} has type {d.dtype}, expected {what}")
+                dsets[name] = d
+            pos, off = dsets["positions"], dsets["wisp_offsets"]
+            if pos.ndim != 2 or pos.shape[1] != 3:
+                raise ValueError(f"{where}: /positions must be (n_vertices, 3), got {pos.shape}")
+            nv = int(pos.shape[0])
+            if off.ndim != 1 or off.shape[0] < 2:
+                raise ValueError(f"{where}: /wisp_offsets must be 1-D with n_wisps + 1 >= 2 entries, "
+                                 f"got shape {off.shape}")
+            nw = int(off.shape[0]) - 1
+            need, have = BYTES_PER_VERTEX * nv + 8 * (nw + 1), machine_memory()
+            if need > have:
+                raise ValueError(f"{where}: /positions declares {nv:,} vertices; a run needs at least "
+                                 f"{BYTES_PER_VERTEX} bytes per vertex, {need / 1e9:.3g} GB, and this "
+                                 f"machine has {have / 1e9:.3g} GB of memory")
+            for name, n in (("radius", nv), ("pinned", nv), ("youngs_modulus", nw), ("density", nw)):
+                if name in dsets and dsets[name].shape != (n,):
+                    per = "vertex" if n == nv else "wisp"
+                    raise ValueError(f"{where}: /{name} must have one entry per {per}, shape ({n},), "
+                                     f"got {dsets[name].shape}")
+            try:
+                offsets = np.asarray(off[...], np.int64)
+                if offsets[0] != 0 or np.any(np.diff(offsets) < 0) or offsets[-1] != nv:
+                    raise ValueError(f"{where}: /wisp_offsets must start at 0, be non-decreasing and end "
+                                     f"at the vertex count {nv}")
+                for a in _chunks(pos, nv):
+                    if not np.isfinite(a).all():
+                        raise ValueError(f"{where}: /positions has non-finite values")
+                for name in ("radius", "youngs_modulus", "density"):
+                    if name in dsets:
+                        for a in _chunks(dsets[name], dsets[name].shape[0]):
+                            if not (np.isfinite(a).all() and (a > 0).all()):
+                                raise ValueError(f"{where}: /{name} must be finite and positive")
+                if "pinned" in dsets and dsets["pinned"].dtype.kind != "b":
+                    for a in _chunks(dsets["pinned"], nv):
+                        if not np.isin(a, (0, 1)).all():
+                            raise ValueError(f"{where}: /pinned holds values other than 0 and 1")
+            except OSError as e:
+                raise ValueError(f"{where}: a dataset cannot be read, the file is truncated or "
+                                 f"corrupt ({str(e).split(' (')[0]})") from None
+            return offsets
+    except ValueError:
+        raise
+    except (OSError, RuntimeError, KeyError) as e:
+        raise ValueError(f"{where}: unreadable HDF5 file ({str(e).split(' (')[0]})") from None
+
+
 class FileSource(SceneSource):
     """HDF5 strands file (DESIGN section 3): ``/positions``, ``/wisp_offsets``, optional
     ``/radius``, ``/pinned``; extension: optional per-wisp ``/youngs_modulus`` and
-    ``/density``.  Each rank reads only its own wisps' slices."""
+    ``/density``.  The whole file is checked first (:func:`check_strands_file`, every
+    rank reaching the same verdict); then each rank reads only its own wisps' slices."""
 
     def __init__(self, path, n_pinned=4, root_radius=0.05, tip_radius=0.05):
-        import h5py
         self.path = str(path)
         self.n_pinned, self.root_radius, self.tip_radius = n_pinned, root_radius, tip_radius
-        with h5py.File(self.path, "r") as f:
-            for key in ("positions", "wisp_offsets"):
-                if key not in f:
-                    raise ValueError(f"strands file {self.path}: missing dataset /{key}")
-            self.offsets = np.asarray(f["wisp_offsets"][...], np.int64)
-            nv = f["positions"].shape[0]
-            if f["positions"].ndim != 2 or f["positions"].shape[1] != 3:
-                raise ValueError(f"strands file {self.path}: /positions must be (n_vertices, 3), "
-                                 f"got {f['positions'].shape}")
-        if self.offsets.ndim != 1 or len(self.offsets) < 2 or self.offsets[0] != 0 \
-                or np.any(np.diff(self.offsets) < 0) or self.offsets[-1] != nv:
-            raise ValueError(f"strands file {self.path}: /wisp_offsets must start at 0, be "
-                             f"non-decreasing and end at {nv}")
+        self.offsets = check_strands_file(self.path)
         self.sizes = np.diff(self.offsets)
         self.n_wisps = len(self.sizes)
 

@@ -1,0 +1,642 @@
+"""One run of the main job (``drivers/simulate.py``, parsed by :mod:`lc_petsc.batch`):
+the output folder and its lock, the frames writer, the checkpointer, preemption and
+the summary, as the steps of :meth:`Job.run`.
+
+What each step leaves behind when it fails:
+
+1. **lock** (rank 0): the folder is created if needed and ``.lc_petsc.lock`` locked
+   (:mod:`lc_petsc.io.lock`).  Held by another run: exit 2 naming it; a lock left by a
+   killed run is reported and taken over.
+2. **build** the simulator and **validate** the run: the scene (strands file), the
+   restart checkpoint and the ``frames.h5`` it appends to, the output estimate against
+   the free disk space.  Any problem: exit 2, reported once, and the folder is as it
+   was (a folder this run created is removed again).
+3. **prepare** the folder (the previous run's outputs are removed only now) and write
+   frame 0.
+4. the **frame loop**: each frame is stepped, written, then every rank agrees on
+   whether to stop (a signal) or to checkpoint.  Every failure on any rank that the
+   simulator raises collectively (a diverged solve, a non-finite position, an element
+   error on one rank, which :func:`lc_petsc.parallel.collectively` turns into an error
+   on every rank) and every output error (a full disk, checked before each write; a
+   permission error) ends the loop on every rank with exit status 3.
+5. **finish**: ``frames.h5`` closed (the frames so far stay readable), ``frames.xdmf``,
+   previews, ``summary.json`` (with ``error``) and the report; an output that cannot be
+   written is reported (exit 3) and the others are still tried.  Exit 0, 3 (failed), 75
+   (stopped by a signal after a checkpoint).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+from lc_petsc.io.disk import OutputError
+
+EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
+EXIT_PREEMPTED = 75         # EX_TEMPFAIL: stopped by a signal after a checkpoint; restart
+# config keys a restart may change: they touch neither the trajectory nor frames.h5's rows
+RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.previews",
+                     "output.preview_frames", "output.contact_sheet", "output.view",
+                     "output.checkpoint_every", "output.checkpoints_kept",
+                     "output.usd", "output.render_hairs", "output.render_hair_seed",
+                     "output.render_hair_spread"}
+PROG = "simulate.py"
+OUR_FILES = ("frames.h5", "frames.xdmf", "frames.usdc", "summary.json", "contact_sheet.png")
+#: set when libhdf5 failed on an open file: the process must end without closing it
+#: (lc_petsc.batch.exit_process), or libhdf5 crashes at exit
+hdf5_unclosable = False
+
+
+class Refused(Exception):
+    """The run cannot start (exit 2); the message says why, nothing was changed."""
+
+
+def say(comm, text, stream=None):
+    if comm.rank == 0:
+        print(text, file=stream or sys.stdout, flush=True)
+
+
+def warn(comm, text):
+    say(comm, f"{PROG}: warning: {text}", sys.stderr)
+
+
+def output_dir(args, cfg):
+    if args.out:
+        return Path(args.out)
+    if cfg.output.dir:
+        return Path(cfg.output.dir)
+    return Path("out") / Path(args.config).stem
+
+
+def petsc_options_used(sim, command_line):
+    """Options in effect: code defaults < sub-solver defaults < config < command line."""
+    from lc_petsc.solver import DEFAULTS
+    used = dict(DEFAULTS)
+    used.update(sim.solver.extra)
+    used.update(sim.scope.layers)
+    used.update(command_line)
+    used["mat_type"] = sim.assembler.mat_type
+    return dict(sorted(used.items()))
+
+
+def _options_string(d):
+    return " ".join(f"-{k} {v}".rstrip() for k, v in d.items())
+
+
+def _mpi_max():
+    from mpi4py import MPI
+    return MPI.MAX
+
+
+def _on_root(comm, action):
+    """Run ``action`` on rank 0; (result, None) or (None, its exception's message) on every rank."""
+    result, problem = None, None
+    if comm.rank == 0:
+        try:
+            result = action()
+        except Exception as e:  # noqa: BLE001 - reported on every rank by the caller
+            problem = e
+    return comm.bcast((result, problem))
+
+
+def output_estimate(cfg, n_wisps, n_vertices, rows_kept=0):
+    """Bytes the run will add to its output folder, by file ({name: bytes})."""
+    from lc_petsc.io.checkpoint import checkpoint_bytes
+    from lc_petsc.io.frames import frame_bytes, static_bytes
+    rows = 1 + cfg.time.frames // cfg.output.every
+    parts = {"frames.h5": max(rows - rows_kept, 0) * frame_bytes(n_vertices)
+             + (static_bytes(n_wisps, n_vertices) if rows_kept == 0 else 0)}
+    # a new checkpoint is complete before the oldest is removed
+    n_ck = cfg.output.checkpoints_kept + 1 if cfg.output.checkpoint_every else 1
+    parts["checkpoints"] = n_ck * checkpoint_bytes(n_wisps, n_vertices)
+    if cfg.output.xdmf:
+        parts["frames.xdmf"] = 1000 * rows
+    if cfg.output.previews:
+        parts["previews"] = 300_000 * (len(cfg.output.preview_frames) + (cfg.output.contact_sheet > 0))
+    parts["summary.json"] = 64 * 1024 + 400 * cfg.time.frames
+    return parts
+
+
+class Job:
+    """The main job on ``comm`` for the parsed command line ``args`` and config ``cfg``.
+
+    ``command_line``: the PETSc options given (command line and PETSC_OPTIONS);
+    ``config_warnings``: warnings found while reading the config (keys without effect).
+    """
+
+    def __init__(self, comm, args, cfg, cfg_text, command_line, config_warnings=()):
+        self.comm, self.args, self.cfg, self.cfg_text = comm, args, cfg, cfg_text
+        self.command_line = dict(command_line)
+        self.out = output_dir(args, cfg)
+        self.name = Path(args.config).stem
+        self.config_warnings = list(config_warnings)
+        self.warnings = []
+        self.lock = None
+        self.sim = None
+        self.writer = None
+        self.restart = None
+        self.times = []
+        self.error = None
+        self.preemption = None
+
+    # ------------------------------------------------------------------ the steps
+    def run(self):
+        from lc_petsc.simulator import build_simulator
+        from lc_petsc.solver import SolverError
+        from petsc4py import PETSc
+        comm = self.comm
+        self.preemption = Preemption(comm)
+        try:
+            try:
+                self._lock()
+                t_setup = time.perf_counter()
+                try:
+                    self.sim = build_simulator(self.cfg, comm=comm)
+                except (ValueError, SolverError) as e:
+                    raise Refused(str(e)) from None
+                except PETSc.Error as e:
+                    raise Refused(f"PETSc rejected the solver set-up ({e}); see PETSc's message above") from None
+                self._validate()
+            except Refused as e:
+                say(comm, f"{PROG}: error: {e}", sys.stderr)
+                if self.sim is not None:
+                    self.sim.close()
+                self._unlock(refused=True)
+                return EXIT_USAGE
+            try:
+                self.setup_time = comm.allreduce(time.perf_counter() - t_setup, op=_mpi_max())
+                self.checkpointer = Checkpointer(self)
+                self._loop()
+                return self._finish()
+            finally:
+                self.sim.close()
+                self._unlock()
+        finally:
+            self.preemption.restore()
+
+    def _lock(self):
+        """Step 1: rank 0 locks the output folder (collective verdict)."""
+        from lc_petsc.io.lock import FolderBusy, OutputLock
+        comm = self.comm
+        if str(self.out) == "":
+            raise Refused("the output folder is empty ('')")
+        self.lock = OutputLock(self.out) if comm.rank == 0 else None
+        stale, problem = _on_root(comm, lambda: self.lock.acquire().stale)
+        if isinstance(problem, FolderBusy):
+            self.lock = None
+            raise Refused(str(problem))
+        if problem is not None:
+            self.lock = None
+            why = problem.strerror if isinstance(problem, OSError) and problem.strerror else problem
+            raise Refused(f"output folder {str(self.out)!r}: {why}")
+        if stale:
+            self._warn(f"{self.out}: found the lock of a run that did not finish ({stale}); it was "
+                       "killed or crashed: its outputs are as it left them, this run takes the folder over")
+
+    def _unlock(self, refused=False):
+        if self.lock is not None:
+            self.lock.release(remove_created_folder=refused)
+            self.lock = None
+
+    def _warn(self, text):
+        self.warnings.append(text)
+        warn(self.comm, text)
+
+    def _validate(self):
+        """Step 2 (after the build): warnings, restart, frames.h5, disk space; raises Refused."""
+        from lc_petsc.diagnostics import term_warnings
+        for w in self.config_warnings + term_warnings(self.sim):
+            self._warn(w)
+        rows_kept = 0
+        if self.args.restart is not None:
+            self.restart = self._load_restart()
+            rows_kept = self.restart["frame"] // self.cfg.output.every + 1
+        self._check_disk(rows_kept)
+
+    def _load_restart(self):
+        """The checkpoint to continue from, checked against the config, the scene and
+        the folder's frames.h5; restored into the simulator.  Raises Refused."""
+        from mpi4py import MPI
+        from lc_petsc.io.checkpoint import (CheckpointError, checkpoint_folder, config_differences,
+                                            find_latest, load_checkpoint)
+        from lc_petsc.io.frames import resumable_problem
+        comm, args, cfg, sim = self.comm, self.args, self.cfg, self.sim
+        skipped = []
+        try:
+            if args.restart == "latest":
+                ck, skipped = find_latest(checkpoint_folder(self.out), comm, sim.scene, sim.n_wisps,
+                                          sim.n_vertices, sim.head)
+                for m in skipped:
+                    warn(comm, f"skipping an invalid checkpoint: {m}")
+                if skipped:
+                    warn(comm, f"falling back to {ck['path']}, the newest valid checkpoint")
+            else:
+                ck = load_checkpoint(args.restart, comm, sim.scene, sim.n_wisps, sim.n_vertices, sim.head)
+        except CheckpointError as e:
+            raise Refused(str(e)) from None
+        ck["skipped"] = skipped
+        diff = config_differences(ck["attrs"]["config"], cfg.to_dict(), ignore=RESTART_FREE_KEYS)
+        if diff and not args.force:
+            raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
+                          f"{', '.join(diff)}; restart with the same config or add --force")
+        if diff:
+            warn(comm, f"--force: config differs from the checkpoint's in {', '.join(diff)}")
+        if ck["attrs"]["every"] != cfg.output.every:
+            raise Refused(f"{ck['path']}: output.every = {cfg.output.every} but the run's frames.h5 was "
+                          f"written with {ck['attrs']['every']}; it cannot be appended to")
+        if cfg.time.frames <= ck["frame"]:
+            raise Refused(f"{ck['path']}: the checkpoint is at frame {ck['frame']}, the run ends at frame "
+                          f"{cfg.time.frames} (time.frames / --frames is the total): nothing to do")
+        same_rest = np.array_equal(ck["rest"], sim.scene.x_rest) and np.array_equal(ck["pinned"], sim.scene.pinned)
+        if comm.allreduce(int(not same_rest), op=MPI.MAX) != 0:
+            if not args.force:
+                raise Refused(f"{ck['path']}: the checkpoint's rest positions or pinned vertices differ "
+                              "from the scene's; restart with the same scene or add --force")
+            warn(comm, "--force: rest state differs from the checkpoint's; the scene's is used")
+        rows = ck["frame"] // cfg.output.every + 1
+        problem = comm.bcast(resumable_problem(self.out / "frames.h5", sim.n_wisps, sim.n_vertices, rows)
+                             if comm.rank == 0 else None)
+        if problem:
+            raise Refused(problem)
+        sim.restore(ck)
+        return ck
+
+    def _check_disk(self, rows_kept):
+        """Refuse a run whose outputs cannot fit on the output folder's volume."""
+        from lc_petsc.io.disk import RESERVE, free_bytes, human
+        cfg, sim = self.cfg, self.sim
+        parts = output_estimate(cfg, sim.n_wisps, sim.n_vertices, rows_kept)
+        need = sum(parts.values())
+
+        def free():
+            reclaim = 0
+            if self.restart is None:      # a new run replaces the old frames and checkpoints
+                for p in [self.out / "frames.h5", *(self.out / "checkpoints").glob("checkpoint_*.h5")]:
+                    if p.is_file():
+                        reclaim += p.stat().st_size
+            return free_bytes(self.out) + reclaim
+        avail, problem = _on_root(self.comm, free)
+        if problem is not None:
+            raise Refused(f"output folder {str(self.out)!r}: cannot query its free space ({problem})")
+        if need + RESERVE > avail:
+            rows = 1 + cfg.time.frames // cfg.output.every - rows_kept
+            raise Refused(
+                f"time.frames = {cfg.time.frames} (--frames): the outputs would need about {human(need)} "
+                f"(frames.h5 {human(parts['frames.h5'])} for {rows} frame(s) of {sim.n_vertices} vertices, "
+                f"output.every = {cfg.output.every}; "
+                + ", ".join(f"{k} {human(v)}" for k, v in parts.items() if k != "frames.h5")
+                + f"), the volume of {self.out} has {human(avail)} free; run fewer frames, raise "
+                  "output.every or choose another --out")
+
+    def _prepare_output(self):
+        """Step 3: remove the previous run's outputs (on a restart frames.h5 and the
+        checkpoints stay; a new run removes the old checkpoints with the frames.h5 they
+        belong to).  OutputError on every rank."""
+        from lc_petsc.io.checkpoint import checkpoint_folder
+        out, restart = self.out, self.restart is not None
+
+        def clean():
+            for name in OUR_FILES:
+                if not (restart and name == "frames.h5"):
+                    (out / name).unlink(missing_ok=True)
+            ck = checkpoint_folder(out)
+            if ck.is_dir():
+                for p in ck.iterdir():
+                    if p.name.endswith(".h5.tmp") or (not restart and p.name.startswith("checkpoint_")):
+                        p.unlink()
+            if (out / "previews").is_dir():
+                for p in (out / "previews").glob("frame_*.png"):
+                    p.unlink()
+        _, problem = _on_root(self.comm, clean)
+        if problem is not None:
+            raise OutputError(f"output folder {str(out)!r}: cannot remove the previous run's outputs "
+                              f"({problem.strerror if isinstance(problem, OSError) else problem})")
+
+    def _open_frames(self):
+        from lc_petsc import __version__
+        from lc_petsc.io.frames import FramesWriter
+        sim, cfg, sc = self.sim, self.cfg, self.sim.scene
+        attrs = {"config": cfg.to_dict(), "config_file": str(Path(self.args.config).resolve()),
+                 "terms": sim.terms_run(), "dt": cfg.time.dt, "every": cfg.output.every,
+                 "frames": cfg.time.frames, "description": cfg.scene.description,
+                 "lc_petsc_version": __version__}
+        start = 0 if self.restart is None else self.restart["frame"]
+        with sim.timers("io"):
+            self.writer = FramesWriter(
+                self.out / "frames.h5", self.comm, n_wisps=sim.n_wisps, n_vertices=sim.n_vertices,
+                first_wisp=int(sim.ranges[self.comm.rank]), first_vertex=sc.first_vertex,
+                local_offsets=sc.offsets, rest_positions=sc.x_rest, pinned=sc.pinned,
+                n_out=1 + cfg.time.frames // cfg.output.every, attrs=attrs,
+                resume_rows=None if self.restart is None else start // cfg.output.every + 1)
+            if self.restart is None:
+                self.writer.write_frame(0.0, sim.x)
+        self.times = [0.0] if self.restart is None else list(self.writer.times_kept)
+
+    def _loop(self):
+        """Steps 3 and 4: prepare, frame 0, the frames; failures end in self.error."""
+        from lc_petsc.parallel import SimulationError
+        from lc_petsc.solver import SolverError
+        comm, cfg, sim = self.comm, self.cfg, self.sim
+        start = 0 if self.restart is None else self.restart["frame"]
+        self.t_loop = time.perf_counter()
+        bar = None
+        try:
+            self._prepare_output()
+            self._open_frames()
+            if self.restart is not None:
+                say(comm, f"{PROG}: restarting from {self.restart['path']} at frame {start} "
+                          f"(t = {self.restart['time']:.6g} s, written on "
+                          f"{self.restart['attrs']['ranks']} rank(s), now {comm.size})")
+            bar = _progress(comm, self.args, cfg.time.frames - start, self.name)
+            self.t_loop = time.perf_counter()
+            every, ck_every = cfg.output.every, cfg.output.checkpoint_every
+            for _ in range(cfg.time.frames - start):
+                if self.preemption.agreed():      # a signal during set-up or the frame before
+                    self._checkpoint()
+                    break
+                sim.step()
+                it = sim.integrator
+                if it.frame % every == 0:
+                    with sim.timers("io"):
+                        self.writer.write_frame(it.t, sim.x)
+                    self.times.append(it.t)
+                if ck_every and it.frame % ck_every == 0:
+                    self._checkpoint()
+                if bar is not None:
+                    bar.set_postfix_str(f"Newton {it.newton_iterations[-1]}, "
+                                        f"KSP {sim.solver.iterations[-1] if sim.solver.iterations else 0}",
+                                        refresh=False)
+                    bar.update(1)
+        except (SolverError, FloatingPointError, SimulationError) as e:
+            self.error = str(e)
+        except OutputError as e:
+            global hdf5_unclosable
+            hdf5_unclosable = hdf5_unclosable or e.hdf5_broken
+            self.error = f"output error: {e}"
+        except Exception as e:  # noqa: BLE001 - a failure that is not collective
+            self._uncollective_failure(e)
+        finally:
+            if bar is not None:
+                bar.close()
+
+    def _checkpoint(self):
+        with self.sim.timers("io"):
+            self.writer.flush()          # the frames a checkpoint vouches for are on disk
+            self.checkpointer.write(self.sim.integrator)
+
+    def _uncollective_failure(self, e):
+        """An exception the simulator does not raise collectively (a bug).  Alone: an
+        ordinary failed run.  With several ranks the others may be waiting in a
+        collective call that will never complete: this rank records the error in
+        summary.json (and the traceback on stderr) and aborts the job, exit status 3."""
+        if self.comm.size == 1:
+            traceback.print_exc()
+            self.error = f"{type(e).__name__}: {e} (an internal error; traceback on stderr)"
+            return
+        msg = f"rank {self.comm.rank}: {type(e).__name__}: {e} (an internal error; traceback on stderr)"
+        print(f"{PROG}: error: {msg}; aborting all ranks", file=sys.stderr, flush=True)
+        traceback.print_exc()
+        sys.stderr.flush()
+        try:
+            from lc_petsc.io.summary import write_summary
+            write_summary(self.out / "summary.json", {"error": msg, "aborted": True,
+                                                       "config": self.cfg.to_dict()})
+        except OSError:
+            pass
+        self.comm.Abort(EXIT_RUN_FAILED)
+
+    def _finish(self):
+        """Step 5: close frames.h5, write XDMF, previews, summary, report; exit status."""
+        comm, cfg, sim = self.comm, self.cfg, self.sim
+        out_errors = []
+        if self.writer is not None:
+            try:
+                with sim.timers("io"):
+                    self.writer.close()
+            except OutputError as e:
+                global hdf5_unclosable
+                hdf5_unclosable = True
+                out_errors.append(str(e))
+        preempted = self.preemption.signal_name if self.preemption.stopped else None
+        summary = self._summary(preempted)
+        if out_errors and not self.error:
+            self.error = f"output error: {out_errors[0]}"
+            summary["error"] = self.error
+            summary["converged"] = False
+        if comm.rank == 0:
+            self._write_outputs(summary)
+        self.error = comm.bcast(self.error)
+        if self.error:
+            return EXIT_RUN_FAILED
+        return EXIT_PREEMPTED if preempted else EXIT_OK
+
+    def _summary(self, preempted):
+        from lc_petsc import __version__
+        from lc_petsc.diagnostics import shape_measures
+        comm, cfg, sim = self.comm, self.cfg, self.sim
+        start = 0 if self.restart is None else self.restart["frame"]
+        loop_time = comm.allreduce(time.perf_counter() - self.t_loop, op=_mpi_max())
+        summary = sim.summary()
+        summary["step_time_s"] = summary["wall_time_s"]
+        summary["wall_time_s"] = loop_time
+        used = petsc_options_used(sim, self.command_line)
+        unused = sim.scope.unused_options(self.command_line)
+        for k in unused:
+            self._warn(f"PETSc option -{k} was given but never used by the solver (a typo, or an "
+                       "option of a solver that is not selected?)")
+        not_reduced = sim.solver.not_reduced
+        if not_reduced:
+            worst = max(r for _, r in not_reduced)
+            self._warn(f"{len(not_reduced)} of {len(sim.solver.reasons)} linear solve(s) reported "
+                       f"{sim.solver.reasons[not_reduced[0][0]]} without reaching -ksp_rtol "
+                       f"{sim.solver.rtol:g} (true relative residual up to {worst:.3g}, first at solve "
+                       f"{not_reduced[0][0]}): not converged; use a KSP that tests the residual "
+                       "(e.g. -ksp_type cg) or an exact preconditioner with -ksp_type preonly")
+        summary.update({
+            "config_file": str(Path(self.args.config).resolve()),
+            "description": cfg.scene.description,
+            "lc_petsc_version": __version__,
+            "setup_time_s": self.setup_time,
+            "time_per_frame_s": summary["wall_time_s"] / max(summary["frames"] - start, 1),
+            "frames_this_run": summary["frames"] - start,
+            "restart": None if self.restart is None else {
+                "checkpoint": str(self.restart["path"]), "frame": start,
+                "ranks_before": self.restart["attrs"]["ranks"], "skipped": self.restart["skipped"]},
+            "checkpoints": self.checkpointer.written,
+            "preempted": preempted,
+            "solver": summary["petsc_options"],
+            "petsc_options": _options_string(used),
+            "petsc_options_used": used,
+            "petsc_options_unused": unused,
+            "petsc_options_command_line": dict(self.command_line),
+            "linear_solves_not_converged": [{"solve": i, "relative_residual": r} for i, r in not_reduced],
+            "warnings": self.warnings,
+            "shape": shape_measures(comm, sim.x, sim.scene.x_rest, sim.scene.offsets),
+            "error": self.error,
+        })
+        if self.error or not_reduced:
+            summary["converged"] = False
+        return summary
+
+    def _write_outputs(self, summary):
+        """Rank 0: frames.xdmf, previews, summary.json and the report; each output that
+        fails is named, the others are still written."""
+        from lc_petsc.io.summary import format_report, write_summary
+        from lc_petsc.io.xdmf import write_xdmf
+        cfg, sim, out, writer = self.cfg, self.sim, self.out, self.writer
+        h5_path = out / "frames.h5"
+        problems = []
+        files = ["frames.h5"] if writer is not None else []
+        t0 = time.perf_counter()
+        if cfg.output.xdmf and writer is not None and not hdf5_unclosable:
+            try:
+                write_xdmf(out / "frames.xdmf", h5_path, self.times, sim.n_vertices, sim.n_wisps,
+                           name=self.name)
+                files.append("frames.xdmf")
+            except OSError as e:
+                problems.append(f"{out / 'frames.xdmf'}: {e.strerror or e}")
+        t_xdmf = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if cfg.output.previews and writer is not None and writer.written and not hdf5_unclosable:
+            try:
+                files += [os.path.relpath(p, out) for p in _previews(cfg, out, h5_path, writer,
+                                                                     cfg.time.frames, self.name)]
+            except Exception as e:  # noqa: BLE001 - a preview is never worth the run's summary
+                problems.append(f"previews in {out}: {getattr(e, 'strerror', None) or e}")
+        t_prev = time.perf_counter() - t0
+        t_usd = 0.0
+        if writer is not None and writer.written and not hdf5_unclosable:
+            # USD export for DCC tools (frames.usdc), from the closed frames.h5
+            from lc_petsc.io.usd import export_run
+            usd_files, t_usd = export_run(cfg.output, h5_path, out)
+            files += usd_files
+        files.append("summary.json")
+        if problems and not self.error:
+            self.error = summary["error"] = f"output error: {problems[0]}"
+            summary["converged"] = False
+        summary["output"] = {"dir": str(out), "every": cfg.output.every,
+                             "frames_written": writer.written if writer is not None else 0,
+                             "files": files, "xdmf_s": t_xdmf, "previews_s": t_prev,
+                             "usd_s": t_usd, "not_written": problems}
+        try:
+            write_summary(out / "summary.json", summary)
+        except OSError as e:
+            print(f"{PROG}: error: {out / 'summary.json'} could not be written ({e.strerror or e}); "
+                  "the run's figures are in the report below", file=sys.stderr, flush=True)
+            self.error = self.error or f"output error: {out / 'summary.json'}: {e.strerror or e}"
+            try:
+                os.unlink(f"{out / 'summary.json'}.tmp")
+            except OSError:
+                pass
+        print(format_report(summary), flush=True)
+        if self.error:
+            print(f"{PROG}: error: {self.error}", file=sys.stderr, flush=True)
+        if summary["preempted"]:
+            last = self.checkpointer.written[-1]["path"] if self.checkpointer.written else "?"
+            print(f"{PROG}: {summary['preempted']} received: stopped after frame {sim.integrator.frame}, "
+                  f"checkpoint {last} written; continue with --restart latest "
+                  f"(exit status {EXIT_PREEMPTED})", file=sys.stderr, flush=True)
+
+
+class Checkpointer:
+    """Writes checkpoints of the running job (see lc_petsc.io.checkpoint)."""
+
+    def __init__(self, job):
+        from lc_petsc import __version__
+        self.job = job
+        self.petsc_options = petsc_options_used(job.sim, job.command_line)
+        self.version = __version__
+        self.config_dict = job.cfg.to_dict()
+        self.written, self.last_frame = [], None
+
+    def write(self, it):
+        from lc_petsc.io.checkpoint import write_checkpoint
+        if self.last_frame == it.frame:
+            return
+        job = self.job
+        sim, cfg = job.sim, job.cfg
+        try:
+            path, secs, size = write_checkpoint(
+                job.out, job.comm, frame=it.frame, t=it.t, x=it.x, v=it.v, scene=sim.scene,
+                n_wisps=sim.n_wisps, n_vertices=sim.n_vertices, head=sim.head, dt=cfg.time.dt,
+                every=cfg.output.every, config_dict=self.config_dict, config_toml=job.cfg_text,
+                petsc_options=self.petsc_options, keep=cfg.output.checkpoints_kept, version=self.version)
+        except OSError as e:          # the folder or the rename (collective, from rank 0)
+            raise OutputError(f"checkpoint of frame {it.frame}: {e}") from None
+        self.written.append({"frame": it.frame, "path": str(path), "seconds": secs, "bytes": size})
+        self.last_frame = it.frame
+
+
+class Preemption:
+    """SIGTERM, SIGUSR1 and SIGINT (Ctrl-C) set a flag (main thread only); :meth:`agreed`
+    allreduces it at a frame end, so a signal that reached some ranks only stops all of
+    them together after the same frame, with a checkpoint.  After a first SIGINT the
+    default action is back: a second Ctrl-C ends the process at once (no checkpoint;
+    the previous checkpoints and the frames written so far are kept)."""
+
+    SIGNALS = ("SIGTERM", "SIGUSR1", "SIGINT")
+
+    def __init__(self, comm):
+        import signal
+        import threading
+        self.comm = comm
+        self.flag, self.signal_name, self.previous, self.stopped = 0, None, {}, False
+        if threading.current_thread() is threading.main_thread():
+            for name in self.SIGNALS:
+                sig = getattr(signal, name)
+                self.previous[sig] = signal.signal(sig, self._handler)
+
+    def _handler(self, signum, frame):
+        import signal
+        self.flag = 1
+        self.signal_name = self.signal_name or signal.Signals(signum).name
+        if signum == signal.SIGINT:
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            print(f"\n{PROG}: SIGINT: finishing this frame, then a checkpoint and exit "
+                  f"{EXIT_PREEMPTED}; press Ctrl-C again to stop at once (no checkpoint)",
+                  file=sys.stderr, flush=True)
+
+    def agreed(self):
+        """Collective: whether any rank received a signal (then ``stopped`` is set)."""
+        from mpi4py import MPI
+        comm = self.comm
+        if not comm.allreduce(self.flag, op=MPI.MAX):
+            return False
+        names = [n for n in comm.allgather(self.signal_name) if n]
+        self.signal_name = names[0] if names else "a signal (on another rank)"
+        self.stopped = True
+        return True
+
+    def restore(self):
+        import signal
+        for sig, h in self.previous.items():
+            signal.signal(sig, h)
+        self.previous = {}
+
+
+def _previews(cfg, out, h5_path, writer, frames, title):
+    from lc_petsc.io.previews import render_previews
+    from lc_petsc.scene.kinematics import HeadMotion
+    every, n = cfg.output.every, writer.written
+    rows = []
+    for f in cfg.output.preview_frames:
+        fa = frames + 1 + f if f < 0 else f
+        rows.append(min(max(fa, 0) // every, n - 1))
+    head = None
+    if "head_collision" in cfg.physics.terms or cfg.scene.kind == "hairball":
+        hm = HeadMotion(cfg.physics)
+        head = lambda t: (hm.sphere_center(t), hm.radius)   # noqa: E731
+    return render_previews(h5_path, out, rows, contact_panels=cfg.output.contact_sheet,
+                           view=cfg.output.view, title=title, head=head, every=every)
+
+
+def _progress(comm, args, frames, name):
+    if comm.rank != 0 or args.quiet or not sys.stderr.isatty() or frames == 0:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=frames, unit="frame", desc=name, dynamic_ncols=True, file=sys.stderr)

@@ -1,0 +1,415 @@
+"""The main job never loses data and never ends in a traceback: one run per output
+folder (lock, stale locks), inputs validated before anything is removed, frames.h5
+grown as frames are written with a disk estimate, a full disk on a small tmpfs (exit 3,
+frames and the previous checkpoint kept), Ctrl-C, unused PETSc options and unchecked
+linear solves, physical ranges and config paths."""
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from lc_petsc.batch import EXIT_PREEMPTED, main
+from lc_petsc.integrator import Integrator
+from lc_petsc.io.disk import RESERVE
+from lc_petsc.io.frames import frame_bytes
+from lc_petsc.io.lock import LOCK_NAME, OutputLock
+
+ROOT = Path(__file__).resolve().parents[1]
+DRIVER = str(ROOT / "drivers" / "simulate.py")
+
+SMASH = """
+[scene]
+kind = "wisp4c"
+n_vertices = 101
+perturbation = "smash"
+description = "{description}"
+[material]
+youngs_modulus = 3.9e9
+[physics]
+terms = ["stretch", "bend", "twist"]
+[time]
+dt = {dt}
+frames = {frames}
+[output]
+previews = {previews}
+checkpoint_every = {ce}
+"""
+
+
+def _smash(tmp_path, name="s.toml", frames=6, ce=2, previews="false", dt="0.03333333333333333",
+           description="smash", extra=""):
+    p = tmp_path / name
+    p.write_text(SMASH.format(frames=frames, ce=ce, previews=previews, dt=dt,
+                              description=description) + extra)
+    return str(p)
+
+
+def _snapshot(folder):
+    """{relative path: (sha256, mtime_ns)} of every file under ``folder``."""
+    out = {}
+    for p in sorted(Path(folder).rglob("*")):
+        if p.is_file():
+            out[str(p.relative_to(folder))] = (hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mtime_ns)
+    return out
+
+
+def _wait(cond, proc, what, timeout=60):
+    t0 = time.time()
+    while not cond():
+        assert proc.poll() is None, f"{what}: the run ended early: {proc.communicate()[1][-2000:]}"
+        assert time.time() - t0 < timeout, f"{what} never happened"
+        time.sleep(0.02)
+
+
+def _lock_held(out):
+    p = Path(out) / LOCK_NAME
+    return lambda: p.exists() and p.stat().st_size > 0
+
+
+# ----------------------------------------------------------------------------- lock
+def test_second_run_into_a_busy_folder_is_refused_and_changes_nothing(tmp_path, capsys):
+    cfg = _smash(tmp_path)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "3"]) == 0
+    before = _snapshot(out)
+    lock = OutputLock(out).acquire()          # a run that holds the folder (this process)
+    try:
+        capsys.readouterr()
+        assert main([cfg, "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert "is in use by another run" in err and f"pid {os.getpid()}" in err, err
+        assert "Traceback" not in err and err.count("error:") == 1
+        assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 2
+        assert "in use by another run" in capsys.readouterr().err
+    finally:
+        lock.release()
+    after = _snapshot(out)
+    assert after == before, "the refused runs changed the folder"
+    assert not (out / LOCK_NAME).exists()
+
+
+def test_two_runs_started_one_after_the_other(tmp_path, capsys):
+    """A runs (holding the lock), then B starts: B is refused naming A, A finishes its
+    own frames.h5 (the issue's race: B used to unlink A's file)."""
+    cfg = _smash(tmp_path, frames=100000, ce=0)
+    out = tmp_path / "out"
+    a = subprocess.Popen([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait(_lock_held(out), a, "A taking the lock")
+        _wait(lambda: (out / "frames.h5").exists(), a, "A writing frames.h5")
+        capsys.readouterr()
+        assert main([cfg, "--out", str(out), "--quiet", "--frames", "3"]) == 2
+        err = capsys.readouterr().err
+        assert f"pid {a.pid}" in err and "in use by another run" in err, err
+    finally:
+        a.send_signal(signal.SIGTERM)
+        so, se = a.communicate(timeout=60)
+    assert a.returncode == EXIT_PREEMPTED, se[-2000:]
+    s = json.loads((out / "summary.json").read_text())
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert f["positions"].shape[0] == s["output"]["frames_written"] == s["frames"] + 1
+        assert np.isfinite(f["positions"][...]).all()
+    assert f"{s['output']['frames_written']} frames in frames.h5" in so
+
+
+def test_stale_lock_of_a_killed_run_is_reported_and_taken_over(tmp_path, capsys):
+    cfg = _smash(tmp_path, frames=100000, ce=0)
+    out = tmp_path / "out"
+    a = subprocess.Popen([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait(_lock_held(out), a, "A taking the lock")
+    a.send_signal(signal.SIGKILL)
+    a.communicate()
+    assert (out / LOCK_NAME).exists()
+    capsys.readouterr()
+    assert main([_smash(tmp_path, name="b.toml"), "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "found the lock of a run that did not finish" in err and f"pid {a.pid}" in err, err
+    s = json.loads((out / "summary.json").read_text())
+    assert any(f"pid {a.pid}" in w for w in s["warnings"])
+    assert not (out / LOCK_NAME).exists()
+
+
+# ------------------------------------------------------- validation before any change
+def test_exit_2_leaves_the_previous_run_untouched(tmp_path, capsys):
+    cfg = _smash(tmp_path)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "4"]) == 0
+    before = _snapshot(out)
+
+    def refused(args, *needles):
+        capsys.readouterr()
+        assert main(args + ["--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" not in err
+        for n in needles:
+            assert n in err, err
+        assert _snapshot(out) == before, f"{args} changed the folder"
+
+    refused([_smash(tmp_path, name="nul.toml", description="a\\u0000b")], "scene.description", "NUL")
+    refused([cfg, "--frames", str(2 ** 63 - 1)], "time.frames", "--frames")
+    refused([cfg, "--frames", "1000000000000"], "time.frames")
+    refused([_smash(tmp_path, name="dt.toml", dt="1e-300")], "time.dt")
+    # a restart whose frames.h5 is missing
+    (out / "frames.h5").rename(tmp_path / "frames.h5.away")
+    before = _snapshot(out)
+    refused([cfg, "--restart", "latest"], "frames.h5", "missing")
+    (tmp_path / "frames.h5.away").rename(out / "frames.h5")
+    # a folder refused before it existed is not left behind
+    new = tmp_path / "new"
+    capsys.readouterr()
+    assert main([cfg, "--out", str(new), "--quiet", "--frames", str(2 ** 63 - 1)]) == 2
+    assert main([_smash(tmp_path, name="dt.toml", dt="1e-300"), "--out", str(new), "--quiet"]) == 2
+    assert not new.exists()
+
+
+def test_frames_file_grows_with_the_frames_written(tmp_path):
+    """A million planned frames: nothing is preallocated (main wrote 2.4 GB before frame
+    0), the datasets are extendable and hold exactly the frames written."""
+    cfg = _smash(tmp_path, frames=1000000, ce=0)
+    out = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait(lambda: (out / "frames.h5").exists(), p, "frames.h5")
+        time.sleep(0.5)
+        size_running = (out / "frames.h5").stat().st_size
+    finally:
+        p.send_signal(signal.SIGTERM)
+        so, se = p.communicate(timeout=60)
+    assert p.returncode == EXIT_PREEMPTED, se[-2000:]
+    with h5py.File(out / "frames.h5", "r") as f:
+        n = f["positions"].shape[0]
+        assert f["positions"].maxshape == (None, 101, 3) and f["time"].maxshape == (None,)
+        assert f["positions"].chunks == (1, 101, 3)
+        assert n == f["time"].shape[0] == json.loads((out / "summary.json").read_text())["frames"] + 1
+        assert np.all(np.diff(f["time"][...]) > 0)
+    size = (out / "frames.h5").stat().st_size
+    assert size_running < 5e6 and size < 200_000 + 2 * n * frame_bytes(101), (size_running, size, n)
+
+
+# ------------------------------------------------------------------- a full disk
+@pytest.fixture
+def small_volume(tmp_path):
+    """A 4 MB tmpfs mounted for the test (CI runs as root: a failed mount fails)."""
+    vol = tmp_path / "vol"
+    vol.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(vol)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, f"cannot mount a tmpfs (the test needs root): {r.stderr}"
+    try:
+        yield vol
+    finally:
+        subprocess.run(["umount", "-l", str(vol)], check=True)
+
+
+def _fill(vol, leave):
+    """Fill the volume ``vol`` up to ``leave`` bytes free."""
+    free = os.statvfs(vol).f_bavail * os.statvfs(vol).f_frsize
+    with open(vol / "filler", "ab") as fh:
+        fh.write(b"\0" * max(free - leave, 0))
+
+
+def _fill_at(monkeypatch, vol, frame, leave):
+    step = Integrator.step
+
+    def step_and_fill(self):
+        step(self)
+        if self.frame == frame:
+            _fill(vol, leave)
+    monkeypatch.setattr(Integrator, "step", step_and_fill)
+
+
+def test_run_that_cannot_fit_is_refused_before_frame_0(tmp_path, small_volume, capsys):
+    out = small_volume / "out"
+    assert main([_smash(tmp_path, frames=5000), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "time.frames = 5000" in err and "free" in err and "frames.h5" in err, err
+    assert not out.exists()
+
+
+def test_full_disk_while_writing_frames(tmp_path, small_volume, monkeypatch, capsys):
+    cfg = _smash(tmp_path, frames=40, ce=2)
+    out = small_volume / "out"
+    _fill_at(monkeypatch, small_volume, 5, RESERVE // 2)
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet"]) == 3
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err
+    assert "frames.h5: disk full" in cap.err, cap.err
+    s = json.loads((out / "summary.json").read_text())
+    assert "frames.h5: disk full" in s["error"] and s["converged"] is False
+    with h5py.File(out / "frames.h5", "r") as f:       # frames 0..4 readable
+        assert f["positions"].shape[0] == 5 and np.isfinite(f["positions"][...]).all()
+        assert np.allclose(f["time"][...], np.arange(5) / 30)
+    names = sorted(p.name for p in (out / "checkpoints").iterdir())
+    assert names == ["checkpoint_000002.h5", "checkpoint_000004.h5"]
+    monkeypatch.undo()
+    (small_volume / "filler").unlink()
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert f["positions"].shape[0] == 41
+        assert np.allclose(f["time"][...], np.arange(41) / 30)
+
+
+def test_full_disk_while_writing_a_checkpoint(tmp_path, small_volume, monkeypatch, capsys):
+    cfg = _smash(tmp_path, frames=40, ce=2)
+    out = small_volume / "out"
+    # frame 4 still fits, its checkpoint (about 70 kB) does not
+    _fill_at(monkeypatch, small_volume, 4, RESERVE + frame_bytes(101) + 20_000)
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet"]) == 3
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err
+    assert "checkpoint_000004.h5: disk full" in cap.err, cap.err
+    s = json.loads((out / "summary.json").read_text())
+    assert "checkpoint_000004.h5: disk full" in s["error"]
+    assert [c["frame"] for c in s["checkpoints"]] == [2]
+    names = sorted(p.name for p in (out / "checkpoints").iterdir())
+    assert names == ["checkpoint_000002.h5"]
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert f["positions"].shape[0] == 5
+    monkeypatch.undo()
+    (small_volume / "filler").unlink()
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+
+
+def test_outputs_that_cannot_be_written_are_reported(tmp_path, capsys):
+    cfg = _smash(tmp_path, frames=3, ce=0, previews="true")
+    out = tmp_path / "out"
+    (out / "summary.json.tmp").mkdir(parents=True)     # the summary's temporary name is taken
+    assert main([cfg, "--out", str(out), "--quiet"]) == 3
+    cap = capsys.readouterr()
+    assert "summary.json could not be written" in cap.err and "Traceback" not in cap.err
+    assert "frames: 3" in cap.out                       # the report is still printed
+    (out / "summary.json.tmp").rmdir()
+    (out / "frames.xdmf.tmp").mkdir()                   # the XDMF cannot be written
+    assert main([cfg, "--out", str(out), "--quiet"]) == 3
+    cap = capsys.readouterr()
+    assert "frames.xdmf" in cap.err and "Traceback" not in cap.err
+    s = json.loads((out / "summary.json").read_text())
+    assert "frames.xdmf" in s["error"] and s["output"]["not_written"]
+    assert (out / "contact_sheet.png").exists()         # the other outputs are written
+
+
+# ------------------------------------------------------------------------ Ctrl-C
+def test_ctrl_c_on_one_rank_checkpoints_and_exits_75(tmp_path):
+    cfg = _smash(tmp_path, frames=100000, ce=0)
+    out = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait(lambda: (out / "frames.h5").exists(), p, "frames.h5")
+    time.sleep(0.3)
+    p.send_signal(signal.SIGINT)
+    so, se = p.communicate(timeout=60)
+    assert p.returncode == EXIT_PREEMPTED, se[-2000:]
+    assert "Traceback" not in se and "SIGINT received: stopped after frame" in se
+    s = json.loads((out / "summary.json").read_text())
+    assert s["preempted"] == "SIGINT" and s["error"] is None
+    k = s["frames"]
+    assert [c["frame"] for c in s["checkpoints"]] == [k] and k > 0
+    assert (out / "checkpoints" / f"checkpoint_{k:06d}.h5").exists()
+
+
+def test_second_ctrl_c_stops_at_once(tmp_path):
+    cfg = _smash(tmp_path, frames=100000, ce=0, previews="true")
+    out = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait(lambda: (out / "frames.h5").exists(), p, "frames.h5")
+    time.sleep(0.3)
+    p.send_signal(signal.SIGINT)
+    line = p.stderr.readline()
+    while "SIGINT: finishing this frame" not in line:
+        assert line, "no SIGINT message"
+        line = p.stderr.readline()
+    p.send_signal(signal.SIGINT)
+    p.communicate(timeout=60)
+    assert p.returncode == -signal.SIGINT
+    assert not (out / "summary.json").exists()
+
+
+# ------------------------------------------------------------ PETSc options, solves
+def test_unused_option_and_unchecked_solve_are_reported(tmp_path, capsys):
+    cfg = _smash(tmp_path, frames=3, ce=0)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "-ksp_rtoll", "1e-3"]) == 0
+    cap = capsys.readouterr()
+    assert "PETSc option -ksp_rtoll was given but never used" in cap.err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["petsc_options_unused"] == ["ksp_rtoll"] and s["converged"] is True
+    assert any("-ksp_rtoll" in w for w in s["warnings"])
+    # config options are tracked as well; used ones are not reported
+    cfg2 = _smash(tmp_path, name="o.toml", frames=2, ce=0,
+                  extra='[solver]\noptions = "-ksp_rtol 1e-8 -pc_bjacobi_blokcs 2"\n')
+    assert main([cfg2, "--out", str(out), "--quiet"]) == 0
+    assert json.loads((out / "summary.json").read_text())["petsc_options_unused"] == ["pc_bjacobi_blokcs"]
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet", "-ksp_type", "preonly", "-pc_type", "jacobi"]) == 0
+    cap = capsys.readouterr()
+    assert "converged: NO" in cap.out and "without reaching -ksp_rtol" in cap.err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["converged"] is False and len(s["linear_solves_not_converged"]) == 9
+    assert all(c["relative_residual"] > 1e-3 for c in s["linear_solves_not_converged"])
+    # an exact preonly solve is converged
+    assert main([cfg, "--out", str(out), "--quiet", "-ksp_type", "preonly", "-pc_type", "lu",
+                 "-mat_type", "aij"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["converged"] is True and s["linear_solves_not_converged"] == []
+
+
+def test_options_file_that_does_not_exist(tmp_path, capsys):
+    assert main([_smash(tmp_path), "--out", str(tmp_path / "o"), "--quiet",
+                 "-options_file", "/nonexistent"]) == 2
+    err = capsys.readouterr().err
+    assert "-options_file /nonexistent: no such file" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------ physical ranges
+def test_ranges_paths_and_keys_without_effect(tmp_path, capsys):
+    out = str(tmp_path / "o")
+
+    def err(args, code=2):
+        capsys.readouterr()
+        assert main(args + ["--quiet"]) == code
+        e = capsys.readouterr().err
+        assert "Traceback" not in e
+        return e
+
+    assert "time.dt = 1e-300" in err([_smash(tmp_path, dt="1e-300"), "--out", out])
+    big = _smash(tmp_path, name="e.toml")
+    Path(big).write_text(Path(big).read_text().replace("youngs_modulus = 3.9e9", "youngs_modulus = 1e300"))
+    assert "material.youngs_modulus = 1e+300" in err([big, "--out", out])
+    assert "--out ''" in err([_smash(tmp_path), "--out", ""])
+    assert "/dev/zero: not a regular file" in err(["/dev/zero", "--out", out])
+    assert "warning" not in err([_smash(tmp_path, name="k.toml", frames=1, ce=0), "--out", out], code=0)
+    text = SMASH.format(frames=1, ce=0, previews="false", dt="0.03333333333333333", description="k")
+    text = text.replace('kind = "wisp4c"', 'kind = "wisp4c"\nn_wisps = 3\njitter = 0.2')
+    Path(tmp_path / "k2.toml").write_text(text)
+    e = err([str(tmp_path / "k2.toml"), "--out", out], code=0)
+    assert "scene.n_wisps is set but has no effect: it only acts with scene.kind = 'hairball'" in e
+    assert "scene.jitter is set but has no effect" in e
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert sum("has no effect" in w for w in s["warnings"]) == 2
+
+
+def test_wisp_starting_inside_the_head_is_warned_about(tmp_path, capsys):
+    text = SMASH.format(frames=1, ce=0, previews="false", dt="0.03333333333333333", description="h")
+    text = text.replace('terms = ["stretch", "bend", "twist"]',
+                        'terms = ["stretch", "bend", "twist", "head_collision"]\n'
+                        'head_radius = 2.0\nhead_center = [0.0, -4.0, 0.0]')
+    Path(tmp_path / "h.toml").write_text(text)
+    assert main([str(tmp_path / "h.toml"), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+    e = capsys.readouterr().err
+    assert "start inside the head sphere (physics.head_radius + physics.head_margin = 2 cm" in e, e

@@ -1,0 +1,165 @@
+"""The main job on every rank of COMM_WORLD (run by tests/test_mpi_launch.py under
+mpiexec -n 2 and -n 3): an element error on one rank ends the run on every rank with
+exit status 3, summary.json and the frames so far; SIGINT on one rank checkpoints and
+exits 75; a full disk (a tmpfs mounted by rank 0) stops every rank with exit 3; a bad
+strands file is reported once, by rank 0."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import tempfile
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lc_petsc.assembly import Assembler
+from lc_petsc.batch import EXIT_PREEMPTED, main
+from lc_petsc.integrator import Integrator
+from lc_petsc.io.disk import RESERVE
+
+from sim_helpers import hairball_toml  # noqa: E402
+
+pytestmark = pytest.mark.mpi
+comm = MPI.COMM_WORLD
+LAST = comm.size - 1
+
+SCENE = hairball_toml(n_wisps=4, seed=7, frames=8,
+                      output="previews = false\nxdmf = false\ncheckpoint_every = 2")
+
+
+@pytest.fixture
+def shared_dir():
+    d = comm.bcast(tempfile.mkdtemp(prefix="lc_mpi_job_") if comm.rank == 0 else None)
+    cfg = os.path.join(d, "s.toml")
+    if comm.rank == 0:
+        with open(cfg, "w") as f:
+            f.write(SCENE)
+    comm.Barrier()
+    yield d, cfg
+    comm.Barrier()
+    if comm.rank == 0:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def _on_root(fn):
+    """fn() on rank 0, its result (or the assertion error) on every rank."""
+    res = None
+    if comm.rank == 0:
+        try:
+            res = ("ok", fn())
+        except AssertionError as e:
+            res = ("fail", str(e))
+    res = comm.bcast(res)
+    assert res[0] == "ok", res[1]
+    return res[1]
+
+
+def test_element_error_on_one_rank_ends_as_exit_3(shared_dir, monkeypatch, capsys):
+    d, cfg = shared_dir
+    out = os.path.join(d, "out")
+    assemble = Assembler.assemble
+    calls = []
+
+    def failing(self, x):
+        calls.append(1)
+        if comm.rank == LAST and len(calls) == 10:     # frame 3 -> 4, first Newton iteration
+            raise ValueError("injected element failure")
+        return assemble(self, x)
+
+    monkeypatch.setattr(Assembler, "assemble", failing)
+    code = main([cfg, "--out", out, "--quiet"], comm=comm)
+    assert comm.allgather(code) == [3] * comm.size
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+
+    def check():
+        s = json.load(open(os.path.join(out, "summary.json")))
+        assert f"rank {LAST}: ValueError: injected element failure" in s["error"], s["error"]
+        assert s["converged"] is False and s["frames"] == 3
+        with h5py.File(os.path.join(out, "frames.h5"), "r") as f:
+            assert f["positions"].shape[0] == 4 and np.isfinite(f["positions"][...]).all()
+        assert sorted(os.listdir(os.path.join(out, "checkpoints"))) == ["checkpoint_000002.h5"]
+        assert "injected element failure" in err
+    _on_root(check)
+
+
+def test_sigint_on_one_rank_checkpoints_and_exits_75(shared_dir, monkeypatch):
+    d, cfg = shared_dir
+    out = os.path.join(d, "out")
+    step = Integrator.step
+
+    def step_and_interrupt(self):
+        step(self)
+        if self.frame == 3 and comm.rank == LAST:
+            signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr(Integrator, "step", step_and_interrupt)
+    code = main([cfg, "--out", out, "--quiet"], comm=comm)
+    assert comm.allgather(code) == [EXIT_PREEMPTED] * comm.size
+
+    def check():
+        s = json.load(open(os.path.join(out, "summary.json")))
+        assert s["preempted"] == "SIGINT" and s["frames"] == 3
+        assert sorted(os.listdir(os.path.join(out, "checkpoints"))) == ["checkpoint_000002.h5",
+                                                                         "checkpoint_000003.h5"]
+    _on_root(check)
+
+
+def test_full_disk_stops_every_rank(shared_dir, monkeypatch):
+    d, cfg = shared_dir
+    vol = os.path.join(d, "vol")
+
+    def mount():
+        os.mkdir(vol)
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", vol],
+                           capture_output=True, text=True)
+        assert r.returncode == 0, f"cannot mount a tmpfs (the test needs root): {r.stderr}"
+    _on_root(mount)
+    out = os.path.join(vol, "out")
+    step = Integrator.step
+
+    def step_and_fill(self):
+        step(self)
+        if self.frame == 5 and comm.rank == 0:
+            st = os.statvfs(vol)
+            with open(os.path.join(vol, "filler"), "wb") as fh:
+                fh.write(b"\0" * max(st.f_bavail * st.f_frsize - RESERVE // 2, 0))
+    monkeypatch.setattr(Integrator, "step", step_and_fill)
+    try:
+        code = main([cfg, "--out", out, "--quiet"], comm=comm)
+        assert comm.allgather(code) == [3] * comm.size
+
+        def check():
+            s = json.load(open(os.path.join(out, "summary.json")))
+            assert "frames.h5: disk full" in s["error"], s["error"]
+            with h5py.File(os.path.join(out, "frames.h5"), "r") as f:
+                assert f["positions"].shape[0] == 5
+            assert sorted(os.listdir(os.path.join(out, "checkpoints"))) == ["checkpoint_000002.h5",
+                                                                             "checkpoint_000004.h5"]
+        _on_root(check)
+    finally:
+        comm.Barrier()
+        if comm.rank == 0:
+            subprocess.run(["umount", "-l", vol], check=True)
+
+
+def test_bad_strands_file_reported_once(shared_dir, capsys):
+    d, _ = shared_dir
+    g = os.path.join(d, "g.h5")
+    cfg = os.path.join(d, "f.toml")
+    if comm.rank == 0:
+        with open(g, "wb") as fh:
+            fh.write(b"")
+        with open(cfg, "w") as fh:
+            fh.write(f'[scene]\nkind = "file"\npath = "{g}"\n')
+    comm.Barrier()
+    code = main([cfg, "--out", os.path.join(d, "o"), "--quiet"], comm=comm)
+    assert comm.allgather(code) == [2] * comm.size
+    err = capsys.readouterr().err
+    n_reports = comm.allgather(err.count("is empty (0 bytes)"))
+    assert n_reports == [1] + [0] * (comm.size - 1), n_reports
+    assert "Traceback" not in err

@@ -1,0 +1,141 @@
+"""Strands files (DESIGN section 3) are validated before anything large is read: every
+problem is one line naming the file and the dataset, exit status 2 from the main job,
+no traceback (2 ranks: tests/test_mpi_job.py)."""
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from lc_petsc.batch import main
+from lc_petsc.scene import geometry
+from lc_petsc.scene.sources import FileSource
+
+N = 30            # vertices per wisp, two wisps
+
+
+def _good(path, **override):
+    """A valid two-wisp strands file, with datasets replaced or added by ``override``
+    (a value None removes the dataset)."""
+    pos = np.concatenate([geometry.wisp4c(N, root=(2.0 * w, 0.0, 0.0)) for w in range(2)])
+    data = {"positions": pos, "wisp_offsets": np.array([0, N, 2 * N], np.int64),
+            "radius": np.full(2 * N, 0.05), "pinned": np.tile(np.arange(N) < 3, 2)}
+    data.update(override)
+    with h5py.File(path, "w") as f:
+        for k, v in data.items():
+            if v is not None:
+                f[k] = v
+    return str(path)
+
+
+CASES = {
+    "short radius": (dict(radius=np.full(2 * N - 1, 0.05)), "/radius must have one entry per vertex"),
+    "long radius": (dict(radius=np.full(2 * N + 5, 0.05)), "/radius must have one entry per vertex"),
+    "short pinned": (dict(pinned=np.zeros(5, bool)), "/pinned must have one entry per vertex"),
+    "complex positions": ("complex", "/positions has type complex128, expected real floating-point"),
+    "string positions": ("bytes", "/positions has type |S"),
+    "float offsets": (dict(wisp_offsets=np.array([0.0, N, 2 * N])), "/wisp_offsets has type float64"),
+    "float pinned": (dict(pinned=np.zeros(2 * N)), "/pinned has type float64, expected booleans"),
+    "pinned 2": (dict(pinned=np.full(2 * N, 2, np.int8)), "/pinned holds values other than 0 and 1"),
+    "negative radius": (dict(radius=np.full(2 * N, -1.0)), "/radius must be finite and positive"),
+    "nan positions": ("nan", "/positions has non-finite values"),
+    "bad offsets": (dict(wisp_offsets=np.array([0, N, 2 * N + 1])), "/wisp_offsets must start at 0"),
+    "missing offsets": (dict(wisp_offsets=None), "missing dataset /wisp_offsets"),
+    "2-D radius": (dict(radius=np.full((2 * N, 1), 0.05)), "/radius must have one entry per vertex"),
+}
+
+
+def _make(tmp_path, case):
+    change, _ = CASES[case]
+    p = tmp_path / "g.h5"
+    if case == "complex positions":
+        pos = np.concatenate([geometry.wisp4c(N), geometry.wisp4c(N)]).astype(complex)
+        return _good(p, positions=pos)
+    if case == "string positions":
+        return _good(p, positions=np.full((2 * N, 3), b"1.0"))
+    if case == "nan positions":
+        pos = np.concatenate([geometry.wisp4c(N), geometry.wisp4c(N)])
+        pos[7, 1] = np.nan
+        return _good(p, positions=pos)
+    return _good(p, **change)
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_dataset_named(tmp_path, case):
+    path = _make(tmp_path, case)
+    with pytest.raises(ValueError) as e:
+        FileSource(path)
+    msg = str(e.value)
+    assert CASES[case][1] in msg and path in msg and "\n" not in msg, msg
+
+
+def _links(tmp_path, kind):
+    p = tmp_path / f"{kind}.h5"
+    _good(p, positions=None)
+    with h5py.File(p, "a") as f:
+        if kind == "soft":
+            f["elsewhere"] = np.zeros((2 * N, 3))
+            f["positions"] = h5py.SoftLink("/elsewhere")
+        elif kind == "dangling":
+            f["positions"] = h5py.SoftLink("/nothing")
+        elif kind == "external":
+            f["positions"] = h5py.ExternalLink("other.h5", "/positions")
+        elif kind == "group":
+            f.create_group("positions")
+        elif kind == "external_storage":
+            victim = tmp_path / "host_file.bin"
+            victim.write_bytes(np.zeros(2 * N * 3).tobytes())
+            f.create_dataset("positions", shape=(2 * N, 3), dtype="f8",
+                             external=[(str(victim), 0, h5py.h5f.UNLIMITED)])
+    return str(p)
+
+
+@pytest.mark.parametrize("kind,needle", [("soft", "/positions is a soft link"),
+                                         ("dangling", "/positions is a soft link"),
+                                         ("external", "/positions is an external link"),
+                                         ("group", "/positions is a group, not a dataset"),
+                                         ("external_storage", "/positions keeps its data in other files")])
+def test_links_groups_and_external_storage_refused(tmp_path, kind, needle):
+    with pytest.raises(ValueError, match=needle):
+        FileSource(_links(tmp_path, kind))
+
+
+def test_not_hdf5_empty_truncated(tmp_path):
+    empty = tmp_path / "empty.h5"
+    empty.write_bytes(b"")
+    with pytest.raises(ValueError, match="is empty .0 bytes."):
+        FileSource(str(empty))
+    text = tmp_path / "text.h5"
+    text.write_text("positions = 1\n")
+    with pytest.raises(ValueError, match="not an HDF5 file"):
+        FileSource(str(text))
+    good = Path(_good(tmp_path / "good.h5"))
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(ValueError, match="truncated"):
+        FileSource(str(cut))
+
+
+def test_huge_declared_vertex_count_refused_before_reading(tmp_path):
+    """An 800 kB file declaring 1e9 vertices (chunked, nothing stored) is refused by the
+    memory estimate; main ran the machine out of memory on it."""
+    p = tmp_path / "huge.h5"
+    with h5py.File(p, "w") as f:
+        f.create_dataset("positions", shape=(10 ** 9, 3), dtype="f8", chunks=(4096, 3))
+        f["wisp_offsets"] = np.array([0, 10 ** 9], np.int64)
+    assert p.stat().st_size < 1_000_000
+    with pytest.raises(ValueError, match=r"/positions declares 1,000,000,000 vertices; .* GB of memory"):
+        FileSource(str(p))
+
+
+def test_main_job_reports_once_with_exit_2(tmp_path, capsys):
+    path = _make(tmp_path, "short radius")
+    cfg = tmp_path / "f.toml"
+    cfg.write_text(f'[scene]\nkind = "file"\npath = "{path}"\n[output]\npreviews = false\n')
+    assert main([str(cfg), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "/radius must have one entry per vertex" in err
+    assert "Traceback" not in err and not (tmp_path / "o").exists()
+    # the shipped example still loads
+    assert FileSource(str(Path(__file__).resolve().parents[1] / "configs" / "data" / "fringe.h5")).n_wisps == 24

@@ -110,6 +110,8 @@ class Integrator:
         pin = ~self.free
         if pin.any():
             x[pin] = self.head.pinned_positions(sc.x_rest[pin], self.t_next)
+        if self.strand is not None:             # ccd mode: no crossing on x_old -> first iterate
+            x = self.strand.collision_free_frame(x_old, x, self.head.carry(x_old, self.t, self.t_next))
         n_it = 0
         for it in range(cfg.time.newton_iterations):
             n_it += 1
@@ -140,6 +142,8 @@ class Integrator:
                         break
                     alpha *= 0.5
                 self.line_search_alphas.append(alpha)
+            if self.strand is not None:         # ccd mode: per-vertex, collision-free
+                alpha = self.strand.limit_step(x, dx, alpha)
             x = x + alpha * dx
             if cfg.time.newton_tol is not None:
                 step = self.comm.allreduce(float(np.abs(alpha * dx).max(initial=0.0)), op=_max())
@@ -166,6 +170,9 @@ class Integrator:
                     n_sep = max(n_sep, n)
                     pairs, deep, dmin = self.strand.measure(x)
                 self.contact_separated.append(n_sep)
+            if self.strand.mode == "ccd":       # the straight path x_old -> x must not cross
+                x = self.strand.collision_free_frame(x_old, x, self.head.carry(x_old, self.t, self.t_next))
+                pairs, deep, dmin = self.strand.measure(x)
             self.contact_pairs.append(pairs)
             self.contact_deep_pairs.append(deep)
             self.contact_min_distance.append(dmin)

@@ -50,7 +50,7 @@ from petsc4py import PETSc
 
 from lc_petsc.crossings import box_pairs
 from lc_petsc.elements import segment_ccd, segment_contact
-from lc_petsc.parallel import collectively
+from lc_petsc.parallel import SimulationError, collectively
 
 MODES = ("penalty", "ccd")
 #: limiter rounds that shrink the step fractions by the pairs' safe fractions before
@@ -168,6 +168,7 @@ class StrandContact:
         self.shrink = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
         self.limited_vertices = []      # per limit_step call: vertices whose step was cut
         self.limit_rounds = []          # per call: rounds of the limiter
+        self.tight_inclusion_pairs = 0  # pairs passed to ipctk by the limiter, this rank
         self.frame_fixes = []           # per collision_free_frame call (2 per frame): vertices held back
 
     def system(self, A, strand_pmat=None):
@@ -204,17 +205,23 @@ class StrandContact:
             return op, op
 
     # ------------------------------------------------------------- exchange
-    def _gather_segments(self, x, extra=(), inflate=None):
+    def _gather_segments(self, x, extra=(), inflate=None, boxes=None):
         """Local + ghost segments: (list of P (m, 2, 3), one per configuration ``x`` and
         ``extra`` (each (nv, 3)), rest P, global first vertex, wisp, free (m, 2), owner
         rank, n_local).  A segment's box covers all its configurations (swept bounds
         when ``extra`` holds the end of a step); ghosts are the segments whose box comes
-        within ``inflate`` (default d0) of a box of the receiving rank."""
+        within ``inflate`` (default d0) of a box of the receiving rank; ``boxes`` (lo,
+        hi) (m, 3) replace the segments' own boxes, and come back as a last (m, 2, 3)
+        array of the list (lo, hi) for the ghosts too."""
         comm = self.comm
         d0 = self.d0 if inflate is None else float(inflate)
         Ps = [np.stack([a[self.seg], a[self.seg + 1]], axis=1) for a in (x, *extra)]
-        allP = np.concatenate(Ps, axis=1)
-        lo, hi = allP.min(axis=1), allP.max(axis=1)
+        if boxes is None:
+            allP = np.concatenate(Ps, axis=1)
+            lo, hi = allP.min(axis=1), allP.max(axis=1)
+        else:
+            lo, hi = boxes
+            Ps.append(np.stack([lo, hi], axis=1))
         # Occupancy (see the module doc and _OccupancyGrid): the cells touched by this
         # rank's boxes inflated by d0, as sorted flat ids
         send = [None]
@@ -349,58 +356,74 @@ class StrandContact:
             return alpha
         with self.timers("collision"):
             T = x + alpha * dx
-            beta, n_limited, rounds = self._safe_fractions(x, T, x, self.min_separation * self.d0)
+            beta, n_limited, rounds = self._safe_fractions(x, T, self.min_separation * self.d0)
             self.limited_vertices.append(n_limited)
             self.limit_rounds.append(rounds)
         return alpha * beta[:, None]
 
-    def collision_free_frame(self, x_old, x, carried):
+    def collision_free_frame(self, x_old, x):
         """Positions whose linear path from ``x_old`` (the previous frame) is
         collision-free (``ccd`` mode; else ``x``), for the frame's first Newton iterate
         (xhat = x_old + dt v with the pinned vertices moved by the head: inertia alone
         would carry wisps through each other) and for its end (each Newton step is
-        limited, but the straight path x_old -> x can still cross).  Vertices of pairs
-        that meet on it are held back towards ``carried`` (x_old moved rigidly with the
-        head, where the pinned vertices are): positions carried + beta (x - carried),
+        limited, but the straight path x_old -> x can still cross).  The free vertices
+        of pairs that meet on it are held back towards x_old: x_old + beta (x - x_old),
         beta from :meth:`_safe_fractions`.  Collective."""
         if self.mode != "ccd":
             return x
         with self.timers("collision"):
-            beta, n_limited, _ = self._safe_fractions(x_old, x, carried, 0.05 * self.d0)
+            beta, n_limited, _ = self._safe_fractions(x_old, x, 0.05 * self.d0)
             self.frame_fixes.append(n_limited)
-            free = ~self.scene.pinned
-            out = x.copy()
-            out[free] = carried[free] + beta[free, None] * (x[free] - carried[free])
-        return out
+        return x_old + beta[:, None] * (x - x_old)
 
-    def _safe_fractions(self, S, T, F, min_distance):
+    def _pair_fractions(self, S, E, m):
+        """Safe fractions of pairs on their paths S -> E (k, 4, 3) at min distance m (k,):
+        conservative advancement, Tight-Inclusion for the pairs it leaves open."""
+        t, unresolved = segment_ccd.safe_fraction(S, E, m)
+        u = np.flatnonzero(unresolved)
+        if len(u):
+            t[u] = np.maximum(t[u], segment_ccd.tight_inclusion_toi(S[u], E[u], m[u]))
+            self.tight_inclusion_pairs += len(u)
+        return t
+
+    def _safe_fractions(self, S, T, min_distance):
         """(beta, vertices limited over all ranks, rounds): per-vertex fractions beta
-        (nv,) in [0, 1] such that on the linear path from
-        S to E = F + beta (T - F) (all (nv, 3)) no pair of segments of different wisps
+        (nv,) in [0, 1] of the displacements T - S (nv, 3) such that on the linear path
+        from S to E = S + beta (T - S) no pair of segments of different wisps
         (rest-exempt pairs excepted) comes closer than ``min_distance``, or half its
-        distance at S when already closer.  F is a fallback end whose path from S is
-        collision-free by construction: S itself (no motion), or S moved rigidly with
-        the head (an invertible affine map of all points along the path); pinned
-        vertices have T = F.  Collective.
+        distance at S when already closer.  Pinned vertices keep beta = 1 (their
+        motion is prescribed).  Collective.
 
-        1. Swept boxes (S, T, F) inflated by min_distance: candidates and ghosts
-           (:meth:`_gather_segments` with the swept bounds, so a rank gets every segment
-           that can reach its own during the step).  Boxes only shrink as beta does, so
-           the candidates of the full step cover every later round.
-        2. Rounds: each pair's safe fraction tau on its current path
-           (:func:`segment_ccd.safe_fraction`); a pair with tau < 1 multiplies the
-           fractions of its free vertices by 0.9 tau (the first SCALE_ROUNDS rounds),
-           later by 0, i.e. they follow F.  The smallest factor per vertex is taken over
-           all ranks (a reverse scatter with MAX_VALUES of 1 - factor to the vertex
-           owner), and the new fractions come back to every pair through a scatter.
-           Pairs all of whose vertices follow F are safe.  Each round after the scaling
-           ones puts at least one more vertex on F, so the loop ends."""
+        1. Broad phase: a pair's relative displacement is at most r_A + r_B (r = the
+           largest |T - S| of a segment's vertices), so it can come within m only if
+           its centres at S are within rho_A + rho_B, rho = h + r + m / 2 (h the half
+           length).  Boxes centre +- rho select the candidates (:func:`box_pairs`) and
+           the ghosts (:meth:`_gather_segments`), so a rank gets every segment that can
+           reach its own during the step; they cover every beta.
+        2. Rounds: a pair whose current path comes closer than half its floor m
+           (min_distance, or half its distance at S) multiplies the fractions of its
+           free vertices by its safe fraction at m (the first SCALE_ROUNDS rounds; its
+           path then keeps m, clear of the m / 2 test, so round-off cannot flip its
+           fate), later by 0, i.e. they stay at S.  Safe fractions: conservative
+           advancement (:func:`segment_ccd.safe_fraction`), Tight-Inclusion for the
+           pairs it leaves open.  The smallest factor per vertex is taken over all
+           ranks (a reverse scatter with MAX_VALUES of 1 - factor to the vertex owner),
+           and the new fractions come back to every pair through a scatter.  Only pairs
+           with a changed vertex are recomputed.  A pair whose free vertices all stay
+           at S can still be hit only by its pinned vertices' motion: that raises
+           (never seen: pinned roots move rigidly together, and pairs of two pinned
+           segments are skipped).  Each round after the scaling ones stops at least
+           one more vertex, so the loop ends."""
         nv, d0 = self.scene.nv, self.d0
         md = float(min_distance)
-        (PS, PT, PF), Prest, gv, wisp, free, owner, n_local = \
-            self._gather_segments(S, (T, F), inflate=md)
-        box = np.concatenate([PS, PT, PF], axis=1)
-        ij = box_pairs(box.min(axis=1) - 0.5 * md, box.max(axis=1) + 0.5 * md)
+        Pc = np.stack([S[self.seg], S[self.seg + 1]], axis=1)
+        c = Pc.mean(axis=1)
+        h = 0.5 * np.linalg.norm(Pc[:, 1] - Pc[:, 0], axis=1)
+        dT = np.linalg.norm(T - S, axis=1)
+        rho = (h + np.maximum(dT[self.seg], dT[self.seg + 1]) + 0.5 * md)[:, None]
+        (PS, PT, PC), Prest, gv, wisp, free, owner, n_local = \
+            self._gather_segments(S, (T,), inflate=0.0, boxes=(c - rho, c + rho))
+        ij = box_pairs(PC[:, 0], PC[:, 1])
         i, j = ij[:, 0], ij[:, 1]
         keep = (wisp[i] != wisp[j]) & ((i < n_local) | (j < n_local))
         keep &= ~(~free[i]).all(axis=1) | ~(~free[j]).all(axis=1)    # pinned pairs move rigidly
@@ -412,10 +435,9 @@ class StrandContact:
         gidx = np.stack([gv[i], gv[i] + 1, gv[j], gv[j] + 1], axis=1)
         V, inv = np.unique(gidx, return_inverse=True)
         inv = inv.reshape(-1, 4)
-        SV, TV, FV, fV = (np.zeros((len(V), 3)), np.zeros((len(V), 3)), np.zeros((len(V), 3)),
-                          np.zeros(len(V), bool))
+        SV, TV, fV = np.zeros((len(V), 3)), np.zeros((len(V), 3)), np.zeros(len(V), bool)
         for k, (src, e) in enumerate(((i, 0), (i, 1), (j, 0), (j, 1))):
-            SV[inv[:, k]], TV[inv[:, k]], FV[inv[:, k]] = PS[src, e], PT[src, e], PF[src, e]
+            SV[inv[:, k]], TV[inv[:, k]] = PS[src, e], PT[src, e]
             fV[inv[:, k]] = free[src, e]
         Spair = SV[inv]
         m_pair = np.minimum(md, 0.5 * segment_contact.distance(Spair)) if len(inv) else np.zeros(0)
@@ -429,16 +451,33 @@ class StrandContact:
             idx = PETSc.IS().createGeneral(Vi, comm=PETSc.COMM_SELF)
             loc = PETSc.Vec().createSeq(len(V), comm=PETSc.COMM_SELF)
             scatter = PETSc.Scatter().create(self.step_fraction, idx, loc, None)
+            tau = np.ones(len(inv))
+            bV_prev = None
             while True:
                 scatter.scatter(self.step_fraction, loc, addv=PETSc.InsertMode.INSERT_VALUES)
                 bV = loc.array.copy()
-                carried = (bV == 0.0) | ~fV
-                E = FV + bV[:, None] * (TV - FV)
-                tau = segment_ccd.safe_fraction(Spair, E[inv], m_pair)[0] if len(inv) else np.zeros(0)
-                hit = (tau < 1.0) & ~carried[inv].all(axis=1)
+                stopped = (bV == 0.0) | ~fV
+                # only pairs with a vertex whose fraction changed have a new path
+                redo = np.arange(len(inv)) if bV_prev is None else \
+                    np.flatnonzero((bV != bV_prev)[inv].any(axis=1))
+                bV_prev = bV
+                if len(redo):
+                    E = SV + bV[:, None] * (TV - SV)
+                    tau[redo] = self._pair_fractions(Spair[redo], E[inv[redo]], 0.5 * m_pair[redo])
+                hit = tau < 1.0
+                stuck = hit & stopped[inv].all(axis=1)
+                if self.comm.allreduce(int(stuck.sum())):
+                    raise SimulationError(
+                        "strand contact (ccd): pinned vertices' prescribed motion brings "
+                        "segments of different wisps together even with every free vertex "
+                        "held back; check the pinned vertices of the groom (e.g. fewer "
+                        "pinned vertices per wisp, physics.strand_rest_overlap)")
+                h = np.flatnonzero(hit)
+                factor = np.zeros(len(h))
+                if rounds < SCALE_ROUNDS and len(h):
+                    factor = self._pair_fractions(Spair[h], E[inv[h]], m_pair[h])
                 if self.comm.allreduce(int(hit.sum())) == 0:
                     break
-                factor = 0.9 * tau[hit] if rounds < SCALE_ROUNDS else np.zeros(int(hit.sum()))
                 fmin = np.ones(len(V))
                 np.minimum.at(fmin, inv[hit].ravel(), np.repeat(factor, 4))
                 loc.array[:] = 1.0 - fmin

@@ -111,7 +111,7 @@ class Integrator:
         if pin.any():
             x[pin] = self.head.pinned_positions(sc.x_rest[pin], self.t_next)
         if self.strand is not None:             # ccd mode: no crossing on x_old -> first iterate
-            x = self.strand.collision_free_frame(x_old, x, self.head.carry(x_old, self.t, self.t_next))
+            x = self.strand.collision_free_frame(x_old, x)
         n_it = 0
         for it in range(cfg.time.newton_iterations):
             n_it += 1
@@ -171,7 +171,7 @@ class Integrator:
                     pairs, deep, dmin = self.strand.measure(x)
                 self.contact_separated.append(n_sep)
             if self.strand.mode == "ccd":       # the straight path x_old -> x must not cross
-                x = self.strand.collision_free_frame(x_old, x, self.head.carry(x_old, self.t, self.t_next))
+                x = self.strand.collision_free_frame(x_old, x)
                 pairs, deep, dmin = self.strand.measure(x)
             self.contact_pairs.append(pairs)
             self.contact_deep_pairs.append(deep)

@@ -180,7 +180,8 @@ class Simulator:
             "mode": self.strand.mode,
             "limited_vertices_per_newton_step": list(self.strand.limited_vertices),
             "limiter_rounds_per_newton_step": list(self.strand.limit_rounds),
-            "frame_path_held_vertices": list(self.strand.frame_fixes)}}
+            "frame_path_held_vertices": list(self.strand.frame_fixes),
+            "ccd_unresolved_pairs": list(self.strand.unresolved_pairs)}}
 
     def close(self):
         self.solver.ksp.destroy()

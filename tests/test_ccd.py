@@ -46,7 +46,7 @@ def test_tight_inclusion_matches_brute_force_on_random_motions():
     S, E = random_motions(160, 3)
     ref = crossing_reference(S, E)
     # pairs whose minimum distance along the path is within 1e-6 of zero are ambiguous
-    # for any CCD; keep the clear ones (measured: a handful of 400)
+    # for any CCD; keep the clear ones (at most 5 of the 160)
     t = np.linspace(0, 1, 2001)
     dmin = np.array([distance(S[k] + t[:, None, None] * (E[k] - S[k])).min() for k in range(len(S))])
     clear = ref | (dmin > 1e-4)

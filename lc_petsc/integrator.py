@@ -22,6 +22,11 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   separate + measure; the pairs found are counted in ``contact_separated``), and the
   figures at the final positions are recorded (``contact_pairs``,
   ``contact_deep_pairs`` closer than half the thickness, ``contact_min_distance``).
+* ``physics.strand_contact_mode = "ccd"``: the first iterate, every Newton update
+  (``StrandContact.limit_step``: per-vertex step lengths) and the frame's end
+  (``StrandContact.collision_free_frame``) are limited so that no two segments of
+  different wisps meet on the straight path (docs/contact.md); in ``penalty`` mode
+  these calls change nothing.
 """
 
 from __future__ import annotations

@@ -18,24 +18,30 @@ FRAMES = 12
 SPEED = 10 * D0 * 30.0          # 10x the contact thickness per frame (dt = 1/30 s)
 
 
+def frames_run(sim, frames):
+    """Gathered positions (rank 0) at the start and after each of ``frames`` frames, and
+    the summary; closes ``sim``."""
+    try:
+        X = [sim.gather_positions()]
+        for _ in range(frames):
+            sim.step()
+            X.append(sim.gather_positions())
+        return X, sim.summary()
+    finally:
+        sim.close()
+
+
 def drive_together(c, mode):
     """A up, B down at SPEED; returns (crossings per frame step, summary) on rank 0."""
     cfg = crossing_config(FRAMES, gravity=False, strand_contact_mode=mode,
                           strand_separation=mode == "penalty")
     sim = simmod.build_simulator(cfg, comm=c)
-    try:
-        v = np.zeros_like(sim.x)
-        up = sim.scene.first_wisp + np.repeat(np.arange(sim.scene.n_wisps),
-                                              np.diff(sim.scene.offsets)) == 0
-        v[:, 1] = np.where(up, SPEED, -SPEED)
-        sim.integrator.v = v
-        X = [sim.gather_positions()]
-        for _ in range(FRAMES):
-            sim.step()
-            X.append(sim.gather_positions())
-        summ = sim.summary()
-    finally:
-        sim.close()
+    v = np.zeros_like(sim.x)
+    up = sim.scene.first_wisp + np.repeat(np.arange(sim.scene.n_wisps),
+                                          np.diff(sim.scene.offsets)) == 0
+    v[:, 1] = np.where(up, SPEED, -SPEED)
+    sim.integrator.v = v
+    X, summ = frames_run(sim, FRAMES)
     if c.rank != 0:
         return None, summ
     off = [0, N, 2 * N]
@@ -67,16 +73,7 @@ def run_touching(c, frames=10):
     cfg = touching_wisps_config(frames)
     cfg.physics.strand_contact_mode = "ccd"
     cfg.time.newton_iterations = 4
-    sim = simmod.build_simulator(cfg, comm=c)
-    try:
-        X = [sim.gather_positions()]
-        for _ in range(frames):
-            sim.step()
-            X.append(sim.gather_positions())
-        summ = sim.summary()
-    finally:
-        sim.close()
-    return X, summ
+    return frames_run(simmod.build_simulator(cfg, comm=c), frames)
 
 
 def test_ccd_rank_invariance_and_no_crossing(monkeypatch):

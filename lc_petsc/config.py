@@ -22,6 +22,8 @@ from typing import Optional, Sequence
 
 SCENE_KINDS = ("wisp4c", "hairball", "straight", "file", "usd")
 PERTURBATIONS = ("none", "smash", "jitter", "straighten")
+STRAND_CONTACT_MODES = ("penalty", "ccd")
+STRAND_REST_OVERLAP = ("error", "exempt")
 TERMS = ("stretch", "bend", "twist", "gravity", "head_collision", "strand_collision")
 HEAD_MOTIONS = ("static", "shake", "translate")
 from lc_petsc.elements.common import FILTERS as ELEMENT_FILTERS  # noqa: E402
@@ -191,6 +193,16 @@ class PhysicsConfig:
     # after each frame's Newton iterations, push pairs closer than d0 / 2 apart
     # (StrandContact.separate)
     strand_separation: bool = True
+    # "penalty": the penalty (+ separation) alone, wisps can pass through each other
+    # within a step; "ccd": every position update limited so that no two segments of
+    # different wisps meet on its linear path (docs/contact.md, "Intersection-free
+    # contact"); the shipped hairball configs use "ccd"
+    strand_contact_mode: str = "penalty"
+    # ccd mode: the Newton steps keep pairs at least this fraction of d0 apart
+    strand_min_separation: float = 0.25
+    # ccd mode: rest-pose pairs of different wisps closer than d0 stop the run ("error")
+    # or are exempt from contact ("exempt", as in penalty mode)
+    strand_rest_overlap: str = "error"
 
     def validate(self) -> None:
         terms = tuple(self.terms)
@@ -216,6 +228,16 @@ class PhysicsConfig:
         if not isinstance(self.strand_separation, bool):
             raise ConfigError(f"physics.strand_separation must be true or false, "
                               f"got {self.strand_separation!r}")
+        if self.strand_contact_mode not in STRAND_CONTACT_MODES:
+            raise ConfigError(f"physics.strand_contact_mode must be one of {STRAND_CONTACT_MODES}, "
+                              f"got {self.strand_contact_mode!r}")
+        m = self.strand_min_separation
+        if isinstance(m, bool) or not isinstance(m, (int, float)) or not 0.0 < m < 1.0:
+            raise ConfigError(f"physics.strand_min_separation must be a number in (0, 1) (a fraction "
+                              f"of the contact thickness), got {m!r}")
+        if self.strand_rest_overlap not in STRAND_REST_OVERLAP:
+            raise ConfigError(f"physics.strand_rest_overlap must be one of {STRAND_REST_OVERLAP}, "
+                              f"got {self.strand_rest_overlap!r}")
 
 
 #: Newton's first iterate: x_n + dt v_n, or that projected onto the rest edge lengths.

@@ -48,9 +48,14 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
-from lc_petsc.elements import segment_contact
+from lc_petsc.crossings import box_pairs
+from lc_petsc.elements import segment_ccd, segment_contact
 from lc_petsc.parallel import collectively
 
+MODES = ("penalty", "ccd")
+#: limiter rounds that shrink the step fractions by the pairs' safe fractions before
+#: the rounds that stop the offending vertices outright (limit_step)
+SCALE_ROUNDS = 8
 NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
 
 
@@ -124,7 +129,7 @@ class StrandContact:
     """
 
     def __init__(self, scene, comm, pcomm, timers, thickness, stiffness, filter="analytic",
-                 mat_type="baij", coupled_pc=True):
+                 mat_type="baij", coupled_pc=True, mode="penalty", min_separation=0.25):
         if scene.bandwidth < 1:
             raise ValueError("strand_collision needs the stretch term (the contact blocks of a "
                              "segment live in the strand band); add 'stretch' to physics.terms")
@@ -155,6 +160,17 @@ class StrandContact:
         self.cross_pairs = []           # active pairs straddling ranks, per assemble
         self._pairs_cache = None          # (x, active, pairs) of the last _pairs call
         self.last_separation = (0, 0, 0)
+        if mode not in MODES:
+            raise ValueError(f"strand contact mode {mode!r}: use one of {', '.join(MODES)}")
+        self.mode, self.min_separation = mode, float(min_separation)
+        # ccd mode (see limit_step): per-vertex step fractions, in a Vec by global vertex
+        self.step_fraction = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
+        self.shrink = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
+        self.limited_vertices = []      # per limit_step call: vertices whose step was cut
+        self.limit_rounds = []          # per call: rounds of the limiter
+        self.tight_inclusion_pairs = 0  # pairs passed to ipctk by the limiter, this rank
+        self.unresolved_pairs = []      # per _safe_fractions call: pairs left (see there)
+        self.frame_fixes = []           # per collision_free_frame call (2 per frame): vertices held back
 
     def system(self, A, strand_pmat=None):
         """(operator, preconditioning matrix) of the Newton system A + C, after
@@ -190,12 +206,23 @@ class StrandContact:
             return op, op
 
     # ------------------------------------------------------------- exchange
-    def _gather_segments(self, x):
-        """Local + ghost segments: (P (m, 2, 3), global first vertex, wisp, free (m, 2),
-        owner rank, n_local)."""
-        comm, d0 = self.comm, self.d0
-        P = np.stack([x[self.seg], x[self.seg + 1]], axis=1)
-        lo, hi = P.min(axis=1), P.max(axis=1)
+    def _gather_segments(self, x, extra=(), inflate=None, boxes=None):
+        """Local + ghost segments: (list of P (m, 2, 3), one per configuration ``x`` and
+        ``extra`` (each (nv, 3)), rest P, global first vertex, wisp, free (m, 2), owner
+        rank, n_local).  A segment's box covers all its configurations (swept bounds
+        when ``extra`` holds the end of a step); ghosts are the segments whose box comes
+        within ``inflate`` (default d0) of a box of the receiving rank; ``boxes`` (lo,
+        hi) (m, 3) replace the segments' own boxes, and come back as a last (m, 2, 3)
+        array of the list (lo, hi) for the ghosts too."""
+        comm = self.comm
+        d0 = self.d0 if inflate is None else float(inflate)
+        Ps = [np.stack([a[self.seg], a[self.seg + 1]], axis=1) for a in (x, *extra)]
+        if boxes is None:
+            allP = np.concatenate(Ps, axis=1)
+            lo, hi = allP.min(axis=1), allP.max(axis=1)
+        else:
+            lo, hi = boxes
+            Ps.append(np.stack([lo, hi], axis=1))
         # Occupancy (see the module doc and _OccupancyGrid): the cells touched by this
         # rank's boxes inflated by d0, as sorted flat ids
         send = [None]
@@ -212,9 +239,9 @@ class StrandContact:
                 send.append(None)
                 continue
             m = grid.mask(occ[q])[keys].any(axis=1)
-            send.append(np.concatenate([P[m].reshape(-1, 6), self.seg_gv[m, None],
-                                        self.seg_wisp[m, None], self.seg_free[m],
-                                        self.P_rest[m].reshape(-1, 6)], axis=1))
+            send.append(np.concatenate([self.seg_gv[m, None], self.seg_wisp[m, None],
+                                        self.seg_free[m], self.P_rest[m].reshape(-1, 6)]
+                                       + [P[m].reshape(-1, 6) for P in Ps], axis=1))
         recv = comm.alltoall(send) if comm.size > 1 else [None]
         parts = [r for r in recv if r is not None and len(r)]
         self.ghosts_received.append(int(sum(len(r) for r in parts)))
@@ -222,12 +249,13 @@ class StrandContact:
         for q, r in enumerate(recv):
             if r is not None and len(r):
                 owner.append(np.full(len(r), q))
-        G = np.concatenate(parts) if parts else np.zeros((0, 16))
-        Pall = np.concatenate([P, G[:, :6].reshape(-1, 2, 3)])
-        Prest = np.concatenate([self.P_rest, G[:, 10:16].reshape(-1, 2, 3)])
-        gv = np.concatenate([self.seg_gv, G[:, 6].astype(np.int64)])
-        wisp = np.concatenate([self.seg_wisp, G[:, 7].astype(np.int64)])
-        free = np.concatenate([self.seg_free, G[:, 8:10].astype(bool)])
+        G = np.concatenate(parts) if parts else np.zeros((0, 10 + 6 * len(Ps)))
+        Pall = [np.concatenate([P, G[:, 10 + 6 * k:16 + 6 * k].reshape(-1, 2, 3)])
+                for k, P in enumerate(Ps)]
+        Prest = np.concatenate([self.P_rest, G[:, 4:10].reshape(-1, 2, 3)])
+        gv = np.concatenate([self.seg_gv, G[:, 0].astype(np.int64)])
+        wisp = np.concatenate([self.seg_wisp, G[:, 1].astype(np.int64)])
+        free = np.concatenate([self.seg_free, G[:, 2:4].astype(bool)])
         return Pall, Prest, gv, wisp, free, np.concatenate(owner), len(self.seg)
 
     @staticmethod
@@ -296,7 +324,7 @@ class StrandContact:
                     keep = out[-1] < self.d0
                     out = tuple(a[keep] for a in out)
                 return out
-        P, Prest, gv, wisp, free, owner, n_local = self._gather_segments(x)
+        (P,), Prest, gv, wisp, free, owner, n_local = self._gather_segments(x)
         ij = self.candidates(P, wisp, n_local, self.d0)
         i, j = ij[:, 0], ij[:, 1]
         swap = gv[i] > gv[j]
@@ -315,6 +343,157 @@ class StrandContact:
         out = X[keep], gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[keep]
         self._pairs_cache = (x.copy(), active, out)
         return out
+
+    # ------------------------------------------------------------- ccd mode
+    def limit_step(self, x, target):
+        """The Newton update from x towards ``target`` (x + alpha dx, or its edge-length
+        retraction).  ``penalty`` mode: ``target``.  ``ccd`` mode: x + beta (target - x)
+        with per-vertex fractions beta of :meth:`_safe_fractions`, so that on the linear
+        path from x no two segments of different wisps come closer than min_separation
+        d0 (or half their distance at x, if already closer).  Per vertex rather than one
+        global minimum: one pair about to touch would otherwise stop the whole scene's
+        step.  Collective."""
+        if self.mode != "ccd":
+            return target
+        with self.timers("collision"):
+            beta, n_limited, rounds = self._safe_fractions(x, target, self.min_separation * self.d0)
+            self.limited_vertices.append(n_limited)
+            self.limit_rounds.append(rounds)
+        return x + beta[:, None] * (target - x)
+
+    def collision_free_frame(self, x_old, x):
+        """Positions whose linear path from ``x_old`` (the previous frame) is
+        collision-free (``ccd`` mode; else ``x``), for the frame's first Newton iterate
+        (xhat = x_old + dt v with the pinned vertices moved by the head: inertia alone
+        would carry wisps through each other) and for its end (each Newton step is
+        limited, but the straight path x_old -> x can still cross).  The free vertices
+        of pairs that meet on it are held back towards x_old: x_old + beta (x - x_old),
+        beta from :meth:`_safe_fractions`.  Collective."""
+        if self.mode != "ccd":
+            return x
+        with self.timers("collision"):
+            beta, n_limited, _ = self._safe_fractions(x_old, x, 0.05 * self.d0)
+            self.frame_fixes.append(n_limited)
+        return x_old + beta[:, None] * (x - x_old)
+
+    def _pair_fractions(self, S, E, m):
+        """Safe fractions of pairs on their paths S -> E (k, 4, 3) at min distance m (k,):
+        conservative advancement, Tight-Inclusion for the pairs it leaves open."""
+        t, unresolved = segment_ccd.safe_fraction(S, E, m)
+        u = np.flatnonzero(unresolved)
+        if len(u):
+            t[u] = np.maximum(t[u], segment_ccd.tight_inclusion_toi(S[u], E[u], m[u]))
+            self.tight_inclusion_pairs += len(u)
+        return t
+
+    def _safe_fractions(self, S, T, min_distance):
+        """(beta, vertices limited over all ranks, rounds): per-vertex fractions beta
+        (nv,) in [0, 1] of the displacements T - S (nv, 3) such that on the linear path
+        from S to E = S + beta (T - S) no pair of segments of different wisps
+        (rest-exempt pairs excepted) comes closer than ``min_distance``, or half its
+        distance at S when already closer.  Pinned vertices keep beta = 1 (their
+        motion is prescribed).  Collective.
+
+        1. Broad phase: a pair's relative displacement is at most r_A + r_B (r = the
+           largest |T - S| of a segment's vertices), so it can come within m only if
+           its centres at S are within rho_A + rho_B, rho = h + r + m / 2 (h the half
+           length).  Boxes centre +- rho select the candidates (:func:`box_pairs`) and
+           the ghosts (:meth:`_gather_segments`), so a rank gets every segment that can
+           reach its own during the step; they cover every beta.
+        2. Rounds: a pair whose current path comes closer than half its floor m
+           (min_distance, or half its distance at S) multiplies the fractions of its
+           free vertices by its safe fraction at m (the first SCALE_ROUNDS rounds; its
+           path then keeps m, clear of the m / 2 test, so round-off cannot flip its
+           fate), later by 0, i.e. they stay at S.  Safe fractions: conservative
+           advancement (:func:`segment_ccd.safe_fraction`), Tight-Inclusion for the
+           pairs it leaves open.  The smallest factor per vertex is taken over all
+           ranks (a reverse scatter with MAX_VALUES of 1 - factor to the vertex owner),
+           and the new fractions come back to every pair through a scatter.  Only pairs
+           with a changed vertex are recomputed.  A pair whose free vertices all stay
+           at S can still be hit by its pinned vertices' motion (a root segment turning
+           with the head into a held-back neighbour): such pairs are left as they are
+           and counted in ``unresolved_pairs`` (a known gap: fixing them needs a
+           fallback that moves the free vertices rigidly with the head).  Each round
+           after the scaling ones stops at least one more vertex, so the loop ends."""
+        nv, d0 = self.scene.nv, self.d0
+        md = float(min_distance)
+        Pc = np.stack([S[self.seg], S[self.seg + 1]], axis=1)
+        c = Pc.mean(axis=1)
+        h = 0.5 * np.linalg.norm(Pc[:, 1] - Pc[:, 0], axis=1)
+        dT = np.linalg.norm(T - S, axis=1)
+        rho = (h + np.maximum(dT[self.seg], dT[self.seg + 1]) + 0.5 * md)[:, None]
+        (PS, PT, PC), Prest, gv, wisp, free, owner, n_local = \
+            self._gather_segments(S, (T,), inflate=0.0, boxes=(c - rho, c + rho))
+        ij = box_pairs(PC[:, 0], PC[:, 1])
+        i, j = ij[:, 0], ij[:, 1]
+        keep = (wisp[i] != wisp[j]) & ((i < n_local) | (j < n_local))
+        keep &= ~(~free[i]).all(axis=1) | ~(~free[j]).all(axis=1)    # pinned pairs move rigidly
+        i, j = i[keep], j[keep]
+        if len(i):     # rest-exempt pairs (docs/contact.md) are not limited either
+            Xr = np.concatenate([Prest[i], Prest[j]], axis=1)
+            ok = segment_contact.distance(Xr) >= d0
+            i, j = i[ok], j[ok]
+        gidx = np.stack([gv[i], gv[i] + 1, gv[j], gv[j] + 1], axis=1)
+        V, inv = np.unique(gidx, return_inverse=True)
+        inv = inv.reshape(-1, 4)
+        SV, TV, fV = np.zeros((len(V), 3)), np.zeros((len(V), 3)), np.zeros(len(V), bool)
+        for k, (src, e) in enumerate(((i, 0), (i, 1), (j, 0), (j, 1))):
+            SV[inv[:, k]], TV[inv[:, k]] = PS[src, e], PT[src, e]
+            fV[inv[:, k]] = free[src, e]
+        Spair = SV[inv]
+        m_pair = np.minimum(md, 0.5 * segment_contact.distance(Spair)) if len(inv) else np.zeros(0)
+        self.step_fraction.set(1.0)
+        beta = self.step_fraction.array           # this rank's vertices, a view
+        Vi = V.astype(PETSc.IntType)
+        idx = loc = scatter = None
+        limited = np.zeros(nv, bool)
+        rounds = 0
+        try:
+            idx = PETSc.IS().createGeneral(Vi, comm=PETSc.COMM_SELF)
+            loc = PETSc.Vec().createSeq(len(V), comm=PETSc.COMM_SELF)
+            scatter = PETSc.Scatter().create(self.step_fraction, idx, loc, None)
+            tau = np.ones(len(inv))
+            bV_prev = None
+            while True:
+                scatter.scatter(self.step_fraction, loc, addv=PETSc.InsertMode.INSERT_VALUES)
+                bV = loc.array.copy()
+                stopped = (bV == 0.0) | ~fV
+                # only pairs with a vertex whose fraction changed have a new path
+                redo = np.arange(len(inv)) if bV_prev is None else \
+                    np.flatnonzero((bV != bV_prev)[inv].any(axis=1))
+                bV_prev = bV
+                if len(redo):
+                    E = SV + bV[:, None] * (TV - SV)
+                    tau[redo] = self._pair_fractions(Spair[redo], E[inv[redo]], 0.5 * m_pair[redo])
+                hit = tau < 1.0
+                # held back as far as it goes: only the pinned vertices' prescribed
+                # motion moves the pair (counted, not fixable by the free vertices)
+                stuck = hit & stopped[inv].all(axis=1)
+                hit &= ~stuck
+                h = np.flatnonzero(hit)
+                factor = np.zeros(len(h))
+                if rounds < SCALE_ROUNDS and len(h):
+                    factor = self._pair_fractions(Spair[h], E[inv[h]], m_pair[h])
+                if self.comm.allreduce(int(hit.sum())) == 0:
+                    break
+                fmin = np.ones(len(V))
+                np.minimum.at(fmin, inv[hit].ravel(), np.repeat(factor, 4))
+                fmin[~fV] = 1.0                 # pinned vertices keep their prescribed motion
+                loc.array[:] = 1.0 - fmin
+                self.shrink.zeroEntries()
+                scatter.scatter(loc, self.shrink, addv=PETSc.InsertMode.MAX_VALUES,
+                                mode=PETSc.ScatterMode.REVERSE)
+                sh = self.shrink.array
+                beta *= 1.0 - sh
+                limited |= sh > 0.0
+                rounds += 1
+            self.unresolved_pairs.append(int(self.comm.allreduce(int(stuck.sum()))))
+        finally:
+            for obj in (scatter, loc, idx):
+                if obj is not None:
+                    obj.destroy()
+        beta = np.where(self.scene.pinned, 1.0, beta)
+        return beta, int(self.comm.allreduce(int(limited.sum()))), rounds
 
     # ------------------------------------------------------------- public
     def energy(self, x):
@@ -520,7 +699,9 @@ class StrandContact:
     def destroy(self):
         if self.shell_ctx is not None:
             self.shell_ctx.C = None
-        for m in (self.shell, self.op, self.C, self.vec, self.state, self.correction):
+        for m in (self.shell, self.op, self.C, self.vec, self.state, self.correction,
+                  self.step_fraction, self.shrink):
             if m is not None:
                 m.destroy()
         self.shell = self.op = self.C = self.vec = self.state = self.correction = None
+        self.step_fraction = self.shrink = None

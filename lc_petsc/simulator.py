@@ -14,6 +14,7 @@ from lc_petsc import parallel
 from lc_petsc.assembly import Assembler
 from lc_petsc.config import SimConfig
 from lc_petsc.integrator import Integrator
+from lc_petsc.rest_pose import RestPoseOverlapError, check_rest_pose
 from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.sources import source_from_config
 from lc_petsc.scene.state import LocalScene
@@ -198,7 +199,12 @@ class Simulator:
             "pairs_below_half_thickness_per_frame": list(self.integrator.contact_deep_pairs),
             "pairs_separated_per_frame": list(self.integrator.contact_separated),
             "min_distance_per_frame": [None if not np.isfinite(d) else d for d in dmin],
-            "min_distance": float(min(dmin)) if dmin and np.isfinite(min(dmin)) else None}}
+            "min_distance": float(min(dmin)) if dmin and np.isfinite(min(dmin)) else None,
+            "mode": self.strand.mode,
+            "limited_vertices_per_newton_step": list(self.strand.limited_vertices),
+            "limiter_rounds_per_newton_step": list(self.strand.limit_rounds),
+            "frame_path_held_vertices": list(self.strand.frame_fixes),
+            "ccd_unresolved_pairs": list(self.strand.unresolved_pairs)}}
 
     def close(self):
         self.solver.ksp.destroy()
@@ -251,9 +257,16 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, scope, mat_type):
     d0 = cfg.physics.strand_thickness
     if d0 is None:
         d0 = 2.0 * comm.allreduce(float(scene.radius.min(initial=np.inf)), op=MPI.MIN)
-    return StrandContact(scene, comm, pcomm, timers, d0, cfg.physics.strand_stiffness,
-                         filter=element_filter(cfg.solver.filter), mat_type=mat_type,
-                         coupled_pc=contact_pc == "coupled")
+    strand = StrandContact(scene, comm, pcomm, timers, d0, cfg.physics.strand_stiffness,
+                           filter=element_filter(cfg.solver.filter), mat_type=mat_type,
+                           coupled_pc=contact_pc == "coupled", mode=cfg.physics.strand_contact_mode,
+                           min_separation=cfg.physics.strand_min_separation)
+    if cfg.physics.strand_contact_mode == "ccd":
+        report = check_rest_pose(strand)
+        if report.pairs and cfg.physics.strand_rest_overlap == "error":
+            strand.destroy()
+            raise RestPoseOverlapError(report.message())
+    return strand
 
 
 def build_simulator(config: SimConfig, comm=None) -> Simulator:

@@ -26,18 +26,19 @@ def small_hairball_config(n_wisps=4, options="", terms=("stretch", "bend", "twis
         solver=SolverConfig(options=options))
 
 
-def touching_wisps_source(n_wisps=6, n_vertices=30):
+def touching_wisps_source(n_wisps=6, n_vertices=30, spin_step=1.3, n_pinned=4):
     """Six short 4C wisps hanging from a row of roots 0.9 cm apart (coil diameter 1 cm):
     neighbours touch and interleave, so contact pairs form between wisps 1-2 and 3-4,
-    which sit on different ranks with 3 ranks (and 2-3 with 2 ranks).  Used with
+    which sit on different ranks with 3 ranks (and 2-3 with 2 ranks).  ``spin_step`` 0:
+    all coils in phase, translated copies of each other that do not touch at rest.  Used with
     ``touching_wisps_config`` by monkeypatching ``lc_petsc.simulator.source_from_config``."""
-    wisps = [geometry.wisp4c(n_vertices, root=(0.9 * w, 16.0, 0.0), spin=1.3 * w)
+    wisps = [geometry.wisp4c(n_vertices, root=(0.9 * w, 16.0, 0.0), spin=spin_step * w)
              for w in range(n_wisps)]
     pos = np.concatenate(wisps)
     off = np.arange(n_wisps + 1) * n_vertices
     pin = np.zeros(len(pos), bool)
     for w in range(n_wisps):
-        pin[w * n_vertices: w * n_vertices + 4] = True
+        pin[w * n_vertices: w * n_vertices + n_pinned] = True
     return ArraySource(pos, off, pinned=pin, root_radius=0.08, tip_radius=0.05)
 
 

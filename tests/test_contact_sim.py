@@ -320,3 +320,24 @@ def test_separate_caps_each_round_and_reaches_the_floor(monkeypatch):
         w.destroy()
     finally:
         sim.close()
+
+
+def test_penalty_mode_lets_fast_wisps_pass_through(crossing):
+    """Control for tests/test_mpi_ccd.py: at 10x the thickness per frame the penalty
+    alone does not stop the wisps crossing within a step."""
+    from lc_petsc.crossings import count_crossings
+    from mpi4py import MPI
+    cfg = crossing_config(6, gravity=False)
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        v = np.zeros_like(sim.x)
+        v[:N, 1], v[N:, 1] = 60.0, -60.0
+        sim.integrator.v = v
+        X = [sim.x.copy()]
+        for _ in range(6):
+            sim.step()
+            X.append(sim.x.copy())
+    finally:
+        sim.close()
+    n = [count_crossings(X[k], X[k + 1], [0, N, 2 * N])["crossings"] for k in range(6)]
+    assert sum(n) > 0, n

@@ -49,8 +49,11 @@ def frame_about(axis, spin: float = 0.0) -> np.ndarray:
     return np.column_stack([c * u + s * w, -s * u + c * w, a])
 
 
-def place(local: np.ndarray, root, axis, spin: float = 0.0) -> np.ndarray:
-    return np.asarray(root, float) + local @ frame_about(axis, spin).T
+def place(local: np.ndarray, root, axis, spin: float = 0.0, frame=None) -> np.ndarray:
+    """``local`` (columns u, w, a) placed at ``root``: in ``frame`` (3, 3) if given, else
+    in :func:`frame_about` ``(axis, spin)``."""
+    F = frame_about(axis, spin) if frame is None else np.asarray(frame, float)
+    return np.asarray(root, float) + local @ F.T
 
 
 def wisp4c(n_vertices: int = 101, root=(0.0, 0.0, 0.0), axis=(0.0, -1.0, 0.0), spin: float = 0.0):
@@ -65,28 +68,45 @@ def straight(n_vertices: int, segment: float = 0.6, root=(0.0, 0.0, 0.0), direct
 
 
 def hairball_root(w: int, n_wisps: int, seed: int):
-    """Root normal and spin of hairball wisp ``w``: a jittered Fibonacci point set.
+    """Root normal and frame of hairball wisp ``w``: a Fibonacci point set, all wisps in
+    phase.
 
     Points k + 1/2 of a Fibonacci spiral on the upper (y >= 0) hemisphere are evenly
-    spread with a minimum spacing of about sqrt(2 pi / N) (blue-noise like, shrinking
-    with the wisp count); each gets a seeded tangential jitter of at most a quarter of
-    that spacing and a seeded random spin about its normal.  The random stream of wisp
-    ``w`` is ``default_rng([seed, w])``: independent of every other wisp.
+    spread with a spacing of about sqrt(2 pi / N) (times the head radius).  Every wisp's
+    helix has the same phase in a frame field that varies smoothly over the hemisphere
+    (:func:`smooth_frame`), so neighbouring helices are nearly translated copies of each
+    other: two helices of equal radius, pitch and phase translated sideways never
+    intersect, while random phases interlock neighbouring coils (measured at 2,000
+    wisps: 53,866 pairs of segments of different wisps within the contact thickness
+    0.14 cm with random spins and seeded root jitter, none in phase without jitter;
+    docs/contact.md, "Rest state").  Returns (normal (3,), frame (3, 3) with columns
+    u, w, a = normal).  ``seed`` is kept for the scene's other random streams (the
+    perturbations); the roots no longer depend on it.
     """
-    rng = np.random.default_rng([int(seed), int(w)])
+    del seed
     y = 1.0 - (w + 0.5) / n_wisps
     r = np.sqrt(max(0.0, 1.0 - y * y))
     phi = w * GOLDEN_ANGLE
     n = np.array([r * np.cos(phi), y, r * np.sin(phi)])
-    spacing = np.sqrt(2.0 * np.pi / n_wisps)
-    t = rng.normal(size=3)
-    t -= t.dot(n) * n
-    t *= 0.25 * spacing * rng.uniform() / max(np.linalg.norm(t), 1e-300)
-    n = n + t
-    n[1] = abs(n[1])
-    n /= np.linalg.norm(n)
-    spin = rng.uniform(0.0, 2.0 * np.pi)
-    return n, spin
+    return n, smooth_frame(n)
+
+
+def smooth_frame(normal) -> np.ndarray:
+    """Frame (columns u, w, a = normal) obtained by the rotation taking +y to ``normal``
+    along their great circle: smooth over the whole sphere but -y, so the upper
+    hemisphere's wisps all get frames that turn smoothly with their roots."""
+    a = np.asarray(normal, float)
+    a = a / np.linalg.norm(a)
+    ey = np.array([0.0, 1.0, 0.0])
+    c = float(ey @ a)
+    if c <= -1.0 + 1e-12:
+        raise ValueError(f"smooth_frame: normal {normal!r} points down (-y), where the frame "
+                         f"field is singular")
+    v = np.cross(ey, a)
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    R = np.eye(3) + K + K @ K / (1.0 + c)
+    u = R @ np.array([1.0, 0.0, 0.0])
+    return np.column_stack([u, np.cross(a, u), a])
 
 
 def tapered_radius(n_vertices: int, root_radius: float, tip_radius: float) -> np.ndarray:

@@ -41,5 +41,12 @@ class HeadMotion:
         R, T = self.transform(t)
         return self.center + T + (x_rest - self.center) @ R.T
 
+    def carry(self, x, t0, t1):
+        """Positions ``x`` (n, 3) at t0 moved rigidly with the head to t1: where
+        :meth:`pinned_positions` takes pinned vertices."""
+        R0, T0 = self.transform(t0)
+        R1, T1 = self.transform(t1)
+        return self.center + T1 + (x - self.center - T0) @ R0 @ R1.T
+
     def sphere_center(self, t):
         return self.center + self.transform(t)[1]

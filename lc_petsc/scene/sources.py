@@ -254,8 +254,8 @@ class GeneratedSource(SceneSource):
         elif self.kind == "straight":
             x = geometry.straight(n, self.segment, direction=self.direction)
         elif self.kind == "hairball":
-            normal, spin = geometry.hairball_root(w, self.n_wisps, self.seed)
-            x = geometry.place(geometry.wisp4c_local(n), self.head_radius * normal, normal, spin)
+            normal, frame = geometry.hairball_root(w, self.n_wisps, self.seed)
+            x = geometry.place(geometry.wisp4c_local(n), self.head_radius * normal, normal, frame=frame)
         else:
             raise ValueError(f"unknown generated scene kind {self.kind!r}")
         return x

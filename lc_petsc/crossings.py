@@ -1,0 +1,150 @@
+"""Swept-box broad phase and the edge-edge crossing counter over frames.
+
+* :func:`box_pairs`: all pairs of overlapping axis-aligned boxes, exact, through a
+  kd-tree in the max norm on the box centres.  Boxes much larger than the median are
+  handled apart (against the tree of the others, and recursively among themselves), so
+  one fast or stretched segment does not widen the search radius for everybody.
+* :func:`count_crossings`: edge-edge crossings between segments of different wisps
+  (optionally between non-adjacent segments of one wisp) on the linear path between
+  two configurations (two consecutive frames): swept boxes, the motion bound of
+  :mod:`lc_petsc.elements.segment_ccd` to discard pairs that cannot meet, and IPC
+  Toolkit's Tight-Inclusion CCD (``ipctk``, min distance 0) on the rest.
+* ``scripts/count_crossings.py`` runs it over a ``frames.h5``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lc_petsc.elements.segment_ccd import relative_motion
+from lc_petsc.elements.segment_contact import distance
+
+
+def box_pairs(lo, hi):
+    """Index pairs (k, 2), i < j, of the boxes lo, hi (n, 3) that overlap (closed)."""
+    from scipy.spatial import cKDTree
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    n = len(lo)
+    if n < 2:
+        return np.zeros((0, 2), np.int64)
+    c = 0.5 * (lo + hi)
+    h = 0.5 * (hi - lo).max(axis=1)
+    thr = max(2.0 * float(np.median(h)), 1e-12)
+    small = np.flatnonzero(h <= thr)
+    big = np.flatnonzero(h > thr)
+    parts = []
+    tree = cKDTree(c[small], balanced_tree=False, compact_nodes=False)
+    p = tree.query_pairs(2.0 * thr * (1.0 + 1e-12), p=np.inf, output_type="ndarray")
+    parts.append(small[p])
+    if len(big):
+        nb = tree.query_ball_point(c[big], (h[big] + thr) * (1.0 + 1e-12), p=np.inf)
+        cnt = np.array([len(x) for x in nb], np.int64)
+        if cnt.sum():
+            parts.append(np.stack([np.repeat(big, cnt), small[np.concatenate(nb).astype(np.int64)]], 1))
+        if len(big) > 1:
+            parts.append(big[box_pairs(lo[big], hi[big])])
+    ij = np.concatenate(parts) if parts else np.zeros((0, 2), np.int64)
+    i, j = ij[:, 0], ij[:, 1]
+    ok = np.all((hi[i] >= lo[j]) & (lo[i] <= hi[j]), axis=1)
+    i, j = i[ok], j[ok]
+    return np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1).astype(np.int64)
+
+
+def segments(offsets):
+    """(first vertex (m,), wisp (m,)) of every segment of wisps given by ``offsets``."""
+    offsets = np.asarray(offsets, np.int64)
+    seg = np.concatenate([np.arange(offsets[w], offsets[w + 1] - 1)
+                          for w in range(len(offsets) - 1)] or [np.zeros(0, np.int64)])
+    wisp = np.repeat(np.arange(len(offsets) - 1), np.maximum(np.diff(offsets) - 1, 0))
+    return seg.astype(np.int64), wisp.astype(np.int64)
+
+
+def candidate_pairs(X0, X1, offsets, self_contact=False, margin=0.0):
+    """Segment pairs (k, 2) of global first vertices whose boxes swept from X0 to X1
+    (n_vertices, 3), inflated by ``margin``, overlap; different wisps, or with
+    ``self_contact`` also segments of one wisp sharing no vertex."""
+    seg, wisp = segments(offsets)
+    P = np.concatenate([X0[seg], X0[seg + 1], X1[seg], X1[seg + 1]], axis=1).reshape(-1, 4, 3)
+    ij = box_pairs(P.min(axis=1) - 0.5 * margin, P.max(axis=1) + 0.5 * margin)
+    i, j = ij[:, 0], ij[:, 1]
+    keep = wisp[i] != wisp[j]
+    if self_contact:
+        keep |= np.abs(seg[i] - seg[j]) > 1
+    return np.stack([seg[i[keep]], seg[j[keep]]], axis=1)
+
+
+def pair_positions(X, pairs):
+    """(k, 4, 3) points of the segment pairs (first vertices) at positions X."""
+    a, b = pairs[:, 0], pairs[:, 1]
+    return np.stack([X[a], X[a + 1], X[b], X[b + 1]], axis=1)
+
+
+def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
+    """Boolean (k,): whether each pair (start S, end E, (k, 4, 3)) meets on its linear
+    path (Tight-Inclusion CCD of ipctk, min distance 0; pairs that the motion bound
+    shows never meet are not passed to it).  ``max_iterations`` caps Tight-Inclusion's
+    interval splits (its default, 1e7, ran out of memory on one degenerate pair in
+    the tests); a pair still undecided then counts as meeting (its answer is
+    conservative).  Pairs touching at the start count as meeting."""
+    import ipctk
+    hit = np.zeros(len(S), bool)
+    if not len(S):
+        return hit
+    d = distance(S)
+    # segments already touching at the start count as meeting (Tight-Inclusion was
+    # measured to hang on such a pair)
+    scale = np.abs(np.concatenate([S, E], axis=1)).reshape(len(S), -1).max(axis=1) + 1.0
+    touch = d <= 1e-12 * scale
+    hit[touch] = True
+    maybe = np.flatnonzero(~touch & (d <= relative_motion(S, E)))
+    ccd = ipctk.TightInclusionCCD(tolerance=tolerance, max_iterations=max_iterations,
+                                  conservative_rescaling=1.0)
+    for k in maybe:
+        a, b = S[k], E[k]
+        hit[k] = ccd.edge_edge_ccd(a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3], 0.0, 1.0)[0]
+    return hit
+
+
+def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0):
+    """Crossings on the linear path X0 -> X1 (n_vertices, 3) of wisps ``offsets``:
+    dict with ``crossings`` (number of segment pairs that meet), ``pairs`` (k, 2) of
+    their first global vertices, ``min_distance`` at X1 over the pairs of different
+    wisps whose boxes are within ``thickness`` (inf when there is none)."""
+    X0, X1 = np.asarray(X0, float), np.asarray(X1, float)
+    if X0.shape != X1.shape or X0.ndim != 2 or X0.shape[1] != 3:
+        raise ValueError(f"count_crossings: positions must both be (n_vertices, 3), got "
+                         f"{X0.shape} and {X1.shape}")
+    pairs = candidate_pairs(X0, X1, offsets, self_contact, margin=thickness)
+    S, E = pair_positions(X0, pairs), pair_positions(X1, pairs)
+    hit = crossing_pairs(S, E)
+    seg, wisp = segments(offsets)
+    wid = np.full(len(X0), -1, np.int64)
+    wid[seg] = wisp
+    other = wid[pairs[:, 0]] != wid[pairs[:, 1]]
+    d1 = distance(E[other]) if other.any() else np.zeros(0)
+    return {"crossings": int(hit.sum()), "pairs": pairs[hit],
+            "min_distance": float(d1.min(initial=np.inf))}
+
+
+def count_frames(path, self_contact=False, progress=None):
+    """Per frame step of a ``frames.h5`` (step k: frames k -> k + 1): list of dicts with
+    ``step``, ``crossings`` and ``min_distance`` (at the later frame, between different
+    wisps within the run's ``physics.strand_thickness`` when the config sets it, else
+    touching boxes only), and that thickness.  ``progress(dict)`` is called per step."""
+    import json
+    import h5py
+    with h5py.File(path, "r") as f:
+        off = np.asarray(f["wisp_offsets"][...], np.int64)
+        n = f["positions"].shape[0]
+        cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
+        d0 = float((cfg.get("physics") or {}).get("strand_thickness") or 0.0)
+        out = []
+        prev = np.asarray(f["positions"][0], float)
+        for k in range(1, n):
+            cur = np.asarray(f["positions"][k], float)
+            r = count_crossings(prev, cur, off, self_contact, thickness=d0)
+            out.append({"step": k - 1, "crossings": r["crossings"], "min_distance": r["min_distance"]})
+            if progress is not None:
+                progress(out[-1])
+            prev = cur
+    return out, d0

@@ -1,0 +1,95 @@
+"""Strand contact modes side by side: crossings per frame step, minimum distance,
+per-frame wall time and phases, Newton and CG iterations (prints figures, not a test).
+
+    mpiexec -n 2 .venv/bin/python scripts/bench_ccd.py configs/hairball_demo.toml --frames 6 \\
+        --modes penalty ccd [--json out/bench_ccd.json]
+
+Runs each mode in turn in the same process (back to back, so the machine's load hits
+both alike) and ends with a table of medians.
+"""
+
+import argparse
+import json
+import time
+
+import numpy as np
+from mpi4py import MPI
+
+from lc_petsc.config import load_config
+from lc_petsc.crossings import count_crossings
+from lc_petsc.simulator import build_simulator
+
+
+def run(path, mode, frames):
+    comm = MPI.COMM_WORLD
+    cfg = load_config(path)
+    cfg.physics.strand_contact_mode = mode
+    sim = build_simulator(cfg, comm=comm)
+    off = sim.wisp_offsets()
+    rows = []
+    try:
+        prev = sim.gather_positions()
+        for f in range(frames):
+            before = dict(sim.timers.as_dict())
+            t0 = time.perf_counter()
+            sim.step()
+            wall = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
+            now = sim.timers.as_dict()
+            phases = {k: comm.allreduce(now[k] - before.get(k, 0.0), op=MPI.MAX) for k in now}
+            cur = sim.gather_positions()
+            it = sim.integrator
+            if comm.rank == 0:
+                r = count_crossings(prev, cur, off)
+                row = {"frame": f, "mode": mode, "wall_s": wall, "phases_s": phases,
+                       "crossings": r["crossings"], "min_distance": it.contact_min_distance[-1],
+                       "newton": it.newton_iterations[-1],
+                       "cg": int(sum(sim.solver.iterations[-it.newton_iterations[-1]:])),
+                       "pairs": it.contact_pairs[-1]}
+                rows.append(row)
+                print(f"{mode:8s} frame {f:3d}: {wall:6.2f} s (collision {phases.get('collision', 0):.2f}, "
+                      f"solve {phases.get('solve', 0):.2f}), crossings {r['crossings']:4d}, min distance "
+                      f"{row['min_distance']:.4g} cm, pairs {row['pairs']}, CG {row['cg']}", flush=True)
+            prev = cur
+        s = sim.summary()["contact"]
+    finally:
+        sim.close()
+    return rows, s
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("config")
+    ap.add_argument("--frames", type=int, default=6)
+    ap.add_argument("--modes", nargs="+", default=["penalty", "ccd"])
+    ap.add_argument("--json")
+    a = ap.parse_args()
+    allrows, extra = [], {}
+    for mode in a.modes:
+        rows, s = run(a.config, mode, a.frames)
+        allrows += rows
+        extra[mode] = {k: s.get(k) for k in ("ccd_unresolved_pairs", "frame_path_held_vertices",
+                                               "limited_vertices_per_newton_step")}
+    if MPI.COMM_WORLD.rank:
+        return
+    print(f"\n{a.config}, {MPI.COMM_WORLD.size} rank(s), {a.frames} frames per mode (medians):")
+    print("| mode | wall / frame (s) | collision (s) | collision share | crossings (total, max/step) | min distance (cm) | CG / frame |")
+    print("|---|---|---|---|---|---|---|")
+    for mode in a.modes:
+        r = [x for x in allrows if x["mode"] == mode]
+        w = np.median([x["wall_s"] for x in r])
+        c = np.median([x["phases_s"].get("collision", 0.0) for x in r])
+        cr = [x["crossings"] for x in r]
+        dm = [x["min_distance"] for x in r if x["min_distance"] is not None and np.isfinite(x["min_distance"])]
+        print(f"| {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {sum(cr)}, {max(cr)} | "
+              f"{min(dm) if dm else float('nan'):.4g} | {np.median([x['cg'] for x in r]):.0f} |")
+    if len(a.modes) == 2:
+        w = [np.median([x["wall_s"] for x in allrows if x["mode"] == m]) for m in a.modes]
+        print(f"wall per frame {a.modes[1]} / {a.modes[0]}: {w[1] / w[0]:.2f}")
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump({"config": a.config, "ranks": MPI.COMM_WORLD.size, "rows": allrows,
+                       "limiter": extra}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

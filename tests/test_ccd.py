@@ -1,0 +1,124 @@
+"""Continuous collision detection: the limiter's conservative advancement, the
+Tight-Inclusion crossing test (ipctk) against a brute-force NumPy reference, the swept
+box broad phase against all pairs, the crossing counter."""
+
+import numpy as np
+import pytest
+
+from ccd_reference import crossing_reference
+from lc_petsc.crossings import box_pairs, count_crossings, crossing_pairs
+from lc_petsc.elements import segment_ccd
+from lc_petsc.elements.segment_contact import distance
+
+
+def random_motions(n, seed):
+    """Pairs (start, end) of unit-ish segments moving by ~1 unit: random ones
+    cross rarely.  Includes parallel pairs (moving through each other or sliding), pairs
+    nearly touching at the start and moving apart, and pairs moving rigidly together."""
+    rng = np.random.default_rng(seed)
+    S = rng.normal(size=(n, 4, 3))
+    S[:, 2:] += rng.normal(scale=0.3, size=(n, 1, 3))
+    E = S + rng.normal(size=(n, 4, 3))
+    k = n // 8
+    # parallel pairs: B = A shifted; half of them pass through A sideways
+    S[:k, 2:] = S[:k, :2] + np.array([0.3, 0.0, 0.0])
+    E[:k, :2] = S[:k, :2]
+    E[:k, 2:] = S[:k, 2:] + (np.where(np.arange(k)[:, None] % 2 == 0, -0.6, 0.2) * np.array([1.0, 0, 0]))[:, None, :]
+    # nearly touching at the start (B's end 1e-3 above A's middle), moving apart along
+    # A x B's normal
+    j = slice(k, 2 * k)
+    d1 = S[j, 1] - S[j, 0]
+    nrm = np.cross(d1, rng.normal(size=(k, 3)))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    u = S[j, 3] - S[j, 2]
+    u *= np.sign(np.einsum("ij,ij->i", u, nrm))[:, None]        # B on the + side
+    S[j, 2] = 0.5 * (S[j, 0] + S[j, 1]) + 1e-3 * nrm
+    S[j, 3] = S[j, 2] + u
+    E[j, :2] = S[j, :2]
+    E[j, 2:] = S[j, 2:] + 0.5 * nrm[:, None, :]
+    # rigid common translation
+    r = slice(2 * k, 3 * k)
+    E[r] = S[r] + rng.normal(size=(k, 1, 3))
+    return S, E
+
+
+def test_tight_inclusion_matches_brute_force_on_random_motions():
+    S, E = random_motions(160, 3)
+    ref = crossing_reference(S, E)
+    # pairs whose minimum distance along the path is within 1e-6 of zero are ambiguous
+    # for any CCD; keep the clear ones (at most 5 of the 160)
+    t = np.linspace(0, 1, 2001)
+    dmin = np.array([distance(S[k] + t[:, None, None] * (E[k] - S[k])).min() for k in range(len(S))])
+    clear = ref | (dmin > 1e-4)
+    got = crossing_pairs(S, E)
+    k = len(S) // 8
+    assert ref[3 * k:].sum() >= 5, ref.sum()             # random pairs that cross
+    np.testing.assert_array_equal(got[clear], ref[clear])
+    assert clear.sum() >= 155
+    k = len(S) // 8
+    assert ref[:k:2].all() and not ref[1:k:2].any()        # parallel: through / sliding
+    assert not ref[k:2 * k].any() and not ref[2 * k:3 * k].any()   # apart, rigid
+
+
+def test_safe_fraction_is_safe_and_tight():
+    S, E = random_motions(300, 5)
+    m = 0.05
+    t, unresolved = segment_ccd.safe_fraction(S, E, m)
+    d0 = distance(S)
+    assert np.all(t[d0 < m] == 0.0)
+    ts = np.linspace(0, 1, 401)
+    for k in range(len(S)):
+        tt = ts * t[k]
+        d = distance(S[k] + tt[:, None, None] * (E[k] - S[k]))
+        assert d.min() >= m * (1 - 1e-9) or d0[k] < m, (k, d.min())
+    # rigid translations are never limited
+    k = len(S) // 8
+    assert np.all(t[2 * k:3 * k][d0[2 * k:3 * k] >= m] == 1.0)
+    # where resolved and below 1, t is the time of impact to 0.1 % of m
+    ok = (t < 1) & ~unresolved & (d0 > m)
+    assert ok.sum() > 30
+    dd = distance(S[ok] + t[ok][:, None, None] * (E[ok] - S[ok]))
+    np.testing.assert_allclose(dd, m, rtol=2e-3)
+    # Tight-Inclusion (with a min distance) is a conservative lower bound of that time
+    ti = segment_ccd.tight_inclusion_toi(S[ok], E[ok], m)
+    assert np.all(ti <= t[ok] + 2e-3) and np.all(ti > 0.25 * t[ok])
+
+
+def test_safe_fraction_input_errors():
+    S = np.zeros((2, 4, 3))
+    with pytest.raises(ValueError, match="differ in shape"):
+        segment_ccd.safe_fraction(S, np.zeros((3, 4, 3)), 0.1)
+    with pytest.raises(ValueError, match="min_distance"):
+        segment_ccd.safe_fraction(S, S, -1.0)
+
+
+def test_box_pairs_against_all_pairs():
+    rng = np.random.default_rng(1)
+    n = 600
+    lo = rng.uniform(0, 10, size=(n, 3))
+    size = rng.uniform(0, 0.5, size=(n, 3))
+    size[:20] *= 20                       # a few big boxes (fast segments)
+    hi = lo + size
+    got = {tuple(p) for p in box_pairs(lo, hi)}
+    i, j = np.triu_indices(n, 1)
+    ov = np.all((hi[i] >= lo[j]) & (lo[i] <= hi[j]), axis=1)
+    ref = set(zip(i[ov].tolist(), j[ov].tolist()))
+    assert len(ref) > 400
+    assert got == ref
+
+
+def test_count_crossings_two_wisps():
+    """Two 3-vertex wisps: B sweeps down through A (one crossing of its two segments
+    with A's); moving B sideways instead crosses nothing."""
+    A = np.array([[-1.0, 0, 0], [0.05, 0, 0], [1.0, 0, 0]])
+    B0 = np.array([[0.3, 1.0, -1.0], [0.3, 1.0, 0.05], [0.3, 1.0, 1.0]])
+    off = [0, 3, 6]
+    X0 = np.concatenate([A, B0])
+    down = np.concatenate([A, B0 - [0, 2.0, 0]])
+    r = count_crossings(X0, down, off)
+    assert r["crossings"] == 1
+    assert r["pairs"].tolist() == [[1, 3]]          # A (0.05..1) x B (-1..0.05) at x = 0.3
+    side = np.concatenate([A, B0 + [3.0, 0, 0]])
+    assert count_crossings(X0, side, off)["crossings"] == 0
+    with pytest.raises(ValueError, match="n_vertices, 3"):
+        count_crossings(X0, down[:4], off)

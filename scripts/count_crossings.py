@@ -4,7 +4,8 @@
 
 A crossing is a pair of segments whose linear path between two consecutive frames
 passes through each other (different wisps; with --self also non-adjacent segments of
-one wisp).  Prints one line per frame step and a summary; exits 0 either way.
+one wisp).  Prints one line per frame step and a summary; exits 0 whatever the count, 2 for a file
+that is not a readable frames.h5.
 """
 
 import argparse
@@ -27,7 +28,12 @@ def main(argv=None):
         print(f"step {r['step']:4d}: {r['crossings']:6d} crossings, min distance {r['min_distance']:.4g} cm",
               flush=True)
 
-    steps, d0 = count_frames(a.frames, self_contact=a.self, progress=show)
+    try:
+        steps, d0 = count_frames(a.frames, self_contact=a.self, progress=show)
+    except (OSError, KeyError) as e:
+        print(f"count_crossings.py: error: {a.frames}: not a readable frames.h5 of lc_petsc ({e})",
+              file=sys.stderr)
+        return 2
     c = np.array([r["crossings"] for r in steps], np.int64)
     if len(c):
         print(f"{a.frames}: {int(c.sum())} crossings over {len(c)} frame steps; per step median "

@@ -1,6 +1,9 @@
 """Shared builders for the simulator tests (tests/test_sim_*.py, tests/test_mpi_*.py)."""
 
+import contextlib
 import os
+import shutil
+import tempfile
 
 import numpy as np
 from mpi4py import MPI
@@ -100,3 +103,21 @@ frames = {frames}
 [output]
 {output}
 """
+
+
+@contextlib.contextmanager
+def shared_scene_dir(comm, prefix, scene_text):
+    """A temporary folder made by rank 0 with the config ``s.toml`` = ``scene_text``,
+    the same on every rank of ``comm``; yields (folder, config path), removed after."""
+    d = comm.bcast(tempfile.mkdtemp(prefix=prefix) if comm.rank == 0 else None)
+    cfg = os.path.join(d, "s.toml")
+    if comm.rank == 0:
+        with open(cfg, "w") as f:
+            f.write(scene_text)
+    comm.Barrier()
+    try:
+        yield d, cfg
+    finally:
+        comm.Barrier()
+        if comm.rank == 0:
+            shutil.rmtree(d, ignore_errors=True)

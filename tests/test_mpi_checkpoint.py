@@ -5,9 +5,7 @@ continues to the serial result with each frame once; a corrupt dataset is reject
 on every rank with the same status."""
 
 import os
-import shutil
 import signal
-import tempfile
 
 import h5py
 import numpy as np
@@ -17,7 +15,7 @@ from mpi4py import MPI
 from lc_petsc.batch import EXIT_PREEMPTED, main
 from lc_petsc.integrator import Integrator
 
-from sim_helpers import hairball_toml  # noqa: E402
+from sim_helpers import hairball_toml, shared_scene_dir  # noqa: E402
 
 pytestmark = pytest.mark.mpi
 comm = MPI.COMM_WORLD
@@ -28,16 +26,8 @@ SCENE = hairball_toml(n_wisps=4, seed=7,
 
 @pytest.fixture
 def shared_dir():
-    d = comm.bcast(tempfile.mkdtemp(prefix="lc_mpi_ckpt_") if comm.rank == 0 else None)
-    cfg = os.path.join(d, "s.toml")
-    if comm.rank == 0:
-        with open(cfg, "w") as f:
-            f.write(SCENE)
-    comm.Barrier()
-    yield d, cfg
-    comm.Barrier()
-    if comm.rank == 0:
-        shutil.rmtree(d, ignore_errors=True)
+    with shared_scene_dir(comm, "lc_mpi_ckpt_", SCENE) as folder:
+        yield folder
 
 
 def _agree(ok, msg):

@@ -6,10 +6,8 @@ strands file is reported once, by rank 0."""
 
 import json
 import os
-import shutil
 import signal
 import subprocess
-import tempfile
 
 import h5py
 import numpy as np
@@ -21,7 +19,7 @@ from lc_petsc.batch import EXIT_PREEMPTED, main
 from lc_petsc.integrator import Integrator
 from lc_petsc.io.disk import RESERVE
 
-from sim_helpers import hairball_toml  # noqa: E402
+from sim_helpers import hairball_toml, shared_scene_dir  # noqa: E402
 
 pytestmark = pytest.mark.mpi
 comm = MPI.COMM_WORLD
@@ -33,16 +31,8 @@ SCENE = hairball_toml(n_wisps=4, seed=7, frames=8,
 
 @pytest.fixture
 def shared_dir():
-    d = comm.bcast(tempfile.mkdtemp(prefix="lc_mpi_job_") if comm.rank == 0 else None)
-    cfg = os.path.join(d, "s.toml")
-    if comm.rank == 0:
-        with open(cfg, "w") as f:
-            f.write(SCENE)
-    comm.Barrier()
-    yield d, cfg
-    comm.Barrier()
-    if comm.rank == 0:
-        shutil.rmtree(d, ignore_errors=True)
+    with shared_scene_dir(comm, "lc_mpi_job_", SCENE) as folder:
+        yield folder
 
 
 def _on_root(fn):

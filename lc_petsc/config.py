@@ -521,7 +521,7 @@ _CONDITIONAL_KEYS = {
                               "scene.kind = 'wisp4c' or 'straight'"),
     ("scene", "seed"): (lambda c: c.scene.kind == "hairball" or c.scene.perturbation == "jitter",
                         "scene.kind = 'hairball' or scene.perturbation = 'jitter'"),
-    ("scene", "path"): (lambda c: c.scene.kind == "file", "scene.kind = 'file'"),
+    ("scene", "path"): (lambda c: c.scene.kind in ("file", "usd"), "scene.kind = 'file' or 'usd'"),
     ("scene", "segment_length"): (lambda c: c.scene.kind == "straight", "scene.kind = 'straight'"),
     ("scene", "direction"): (lambda c: c.scene.kind == "straight", "scene.kind = 'straight'"),
     ("scene", "smash_factor"): (lambda c: c.scene.perturbation == "smash", "scene.perturbation = 'smash'"),

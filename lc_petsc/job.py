@@ -268,6 +268,7 @@ class Job:
 
     def _check_disk(self, rows_kept):
         """Refuse a run whose outputs cannot fit on the output folder's volume."""
+        from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints
         from lc_petsc.io.disk import RESERVE, free_bytes, human
         cfg, sim = self.cfg, self.sim
         parts = output_estimate(cfg, sim.n_wisps, sim.n_vertices, rows_kept)
@@ -276,7 +277,7 @@ class Job:
         def free():
             reclaim = 0
             if self.restart is None:      # a new run replaces the old frames and checkpoints
-                for p in [self.out / "frames.h5", *(self.out / "checkpoints").glob("checkpoint_*.h5")]:
+                for p in [self.out / "frames.h5", *list_checkpoints(checkpoint_folder(self.out))]:
                     if p.is_file():
                         reclaim += p.stat().st_size
             return free_bytes(self.out) + reclaim

@@ -125,7 +125,7 @@ class OptionsScope:
             yield
         finally:
             for k in added:
-                if option_used(k):
+                if k not in self.used and option_used(k):    # once known used, no C call
                     self.used.add(k)
                 opts.delValue(k)
 

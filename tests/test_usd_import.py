@@ -261,6 +261,7 @@ def test_shipped_usd_groom_is_the_fringe():
     from lc_petsc.config import load_config
     root = Path(__file__).resolve().parents[1] / "configs"
     cfg = load_config(root / "from_usd.toml")
+    assert not [w for w in cfg.key_warnings if "scene.path" in w], cfg.key_warnings
     src = source_from_config(cfg.scene, cfg.material, cfg.physics)
     with h5py.File(root / "data" / "fringe.h5") as f:
         x, off, r, pin = (f[k][...] for k in ("positions", "wisp_offsets", "radius", "pinned"))

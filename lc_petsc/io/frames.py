@@ -118,7 +118,8 @@ class FramesWriter:
 
     ``comm``: the simulator's mpi4py communicator; ``first_vertex``/``positions`` of
     this rank's vertices; ``first_wisp``/``local_offsets`` of this rank's wisps;
-    ``n_out``: the planned number of frame rows (the datasets never grow beyond it).
+    ``n_out``: the planned number of frame rows (sizes the chunks; the datasets grow by one
+    row per frame written, nothing is preallocated).
     Every h5py failure is an :class:`lc_petsc.io.disk.OutputError` naming the file;
     after one, :attr:`broken` is set and the file must not be closed (libhdf5 would
     crash): the caller stops the run.

@@ -47,6 +47,7 @@ import numpy as np
 
 from lc_petsc.elements import head_contact
 from lc_petsc.parallel import collectively
+from lc_petsc.scene.state import vertex_wisp_length
 from lc_petsc.solver import SolverError
 
 
@@ -74,7 +75,7 @@ class Integrator:
         self.contact_separated = []
         self.retract = config.time.newton_update == "edge_retraction" and \
             config.physics.strand_contact_mode != "ccd"
-        self.wisp_length = wisp_lengths(scene)
+        self.wisp_length = vertex_wisp_length(scene.x_rest, scene.offsets)
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
@@ -166,10 +167,10 @@ class Integrator:
             x_prev, x = x, self.update(x, alpha * dx)
             if self.strand is not None:         # ccd mode: per vertex, collision-free path
                 x = self.strand.limit_step(x_prev, x)
-            increment = self.relative_increment(x - x_prev)
+            increment, absolute = self.increments(x - x_prev)
             if self.history is not None:
                 self._record_iteration(it, x_prev, x, g, increment, alpha)
-            converged = self._newton_converged(x - x_prev, increment)
+            converged = self._newton_converged(increment, absolute)
             if converged:
                 break
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
@@ -251,10 +252,8 @@ class Integrator:
     def _exact_hessian(self, increment):
         """Whether this iteration assembles the exact Hessian: ``solver.filter =
         "exact_or_analytic"`` once the last relative increment is below
-        ``solver.exact_hessian_below`` (near the solution, where it is mostly positive
-        definite)."""
-        s = self.cfg.solver
-        return s.filter == "exact_or_analytic" and increment < EXACT_BELOW
+        :data:`EXACT_BELOW` (near the solution, where it is mostly positive definite)."""
+        return self.cfg.solver.filter == "exact_or_analytic" and increment < EXACT_BELOW
 
     def _line_search(self, x, g, dx, halvings, give_up=True):
         """Armijo backtracking on G along update(x, alpha dx): alpha halves from 1 until
@@ -294,12 +293,16 @@ class Integrator:
         return dx
 
     # -------------------------------------------------------------- convergence
-    def relative_increment(self, dx):
-        """max_i |dx_i| / (rest length of vertex i's wisp), over all ranks."""
-        local = float((np.linalg.norm(dx, axis=1) / self.wisp_length).max(initial=0.0))
-        return self.comm.allreduce(local, op=_max())
+    def increments(self, dx):
+        """(max_i |dx_i| / rest length of vertex i's wisp, max |dx| in cm) over all ranks,
+        in one reduction."""
+        local = np.array([(np.linalg.norm(dx, axis=1) / self.wisp_length).max(initial=0.0),
+                          np.abs(dx).max(initial=0.0)])
+        total = np.empty(2)
+        self.comm.Allreduce(local, total, op=_max())
+        return float(total[0]), float(total[1])
 
-    def _newton_converged(self, step, increment):
+    def _newton_converged(self, increment, absolute):
         """True/False against the tolerances that are set (both when both are), None
         when neither is (a fixed iteration count)."""
         t = self.cfg.time
@@ -309,7 +312,6 @@ class Integrator:
         if t.newton_increment_tol is not None:
             ok = increment < t.newton_increment_tol
         if t.newton_tol is not None:
-            absolute = self.comm.allreduce(float(np.abs(step).max(initial=0.0)), op=_max())
             ok = ok and absolute < t.newton_tol
         return ok
 
@@ -405,15 +407,6 @@ def retract_edge_lengths(x, dx, free, offsets, mass=None):
                              for c in range(3)], axis=1) / np.where(m > 0, m, 1.0)[:, None]
             total[unpinned[wisp]] -= mean[wisp[unpinned[wisp]]]
     return out + total
-
-
-def wisp_lengths(scene):
-    """Rest arc length of each vertex's wisp, shape (nv,)."""
-    seg = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
-    csum = np.concatenate([[0.0], np.cumsum(seg)])
-    off = scene.offsets
-    per_wisp = csum[off[1:] - 1] - csum[off[:-1]]
-    return np.repeat(per_wisp, np.diff(off))
 
 
 #: solver.filter "exact_or_analytic": the exact Hessian is tried once the last relative

@@ -27,6 +27,21 @@ from lc_petsc.elements import bend, twist, weights
 TERM_K = {"stretch": 2, "bend": 3, "twist": 4}
 
 
+
+def wisp_lengths(rest, offsets):
+    """Rest arc length of every wisp (n_wisps,)."""
+    seg = np.linalg.norm(np.diff(rest, axis=0), axis=1)
+    out = np.empty(len(offsets) - 1)
+    for w in range(len(out)):
+        a, b = int(offsets[w]), int(offsets[w + 1])
+        out[w] = seg[a:b - 1].sum()
+    return out
+
+
+def vertex_wisp_length(rest, offsets):
+    """Rest length of each vertex's wisp (n_vertices,)."""
+    return np.repeat(wisp_lengths(rest, offsets), np.diff(offsets))
+
 @dataclass
 class TermData:
     name: str

@@ -9,20 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def wisp_lengths(rest, offsets):
-    """Rest arc length of every wisp (n_wisps,)."""
-    seg = np.linalg.norm(np.diff(rest, axis=0), axis=1)
-    out = np.empty(len(offsets) - 1)
-    for w in range(len(out)):
-        a, b = int(offsets[w]), int(offsets[w + 1])
-        out[w] = seg[a:b - 1].sum()
-    return out
-
-
-def vertex_wisp_length(rest, offsets):
-    """Rest length of each vertex's wisp (n_vertices,)."""
-    return np.repeat(wisp_lengths(rest, offsets), np.diff(offsets))
+from lc_petsc.scene.state import vertex_wisp_length, wisp_lengths  # noqa: F401  (re-exported)
 
 
 def edge_mask(offsets):

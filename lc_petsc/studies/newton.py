@@ -21,8 +21,6 @@ VARIANT_KEYS = {
     "filter": ("solver", "filter", str),
     "guess": ("time", "initial_guess", str),
     "update": ("time", "newton_update", str),
-    "guess": ("time", "initial_guess", str),
-    "update": ("time", "newton_update", str),
     "ls": ("time", "line_search", lambda v: v in ("1", "true", "yes", "on")),
     "terms": ("physics", "terms", lambda v: tuple(v.split("+"))),
     "options": ("solver", "options", str),

@@ -164,8 +164,10 @@ class StrandContact:
             raise ValueError(f"strand contact mode {mode!r}: use one of {', '.join(MODES)}")
         self.mode, self.min_separation = mode, float(min_separation)
         # ccd mode (see limit_step): per-vertex step fractions, in a Vec by global vertex
-        self.step_fraction = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
-        self.shrink = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
+        self.step_fraction = self.shrink = None
+        if mode == "ccd":
+            self.step_fraction = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
+            self.shrink = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
         self.limited_vertices = []      # per limit_step call: vertices whose step was cut
         self.limit_rounds = []          # per call: rounds of the limiter
         self.tight_inclusion_pairs = 0  # pairs passed to ipctk by the limiter, this rank
@@ -218,7 +220,7 @@ class StrandContact:
         d0 = self.d0 if inflate is None else float(inflate)
         Ps = [np.stack([a[self.seg], a[self.seg + 1]], axis=1) for a in (x, *extra)]
         if boxes is None:
-            allP = np.concatenate(Ps, axis=1)
+            allP = Ps[0] if len(Ps) == 1 else np.concatenate(Ps, axis=1)
             lo, hi = allP.min(axis=1), allP.max(axis=1)
         else:
             lo, hi = boxes
@@ -359,7 +361,7 @@ class StrandContact:
             beta, n_limited, rounds = self._safe_fractions(x, target, self.min_separation * self.d0)
             self.limited_vertices.append(n_limited)
             self.limit_rounds.append(rounds)
-        return x + beta[:, None] * (target - x)
+        return _held_back(x, target, beta)
 
     def collision_free_frame(self, x_old, x):
         """Positions whose linear path from ``x_old`` (the previous frame) is
@@ -374,7 +376,7 @@ class StrandContact:
         with self.timers("collision"):
             beta, n_limited, _ = self._safe_fractions(x_old, x, 0.05 * self.d0)
             self.frame_fixes.append(n_limited)
-        return x_old + beta[:, None] * (x - x_old)
+        return _held_back(x_old, x, beta)
 
     def _pair_fractions(self, S, E, m):
         """Safe fractions of pairs on their paths S -> E (k, 4, 3) at min distance m (k,):
@@ -705,3 +707,13 @@ class StrandContact:
                 m.destroy()
         self.shell = self.op = self.C = self.vec = self.state = self.correction = None
         self.step_fraction = self.shrink = None
+
+
+def _held_back(start, end, beta):
+    """start + beta (end - start) per vertex (nv, 3), and exactly ``end`` where beta = 1:
+    an unlimited vertex keeps its update to the last bit (no round-off from the
+    limiter, and the bit-identical pair cache stays valid)."""
+    out = end.copy()
+    k = beta < 1.0
+    out[k] = start[k] + beta[k, None] * (end[k] - start[k])
+    return out

@@ -105,8 +105,9 @@ def tight_inclusion_toi(start, end, min_distance, tolerance=1e-6, max_iterations
                                   conservative_rescaling=1.0)
     out = np.ones(len(S))
     scale = np.abs(np.concatenate([S, E], axis=1)).reshape(len(S), -1).max(axis=1) + 1.0
+    d_start = distance(S) if len(S) else np.zeros(0)
     for k in range(len(S)):
-        if distance(S[k:k + 1])[0] <= m[k] + 1e-12 * scale[k]:
+        if d_start[k] <= m[k] + 1e-12 * scale[k]:
             out[k] = 0.0            # already that close (Tight-Inclusion hangs on touching pairs)
             continue
         a, b = S[k], E[k]

@@ -27,7 +27,6 @@ from lc_petsc.elements import bend, twist, weights
 TERM_K = {"stretch": 2, "bend": 3, "twist": 4}
 
 
-
 def wisp_lengths(rest, offsets):
     """Rest arc length of every wisp (n_wisps,)."""
     seg = np.linalg.norm(np.diff(rest, axis=0), axis=1)

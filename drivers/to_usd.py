@@ -33,7 +33,12 @@ def main(argv=None):
         p.error(f"--stride must be >= 1, got {args.stride}")
 
     from lc_petsc.io.usd import write_usd
-    from pxr import Tf
+    try:
+        from pxr import Tf
+    except ImportError as e:
+        print(f"to_usd.py: error: USD is not installed ({e}); run scripts/setup.sh (usd-core)",
+              file=sys.stderr)
+        return 2
     bar = None
     if not args.quiet and sys.stderr.isatty():
         from tqdm import tqdm

@@ -46,7 +46,8 @@ RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.preview
                      "output.usd", "output.render_hairs", "output.render_hair_seed",
                      "output.render_hair_spread"}
 PROG = "simulate.py"
-OUR_FILES = ("frames.h5", "frames.xdmf", "frames.usdc", "summary.json", "contact_sheet.png")
+OUR_FILES = ("frames.h5", "frames.xdmf", "frames.usdc", "frames.tmp.usdc", "summary.json",
+             "contact_sheet.png")
 #: set when libhdf5 failed on an open file: the process must end without closing it
 #: (lc_petsc.batch.exit_process), or libhdf5 crashes at exit
 hdf5_unclosable = False
@@ -514,8 +515,13 @@ class Job:
         if writer is not None and writer.written and not hdf5_unclosable:
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_run
-            usd_files, t_usd = export_run(cfg.output, h5_path, out)
-            files += usd_files
+            try:
+                usd_files, t_usd = export_run(cfg.output, h5_path, out)
+                files += usd_files
+            except Exception as e:  # noqa: BLE001 - like a preview, never worth the summary
+                text = f"USD export failed, frames.h5 is intact: {type(e).__name__}: {e}"
+                print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
+                summary["warnings"] = list(summary.get("warnings") or []) + [text]
         files.append("summary.json")
         if problems and not self.error:
             self.error = summary["error"] = f"output error: {problems[0]}"
@@ -628,8 +634,9 @@ def _previews(cfg, out, h5_path, writer, frames, title):
     for f in cfg.output.preview_frames:
         fa = frames + 1 + f if f < 0 else f
         rows.append(min(max(fa, 0) // every, n - 1))
+    from lc_petsc.io.usd import has_head_sphere
     head = None
-    if "head_collision" in cfg.physics.terms or cfg.scene.kind == "hairball":
+    if has_head_sphere(cfg.physics, cfg.scene):
         hm = HeadMotion(cfg.physics)
         head = lambda t: (hm.sphere_center(t), hm.radius)   # noqa: E731
     return render_previews(h5_path, out, rows, contact_panels=cfg.output.contact_sheet,

@@ -117,6 +117,8 @@ def output_estimate(cfg, n_wisps, n_vertices, rows_kept=0):
     parts["checkpoints"] = n_ck * checkpoint_bytes(n_wisps, n_vertices)
     if cfg.output.xdmf:
         parts["frames.xdmf"] = 1000 * rows
+    if cfg.output.usd:    # float32 points per row (measured 15 B per vertex), render hairs too
+        parts["frames.usdc"] = 16 * n_vertices * rows * (1 + cfg.output.render_hairs)
     if cfg.output.previews:
         parts["previews"] = 300_000 * (len(cfg.output.preview_frames) + (cfg.output.contact_sheet > 0))
     parts["summary.json"] = 64 * 1024 + 400 * cfg.time.frames
@@ -333,7 +335,7 @@ class Job:
                 self.out / "frames.h5", self.comm, n_wisps=sim.n_wisps, n_vertices=sim.n_vertices,
                 first_wisp=int(sim.ranges[self.comm.rank]), first_vertex=sc.first_vertex,
                 local_offsets=sc.offsets, rest_positions=sc.x_rest, pinned=sc.pinned,
-                n_out=1 + cfg.time.frames // cfg.output.every, attrs=attrs,
+                radius=sc.radius, n_out=1 + cfg.time.frames // cfg.output.every, attrs=attrs,
                 resume_rows=None if self.restart is None else start // cfg.output.every + 1)
             if self.restart is None:
                 self.writer.write_frame(0.0, sim.x)

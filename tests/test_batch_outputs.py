@@ -130,7 +130,7 @@ def test_frames_identical_on_1_and_2_ranks(tmp_path):
         os.chdir(cwd)
     with h5py.File(tmp_path / "one" / "frames.h5") as a, h5py.File(tmp_path / "two" / "frames.h5") as b:
         assert set(a) == set(b) == {"positions", "time", "wisp_offsets", "rest_positions", "pinned",
-                                    "polylines"}
+                                    "radius", "polylines"}
         for k in a:
             assert a[k].shape == b[k].shape and a[k].dtype == b[k].dtype, k
             if k == "positions":

@@ -69,6 +69,8 @@ def test_export_read_back(run):
     radius = np.tile(geometry.tapered_radius(101, 0.35, 0.07), 5)
     assert c.GetWidthsInterpolation() == "vertex"
     assert np.array_equal(np.asarray(c.GetWidthsAttr().Get()), (2 * radius).astype(np.float32))
+    with h5py.File(run / "frames.h5") as f:       # the radii the export reads
+        assert np.allclose(f["radius"][...], radius, rtol=1e-15, atol=0)
     pv = UsdGeom.PrimvarsAPI(c.GetPrim())
     assert list(pv.GetPrimvar("wisp_index").Get()) == list(range(5))
     assert pv.GetPrimvar("wisp_index").GetInterpolation() == "uniform"
@@ -178,13 +180,20 @@ def test_job_usd_off_and_failure_keeps_outputs(tmp_path, capsys):
     assert not (out / "frames.usdc").exists()
     s = json.loads((out / "summary.json").read_text())
     assert "frames.usdc" not in s["output"]["files"] and s["output"]["usd_s"] == 0.0
-    # a scene whose strands file vanished after the run: no USD, a warning, the rest intact
+    # a scene whose strands file vanished after the run: frames.h5's /radius suffices
     from lc_petsc.io.usd import export_run
     from lc_petsc.config import OutputConfig
     with h5py.File(out / "frames.h5", "r+") as f:
         cfg = json.loads(f.attrs["config"])
         cfg["scene"].update(kind="file", path=str(tmp_path / "gone.h5"))
         f.attrs["config"] = json.dumps(cfg)
+    files, _ = export_run(OutputConfig(), out / "frames.h5", out)
+    assert files == ["frames.usdc"]
+    (out / "frames.usdc").unlink()
+    # a frames file from before /radius: rebuilt from the vanished file, so no USD, a
+    # warning, the rest intact
+    with h5py.File(out / "frames.h5", "r+") as f:
+        del f["radius"]
     files, _ = export_run(OutputConfig(), out / "frames.h5", out)
     assert files == [] and not list(out.glob("*.usdc"))
     assert "USD export failed, frames.h5 is intact" in capsys.readouterr().err

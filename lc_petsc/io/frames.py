@@ -70,9 +70,10 @@ def frame_bytes(n_vertices) -> int:
 
 
 def static_bytes(n_wisps, n_vertices) -> int:
-    """Bytes of ``frames.h5``'s datasets written once (offsets, rest state, topology)."""
+    """Bytes of ``frames.h5``'s datasets written once (offsets, rest state, radii,
+    topology)."""
     nv, nw = int(n_vertices), int(n_wisps)
-    return 8 * (nw + 1) + 25 * nv + 8 * (2 * nw + nv) + 64 * 1024
+    return 8 * (nw + 1) + 33 * nv + 8 * (2 * nw + nv) + 64 * 1024
 
 
 def _h5_error(path, e):
@@ -126,7 +127,8 @@ class FramesWriter:
     """
 
     def __init__(self, path, comm, *, n_wisps, n_vertices, first_wisp, first_vertex,
-                 local_offsets, rest_positions, pinned, n_out, attrs, resume_rows=None):
+                 local_offsets, rest_positions, pinned, n_out, attrs, resume_rows=None,
+                 radius=None):
         h5py = _h5py()
         self.comm, self.path = comm, str(path)
         self.folder = os.path.dirname(os.path.abspath(self.path))
@@ -151,14 +153,16 @@ class FramesWriter:
             if resume_rows is not None:
                 self._resume(kw, n_wisps, int(resume_rows), attrs)
             else:
-                self._create(kw, n_wisps, first_wisp, local_offsets, rest_positions, pinned, attrs)
+                self._create(kw, n_wisps, first_wisp, local_offsets, rest_positions, pinned, attrs,
+                             radius)
         except (OSError, RuntimeError, KeyError) as e:
             self.broken = self.f is not None
             err = _h5_error(self.path, e)
             err.hdf5_broken = self.broken
             raise err from None
 
-    def _create(self, kw, n_wisps, first_wisp, local_offsets, rest_positions, pinned, attrs):
+    def _create(self, kw, n_wisps, first_wisp, local_offsets, rest_positions, pinned, attrs,
+                radius=None):
         h5py = _h5py()
         comm = self.comm
         self.f = f = h5py.File(self.path, "w", **kw)
@@ -179,6 +183,9 @@ class FramesWriter:
         self._write(offs, (n_wisps,), np.array([nv], np.int64) if comm.rank == 0 else np.zeros(0, np.int64))
         self._write(rest, (self.v0, 0), np.asarray(rest_positions, np.float64))
         self._write(pin, (self.v0,), np.asarray(pinned, np.bool_))
+        if radius is not None:         # the strands' radii, for exports (USD widths)
+            rad = self._dataset("radius", (nv,), np.float64)
+            self._write(rad, (self.v0,), np.asarray(radius, np.float64))
         parts = []
         for w in range(nw_local):
             n = int(lo[w + 1] - lo[w])

@@ -148,7 +148,8 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
         times = np.asarray(f["time"][...], float)
         n_rows = len(times)
         rows = list(range(0, n_rows, int(stride)))
-        radius = scene_radius(tables, sizes)
+        # the run's radii; frames files written before /radius existed: from its config
+        radius = f["radius"][...] if "radius" in f else scene_radius(tables, sizes)
         out_cfg = tables["output"]
         n_hairs = out_cfg.render_hairs if render_hairs is None else render_hairs
         seed = out_cfg.render_hair_seed if render_hair_seed is None else render_hair_seed

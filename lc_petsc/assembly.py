@@ -18,8 +18,9 @@ array: written in place into PETSc's value array of the rank's block (BAIJ and t
 AIJ copy; see ``Assembler._probe_value_arrays``), else by ONE ``setValuesBlockedCSR``
 call.  No per-element PETSc calls.
 
-Matrix type: ``baij`` (bs 3) unless the options database says ``-mat_type``; ``sbaij``
-and ``aij`` (block size 3) get the same values.
+Matrix type: the solver plan's (lc_petsc/solver_plan.py: ``baij`` (bs 3) unless
+``-mat_type`` or the preconditioner asks for another); ``sbaij`` and ``aij`` (block size
+3) get the same values.
 """
 
 from __future__ import annotations
@@ -29,24 +30,18 @@ from petsc4py import PETSc
 
 from lc_petsc.elements import bend, stretch, twist
 from lc_petsc.petsc_capi import has_value_array, value_array
+from lc_petsc.solver_plan import SUPPORTED_MAT_TYPES, base_type
 
 KERNELS = {"stretch": stretch, "bend": bend, "twist": twist}
-SUPPORTED_MAT_TYPES = ("baij", "sbaij", "aij")
-
-
-def base_type(mat_type: str) -> str:
-    t = mat_type.lower()
-    for prefix in ("seq", "mpi"):
-        if t.startswith(prefix):
-            t = t[len(prefix):]
-    return t
 
 
 class Assembler:
     """Owns the band array, the CSR pattern and the PETSc matrix of one rank's wisps."""
 
-    def __init__(self, scene, comm, timers, filter="analytic", mat_type="baij", pmat_type=None):
+    def __init__(self, scene, comm, timers, filter="analytic", mat_type="baij", pmat_type=None,
+                 options_prefix=""):
         self.scene, self.comm, self.timers, self.filter = scene, comm, timers, filter
+        self.options_prefix = options_prefix
         nv, b = scene.nv, scene.bandwidth
         self.b = b
         # Band storage R[i, r, 3 (d + b) + c] = entry (3 i + r, 3 (i + d) + c): an element's
@@ -79,6 +74,8 @@ class Assembler:
         A = PETSc.Mat().create(comm=self.comm)
         A.setSizes(((3 * nv, 3 * sc.n_vertices_global), (3 * nv, 3 * sc.n_vertices_global)))
         A.setBlockSize(3)
+        if self.options_prefix:
+            A.setOptionsPrefix(self.options_prefix)
         A.setType(mat_type)
         return A
 

@@ -131,21 +131,11 @@ def main(argv=None, comm=None):
         # (a second init after PETSc is imported re-registers PETSc's exit handler, which
         # then hangs at exit when it ran on some ranks only; options are set below instead)
         petsc4py.init([sys.argv[0]] + petsc_argv, comm=comm)
-    from petsc4py import PETSc
     from lc_petsc.job import Job
-    opts = PETSc.Options()
-    already = opts.getAll()          # PETSC_OPTIONS, or an earlier init in this process
-    added = []
-    for k, v in command_line.items():    # needed when PETSc was initialised before (tests)
-        if k not in already:             # (not hasName: that would mark the option as used)
-            opts.setValue(k, v)
-            added.append(k)      # removed again on return: several runs in one process
-        elif (already.get(k) or "") != v:
-            opts.setValue(k, v)
+    from lc_petsc.solver_plan import command_line_options
     try:
-        given = {k: (v or "") for k, v in already.items()}
-        given.update(command_line)
-        return Job(comm, args, cfg, cfg_text, given, config_warnings=cfg.key_warnings).run()
+        with command_line_options(command_line) as given:
+            return Job(comm, args, cfg, cfg_text, given, config_warnings=cfg.key_warnings).run()
     except Exception:
         # a bug, not a user error (the job reports its own): show it, and do not leave
         # the other ranks waiting
@@ -155,9 +145,6 @@ def main(argv=None, comm=None):
             sys.stderr.flush()
             comm.Abort(1)
         raise
-    finally:
-        for k in added:
-            opts.delValue(k)
 
 
 def _petsc_options(tokens):

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field, asdict, fields
 from pathlib import Path
 from typing import Optional, Sequence
 
+from lc_petsc.errors import ConfigError
+
 SCENE_KINDS = ("wisp4c", "hairball", "straight", "file", "usd")
 PERTURBATIONS = ("none", "smash", "jitter", "straighten")
 STRAND_CONTACT_MODES = ("penalty", "ccd")
@@ -38,10 +40,6 @@ MAX_FRAMES = 10 ** 9
 MIN_DT = 1.0e-6
 #: moduli above this are refused (steel is 2e12 dyn/cm^2; 1e300 overflows the Hessians)
 MAX_MODULUS = 1.0e15
-
-
-class ConfigError(ValueError):
-    """A configuration problem; the message names the key, the value and what is allowed."""
 
 
 def _positive(name: str, value, allow_zero: bool = False) -> None:

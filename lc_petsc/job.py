@@ -76,13 +76,7 @@ def output_dir(args, cfg):
 
 def petsc_options_used(sim, command_line):
     """Options in effect: code defaults < sub-solver defaults < config < command line."""
-    from lc_petsc.solver import DEFAULTS
-    used = dict(DEFAULTS)
-    used.update(sim.solver.extra)
-    used.update(sim.scope.layers)
-    used.update(command_line)
-    used["mat_type"] = sim.assembler.mat_type
-    return dict(sorted(used.items()))
+    return sim.plan.options_used(command_line, sim.assembler.mat_type)
 
 
 def _options_string(d):
@@ -449,7 +443,7 @@ class Job:
         summary["step_time_s"] = summary["wall_time_s"]
         summary["wall_time_s"] = loop_time
         used = petsc_options_used(sim, self.command_line)
-        unused = sim.scope.unused_options(self.command_line)
+        unused = sim.plan.unused_options(self.command_line)
         for k in unused:
             self._warn(f"PETSc option -{k} was given but never used by the solver (a typo, or an "
                        "option of a solver that is not selected?)")

@@ -14,6 +14,8 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from lc_petsc.errors import SimulationError
+
 #: environment variables by which a user chooses the BLAS / OpenMP thread count
 THREAD_COUNT_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
                           "BLIS_NUM_THREADS")
@@ -36,10 +38,6 @@ def limit_blas_threads():
     from threadpoolctl import threadpool_info, threadpool_limits
     _thread_limits.append(threadpool_limits(limits=1))
     return len(threadpool_info())
-
-
-class SimulationError(RuntimeError):
-    """A failure on some rank during a step, raised on every rank (see :func:`collectively`)."""
 
 
 def partition(sizes, n_ranks: int) -> np.ndarray:

@@ -20,12 +20,10 @@ from functools import lru_cache
 import numpy as np
 from petsc4py import PETSc
 
+from lc_petsc.errors import PetscCallError
+
 #: C function returning the value array of each supported sequential matrix type
 _GET_ARRAY = {"seqaij": "MatSeqAIJGetArray", "seqbaij": "MatSeqBAIJGetArray"}
-
-
-class PetscCallError(RuntimeError):
-    """A PETSc C function called through ctypes returned an error code."""
 
 
 @lru_cache(maxsize=1)

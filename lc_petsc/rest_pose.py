@@ -16,10 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lc_petsc.elements import segment_contact
-
-
-class RestPoseOverlapError(ValueError):
-    """The groom has pairs of different wisps closer than the contact thickness."""
+from lc_petsc.errors import RestPoseOverlapError
 
 
 @dataclass

@@ -1,5 +1,5 @@
 """Builder API: ``build_simulator(config) -> Simulator`` (config -> scene -> partition ->
-assembly + solver -> integrator)."""
+solver plan -> assembly + solver -> integrator)."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ from lc_petsc.rest_pose import RestPoseOverlapError, check_rest_pose
 from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.sources import source_from_config
 from lc_petsc.scene.state import LocalScene
-from lc_petsc.solver import (DEFAULTS, LinearSolver, OptionsScope, choose_mat_type,
-                             choose_pmat_type)
+from lc_petsc.solver import LinearSolver
+from lc_petsc.solver_plan import SolverPlan
 from lc_petsc.timing import Timers
 
 
@@ -91,21 +91,19 @@ class Simulator:
         parallel.collective_raise(comm, problems)
         self.scene = scene
         x0 = apply_perturbation(batch, cfg.scene)
-        self.scope = OptionsScope(cfg.solver.effective_options(), defaults=None)
-        mat_type = choose_mat_type(self.scope)
-        with self.scope.active():
+        self.plan = plan = SolverPlan.resolve(cfg.solver.effective_options(),
+                                              strand_contact="strand_collision" in cfg.physics.terms)
+        with plan.active():
             self.assembler = Assembler(scene, self.pcomm, self.timers,
                                        filter=element_filter(cfg.solver.filter),
-                                       mat_type=mat_type,
-                                       pmat_type=choose_pmat_type(
-                                           self.scope, mat_type,
-                                           strand_contact=_strands_preconditioner(cfg, self.scope)))
+                                       mat_type=plan.mat_type, pmat_type=plan.pmat_type,
+                                       options_prefix=plan.prefix)
         self.strand = None
-        if "strand_collision" in cfg.physics.terms:
-            self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, self.scope,
+        if plan.contact_pc is not None:
+            self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, plan,
                                           self.assembler.mat_type)
-        self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), self.scope,
-                                   self.assembler.mat_type, P=self.assembler.pmat)
+        self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), plan,
+                                   P=self.assembler.pmat)
         self.head = HeadMotion(cfg.physics)
         self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg, self.head)
         self.integrator.x = x0
@@ -217,49 +215,18 @@ class Simulator:
             self.strand.destroy()
 
 
-CONTACT_PC = ("coupled", "strands")
-
-
-def _contact_pc(scope):
-    """``-lc_contact_pc``, or its default: ``strands`` for block Jacobi, else ``coupled``."""
-    bjacobi = (scope.lookup("pc_type") or DEFAULTS["pc_type"]).lower() == "bjacobi"
-    return scope.lookup("lc_contact_pc") or ("strands" if bjacobi else "coupled")
-
-
-def _strands_preconditioner(cfg, scope):
-    """Strand contact with the strand matrix as preconditioning matrix (the AIJ copy is
-    then worth making, see choose_pmat_type)."""
-    return "strand_collision" in cfg.physics.terms and _contact_pc(scope) == "strands"
-
-
-def _strand_contact(scene, comm, pcomm, timers, cfg, scope, mat_type):
+def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type):
     """The strand-strand contact of ``cfg`` (docs/contact.md); thickness default: twice
-    the smallest vertex radius of the scene.
-
-    ``-lc_contact_pc coupled|strands``: the preconditioning matrix is the whole Newton
-    matrix A + C, or the strand matrix A without the contact couplings between wisps.
-    Default: ``strands`` for block Jacobi (one exact block per wisp; an ILU(0) of the
-    coupled rank block was measured to be indefinite, DIVERGED_INDEFINITE_PC, on the
-    2,000-wisp hairball), ``coupled`` for every other preconditioner (a direct solver
-    then solves the Newton system exactly, AMG sees the whole matrix)."""
+    the smallest vertex radius of the scene; the preconditioner is built from the whole
+    Newton matrix or the strand matrix alone as ``plan.contact_pc`` says."""
     from mpi4py import MPI
     from lc_petsc.contact import StrandContact
-    contact_pc = _contact_pc(scope)
-    if contact_pc not in CONTACT_PC:
-        raise ValueError(f"-lc_contact_pc {contact_pc!r}: use coupled (precondition with the "
-                         f"whole Newton matrix, contact couplings included) or strands (the "
-                         f"strand matrix alone)")
-    if contact_pc == "strands" and (scope.lookup("ksp_type") or "").lower() == "preonly":
-        raise ValueError("strand_collision with -lc_contact_pc strands: the preconditioner is "
-                         "built from the strand matrix only, so -ksp_type preonly would not "
-                         "solve the Newton system; use a Krylov method (e.g. -ksp_type cg) or "
-                         "-lc_contact_pc coupled")
     d0 = cfg.physics.strand_thickness
     if d0 is None:
         d0 = 2.0 * comm.allreduce(float(scene.radius.min(initial=np.inf)), op=MPI.MIN)
     strand = StrandContact(scene, comm, pcomm, timers, d0, cfg.physics.strand_stiffness,
                            filter=element_filter(cfg.solver.filter), mat_type=mat_type,
-                           coupled_pc=contact_pc == "coupled", mode=cfg.physics.strand_contact_mode,
+                           coupled_pc=plan.contact_pc == "coupled", mode=cfg.physics.strand_contact_mode,
                            min_separation=cfg.physics.strand_min_separation)
     if cfg.physics.strand_contact_mode == "ccd":
         report = check_rest_pose(strand)

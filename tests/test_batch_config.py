@@ -65,7 +65,7 @@ def test_paths_relative_to_the_config_file(tmp_path):
     (tmp_path / "x.opts").write_text("-ksp_rtol 1e-3  # comment\n-pc_type none\n")
     (tmp_path / "c.toml").write_text('[solver]\noptions_file = "x.opts"\noptions = "-ksp_rtol 1e-9"\n')
     c = load_config(tmp_path / "c.toml")
-    from lc_petsc.solver import parse_options
+    from lc_petsc.solver_plan import parse_options
     assert dict(parse_options(c.solver.effective_options()))["ksp_rtol"] == "1e-9"
 
 

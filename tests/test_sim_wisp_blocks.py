@@ -11,7 +11,8 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 import lc_petsc.simulator as simmod
-from lc_petsc.solver import LinearSolver, OptionsScope
+from lc_petsc.solver import LinearSolver
+from lc_petsc.solver_plan import SolverPlan
 from sim_helpers import small_hairball_config, touching_wisps_config, touching_wisps_source
 
 N_WISPS = 6      # touching_wisps_source
@@ -75,7 +76,7 @@ def test_fused_and_separate_give_the_same_cg_iterations_and_iterates(touching, t
 def test_default_is_fused_on_the_operator_itself(touching, tmp_path, monkeypatch):
     """The default: fused blocks factored from the BAIJ operator's strand matrix (no AIJ
     copy) without strand contact, from its AIJ copy with strand contact (round-off of
-    the block ILU, see choose_pmat_type); separate blocks get the AIJ copy (PETSc's
+    the block ILU, see lc_petsc.solver_plan._pmat_type); separate blocks get the AIJ copy (PETSc's
     BAIJ block extraction is quadratic in the wisp count).  Both reach the same
     trajectory to the CG tolerance."""
     monkeypatch.chdir(tmp_path)
@@ -145,9 +146,10 @@ def test_every_block_variant_applies_the_same_preconditioner():
         for mat_type in ("baij", "aij", "sbaij"):
             M = A.copy() if mat_type == "baij" else A.convert(mat_type, PETSc.Mat())
             for mode in ("fused", "separate"):
-                ls = LinearSolver(M, rows, OptionsScope(f"-lc_wisp_blocks {mode}"), mat_type)
+                plan = SolverPlan.resolve(f"-lc_wisp_blocks {mode} -mat_type {mat_type}")
+                ls = LinearSolver(M, rows, plan)
                 pc = ls.ksp.getPC()
-                with ls.scope.active(ls.extra):
+                with plan.active():
                     ls.ksp.setUp()
                 z = v.duplicate()
                 pc.apply(v, z)

@@ -6,6 +6,8 @@ elements in Python.
 
 import numpy as np
 
+from lc_petsc.errors import ElementError
+
 #: Hessian filters every kernel accepts.
 FILTERS = ("analytic", "numerical", "none", "abs")
 
@@ -15,10 +17,6 @@ CHUNK = 4096
 
 #: An edge shorter than this many ulps of its endpoint coordinates has no direction.
 _ZERO_EDGE_ULPS = 64.0
-
-
-class ElementError(ValueError):
-    """Bad input to an element kernel (shape, non-finite value, zero-length edge...)."""
 
 
 def check_filter(filter):

@@ -57,6 +57,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lc_petsc.errors import CheckpointError
+
 FORMAT = "lc_petsc checkpoint"
 FORMAT_VERSION = 1
 FOLDER = "checkpoints"
@@ -67,10 +69,6 @@ META_KEYS = ("format", "format_version", "frame", "time", "dt", "every", "frames
              "n_wisps", "n_vertices", "config", "config_sha256", "lc_petsc_version")
 CONTACT_STATE = "none: contact is recomputed from positions and time at every call"
 _NAME = re.compile(r"^checkpoint_(\d+)\.h5$")
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that cannot be used; the message names the file (and dataset)."""
 
 
 def _h5py():

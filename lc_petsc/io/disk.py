@@ -16,19 +16,10 @@ from __future__ import annotations
 
 import shutil
 
+from lc_petsc.errors import OutputError
+
 #: bytes kept free for HDF5's metadata flush on close, frames.xdmf and summary.json
 RESERVE = 256 * 1024
-
-
-class OutputError(RuntimeError):
-    """An output could not be written (disk full, permissions); names the file and why.
-
-    ``hdf5_broken``: libhdf5 itself failed on an open file, which it can then neither
-    flush nor close (see the module doc): the process must end without closing it."""
-
-    def __init__(self, message, hdf5_broken=False):
-        super().__init__(message)
-        self.hdf5_broken = hdf5_broken
 
 
 def free_bytes(path) -> int:

@@ -8,10 +8,11 @@ simulator's preconditioning matrix).  :func:`replay` then solves exactly those s
 with one option set (``configs/solvers/*.opts``), timing setup and solve separately,
 so that differences between sets are the solver's alone.
 
-Options are layered exactly as in the simulator (:class:`lc_petsc.solver.OptionsScope`:
-code defaults < the set's options < the command line), the KSP is
+Each set gets its own solver plan, as a simulator does (:class:`lc_petsc.solver_plan.SolverPlan`:
+code defaults < the set's options < the command line; the set's options are in the
+database only while its solver uses them, so no set sees another's), the KSP is
 :class:`lc_petsc.solver.LinearSolver` itself (per-wisp block Jacobi blocks included) and
-the matrix type comes from :func:`lc_petsc.solver.choose_mat_type`.  One persistent
+the matrix types are the plan's.  One persistent
 operator per set is refilled for each system (``MatCopy`` with the same nonzero
 pattern), so a direct solver's symbolic factorisation is reused across systems as it
 would be in a run.
@@ -29,8 +30,8 @@ from pathlib import Path
 import numpy as np
 from petsc4py import PETSc
 
-from lc_petsc.solver import (LinearSolver, OptionsScope, choose_mat_type, choose_pmat_type,
-                             reason_name, wisp_block_mode)
+from lc_petsc.solver import LinearSolver, reason_name
+from lc_petsc.solver_plan import SolverPlan, base_type
 
 
 @dataclass
@@ -163,8 +164,7 @@ def _min(comm, v):
 
 
 def _convert(A, mat_type):
-    base = mat_type.lower().replace("mpi", "").replace("seq", "")
-    cur = A.getType().lower().replace("mpi", "").replace("seq", "")
+    base, cur = base_type(mat_type), base_type(A.getType())
     # NB petsc4py's A.convert(t) without ``out`` converts IN PLACE: pass a new Mat
     return A.copy() if base == cur else A.convert(mat_type, PETSc.Mat())
 
@@ -198,13 +198,9 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
     remaining system get ``status = "budget"``: reported, not dropped.
     """
     rows = []
-    scope = OptionsScope(options)
     base = {"set": name, "options": options}
-    try:
-        mat_type = choose_mat_type(scope)
-        pmat_type = choose_pmat_type(scope, mat_type,           # as the simulator does
-                                     strand_contact=any(s.coupled for s in systems))
-        wisp_blocks = wisp_block_mode(scope)
+    try:        # as the simulator does
+        plan = SolverPlan.resolve(options, strand_contact=any(s.coupled for s in systems))
     except ValueError as e:
         return [dict(base, system=i, status="error", message=str(e)) for i in range(len(systems))]
 
@@ -216,6 +212,7 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
             return _convert(s.wisp_local, pmat_type or mat_type)
         return _convert(s.A, pmat_type) if pmat_type else None
 
+    mat_type, pmat_type, wisp_blocks = plan.mat_type, plan.pmat_type, plan.wisp_blocks
     comm.Barrier()
     exact_memory = _min(comm, int(start_memory_window())) == 1
     rss0_local = current_rss_mib()
@@ -226,9 +223,8 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
     spent = 0.0
     t_start = [0.0]
     try:
-        pc_type = (scope.lookup("pc_type") or "").lower()
         near_null = None
-        if pc_type == "gamg":
+        if plan.pc_type == "gamg":
             c = PETSc.Vec().createMPI((systems[0].coords.size, PETSc.DECIDE), bsize=3,
                                       comm=A.getComm())
             c.array[:] = systems[0].coords.ravel()
@@ -237,7 +233,7 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
             c.destroy()
         t0 = time.perf_counter()
         try:
-            ls = LinearSolver(A, wisp_rows, scope, mat_type, P=P)
+            ls = LinearSolver(A, wisp_rows, plan, P=P)
         except (PETSc.Error, ValueError) as e:
             msg = f"cannot create the solver: {type(e).__name__} {getattr(e, 'ierr', e)}"
             return [dict(base, system=i, status="error", message=msg) for i in range(len(systems))]
@@ -284,7 +280,7 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
             comm.Barrier()
             t_start[0] = time.perf_counter()
             try:
-                with scope.active(ls.extra):
+                with plan.active():
                     ksp.setUp()
                     ksp.getPC().setUpOnBlocks()   # block Jacobi factors its blocks here
                     t_setup = _max(comm, time.perf_counter() - t_start[0])

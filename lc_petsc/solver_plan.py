@@ -1,0 +1,321 @@
+"""The solver plan: which linear solver a simulator uses, resolved once.
+
+PETSc reads its solver choices from the options database, in layers (a later layer
+wins):
+
+1. code defaults (:data:`DEFAULTS`, set on the KSP before ``setFromOptions``, and the
+   per-wisp sub-solver default of :func:`sub_solver_defaults`);
+2. the config's ``solver.options_file``, then its ``solver.options`` string;
+3. the command line (and ``PETSC_OPTIONS``): already in the database when a plan is
+   resolved.
+
+:meth:`SolverPlan.resolve` reads those layers once and derives from them what lc_petsc
+decides itself, before any PETSc object exists:
+
+* the operator's matrix type (``baij`` unless ``-mat_type``; MUMPS and GAMG refuse BAIJ,
+  so they get ``sbaij`` / ``aij``);
+* the type of a separate preconditioning matrix (``-lc_pmat_type``; an AIJ copy where
+  block Jacobi would extract many blocks from BAIJ);
+* the per-wisp block Jacobi (``-lc_wisp_blocks fused|separate``, None for another
+  preconditioner);
+* with strand contact, what the preconditioner is built from (``-lc_contact_pc
+  coupled|strands``).
+
+The plan is frozen and built once per simulator; the assembler, the linear solver, the
+strand contact and the run summary read it instead of the database.  Its config
+options are put into the database only while PETSc objects read them
+(:meth:`SolverPlan.active`) and removed afterwards, so several plans in one process (a
+solver-comparison study, the tests) never see each other's options.  A plan may carry
+an options prefix (``-<prefix>ksp_type``...); the main job's is empty, so every
+documented option keeps its name.  The plan also records which options were read, for
+the summary's ``petsc_options_used`` and the warning about options nothing used.
+
+Option errors raise :class:`lc_petsc.errors.ConfigError`.  This module is the only one
+that reads the PETSc options database (besides PETSc's own ``setFromOptions``).
+"""
+
+from __future__ import annotations
+
+import shlex
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Mapping, Optional
+
+from petsc4py import PETSc
+
+from lc_petsc.errors import ConfigError
+from lc_petsc.options import option_pairs
+from lc_petsc.petsc_capi import option_used
+
+#: the paper's solver (SPEC 5): CG with one exact block-Jacobi block per wisp
+DEFAULTS = MappingProxyType({"ksp_type": "cg", "ksp_rtol": "1e-6", "ksp_max_it": "1000",
+                             "pc_type": "bjacobi"})
+WISP_BLOCK_MODES = ("fused", "separate")
+CONTACT_PC_MODES = ("coupled", "strands")
+#: operator types the assembler can fill
+SUPPORTED_MAT_TYPES = ("baij", "sbaij", "aij")
+
+
+def base_type(mat_type: str) -> str:
+    """PETSc matrix type without its ``seq`` / ``mpi`` prefix (``mpibaij`` -> ``baij``)."""
+    t = mat_type.lower()
+    for prefix in ("seq", "mpi"):
+        if t.startswith(prefix):
+            t = t[len(prefix):]
+    return t
+
+
+def parse_options(text: str):
+    """'-a 1 -flag -b x' -> [('a', '1'), ('flag', ''), ('b', 'x')] (leading dashes removed)."""
+    try:
+        return option_pairs(shlex.split(text or ""), what="solver.options")
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
+def sub_solver_defaults(mat_type: str) -> dict:
+    """Default sub-solver of the per-wisp blocks: exact on a full band (ILU(0) = LU; PETSc
+    would pick ICC(0) with a Manteuffel shift for a symmetric matrix, which is not exact
+    here); PETSc's native SBAIJ factorisations were measured to be inexact too, so SBAIJ
+    gets MUMPS Cholesky."""
+    if base_type(mat_type) == "sbaij":
+        return {"sub_pc_type": "cholesky", "sub_pc_factor_mat_solver_type": "mumps"}
+    return {"sub_pc_type": "ilu"}
+
+
+class _Layers:
+    """The config's options over the database (command line), and which were read.
+
+    ``lookup`` prefers the database (the command line wins); a config option found by
+    it counts as used.  ``active`` inserts the config options (and ``extra`` defaults)
+    that the database does not hold and removes exactly those again, noting first which
+    of them PETSc read in the meantime.
+    """
+
+    def __init__(self, config_options: str, prefix: str):
+        self.prefix = prefix
+        self.options = dict(parse_options(config_options))
+        self.used = set()
+
+    def _db(self):
+        return PETSc.Options(self.prefix or None)
+
+    def lookup(self, key):
+        opts = self._db()
+        if opts.hasName(key):
+            return opts.getString(key, "")
+        if key in self.options:
+            self.used.add(key)
+        return self.options.get(key)
+
+    @contextmanager
+    def active(self, extra):
+        opts = self._db()
+        added = []
+        layers = dict(extra)
+        layers.update(self.options)
+        for k, v in layers.items():
+            if not opts.hasName(k):
+                opts.setValue(k, v)
+                added.append(k)
+        try:
+            yield
+        finally:
+            for k in added:
+                if k not in self.used and option_used(self.prefix + k):   # known: no C call
+                    self.used.add(k)
+                opts.delValue(k)
+
+
+@dataclass(frozen=True)
+class SolverPlan:
+    """What the linear solver of one simulator is; see the module doc.
+
+    ``options``: the config's options (options file, then string; later wins), without
+    dashes; ``mat_type``: the operator's type (the assembler's request to PETSc);
+    ``pmat_type``: the separate preconditioning matrix's type, None for the operator
+    itself; ``pc_type``: the preconditioner (lower case); ``wisp_blocks``: ``fused`` /
+    ``separate`` per-wisp block Jacobi, None for another preconditioner;
+    ``contact_pc``: ``coupled`` / ``strands`` with strand contact, else None;
+    ``sub_solver``: the per-wisp blocks' default sub-solver options.
+    """
+
+    prefix: str
+    options: Mapping[str, str]
+    mat_type: str
+    pmat_type: Optional[str]
+    pc_type: str
+    wisp_blocks: Optional[str]
+    contact_pc: Optional[str]
+    sub_solver: Mapping[str, str]
+    _layers: _Layers = field(repr=False, compare=False)
+
+    @classmethod
+    def resolve(cls, config_options: str = "", strand_contact: bool = False,
+                prefix: str = "") -> "SolverPlan":
+        """The plan of the config options ``config_options`` (a string of PETSc options)
+        over the options database; ``strand_contact``: the simulation has strand-strand
+        contact.  Raises :class:`ConfigError` for options that contradict each other or
+        lc_petsc's own options with a bad value."""
+        layers = _Layers(config_options, prefix)
+        mat_type = _operator_type(layers)
+        contact_pc = _contact_pc(layers) if strand_contact else None
+        pmat_type = _pmat_type(layers, mat_type, strand_pc=contact_pc == "strands")
+        wisp_blocks = _wisp_block_mode(layers)
+        pc_type = (layers.lookup("pc_type") or DEFAULTS["pc_type"]).lower()
+        return cls(prefix=prefix, options=MappingProxyType(dict(layers.options)),
+                   mat_type=mat_type, pmat_type=pmat_type, pc_type=pc_type,
+                   wisp_blocks=wisp_blocks, contact_pc=contact_pc,
+                   sub_solver=MappingProxyType(sub_solver_defaults(mat_type)), _layers=layers)
+
+    @contextmanager
+    def active(self):
+        """The plan's config options and sub-solver defaults in the options database
+        (the command line's win) while PETSc objects are created, set from options,
+        set up and used; removed again on exit."""
+        with self._layers.active(self.sub_solver):
+            yield
+
+    def effective(self):
+        """The config options' values in effect, the command line's winning (without
+        marking any as used)."""
+        db = PETSc.Options().getAll()
+        p = self.prefix
+        return {k: (db[p + k] or "") if p + k in db else v for k, v in sorted(self.options.items())}
+
+    def options_used(self, command_line, mat_type):
+        """The options in effect, as recorded in summary.json's ``petsc_options_used``:
+        code defaults < sub-solver defaults < config < command line, and the operator's
+        actual ``mat_type``."""
+        used = dict(DEFAULTS)
+        used.update(self.sub_solver)
+        used.update(self.options)
+        used.update(command_line)
+        used["mat_type"] = mat_type
+        return dict(sorted(used.items()))
+
+    def unused_options(self, given=()):
+        """Options of the config and of ``given`` (the command line) that nothing ever
+        read: typos, or options of a solver that is not selected (PETSc's
+        ``-options_left``)."""
+        names = {self.prefix + k: k for k in self.options}     # database name -> config key
+        for k in given:
+            names.setdefault(k, None)
+        used = self._layers.used
+        return sorted(n for n, k in names.items()
+                      if (k is None or k not in used) and not option_used(n))
+
+
+@contextmanager
+def command_line_options(command_line):
+    """``command_line`` ({key: value}) in the options database for the duration: needed
+    when PETSc was initialised before the command line was parsed (several runs in one
+    process, the tests).  Entries it adds are removed and values it changes are restored
+    on exit, so one run's options never reach the next.  Yields every option given
+    (what the database held before, overridden by ``command_line``)."""
+    opts = PETSc.Options()
+    before = opts.getAll()     # (not hasName: that would mark the option as used)
+    added, changed = [], {}
+    for k, v in command_line.items():
+        if k not in before:
+            opts.setValue(k, v)
+            added.append(k)
+        elif (before.get(k) or "") != v:
+            opts.setValue(k, v)
+            changed[k] = before[k]
+    given = {k: (v or "") for k, v in before.items()}
+    given.update(command_line)
+    try:
+        yield given
+    finally:
+        for k in added:
+            opts.delValue(k)
+        for k, v in changed.items():
+            opts.setValue(k, v)
+
+
+# ---------------------------------------------------------------- derived choices
+def _operator_type(layers: _Layers, default="baij") -> str:
+    """The operator's matrix type: ``-mat_type``, else ``sbaij`` for MUMPS Cholesky,
+    ``aij`` for MUMPS LU and GAMG (both refuse BAIJ), else ``default``."""
+    explicit = layers.lookup("mat_type")
+    pc = (layers.lookup("pc_type") or "").lower()
+    package = (layers.lookup("pc_factor_mat_solver_type") or "").lower()
+    mumps = package == "mumps" and pc in ("cholesky", "lu")
+    gamg = pc == "gamg"
+    if explicit:
+        t = explicit.lower()
+        if t.endswith("baij") and not t.endswith("sbaij") and (mumps or gamg):
+            need = "-mat_type sbaij or -mat_type aij" if pc == "cholesky" else "-mat_type aij"
+            what = "MUMPS" if mumps else "GAMG"
+            raise ConfigError(f"{what} does not accept BAIJ matrices (-mat_type {explicit}); "
+                              f"add {need}")
+        return explicit
+    if mumps:
+        return "sbaij" if pc == "cholesky" else "aij"
+    if gamg:
+        return "aij"
+    return default
+
+
+def _pmat_type(layers: _Layers, mat_type: str, strand_pc: bool = False):
+    """Matrix type of a separate preconditioning matrix, or None to use the operator.
+
+    ``-lc_pmat_type aij|same``; by default an AIJ copy (same values) is made only where
+    block Jacobi would extract several blocks per rank from a BAIJ operator (separate
+    per-wisp blocks, or blocks set by ``-pc_bjacobi_*blocks``): PETSc 3.18 extracts each
+    block from SeqBAIJ with a column map as wide as the whole matrix
+    (``Assembler._create_pmat``).  The fused per-wisp blocks factor the operator's rank
+    block itself (no extraction; BAIJ's 3x3-block ILU(0) is the cheaper one), except
+    when the preconditioner is built from the strand matrix under strand contact
+    (``strand_pc``): CG then runs tens to hundreds of iterations, and the point ILU of
+    the AIJ copy avoids the block ILU's explicit 3x3 pivot inverses, whose round-off
+    made runs on different rank counts drift apart faster on one machine
+    (docs/architecture.md has the measurements).
+    """
+    explicit = layers.lookup("lc_pmat_type")
+    if explicit:
+        if explicit not in ("aij", "same"):
+            raise ConfigError(f"-lc_pmat_type {explicit!r}: use aij or same")
+        return None if explicit == "same" else explicit
+    pc = (layers.lookup("pc_type") or DEFAULTS["pc_type"]).lower()
+    extracts = pc == "bjacobi" and (_wisp_block_mode(layers) != "fused" or strand_pc)
+    return "aij" if extracts and base_type(mat_type) == "baij" else None
+
+
+def _wisp_block_mode(layers: _Layers):
+    """``"fused"`` or ``"separate"`` (``-lc_wisp_blocks``, default fused) when the
+    preconditioner is the per-wisp block Jacobi; None for another ``-pc_type`` or when
+    ``-pc_bjacobi_blocks`` / ``-pc_bjacobi_local_blocks`` set the blocks instead."""
+    mode = layers.lookup("lc_wisp_blocks") or WISP_BLOCK_MODES[0]
+    if mode not in WISP_BLOCK_MODES:
+        raise ConfigError(f"-lc_wisp_blocks {mode!r}: use fused (one factorisation of all the "
+                          f"rank's wisps, the default) or separate (one PETSc block per wisp)")
+    pc = (layers.lookup("pc_type") or DEFAULTS["pc_type"]).lower()
+    if pc != "bjacobi" or layers.lookup("pc_bjacobi_blocks") or layers.lookup("pc_bjacobi_local_blocks"):
+        return None
+    return mode
+
+
+def _contact_pc(layers: _Layers):
+    """What the preconditioner of a run with strand contact is built from.
+
+    ``-lc_contact_pc coupled|strands``: the whole Newton matrix A + C, or the strand
+    matrix A without the contact couplings between wisps.  Default: ``strands`` for
+    block Jacobi (one exact block per wisp; an ILU(0) of the coupled rank block was
+    measured to be indefinite, DIVERGED_INDEFINITE_PC, on the 2,000-wisp hairball),
+    ``coupled`` for every other preconditioner (a direct solver then solves the Newton
+    system exactly, AMG sees the whole matrix)."""
+    bjacobi = (layers.lookup("pc_type") or DEFAULTS["pc_type"]).lower() == "bjacobi"
+    mode = layers.lookup("lc_contact_pc") or ("strands" if bjacobi else "coupled")
+    if mode not in CONTACT_PC_MODES:
+        raise ConfigError(f"-lc_contact_pc {mode!r}: use coupled (precondition with the "
+                          f"whole Newton matrix, contact couplings included) or strands (the "
+                          f"strand matrix alone)")
+    if mode == "strands" and (layers.lookup("ksp_type") or "").lower() == "preonly":
+        raise ConfigError("strand_collision with -lc_contact_pc strands: the preconditioner is "
+                          "built from the strand matrix only, so -ksp_type preonly would not "
+                          "solve the Newton system; use a Krylov method (e.g. -ksp_type cg) or "
+                          "-lc_contact_pc coupled")
+    return mode

@@ -1,4 +1,4 @@
-"""Solver comparison on the same Newton systems (issue 6, SPEC 5; paper's Table 3).
+"""Solver comparison on the same Newton systems (SPEC 5; paper's Table 3).
 
   mpiexec -n P python drivers/compare_solvers.py [--wisps 250 500 1000 2000]
       [--sets default mumps_cholesky ...] [--sets-dir configs/solvers] [--budget 60]

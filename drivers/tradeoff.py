@@ -1,4 +1,4 @@
-"""Speed versus accuracy (issue 6): what fewer Newton iterations, looser Krylov
+"""Speed versus accuracy: what fewer Newton iterations, looser Krylov
 tolerances, bigger steps, a cheaper filter or a line search cost in accuracy.
 
   mpiexec -n P python drivers/tradeoff.py [--scene hairball|smash|jitter|CONFIG.toml]

@@ -101,7 +101,8 @@ def main(argv=None, comm=None):
     argv = sys.argv[1:] if argv is None else list(argv)
 
     # 1. command line and config: checked on every rank, reported once
-    from lc_petsc.config import ConfigError, load_config
+    from lc_petsc.config import load_config
+    from lc_petsc.errors import ConfigError
     try:
         args, petsc_argv = parse_command_line(argv)
         if args.help:
@@ -170,10 +171,10 @@ def check_options_file(key, path):
 
 def exit_process(code):
     """End the process with ``code`` (drivers/simulate.py).  When libhdf5 failed on an
-    open file (lc_petsc.job.hdf5_unclosable) the interpreter's normal exit would crash
-    in libhdf5 closing it: MPI is finalised and the process ends without that."""
-    from lc_petsc import job
-    if job.hdf5_unclosable:
+    open file (:func:`lc_petsc.io.hdf5.unclosable`) the interpreter's normal exit would
+    crash in libhdf5 closing it: MPI is finalised and the process ends without that."""
+    from lc_petsc.io import hdf5
+    if hdf5.unclosable():
         sys.stdout.flush()
         sys.stderr.flush()
         from mpi4py import MPI

@@ -26,13 +26,16 @@ SCENE_KINDS = ("wisp4c", "hairball", "straight", "file", "usd")
 PERTURBATIONS = ("none", "smash", "jitter", "straighten")
 STRAND_CONTACT_MODES = ("penalty", "ccd")
 STRAND_REST_OVERLAP = ("error", "exempt")
-TERMS = ("stretch", "bend", "twist", "gravity", "head_collision", "strand_collision")
+#: terms with element kernels (lc_petsc/elements), in assembly order
+ELASTIC_TERMS = ("stretch", "bend", "twist")
+#: terms evaluated per vertex or per contact pair
+OTHER_TERMS = ("gravity", "head_collision", "strand_collision")
+TERMS = ELASTIC_TERMS + OTHER_TERMS
 HEAD_MOTIONS = ("static", "shake", "translate")
 from lc_petsc.elements.common import FILTERS as ELEMENT_FILTERS  # noqa: E402
 #: solver.filter: an element filter, or the exact Hessian with the analytic filter as
 #: fallback when the Newton matrix is indefinite
 FILTERS = ELEMENT_FILTERS + ("exact_or_analytic",)
-IMPLEMENTED_TERMS = TERMS
 #: time.frames above this is refused (a billion frames at 1/30 s is a year of motion)
 MAX_FRAMES = 10 ** 9
 #: time.dt below this is refused: the mass term M/dt^2 then swamps every elastic term in

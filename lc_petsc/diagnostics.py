@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from lc_petsc.parallel import global_max, global_min
+
 
 def _reduce(comm, values, op):
     buf = np.array(values, float)
@@ -85,11 +87,6 @@ def _max():
     return MPI.MAX
 
 
-def _min():
-    from mpi4py import MPI
-    return MPI.MIN
-
-
 def _sum():
     from mpi4py import MPI
     return MPI.SUM
@@ -131,7 +128,7 @@ def term_warnings(sim):
                 if gap <= arc:
                     reach = 1
                     break
-        if not comm.allreduce(reach, op=_max()):
+        if not global_max(comm, reach):
             out.append("physics.terms has 'head_collision' but no wisp can reach the head sphere "
                        f"(radius {phys.head_radius + phys.head_margin:g} cm at {list(phys.head_center)}): "
                        "it has no effect")
@@ -147,8 +144,8 @@ def term_warnings(sim):
             wisp_of = np.searchsorted(sc.offsets, np.arange(len(depth)), side="right") - 1
             wisps = np.unique(wisp_of[inside]) + sc.first_wisp
             n_w = int(comm.allreduce(len(wisps)))
-            first_w = int(comm.allreduce(int(wisps[0]) if len(wisps) else 1 << 62, op=_min()))
-            deepest = float(comm.allreduce(float(depth[inside].max(initial=0.0)), op=_max()))
+            first_w = int(global_min(comm, int(wisps[0]) if len(wisps) else 1 << 62))
+            deepest = float(global_max(comm, float(depth[inside].max(initial=0.0))))
             out.append(f"{n_in} free vertices of {n_w} wisp(s) (the first: wisp {first_w}) start "
                        f"inside the head sphere (physics.head_radius + physics.head_margin = {R:g} cm "
                        f"at physics.head_center = {list(phys.head_center)}), up to {deepest:.3g} cm "

@@ -48,7 +48,7 @@ import numpy as np
 from lc_petsc.elements import head_contact
 from lc_petsc.parallel import collectively
 from lc_petsc.scene.state import vertex_wisp_length
-from lc_petsc.solver import SolverError
+from lc_petsc.errors import SolverError
 
 
 class Integrator:
@@ -65,8 +65,6 @@ class Integrator:
         self.t = 0.0
         self.frame = 0
         self.newton_iterations = []
-        self.ksp_iterations = []
-        self.line_search_alphas = []
         self.xv, self.bv = assembler.mat.createVecs()
         self.strand = None
         self.contact_pairs = []
@@ -272,7 +270,6 @@ class Integrator:
         else:
             if give_up:
                 return None
-        self.line_search_alphas.append(alpha)
         return alpha
 
     def _solve_step(self, g, it, may_fail=False):

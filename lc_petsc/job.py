@@ -35,7 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lc_petsc.io.disk import OutputError
+from lc_petsc.io import hdf5
+from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
+from lc_petsc.parallel import global_max, on_root
 
 EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
 EXIT_PREEMPTED = 75         # EX_TEMPFAIL: stopped by a signal after a checkpoint; restart
@@ -48,9 +50,6 @@ RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.preview
 PROG = "simulate.py"
 OUR_FILES = ("frames.h5", "frames.xdmf", "frames.usdc", "frames.tmp.usdc", "summary.json",
              "contact_sheet.png")
-#: set when libhdf5 failed on an open file: the process must end without closing it
-#: (lc_petsc.batch.exit_process), or libhdf5 crashes at exit
-hdf5_unclosable = False
 
 
 class Refused(Exception):
@@ -81,22 +80,6 @@ def petsc_options_used(sim, command_line):
 
 def _options_string(d):
     return " ".join(f"-{k} {v}".rstrip() for k, v in d.items())
-
-
-def _mpi_max():
-    from mpi4py import MPI
-    return MPI.MAX
-
-
-def _on_root(comm, action):
-    """Run ``action`` on rank 0; (result, None) or (None, its exception's message) on every rank."""
-    result, problem = None, None
-    if comm.rank == 0:
-        try:
-            result = action()
-        except Exception as e:  # noqa: BLE001 - reported on every rank by the caller
-            problem = e
-    return comm.bcast((result, problem))
 
 
 def output_estimate(cfg, n_wisps, n_vertices, rows_kept=0):
@@ -144,7 +127,6 @@ class Job:
     # ------------------------------------------------------------------ the steps
     def run(self):
         from lc_petsc.simulator import build_simulator
-        from lc_petsc.solver import SolverError
         from petsc4py import PETSc
         comm = self.comm
         self.preemption = Preemption(comm)
@@ -166,7 +148,7 @@ class Job:
                 self._unlock(refused=True)
                 return EXIT_USAGE
             try:
-                self.setup_time = comm.allreduce(time.perf_counter() - t_setup, op=_mpi_max())
+                self.setup_time = global_max(comm, time.perf_counter() - t_setup)
                 self.checkpointer = Checkpointer(self)
                 self._loop()
                 return self._finish()
@@ -183,7 +165,7 @@ class Job:
         if str(self.out) == "":
             raise Refused("the output folder is empty ('')")
         self.lock = OutputLock(self.out) if comm.rank == 0 else None
-        stale, problem = _on_root(comm, lambda: self.lock.acquire().stale)
+        stale, problem = on_root(comm, lambda: self.lock.acquire().stale)
         if isinstance(problem, FolderBusy):
             self.lock = None
             raise Refused(str(problem))
@@ -218,9 +200,8 @@ class Job:
     def _load_restart(self):
         """The checkpoint to continue from, checked against the config, the scene and
         the folder's frames.h5; restored into the simulator.  Raises Refused."""
-        from mpi4py import MPI
-        from lc_petsc.io.checkpoint import (CheckpointError, checkpoint_folder, config_differences,
-                                            find_latest, load_checkpoint)
+        from lc_petsc.io.checkpoint import (checkpoint_folder, config_differences, find_latest,
+                                            load_checkpoint)
         from lc_petsc.io.frames import resumable_problem
         comm, args, cfg, sim = self.comm, self.args, self.cfg, self.sim
         skipped = []
@@ -250,7 +231,7 @@ class Job:
             raise Refused(f"{ck['path']}: the checkpoint is at frame {ck['frame']}, the run ends at frame "
                           f"{cfg.time.frames} (time.frames / --frames is the total): nothing to do")
         same_rest = np.array_equal(ck["rest"], sim.scene.x_rest) and np.array_equal(ck["pinned"], sim.scene.pinned)
-        if comm.allreduce(int(not same_rest), op=MPI.MAX) != 0:
+        if global_max(comm, int(not same_rest)) != 0:
             if not args.force:
                 raise Refused(f"{ck['path']}: the checkpoint's rest positions or pinned vertices differ "
                               "from the scene's; restart with the same scene or add --force")
@@ -278,7 +259,7 @@ class Job:
                     if p.is_file():
                         reclaim += p.stat().st_size
             return free_bytes(self.out) + reclaim
-        avail, problem = _on_root(self.comm, free)
+        avail, problem = on_root(self.comm, free)
         if problem is not None:
             raise Refused(f"output folder {str(self.out)!r}: cannot query its free space ({problem})")
         if need + RESERVE > avail:
@@ -310,7 +291,7 @@ class Job:
             if (out / "previews").is_dir():
                 for p in (out / "previews").glob("frame_*.png"):
                     p.unlink()
-        _, problem = _on_root(self.comm, clean)
+        _, problem = on_root(self.comm, clean)
         if problem is not None:
             raise OutputError(f"output folder {str(out)!r}: cannot remove the previous run's outputs "
                               f"({problem.strerror if isinstance(problem, OSError) else problem})")
@@ -337,8 +318,6 @@ class Job:
 
     def _loop(self):
         """Steps 3 and 4: prepare, frame 0, the frames; failures end in self.error."""
-        from lc_petsc.parallel import SimulationError
-        from lc_petsc.solver import SolverError
         comm, cfg, sim = self.comm, self.cfg, self.sim
         start = 0 if self.restart is None else self.restart["frame"]
         self.t_loop = time.perf_counter()
@@ -373,8 +352,8 @@ class Job:
         except (SolverError, FloatingPointError, SimulationError) as e:
             self.error = str(e)
         except OutputError as e:
-            global hdf5_unclosable
-            hdf5_unclosable = hdf5_unclosable or e.hdf5_broken
+            if e.hdf5_broken:
+                hdf5.mark_unclosable()
             self.error = f"output error: {e}"
         except Exception as e:  # noqa: BLE001 - a failure that is not collective
             self._uncollective_failure(e)
@@ -417,8 +396,7 @@ class Job:
                 with sim.timers("io"):
                     self.writer.close()
             except OutputError as e:
-                global hdf5_unclosable
-                hdf5_unclosable = True
+                hdf5.mark_unclosable()
                 out_errors.append(str(e))
         preempted = self.preemption.signal_name if self.preemption.stopped else None
         summary = self._summary(preempted)
@@ -438,7 +416,7 @@ class Job:
         from lc_petsc.diagnostics import shape_measures
         comm, cfg, sim = self.comm, self.cfg, self.sim
         start = 0 if self.restart is None else self.restart["frame"]
-        loop_time = comm.allreduce(time.perf_counter() - self.t_loop, op=_mpi_max())
+        loop_time = global_max(comm, time.perf_counter() - self.t_loop)
         summary = sim.summary()
         summary["step_time_s"] = summary["wall_time_s"]
         summary["wall_time_s"] = loop_time
@@ -491,7 +469,7 @@ class Job:
         problems = []
         files = ["frames.h5"] if writer is not None else []
         t0 = time.perf_counter()
-        if cfg.output.xdmf and writer is not None and not hdf5_unclosable:
+        if cfg.output.xdmf and writer is not None and not hdf5.unclosable():
             try:
                 write_xdmf(out / "frames.xdmf", h5_path, self.times, sim.n_vertices, sim.n_wisps,
                            name=self.name)
@@ -500,7 +478,7 @@ class Job:
                 problems.append(f"{out / 'frames.xdmf'}: {e.strerror or e}")
         t_xdmf = time.perf_counter() - t0
         t0 = time.perf_counter()
-        if cfg.output.previews and writer is not None and writer.written and not hdf5_unclosable:
+        if cfg.output.previews and writer is not None and writer.written and not hdf5.unclosable():
             try:
                 files += [os.path.relpath(p, out) for p in _previews(cfg, out, h5_path, writer,
                                                                      cfg.time.frames, self.name)]
@@ -508,7 +486,7 @@ class Job:
                 problems.append(f"previews in {out}: {getattr(e, 'strerror', None) or e}")
         t_prev = time.perf_counter() - t0
         t_usd = 0.0
-        if writer is not None and writer.written and not hdf5_unclosable:
+        if writer is not None and writer.written and not hdf5.unclosable():
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_run
             try:
@@ -606,9 +584,8 @@ class Preemption:
 
     def agreed(self):
         """Collective: whether any rank received a signal (then ``stopped`` is set)."""
-        from mpi4py import MPI
         comm = self.comm
-        if not comm.allreduce(self.flag, op=MPI.MAX):
+        if not global_max(comm, self.flag):
             return False
         names = [n for n in comm.allgather(self.signal_name) if n]
         self.signal_name = names[0] if names else "a signal (on another rank)"

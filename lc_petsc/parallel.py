@@ -79,6 +79,38 @@ def collective_raise(comm, messages) -> None:
         raise ValueError(flat[0] + more)
 
 
+def on_root(comm, action):
+    """Run ``action()`` on rank 0 only; every rank gets ``(result, None)``, or ``(None,
+    the exception)`` when it raised there (the caller decides how to report it)."""
+    result, problem = None, None
+    if comm.rank == 0:
+        try:
+            result = action()
+        except Exception as e:  # noqa: BLE001 - handed to every rank
+            problem = e
+    return comm.bcast((result, problem))
+
+
+def global_max(comm, value):
+    """The largest ``value`` over the ranks of ``comm`` (on every rank)."""
+    from mpi4py import MPI
+    return comm.allreduce(value, op=MPI.MAX)
+
+
+def global_min(comm, value):
+    """The smallest ``value`` over the ranks of ``comm`` (on every rank)."""
+    from mpi4py import MPI
+    return comm.allreduce(value, op=MPI.MIN)
+
+
+def global_wisp_offsets(comm, local_offsets) -> np.ndarray:
+    """Global wisp offsets (n_wisps + 1,) int64 from every rank's local ones (its wisps'
+    vertex offsets, starting at 0): wisp w owns vertices ``offsets[w]:offsets[w + 1]``
+    in the global numbering (ranks own consecutive wisps in rank order)."""
+    sizes = np.concatenate(comm.allgather(np.diff(np.asarray(local_offsets, np.int64))))
+    return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+
+
 @contextmanager
 def collectively(comm, what):
     """Run a rank-local block; if it raises on any rank, raise on every rank.

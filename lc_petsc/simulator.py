@@ -12,9 +12,10 @@ from petsc4py import PETSc
 
 from lc_petsc import parallel
 from lc_petsc.assembly import Assembler
-from lc_petsc.config import SimConfig
+from lc_petsc.config import ELASTIC_TERMS, OTHER_TERMS, SimConfig
 from lc_petsc.integrator import Integrator
-from lc_petsc.rest_pose import RestPoseOverlapError, check_rest_pose
+from lc_petsc.errors import RestPoseOverlapError
+from lc_petsc.rest_pose import check_rest_pose
 from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.sources import source_from_config
 from lc_petsc.scene.state import LocalScene
@@ -85,7 +86,7 @@ class Simulator:
         voff = np.concatenate([[0], np.cumsum(source.sizes)])
         self.n_vertices = int(voff[-1])
         batch = source.load(w0, w1)
-        terms = [t for t in cfg.physics.terms if t in ("stretch", "bend", "twist")]
+        terms = [t for t in cfg.physics.terms if t in ELASTIC_TERMS]
         scene, problems = LocalScene.build(batch, cfg.material, terms, source.n_wisps,
                                            int(voff[w0]), self.n_vertices)
         parallel.collective_raise(comm, problems)
@@ -151,25 +152,24 @@ class Simulator:
         return np.concatenate(parts) if self.comm.rank == root else None
 
     def wisp_offsets(self):
-        sizes = np.concatenate(self.comm.allgather(np.diff(self.scene.offsets)))
-        return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        """Global wisp offsets (n_wisps + 1,), on every rank."""
+        return parallel.global_wisp_offsets(self.comm, self.scene.offsets)
 
     def terms_run(self):
         """The modelled terms: elastic terms with elements built, plus gravity and head
         contact when switched on (terms that are off are never evaluated)."""
         on = set(self.config.physics.terms)
-        return list(self.scene.terms) + [t for t in ("gravity", "head_collision", "strand_collision")
-                                         if t in on]
+        return list(self.scene.terms) + [t for t in OTHER_TERMS if t in on]
 
     def summary(self):
-        from mpi4py import MPI
-        tim = {k: self.comm.allreduce(v, op=MPI.MAX) for k, v in self.timers.as_dict().items()}
+        """The run's figures for summary.json (DESIGN section 3), on every rank."""
+        tim = {k: parallel.global_max(self.comm, v) for k, v in self.timers.as_dict().items()}
         return {
             "dofs": 3 * self.n_vertices,
             "wisps": self.n_wisps,
             "ranks": self.comm.size,
             "frames": self.integrator.frame,
-            "wall_time_s": self.comm.allreduce(self.wall, op=MPI.MAX),
+            "wall_time_s": parallel.global_max(self.comm, self.wall),
             "timings_s": tim,
             "newton_iterations": list(self.integrator.newton_iterations),
             "newton_converged": list(self.integrator.newton_converged),
@@ -219,11 +219,10 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type):
     """The strand-strand contact of ``cfg`` (docs/contact.md); thickness default: twice
     the smallest vertex radius of the scene; the preconditioner is built from the whole
     Newton matrix or the strand matrix alone as ``plan.contact_pc`` says."""
-    from mpi4py import MPI
     from lc_petsc.contact import StrandContact
     d0 = cfg.physics.strand_thickness
     if d0 is None:
-        d0 = 2.0 * comm.allreduce(float(scene.radius.min(initial=np.inf)), op=MPI.MIN)
+        d0 = 2.0 * parallel.global_min(comm, float(scene.radius.min(initial=np.inf)))
     strand = StrandContact(scene, comm, pcomm, timers, d0, cfg.physics.strand_stiffness,
                            filter=element_filter(cfg.solver.filter), mat_type=mat_type,
                            coupled_pc=plan.contact_pc == "coupled", mode=cfg.physics.strand_contact_mode,

@@ -272,7 +272,7 @@ def _pmat_type(layers: _Layers, mat_type: str, strand_pc: bool = False):
     (``strand_pc``): CG then runs tens to hundreds of iterations, and the point ILU of
     the AIJ copy avoids the block ILU's explicit 3x3 pivot inverses, whose round-off
     made runs on different rank counts drift apart faster on one machine
-    (docs/architecture.md has the measurements).
+    (docs/design_notes.md has the measurements).
     """
     explicit = layers.lookup("lc_pmat_type")
     if explicit:

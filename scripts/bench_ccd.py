@@ -10,7 +10,6 @@ both alike) and ends with a table of medians.
 
 import argparse
 import json
-import time
 
 import numpy as np
 from mpi4py import MPI
@@ -18,6 +17,7 @@ from mpi4py import MPI
 from lc_petsc.config import load_config
 from lc_petsc.crossings import count_crossings
 from lc_petsc.simulator import build_simulator
+from lc_petsc.timing import timed_frame
 
 
 def run(path, mode, frames):
@@ -30,12 +30,7 @@ def run(path, mode, frames):
     try:
         prev = sim.gather_positions()
         for f in range(frames):
-            before = dict(sim.timers.as_dict())
-            t0 = time.perf_counter()
-            sim.step()
-            wall = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
-            now = sim.timers.as_dict()
-            phases = {k: comm.allreduce(now[k] - before.get(k, 0.0), op=MPI.MAX) for k in now}
+            wall, phases, _ = timed_frame(sim)
             cur = sim.gather_positions()
             it = sim.integrator
             if comm.rank == 0:

@@ -1,4 +1,4 @@
-"""Benchmark the hairball with strand-strand contact (issue 7): per-frame wall time and
+"""Benchmark the hairball with strand-strand contact: per-frame wall time and
 phase breakdown, CG iterations per Newton solve, contact pairs per frame, minimum
 segment distance over the run.
 
@@ -29,21 +29,9 @@ from mpi4py import MPI  # noqa: E402
 from lc_petsc.config import load_config  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
 from lc_petsc.studies.contact_report import summarize, summary_table  # noqa: E402
+from lc_petsc.timing import timed_frame  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def timed_frame(sim, comm):
-    before = dict(sim.timers.as_dict())
-    n_ksp = len(sim.solver.iterations)
-    comm.Barrier()
-    t0 = time.perf_counter()
-    sim.step()
-    comm.Barrier()
-    wall = time.perf_counter() - t0
-    after = sim.timers.as_dict()
-    phases = {k: comm.allreduce(after[k] - before.get(k, 0.0), op=MPI.MAX) for k in after}
-    return wall, phases, sim.solver.iterations[n_ksp:]
 
 
 def main():
@@ -72,7 +60,7 @@ def main():
     t_build = time.perf_counter() - t0
     rows = []
     for f in range(args.frames):
-        wall, ph, its = timed_frame(sim, comm)
+        wall, ph, its = timed_frame(sim)
         pairs = sim.integrator.contact_pairs[-1]
         dmin = sim.integrator.contact_min_distance[-1]
         deep = sim.integrator.contact_deep_pairs[-1]

@@ -9,7 +9,7 @@ the peak memory of the process.
 
     .venv/bin/python scripts/bench_elements.py [--wisps 2000] [--repeats 7]
 
-Targets (issue 2): ratio >= 8, analytic total <= 1.0 s, peak memory < 3 GB.
+Targets: ratio >= 8, analytic total <= 1.0 s, peak memory < 3 GB.
 """
 
 import os

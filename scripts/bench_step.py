@@ -23,19 +23,7 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
-
-
-def timed_frame(sim, comm):
-    """Run one frame; return (wall time, per-phase times), both maxima over ranks."""
-    before = dict(sim.timers.as_dict())
-    comm.Barrier()
-    t0 = time.perf_counter()
-    sim.step()
-    comm.Barrier()
-    wall = time.perf_counter() - t0
-    after = sim.timers.as_dict()
-    phases = {k: comm.allreduce(after[k] - before.get(k, 0.0), op=MPI.MAX) for k in after}
-    return wall, phases
+from lc_petsc.timing import timed_frame  # noqa: E402
 
 
 def main():
@@ -53,10 +41,10 @@ def main():
     sim = build_simulator(cfg)
     comm.Barrier()
     t_build = time.perf_counter() - t0
-    first_wall, first_phases = timed_frame(sim, comm)
+    first_wall, first_phases, _ = timed_frame(sim)
     walls, phases = [], []
     for _ in range(args.frames):
-        w, p = timed_frame(sim, comm)
+        w, p, _ = timed_frame(sim)
         walls.append(w)
         phases.append(p)
     s = sim.summary()

@@ -1,4 +1,4 @@
-"""Stability at the extremes (issue 6): the catalogue's hard cases with their stated
+"""Stability at the extremes: the catalogue's hard cases with their stated
 expectations, PASS/FAIL and figures.
 
   python scripts/extremes.py [--quick] [--only NAME ...] [--out out/extremes] [PETSc options]

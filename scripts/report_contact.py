@@ -1,10 +1,10 @@
-"""Table and plot of strand-contact benchmark runs side by side (issue 7).
+"""Table and plot of strand-contact benchmark runs side by side.
 
   .venv/bin/python scripts/report_contact.py out/bench_contact_1r_100.json \
       out/bench_contact_2r_100.json --out out/bench_contact
 
 Reads the ``--json`` files of scripts/bench_contact.py (one per rank count) and writes
-``<out>.md`` (a markdown table, one column per run, and the issue's targets) and
+``<out>.md`` (a markdown table, one column per run, and the benchmark's targets) and
 ``<out>.png`` (wall time and phases, CG iterations, contact pairs and minimum distance
 per frame); the table is printed too.
 """

@@ -1,4 +1,4 @@
-"""Checkpoint and restart of the main job (issue 5): equivalence with a straight run
+"""Checkpoint and restart of the main job: equivalence with a straight run
 (serial: bitwise; 2 -> 3 and 3 -> 1 ranks through mpiexec: 3e-11 relative; measured 1.4e-11 with the edge
 retraction update, 5e-12 with the linear one), frames.h5
 holding every frame once and in order, SIGKILL while a checkpoint is written, SIGTERM,

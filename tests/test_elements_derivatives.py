@@ -1,4 +1,4 @@
-"""Derivative checks of the element kernels (issue 2, "Tests"; supplement's recipe).
+"""Derivative checks of the element kernels (supplement's recipe).
 
 * energy == independent reference energy;
 * gradient vs central differences of the kernel's energy, and exact Hessian

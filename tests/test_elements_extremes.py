@@ -1,5 +1,5 @@
-"""Extremes and bad input (issue 2: "Degenerate geometry returns finite values by a
-documented rule"; "Extremes ... finite outputs, PSD filters, no warnings from NumPy").
+"""Extremes and bad input: degenerate geometry returns finite values by a documented
+rule; extremes give finite outputs and PSD filters, with no warnings from NumPy.
 
 Every kernel call here runs with NumPy floating-point errors (divide, overflow, invalid)
 and Python warnings turned into exceptions (``element_helpers.no_numpy_warnings``).

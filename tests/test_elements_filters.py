@@ -1,4 +1,4 @@
-"""Hessian filters (issue 2: "Analytic filter ..."; SPEC section 3; docs/elements.md).
+"""Hessian filters (SPEC section 3; docs/elements.md).
 
 * "analytic" and "numerical" are PSD to round-off (min eig >= -1e-10 max |eig|) on random
   configurations, on crushed ones (stretch compressed 10x, bends/twists far from rest) and

@@ -1,5 +1,5 @@
-"""Invariances (issue 2: "zero energy and gradient at rest; rigid rotation and translation
-leave energy unchanged and rotate gradients"), plus the stiffness weights of SPEC section 2.
+"""Invariances (zero energy and gradient at rest; rigid rotation and translation leave
+the energy unchanged and rotate the gradients), plus the stiffness weights of SPEC section 2.
 
 * At rest (rest quantities measured on the same x, by the kernel and by an independent
   reference) the energy and gradient vanish.

@@ -99,7 +99,7 @@ def test_second_run_into_a_busy_folder_is_refused_and_changes_nothing(tmp_path, 
 
 def test_two_runs_started_one_after_the_other(tmp_path, capsys):
     """A runs (holding the lock), then B starts: B is refused naming A, A finishes its
-    own frames.h5 (the issue's race: B used to unlink A's file)."""
+    own frames.h5 (the race: B used to unlink A's file)."""
     cfg = _smash(tmp_path, frames=100000, ce=0)
     out = tmp_path / "out"
     a = subprocess.Popen([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet"],

@@ -1,5 +1,5 @@
 """BLAS / OpenMP thread pools: one thread per process unless the user chose a count
-(lc_petsc.parallel.limit_blas_threads; why: docs/architecture.md)."""
+(lc_petsc.parallel.limit_blas_threads; why: docs/design_notes.md)."""
 
 import os
 

@@ -118,7 +118,7 @@ def test_bench_contact_json_feeds_the_report(tmp_path):
     assert rep.returncode == 0, rep.stdout + rep.stderr
     assert (tmp_path / "rep_1.5.png").stat().st_size > 20_000
     md = (tmp_path / "rep_1.5.md").read_text()
-    assert "| 12-wisp hairball (3,636 DoFs) with contact | 1 rank |" in md and "Targets (issue 7)" in md
+    assert "| 12-wisp hairball (3,636 DoFs) with contact | 1 rank |" in md and "Targets, judged on" in md
     bad = tmp_path / "bad.json"
     bad.write_text('{"frames": []}')
     rep = subprocess.run([sys.executable, str(ROOT / "scripts" / "report_contact.py"), str(bad)],

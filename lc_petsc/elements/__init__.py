@@ -25,7 +25,8 @@ Every kernel validates its input (shape, finiteness, zero-length edges) and rais
 rules (see each module and ``docs/elements.md``).
 """
 
-from lc_petsc.elements.common import FILTERS, ElementError
+from lc_petsc.elements.common import FILTERS
+from lc_petsc.errors import ElementError
 from lc_petsc.elements import stretch, bend, twist, weights
 
 __all__ = ["FILTERS", "ElementError", "stretch", "bend", "twist", "weights"]

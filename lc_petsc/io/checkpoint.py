@@ -58,6 +58,9 @@ from pathlib import Path
 import numpy as np
 
 from lc_petsc.errors import CheckpointError
+from lc_petsc.io.disk import replace_atomically
+from lc_petsc.io.hdf5 import collective_file_options, collective_transfer, h5py_module
+from lc_petsc.parallel import global_wisp_offsets, on_root
 
 FORMAT = "lc_petsc checkpoint"
 FORMAT_VERSION = 1
@@ -71,9 +74,6 @@ CONTACT_STATE = "none: contact is recomputed from positions and time at every ca
 _NAME = re.compile(r"^checkpoint_(\d+)\.h5$")
 
 
-def _h5py():
-    import h5py
-    return h5py
 
 
 def checkpoint_folder(out) -> Path:
@@ -151,14 +151,6 @@ def _meta_digest(attrs) -> str:
     return hashlib.sha256(json.dumps(meta, sort_keys=True).encode()).hexdigest()
 
 
-def _fsync_path(path, directory=False):
-    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _pause(frame):
     spec = os.environ.get(PAUSE_ENV)
     if spec:
@@ -168,16 +160,13 @@ def _pause(frame):
 
 
 def _on_root(comm, action, what):
-    """Run a file-system ``action`` on rank 0; an OSError there is raised on every rank."""
-    problem = None
-    if comm.rank == 0:
-        try:
-            action()
-        except OSError as e:
-            problem = f"{what}: {e.strerror or e}"
-    problem = comm.bcast(problem)
-    if problem:
-        raise OSError(problem)
+    """Run a file-system ``action`` on rank 0; an OSError there is raised on every rank
+    as an OSError naming ``what``."""
+    _, problem = on_root(comm, action)
+    if isinstance(problem, OSError):
+        raise OSError(f"{what}: {problem.strerror or problem}")
+    if problem is not None:
+        raise problem
 
 
 def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, head, dt, every,
@@ -185,7 +174,7 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
     """Collectively write the checkpoint of ``frame`` into ``<out>/checkpoints``; keep the
     newest ``keep``.  ``x``/``v``: this rank's rows; ``scene``: the rank's LocalScene.
     Returns (path, seconds, bytes) on every rank."""
-    h5py = _h5py()
+    h5py = h5py_module()
     t0 = time.perf_counter()
     folder = checkpoint_folder(out)
     final = checkpoint_path(out, frame)
@@ -200,8 +189,7 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
     local = {"positions": np.asarray(x, np.float64), "velocities": np.asarray(v, np.float64),
              "rest_positions": np.asarray(scene.x_rest, np.float64), "pinned": np.asarray(scene.pinned, np.bool_)}
     digests = {k: _combine(comm, _wisp_digests(a, lo)) for k, a in local.items()}
-    sizes = np.concatenate(comm.allgather(np.diff(lo)))
-    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    offsets = global_wisp_offsets(comm, lo)
     hs = head_state(head, t)
     digests.update({"wisp_offsets": _whole(offsets), "head_state": _whole(hs)})
     digests = comm.bcast(digests)          # attributes are written collectively: same values
@@ -213,11 +201,8 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
              "lc_petsc_version": version, "contact_state": CONTACT_STATE}
     attrs["meta_sha256"] = _meta_digest(attrs)
 
-    parallel = bool(h5py.get_config().mpi)
-    kw = {"driver": "mpio", "comm": comm} if parallel else {}
-    dxpl = h5py.h5p.create(h5py.h5p.DATASET_XFER)
-    if parallel:
-        dxpl.set_dxpl_mpio(h5py.h5fd.MPIO_COLLECTIVE)
+    kw = collective_file_options(comm)
+    dxpl = collective_transfer()
     v0 = int(scene.first_vertex)
     try:
         _write_file(h5py, tmp, kw, local, digests, n_vertices, v0, offsets, hs, attrs, dxpl, comm, frame)
@@ -225,9 +210,7 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
         from lc_petsc.io.frames import _h5_error
         raise _h5_error(tmp, e) from None
     def publish():
-        _fsync_path(tmp)
-        os.replace(tmp, final)
-        _fsync_path(folder, directory=True)
+        replace_atomically(tmp, final, fsync=True)
         for old in list_checkpoints(folder)[max(int(keep), 1):]:
             old.unlink(missing_ok=True)
     _on_root(comm, publish, f"checkpoint {str(final)!r}")
@@ -264,16 +247,6 @@ def _write_file(h5py, tmp, kw, local, digests, n_vertices, v0, offsets, hs, attr
         f.flush()
 
 
-def remove_stale(folder, comm, everything=False):
-    """Rank 0 removes ``.tmp`` leftovers of killed writers (and, with ``everything``,
-    the checkpoints: a new run in this folder replaces frames.h5 they belong to)."""
-    if comm.rank == 0 and Path(folder).is_dir():
-        for p in Path(folder).iterdir():
-            if p.name.endswith(".h5.tmp") or (everything and _NAME.match(p.name)):
-                p.unlink(missing_ok=True)
-    comm.Barrier()
-
-
 def _attr(v):
     if isinstance(v, bytes):
         return v.decode()
@@ -285,7 +258,7 @@ def _attr(v):
 def _precheck(path, n_wisps, n_vertices, offsets, head):
     """Rank 0, serial: format, version, counts, attribute and small-dataset checksums.
     Returns the attributes; raises CheckpointError."""
-    h5py = _h5py()
+    h5py = h5py_module()
     name = str(path)
     if not os.path.exists(name):
         raise CheckpointError(f"{name}: no such checkpoint file")
@@ -342,10 +315,9 @@ def load_checkpoint(path, comm, scene, n_wisps, n_vertices, head):
     LocalScene).  Returns a dict: ``x``, ``v`` (this rank's rows), ``frame``, ``time``,
     ``attrs`` (root attributes, ``config`` parsed), ``path``.  Raises
     :class:`CheckpointError` on every rank."""
-    h5py = _h5py()
+    h5py = h5py_module()
     lo = np.asarray(scene.offsets, np.int64)
-    sizes = np.concatenate(comm.allgather(np.diff(lo)))
-    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    offsets = global_wisp_offsets(comm, lo)
     res = None
     if comm.rank == 0:
         try:
@@ -357,8 +329,7 @@ def load_checkpoint(path, comm, scene, n_wisps, n_vertices, head):
         raise CheckpointError(str(res))
     attrs = res
     name = str(path)
-    parallel = bool(h5py.get_config().mpi)
-    kw = {"driver": "mpio", "comm": comm} if parallel else {}
+    kw = collective_file_options(comm)
     v0, nv = int(scene.first_vertex), len(scene.x_rest)
     data, err = {}, None
     try:

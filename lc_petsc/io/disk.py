@@ -14,7 +14,10 @@ HDF5 writes when the files are closed and for ``summary.json``.
 
 from __future__ import annotations
 
+import os
 import shutil
+from contextlib import contextmanager
+from pathlib import Path
 
 from lc_petsc.errors import OutputError
 
@@ -55,3 +58,37 @@ def check_space(comm, folder, needed, what):
     problem = comm.bcast(problem)
     if problem:
         raise OutputError(problem)
+
+
+def replace_atomically(tmp, path, fsync=False):
+    """Rename the complete file ``tmp`` over ``path``.  Atomic on POSIX: a reader sees
+    the old file or the new one, never half of one.  ``fsync``: ``tmp``'s data reach the
+    disk before the rename and the folder's entry after it, so a crash leaves one of the
+    two files whole (checkpoints)."""
+    if fsync:
+        _fsync_path(tmp)
+    os.replace(tmp, path)
+    if fsync:
+        _fsync_path(Path(path).parent, directory=True)
+
+
+@contextmanager
+def written_aside(path, tmp=None):
+    """Write ``path`` through a temporary file next to it (default ``<path>.tmp``): yields
+    the temporary path; when the block completes the file replaces ``path``
+    (:func:`replace_atomically`), when it raises the file is removed."""
+    tmp = Path(f"{path}.tmp") if tmp is None else Path(tmp)
+    try:
+        yield tmp
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    replace_atomically(tmp, path)
+
+
+def _fsync_path(path, directory=False):
+    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

@@ -37,19 +37,16 @@ import re
 
 import numpy as np
 
+from lc_petsc.io.hdf5 import collective_file_options, collective_transfer, h5py_module, is_parallel
+
 FORMAT = "lc_petsc frames 1"
-
-
-def _h5py():
-    import h5py
-    return h5py
 
 
 def write_rows(dset, start, data, dxpl):
     """Write ``data`` at ``start`` (a corner) of ``dset`` through the low-level API;
     collective when ``dxpl`` says so, an empty ``data`` takes part with an empty
     selection (h5py's high-level API would skip the call and deadlock the others)."""
-    h5py = _h5py()
+    h5py = h5py_module()
     data = np.ascontiguousarray(data, dtype=dset.dtype)
     fs = dset.id.get_space()
     if data.size:
@@ -88,7 +85,7 @@ def _h5_error(path, e):
 def resumable_problem(path, n_wisps, n_vertices, rows):
     """Why ``path`` cannot be appended to by a restart needing its first ``rows`` frame
     rows, or None.  Serial and read-only (rank 0, before anything is changed)."""
-    h5py = _h5py()
+    h5py = h5py_module()
     path = str(path)
     hint = "; restart with --out naming the folder of the checkpointed run"
     if not os.path.isfile(path):
@@ -129,10 +126,10 @@ class FramesWriter:
     def __init__(self, path, comm, *, n_wisps, n_vertices, first_wisp, first_vertex,
                  local_offsets, rest_positions, pinned, n_out, attrs, resume_rows=None,
                  radius=None):
-        h5py = _h5py()
+        h5py = h5py_module()
         self.comm, self.path = comm, str(path)
         self.folder = os.path.dirname(os.path.abspath(self.path))
-        self.parallel = bool(h5py.get_config().mpi)
+        self.parallel = is_parallel()
         if comm.size > 1 and not self.parallel:
             raise RuntimeError("frames.h5 with several ranks needs an MPI-enabled h5py "
                                "(Debian's python3-h5py-mpi, run under mpiexec)")
@@ -143,12 +140,10 @@ class FramesWriter:
         self.times_kept = []           # times of the frames kept from before a restart
         # no chunk cache: a frame goes to the file when written, so the space checked
         # before the write is the space it takes
-        kw = {"driver": "mpio", "comm": comm} if self.parallel else {}
+        kw = collective_file_options(comm)
         if not self.parallel:          # (mpio writes go to the file, no cache)
             kw["rdcc_nbytes"] = 0
-        self._dxpl = h5py.h5p.create(h5py.h5p.DATASET_XFER)
-        if self.parallel:
-            self._dxpl.set_dxpl_mpio(h5py.h5fd.MPIO_COLLECTIVE)
+        self._dxpl = collective_transfer()
         try:
             if resume_rows is not None:
                 self._resume(kw, n_wisps, int(resume_rows), attrs)
@@ -163,7 +158,7 @@ class FramesWriter:
 
     def _create(self, kw, n_wisps, first_wisp, local_offsets, rest_positions, pinned, attrs,
                 radius=None):
-        h5py = _h5py()
+        h5py = h5py_module()
         comm = self.comm
         self.f = f = h5py.File(self.path, "w", **kw)
         nv = self.nv
@@ -203,7 +198,7 @@ class FramesWriter:
         """Reopen an existing ``frames.h5`` (restart): keep its first ``rows`` frames,
         write the next frame at row ``rows`` (later rows are overwritten).  A file that
         does not fit is a ValueError (:func:`resumable_problem` checks it beforehand)."""
-        h5py = _h5py()
+        h5py = h5py_module()
         try:
             self.f = f = h5py.File(self.path, "r+", **kw)
         except (OSError, FileNotFoundError) as e:
@@ -234,7 +229,7 @@ class FramesWriter:
         f.attrs["ranks"] = self.comm.size
 
     def _dataset(self, name, shape, dtype, maxshape=None, chunks=None):
-        h5py = _h5py()
+        h5py = h5py_module()
         dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
         dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
         if chunks is not None:
@@ -307,7 +302,7 @@ class FramesWriter:
 def read_frames(path, frames=None):
     """Read ``frames.h5`` (serially) into a dict of arrays; ``frames`` selects rows of
     ``/positions`` and ``/time`` (default: all)."""
-    h5py = _h5py()
+    h5py = h5py_module()
     with h5py.File(path, "r") as f:
         sel = slice(None) if frames is None else np.asarray(frames)
         out = {k: f[k][...] for k in ("wisp_offsets", "rest_positions", "pinned")}

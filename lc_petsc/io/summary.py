@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import json
-import os
 
 import numpy as np
+
+from lc_petsc.io.disk import written_aside
 
 
 def _jsonable(o):
@@ -22,11 +23,9 @@ def _jsonable(o):
 
 def write_summary(path, summary):
     """Write ``summary`` as JSON (atomically: a reader never sees half a file)."""
-    tmp = f"{path}.tmp"
-    with open(tmp, "w") as fh:
+    with written_aside(path) as tmp, open(tmp, "w") as fh:
         json.dump(_jsonable(summary), fh, indent=1)
         fh.write("\n")
-    os.replace(tmp, path)
 
 
 def _fmt_s(s):

@@ -32,13 +32,14 @@ is saved once at the end and held in memory until then).  The file is written as
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
+
+from lc_petsc.io.disk import written_aside
 
 USD_NAME = "frames.usdc"
 
@@ -165,7 +166,7 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
         tmp = usd_path.with_name(usd_path.stem + ".tmp" + usd_path.suffix)
         tmp.unlink(missing_ok=True)
         stage = Usd.Stage.CreateNew(str(tmp))
-        try:
+        with written_aside(usd_path, tmp):
             UsdGeom.SetStageMetersPerUnit(stage, 0.01)
             UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
             tcps = 1.0 / (dt * every)
@@ -228,10 +229,6 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
                     progress(done + 1, len(rows))
             stage.Save()
             del stage
-            os.replace(tmp, usd_path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
     return {"path": str(usd_path), "frames": len(rows), "wisps": int(len(sizes)),
             "points": int(offsets[-1]), "render_hairs": int(n_hairs) * int(len(sizes)),
             "render_hair_points": int(n_hairs) * int(offsets[-1]),

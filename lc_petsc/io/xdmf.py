@@ -16,6 +16,8 @@ from __future__ import annotations
 import os
 from xml.sax.saxutils import quoteattr
 
+from lc_petsc.io.disk import written_aside
+
 
 def write_xdmf(xdmf_path, h5_path, times, n_vertices, n_wisps, name="frames"):
     """Write ``xdmf_path`` describing the frames of ``h5_path`` at ``times``."""
@@ -45,7 +47,5 @@ def write_xdmf(xdmf_path, h5_path, times, n_vertices, n_wisps, name="frames"):
             '    </Geometry>',
             '   </Grid>']
     lines += ['  </Grid>', ' </Domain>', '</Xdmf>', '']
-    tmp = f"{xdmf_path}.tmp"
-    with open(tmp, "w") as fh:
+    with written_aside(xdmf_path) as tmp, open(tmp, "w") as fh:
         fh.write("\n".join(lines))
-    os.replace(tmp, xdmf_path)

@@ -12,6 +12,7 @@ from typing import Optional
 
 import numpy as np
 
+from lc_petsc.errors import SceneError
 from lc_petsc.scene import geometry
 
 
@@ -62,11 +63,11 @@ class ArraySource(SceneSource):
         self.offsets = np.asarray(offsets, np.int64)
         if self.offsets.ndim != 1 or len(self.offsets) < 2 or self.offsets[0] != 0 \
                 or np.any(np.diff(self.offsets) < 0) or self.offsets[-1] != len(self.positions):
-            raise ValueError(
+            raise SceneError(
                 "wisp_offsets must start at 0, be non-decreasing and end at the vertex count "
                 f"{len(self.positions)}, got {self.offsets[:5]}...{self.offsets[-3:]}")
         if self.positions.ndim != 2 or self.positions.shape[1] != 3:
-            raise ValueError(f"positions must have shape (n_vertices, 3), got {self.positions.shape}")
+            raise SceneError(f"positions must have shape (n_vertices, 3), got {self.positions.shape}")
         self.sizes = np.diff(self.offsets)
         self.n_wisps = len(self.sizes)
         if radius is None:
@@ -116,7 +117,7 @@ def _chunks(dset, n):
 
 def check_strands_file(path):
     """Validate the strands file ``path`` before anything large is read; returns the wisp
-    offsets (n_wisps + 1,).  Every problem is a one-line ValueError naming the file and
+    offsets (n_wisps + 1,).  Every problem is a one-line SceneError naming the file and
     the dataset: not HDF5, empty or truncated; a dataset that is missing, a group, a soft
     or external link, stored in external files or virtual; the wrong type (complex,
     strings, float offsets or pins); the wrong shape or length; values out of range; a
@@ -127,15 +128,15 @@ def check_strands_file(path):
     try:
         size = os.path.getsize(path)
     except OSError as e:
-        raise ValueError(f"{where}: cannot be read ({e.strerror or e})") from None
+        raise SceneError(f"{where}: cannot be read ({e.strerror or e})") from None
     if size == 0:
-        raise ValueError(f"{where}: the file is empty (0 bytes), not an HDF5 strands file")
+        raise SceneError(f"{where}: the file is empty (0 bytes), not an HDF5 strands file")
     try:
         if not h5py.is_hdf5(path):
-            raise ValueError(f"{where}: not an HDF5 file (a strands file has /positions and /wisp_offsets)")
+            raise SceneError(f"{where}: not an HDF5 file (a strands file has /positions and /wisp_offsets)")
         f = h5py.File(path, "r")
     except OSError as e:
-        raise ValueError(f"{where}: unreadable or truncated HDF5 file ({str(e).split(' (')[0]})") from None
+        raise SceneError(f"{where}: unreadable or truncated HDF5 file ({str(e).split(' (')[0]})") from None
     try:
         with f:
             dsets = {}
@@ -143,64 +144,64 @@ def check_strands_file(path):
                 link = f.get(name, getlink=True)
                 if link is None:
                     if name in ("positions", "wisp_offsets"):
-                        raise ValueError(f"{where}: missing dataset /{name}")
+                        raise SceneError(f"{where}: missing dataset /{name}")
                     continue
                 if isinstance(link, (h5py.SoftLink, h5py.ExternalLink)):
                     kind = "a soft link" if isinstance(link, h5py.SoftLink) else "an external link"
-                    raise ValueError(f"{where}: /{name} is {kind}; store the dataset itself in the file")
+                    raise SceneError(f"{where}: /{name} is {kind}; store the dataset itself in the file")
                 d = f.get(name)
                 if not isinstance(d, h5py.Dataset):
-                    raise ValueError(f"{where}: /{name} is a {type(d).__name__.lower()}, not a dataset")
+                    raise SceneError(f"{where}: /{name} is a {type(d).__name__.lower()}, not a dataset")
                 if d.is_virtual or d.id.get_create_plist().get_external_count() > 0:
-                    raise ValueError(f"{where}: /{name} keeps its data in other files (external or "
+                    raise SceneError(f"{where}: /{name} keeps its data in other files (external or "
                                      "virtual storage); store the dataset itself in the file")
                 kinds, what = _KINDS[name]
                 if d.dtype.kind not in kinds or d.dtype.fields is not None:
-                    raise ValueError(f"{where}: /{name} has type {d.dtype}, expected {what}")
+                    raise SceneError(f"{where}: /{name} has type {d.dtype}, expected {what}")
                 dsets[name] = d
             pos, off = dsets["positions"], dsets["wisp_offsets"]
             if pos.ndim != 2 or pos.shape[1] != 3:
-                raise ValueError(f"{where}: /positions must be (n_vertices, 3), got {pos.shape}")
+                raise SceneError(f"{where}: /positions must be (n_vertices, 3), got {pos.shape}")
             nv = int(pos.shape[0])
             if off.ndim != 1 or off.shape[0] < 2:
-                raise ValueError(f"{where}: /wisp_offsets must be 1-D with n_wisps + 1 >= 2 entries, "
+                raise SceneError(f"{where}: /wisp_offsets must be 1-D with n_wisps + 1 >= 2 entries, "
                                  f"got shape {off.shape}")
             nw = int(off.shape[0]) - 1
             need, have = BYTES_PER_VERTEX * nv + 8 * (nw + 1), machine_memory()
             if need > have:
-                raise ValueError(f"{where}: /positions declares {nv:,} vertices; a run needs at least "
+                raise SceneError(f"{where}: /positions declares {nv:,} vertices; a run needs at least "
                                  f"{BYTES_PER_VERTEX} bytes per vertex, {need / 1e9:.3g} GB, and this "
                                  f"machine has {have / 1e9:.3g} GB of memory")
             for name, n in (("radius", nv), ("pinned", nv), ("youngs_modulus", nw), ("density", nw)):
                 if name in dsets and dsets[name].shape != (n,):
                     per = "vertex" if n == nv else "wisp"
-                    raise ValueError(f"{where}: /{name} must have one entry per {per}, shape ({n},), "
+                    raise SceneError(f"{where}: /{name} must have one entry per {per}, shape ({n},), "
                                      f"got {dsets[name].shape}")
             try:
                 offsets = np.asarray(off[...], np.int64)
                 if offsets[0] != 0 or np.any(np.diff(offsets) < 0) or offsets[-1] != nv:
-                    raise ValueError(f"{where}: /wisp_offsets must start at 0, be non-decreasing and end "
+                    raise SceneError(f"{where}: /wisp_offsets must start at 0, be non-decreasing and end "
                                      f"at the vertex count {nv}")
                 for a in _chunks(pos, nv):
                     if not np.isfinite(a).all():
-                        raise ValueError(f"{where}: /positions has non-finite values")
+                        raise SceneError(f"{where}: /positions has non-finite values")
                 for name in ("radius", "youngs_modulus", "density"):
                     if name in dsets:
                         for a in _chunks(dsets[name], dsets[name].shape[0]):
                             if not (np.isfinite(a).all() and (a > 0).all()):
-                                raise ValueError(f"{where}: /{name} must be finite and positive")
+                                raise SceneError(f"{where}: /{name} must be finite and positive")
                 if "pinned" in dsets and dsets["pinned"].dtype.kind != "b":
                     for a in _chunks(dsets["pinned"], nv):
                         if not np.isin(a, (0, 1)).all():
-                            raise ValueError(f"{where}: /pinned holds values other than 0 and 1")
+                            raise SceneError(f"{where}: /pinned holds values other than 0 and 1")
             except OSError as e:
-                raise ValueError(f"{where}: a dataset cannot be read, the file is truncated or "
+                raise SceneError(f"{where}: a dataset cannot be read, the file is truncated or "
                                  f"corrupt ({str(e).split(' (')[0]})") from None
             return offsets
     except ValueError:
         raise
     except (OSError, RuntimeError, KeyError) as e:
-        raise ValueError(f"{where}: unreadable HDF5 file ({str(e).split(' (')[0]})") from None
+        raise SceneError(f"{where}: unreadable HDF5 file ({str(e).split(' (')[0]})") from None
 
 
 class FileSource(SceneSource):
@@ -257,7 +258,7 @@ class GeneratedSource(SceneSource):
             normal, frame = geometry.hairball_root(w, self.n_wisps, self.seed)
             x = geometry.place(geometry.wisp4c_local(n), self.head_radius * normal, normal, frame=frame)
         else:
-            raise ValueError(f"unknown generated scene kind {self.kind!r}")
+            raise SceneError(f"unknown generated scene kind {self.kind!r}")
         return x
 
     def load(self, w0, w1):

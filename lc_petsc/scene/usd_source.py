@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lc_petsc.errors import SceneError
 from lc_petsc.scene.sources import ArraySource
 
 CUBIC_VSTEP = {"bezier": 3, "bspline": 1, "catmullRom": 1}
@@ -60,7 +61,7 @@ def cubic_weights(basis, u):
     if basis == "catmullRom":
         w = [-u ** 3 + 2 * u ** 2 - u, 3 * u ** 3 - 5 * u ** 2 + 2, -3 * u ** 3 + 4 * u ** 2 + u, u ** 3 - u ** 2]
         return np.hstack(w) / 2.0
-    raise ValueError(f"unknown cubic basis {basis!r}")
+    raise SceneError(f"unknown cubic basis {basis!r}")
 
 
 def cubic_segments(n, basis, wrap):
@@ -104,7 +105,7 @@ def _pxr():
     try:
         from pxr import Tf, Usd, UsdGeom
     except ImportError as e:           # pragma: no cover - usd-core is a dependency
-        raise ValueError(f"scene.kind = 'usd' needs Pixar's USD (pip install usd-core): {e}") from None
+        raise SceneError(f"scene.kind = 'usd' needs Pixar's USD (pip install usd-core): {e}") from None
     return Tf, Usd, UsdGeom
 
 
@@ -122,32 +123,32 @@ class UsdCurves:
         if pts_attr.Get(t) is None:
             samples = pts_attr.GetTimeSamples()
             if not samples:
-                raise ValueError(f"{where}: has no points (neither a default value nor time samples)")
+                raise SceneError(f"{where}: has no points (neither a default value nor time samples)")
             t = Usd.TimeCode(samples[0])
         pts = np.asarray(pts_attr.Get(t), float).reshape(-1, 3)
         counts = curves.GetCurveVertexCountsAttr().Get(t)
         if counts is None or len(counts) == 0:
-            raise ValueError(f"{where}: has no curveVertexCounts (one vertex count per curve is needed)")
+            raise SceneError(f"{where}: has no curveVertexCounts (one vertex count per curve is needed)")
         counts = np.asarray(counts, np.int64)
         if np.any(counts <= 0) or counts.sum() != len(pts):
-            raise ValueError(f"{where}: curveVertexCounts add up to {int(counts.sum())} (smallest "
+            raise SceneError(f"{where}: curveVertexCounts add up to {int(counts.sum())} (smallest "
                              f"{int(counts.min())}) but there are {len(pts)} points; they must add up to "
                              "the point count, each at least 1")
         bad = ~np.isfinite(pts).all(axis=1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             c = int(np.searchsorted(np.cumsum(counts), i, side="right"))
-            raise ValueError(f"{where}: point {i} (curve {c}) is not finite: {pts[i].tolist()}")
+            raise SceneError(f"{where}: point {i} (curve {c}) is not finite: {pts[i].tolist()}")
         kind = curves.GetTypeAttr().Get(t)
         basis = curves.GetBasisAttr().Get(t)
         wrap = curves.GetWrapAttr().Get(t)
         if wrap == "periodic":
-            raise ValueError(f"{where}: wrap = 'periodic' (closed curves) cannot be hair strands; "
+            raise SceneError(f"{where}: wrap = 'periodic' (closed curves) cannot be hair strands; "
                              "export open curves (wrap 'nonperiodic' or 'pinned')")
         if kind not in ("linear", "cubic"):
-            raise ValueError(f"{where}: type {kind!r} is not 'linear' or 'cubic'")
+            raise SceneError(f"{where}: type {kind!r} is not 'linear' or 'cubic'")
         if kind == "cubic" and basis not in CUBIC_VSTEP:
-            raise ValueError(f"{where}: cubic basis {basis!r} is not one of {tuple(CUBIC_VSTEP)}")
+            raise SceneError(f"{where}: cubic basis {basis!r} is not one of {tuple(CUBIC_VSTEP)}")
 
         widths = curves.GetWidthsAttr().Get(t)
         w_interp = curves.GetWidthsInterpolation()
@@ -164,7 +165,7 @@ class UsdCurves:
                 c = int(np.flatnonzero(nseg < 0)[0])
                 need = ("3k + 1 control points (4, 7, 10, ...)" if basis == "bezier"
                         else "at least 2 control points" if wrap == "pinned" else "at least 4 control points")
-                raise ValueError(f"{where}: curve {c} has {int(counts[c])} control points; a {basis} "
+                raise SceneError(f"{where}: curve {c} has {int(counts[c])} control points; a {basis} "
                                  f"curve with wrap {wrap!r} needs {need}")
         pinned = self._pinned(curves, t, kind, len(pts), UsdGeom)
 
@@ -174,13 +175,13 @@ class UsdCurves:
                     "faceVarying": n_varying, "vertex": len(pts)}
         if widths is not None:
             if w_interp not in expected:
-                raise ValueError(f"{where}: widths interpolation {w_interp!r} is not supported")
+                raise SceneError(f"{where}: widths interpolation {w_interp!r} is not supported")
             if len(widths) != expected[w_interp]:
-                raise ValueError(f"{where}: {len(widths)} widths with {w_interp!r} interpolation; "
+                raise SceneError(f"{where}: {len(widths)} widths with {w_interp!r} interpolation; "
                                  f"expected {expected[w_interp]}")
             if not np.all(np.isfinite(widths) & (widths > 0)):
                 i = int(np.flatnonzero(~(np.isfinite(widths) & (widths > 0)))[0])
-                raise ValueError(f"{where}: width {i} is {widths[i]!r}; widths must be finite and positive")
+                raise SceneError(f"{where}: width {i} is {widths[i]!r}; widths must be finite and positive")
 
         # world transform, units, up axis
         M = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t), float)
@@ -233,7 +234,7 @@ class UsdCurves:
             r = np.concatenate(out_r) if widths is not None else None
             if r is not None and not np.all(r > 0):
                 c = int(np.searchsorted(np.cumsum(sizes), int(np.flatnonzero(r <= 0)[0]), side="right"))
-                raise ValueError(f"{where}: curve {c}: the widths evaluated on the cubic curve are not "
+                raise SceneError(f"{where}: curve {c}: the widths evaluated on the cubic curve are not "
                                  "positive (vertex widths overshoot); use varying or uniform widths")
         self.radius = None if r is None else 0.5 * width_scale * np.asarray(r, float)
         self.pinned = pinned
@@ -242,7 +243,7 @@ class UsdCurves:
         if len(short):
             c = int(short[0])
             extra = f" (resampled from {int(counts[c])} {basis} control points)" if kind == "cubic" else ""
-            raise ValueError(f"{where}: curve {c} has {int(self.offsets[c + 1] - self.offsets[c])} "
+            raise SceneError(f"{where}: curve {c} has {int(self.offsets[c + 1] - self.offsets[c])} "
                              f"vertices{extra}; a wisp needs at least 4")
 
     def _pinned(self, curves, t, kind, n_points, UsdGeom):
@@ -251,20 +252,20 @@ class UsdCurves:
             return None
         where = self.where
         if kind != "linear":
-            raise ValueError(f"{where}: primvars:pinned is read on linear curves only; remove it "
+            raise SceneError(f"{where}: primvars:pinned is read on linear curves only; remove it "
                              "(the first scene.n_pinned vertices of each curve are then pinned) or "
                              "export linear curves")
         tname = str(pv.GetTypeName())
         if tname not in ("int[]", "bool[]"):
-            raise ValueError(f"{where}: primvars:pinned has type {tname}; expected int[] or bool[] "
+            raise SceneError(f"{where}: primvars:pinned has type {tname}; expected int[] or bool[] "
                              "(non-zero = pinned)")
         if pv.GetInterpolation() not in ("vertex", "varying"):
-            raise ValueError(f"{where}: primvars:pinned has {pv.GetInterpolation()!r} interpolation; "
+            raise SceneError(f"{where}: primvars:pinned has {pv.GetInterpolation()!r} interpolation; "
                              "expected 'vertex' (one value per point)")
         v = pv.Get(t)
         v = np.asarray(v if v is not None else [], np.int64)
         if len(v) != n_points:
-            raise ValueError(f"{where}: primvars:pinned has {len(v)} values; expected one per point "
+            raise SceneError(f"{where}: primvars:pinned has {len(v)} values; expected one per point "
                              f"({n_points})")
         return v != 0
 
@@ -276,29 +277,29 @@ def _stage_curves(path, prim_path):
     try:
         stage = Usd.Stage.Open(str(path))
     except Tf.ErrorException as e:
-        raise ValueError(f"{where}: cannot open it as USD ({str(e).strip().splitlines()[-1]})") from None
+        raise SceneError(f"{where}: cannot open it as USD ({str(e).strip().splitlines()[-1]})") from None
     if stage is None:
-        raise ValueError(f"{where}: cannot open it as USD")
+        raise SceneError(f"{where}: cannot open it as USD")
     every = [p for p in stage.Traverse() if p.IsA(UsdGeom.BasisCurves)]
     listing = ", ".join(str(p.GetPath()) for p in every[:10]) + (" ..." if len(every) > 10 else "")
     if prim_path:
         prim = stage.GetPrimAtPath(prim_path)
         if not prim or not prim.IsValid():
-            raise ValueError(f"{where}: no prim at scene.prim_path = {prim_path!r}; BasisCurves prims "
+            raise SceneError(f"{where}: no prim at scene.prim_path = {prim_path!r}; BasisCurves prims "
                              f"in the file: {listing or 'none'}")
         chosen = [p for p in Usd.PrimRange(prim) if p.IsA(UsdGeom.BasisCurves)]
         if not chosen:
-            raise ValueError(f"{where}: scene.prim_path = {prim_path!r} is a {prim.GetTypeName() or 'typeless'} "
+            raise SceneError(f"{where}: scene.prim_path = {prim_path!r} is a {prim.GetTypeName() or 'typeless'} "
                              f"prim with no BasisCurves at or under it; BasisCurves prims in the file: "
                              f"{listing or 'none'}")
     else:
         if not every:
             kinds = sorted({str(p.GetTypeName()) for p in stage.Traverse() if p.GetTypeName()})
-            raise ValueError(f"{where}: holds no BasisCurves prim (prim types found: "
+            raise SceneError(f"{where}: holds no BasisCurves prim (prim types found: "
                              f"{', '.join(kinds) or 'none'}); export the groom as USD curves "
                              "(BasisCurves)")
         if len(every) > 1:
-            raise ValueError(f"{where}: holds {len(every)} BasisCurves prims ({listing}); set "
+            raise SceneError(f"{where}: holds {len(every)} BasisCurves prims ({listing}); set "
                              "scene.prim_path to the one to read, or to a prim above those to read")
         chosen = every
     mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
@@ -321,7 +322,7 @@ class UsdSource(ArraySource):
         if any(have_r):
             if not all(have_r):
                 missing = [str(p.GetPath()) for p, h in zip(prims, have_r) if not h]
-                raise ValueError(f"USD file {self.path}: prims {', '.join(missing)} have no widths while "
+                raise SceneError(f"USD file {self.path}: prims {', '.join(missing)} have no widths while "
                                  "others have; give every prim widths, or none (then material.root_radius "
                                  "-> tip_radius is used)")
             radius = np.concatenate([c.radius for c in parts])

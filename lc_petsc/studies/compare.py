@@ -1,4 +1,4 @@
-"""Solver comparison (issue 6): record a scene's Newton systems once, replay them with
+"""Solver comparison: record a scene's Newton systems once, replay them with
 every named option set, summarise per set and scene size, write CSV/JSON/markdown/PNG.
 
 Used by ``drivers/compare_solvers.py``; see docs/studies.md.

@@ -1,6 +1,6 @@
-"""Figures of the strand-contact benchmark (scripts/bench_contact.py, issue 7): one run's
+"""Figures of the strand-contact benchmark (scripts/bench_contact.py): one run's
 summary, a markdown table of several runs side by side (e.g. 1 and 2 ranks) with the
-issue's targets, and a plot of the runs frame by frame.
+benchmark's targets, and a plot of the runs frame by frame.
 
 A *run* is the dict ``bench_contact.py --json`` writes: ``ranks``, ``d0`` (cm), ``build``
 (s) and ``frames``, one row per frame with ``wall`` (s), ``phases`` (s per phase, max
@@ -18,7 +18,7 @@ import numpy as np
 
 from lc_petsc.studies.report import _plt, markdown_table
 
-# issue 7's targets for the 2,000-wisp hairball
+# the benchmark's targets for the 2,000-wisp hairball
 TARGET_FRAME_S = 8.0            # per frame on 2 ranks
 TARGET_COLLISION_SHARE = 0.35   # of the frame
 PHASES = ("solve", "collision", "elements", "assembly")
@@ -91,7 +91,7 @@ def _met(ok):
 
 def summary_table(summaries):
     """Markdown: one column per run (sorted by rank count), one row per figure, then the
-    issue's targets judged on the first 2-rank run (else the run on the most ranks)."""
+    benchmark's targets judged on the first 2-rank run (else the run on the most ranks)."""
     ss = sorted(summaries, key=lambda s: s["ranks"])
     scenes = list(dict.fromkeys(s["scene"] for s in ss))
     header = [" / ".join(scenes) + " with contact"] + [
@@ -124,7 +124,7 @@ def summary_table(summaries):
     ]
     out = markdown_table(header, rows)
     judged = next((s for s in ss if s["ranks"] == 2), ss[-1])
-    out += (f"\nTargets (issue 7), judged on the first run on {judged['ranks']} rank(s): "
+    out += (f"\nTargets, judged on the first run on {judged['ranks']} rank(s): "
             f"at most {TARGET_FRAME_S:g} s per frame on 2 ranks: {judged['wall_median_s']:.2f} s, "
             f"{_met(judged['ranks'] == 2 and judged['wall_median_s'] <= TARGET_FRAME_S)}; "
             f"contact at most {TARGET_COLLISION_SHARE:.0%} of the frame: {judged['collision_share']:.1%}, "

@@ -1,4 +1,4 @@
-"""Stability at the extremes (issue 6): the catalogue's hard cases, each with a stated
+"""Stability at the extremes: the catalogue's hard cases, each with a stated
 expectation, run and judged pass/fail with figures.  Used by ``scripts/extremes.py``.
 
 Expectations:
@@ -69,7 +69,7 @@ def helix_file(path, helix_radius=0.1, n_vertices=101, per_turn=5, rise=0.1, ste
 
 
 def catalogue(quick=False, tmpdir=None):
-    """The hard cases of issue 6.  ``quick`` shortens every run (for tests)."""
+    """The catalogue's hard cases.  ``quick`` shortens every run (for tests)."""
     q = (lambda n: max(3, n // 10)) if quick else (lambda n: n)
     tmpdir = Path(tmpdir or tempfile.mkdtemp(prefix="lc_extremes_"))
     dt30 = Settings()

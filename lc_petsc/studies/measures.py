@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lc_petsc.parallel import global_max
 from lc_petsc.scene.state import vertex_wisp_length, wisp_lengths  # noqa: F401  (re-exported)
 
 
@@ -85,8 +86,7 @@ class TrajectoryRecorder:
         comm = sim.comm
         disp = float(np.abs(sim.x - sim.scene.x_rest).max(initial=0.0)) if np.all(np.isfinite(sim.x)) \
             else float("inf")
-        from mpi4py import MPI
-        disp = comm.allreduce(disp, op=MPI.MAX)
+        disp = global_max(comm, disp)
         if not np.isfinite(disp):
             raise BlowUp(f"non-finite positions at frame {sim.integrator.frame}")
         X = sim.gather_positions()

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from petsc4py import PETSc
 
+from lc_petsc.parallel import global_max, global_min
 from lc_petsc.solver import LinearSolver, reason_name
 from lc_petsc.solver_plan import SolverPlan, base_type
 
@@ -153,16 +154,6 @@ class BudgetExceeded(Exception):
     """Raised from a KSP monitor when a set has used up its time budget."""
 
 
-def _max(comm, v):
-    from mpi4py import MPI
-    return comm.allreduce(v, op=MPI.MAX)
-
-
-def _min(comm, v):
-    from mpi4py import MPI
-    return comm.allreduce(v, op=MPI.MIN)
-
-
 def _convert(A, mat_type):
     base, cur = base_type(mat_type), base_type(A.getType())
     # NB petsc4py's A.convert(t) without ``out`` converts IN PLACE: pass a new Mat
@@ -214,9 +205,9 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
 
     mat_type, pmat_type, wisp_blocks = plan.mat_type, plan.pmat_type, plan.wisp_blocks
     comm.Barrier()
-    exact_memory = _min(comm, int(start_memory_window())) == 1
+    exact_memory = global_min(comm, int(start_memory_window())) == 1
     rss0_local = current_rss_mib()
-    rss0 = _max(comm, rss0_local)
+    rss0 = global_max(comm, rss0_local)
     A = _convert(systems[0].A, mat_type)
     P = pmat_of(systems[0])
     ls = None
@@ -237,7 +228,7 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
         except (PETSc.Error, ValueError) as e:
             msg = f"cannot create the solver: {type(e).__name__} {getattr(e, 'ierr', e)}"
             return [dict(base, system=i, status="error", message=msg) for i in range(len(systems))]
-        t_create = _max(comm, time.perf_counter() - t0)
+        t_create = global_max(comm, time.perf_counter() - t0)
         ksp = ls.ksp
 
         def monitor(k, its, rnorm):
@@ -283,13 +274,13 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
                 with plan.active():
                     ksp.setUp()
                     ksp.getPC().setUpOnBlocks()   # block Jacobi factors its blocks here
-                    t_setup = _max(comm, time.perf_counter() - t_start[0])
+                    t_setup = global_max(comm, time.perf_counter() - t_start[0])
                     t1 = time.perf_counter()
                     ksp.solve(s.b, x)
-                t_solve = _max(comm, time.perf_counter() - t1)
+                t_solve = global_max(comm, time.perf_counter() - t1)
             except BudgetExceeded as e:
                 stopped = str(e)
-                spent += _max(comm, time.perf_counter() - t_start[0])
+                spent += global_max(comm, time.perf_counter() - t_start[0])
                 rows.append(dict(row, status="budget", message=stopped,
                                  iterations=int(ksp.getIterationNumber())))
                 continue
@@ -317,10 +308,10 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
                 xn = references[i].norm()
                 row["rel_error_vs_direct"] = d.norm() / xn if xn > 0 else d.norm()
                 d.destroy()
-            row["rss_delta_mib"] = _max(comm, current_rss_mib()) - rss0
-            row["peak_rss_mib"] = _max(comm, window_peak_rss_mib())
+            row["rss_delta_mib"] = global_max(comm, current_rss_mib()) - rss0
+            row["peak_rss_mib"] = global_max(comm, window_peak_rss_mib())
             # the set's own peak above what the process held before it (max over ranks)
-            row["set_peak_mib"] = _max(comm, window_peak_rss_mib() - rss0_local)
+            row["set_peak_mib"] = global_max(comm, window_peak_rss_mib() - rss0_local)
             row["memory_window"] = exact_memory
             rows.append(row)
             if spent > budget_s and i + 1 < len(systems):

@@ -1,4 +1,4 @@
-"""Speed versus accuracy (issue 6): a reference trajectory, variants along each axis,
+"""Speed versus accuracy: a reference trajectory, variants along each axis,
 errors at common output times, cost, Pareto front, recommendations.
 
 Used by ``drivers/tradeoff.py`` and ``scripts/extremes.py``; see docs/studies.md.
@@ -16,9 +16,9 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.config import TimeConfig
-from lc_petsc.parallel import SimulationError
+from lc_petsc.errors import SimulationError, SolverError
+from lc_petsc.parallel import global_max
 from lc_petsc.simulator import build_simulator
-from lc_petsc.solver import SolverError
 from lc_petsc.studies import report
 from lc_petsc.studies.measures import (BlowUp, TrajectoryRecorder, compare_trajectories,
                                        quality)
@@ -66,7 +66,7 @@ KSP_RTOLS = (1e-2, 1e-4, 1e-6, 1e-8, 1e-10)
 
 
 def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
-    """[(axis, name, Settings)] along each axis of issue 6; the base appears once."""
+    """[(axis, name, Settings)] along each axis of the study; the base appears once."""
     out = [("base", "base", base)]
     ax = {
         "newton": [(f"newton {n}", replace(base, newton_iterations=n)) for n in (1, 2, 3, 6, 12)],
@@ -187,7 +187,7 @@ def run_trajectory(base_cfg, s: Settings, duration, out_dt, comm, blowup=5.0):
                    newton_unconverged_frames=sum(c is False for c in summ["newton_converged"]),
                    ksp_iterations_mean=float(np.mean(summ["ksp_iterations"])) if summ["ksp_iterations"] else None,
                    ksp_iterations_max=max(summ["ksp_iterations"], default=None),
-                   timings_s=summ["timings_s"], cpu_s=_max(comm, cpu))
+                   timings_s=summ["timings_s"], cpu_s=global_max(comm, cpu))
         sim.close()
     res["total_wall_s"] = total
     traj = None
@@ -195,11 +195,6 @@ def run_trajectory(base_cfg, s: Settings, duration, out_dt, comm, blowup=5.0):
         traj = {"times": rec.times, "positions": rec.positions, "energies": rec.energies}
     geo = (rec.rest, rec.offsets, rec.pinned) if rec is not None else None
     return res, traj, geo
-
-
-def _max(comm, v):
-    from mpi4py import MPI
-    return comm.allreduce(v, op=MPI.MAX)
 
 
 COSTS = {"wall_per_sim_s": "wall time per simulated second (s)",

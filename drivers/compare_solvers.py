@@ -2,7 +2,8 @@
 
   mpiexec -n P python drivers/compare_solvers.py [--wisps 250 500 1000 2000]
       [--sets default mumps_cholesky ...] [--sets-dir configs/solvers] [--budget 60]
-      [--frames 1] [--systems N] [--repeats 1] [--config SCENE.toml] [--no-head-contact] [--strand-contact] [--no-reference]
+      [--frames 1] [--systems N] [--repeats 1] [--config SCENE.toml] [--no-head-contact]
+      [--strand-contact] [--no-reference]
       [--skip-after-budget]
       [--out out/compare_solvers] [PETSc options ...]
 
@@ -88,8 +89,8 @@ def main(argv=None):
                    repeats=args.repeats, max_systems=args.systems,
                    skip_after_budget=args.skip_after_budget,
                    log=lambda *a: (log(*a), sys.stdout.flush()),
-                   meta={"command": cmd, "sets": sets, "repeats": args.repeats, "head_contact": not args.no_head_contact,
-                         "strand_contact": args.strand_contact})
+                   meta={"command": cmd, "sets": sets, "repeats": args.repeats,
+                         "head_contact": not args.no_head_contact, "strand_contact": args.strand_contact})
     log(f"wrote {args.out}/table.md, summary.csv, rows.csv, results.json"
         + (", time_vs_wisps.png" if len(set(args.wisps)) > 1 else ""))
     if comm.rank == 0:

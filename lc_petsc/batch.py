@@ -28,6 +28,8 @@ from lc_petsc.job import (EXIT_OK, EXIT_PREEMPTED, EXIT_RUN_FAILED, EXIT_USAGE, 
 
 
 class UsageError(Exception):
+    """A bad command line (exit 2, reported once by rank 0)."""
+
     pass
 
 
@@ -39,6 +41,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def make_parser():
+    """The main job's argument parser (PETSc options are left over for PETSc)."""
     p = _Parser(
         prog=PROG, allow_abbrev=False, add_help=False,
         usage="mpiexec -n P python drivers/simulate.py CONFIG.toml [--frames N] [--out DIR] "

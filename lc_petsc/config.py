@@ -94,6 +94,7 @@ class SceneConfig:
     description: str = ""
 
     def validate(self) -> None:
+        """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
         if self.kind not in SCENE_KINDS:
             raise ConfigError(f"scene.kind must be one of {SCENE_KINDS}, got {self.kind!r}")
         _int_at_least("scene.n_wisps", self.n_wisps, 1)
@@ -147,6 +148,7 @@ class MaterialConfig:
     radius_scale_with_count: bool = True
 
     def validate(self) -> None:
+        """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
         _positive("material.youngs_modulus", self.youngs_modulus)
         if self.shear_modulus is not None:
             _positive("material.shear_modulus", self.shear_modulus)
@@ -162,6 +164,7 @@ class MaterialConfig:
 
     @property
     def G(self) -> float:
+        """Shear modulus: ``shear_modulus``, or E / 3 (incompressible) when it is not given."""
         return self.youngs_modulus / 3.0 if self.shear_modulus is None else float(self.shear_modulus)
 
 
@@ -206,6 +209,7 @@ class PhysicsConfig:
     strand_rest_overlap: str = "error"
 
     def validate(self) -> None:
+        """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
         terms = tuple(self.terms)
         for t in terms:
             if t not in TERMS:
@@ -269,6 +273,7 @@ class TimeConfig:
     newton_update: str = "edge_retraction"
 
     def validate(self) -> None:
+        """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
         _positive("time.dt", self.dt)
         if float(self.dt) < MIN_DT:
             raise ConfigError(f"time.dt = {self.dt!r} s is below {MIN_DT:g} s: the inertia term M/dt^2 "
@@ -306,6 +311,7 @@ class SolverConfig:
     filter: str = "analytic"
 
     def validate(self) -> None:
+        """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
         if not isinstance(self.options, str):
             raise ConfigError(f"solver.options must be a string of PETSc options, got {self.options!r}")
         _check_options("solver.options", self.options)
@@ -318,7 +324,7 @@ class SolverConfig:
             raise ConfigError(f"solver.filter must be one of {FILTERS}, got {self.filter!r}")
 
     def _file_text(self) -> str:
-        lines = Path(self.options_file).read_text().splitlines()
+        lines = Path(str(self.options_file)).read_text().splitlines()
         return " ".join(line.split("#", 1)[0] for line in lines)
 
     def effective_options(self) -> str:
@@ -376,6 +382,7 @@ class OutputConfig:
     render_hair_spread: float = 1.0
 
     def validate(self) -> None:
+        """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
         if not isinstance(self.dir, str):
             raise ConfigError(f"output.dir must be a string (a folder), got {self.dir!r}")
         _int_at_least("output.every", self.every, 1)
@@ -401,6 +408,8 @@ class OutputConfig:
 
 @dataclass
 class SimConfig:
+    """The whole configuration of a run: one dataclass per TOML table."""
+
     #: warnings for keys of the file that have no effect (set by config_from_dict; not a field)
     key_warnings = ()
     scene: SceneConfig = field(default_factory=SceneConfig)
@@ -411,6 +420,7 @@ class SimConfig:
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def validate(self) -> "SimConfig":
+        """Validate every table (:class:`ConfigError` on the first problem); returns self."""
         for part in (self.scene, self.material, self.physics, self.time, self.solver, self.output):
             part.validate()
         if self.scene.kind in ("wisp4c", "straight") and self.scene.n_pinned > self.scene.n_vertices:
@@ -419,6 +429,7 @@ class SimConfig:
         return self
 
     def to_dict(self) -> dict:
+        """The resolved configuration as plain dicts (summary.json's ``config``)."""
         return asdict(self)
 
 
@@ -505,7 +516,7 @@ def config_from_dict(data: dict, base_dir=None) -> SimConfig:
             if key not in known:
                 raise ConfigError(f"unknown key {table}.{key} (= {v!r}); allowed keys of [{table}]: "
                                   + ", ".join(known))
-            v = _convert(f"{table}.{key}", known[key].type, v)
+            v = _convert(f"{table}.{key}", str(known[key].type), v)
             if (table, key) in PATH_KEYS and base_dir is not None:
                 v = str((Path(base_dir) / os.path.expanduser(v)).resolve())
             kwargs[key] = v

@@ -57,15 +57,18 @@ class Refused(Exception):
 
 
 def say(comm, text, stream=None):
+    """Print ``text`` on rank 0 only."""
     if comm.rank == 0:
         print(text, file=stream or sys.stdout, flush=True)
 
 
 def warn(comm, text):
+    """Print a warning on rank 0 only (stderr)."""
     say(comm, f"{PROG}: warning: {text}", sys.stderr)
 
 
 def output_dir(args, cfg):
+    """The output folder: ``--out``, else ``output.dir``, else ``out/<config name>``."""
     if args.out:
         return Path(args.out)
     if cfg.output.dir:
@@ -126,6 +129,7 @@ class Job:
 
     # ------------------------------------------------------------------ the steps
     def run(self):
+        """Run the job's steps (module doc); returns the exit status, the same on every rank."""
         from lc_petsc.simulator import build_simulator
         from petsc4py import PETSc
         comm = self.comm
@@ -389,7 +393,7 @@ class Job:
 
     def _finish(self):
         """Step 5: close frames.h5, write XDMF, previews, summary, report; exit status."""
-        comm, cfg, sim = self.comm, self.cfg, self.sim
+        comm, sim = self.comm, self.sim
         out_errors = []
         if self.writer is not None:
             try:
@@ -536,6 +540,7 @@ class Checkpointer:
         self.written, self.last_frame = [], None
 
     def write(self, it):
+        """Write the checkpoint of the integrator ``it``'s frame (once per frame), timed under ``io``."""
         from lc_petsc.io.checkpoint import write_checkpoint
         if self.last_frame == it.frame:
             return
@@ -593,6 +598,7 @@ class Preemption:
         return True
 
     def restore(self):
+        """Put back the signal handlers that were there before."""
         import signal
         for sig, h in self.previous.items():
             signal.signal(sig, h)

@@ -28,6 +28,7 @@ _GET_ARRAY = {"seqaij": "MatSeqAIJGetArray", "seqbaij": "MatSeqBAIJGetArray"}
 
 @lru_cache(maxsize=1)
 def libpetsc():
+    """Debian's PETSc 3.18 shared library (ctypes), loaded once."""
     for name in ("libpetsc_real.so.3.18", "libpetsc.so.3.18"):
         try:
             return ctypes.CDLL(name, mode=ctypes.RTLD_GLOBAL)

@@ -72,6 +72,8 @@ def element_filter(solver_filter):
 
 
 class Simulator:
+    """One simulation on a communicator: scene, solver plan, assembler, linear solver, integrator."""
+
     def __init__(self, config: SimConfig, comm=None):
         self.config = config.validate()
         parallel.limit_blas_threads()
@@ -114,15 +116,22 @@ class Simulator:
             # interpreter at exit: close a simulator that was never closed before that
             # (atexit runs handlers in reverse order; petsc4py registered earlier).
             ref = weakref.ref(self)
-            atexit.register(lambda: ref() is not None and ref().close())
+
+            def close_if_alive():
+                sim = ref()
+                if sim is not None:
+                    sim.close()
+            atexit.register(close_if_alive)
         self.wall = 0.0
 
     # ------------------------------------------------------------------ running
     @property
     def x(self):
+        """This rank's positions (n_local, 3)."""
         return self.integrator.x
 
     def step(self):
+        """Advance one frame (one backward-Euler step), timed into ``wall``."""
         t0 = time.perf_counter()
         self.integrator.step()
         self.wall += time.perf_counter() - t0
@@ -140,6 +149,7 @@ class Simulator:
         it.t, it.frame = float(state["time"]), int(state["frame"])
 
     def run(self, frames=None, callback=None):
+        """Run ``frames`` frames (default ``time.frames``), calling ``callback(self)`` after each."""
         n = self.config.time.frames if frames is None else frames
         for _ in range(n):
             self.step()
@@ -205,6 +215,7 @@ class Simulator:
             "ccd_unresolved_pairs": list(self.strand.unresolved_pairs)}}
 
     def close(self):
+        """Destroy the PETSc objects of this simulator (collective)."""
         self.solver.ksp.destroy()
         self.assembler.mat.destroy()
         if self.assembler.pmat is not None:

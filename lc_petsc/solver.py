@@ -89,12 +89,13 @@ class LinearSolver:
             elif self.wisp_blocks == "fused":
                 bjacobi_set_local_blocks(pc, [int(np.sum(wisp_rows))])
             ksp.setFromOptions()
-        self.iterations = []
-        self.reasons = []
+        self.iterations: list[int] = []
+        self.reasons: list[str] = []
         self.rtol = float(ksp.getTolerances()[0])
-        self.not_reduced = []        # (solve index, true relative residual) of unchecked solves
+        self.not_reduced: list[tuple[int, float]] = []        # (solve index, true relative residual) of unchecked solves
 
     def describe(self):
+        """The solver in use, for messages and summary.json: KSP, PC, matrix types and options."""
         pc = self.ksp.getPC()
         A, P = self.ksp.getOperators()
         blocks = f" -lc_wisp_blocks {self.wisp_blocks}" if self.wisp_blocks else ""
@@ -120,6 +121,7 @@ class LinearSolver:
             r.destroy()
 
     def solve(self, b, x, frame, newton_it):
+        """Solve A x = b; records iterations and reason, raises :class:`SolverError` on divergence."""
         with self.plan.active():
             self.ksp.solve(b, x)
         r = self.ksp.getConvergedReason()

@@ -96,7 +96,7 @@ class _Layers:
     def __init__(self, config_options: str, prefix: str):
         self.prefix = prefix
         self.options = dict(parse_options(config_options))
-        self.used = set()
+        self.used: set[str] = set()
 
     def _db(self):
         return PETSc.Options(self.prefix or None)

@@ -9,7 +9,7 @@ from contextlib import contextmanager
 from petsc4py import PETSc
 
 PHASES = ("elements", "filter", "assembly", "solve", "collision", "io")
-_EVENTS = {}
+_EVENTS: dict[str, PETSc.Log.Event] = {}
 
 
 def _event(name):
@@ -27,6 +27,7 @@ class Timers:
 
     @contextmanager
     def __call__(self, phase):
+        """Time the block as ``phase`` (wall clock and PETSc log event)."""
         ev = _event(phase)
         ev.begin()
         t0 = time.perf_counter()

@@ -1,4 +1,4 @@
-"""Strand contact modes side by side: crossings per frame step, minimum distance,
+r"""Strand contact modes side by side: crossings per frame step, minimum distance,
 per-frame wall time and phases, Newton and CG iterations (prints figures, not a test).
 
     mpiexec -n 2 .venv/bin/python scripts/bench_ccd.py configs/hairball_demo.toml --frames 6 \\
@@ -67,7 +67,8 @@ def main():
     if MPI.COMM_WORLD.rank:
         return
     print(f"\n{a.config}, {MPI.COMM_WORLD.size} rank(s), {a.frames} frames per mode (medians):")
-    print("| mode | wall / frame (s) | collision (s) | collision share | crossings (total, max/step) | min distance (cm) | CG / frame |")
+    print("| mode | wall / frame (s) | collision (s) | collision share | crossings (total, max/step) "
+          "| min distance (cm) | CG / frame |")
     print("|---|---|---|---|---|---|---|")
     for mode in a.modes:
         r = [x for x in allrows if x["mode"] == mode]

@@ -12,7 +12,6 @@ back; medians (maximum over ranks) are printed.
 """
 
 import argparse
-import os
 import shutil
 import statistics
 import sys

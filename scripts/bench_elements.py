@@ -66,7 +66,7 @@ def main():
         xr, xe = element_arrays(rest, k), element_arrays(x, k)
         rest_value = stretch.length(xr) if mod is stretch else mod.angle(xr)
         cases.append((name, mod, xe, rest_value, np.ones(len(xe))))
-    print(f"elements: " + ", ".join(f"{len(c[2])} {c[0]}" for c in cases)
+    print("elements: " + ", ".join(f"{len(c[2])} {c[0]}" for c in cases)
           + f"; {args.repeats} alternating rounds, one core")
 
     times = {(f, c[0]): [] for f in FILTERS for c in cases}

@@ -1,4 +1,4 @@
-"""Cost of the USD export (lc_petsc.io.usd) of a run, with and without render hairs.
+r"""Cost of the USD export (lc_petsc.io.usd) of a run, with and without render hairs.
 
   .venv/bin/python scripts/bench_usd.py FRAMES.h5 [--hairs 100] [--repeats 3] [--out DIR]
 

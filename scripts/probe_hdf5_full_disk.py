@@ -1,4 +1,4 @@
-"""What libhdf5 does when the disk fills up under h5py (the reason lc_petsc checks the
+r"""What libhdf5 does when the disk fills up under h5py (the reason lc_petsc checks the
 free space before every HDF5 write, lc_petsc/io/disk.py).
 
 Run as root (it mounts a 2 MB tmpfs and unmounts it again):

@@ -16,7 +16,8 @@ def test_mpi_suite(ranks):
     env = MPI_ENV
     cmd = ["mpiexec", "--oversubscribe", "-n", str(ranks), sys.executable, "-m", "pytest",
            "-m", "mpi", "-q", "-p", "no:cacheprovider", "tests/"]
-    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)   # minutes under load: 3 ranks share 2 cores
+    # minutes under load: 3 ranks share 2 cores
+    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     out = proc.stdout[-4000:] + proc.stderr[-2000:]
     assert proc.returncode == 0, f"mpiexec -n {ranks} pytest -m mpi failed:\n{out}"
     assert "passed" in proc.stdout and "failed" not in proc.stdout, out

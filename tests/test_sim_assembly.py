@@ -7,7 +7,7 @@ import pytest
 from mpi4py import MPI
 
 from lc_petsc.assembly import KERNELS
-from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, SolverConfig, TimeConfig
+from lc_petsc.config import PhysicsConfig, SceneConfig, SimConfig, SolverConfig, TimeConfig
 from lc_petsc.simulator import build_simulator
 
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, SolverConfig, TimeConfig
-from lc_petsc.elements import bend, twist
+from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig
+from lc_petsc.elements import bend
 from lc_petsc.simulator import build_simulator
 from lc_petsc.errors import SolverError
 from sim_helpers import small_hairball_config

@@ -77,10 +77,12 @@ _NAME = re.compile(r"^checkpoint_(\d+)\.h5$")
 
 
 def checkpoint_folder(out) -> Path:
+    """The checkpoint folder of the output folder ``out``."""
     return Path(out) / FOLDER
 
 
 def checkpoint_path(out, frame) -> Path:
+    """The checkpoint file of ``frame`` in the output folder ``out``."""
     return checkpoint_folder(out) / f"checkpoint_{int(frame):06d}.h5"
 
 
@@ -94,6 +96,7 @@ def list_checkpoints(folder):
 
 
 def config_sha256(config_dict) -> str:
+    """SHA-256 of the resolved config (canonical JSON): a restart compares it with the checkpoint's."""
     return hashlib.sha256(json.dumps(config_dict, sort_keys=True).encode()).hexdigest()
 
 
@@ -118,6 +121,7 @@ def config_differences(saved, current, ignore=()):
 
 
 def head_state(head, t) -> np.ndarray:
+    """The head's state at ``t``, flattened: t, rotation (9), translation (3), sphere centre (3)."""
     R, T = head.transform(t)
     return np.concatenate([[t], np.asarray(R, float).ravel(), np.asarray(T, float),
                            np.asarray(head.center, float)])

@@ -26,10 +26,12 @@ RESERVE = 256 * 1024
 
 
 def free_bytes(path) -> int:
+    """Free bytes of the volume holding ``path``."""
     return shutil.disk_usage(path).free
 
 
 def human(n) -> str:
+    """``n`` bytes for a person (``2.4 kB``)."""
     n = float(n)
     for unit in ("B", "kB", "MB", "GB", "TB", "PB", "EB"):
         if abs(n) < 1000 or unit == "EB":

@@ -126,7 +126,6 @@ class FramesWriter:
     def __init__(self, path, comm, *, n_wisps, n_vertices, first_wisp, first_vertex,
                  local_offsets, rest_positions, pinned, n_out, attrs, resume_rows=None,
                  radius=None):
-        h5py = h5py_module()
         self.comm, self.path = comm, str(path)
         self.folder = os.path.dirname(os.path.abspath(self.path))
         self.parallel = is_parallel()

@@ -155,16 +155,20 @@ class RenderHairs:
 
     @property
     def n_curves(self):
+        """Number of render hairs (curves)."""
         return len(self.sizes) * self.n_hairs
 
     @property
     def n_points(self):
+        """Number of render-hair vertices."""
         return int(self.offsets[-1]) * self.n_hairs
 
     def curve_vertex_counts(self):
+        """Vertices per render hair (n_curves,) int32, for USD's ``curveVertexCounts``."""
         return np.repeat(self.sizes, self.n_hairs).astype(np.int32)
 
     def guide_wisp(self):
+        """The guide wisp of each render hair (n_curves,) int32."""
         return np.repeat(np.arange(len(self.sizes)), self.n_hairs).astype(np.int32)
 
     def widths(self):

@@ -62,6 +62,7 @@ def wisp4c(n_vertices: int = 101, root=(0.0, 0.0, 0.0), axis=(0.0, -1.0, 0.0), s
 
 
 def straight(n_vertices: int, segment: float = 0.6, root=(0.0, 0.0, 0.0), direction=(0.0, -1.0, 0.0)):
+    """A straight wisp of ``n_vertices`` vertices ``segment`` apart from ``root`` along ``direction`` (n, 3)."""
     d = np.asarray(direction, float)
     d = d / np.linalg.norm(d)
     return np.asarray(root, float) + segment * np.arange(n_vertices)[:, None] * d
@@ -110,4 +111,5 @@ def smooth_frame(normal) -> np.ndarray:
 
 
 def tapered_radius(n_vertices: int, root_radius: float, tip_radius: float) -> np.ndarray:
+    """Vertex radii (n_vertices,) tapering linearly from ``root_radius`` to ``tip_radius``."""
     return np.linspace(root_radius, tip_radius, n_vertices)

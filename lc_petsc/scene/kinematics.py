@@ -20,6 +20,8 @@ def _rotation(axis, angle):
 
 
 class HeadMotion:
+    """The head's rigid motion over time (``physics.head_motion``: static, shake or translate) and its sphere."""
+
     def __init__(self, physics):
         self.kind = physics.head_motion
         self.center = np.asarray(physics.head_center, float)
@@ -29,6 +31,7 @@ class HeadMotion:
         self.velocity = np.asarray(physics.head_velocity, float)
 
     def transform(self, t):
+        """The head's rotation (3, 3) and translation (3,) at time ``t``."""
         if self.kind == "shake":
             axis = _AXES[int(np.floor(t / self.period)) % 3]
             ang = self.amplitude * np.sin(2.0 * np.pi * t / self.period)
@@ -38,6 +41,7 @@ class HeadMotion:
         return np.eye(3), np.zeros(3)
 
     def pinned_positions(self, x_rest, t):
+        """Positions (n, 3) of pinned vertices at rest positions ``x_rest`` carried by the head to time ``t``."""
         R, T = self.transform(t)
         return self.center + T + (x_rest - self.center) @ R.T
 
@@ -49,4 +53,5 @@ class HeadMotion:
         return self.center + T1 + (x - self.center - T0) @ R0 @ R1.T
 
     def sphere_center(self, t):
+        """Centre (3,) of the head sphere at time ``t``."""
         return self.center + self.transform(t)[1]

@@ -30,18 +30,23 @@ class WispBatch:
 
     @property
     def n_wisps(self) -> int:
+        """Number of wisps in the batch."""
         return len(self.offsets) - 1
 
     @property
     def n_vertices(self) -> int:
+        """Number of vertices in the batch."""
         return int(self.offsets[-1])
 
 
 class SceneSource:
+    """Where wisps come from: ``n_wisps``, their vertex counts ``sizes`` and :meth:`load`."""
+
     n_wisps: int
     sizes: np.ndarray
 
     def load(self, w0: int, w1: int) -> WispBatch:  # pragma: no cover - interface
+        """The wisps ``w0 .. w1 - 1`` (global indices) as a :class:`WispBatch`."""
         raise NotImplementedError
 
 
@@ -80,6 +85,7 @@ class ArraySource(SceneSource):
         self.dens = None if density is None else np.asarray(density, float)
 
     def load(self, w0, w1):
+        """The wisps ``w0 .. w1 - 1`` (global indices) as a :class:`WispBatch`."""
         a, b = int(self.offsets[w0]), int(self.offsets[w1])
         return WispBatch(
             first_wisp=w0, offsets=self.offsets[w0:w1 + 1] - a,
@@ -218,6 +224,7 @@ class FileSource(SceneSource):
         self.n_wisps = len(self.sizes)
 
     def load(self, w0, w1):
+        """The wisps ``w0 .. w1 - 1`` (global indices) as a :class:`WispBatch`."""
         import h5py
         a, b = int(self.offsets[w0]), int(self.offsets[w1])
         with h5py.File(self.path, "r") as f:
@@ -249,6 +256,7 @@ class GeneratedSource(SceneSource):
         self.sizes = np.full(self.n_wisps, nv, np.int64)
 
     def wisp(self, w):
+        """Rest positions (n, 3) of wisp ``w``, from the seed and ``w`` alone (any rank can build it)."""
         n = int(self.sizes[w])
         if self.kind == "wisp4c":
             x = geometry.wisp4c(n)
@@ -262,6 +270,7 @@ class GeneratedSource(SceneSource):
         return x
 
     def load(self, w0, w1):
+        """The wisps ``w0 .. w1 - 1`` (global indices) as a :class:`WispBatch`."""
         xs = [self.wisp(w) for w in range(w0, w1)]
         sizes = self.sizes[w0:w1]
         off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)

@@ -43,6 +43,8 @@ def vertex_wisp_length(rest, offsets):
 
 @dataclass
 class TermData:
+    """One elastic term's elements on this rank: first vertices, rest values, stiffnesses."""
+
     name: str
     k: int
     start: np.ndarray       # (n,) local index of the element's first vertex
@@ -56,6 +58,8 @@ class TermData:
 
 @dataclass
 class LocalScene:
+    """This rank's wisps: rest state, masses, pins, radii and the elements of each enabled term."""
+
     first_wisp: int
     n_wisps_global: int
     first_vertex: int
@@ -69,10 +73,12 @@ class LocalScene:
 
     @property
     def nv(self) -> int:
+        """Number of local vertices."""
         return len(self.x_rest)
 
     @property
     def n_wisps(self) -> int:
+        """Number of local wisps."""
         return len(self.offsets) - 1
 
     @property

@@ -123,6 +123,7 @@ def table3(summary):
 
 
 def details_table(summary):
+    """Markdown table of every set's figures per wisp count."""
     header = ["wisps", "set", "status", "setup (s)", "solve (s)", "total (s)", "x default",
               "its (first/mean)", "true rel. residual", "error vs direct", "RSS delta (MiB)",
               "peak over start (MiB)"]
@@ -203,6 +204,7 @@ def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frame
 
 
 def hairball_config(base, n_wisps):
+    """A copy of the config ``base`` with ``n_wisps`` wisps."""
     cfg = copy.deepcopy(base)
     cfg.scene.n_wisps = int(n_wisps)
     return cfg

@@ -28,6 +28,8 @@ from lc_petsc.studies.tradeoff import Settings, run_trajectory
 
 @dataclass
 class Case:
+    """One hard case: its config, the settings it runs with, and what it is expected to do."""
+
     name: str
     what: str
     config: SimConfig
@@ -42,6 +44,7 @@ class Case:
 
 def wisp(perturbation="none", factor=0.4, gravity=False, n_vertices=101, E=3.9e9, radius=None,
          jitter=0.5):
+    """Config of one 4C wisp with the given perturbation and material."""
     terms = ("stretch", "bend", "twist") + (("gravity",) if gravity else ())
     mat = MaterialConfig(youngs_modulus=E)
     if radius is not None:
@@ -155,6 +158,7 @@ def judge(case: Case, res, traj, geo):
 
 
 def run_cases(cases, comm, out_dir=None, log=print):
+    """Run every case; one row (dict) per case on rank 0, optional trajectories in ``out_dir``."""
     rows = []
     for c in cases:
         cfg = copy.deepcopy(c.config)

@@ -24,9 +24,9 @@ def edge_mask(offsets):
 def stretch_strain(x, rest, offsets):
     """Largest |l / l0 - 1| over all edges."""
     m = edge_mask(offsets)
-    l = np.linalg.norm(np.diff(x, axis=0), axis=1)[m]
-    l0 = np.linalg.norm(np.diff(rest, axis=0), axis=1)[m]
-    return float(np.max(np.abs(l / l0 - 1.0), initial=0.0))
+    length = np.linalg.norm(np.diff(x, axis=0), axis=1)[m]
+    length0 = np.linalg.norm(np.diff(rest, axis=0), axis=1)[m]
+    return float(np.max(np.abs(length / length0 - 1.0), initial=0.0))
 
 
 def curl_radius(x, offsets, free=None):
@@ -76,6 +76,7 @@ class TrajectoryRecorder:
         self.capture(sim)           # the initial state (t = 0)
 
     def energy(self, sim):
+        """Elastic plus kinetic energy of the simulator's state (collective)."""
         sc, integ = sim.scene, sim.integrator
         free = ~sc.pinned
         local = float(sim.assembler.energy(sim.x))
@@ -83,6 +84,7 @@ class TrajectoryRecorder:
         return sim.comm.allreduce(local)
 
     def capture(self, sim):
+        """Record the current frame (gathered on rank 0); :class:`BlowUp` for non-finite positions."""
         comm = sim.comm
         disp = float(np.abs(sim.x - sim.scene.x_rest).max(initial=0.0)) if np.all(np.isfinite(sim.x)) \
             else float("inf")
@@ -101,6 +103,7 @@ class TrajectoryRecorder:
                          f"longest wisp ({self.max_length:.3g} cm)")
 
     def __call__(self, sim):
+        """Frame callback: capture every ``every``-th frame."""
         if sim.integrator.frame % self.every == 0:
             self.capture(sim)
 

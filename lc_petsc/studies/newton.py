@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import time
+from typing import Any, Callable
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ from lc_petsc.simulator import build_simulator
 from lc_petsc.studies import report
 
 #: Variant keys (``key=value`` pairs joined by commas) and the config fields they set.
-VARIANT_KEYS = {
+VARIANT_KEYS: dict[str, tuple[str, str, Callable[[str], Any]]] = {
     "filter": ("solver", "filter", str),
     "guess": ("time", "initial_guess", str),
     "update": ("time", "newton_update", str),
@@ -170,6 +171,7 @@ def run_study(scenes, variants, comm, out_dir, iterations=30, frames=10, tol=1e-
 
 
 def markdown(summary, tol):
+    """Markdown table of the Newton study's summary rows."""
     head = ["scene", "variant", "median its", "worst its", "frames never", "frame 0 increments 1..6",
             "frame 0 residuals 1..6", "G increased", "wall s"]
     body = [[s["scene"], s["variant"], report.fmt(s["median_iterations"]),

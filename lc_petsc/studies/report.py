@@ -48,10 +48,12 @@ def _fmt_csv(v):
 
 
 def write_json(obj, path):
+    """Write ``obj`` as JSON to ``path``."""
     Path(path).write_text(json.dumps(_clean(obj), indent=1) + "\n")
 
 
 def fmt(v, digits=3):
+    """``v`` as a short table cell (``-`` for None, scientific notation for very small or large)."""
     if v is None:
         return "-"
     if isinstance(v, float):
@@ -64,6 +66,7 @@ def fmt(v, digits=3):
 
 
 def markdown_table(header, rows):
+    """A markdown table of ``header`` and ``rows``."""
     out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
     return "\n".join(out) + "\n"

@@ -37,6 +37,8 @@ from lc_petsc.solver_plan import SolverPlan, base_type
 
 @dataclass
 class RecordedSystem:
+    """One recorded Newton system: operator, right-hand side, start positions, strand matrix."""
+
     A: PETSc.Mat
     b: PETSc.Vec
     coords: np.ndarray          # (local vertices, 3): positions at the frame's start
@@ -77,14 +79,17 @@ class SystemRecorder:
         sim.solver.solve = solve
 
     def detach(self):
+        """Stop recording: restore the simulator's own solve."""
         self.sim.solver.solve = self._orig
 
     def destroy(self):
+        """Destroy the recorded systems' PETSc objects."""
         destroy_systems(self.systems)
         self.systems = []
 
 
 def destroy_systems(systems):
+    """Destroy the PETSc objects of ``systems``."""
     for s in systems:
         for m in (s.A, s.b, s.wisp_local):
             if m is not None:

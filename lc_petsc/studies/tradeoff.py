@@ -10,7 +10,7 @@ import copy
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 from petsc4py import PETSc
@@ -31,6 +31,8 @@ FAILURES = (SimulationError, FloatingPointError, SolverError, PETSc.Error, Arith
 
 @dataclass(frozen=True)
 class Settings:
+    """One point of the speed/accuracy study: time step, Newton, Krylov and filter settings."""
+
     dt: float = 1.0 / 30.0
     newton_iterations: int = 3
     newton_tol: Optional[float] = None
@@ -44,6 +46,7 @@ class Settings:
     newton_increment_tol: Optional[float] = None
 
     def label(self):
+        """A short human-readable name of the settings."""
         parts = [f"dt=1/{round(1 / self.dt)}", f"N={self.newton_iterations}",
                  f"rtol={self.ksp_rtol:.0e}", self.filter]
         if self.newton_tol is not None:
@@ -131,12 +134,14 @@ REFERENCE_KSP = "-ksp_type gmres -ksp_max_it 200"
 
 
 def reference_fallback(ref: Settings) -> Settings:
+    """The reference's fallback when it fails: analytic filter, many Newton iterations, default Krylov."""
     return replace(ref, filter="analytic", newton_iterations=max(ref.newton_iterations, 200),
                    newton_update="linear",
                    options=ref.options.replace(REFERENCE_KSP, "").strip())
 
 
 def configure(base_cfg, s: Settings, duration):
+    """A copy of ``base_cfg`` running ``duration`` seconds with the settings ``s``."""
     cfg = copy.deepcopy(base_cfg)
     cfg.time.dt = s.dt
     cfg.time.frames = int(round(duration / s.dt))
@@ -160,7 +165,8 @@ def run_trajectory(base_cfg, s: Settings, duration, out_dt, comm, blowup=5.0):
     if abs(every - round(every)) > 1e-6 or round(every) < 1:
         raise ValueError(f"dt = {s.dt:g} does not divide the output interval {out_dt:g}")
     cfg = configure(base_cfg, s, duration)
-    res = {"status": "ok", "failure": "", "failed_frame": None, "failed_time": None, "message": ""}
+    res: dict[str, Any] = {"status": "ok", "failure": "", "failed_frame": None, "failed_time": None,
+                           "message": ""}
     sim = None
     rec = None
     t0 = time.perf_counter()
@@ -202,7 +208,7 @@ COSTS = {"wall_per_sim_s": "wall time per simulated second (s)",
 
 
 def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0,
-              ref: Settings = None, targets=(0.1, 0.03, 0.01, 0.003, 0.001), log=print,
+              ref: Optional[Settings] = None, targets=(0.1, 0.03, 0.01, 0.003, 0.001), log=print,
               meta=None, blowup=5.0, cost="wall_per_sim_s"):
     """Reference + variants; writes tradeoff.csv, tradeoff.json, pareto.png and
     recommendations.md to ``out_dir`` (rank 0).  Returns the rows (rank 0; None elsewhere)."""
@@ -222,7 +228,7 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
         f"over {rres['frames_run']} steps, {rres['newton_unconverged_frames']} frames not converged "
         f"to the tolerance")
     rows = []
-    rq = None
+    rq: dict[str, Any] = {}
     if comm.rank == 0:
         rest, offsets, pinned = geo
         rq = quality(rtraj, rest, offsets, pinned)
@@ -285,6 +291,7 @@ def recommend(rows, targets, error="rms_rel_error", cost="wall_per_sim_s"):
 
 
 def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s"):
+    """The study's markdown report: recommendations, then every variant's errors and cost."""
     lines = ["# Speed versus accuracy\n"]
     if meta and meta.get("command"):
         lines.append(f"Command: `{meta['command']}`\n")

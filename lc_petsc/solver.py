@@ -25,7 +25,7 @@ this module creates the KSP with the code defaults, which the options override
   sub-solver ``-sub_pc_type ilu`` (ILU(0), natural ordering) on a full band has no fill
   outside the band, so it *is* the LU factorisation (SPEC 1); and a factorisation of a
   block-diagonal matrix never mixes its blocks, so fused and separate agree to
-  round-off for any factorisation sub-solver (tests/test_sim_wisp_blocks.py).  PETSc's
+  round-off for any factorisation sub-solver (tests/sim/test_sim_wisp_blocks.py).  PETSc's
   own default for a symmetric matrix, ICC(0) with a Manteuffel shift, is *not* exact
   here (measured: CG stalls at 1000 iterations on a 4C wisp), and PETSc's native SBAIJ
   (bs 3) Cholesky/ICC were also measured to be inexact on these matrices, so for
@@ -92,7 +92,7 @@ class LinearSolver:
         self.iterations: list[int] = []
         self.reasons: list[str] = []
         self.rtol = float(ksp.getTolerances()[0])
-        self.not_reduced: list[tuple[int, float]] = []        # (solve index, true relative residual) of unchecked solves
+        self.not_reduced: list[tuple[int, float]] = []    # (solve index, true rel. residual), unchecked solves
 
     def describe(self):
         """The solver in use, for messages and summary.json: KSP, PC, matrix types and options."""

@@ -1,4 +1,4 @@
-"""Shared builders for the simulator tests (tests/test_sim_*.py, tests/test_mpi_*.py)."""
+"""Shared builders for the simulator tests (tests/sim/, tests/contact/ and the test_mpi_*.py files)."""
 
 import contextlib
 import os

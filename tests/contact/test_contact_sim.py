@@ -323,7 +323,7 @@ def test_separate_caps_each_round_and_reaches_the_floor(monkeypatch):
 
 
 def test_penalty_mode_lets_fast_wisps_pass_through(crossing):
-    """Control for tests/test_mpi_ccd.py: at 10x the thickness per frame the penalty
+    """Control for tests/contact/test_mpi_ccd.py: at 10x the thickness per frame the penalty
     alone does not stop the wisps crossing within a step."""
     from lc_petsc.crossings import count_crossings
     from mpi4py import MPI

@@ -14,7 +14,7 @@ from mpi4py import MPI
 from lc_petsc.batch import main
 from lc_petsc.config import ConfigError, SimConfig, load_config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = sorted((ROOT / "configs").glob("*.toml"))
 CATALOGUE = {"hairball_2k", "hairball_4k", "hairball_8k", "hairball_demo", "smash", "jitter",
              "straighten", "compression_30", "compression_40", "cantilever", "from_file", "from_usd"}

@@ -16,7 +16,7 @@ from mpi4py import MPI
 
 from lc_petsc.batch import main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 from sim_helpers import MPI_ENV, hairball_toml  # noqa: E402
 DEMO_FRAMES = 4
 

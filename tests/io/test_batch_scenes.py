@@ -19,7 +19,7 @@ from lc_petsc.diagnostics import shape_measures, wisp_curl_radius
 from lc_petsc.scene import geometry
 from lc_petsc.simulator import build_simulator
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SELF = MPI.COMM_SELF
 SETTLE_FRAMES = 45
 

@@ -19,7 +19,7 @@ import pytest
 from lc_petsc.batch import EXIT_PREEMPTED, main
 from lc_petsc.config import ConfigError, config_from_dict
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DRIVER = str(ROOT / "drivers" / "simulate.py")
 from sim_helpers import MPI_ENV, hairball_toml  # noqa: E402
 

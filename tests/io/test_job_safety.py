@@ -23,7 +23,7 @@ from lc_petsc.io.disk import RESERVE
 from lc_petsc.io.frames import frame_bytes
 from lc_petsc.io.lock import LOCK_NAME, OutputLock
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DRIVER = str(ROOT / "drivers" / "simulate.py")
 
 SMASH = """

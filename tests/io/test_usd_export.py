@@ -20,7 +20,7 @@ from lc_petsc.io.usd import head_matrix, write_usd
 from lc_petsc.scene import geometry
 from lc_petsc.scene.kinematics import HeadMotion
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(Path(__file__).parent))
 from sim_helpers import hairball_toml  # noqa: E402
 

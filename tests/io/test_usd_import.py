@@ -259,7 +259,7 @@ def test_shipped_usd_groom_is_the_fringe():
     """configs/from_usd.toml reads data/fringe.usda (Z up, metres, Catmull-Rom, under a
     transform) back into fringe.h5's wisps, radii and pins."""
     from lc_petsc.config import load_config
-    root = Path(__file__).resolve().parents[1] / "configs"
+    root = Path(__file__).resolve().parents[2] / "configs"
     cfg = load_config(root / "from_usd.toml")
     assert not [w for w in cfg.key_warnings if "scene.path" in w], cfg.key_warnings
     src = source_from_config(cfg.scene, cfg.material, cfg.physics)

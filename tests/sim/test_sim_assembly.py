@@ -71,7 +71,7 @@ def test_preconditioning_matrix_is_an_exact_aij_copy():
     """BAIJ operator + separate per-wisp blocks: the PC is built from an AIJ copy (same
     values).  And -lc_pmat_type same (the BAIJ operator itself) reaches the same Newton
     iterate.  (The default, fused blocks, factors the operator itself:
-    tests/test_sim_wisp_blocks.py.)
+    tests/sim/test_sim_wisp_blocks.py.)
     """
     cfg = SimConfig(scene=SceneConfig(kind="hairball", n_wisps=3, perturbation="jitter", jitter=0.2),
                     physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity")),

@@ -1,6 +1,6 @@
 """Strands files (DESIGN section 3) are validated before anything large is read: every
 problem is one line naming the file and the dataset, exit status 2 from the main job,
-no traceback (2 ranks: tests/test_mpi_job.py)."""
+no traceback (2 ranks: tests/io/test_mpi_job.py)."""
 
 from pathlib import Path
 
@@ -138,4 +138,4 @@ def test_main_job_reports_once_with_exit_2(tmp_path, capsys):
     assert err.count("error:") == 1 and "/radius must have one entry per vertex" in err
     assert "Traceback" not in err and not (tmp_path / "o").exists()
     # the shipped example still loads
-    assert FileSource(str(Path(__file__).resolve().parents[1] / "configs" / "data" / "fringe.h5")).n_wisps == 24
+    assert FileSource(str(Path(__file__).resolve().parents[2] / "configs" / "data" / "fringe.h5")).n_wisps == 24

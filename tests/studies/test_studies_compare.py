@@ -13,7 +13,7 @@ from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfi
 from lc_petsc.studies.compare import record, run_comparison
 from lc_petsc.studies.systems import destroy_systems, option_sets, replay
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 comm = MPI.COMM_WORLD
 
 

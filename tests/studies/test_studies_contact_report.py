@@ -11,7 +11,7 @@ import pytest
 
 from lc_petsc.studies.contact_report import plot_runs, summarize, summary_table
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def synthetic_run(ranks, walls, collision, deep=None, dmin=0.08, d0=0.14):

@@ -103,7 +103,7 @@ def test_driver_base_reference_on_the_krylov_axis(tmp_path):
     import subprocess
     import sys
     from pathlib import Path
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     cmd = [sys.executable, str(root / "drivers" / "tradeoff.py"), "--scene", "hairball",
            "--wisps", "3", "--duration", str(4 / 30), "--axes", "ksp_rtol", "--rtols", "1e-2",
            "1e-4", "--ref", "base", "--set", "pbjacobi", "--out", str(tmp_path)]

@@ -216,7 +216,7 @@ class Simulator:
 
     def close(self):
         """Destroy the PETSc objects of this simulator (collective)."""
-        self.solver.ksp.destroy()
+        self.solver.destroy()
         self.assembler.mat.destroy()
         if self.assembler.pmat is not None:
             self.assembler.pmat.destroy()

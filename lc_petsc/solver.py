@@ -103,6 +103,10 @@ class LinearSolver:
                 f"-mat_type {A.getType()} (preconditioner built from {P.getType()}) "
                 f"(options: {self.plan.effective()})")
 
+    def destroy(self):
+        """Destroy the KSP (collective); the matrices belong to their owners."""
+        self.ksp.destroy()
+
     def forget_last(self):
         """Drop the last solve's record (a solve the caller replaces by another one)."""
         self.iterations.pop()

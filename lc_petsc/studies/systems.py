@@ -324,7 +324,7 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
         x.destroy()
     finally:
         if ls is not None:
-            ls.ksp.destroy()
+            ls.destroy()
         A.destroy()
         if P is not None:
             P.destroy()

@@ -76,7 +76,7 @@ def test_one_solver_set_never_sees_the_previous_sets_options():
     assert second.wisp_blocks == "fused" and second.pc_type == "bjacobi"
     assert second.options_used({}, "baij")["ksp_type"] == "cg"
     for ls in (ls1, ls2):
-        ls.ksp.destroy()
+        ls.destroy()
     A.destroy()
 
 
@@ -135,7 +135,7 @@ def test_prefixed_plan_reads_and_writes_only_its_own_options():
         assert ls.ksp.getTolerances()[3] == 17
         assert not opts.hasName("cmp_pc_type") and opts.getString("ksp_type") == "bicg"
         assert plan.unused_options(["cmp_ksp_type"]) == []
-        ls.ksp.destroy()
+        ls.destroy()
     finally:
         opts.delValue("cmp_ksp_type")
         opts.delValue("ksp_type")

@@ -1,7 +1,7 @@
 """The few PETSc C functions petsc4py 3.18 does not bind, called through ctypes.
 
 * ``PCBJacobiSetLocalBlocks`` (the per-wisp block Jacobi, lc_petsc/solver.py);
-* ``PetscOptionsUsed`` (options given but never used are reported, lc_petsc/solver.py);
+* ``PetscOptionsUsed`` (options given but never used are reported, lc_petsc/solver_plan.py);
 * ``MatSeqAIJGetArray`` / ``MatSeqBAIJGetArray`` and their ``Restore``: the value array
   of a rank's diagonal block, written in place by lc_petsc/assembly.py (one NumPy
   gather into PETSc's memory instead of ``MatSetValues*CSR``, which searches every

@@ -21,14 +21,12 @@ from lc_petsc.parallel import global_max, global_min
 
 
 def _reduce(comm, values, op):
-    buf = np.array(values, float)
-    comm.Allreduce(_in_place(), buf, op=op)
-    return buf
-
-
-def _in_place():
+    """Element-wise ``op`` (``"sum"`` or ``"max"``) of the floats ``values`` over the
+    ranks of ``comm``, in one Allreduce."""
     from mpi4py import MPI
-    return MPI.IN_PLACE
+    buf = np.array(values, float)
+    comm.Allreduce(MPI.IN_PLACE, buf, op={"sum": MPI.SUM, "max": MPI.MAX}[op])
+    return buf
 
 
 def wisp_curl_radius(x, turn=5):
@@ -68,8 +66,8 @@ def shape_measures(comm, x, x_rest, offsets, turn=5):
             r = wisp_curl_radius(x[a:b], turn)
             sums[0:3] += (r, r0, 1)
             sums[6] = max(sums[6], abs(r / r0 - 1))
-    tot = _reduce(comm, sums[:6], _sum())
-    mx = _reduce(comm, sums[6:], _max())
+    tot = _reduce(comm, sums[:6], "sum")
+    mx = _reduce(comm, sums[6:], "max")
     out = {"wisp_length": tot[3] / max(tot[5], 1), "wisp_length_rest": tot[4] / max(tot[5], 1)}
     out["wisp_length_ratio"] = out["wisp_length"] / out["wisp_length_rest"] if tot[4] > 0 else None
     out["wisp_length_max_dev"] = float(mx[1])
@@ -80,16 +78,6 @@ def shape_measures(comm, x, x_rest, offsets, turn=5):
         out.update(curl_radius=None, curl_radius_rest=None, curl_radius_ratio=None,
                    curl_radius_max_dev=None)
     return out
-
-
-def _max():
-    from mpi4py import MPI
-    return MPI.MAX
-
-
-def _sum():
-    from mpi4py import MPI
-    return MPI.SUM
 
 
 def term_warnings(sim):

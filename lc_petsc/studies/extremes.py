@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig
+from lc_petsc.config import ELASTIC_TERMS, MaterialConfig, PhysicsConfig, SceneConfig, SimConfig
 from lc_petsc.studies import report
 from lc_petsc.studies.measures import curl_radius, stretch_strain, wisp_lengths
 from lc_petsc.studies.tradeoff import Settings, run_trajectory
@@ -45,7 +45,7 @@ class Case:
 def wisp(perturbation="none", factor=0.4, gravity=False, n_vertices=101, E=3.9e9, radius=None,
          jitter=0.5):
     """Config of one 4C wisp with the given perturbation and material."""
-    terms = ("stretch", "bend", "twist") + (("gravity",) if gravity else ())
+    terms = ELASTIC_TERMS + (("gravity",) if gravity else ())
     mat = MaterialConfig(youngs_modulus=E)
     if radius is not None:
         mat.root_radius = mat.tip_radius = radius

@@ -21,16 +21,11 @@ import os
 import sys
 from pathlib import Path
 
+from lc_petsc.errors import UsageError
 from lc_petsc.options import option_pairs
 
 from lc_petsc.job import (EXIT_OK, EXIT_PREEMPTED, EXIT_RUN_FAILED, EXIT_USAGE,  # noqa: F401
                           PROG, RESTART_FREE_KEYS, output_dir, say)
-
-
-class UsageError(Exception):
-    """A bad command line (exit 2, reported once by rank 0)."""
-
-    pass
 
 
 class _Parser(argparse.ArgumentParser):

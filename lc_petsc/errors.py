@@ -8,7 +8,9 @@ modules that raise them import them from here too.  Two families:
   exits with status 2 (nothing written).  :class:`ConfigError` (config keys and PETSc
   options), :class:`SceneError` (strands and USD files), :class:`ElementError` (bad
   element-kernel input), :class:`RestPoseOverlapError` (a groom whose wisps start in
-  contact), :class:`CheckpointError` (a restart checkpoint that cannot be used).
+  contact), :class:`CheckpointError` (a restart checkpoint that cannot be used); and,
+  for the main job, :class:`UsageError` (a bad command line) and :class:`FolderBusy`
+  (another run holds the output folder).
 * **run failures** (``RuntimeError`` subclasses): the run went wrong part-way; the main
   job keeps what was written and exits with status 3.  :class:`SolverError` (a linear
   solve diverged; carries PETSc's converged reason), :class:`SimulationError` (a
@@ -16,14 +18,16 @@ modules that raise them import them from here too.  Two families:
   not be written), :class:`PetscCallError` (a PETSc C function called through ctypes
   failed).
 
-This module imports nothing, so the element kernels (no PETSc, no MPI) can use it.
+The studies' own control-flow signals (a time budget used up, a trajectory blowing up)
+stay private to lc_petsc/studies.  This module imports nothing, so the element kernels
+(no PETSc, no MPI) can use it.
 """
 
 from __future__ import annotations
 
 __all__ = ["ConfigError", "SceneError", "ElementError", "RestPoseOverlapError",
-           "CheckpointError", "SolverError", "SimulationError", "OutputError",
-           "PetscCallError"]
+           "CheckpointError", "UsageError", "FolderBusy", "SolverError", "SimulationError",
+           "OutputError", "PetscCallError"]
 
 
 class ConfigError(ValueError):
@@ -46,6 +50,14 @@ class RestPoseOverlapError(ValueError):
 
 class CheckpointError(ValueError):
     """A checkpoint that cannot be used; the message names the file (and dataset)."""
+
+
+class UsageError(Exception):
+    """A bad command line of the main job (exit 2, reported once by rank 0)."""
+
+
+class FolderBusy(Exception):
+    """Another live run holds the output folder; the message names it."""
 
 
 class SolverError(RuntimeError):

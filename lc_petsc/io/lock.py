@@ -25,11 +25,9 @@ import sys
 import time
 from pathlib import Path
 
+from lc_petsc.errors import FolderBusy
+
 LOCK_NAME = ".lc_petsc.lock"
-
-
-class FolderBusy(Exception):
-    """Another live run holds the output folder; the message names it."""
 
 
 def describe_holder(text):

@@ -97,7 +97,10 @@ class Integrator:
             xi = x[idx]
             e = float(head_contact.energy(xi, c, R, k).sum())
             g = head_contact.gradient(xi, c, R, k)
-            H = head_contact.hessian(xi, c, R, k) if need_hessian else None
+            # the exact Newton matrix needs the exact head Hessian too (its negative
+            # curvature is what lets a sliding vertex converge quadratically)
+            H = head_contact.hessian(xi, c, R, k, filter="none" if self.asm.filter == "none"
+                                     else "analytic") if need_hessian else None
             return e, idx, (g, H)
 
     def incremental_potential(self, x):
@@ -169,7 +172,7 @@ class Integrator:
                 x = self.strand.limit_step(x_prev, x)
             increment, absolute = self.increments(x - x_prev)
             if self.history is not None:
-                self._record_iteration(it, x_prev, x, g, increment, alpha)
+                self._record_iteration(it, x_prev, x, g, increment, alpha, exact)
             converged = self._newton_converged(increment, absolute)
             if converged:
                 break
@@ -331,14 +334,14 @@ class Integrator:
         norm = np.sqrt(self.comm.allreduce(float(np.sum(g * g))))
         return norm / self._force_scale if self._force_scale > 0 else norm
 
-    def _record_iteration(self, it, x_old, x_new, g, increment, alpha):
+    def _record_iteration(self, it, x_old, x_new, g, increment, alpha, exact):
         """Append iteration ``it``'s measures to ``self.history`` (diagnostics: costs a
         residual reduction and two evaluations of G)."""
         G_old, G_new = self.incremental_potential(x_old), self.incremental_potential(x_new)
         self.history.append(dict(
             frame=self.frame, iteration=it, increment=increment, alpha=alpha,
             residual=self.relative_residual(g), energy=G_new,
-            energy_decrease=G_old - G_new))
+            energy_decrease=G_old - G_new, exact=bool(exact)))
 
 
 def follow_the_leader(x, free, offsets, rest_edge):

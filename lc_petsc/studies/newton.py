@@ -162,7 +162,7 @@ def run_study(scenes, variants, comm, out_dir, iterations=30, frames=10, tol=1e-
         return None
     report.write_csv(all_rows, out / "newton.csv",
                      ["scene", "variant", "frame", "iteration", "increment", "residual",
-                      "energy", "energy_decrease", "alpha"])
+                      "energy", "energy_decrease", "alpha", "exact"])
     report.write_json({"tol": tol, "iterations": iterations, "frames": frames,
                        "summary": summary}, out / "newton.json")
     (out / "newton.md").write_text(markdown(summary, tol))

@@ -23,6 +23,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   iteration re-assembles with the analytic filter (``exact_hessian_fallbacks``).
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
   G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
+* ``time.length_projection``: the final iterate is projected onto the rest edge lengths
+  (:func:`project_rest_lengths`; the strain the few Newton iterations leave, measured
+  to leave the trajectory error unchanged, docs/newton.md) before the strand-contact
+  measures and the velocity.
 * v_{n+1} = (x_{n+1} - x_n) / dt.
 * Strand-strand contact (``strand``, a :class:`lc_petsc.contact.StrandContact`, set by
   the simulator when ``strand_collision`` is on) adds its penalty to G, its gradient,
@@ -182,6 +186,8 @@ class Integrator:
         if max(bad_any) >= 0:
             raise FloatingPointError(f"frame {self.frame}: non-finite position at global vertex "
                                      f"{min(b for b in bad_any if b >= 0)}")
+        if cfg.time.length_projection:
+            x = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass)
         self.newton_iterations.append(n_it)
         self.newton_increment.append(increment)
         self.newton_converged.append(converged)
@@ -403,13 +409,34 @@ def retract_edge_lengths(x, dx, free, offsets, mass=None):
     last_reset = np.maximum.accumulate(np.where(reset, np.arange(nv), 0))
     total = table[wisp, pos] - table[wisp, pos - (np.arange(nv) - last_reset)]
     if mass is not None:
-        unpinned = np.bincount(wisp, weights=(~free).astype(float), minlength=len(sizes)) == 0
-        if unpinned.any():
-            m = np.bincount(wisp, weights=mass, minlength=len(sizes))
-            mean = np.stack([np.bincount(wisp, weights=mass * total[:, c], minlength=len(sizes))
-                             for c in range(3)], axis=1) / np.where(m > 0, m, 1.0)[:, None]
-            total[unpinned[wisp]] -= mean[wisp[unpinned[wisp]]]
+        _remove_mean_on_unpinned(total, free, off, mass)
     return out + total
+
+
+def _remove_mean_on_unpinned(correction, free, offsets, mass):
+    """Subtract, in place, the mass-weighted mean of ``correction`` (nv, 3) on every wisp
+    without a pinned vertex: a position correction then leaves such a wisp's momentum
+    (of the velocity (x - x_n) / dt) unchanged."""
+    sizes = np.diff(offsets)
+    wisp = np.repeat(np.arange(len(sizes)), sizes)
+    unpinned = np.bincount(wisp, weights=(~free).astype(float), minlength=len(sizes)) == 0
+    if unpinned.any():
+        m = np.bincount(wisp, weights=mass, minlength=len(sizes))
+        mean = np.stack([np.bincount(wisp, weights=mass * correction[:, c], minlength=len(sizes))
+                         for c in range(3)], axis=1) / np.where(m > 0, m, 1.0)[:, None]
+        correction[unpinned[wisp]] -= mean[wisp[unpinned[wisp]]]
+
+
+def project_rest_lengths(x, free, offsets, rest_edge, mass):
+    """``time.length_projection``: the frame's final positions projected onto the rest
+    edge lengths from each wisp's root (or last pinned vertex) outwards
+    (:func:`follow_the_leader`, each free vertex moved along its edge only); on a wisp
+    with no pinned vertex the mass-weighted mean of the corrections is removed, so its
+    momentum is kept (its lengths too: a uniform shift).  x (nv, 3), free (nv,) bool,
+    offsets (n_wisps + 1,), rest_edge (nv - 1,), mass (nv,).  Returns (nv, 3)."""
+    correction = follow_the_leader(x, free, offsets, rest_edge) - x
+    _remove_mean_on_unpinned(correction, free, np.asarray(offsets), mass)
+    return x + correction
 
 
 #: solver.filter "exact_or_analytic": the exact Hessian is tried once the last relative

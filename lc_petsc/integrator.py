@@ -383,19 +383,32 @@ def retract_edge_lengths(x, dx, free, offsets, mass=None):
     x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
     Returns (nv, 3)."""
     out = x + dx
-    nv = len(x)
-    off = np.asarray(offsets)
-    sizes = np.diff(off)
-    if nv < 2 or len(sizes) == 0:
+    if len(x) < 2:
         return out
     e = x[1:] - x[:-1]
     new = out[1:] - out[:-1]
     L = np.linalg.norm(e, axis=1)
-    n = np.linalg.norm(new, axis=1)
     length = L + np.einsum("ij,ij->i", e, new - e) / np.where(L > 0, L, 1.0)
-    ok = (n > 0) & (L > 0) & (length > 0)
+    return _set_edge_lengths(out, np.where(L > 0, length, 0.0), free, offsets, mass)
+
+
+def _set_edge_lengths(x, length, free, offsets, mass=None):
+    """x with every edge (v - 1, v) that ends at a free vertex v of the same wisp given
+    the length ``length[v - 1]`` (> 0; its direction kept), the corrections accumulated
+    from the root (or the last pinned vertex) outwards in one vectorised pass; edges of
+    zero length or with a length <= 0 are left alone.  ``mass``: see
+    :func:`_remove_mean_on_unpinned`.  x (nv, 3), length (nv - 1,), free (nv,) bool,
+    offsets (n_wisps + 1,).  Returns (nv, 3)."""
+    nv = len(x)
+    off = np.asarray(offsets)
+    sizes = np.diff(off)
+    if nv < 2 or len(sizes) == 0:
+        return x.copy()
+    edge = x[1:] - x[:-1]
+    n = np.linalg.norm(edge, axis=1)
+    ok = (n > 0) & (length > 0)
     correction = np.zeros_like(x)
-    correction[1:][ok] = new[ok] * (length[ok] / n[ok] - 1.0)[:, None]
+    correction[1:][ok] = edge[ok] * (length[ok] / n[ok] - 1.0)[:, None]
     # edges into pinned vertices and across wisps are not corrected; the sums restart
     # at every wisp's first vertex and at pinned vertices
     reset = ~free.copy()
@@ -410,7 +423,7 @@ def retract_edge_lengths(x, dx, free, offsets, mass=None):
     total = table[wisp, pos] - table[wisp, pos - (np.arange(nv) - last_reset)]
     if mass is not None:
         _remove_mean_on_unpinned(total, free, off, mass)
-    return out + total
+    return x + total
 
 
 def _remove_mean_on_unpinned(correction, free, offsets, mass):
@@ -428,15 +441,14 @@ def _remove_mean_on_unpinned(correction, free, offsets, mass):
 
 
 def project_rest_lengths(x, free, offsets, rest_edge, mass):
-    """``time.length_projection``: the frame's final positions projected onto the rest
-    edge lengths from each wisp's root (or last pinned vertex) outwards
-    (:func:`follow_the_leader`, each free vertex moved along its edge only); on a wisp
-    with no pinned vertex the mass-weighted mean of the corrections is removed, so its
-    momentum is kept (its lengths too: a uniform shift).  x (nv, 3), free (nv,) bool,
-    offsets (n_wisps + 1,), rest_edge (nv - 1,), mass (nv,).  Returns (nv, 3)."""
-    correction = follow_the_leader(x, free, offsets, rest_edge) - x
-    _remove_mean_on_unpinned(correction, free, np.asarray(offsets), mass)
-    return x + correction
+    """``time.length_projection``: the frame's final positions with every edge that ends
+    at a free vertex set to its rest length, its direction kept, from each wisp's root
+    (or last pinned vertex) outwards (:func:`_set_edge_lengths`, one vectorised pass);
+    on a wisp with no pinned vertex the mass-weighted mean of the corrections is
+    removed, so its momentum is kept (its lengths too: a uniform shift).  x (nv, 3),
+    free (nv,) bool, offsets (n_wisps + 1,), rest_edge (nv - 1,), mass (nv,).
+    Returns (nv, 3)."""
+    return _set_edge_lengths(x, rest_edge, free, offsets, mass)
 
 
 #: solver.filter "exact_or_analytic": the exact Hessian is tried once the last relative

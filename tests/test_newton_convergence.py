@@ -181,14 +181,17 @@ def test_length_projection_keeps_rest_lengths_pins_and_free_momentum():
     assert np.allclose(lengths[ends_free], rest[ends_free], rtol=1e-12)
     w = slice(off[2], off[3])                # its momentum is that of the unprojected y
     assert np.allclose((mass[w, None] * got[w]).sum(0), (mass[w, None] * y[w]).sum(0), atol=1e-12)
-    assert not np.allclose(got[w], follow_the_leader(y, free, off, rest)[w])
+    # edge directions are kept
+    d_got, d_y = np.diff(got, axis=0)[ends_free], np.diff(y, axis=0)[ends_free]
+    cos = np.einsum("ij,ij->i", d_got, d_y) / np.linalg.norm(d_got, axis=1) / np.linalg.norm(d_y, axis=1)
+    assert np.allclose(cos, 1.0)
     assert np.array_equal(project_rest_lengths(got, free, off, rest, mass)[~free], got[~free])
 
 
 def test_length_projection_in_the_simulation():
     """The smashed wisp at 3 iterations per frame: edges back at their rest lengths (to
     round-off) each frame, with the trajectory as close to the converged one as without
-    the projection (measured 0.99x)."""
+    the projection (measured 1.01x)."""
     def run(**time):
         sim = build_simulator(_smash(frames=4, **time), COMM)
         try:

@@ -210,3 +210,23 @@ def test_length_projection_in_the_simulation():
     assert err(projected) < 1.1 * err(plain)
     with pytest.raises(ConfigError, match="time.length_projection"):
         SimConfig(time=TimeConfig(length_projection="yes")).validate()
+
+
+def test_filter_rates_and_degenerate_margins():
+    """scripts/newton_rates.py's measures on a small smashed wisp: the exact matrix's
+    rate is 0, a filtered one's is in [0, 1) at a converged frame with a positive
+    definite exact matrix; the twist element's |a| / |e0| is the sine of the angle of
+    its first three vertices, so both margins agree."""
+    from lc_petsc.studies.newton import degenerate_margins, filter_rates
+    cfg = _smash(n_vertices=21, frames=1)
+    rows = filter_rates(cfg, COMM, [("exact", {}), ("all analytic", {t: "analytic" for t in
+                                                                   ("stretch", "bend", "twist")})],
+                        frames=1, log=lambda *_: None)
+    r = rows[0]
+    assert r["increment"] < 1e-12 and r["exact_min_eigenvalue"] > 0
+    assert r["exact"] < 1e-8
+    assert 0.0 <= r["all analytic"] < 1.0
+    cfg.time.newton_iterations = 3
+    m = degenerate_margins(cfg, COMM, frames=1)
+    assert 0.0 < m["bend_min_sin"] <= 1.0
+    assert m["twist_min_ratio"] == pytest.approx(m["bend_min_sin"], rel=1e-9)

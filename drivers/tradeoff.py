@@ -15,7 +15,8 @@ with the line search and GMRES (--ref-method unfiltered); falling back to the an
 filter if that fails; Krylov rtol 1e-12; dt = --ref-dt, default 1/120) and variants
 along each axis (Newton iterations 1, 2, 3, 6, 12; ksp rtol 1e-2 .. 1e-10; dt 1/30,
 1/60, 1/120; filter analytic, numerical, none; line search on; newton_update: linear
-and edge retraction at 2, 3, 4, 6 iterations, the follow-the-leader guess, and
+and edge retraction at 2, 3, 4, 6 iterations, the follow-the-leader guess, the
+retraction with the final positions projected onto the rest lengths at 2 and 3, and
 exact_or_analytic to increments of 1e-3, 1e-4, 1e-6 wisp lengths with a cap of 30),
 all from the base setting dt 1/30, 3 Newton iterations, rtol 1e-6, analytic filter, no
 line search, the config's default Newton update.  Positions and energies are

@@ -259,7 +259,8 @@ class TimeConfig:
     increment relative to its wisp's rest length is below ``newton_increment_tol``
     and/or the absolute one below ``newton_tol`` cm (``None``: fixed count, the paper's
     setting), whichever comes first.  ``line_search`` enables Armijo backtracking on the
-    incremental potential G.  ``newton_update`` and ``initial_guess``: see
+    incremental potential G.  ``newton_update``, ``initial_guess`` and
+    ``length_projection`` (final positions onto the rest edge lengths): see
     lc_petsc/integrator.py and docs/newton.md.
     """
 
@@ -271,6 +272,7 @@ class TimeConfig:
     line_search: bool = False
     initial_guess: str = "inertial"
     newton_update: str = "edge_retraction"
+    length_projection: bool = False
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
@@ -295,6 +297,9 @@ class TimeConfig:
         if self.newton_update not in NEWTON_UPDATES:
             raise ConfigError(f"time.newton_update must be one of {NEWTON_UPDATES}, "
                               f"got {self.newton_update!r}")
+        if not isinstance(self.length_projection, bool):
+            raise ConfigError(f"time.length_projection must be true or false, "
+                              f"got {self.length_projection!r}")
 
 
 @dataclass

@@ -23,6 +23,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   iteration re-assembles with the analytic filter (``exact_hessian_fallbacks``).
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
   G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
+* ``time.length_projection``: the final iterate is projected onto the rest edge lengths
+  (:func:`project_rest_lengths`; the strain the few Newton iterations leave, measured
+  to leave the trajectory error unchanged, docs/newton.md) before the strand-contact
+  measures and the velocity.
 * v_{n+1} = (x_{n+1} - x_n) / dt.
 * Strand-strand contact (``strand``, a :class:`lc_petsc.contact.StrandContact`, set by
   the simulator when ``strand_collision`` is on) adds its penalty to G, its gradient,
@@ -95,7 +99,10 @@ class Integrator:
             xi = x[idx]
             e = float(head_contact.energy(xi, c, R, k).sum())
             g = head_contact.gradient(xi, c, R, k)
-            H = head_contact.hessian(xi, c, R, k) if need_hessian else None
+            # the exact Newton matrix needs the exact head Hessian too (its negative
+            # curvature is what lets a sliding vertex converge quadratically)
+            H = head_contact.hessian(xi, c, R, k, filter="none" if self.asm.filter == "none"
+                                     else "analytic") if need_hessian else None
             return e, idx, (g, H)
 
     def incremental_potential(self, x):
@@ -167,7 +174,7 @@ class Integrator:
                 x = self.strand.limit_step(x_prev, x)
             increment, absolute = self.increments(x - x_prev)
             if self.history is not None:
-                self._record_iteration(it, x_prev, x, g, increment, alpha)
+                self._record_iteration(it, x_prev, x, g, increment, alpha, exact)
             converged = self._newton_converged(increment, absolute)
             if converged:
                 break
@@ -177,6 +184,8 @@ class Integrator:
         if max(bad_any) >= 0:
             raise FloatingPointError(f"frame {self.frame}: non-finite position at global vertex "
                                      f"{min(b for b in bad_any if b >= 0)}")
+        if cfg.time.length_projection:
+            x = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass)
         self.newton_iterations.append(n_it)
         self.newton_increment.append(increment)
         self.newton_converged.append(converged)
@@ -328,14 +337,14 @@ class Integrator:
         norm = np.sqrt(self.comm.allreduce(float(np.sum(g * g))))
         return norm / self._force_scale if self._force_scale > 0 else norm
 
-    def _record_iteration(self, it, x_old, x_new, g, increment, alpha):
+    def _record_iteration(self, it, x_old, x_new, g, increment, alpha, exact):
         """Append iteration ``it``'s measures to ``self.history`` (diagnostics: costs a
         residual reduction and two evaluations of G)."""
         G_old, G_new = self.incremental_potential(x_old), self.incremental_potential(x_new)
         self.history.append(dict(
             frame=self.frame, iteration=it, increment=increment, alpha=alpha,
             residual=self.relative_residual(g), energy=G_new,
-            energy_decrease=G_old - G_new))
+            energy_decrease=G_old - G_new, exact=bool(exact)))
 
 
 def follow_the_leader(x, free, offsets, rest_edge):
@@ -371,19 +380,32 @@ def retract_edge_lengths(x, dx, free, offsets, mass=None):
     x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
     Returns (nv, 3)."""
     out = x + dx
-    nv = len(x)
-    off = np.asarray(offsets)
-    sizes = np.diff(off)
-    if nv < 2 or len(sizes) == 0:
+    if len(x) < 2:
         return out
     e = x[1:] - x[:-1]
     new = out[1:] - out[:-1]
     L = np.linalg.norm(e, axis=1)
-    n = np.linalg.norm(new, axis=1)
     length = L + np.einsum("ij,ij->i", e, new - e) / np.where(L > 0, L, 1.0)
-    ok = (n > 0) & (L > 0) & (length > 0)
+    return _set_edge_lengths(out, np.where(L > 0, length, 0.0), free, offsets, mass)
+
+
+def _set_edge_lengths(x, length, free, offsets, mass=None):
+    """x with every edge (v - 1, v) that ends at a free vertex v of the same wisp given
+    the length ``length[v - 1]`` (> 0; its direction kept), the corrections accumulated
+    from the root (or the last pinned vertex) outwards in one vectorised pass; edges of
+    zero length or with a length <= 0 are left alone.  ``mass``: see
+    :func:`_remove_mean_on_unpinned`.  x (nv, 3), length (nv - 1,), free (nv,) bool,
+    offsets (n_wisps + 1,).  Returns (nv, 3)."""
+    nv = len(x)
+    off = np.asarray(offsets)
+    sizes = np.diff(off)
+    if nv < 2 or len(sizes) == 0:
+        return x.copy()
+    edge = x[1:] - x[:-1]
+    n = np.linalg.norm(edge, axis=1)
+    ok = (n > 0) & (length > 0)
     correction = np.zeros_like(x)
-    correction[1:][ok] = new[ok] * (length[ok] / n[ok] - 1.0)[:, None]
+    correction[1:][ok] = edge[ok] * (length[ok] / n[ok] - 1.0)[:, None]
     # edges into pinned vertices and across wisps are not corrected; the sums restart
     # at every wisp's first vertex and at pinned vertices
     reset = ~free.copy()
@@ -397,13 +419,33 @@ def retract_edge_lengths(x, dx, free, offsets, mass=None):
     last_reset = np.maximum.accumulate(np.where(reset, np.arange(nv), 0))
     total = table[wisp, pos] - table[wisp, pos - (np.arange(nv) - last_reset)]
     if mass is not None:
-        unpinned = np.bincount(wisp, weights=(~free).astype(float), minlength=len(sizes)) == 0
-        if unpinned.any():
-            m = np.bincount(wisp, weights=mass, minlength=len(sizes))
-            mean = np.stack([np.bincount(wisp, weights=mass * total[:, c], minlength=len(sizes))
-                             for c in range(3)], axis=1) / np.where(m > 0, m, 1.0)[:, None]
-            total[unpinned[wisp]] -= mean[wisp[unpinned[wisp]]]
-    return out + total
+        _remove_mean_on_unpinned(total, free, off, mass)
+    return x + total
+
+
+def _remove_mean_on_unpinned(correction, free, offsets, mass):
+    """Subtract, in place, the mass-weighted mean of ``correction`` (nv, 3) on every wisp
+    without a pinned vertex: a position correction then leaves such a wisp's momentum
+    (of the velocity (x - x_n) / dt) unchanged."""
+    sizes = np.diff(offsets)
+    wisp = np.repeat(np.arange(len(sizes)), sizes)
+    unpinned = np.bincount(wisp, weights=(~free).astype(float), minlength=len(sizes)) == 0
+    if unpinned.any():
+        m = np.bincount(wisp, weights=mass, minlength=len(sizes))
+        mean = np.stack([np.bincount(wisp, weights=mass * correction[:, c], minlength=len(sizes))
+                         for c in range(3)], axis=1) / np.where(m > 0, m, 1.0)[:, None]
+        correction[unpinned[wisp]] -= mean[wisp[unpinned[wisp]]]
+
+
+def project_rest_lengths(x, free, offsets, rest_edge, mass):
+    """``time.length_projection``: the frame's final positions with every edge that ends
+    at a free vertex set to its rest length, its direction kept, from each wisp's root
+    (or last pinned vertex) outwards (:func:`_set_edge_lengths`, one vectorised pass);
+    on a wisp with no pinned vertex the mass-weighted mean of the corrections is
+    removed, so its momentum is kept (its lengths too: a uniform shift).  x (nv, 3),
+    free (nv,) bool, offsets (n_wisps + 1,), rest_edge (nv - 1,), mass (nv,).
+    Returns (nv, 3)."""
+    return _set_edge_lengths(x, rest_edge, free, offsets, mass)
 
 
 #: solver.filter "exact_or_analytic": the exact Hessian is tried once the last relative

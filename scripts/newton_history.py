@@ -2,13 +2,14 @@
 smash, variants side by side (docs/newton.md).
 
   .venv/bin/python scripts/newton_history.py [--scenes hairball10 smash] [--frames 10]
-      [--iterations 30] [--tol 1e-6] [--variant NAME=SPEC ...] [--out out/newton]
+      [--iterations 30] [--tol 1e-6] [--variant NAME=SPEC ...] [--wisps 10] [--dt DT]
+      [--out out/newton]
 
 SPEC: comma-separated key=value: filter=analytic|numerical|none|abs|exact_or_analytic,
 update=linear|edge_retraction, guess=inertial|follow_the_leader, ls=0|1 (line search),
 terms=stretch+gravity, head=0 (no head contact), strands=0, options=-ksp_type gmres.
-hairball10 is configs/hairball_demo.toml cut to 10 wisps without strand contact (head
-contact and the shaking head kept); smash is configs/smash.toml.
+hairball10 is configs/hairball_demo.toml cut to 10 wisps (--wisps) without strand
+contact (head contact and the shaking head kept); smash is configs/smash.toml.
 Outputs in --out: newton.csv (every iteration), newton.json, newton.md (table),
 newton_<scene>.png (increment per iteration: frame 0 and the median over frames).
 """
@@ -44,10 +45,10 @@ DEFAULT_VARIANTS = [
 ]
 
 
-def scene(name):
+def scene(name, wisps=10):
     if name == "hairball10":
         cfg = load_config(ROOT / "configs" / "hairball_demo.toml")
-        cfg.scene.n_wisps = 10
+        cfg.scene.n_wisps = wisps
         cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
         return cfg
     if name == "smash":
@@ -62,12 +63,17 @@ def main(argv=None):
     p.add_argument("--iterations", type=int, default=30)
     p.add_argument("--tol", type=float, default=1e-6)
     p.add_argument("--variant", action="append", help="NAME=SPEC (repeatable)")
+    p.add_argument("--wisps", type=int, default=10, help="wisps of hairball10 (default 10)")
+    p.add_argument("--dt", type=float, help="time step (s) instead of the scenes' own")
     p.add_argument("--out", default="out/newton")
     a = p.parse_args(argv)
     variants = [tuple(v.split("=", 1)) for v in (a.variant or DEFAULT_VARIANTS)]
     comm = MPI.COMM_WORLD
     log = print if comm.rank == 0 else (lambda *_: None)
-    scenes = [(Path(s).stem, scene(s)) for s in a.scenes]
+    scenes = [(Path(s).stem, scene(s, a.wisps)) for s in a.scenes]
+    if a.dt is not None:
+        for _, cfg in scenes:
+            cfg.time.dt = a.dt
     run_study(scenes, variants, comm, a.out, a.iterations, a.frames, a.tol, log)
     if comm.rank == 0:
         print((Path(a.out) / "newton.md").read_text())

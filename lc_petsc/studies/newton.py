@@ -163,7 +163,7 @@ def run_study(scenes, variants, comm, out_dir, iterations=30, frames=10, tol=1e-
         return None
     report.write_csv(all_rows, out / "newton.csv",
                      ["scene", "variant", "frame", "iteration", "increment", "residual",
-                      "energy", "energy_decrease", "alpha"])
+                      "energy", "energy_decrease", "alpha", "exact"])
     report.write_json({"tol": tol, "iterations": iterations, "frames": frames,
                        "summary": summary}, out / "newton.json")
     (out / "newton.md").write_text(markdown(summary, tol))
@@ -182,3 +182,130 @@ def markdown(summary, tol):
     return (f"# Newton iterations to a largest increment of {tol:g} wisp lengths\n\n"
             f"(a frame that never gets there counts as cap + 1)\n\n"
             + report.markdown_table(head, body) + "\n")
+
+
+# ------------------------------------------------------------------ filter rates
+class _TermFilter:
+    """An element module whose ``gradient_hessian`` uses a fixed filter, whatever the
+    assembler asks for."""
+
+    def __init__(self, module, filter):
+        self.module, self.filter = module, filter
+
+    def gradient_hessian(self, *args, filter=None, out=None):
+        return self.module.gradient_hessian(*args, filter=self.filter, out=out)
+
+    def __getattr__(self, name):
+        return getattr(self.module, name)
+
+
+def dense_newton_matrix(sim, filters):
+    """The Newton matrix (M/dt^2 + Hessians) of the integrator's current frame at its
+    current positions, dense over the free DoFs (one rank, small scenes), with
+    ``filters`` {term: filter} (terms not named: exact).  Returns (n_free_dofs,)^2."""
+    from lc_petsc import assembly
+    it = sim.integrator
+    saved = dict(assembly.KERNELS)
+    try:
+        for term, module in saved.items():
+            assembly.KERNELS[term] = _TermFilter(module, filters.get(term, "none"))
+        it._assemble_system(it.x, 0, filter="none")
+    finally:
+        assembly.KERNELS.clear()
+        assembly.KERNELS.update(saved)
+    A = it.asm.mat
+    rows = np.arange(A.getSize()[0], dtype=np.int32)
+    free = np.repeat(it.free, 3)
+    return A.getValues(rows, rows)[np.ix_(free, free)]
+
+
+def iteration_rate(H, Hf):
+    """Spectral radius of I - Hf^{-1} H (the linear rate of Newton steps with the matrix
+    Hf on a problem with Hessian H; Hf may be indefinite): ARPACK's largest-magnitude
+    eigenvalue with one LU of Hf.  H, Hf dense (n, n)."""
+    import scipy.linalg
+    import scipy.sparse.linalg
+    lu = scipy.linalg.lu_factor(Hf)
+    n = H.shape[0]
+    op = scipy.sparse.linalg.LinearOperator(
+        (n, n), matvec=lambda v: v - scipy.linalg.lu_solve(lu, H @ v), dtype=float)
+    lam = scipy.sparse.linalg.eigs(op, k=2, which="LM", tol=1e-8, return_eigenvectors=False,
+                                   maxiter=20 * n)
+    return float(np.abs(lam).max())
+
+
+def filter_rates(cfg, comm, combos, frames=3, log=print):
+    """Per frame (converged with ``exact_or_analytic`` to 1e-12 wisp lengths, cap 60):
+    the smallest eigenvalue of the exact Newton matrix and, per combination (name,
+    {term: filter}), the linear rate of the filtered Newton iteration at the frame's
+    solution: the spectral radius of I - H_f^{-1} H (generalised eigenvalues of
+    (H, H_f), :func:`iteration_rate`; H_f may be indefinite when only some terms are
+    filtered).  Serial only; rows (dicts)."""
+    if comm.size != 1:
+        raise ValueError("filter_rates runs on one rank (dense matrices)")
+    cfg = copy.deepcopy(cfg)
+    cfg.time.frames = frames
+    cfg.time.newton_iterations = 60
+    cfg.time.newton_increment_tol = 1e-12
+    cfg.solver.filter = "exact_or_analytic"
+    sim = build_simulator(cfg.validate(), comm)
+    rows = []
+    try:
+        for f in range(frames):
+            sim.step()
+            it = sim.integrator
+            H = dense_newton_matrix(sim, {})
+            row = {"frame": f, "iterations": it.newton_iterations[-1],
+                   "increment": it.newton_increment[-1],
+                   "exact_min_eigenvalue": float(np.linalg.eigvalsh(H)[0]),
+                   "mass_dt2_min": float((sim.scene.mass[it.free] / cfg.time.dt ** 2).min())}
+            for name, filters in combos:
+                row[name] = iteration_rate(H, dense_newton_matrix(sim, filters))
+            log(f"  frame {f}: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                             for k, v in row.items() if k != "frame"))
+            rows.append(row)
+    finally:
+        sim.close()
+    return rows
+
+
+def degenerate_margins(cfg, comm, frames=10):
+    """Over every Newton iterate of ``frames`` frames: the smallest sin(theta) of the bend
+    elements and the smallest |a| / |e0| (and |b| / |e2|) of the twist elements that
+    have a free vertex, leaving out the twist elements that are exactly degenerate
+    (|a| <= 1e-12 |e0|, e.g. on a straight pinned root; ``twist_exactly_degenerate``:
+    the most of them in one iterate).  How close the iterates come to the bend cone at
+    theta = pi (STRAIGHT_TOL) and the twist element's collinear threshold
+    (DEGENERATE_TOL), where the elements' rules switch."""
+    from lc_petsc.elements import bend
+    sim = build_simulator(configure(cfg, {}, cfg.time.newton_iterations, frames), comm)
+    it = sim.integrator
+    out = {"bend_min_sin": np.inf, "twist_min_ratio": np.inf, "twist_exactly_degenerate": 0}
+    update = it.update
+
+    def measured(x, step):
+        y = update(x, step)
+        for name, t in sim.assembler.padded.items():
+            X = t.positions(y)
+            keep = (t.stiffness > 0) & it.free[t.index].any(axis=1)
+            if name == "bend":
+                out["bend_min_sin"] = min(out["bend_min_sin"], float(np.sin(bend.angle(X[keep])).min(initial=np.inf)))
+            elif name == "twist":
+                X = X[keep]
+                e1 = X[:, 2] - X[:, 1]
+                ratio = np.full(len(X), np.inf)
+                for e in (X[:, 0] - X[:, 1], X[:, 3] - X[:, 2]):
+                    a = e - (np.einsum("ij,ij->i", e, e1) / np.einsum("ij,ij->i", e1, e1))[:, None] * e1
+                    ratio = np.minimum(ratio, np.linalg.norm(a, axis=1) / np.linalg.norm(e, axis=1))
+                zero = ratio <= 1e-12
+                out["twist_exactly_degenerate"] = max(out["twist_exactly_degenerate"], int(zero.sum()))
+                out["twist_min_ratio"] = min(out["twist_min_ratio"], float(ratio[~zero].min(initial=np.inf)))
+        return y
+
+    it.update = measured
+    try:
+        for _ in range(frames):
+            sim.step()
+    finally:
+        sim.close()
+    return out

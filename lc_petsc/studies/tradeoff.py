@@ -44,6 +44,7 @@ class Settings:
     newton_update: str = TimeConfig.newton_update
     initial_guess: str = TimeConfig.initial_guess
     newton_increment_tol: Optional[float] = None
+    length_projection: bool = TimeConfig.length_projection
 
     def label(self):
         """A short human-readable name of the settings."""
@@ -59,6 +60,8 @@ class Settings:
             parts.append(self.newton_update)
         if self.initial_guess != "inertial":
             parts.append(self.initial_guess)
+        if self.length_projection:
+            parts.append("projected")
         return " ".join(parts)
 
 
@@ -82,6 +85,9 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
             for u in ("linear", "edge_retraction") for n in (2, 3, 4, 6)]
         + [("retraction+ftl N=3", replace(base, newton_update="edge_retraction",
                                           initial_guess="follow_the_leader"))]
+        + [(f"retraction+projection N={n}", replace(base, newton_update="edge_retraction",
+                                                    newton_iterations=n, length_projection=True))
+           for n in (2, 3)]
         + [(f"exact_or_analytic inc<{t:g}",
             replace(base, filter="exact_or_analytic", newton_update="edge_retraction",
                     newton_iterations=30, newton_increment_tol=t)) for t in (1e-3, 1e-4, 1e-6)],
@@ -151,6 +157,7 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.newton_update = s.newton_update
     cfg.time.initial_guess = s.initial_guess
     cfg.time.newton_increment_tol = s.newton_increment_tol
+    cfg.time.length_projection = s.length_projection
     cfg.solver.filter = s.filter
     cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options,
                                               f"-ksp_rtol {s.ksp_rtol:g}") if x)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.elements.segment_ccd import relative_motion
+from lc_petsc.elements.segment_ccd import tight_inclusion_toi
 from lc_petsc.elements.segment_contact import distance
 
 
@@ -81,28 +81,10 @@ def pair_positions(X, pairs):
 
 def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
     """Boolean (k,): whether each pair (start S, end E, (k, 4, 3)) meets on its linear
-    path (Tight-Inclusion CCD of ipctk, min distance 0; pairs that the motion bound
-    shows never meet are not passed to it).  ``max_iterations`` caps Tight-Inclusion's
-    interval splits (its default, 1e7, ran out of memory on one degenerate pair in
-    the tests); a pair still undecided then counts as meeting (its answer is
-    conservative).  Pairs touching at the start count as meeting."""
-    import ipctk
-    hit = np.zeros(len(S), bool)
-    if not len(S):
-        return hit
-    d = distance(S)
-    # segments already touching at the start count as meeting (Tight-Inclusion was
-    # measured to hang on such a pair)
-    scale = np.abs(np.concatenate([S, E], axis=1)).reshape(len(S), -1).max(axis=1) + 1.0
-    touch = d <= 1e-12 * scale
-    hit[touch] = True
-    maybe = np.flatnonzero(~touch & (d <= relative_motion(S, E)))
-    ccd = ipctk.TightInclusionCCD(tolerance=tolerance, max_iterations=max_iterations,
-                                  conservative_rescaling=1.0)
-    for k in maybe:
-        a, b = S[k], E[k]
-        hit[k] = ccd.edge_edge_ccd(a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3], 0.0, 1.0)[0]
-    return hit
+    path: :func:`segment_ccd.tight_inclusion_toi` at min distance 0 (pairs touching at
+    the start count as meeting; a pair still undecided after ``max_iterations``
+    interval splits counts as meeting: conservative)."""
+    return tight_inclusion_toi(S, E, 0.0, tolerance=tolerance, max_iterations=max_iterations)[0]
 
 
 def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0):

@@ -48,7 +48,7 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
-from lc_petsc.crossings import box_pairs
+from lc_petsc.crossings import ball_pairs
 from lc_petsc.elements import segment_ccd, segment_contact
 from lc_petsc.parallel import collectively
 
@@ -294,34 +294,17 @@ class StrandContact:
         """Index pairs (i, j), i < j, of segments of different wisps that may be closer
         than d0 (at least one of them local).
 
-        Each segment is covered by ``c`` sample points (centres of c equal pieces, c = 1
-        unless it is longer than twice h = min(largest, 1.5 x median half length)), so every point
-        of a segment is within h of a sample; a kd-tree ``query_pairs`` on the samples
-        with radius d0 + 2 h therefore finds every pair closer than d0, and a stretched
-        segment neither inflates the radius for everybody nor is missed.  Only pairs
-        involving a multi-sample segment can be found twice, so only those are
-        de-duplicated.  Survivors pass an exact box-overlap test inflated by d0."""
-        from scipy.spatial import cKDTree
+        Two segments closer than d0 have centres within h_i + h_j + d0 (h the half
+        lengths), so :func:`ball_pairs` over balls of radius h + d0 / 2 finds every
+        such pair (a stretched segment lands in a level of its own and does not widen
+        the search for the others); survivors pass an exact box-overlap test inflated
+        by d0."""
         if len(P) < 2:
             return np.zeros((0, 2), np.int64)
-        e = P[:, 1] - P[:, 0]
-        half = 0.5 * np.sqrt(np.einsum("ij,ij->i", e, e))
-        h = max(min(float(half.max()), 1.5 * float(np.median(half))), 1e-12)
-        c = np.maximum(np.ceil(half / h), 1).astype(np.int64)
-        multi = np.flatnonzero(c > 1)
-        pts = 0.5 * (P[:, 0] + P[:, 1])
-        owner = np.arange(len(P))
-        if len(multi):                  # extra samples of the long segments, appended
-            cm = c[multi]
-            o = np.repeat(multi, cm)
-            first = np.concatenate([[0], np.cumsum(cm)[:-1]])
-            frac = (np.arange(len(o)) - np.repeat(first, cm) + 0.5) / c[o]
-            pts = np.concatenate([np.delete(pts, multi, axis=0), P[o, 0] + frac[:, None] * e[o]])
-            owner = np.concatenate([np.delete(owner, multi), o])
-        # unbalanced, non-compact: 3x faster to build, and faster to query here (measured)
-        tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
-        pairs = tree.query_pairs(d0 + 2.0 * h, output_type="ndarray")
-        i, j = owner[pairs[:, 0]], owner[pairs[:, 1]]
+        c = 0.5 * (P[:, 0] + P[:, 1])
+        half = 0.5 * np.linalg.norm(P[:, 1] - P[:, 0], axis=1)
+        ij = ball_pairs(c, half + 0.5 * d0)
+        i, j = ij[:, 0], ij[:, 1]
         keep = wisp[i] != wisp[j]
         if n_local < len(P):
             keep &= (i < n_local) | (j < n_local)
@@ -331,12 +314,7 @@ class StrandContact:
         ok = np.ones(len(i), bool)
         for a in range(3):
             ok &= (hi[i, a] >= lo[j, a]) & (lo[i, a] <= hi[j, a])
-        i, j = i[ok], j[ok]
-        ij = np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1)
-        if len(multi):                  # a pair may be found through several samples
-            dup = (c[i] > 1) | (c[j] > 1)
-            ij = np.concatenate([ij[~dup], np.unique(ij[dup], axis=0)])
-        return ij
+        return np.stack([i[ok], j[ok]], axis=1)
 
     def _pairs(self, x, active=True):
         """Pairs as (X (n, 4, 3), gvA, gvB, freeA, freeB, ownerA, ownerB, d), the segment
@@ -411,7 +389,7 @@ class StrandContact:
     def _pair_fractions(self, S, E, m):
         """Safe fractions of pairs on their paths S -> E (k, 4, 3) at min distance m (k,):
         conservative advancement, Tight-Inclusion for the pairs it leaves open."""
-        t, unresolved = segment_ccd.safe_fraction(S, E, m)
+        t, unresolved = segment_ccd.safe_fraction(S, E, m, iterations=100)
         u = np.flatnonzero(unresolved)
         if len(u):
             t[u] = np.maximum(t[u], segment_ccd.tight_inclusion_toi(S[u], E[u], m[u])[1])
@@ -448,7 +426,8 @@ class StrandContact:
            within reach_A + reach_B, reach = h + (m / 2 + rho) / (1 - L)
            (:func:`segment_ccd.field_reach`, with the proof; rho = the segment's largest
            |f|, h its half length, L the field's Lipschitz constant).  Boxes centre +-
-           reach select the candidates (:func:`box_pairs`) and the ghosts
+           reach select the ghosts (:meth:`_gather_segments`), balls of that radius the
+           candidates (:func:`ball_pairs`), so a rank gets every segment
            (:meth:`_gather_segments`), so a rank gets every segment that can reach its
            own during the step for any fractions; the same bound on the segment
            distance at S, (1 - L) d(S) <= m + rho_A + rho_B, then discards most of
@@ -483,7 +462,7 @@ class StrandContact:
         reach = segment_ccd.field_reach(h, rho, L, md)[:, None]
         (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \
             self._gather_segments(S, (T, H), inflate=0.0, boxes=(c - reach, c + reach))
-        ij = box_pairs(PB[:, 0], PB[:, 1])
+        ij = ball_pairs(0.5 * (PB[:, 0] + PB[:, 1]), 0.5 * (PB[:, 1, 0] - PB[:, 0, 0]))
         i, j = ij[:, 0], ij[:, 1]
         keep = (wisp[i] != wisp[j]) & ((i < n_local) | (j < n_local))
         keep &= ~(~free[i]).all(axis=1) | ~(~free[j]).all(axis=1)    # pinned pairs move rigidly

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ccd_reference import crossing_reference
-from lc_petsc.crossings import box_pairs, count_crossings, crossing_pairs
+from lc_petsc.crossings import ball_pairs, count_crossings, crossing_pairs
 from lc_petsc.elements import segment_ccd
 from lc_petsc.elements.segment_contact import distance
 
@@ -83,8 +83,9 @@ def test_safe_fraction_is_safe_and_tight():
     hit, ti = segment_ccd.tight_inclusion_toi(S[ok], E[ok], m)
     assert hit.all()
     assert np.all(ti <= t[ok] + 2e-3) and np.all(ti > 0.25 * t[ok])
-    # pairs that stay apart are not hit, and keep t = 1
-    far = t == 1.0
+    # pairs the motion bound shows never come within m are not hit, and keep t = 1
+    rel = segment_ccd.relative_motion(S, E)
+    far = d0 - m > rel
     hit, ti = segment_ccd.tight_inclusion_toi(S[far], E[far], m)
     assert far.sum() > 30 and not hit.any() and np.all(ti == 1.0)
 
@@ -97,19 +98,20 @@ def test_safe_fraction_input_errors():
         segment_ccd.safe_fraction(S, S, -1.0)
 
 
-def test_box_pairs_against_all_pairs():
+def test_ball_pairs_against_all_pairs():
     rng = np.random.default_rng(1)
     n = 600
-    lo = rng.uniform(0, 10, size=(n, 3))
-    size = rng.uniform(0, 0.5, size=(n, 3))
-    size[:20] *= 20                       # a few big boxes (fast segments)
-    hi = lo + size
-    got = {tuple(p) for p in box_pairs(lo, hi)}
+    c = rng.uniform(0, 10, size=(n, 3))
+    r = rng.uniform(0, 0.5, size=n)
+    r[:20] *= 20                          # a few big balls (fast segments)
+    r[20:25] = 0.0                        # and points
+    got = {tuple(p) for p in ball_pairs(c, r).tolist()}
     i, j = np.triu_indices(n, 1)
-    ov = np.all((hi[i] >= lo[j]) & (lo[i] <= hi[j]), axis=1)
-    ref = set(zip(i[ov].tolist(), j[ov].tolist()))
+    touch = np.linalg.norm(c[i] - c[j], axis=1) <= r[i] + r[j]
+    ref = set(zip(i[touch].tolist(), j[touch].tolist()))
     assert len(ref) > 400
     assert got == ref
+    assert ball_pairs(c[:1], r[:1]).shape == (0, 2)
 
 
 def rotation(axis, angle):
@@ -126,10 +128,10 @@ def relative_candidates(S, T, seg, m):
     fn = np.linalg.norm(T - H, axis=1)
     c = 0.5 * (S[seg] + S[seg + 1])
     h = 0.5 * np.linalg.norm(S[seg + 1] - S[seg], axis=1)
-    reach = segment_ccd.field_reach(h, np.maximum(fn[seg], fn[seg + 1]), L, m)[:, None]
+    reach = segment_ccd.field_reach(h, np.maximum(fn[seg], fn[seg + 1]), L, m)
     dn = np.linalg.norm(T - S, axis=1)
-    absolute = (h + np.maximum(dn[seg], dn[seg + 1]) + 0.5 * m)[:, None]
-    return box_pairs(c - reach, c + reach), H, box_pairs(c - absolute, c + absolute)
+    absolute = h + np.maximum(dn[seg], dn[seg + 1]) + 0.5 * m
+    return ball_pairs(c, reach), H, ball_pairs(c, absolute)
 
 
 @pytest.mark.parametrize("motion", ["random", "rigid", "rigid_plus_noise", "shear"])
@@ -137,7 +139,7 @@ def test_relative_broad_phase_keeps_every_pair_that_comes_close(motion):
     """Every pair of segments that comes within m on the path S -> H + beta (T - H), for
     any per-vertex fractions beta (0, 1, random), is a candidate of the relative broad
     phase (brute force over all pairs, the path sampled at 81 times); for hair moving
-    rigidly the candidates are far fewer than with absolute swept boxes."""
+    rigidly the candidates are far fewer than with absolute swept balls."""
     rng = np.random.default_rng({"random": 1, "rigid": 2, "rigid_plus_noise": 3, "shear": 4}[motion])
     n = 160                                     # segments, as 2-vertex wisps
     a = rng.uniform(0, 4, size=(n, 3))

@@ -15,12 +15,12 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    segment with the smaller global index: ranks own increasing vertex ranges), so rank
    r sends to every lower rank q, with one ``alltoall``, the segments whose box touches
    a cell occupied by q: only segments that can be within d0 of one of q's.
-3. **Broad phase.** ``scipy.spatial.cKDTree`` over sample points of the local + ghost
-   segments (midpoints; long segments get several), ``query_pairs`` with radius d0 + 2h
-   (:meth:`StrandContact.candidates`), which contains every pair closer than d0, then an
-   exact box-overlap test inflated by d0.  Rebuilt from the current positions (reused
-   only for bit-identical positions), so no margin for motion is needed: the search
-   is exact, not predictive.
+3. **Broad phase.** :func:`lc_petsc.crossings.ball_pairs` over balls of radius half
+   length + d0 / 2 around the local + ghost segments' centres
+   (:meth:`StrandContact.candidates`), which contains every pair closer than d0, then
+   an exact box-overlap test inflated by d0.  Rebuilt from the current positions
+   (reused only for bit-identical positions), so no margin for motion is needed: the
+   search is exact, not predictive.
    Pairs of the same wisp are excluded (no self-contact; see docs/contact.md).
 4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` on the candidates, the
    smaller global segment first (so the arithmetic of a pair does not depend on the

@@ -15,12 +15,12 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    segment with the smaller global index: ranks own increasing vertex ranges), so rank
    r sends to every lower rank q, with one ``alltoall``, the segments whose box touches
    a cell occupied by q: only segments that can be within d0 of one of q's.
-3. **Broad phase.** ``scipy.spatial.cKDTree`` over sample points of the local + ghost
-   segments (midpoints; long segments get several), ``query_pairs`` with radius d0 + 2h
-   (:meth:`StrandContact.candidates`), which contains every pair closer than d0, then an
-   exact box-overlap test inflated by d0.  Rebuilt from the current positions (reused
-   only for bit-identical positions), so no margin for motion is needed: the search
-   is exact, not predictive.
+3. **Broad phase.** :func:`lc_petsc.crossings.ball_pairs` over balls of radius half
+   length + d0 / 2 around the local + ghost segments' centres
+   (:meth:`StrandContact.candidates`), which contains every pair closer than d0, then
+   an exact box-overlap test inflated by d0.  Rebuilt from the current positions
+   (reused only for bit-identical positions), so no margin for motion is needed: the
+   search is exact, not predictive.
    Pairs of the same wisp are excluded (no self-contact; see docs/contact.md).
 4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` on the candidates, the
    smaller global segment first (so the arithmetic of a pair does not depend on the
@@ -48,7 +48,7 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
-from lc_petsc.crossings import box_pairs
+from lc_petsc.crossings import ball_pairs
 from lc_petsc.elements import segment_ccd, segment_contact
 from lc_petsc.parallel import collectively
 
@@ -101,6 +101,35 @@ class _OccupancyGrid:
         m = np.zeros(self.size, bool)
         m[cells.ravel()] = True
         return m
+
+
+class _VertexGather:
+    """A VecScatter from a PETSc Vec indexed by global vertex (block size ``bs``) to the
+    sorted global vertices ``V`` that a rank's pairs touch (its own and ghosts), and
+    back (reverse, with an insert mode such as ADD_VALUES or MAX_VALUES).  A context
+    manager: the scatter and its work Vec are destroyed on exit."""
+
+    def __init__(self, vec, V, bs):
+        self.idx = PETSc.IS().createBlock(bs, np.asarray(V, PETSc.IntType), comm=PETSc.COMM_SELF)
+        self.loc = PETSc.Vec().createSeq(bs * len(V), bsize=bs, comm=PETSc.COMM_SELF)
+        self.scatter = PETSc.Scatter().create(vec, self.idx, self.loc, None)
+
+    def gather(self, vec):
+        """The values of ``vec`` at V, (bs len(V),) (a view of the work Vec)."""
+        self.scatter.scatter(vec, self.loc, addv=PETSc.InsertMode.INSERT_VALUES)
+        return self.loc.array
+
+    def reverse(self, values, vec, addv):
+        """Combine ``values`` (bs len(V),) into ``vec`` at V with ``addv``."""
+        self.loc.array[:] = values
+        self.scatter.scatter(self.loc, vec, addv=addv, mode=PETSc.ScatterMode.REVERSE)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        for obj in (self.scatter, self.loc, self.idx):
+            obj.destroy()
 
 
 class SumOperator:
@@ -265,34 +294,17 @@ class StrandContact:
         """Index pairs (i, j), i < j, of segments of different wisps that may be closer
         than d0 (at least one of them local).
 
-        Each segment is covered by ``c`` sample points (centres of c equal pieces, c = 1
-        unless it is longer than twice h = min(largest, 1.5 x median half length)), so every point
-        of a segment is within h of a sample; a kd-tree ``query_pairs`` on the samples
-        with radius d0 + 2 h therefore finds every pair closer than d0, and a stretched
-        segment neither inflates the radius for everybody nor is missed.  Only pairs
-        involving a multi-sample segment can be found twice, so only those are
-        de-duplicated.  Survivors pass an exact box-overlap test inflated by d0."""
-        from scipy.spatial import cKDTree
+        Two segments closer than d0 have centres within h_i + h_j + d0 (h the half
+        lengths), so :func:`ball_pairs` over balls of radius h + d0 / 2 finds every
+        such pair (a stretched segment lands in a level of its own and does not widen
+        the search for the others); survivors pass an exact box-overlap test inflated
+        by d0."""
         if len(P) < 2:
             return np.zeros((0, 2), np.int64)
-        e = P[:, 1] - P[:, 0]
-        half = 0.5 * np.sqrt(np.einsum("ij,ij->i", e, e))
-        h = max(min(float(half.max()), 1.5 * float(np.median(half))), 1e-12)
-        c = np.maximum(np.ceil(half / h), 1).astype(np.int64)
-        multi = np.flatnonzero(c > 1)
-        pts = 0.5 * (P[:, 0] + P[:, 1])
-        owner = np.arange(len(P))
-        if len(multi):                  # extra samples of the long segments, appended
-            cm = c[multi]
-            o = np.repeat(multi, cm)
-            first = np.concatenate([[0], np.cumsum(cm)[:-1]])
-            frac = (np.arange(len(o)) - np.repeat(first, cm) + 0.5) / c[o]
-            pts = np.concatenate([np.delete(pts, multi, axis=0), P[o, 0] + frac[:, None] * e[o]])
-            owner = np.concatenate([np.delete(owner, multi), o])
-        # unbalanced, non-compact: 3x faster to build, and faster to query here (measured)
-        tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
-        pairs = tree.query_pairs(d0 + 2.0 * h, output_type="ndarray")
-        i, j = owner[pairs[:, 0]], owner[pairs[:, 1]]
+        c = 0.5 * (P[:, 0] + P[:, 1])
+        half = 0.5 * np.linalg.norm(P[:, 1] - P[:, 0], axis=1)
+        ij = ball_pairs(c, half + 0.5 * d0)
+        i, j = ij[:, 0], ij[:, 1]
         keep = wisp[i] != wisp[j]
         if n_local < len(P):
             keep &= (i < n_local) | (j < n_local)
@@ -302,12 +314,7 @@ class StrandContact:
         ok = np.ones(len(i), bool)
         for a in range(3):
             ok &= (hi[i, a] >= lo[j, a]) & (lo[i, a] <= hi[j, a])
-        i, j = i[ok], j[ok]
-        ij = np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1)
-        if len(multi):                  # a pair may be found through several samples
-            dup = (c[i] > 1) | (c[j] > 1)
-            ij = np.concatenate([ij[~dup], np.unique(ij[dup], axis=0)])
-        return ij
+        return np.stack([i[ok], j[ok]], axis=1)
 
     def _pairs(self, x, active=True):
         """Pairs as (X (n, 4, 3), gvA, gvB, freeA, freeB, ownerA, ownerB, d), the segment
@@ -358,10 +365,11 @@ class StrandContact:
         if self.mode != "ccd":
             return target
         with self.timers("collision"):
-            beta, n_limited, rounds = self._safe_fractions(x, target, self.min_separation * self.d0)
+            beta, n_limited, rounds, fallback = self._safe_fractions(x, target,
+                                                                     self.min_separation * self.d0)
             self.limited_vertices.append(n_limited)
             self.limit_rounds.append(rounds)
-        return _held_back(x, target, beta)
+        return _held_back(fallback, target, beta)
 
     def collision_free_frame(self, x_old, x):
         """Positions whose linear path from ``x_old`` (the previous frame) is
@@ -374,63 +382,96 @@ class StrandContact:
         if self.mode != "ccd":
             return x
         with self.timers("collision"):
-            beta, n_limited, _ = self._safe_fractions(x_old, x, 0.05 * self.d0)
+            beta, n_limited, _, fallback = self._safe_fractions(x_old, x, 0.05 * self.d0)
             self.frame_fixes.append(n_limited)
-        return _held_back(x_old, x, beta)
+        return _held_back(fallback, x, beta)
 
     def _pair_fractions(self, S, E, m):
         """Safe fractions of pairs on their paths S -> E (k, 4, 3) at min distance m (k,):
         conservative advancement, Tight-Inclusion for the pairs it leaves open."""
-        t, unresolved = segment_ccd.safe_fraction(S, E, m)
+        t, unresolved = segment_ccd.safe_fraction(S, E, m, iterations=100)
         u = np.flatnonzero(unresolved)
         if len(u):
-            t[u] = np.maximum(t[u], segment_ccd.tight_inclusion_toi(S[u], E[u], m[u]))
+            t[u] = np.maximum(t[u], segment_ccd.tight_inclusion_toi(S[u], E[u], m[u])[1])
             self.tight_inclusion_pairs += len(u)
         return t
 
-    def _safe_fractions(self, S, T, min_distance):
-        """(beta, vertices limited over all ranks, rounds): per-vertex fractions beta
-        (nv,) in [0, 1] of the displacements T - S (nv, 3) such that on the linear path
-        from S to E = S + beta (T - S) no pair of segments of different wisps
-        (rest-exempt pairs excepted) comes closer than ``min_distance``, or half its
-        distance at S when already closer.  Pinned vertices keep beta = 1 (their
-        motion is prescribed).  Collective.
+    def _motion_field(self, S, T):
+        """(A, b, L): the affine field u(x) = A x + b fitted to the displacements T - S
+        (nv, 3) of all vertices of all ranks (least squares; Lipschitz constant L =
+        ||A||_2 capped at 1/2 by :func:`segment_ccd.affine_field`).  One field for all
+        ranks (the broad phase's proof needs the same u on both sides of a pair): the
+        sums are allreduced and rank 0's solution is broadcast.  Collective."""
+        from mpi4py import MPI
+        M, R = segment_ccd.affine_sums(S, T - S)
+        buf = np.concatenate([M.ravel(), R.ravel()])
+        self.comm.Allreduce(MPI.IN_PLACE, buf, op=MPI.SUM)
+        field = segment_ccd.affine_field(buf[:16].reshape(4, 4), buf[16:].reshape(4, 3)) \
+            if self.comm.rank == 0 else None
+        return self.comm.bcast(field, root=0)
 
-        1. Broad phase: a pair's relative displacement is at most r_A + r_B (r = the
-           largest |T - S| of a segment's vertices), so it can come within m only if
-           its centres at S are within rho_A + rho_B, rho = h + r + m / 2 (h the half
-           length).  Boxes centre +- rho select the candidates (:func:`box_pairs`) and
-           the ghosts (:meth:`_gather_segments`), so a rank gets every segment that can
-           reach its own during the step; they cover every beta.
+    def _safe_fractions(self, S, T, min_distance):
+        """(beta, vertices limited over all ranks, rounds, H): per-vertex fractions beta
+        (nv,) in [0, 1] and fallback positions H (nv, 3) such that on the linear path
+        from S to E = H + beta (T - H) no pair of segments of different wisps
+        (rest-exempt pairs excepted) comes closer than ``min_distance``, or half its
+        distance at S when already closer.  H = S + u(S), u the affine field fitted to
+        the whole step (:meth:`_motion_field`): a held-back vertex is carried along with
+        the bulk of the hair instead of being left behind, and only its residual motion
+        f = T - H is cut.  Pinned vertices keep beta = 1 (their motion is prescribed).
+        Collective.
+
+        1. Broad phase on relative motion: whatever the fractions, every vertex moves by
+           u(S) + beta f, so a pair can come within m only if its centres at S are
+           within reach_A + reach_B, reach = h + (m / 2 + rho) / (1 - L)
+           (:func:`segment_ccd.field_reach`, with the proof; rho = the segment's largest
+           |f|, h its half length, L the field's Lipschitz constant).  Boxes centre +-
+           reach select the ghosts (:meth:`_gather_segments`), balls of that radius the
+           candidates (:func:`ball_pairs`), so a rank gets every segment
+           (:meth:`_gather_segments`), so a rank gets every segment that can reach its
+           own during the step for any fractions; the same bound on the segment
+           distance at S, (1 - L) d(S) <= m + rho_A + rho_B, then discards most of
+           them.  Hair swinging with the head moves by u, not by f: the reach is set
+           by how much a segment moves relative to the bulk.
         2. Rounds: a pair whose current path comes closer than half its floor m
            (min_distance, or half its distance at S) multiplies the fractions of its
            free vertices by its safe fraction at m (the first SCALE_ROUNDS rounds; its
            path then keeps m, clear of the m / 2 test, so round-off cannot flip its
-           fate), later by 0, i.e. they stay at S.  Safe fractions: conservative
-           advancement (:func:`segment_ccd.safe_fraction`), Tight-Inclusion for the
-           pairs it leaves open.  The smallest factor per vertex is taken over all
-           ranks (a reverse scatter with MAX_VALUES of 1 - factor to the vertex owner),
-           and the new fractions come back to every pair through a scatter.  Only pairs
-           with a changed vertex are recomputed.  A pair whose free vertices all stay
-           at S can still be hit by its pinned vertices' motion (a root segment turning
-           with the head into a held-back neighbour): such pairs are left as they are
-           and counted in ``unresolved_pairs`` (a known gap: fixing them needs a
-           fallback that moves the free vertices rigidly with the head).  Each round
-           after the scaling ones stops at least one more vertex, so the loop ends."""
+           fate), later by 0, i.e. they move by u alone.  A pair whose free vertices
+           all move by u keeps at least (1 - L) of its distance plus its pinned
+           vertices' residuals; with L <= 1/2 and no pinned vertex it stays clear of
+           the m / 2 test, so each round after the scaling ones stops at least one more
+           vertex and the loop ends.  Safe fractions: conservative advancement
+           (:func:`segment_ccd.safe_fraction`), Tight-Inclusion for the pairs it leaves
+           open.  The smallest factor per vertex is taken over all ranks (a reverse
+           scatter with MAX_VALUES of 1 - factor to the vertex owner), and the new
+           fractions come back to every pair through a scatter.  Only pairs with a
+           changed vertex are recomputed.  A pair whose free vertices are all stopped
+           can still be hit by its pinned vertices' residual motion (a root segment
+           turning with the head differently from the fitted field): such pairs are
+           left as they are and counted in ``unresolved_pairs``."""
         nv, d0 = self.scene.nv, self.d0
         md = float(min_distance)
+        A, b, L = self._motion_field(S, T)
+        H = S + (S @ A.T + b)
+        fn = np.linalg.norm(T - H, axis=1)
         Pc = np.stack([S[self.seg], S[self.seg + 1]], axis=1)
         c = Pc.mean(axis=1)
         h = 0.5 * np.linalg.norm(Pc[:, 1] - Pc[:, 0], axis=1)
-        dT = np.linalg.norm(T - S, axis=1)
-        rho = (h + np.maximum(dT[self.seg], dT[self.seg + 1]) + 0.5 * md)[:, None]
-        (PS, PT, PC), Prest, gv, wisp, free, owner, n_local = \
-            self._gather_segments(S, (T,), inflate=0.0, boxes=(c - rho, c + rho))
-        ij = box_pairs(PC[:, 0], PC[:, 1])
+        rho = np.maximum(fn[self.seg], fn[self.seg + 1])
+        reach = segment_ccd.field_reach(h, rho, L, md)[:, None]
+        (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \
+            self._gather_segments(S, (T, H), inflate=0.0, boxes=(c - reach, c + reach))
+        ij = ball_pairs(0.5 * (PB[:, 0] + PB[:, 1]), 0.5 * (PB[:, 1, 0] - PB[:, 0, 0]))
         i, j = ij[:, 0], ij[:, 1]
         keep = (wisp[i] != wisp[j]) & ((i < n_local) | (j < n_local))
         keep &= ~(~free[i]).all(axis=1) | ~(~free[j]).all(axis=1)    # pinned pairs move rigidly
         i, j = i[keep], j[keep]
+        if len(i):      # the bound on the segment distance at S (see 1.)
+            rho_all = np.maximum(np.linalg.norm(PT - PH, axis=2).max(axis=1), 0.0)
+            dS = segment_contact.distance(np.concatenate([PS[i], PS[j]], axis=1))
+            ok = (1.0 - L) * dS <= md + rho_all[i] + rho_all[j]
+            i, j = i[ok], j[ok]
         if len(i):     # rest-exempt pairs (docs/contact.md) are not limited either
             Xr = np.concatenate([Prest[i], Prest[j]], axis=1)
             ok = segment_contact.distance(Xr) >= d0
@@ -438,64 +479,54 @@ class StrandContact:
         gidx = np.stack([gv[i], gv[i] + 1, gv[j], gv[j] + 1], axis=1)
         V, inv = np.unique(gidx, return_inverse=True)
         inv = inv.reshape(-1, 4)
-        SV, TV, fV = np.zeros((len(V), 3)), np.zeros((len(V), 3)), np.zeros(len(V), bool)
+        SV, TV, HV = np.zeros((len(V), 3)), np.zeros((len(V), 3)), np.zeros((len(V), 3))
+        fV = np.zeros(len(V), bool)
         for k, (src, e) in enumerate(((i, 0), (i, 1), (j, 0), (j, 1))):
-            SV[inv[:, k]], TV[inv[:, k]] = PS[src, e], PT[src, e]
+            SV[inv[:, k]], TV[inv[:, k]], HV[inv[:, k]] = PS[src, e], PT[src, e], PH[src, e]
             fV[inv[:, k]] = free[src, e]
         Spair = SV[inv]
         m_pair = np.minimum(md, 0.5 * segment_contact.distance(Spair)) if len(inv) else np.zeros(0)
         self.step_fraction.set(1.0)
         beta = self.step_fraction.array           # this rank's vertices, a view
-        Vi = V.astype(PETSc.IntType)
-        idx = loc = scatter = None
         limited = np.zeros(nv, bool)
         rounds = 0
-        try:
-            idx = PETSc.IS().createGeneral(Vi, comm=PETSc.COMM_SELF)
-            loc = PETSc.Vec().createSeq(len(V), comm=PETSc.COMM_SELF)
-            scatter = PETSc.Scatter().create(self.step_fraction, idx, loc, None)
+        with _VertexGather(self.step_fraction, V, 1) as vg:
             tau = np.ones(len(inv))
             bV_prev = None
             while True:
-                scatter.scatter(self.step_fraction, loc, addv=PETSc.InsertMode.INSERT_VALUES)
-                bV = loc.array.copy()
+                bV = vg.gather(self.step_fraction).copy()
                 stopped = (bV == 0.0) | ~fV
                 # only pairs with a vertex whose fraction changed have a new path
                 redo = np.arange(len(inv)) if bV_prev is None else \
                     np.flatnonzero((bV != bV_prev)[inv].any(axis=1))
                 bV_prev = bV
+                E = HV + bV[:, None] * (TV - HV)
+                E[bV == 1.0] = TV[bV == 1.0]
                 if len(redo):
-                    E = SV + bV[:, None] * (TV - SV)
                     tau[redo] = self._pair_fractions(Spair[redo], E[inv[redo]], 0.5 * m_pair[redo])
                 hit = tau < 1.0
-                # held back as far as it goes: only the pinned vertices' prescribed
-                # motion moves the pair (counted, not fixable by the free vertices)
+                # held back as far as it goes: only the pinned vertices' residual motion
+                # moves the pair closer (counted, not fixable by the free vertices)
                 stuck = hit & stopped[inv].all(axis=1)
                 hit &= ~stuck
-                h = np.flatnonzero(hit)
-                factor = np.zeros(len(h))
-                if rounds < SCALE_ROUNDS and len(h):
-                    factor = self._pair_fractions(Spair[h], E[inv[h]], m_pair[h])
+                h_ = np.flatnonzero(hit)
+                factor = np.zeros(len(h_))
+                if rounds < SCALE_ROUNDS and len(h_):
+                    factor = self._pair_fractions(Spair[h_], E[inv[h_]], m_pair[h_])
                 if self.comm.allreduce(int(hit.sum())) == 0:
                     break
                 fmin = np.ones(len(V))
                 np.minimum.at(fmin, inv[hit].ravel(), np.repeat(factor, 4))
                 fmin[~fV] = 1.0                 # pinned vertices keep their prescribed motion
-                loc.array[:] = 1.0 - fmin
                 self.shrink.zeroEntries()
-                scatter.scatter(loc, self.shrink, addv=PETSc.InsertMode.MAX_VALUES,
-                                mode=PETSc.ScatterMode.REVERSE)
+                vg.reverse(1.0 - fmin, self.shrink, PETSc.InsertMode.MAX_VALUES)
                 sh = self.shrink.array
                 beta *= 1.0 - sh
                 limited |= sh > 0.0
                 rounds += 1
             self.unresolved_pairs.append(int(self.comm.allreduce(int(stuck.sum()))))
-        finally:
-            for obj in (scatter, loc, idx):
-                if obj is not None:
-                    obj.destroy()
         beta = np.where(self.scene.pinned, 1.0, beta)
-        return beta, int(self.comm.allreduce(int(limited.sum()))), rounds
+        return beta, int(self.comm.allreduce(int(limited.sum()))), rounds, H
 
     # ------------------------------------------------------------- public
     def energy(self, x):
@@ -549,7 +580,6 @@ class StrandContact:
             st = self.state.array.reshape(nv, 5)         # x, y, z, 1 / mass, count
             st[:, 3] = self.inverse_mass
             Vi = V.astype(PETSc.IntType)
-            idx = loc = scatter = None
             first = below = it = 0
 
             def add_by_vertex(values):          # (len(V), 4) summed by global vertex
@@ -559,14 +589,10 @@ class StrandContact:
                 self.correction.assemblyEnd()
                 return self.correction.array.reshape(nv, 4)
 
-            try:
-                idx = PETSc.IS().createBlock(5, Vi, comm=PETSc.COMM_SELF)
-                loc = PETSc.Vec().createSeq(5 * len(V), bsize=5, comm=PETSc.COMM_SELF)
-                scatter = PETSc.Scatter().create(self.state, idx, loc, None)
+            with _VertexGather(self.state, V, 5) as vg:
                 for it in range(max_iterations + 1):
                     st[:, :3] = x
-                    scatter.scatter(self.state, loc, addv=PETSc.InsertMode.INSERT_VALUES)
-                    Y = loc.array.reshape(-1, 5)
+                    Y = vg.gather(self.state).reshape(-1, 5)
                     P4 = Y[inv, :3]
                     d = segment_contact.distance(P4) if len(P4) else np.zeros(0)
                     hit = np.flatnonzero(d < 0.5 * (floor + target) * d0)
@@ -578,8 +604,7 @@ class StrandContact:
                     acc = np.zeros((len(V), 4))
                     acc[:, 3] = np.bincount(inv[hit].ravel(), minlength=len(V))
                     st[:, 4] = add_by_vertex(acc)[:, 3]
-                    scatter.scatter(self.state, loc, addv=PETSc.InsertMode.INSERT_VALUES)
-                    count = loc.array.reshape(-1, 5)[:, 4]
+                    count = vg.gather(self.state).reshape(-1, 5)[:, 4]
                     with collectively(self.comm, "strand contact (separation)"):
                         dx = segment_contact.separation(P4[hit], Y[inv[hit], 3], target * d0)
                         # at most max_step d0 per pair (a pair with pinned vertices can ask
@@ -595,10 +620,6 @@ class StrandContact:
                             acc[:, c] = np.bincount(inv[hit].ravel(), weights=dx[:, :, c].ravel(),
                                                     minlength=len(V))
                     x += add_by_vertex(acc)[:, :3]
-            finally:
-                for obj in (scatter, loc, idx):
-                    if obj is not None:
-                        obj.destroy()
         self.last_separation = (first, it, below)
         return x, first, it
 
@@ -710,7 +731,8 @@ class StrandContact:
 
 
 def _held_back(start, end, beta):
-    """start + beta (end - start) per vertex (nv, 3), and exactly ``end`` where beta = 1:
+    """start + beta (end - start) per vertex (nv, 3) (``start``: the limiter's fallback
+    positions), and exactly ``end`` where beta = 1:
     an unlimited vertex keeps its update to the last bit (no round-off from the
     limiter, and the bit-identical pair cache stays valid)."""
     out = end.copy()

@@ -1,14 +1,15 @@
 """Swept-box broad phase and the edge-edge crossing counter over frames.
 
-* :func:`box_pairs`: all pairs of overlapping axis-aligned boxes, exact, through a
-  kd-tree in the max norm on the box centres.  Boxes much larger than the median are
-  handled apart (against the tree of the others, and recursively among themselves), so
-  one fast or stretched segment does not widen the search radius for everybody.
+* :func:`ball_pairs`: all pairs of touching balls, exact, through kd-trees over the
+  centres grouped by radius, so one fast or stretched segment does not widen the
+  search radius for everybody.  The one broad phase of the project: the penalty
+  contact's (balls of half length + d0 / 2), the limiter's and this counter's (balls
+  of the relative reach, :func:`segment_ccd.field_reach`).
 * :func:`count_crossings`: edge-edge crossings between segments of different wisps
   (optionally between non-adjacent segments of one wisp) on the linear path between
-  two configurations (two consecutive frames): swept boxes, the motion bound of
-  :mod:`lc_petsc.elements.segment_ccd` to discard pairs that cannot meet, and IPC
-  Toolkit's Tight-Inclusion CCD (``ipctk``, min distance 0) on the rest.
+  two configurations (two consecutive frames): the relative broad phase, the motion
+  bound of :mod:`lc_petsc.elements.segment_ccd` to discard pairs that cannot meet, and
+  IPC Toolkit's Tight-Inclusion CCD (``ipctk``, min distance 0) on the rest.
 * ``scripts/count_crossings.py`` runs it over a ``frames.h5``.
 """
 
@@ -16,38 +17,43 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.elements.segment_ccd import relative_motion
+from lc_petsc.elements.segment_ccd import affine_field, affine_sums, field_reach, tight_inclusion_toi
 from lc_petsc.elements.segment_contact import distance
 
 
-def box_pairs(lo, hi):
-    """Index pairs (k, 2), i < j, of the boxes lo, hi (n, 3) that overlap (closed)."""
+def ball_pairs(c, r, ratio=1.5):
+    """Index pairs (k, 2), i < j, of the balls centre c (n, 3), radius r (n,) that touch
+    (|c_i - c_j| <= r_i + r_j, to a relative 1e-12: never fewer), exact.
+
+    The balls are grouped by radius (levels a factor ``ratio`` apart); one kd-tree per
+    level, ``query_pairs`` within a level (radius twice the level's largest) and
+    ``sparse_distance_matrix`` between levels, so one fast or stretched segment does not
+    widen the search for everybody; survivors pass the exact test."""
     from scipy.spatial import cKDTree
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    n = len(lo)
-    if n < 2:
+    c = np.asarray(c, float)
+    r = np.asarray(r, float)
+    if len(c) < 2:
         return np.zeros((0, 2), np.int64)
-    c = 0.5 * (lo + hi)
-    h = 0.5 * (hi - lo).max(axis=1)
-    thr = max(2.0 * float(np.median(h)), 1e-12)
-    small = np.flatnonzero(h <= thr)
-    big = np.flatnonzero(h > thr)
+    floor = max(float(r.max()) * 1e-6, 1e-12)
+    level = np.floor(np.log(np.maximum(r, floor) / max(float(r.min()), floor)) / np.log(ratio)).astype(np.int64)
+    groups = [np.flatnonzero(level == k) for k in np.unique(level)]
+    # unbalanced, non-compact: faster to build, and faster to query here (measured)
+    trees = [cKDTree(c[g], balanced_tree=False, compact_nodes=False) for g in groups]
+    rmax = [float(r[g].max()) for g in groups]
+    slack = 1.0 + 1e-12
     parts = []
-    tree = cKDTree(c[small], balanced_tree=False, compact_nodes=False)
-    p = tree.query_pairs(2.0 * thr * (1.0 + 1e-12), p=np.inf, output_type="ndarray")
-    parts.append(small[p])
-    if len(big):
-        nb = tree.query_ball_point(c[big], (h[big] + thr) * (1.0 + 1e-12), p=np.inf)
-        cnt = np.array([len(x) for x in nb], np.int64)
-        if cnt.sum():
-            parts.append(np.stack([np.repeat(big, cnt), small[np.concatenate(nb).astype(np.int64)]], 1))
-        if len(big) > 1:
-            parts.append(big[box_pairs(lo[big], hi[big])])
-    ij = np.concatenate(parts) if parts else np.zeros((0, 2), np.int64)
+    for a, (ga, ta) in enumerate(zip(groups, trees)):
+        p = ta.query_pairs(2.0 * rmax[a] * slack, output_type="ndarray")
+        parts.append(ga[p])
+        for b in range(a + 1, len(groups)):
+            m = ta.sparse_distance_matrix(trees[b], (rmax[a] + rmax[b]) * slack, output_type="ndarray")
+            parts.append(np.stack([ga[m["i"]], groups[b][m["j"]]], axis=1))
+    ij = np.concatenate(parts).astype(np.int64)
     i, j = ij[:, 0], ij[:, 1]
-    ok = np.all((hi[i] >= lo[j]) & (lo[i] <= hi[j]), axis=1)
+    d = c[i] - c[j]
+    ok = np.einsum("ij,ij->i", d, d) <= ((r[i] + r[j]) * slack) ** 2
     i, j = i[ok], j[ok]
-    return np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1).astype(np.int64)
+    return np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1)
 
 
 def segments(offsets):
@@ -60,12 +66,16 @@ def segments(offsets):
 
 
 def candidate_pairs(X0, X1, offsets, self_contact=False, margin=0.0):
-    """Segment pairs (k, 2) of global first vertices whose boxes swept from X0 to X1
-    (n_vertices, 3), inflated by ``margin``, overlap; different wisps, or with
-    ``self_contact`` also segments of one wisp sharing no vertex."""
+    """Segment pairs (k, 2) of global first vertices that can come within ``margin`` on
+    the linear path X0 -> X1 (n_vertices, 3) (the relative broad phase of
+    :func:`segment_ccd.field_reach`, with the affine field fitted to X1 - X0); different
+    wisps, or with ``self_contact`` also segments of one wisp sharing no vertex."""
     seg, wisp = segments(offsets)
-    P = np.concatenate([X0[seg], X0[seg + 1], X1[seg], X1[seg + 1]], axis=1).reshape(-1, 4, 3)
-    ij = box_pairs(P.min(axis=1) - 0.5 * margin, P.max(axis=1) + 0.5 * margin)
+    A, b, L = affine_field(*affine_sums(X0, X1 - X0))
+    f = np.linalg.norm(X1 - X0 - (X0 @ A.T + b), axis=1)
+    c = 0.5 * (X0[seg] + X0[seg + 1])
+    h = 0.5 * np.linalg.norm(X0[seg + 1] - X0[seg], axis=1)
+    ij = ball_pairs(c, field_reach(h, np.maximum(f[seg], f[seg + 1]), L, margin))
     i, j = ij[:, 0], ij[:, 1]
     keep = wisp[i] != wisp[j]
     if self_contact:
@@ -81,28 +91,10 @@ def pair_positions(X, pairs):
 
 def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
     """Boolean (k,): whether each pair (start S, end E, (k, 4, 3)) meets on its linear
-    path (Tight-Inclusion CCD of ipctk, min distance 0; pairs that the motion bound
-    shows never meet are not passed to it).  ``max_iterations`` caps Tight-Inclusion's
-    interval splits (its default, 1e7, ran out of memory on one degenerate pair in
-    the tests); a pair still undecided then counts as meeting (its answer is
-    conservative).  Pairs touching at the start count as meeting."""
-    import ipctk
-    hit = np.zeros(len(S), bool)
-    if not len(S):
-        return hit
-    d = distance(S)
-    # segments already touching at the start count as meeting (Tight-Inclusion was
-    # measured to hang on such a pair)
-    scale = np.abs(np.concatenate([S, E], axis=1)).reshape(len(S), -1).max(axis=1) + 1.0
-    touch = d <= 1e-12 * scale
-    hit[touch] = True
-    maybe = np.flatnonzero(~touch & (d <= relative_motion(S, E)))
-    ccd = ipctk.TightInclusionCCD(tolerance=tolerance, max_iterations=max_iterations,
-                                  conservative_rescaling=1.0)
-    for k in maybe:
-        a, b = S[k], E[k]
-        hit[k] = ccd.edge_edge_ccd(a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3], 0.0, 1.0)[0]
-    return hit
+    path: :func:`segment_ccd.tight_inclusion_toi` at min distance 0 (pairs touching at
+    the start count as meeting; a pair still undecided after ``max_iterations``
+    interval splits counts as meeting: conservative)."""
+    return tight_inclusion_toi(S, E, 0.0, tolerance=tolerance, max_iterations=max_iterations)[0]
 
 
 def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0):

@@ -32,7 +32,8 @@ import numpy as np
 from lc_petsc.elements.common import check_positions
 from lc_petsc.elements.segment_contact import distance
 
-__all__ = ["relative_motion", "safe_fraction", "tight_inclusion_toi"]
+__all__ = ["relative_motion", "safe_fraction", "tight_inclusion_toi", "affine_sums",
+           "affine_field", "field_reach"]
 
 
 def relative_motion(start, end):
@@ -90,28 +91,85 @@ def safe_fraction(start, end, min_distance, iterations=30, rtol=1e-3):
 
 
 def tight_inclusion_toi(start, end, min_distance, tolerance=1e-6, max_iterations=10000):
-    """Times of impact t (n,) by IPC Toolkit's Tight-Inclusion edge-edge CCD (one
-    ``ipctk`` call per pair: 10-50 us each, hence only for the pairs that
-    :func:`safe_fraction` leaves unresolved): 1 where the pair stays ``min_distance``
-    (scalar or (n,)) apart on the whole path, else the first time it comes that close
-    (Tight-Inclusion's time is a lower bound, also when it stops after
-    ``max_iterations`` interval splits: ipctk's default of 1e7 took seconds for single
-    grazing pairs)."""
+    """(hit (n,) bool, t (n,)) by IPC Toolkit's Tight-Inclusion edge-edge CCD (one
+    ``ipctk`` call per pair: 10-50 us each, hence only for pairs that the motion bound
+    cannot settle): ``hit`` where the pair comes within ``min_distance`` (scalar or
+    (n,)) on its path, t the first time it does (1 where it does not).  Pairs already
+    that close at the start hit at t = 0 (Tight-Inclusion was measured to hang on
+    touching pairs); pairs the motion bound shows never come that close are not passed
+    to ipctk.  Tight-Inclusion's time is a lower bound, also when it stops after
+    ``max_iterations`` interval splits (then it reports a hit: conservative; ipctk's
+    default of 1e7 took seconds for single grazing pairs and ran out of memory on one
+    degenerate pair; 2,000 ran out of memory too, on pairs of tests/test_ccd.py that
+    10,000 settles in milliseconds)."""
     import ipctk
     S = check_positions(start, 4, "segment_ccd")
     E = check_positions(end, 4, "segment_ccd")
-    m = np.broadcast_to(np.asarray(min_distance, float), (len(S),))
+    n = len(S)
+    m = np.broadcast_to(np.asarray(min_distance, float), (n,))
+    hit, out = np.zeros(n, bool), np.ones(n)
+    if not n:
+        return hit, out
+    scale = np.abs(np.concatenate([S, E], axis=1)).reshape(n, -1).max(axis=1) + 1.0
+    d_start = distance(S)
+    touch = d_start <= m + 1e-12 * scale
+    hit[touch], out[touch] = True, 0.0
+    maybe = np.flatnonzero(~touch & (d_start - m <= relative_motion(S, E)))
     ccd = ipctk.TightInclusionCCD(tolerance=tolerance, max_iterations=max_iterations,
                                   conservative_rescaling=1.0)
-    out = np.ones(len(S))
-    scale = np.abs(np.concatenate([S, E], axis=1)).reshape(len(S), -1).max(axis=1) + 1.0
-    d_start = distance(S) if len(S) else np.zeros(0)
-    for k in range(len(S)):
-        if d_start[k] <= m[k] + 1e-12 * scale[k]:
-            out[k] = 0.0            # already that close (Tight-Inclusion hangs on touching pairs)
-            continue
+    for k in maybe:
         a, b = S[k], E[k]
-        hit, toi = ccd.edge_edge_ccd(a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3], float(m[k]), 1.0)
-        if hit:
-            out[k] = toi
-    return out
+        h, toi = ccd.edge_edge_ccd(a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3], float(m[k]), 1.0)
+        if h:
+            hit[k], out[k] = True, toi
+    return hit, out
+
+
+# ---------------------------------------------------------------- relative broad phase
+def affine_sums(x, displacement):
+    """Least-squares sums (4, 4), (4, 3) of an affine fit u(x) = A x + b to the
+    ``displacement`` (n, 3) of the points ``x`` (n, 3): summed over ranks, they give
+    :func:`affine_field`."""
+    X1 = np.concatenate([np.asarray(x, float), np.ones((len(x), 1))], axis=1)
+    return X1.T @ X1, X1.T @ np.asarray(displacement, float)
+
+
+def affine_field(M, R, max_lipschitz=0.5):
+    """(A (3, 3), b (3,), L) of the affine field u(x) = A x + b fitted by the sums
+    ``M``, ``R`` of :func:`affine_sums`, scaled down (A and b alike) so that its
+    Lipschitz constant L = ||A||_2 is at most ``max_lipschitz``.  No points, or points
+    on a plane: the minimum-norm fit (lstsq); u = 0 when nothing moves."""
+    M, R = np.asarray(M, float), np.asarray(R, float)
+    if M[3, 3] <= 0.0:
+        return np.zeros((3, 3)), np.zeros(3), 0.0
+    mean = M[3, :3] / M[3, 3]                  # centred for conditioning
+    C = M[:3, :3] / M[3, 3] - np.outer(mean, mean)
+    Dm = R[3] / M[3, 3]
+    CD = R[:3] / M[3, 3] - np.outer(mean, Dm)
+    At = np.linalg.lstsq(C, CD, rcond=1e-10)[0]              # (3, 3): u = x At + b
+    A = At.T
+    b = Dm - A @ mean
+    L = float(np.linalg.norm(A, 2))
+    if L > max_lipschitz:
+        A, b = A * (max_lipschitz / L), b * (max_lipschitz / L)
+        L = float(max_lipschitz)
+    return A, b, L
+
+
+def field_reach(half_length, residual, lipschitz, min_distance):
+    """Reach (m,) of segments for the relative broad phase: a box centre +- reach
+    around each segment's centre at the start (max norm) contains every pair that can
+    come within ``min_distance`` on any path whose vertex displacements are
+    u(x_start) + beta f, beta in [0, 1] per vertex, u affine with Lipschitz constant
+    ``lipschitz`` L < 1 and |f| <= ``residual`` (m,) (the largest of the segment's two
+    vertices).  ``half_length`` (m,) at the start.
+
+    Proof.  A point p of segment A and q of B (fixed parameters) move by
+    u(p0) - u(q0) + r_A - r_B relative to each other, |r_A| <= rho_A (a convex
+    combination of its vertices' beta f), so |p(t) - q(t)| >= |p0 - q0| - t L |p0 - q0|
+    - t (rho_A + rho_B) >= (1 - L) d0 - rho_A - rho_B with d0 the segment distance at the
+    start.  The pair comes within m only if d0 <= (m + rho_A + rho_B) / (1 - L), and
+    d0 >= |c_A - c_B| - h_A - h_B, so |c_A - c_B| <= reach_A + reach_B with
+    reach = h + (m / 2 + rho) / (1 - L); the max-norm boxes contain the balls."""
+    return np.asarray(half_length, float) + (0.5 * float(min_distance) + np.asarray(residual, float)) \
+        / (1.0 - float(lipschitz))

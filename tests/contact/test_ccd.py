@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ccd_reference import crossing_reference
-from lc_petsc.crossings import box_pairs, count_crossings, crossing_pairs
+from lc_petsc.crossings import ball_pairs, count_crossings, crossing_pairs
 from lc_petsc.elements import segment_ccd
 from lc_petsc.elements.segment_contact import distance
 
@@ -80,8 +80,14 @@ def test_safe_fraction_is_safe_and_tight():
     dd = distance(S[ok] + t[ok][:, None, None] * (E[ok] - S[ok]))
     np.testing.assert_allclose(dd, m, rtol=2e-3)
     # Tight-Inclusion (with a min distance) is a conservative lower bound of that time
-    ti = segment_ccd.tight_inclusion_toi(S[ok], E[ok], m)
+    hit, ti = segment_ccd.tight_inclusion_toi(S[ok], E[ok], m)
+    assert hit.all()
     assert np.all(ti <= t[ok] + 2e-3) and np.all(ti > 0.25 * t[ok])
+    # pairs the motion bound shows never come within m are not hit, and keep t = 1
+    rel = segment_ccd.relative_motion(S, E)
+    far = d0 - m > rel
+    hit, ti = segment_ccd.tight_inclusion_toi(S[far], E[far], m)
+    assert far.sum() > 30 and not hit.any() and np.all(ti == 1.0)
 
 
 def test_safe_fraction_input_errors():
@@ -92,19 +98,100 @@ def test_safe_fraction_input_errors():
         segment_ccd.safe_fraction(S, S, -1.0)
 
 
-def test_box_pairs_against_all_pairs():
+def test_ball_pairs_against_all_pairs():
     rng = np.random.default_rng(1)
     n = 600
-    lo = rng.uniform(0, 10, size=(n, 3))
-    size = rng.uniform(0, 0.5, size=(n, 3))
-    size[:20] *= 20                       # a few big boxes (fast segments)
-    hi = lo + size
-    got = {tuple(p) for p in box_pairs(lo, hi)}
+    c = rng.uniform(0, 10, size=(n, 3))
+    r = rng.uniform(0, 0.5, size=n)
+    r[:20] *= 20                          # a few big balls (fast segments)
+    r[20:25] = 0.0                        # and points
+    got = {tuple(p) for p in ball_pairs(c, r).tolist()}
     i, j = np.triu_indices(n, 1)
-    ov = np.all((hi[i] >= lo[j]) & (lo[i] <= hi[j]), axis=1)
-    ref = set(zip(i[ov].tolist(), j[ov].tolist()))
+    touch = np.linalg.norm(c[i] - c[j], axis=1) <= r[i] + r[j]
+    ref = set(zip(i[touch].tolist(), j[touch].tolist()))
     assert len(ref) > 400
     assert got == ref
+    assert ball_pairs(c[:1], r[:1]).shape == (0, 2)
+
+
+def rotation(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def relative_candidates(S, T, seg, m):
+    """The limiter's broad phase (contact.StrandContact._safe_fractions) on one rank:
+    (candidate pairs, fallback H, absolute-box pairs)."""
+    A, b, L = segment_ccd.affine_field(*segment_ccd.affine_sums(S, T - S))
+    H = S + S @ A.T + b
+    fn = np.linalg.norm(T - H, axis=1)
+    c = 0.5 * (S[seg] + S[seg + 1])
+    h = 0.5 * np.linalg.norm(S[seg + 1] - S[seg], axis=1)
+    reach = segment_ccd.field_reach(h, np.maximum(fn[seg], fn[seg + 1]), L, m)
+    dn = np.linalg.norm(T - S, axis=1)
+    absolute = h + np.maximum(dn[seg], dn[seg + 1]) + 0.5 * m
+    return ball_pairs(c, reach), H, ball_pairs(c, absolute)
+
+
+@pytest.mark.parametrize("motion", ["random", "rigid", "rigid_plus_noise", "shear"])
+def test_relative_broad_phase_keeps_every_pair_that_comes_close(motion):
+    """Every pair of segments that comes within m on the path S -> H + beta (T - H), for
+    any per-vertex fractions beta (0, 1, random), is a candidate of the relative broad
+    phase (brute force over all pairs, the path sampled at 81 times); for hair moving
+    rigidly the candidates are far fewer than with absolute swept balls."""
+    rng = np.random.default_rng({"random": 1, "rigid": 2, "rigid_plus_noise": 3, "shear": 4}[motion])
+    n = 160                                     # segments, as 2-vertex wisps
+    a = rng.uniform(0, 4, size=(n, 3))
+    S = np.concatenate([a, a + rng.normal(scale=0.25, size=(n, 3))]).reshape(2, n, 3)
+    S = S.transpose(1, 0, 2).reshape(-1, 3)
+    seg = np.arange(0, 2 * n, 2)
+    if motion == "random":
+        T = S + rng.normal(scale=0.4, size=S.shape)
+    elif motion == "shear":                     # relative motion grows with distance
+        T = S + 0.3 * S[:, [1]] * np.array([1.0, 0, 0]) + rng.normal(scale=0.05, size=S.shape)
+    else:
+        T = (S - 2.0) @ rotation([0.3, 1, 0.2], 0.35).T + 2.0 + np.array([1.5, -0.8, 0.6])
+        if motion == "rigid_plus_noise":
+            T += rng.normal(scale=0.08, size=S.shape)
+    m = 0.05
+    cand, H, absolute = relative_candidates(S, T, seg, m)
+    found = {tuple(p) for p in cand.tolist()}
+    i, j = np.triu_indices(n, 1)
+    ts = np.linspace(0.0, 1.0, 81)
+    betas = [np.zeros(2 * n), np.ones(2 * n), rng.uniform(size=2 * n), rng.uniform(size=2 * n) ** 4]
+    close = 0
+    for beta in betas:
+        E = H + beta[:, None] * (T - H)
+        X0 = np.stack([S[seg[i]], S[seg[i] + 1], S[seg[j]], S[seg[j] + 1]], axis=1)
+        X1 = np.stack([E[seg[i]], E[seg[i] + 1], E[seg[j]], E[seg[j] + 1]], axis=1)
+        dmin = np.full(len(i), np.inf)
+        for t in ts:
+            dmin = np.minimum(dmin, distance(X0 + t * (X1 - X0)))
+        near = np.flatnonzero(dmin < m)
+        close += len(near)
+        missing = [k for k in near if (i[k], j[k]) not in found]
+        assert not missing, (motion, len(missing))
+    assert close > 5                        # the check is not vacuous
+    if motion == "rigid":
+        assert len(cand) < 0.2 * len(absolute), (len(cand), len(absolute))
+
+
+def test_affine_field_recovers_a_rigid_motion_and_caps_its_lipschitz_constant():
+    rng = np.random.default_rng(7)
+    x = rng.uniform(-3, 3, size=(200, 3))
+    R = rotation([1, 2, 0.5], 0.3)
+    D = x @ R.T + np.array([0.2, -1.0, 0.5]) - x
+    A, b, L = segment_ccd.affine_field(*segment_ccd.affine_sums(x, D))
+    np.testing.assert_allclose(x @ A.T + b, D, atol=1e-10)
+    np.testing.assert_allclose(L, np.linalg.norm(R - np.eye(3), 2), rtol=1e-10)
+    # a large deformation is scaled down to L = 1/2 (A and b alike)
+    A2, b2, L2 = segment_ccd.affine_field(*segment_ccd.affine_sums(x, 3.0 * x))
+    assert L2 == 0.5
+    np.testing.assert_allclose(A2, 0.5 * np.eye(3), atol=1e-10)
+    # nothing to fit: u = 0
+    A0, b0, L0 = segment_ccd.affine_field(*segment_ccd.affine_sums(np.zeros((0, 3)), np.zeros((0, 3))))
+    assert L0 == 0.0 and not A0.any() and not b0.any()
 
 
 def test_count_crossings_two_wisps():

@@ -11,7 +11,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc import parallel
-from lc_petsc.assembly import Assembler
+from lc_petsc.assembly import ELEMENT_KERNELS, Assembler
 from lc_petsc.config import SimConfig
 from lc_petsc.integrator import Integrator
 from lc_petsc.rest_pose import RestPoseOverlapError, check_rest_pose
@@ -97,6 +97,7 @@ class Simulator:
             self.assembler = Assembler(scene, self.pcomm, self.timers,
                                        filter=element_filter(cfg.solver.filter),
                                        mat_type=mat_type,
+                                       kernels=self.scope.lookup("lc_element_kernels") or ELEMENT_KERNELS[0],
                                        pmat_type=choose_pmat_type(
                                            self.scope, mat_type,
                                            strand_contact=_strands_preconditioner(cfg, self.scope)))
@@ -184,6 +185,8 @@ class Simulator:
             "terms": self.terms_run(),
             "petsc_options": self.solver.describe(),
             "mat_type": self.assembler.mat.getType(),
+            "element_kernels": self.assembler.kernels,
+            "jit_compile_s": self.comm.allreduce(self.assembler.compile_seconds, op=MPI.MAX),
             "config": self.config.to_dict(),
             **self._contact_summary(),
         }

@@ -52,7 +52,7 @@ def apply_perturbation(batch, scene_cfg, rest_lengths_fn=None):
             s = (xw - xw[0]) @ axis
             xw[free] -= ((1.0 - scene_cfg.smash_factor) * s[free])[:, None] * axis
         elif kind == "jitter":
-            rng = np.random.default_rng([scene_cfg.seed, batch.first_wisp + w, 1])
+            rng = np.random.default_rng([scene_cfg.seed, int(batch.ids()[w]), 1])
             xw[free] += rng.uniform(-scene_cfg.jitter, scene_cfg.jitter, size=(int(free.sum()), 3))
         elif kind == "straighten":
             L = np.linalg.norm(np.diff(batch.positions[a:b], axis=0), axis=1)
@@ -79,6 +79,9 @@ class Simulator:
         self.timers = Timers()
         cfg = config
         source = source_from_config(cfg.scene, cfg.material, cfg.physics)
+        self.scope = OptionsScope(cfg.solver.effective_options(), defaults=None)
+        user_sizes = np.asarray(source.sizes)
+        source, self.wisp_order = parallel.order_wisps(source, self.scope.lookup("lc_wisp_order"))
         self.n_wisps = source.n_wisps
         self.ranges = parallel.partition(source.sizes, comm.size)
         w0, w1 = int(self.ranges[comm.rank]), int(self.ranges[comm.rank + 1])
@@ -90,8 +93,9 @@ class Simulator:
                                            int(voff[w0]), self.n_vertices)
         parallel.collective_raise(comm, problems)
         self.scene = scene
+        # outputs in the scene's wisp order (parallel.UserLayout)
+        self.user = parallel.UserLayout(comm, self.wisp_order, user_sizes, self.ranges, scene)
         x0 = apply_perturbation(batch, cfg.scene)
-        self.scope = OptionsScope(cfg.solver.effective_options(), defaults=None)
         mat_type = choose_mat_type(self.scope)
         with self.scope.active():
             self.assembler = Assembler(scene, self.pcomm, self.timers,
@@ -149,12 +153,14 @@ class Simulator:
                 callback(self)
 
     def gather_positions(self, root=0):
-        """Global positions (n_vertices, 3) on ``root`` (None elsewhere)."""
-        parts = self.comm.gather(self.x, root=root)
+        """Global positions (n_vertices, 3) on ``root`` (None elsewhere), in the scene's
+        wisp order."""
+        parts = self.comm.gather(self.user.to_user(self.x), root=root)
         return np.concatenate(parts) if self.comm.rank == root else None
 
     def wisp_offsets(self):
-        sizes = np.concatenate(self.comm.allgather(np.diff(self.scene.offsets)))
+        """Vertex offsets (n_wisps + 1,) of the wisps in the scene's order."""
+        sizes = np.concatenate(self.comm.allgather(np.diff(self.user.offsets)))
         return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
 
     def terms_run(self):

@@ -1,6 +1,9 @@
 """Wisps -> MPI ranks: whole wisps per rank, contiguous numbering, balanced by vertices.
 
-Rank r owns the wisps ``ranges[r] .. ranges[r+1] - 1`` and their vertices, which are
+The simulator numbers the wisps along a Hilbert curve of their roots (:func:`order_wisps`,
+``-lc_wisp_order spatial``), so a rank's contiguous share is compact in space whatever
+order the scene lists them in; :class:`UserLayout` keeps outputs in the scene's order.
+Rank r owns the (so numbered) wisps ``ranges[r] .. ranges[r+1] - 1`` and their vertices, which are
 numbered contiguously wisp by wisp, so rank r's PETSc ownership range (in vertices) is
 ``vertex_offsets[ranges[r]] .. vertex_offsets[ranges[r+1]]``.  Because a wisp never
 straddles two ranks, every element (stretch, bend, twist) is rank-local: no ghost

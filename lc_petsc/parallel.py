@@ -195,7 +195,7 @@ class UserLayout:
         order = np.asarray(order, np.int64)
         user_sizes = np.asarray(user_sizes, np.int64)
         n, P, r = len(order), comm.size, comm.rank
-        self.comm = comm
+        self.comm, self.order = comm, order
         self.identity = bool(np.array_equal(order, np.arange(n)))
         user_ranges = np.asarray(ranges, np.int64) if self.identity else partition(user_sizes, P)
         user_off = np.concatenate([[0], np.cumsum(user_sizes)]).astype(np.int64)
@@ -203,9 +203,9 @@ class UserLayout:
         self.first_wisp, self.first_vertex = u0, int(user_off[u0])
         self.offsets = user_off[u0:u1 + 1] - user_off[u0]
         self.nv = int(self.offsets[-1])
+        internal_off = np.concatenate([[0], np.cumsum(user_sizes[order])]).astype(np.int64)
+        self._internal_off, self._user_off = internal_off, user_off
         if not self.identity:
-            internal_sizes = user_sizes[order]
-            internal_off = np.concatenate([[0], np.cumsum(internal_sizes)]).astype(np.int64)
             dest = np.searchsorted(user_ranges, order, side="right") - 1      # per internal wisp
             self._send_rows, self._send_counts = self._rows(r, ranges, order, dest, internal_off,
                                                             internal_off[ranges[r]], P, by="dest")
@@ -251,6 +251,18 @@ class UserLayout:
         out = np.empty((n_out,) + send.shape[1:], send.dtype)
         out[rows_in] = recv
         return out
+
+    def scene_numbers(self, wisp_vertex_pairs):
+        """(wisp, global vertex, wisp, global vertex, ...) of the internal numbering ->
+        the scene's numbers, for messages."""
+        out = []
+        for k, value in enumerate(wisp_vertex_pairs):
+            if k % 2 == 0:
+                out.append(int(self.order[value]))
+            else:
+                w = int(np.searchsorted(self._internal_off, value, side="right")) - 1
+                out.append(int(self._user_off[self.order[w]] + value - self._internal_off[w]))
+        return tuple(out)
 
     def to_user(self, a):
         """Per-vertex rows of this rank's internal wisps -> its rows of the user layout."""

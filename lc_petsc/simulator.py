@@ -108,7 +108,7 @@ class Simulator:
         self.strand = None
         if "strand_collision" in cfg.physics.terms:
             self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, self.scope,
-                                          self.assembler.mat_type)
+                                          self.assembler.mat_type, user=self.user)
         self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), self.scope,
                                    self.assembler.mat_type, P=self.assembler.pmat)
         self.head = HeadMotion(cfg.physics)
@@ -241,7 +241,7 @@ def _strands_preconditioner(cfg, scope):
     return "strand_collision" in cfg.physics.terms and _contact_pc(scope) == "strands"
 
 
-def _strand_contact(scene, comm, pcomm, timers, cfg, scope, mat_type):
+def _strand_contact(scene, comm, pcomm, timers, cfg, scope, mat_type, user=None):
     """The strand-strand contact of ``cfg`` (docs/contact.md); thickness default: twice
     the smallest vertex radius of the scene.
 
@@ -273,6 +273,8 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, scope, mat_type):
     if cfg.physics.strand_contact_mode == "ccd":
         report = check_rest_pose(strand)
         if report.pairs and cfg.physics.strand_rest_overlap == "error":
+            if user is not None:        # name the pair in the scene's numbering
+                report.worst = user.scene_numbers(report.worst)
             strand.destroy()
             raise RestPoseOverlapError(report.message())
     return strand

@@ -197,4 +197,6 @@ def test_user_layout_round_trip():
     assert np.array_equal(lay.from_user(lay.x_rest), sc.x_rest)
     assert comm.allreduce(lay.nv) == user_off[-1]
     assert comm.allgather(lay.first_vertex)[0] == 0
-    assert len(inner_off) == len(user_off)
+    # messages name wisps and vertices in the scene's numbering
+    i = 5
+    assert lay.scene_numbers((i, int(inner_off[i]) + 2)) == (int(order[i]), int(user_off[order[i]]) + 2)

@@ -137,6 +137,18 @@ def _vperp(v):
 
 
 @_jit
+def _vangle(u, lu, v, lv):
+    """The angle frame of u, v (lengths lu, lv), as angle.AngleFrame: unit t0, t1,
+    t0 x t1, cos, sin and theta = atan2(sin, cos)."""
+    t0 = _vdiv(u, lu)
+    t1 = _vdiv(v, lv)
+    tx = _vcross(t0, t1)
+    s = _vnorm(tx)
+    c = _vdot(t0, t1)
+    return t0, t1, tx, c, s, math.atan2(s, c)
+
+
+@_jit
 def _vpoint(x, i):
     return (x[i, 0], x[i, 1], x[i, 2])
 
@@ -221,12 +233,7 @@ def _v_bend(x, i, rest, k, mode, g, band, b, upper, u, v):
     l1, zero1 = _vbad_edge(e1, scale)
     if not finite or zero0 or zero1:
         return 0.0, True
-    t0 = _vdiv(e0, l0)
-    t1 = _vdiv(e1, l1)
-    tx = _vcross(t0, t1)
-    c = _vdot(t0, t1)
-    s = _vnorm(tx)
-    theta = math.atan2(s, c)
+    t0, t1, tx, c, s, theta = _vangle(e0, l0, e1, l1)
     if mode == ENERGY:
         return 0.5 * k * (theta - rest) ** 2, False
     d = k * (theta - rest)
@@ -338,12 +345,7 @@ def _v_twist(x, i, rest, k, mode, g, band, b, upper, cols):
     if not (la >= _TWIST_TOL * l0 and lb >= _TWIST_TOL * l2):
         return 0.0, False         # collinear outer edge: the element is dropped
     sigma = -1.0 if _vdot(_vcross(av, bv), e1) < 0.0 else 1.0
-    t0 = _vdiv(av, la)
-    t1 = _vdiv(bv, lb)
-    tx = _vcross(t0, t1)
-    c = _vdot(t0, t1)
-    s = _vnorm(tx)
-    theta = math.atan2(s, c)
+    t0, t1, tx, c, s, theta = _vangle(av, la, bv, lb)
     if s < STRAIGHT_TOL:           # a, b parallel: the frame turns about e1
         n = _vscale(e1, sigma * math.sqrt(inv_l1_sq))
     else:

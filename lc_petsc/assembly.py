@@ -19,7 +19,7 @@ AIJ copy; see ``Assembler._probe_value_arrays``), else by ONE ``setValuesBlocked
 call.  No per-element PETSc calls.
 
 Compiled kernels (``kernels="compiled"``, the default; ``-lc_element_kernels``).  For
-the filters :mod:`lc_petsc.elements.compiled` implements, one compiled loop per term goes
+the filters :mod:`lc_petsc.elements.compiled` implements (analytic, none), one compiled loop per term goes
 from the positions straight to the band array and the gradient (no padding, no Hessian
 buffers), and a compiled gather fills the CSR value array; its time is reported under
 ``elements``.  Other filters, and ``kernels="numpy"``, run the NumPy kernels as above

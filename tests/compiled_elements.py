@@ -75,7 +75,7 @@ def module(term):
     return SimpleNamespace(
         energy=lambda x, rest, stiffness: energy(term, x, rest, stiffness),
         gradient=lambda x, rest, stiffness: gradient(term, x, rest, stiffness),
-        hessian=lambda x, rest, stiffness, filter="analytic": gradient_hessian(
+        hessian=lambda x, rest, stiffness, filter="analytic", out=None: gradient_hessian(
             term, x, rest, stiffness, filter)[1],
         gradient_hessian=lambda x, rest, stiffness, filter="analytic": gradient_hessian(
             term, x, rest, stiffness, filter))

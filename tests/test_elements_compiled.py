@@ -1,7 +1,7 @@
 """The compiled element kernels (lc_petsc.elements.compiled) against the NumPy ones.
 
 The NumPy kernels are the tested reference; the compiled ones must give the same
-energies, gradients and analytic-filter Hessians to round-off on random and degenerate
+energies, gradients and Hessians (every filter they implement) to round-off on random and degenerate
 elements (straight and folded bends, collinear twist edges, planar twists, theta and phi
 near 0 and pi, tiny edges), raise the same ElementError on bad input, write the band
 layout of the assembler (full and upper-only), and assemble the same PETSc matrix.
@@ -27,14 +27,14 @@ MODULES = {"stretch": stretch, "bend": bend, "twist": twist}
 RTOL = 1e-12
 
 
-def _compare(term, x, rest, k, rtol=RTOL):
-    """Compiled vs NumPy energy, gradient and analytic Hessian of elements x (n, k, 3);
-    returns the largest relative differences (energy, gradient, Hessian)."""
+def _compare(term, x, rest, k, filter, rtol=RTOL):
+    """Compiled vs NumPy energy, gradient and ``filter``-ed Hessian of elements x
+    (n, k, 3); returns the largest relative differences (energy, gradient, Hessian)."""
     ref = MODULES[term]
     e0 = ref.energy(x, rest, k)
-    g0, h0 = ref.gradient_hessian(x, rest, k, filter="analytic")
+    g0, h0 = ref.gradient_hessian(x, rest, k, filter=filter)
     e1 = ce.energy(term, x, rest, k)
-    g1, h1 = ce.gradient_hessian(term, x, rest, k)
+    g1, h1 = ce.gradient_hessian(term, x, rest, k, filter=filter)
     n = len(x)
     # Reference magnitudes from the element's Hessian (H ~ k / L^2): near rest the energy
     # and gradient are round-off themselves, so they are compared on the scale of H L^2
@@ -53,13 +53,14 @@ def _compare(term, x, rest, k, rtol=RTOL):
     return [float(e.max()) for e in errs]
 
 
+@pytest.mark.parametrize("filter", compiled.FILTERS)
 @pytest.mark.parametrize("scale", [1e-3, 1.0, 1e2])
 @pytest.mark.parametrize("term", eh.TERMS)
-def test_random_elements_match_numpy(term, scale):
+def test_random_elements_match_numpy(term, scale, filter):
     rng = np.random.default_rng(7 + eh.TERMS.index(term))
     x, rest, k = eh.random_case(term, rng, 300, scale)
     k[::17] = 0.0                        # zero stiffness (e.g. padding) gives exact zeros
-    _compare(term, x, rest, k)
+    _compare(term, x, rest, k, filter)
 
 
 def _rotated(x, seed):
@@ -99,9 +100,10 @@ def _stretch_cases():
                      for i, L in enumerate([1e-9, 1e-3, 0.5, 1.0, 2.0, 1e3])])
 
 
+@pytest.mark.parametrize("filter", compiled.FILTERS)
 @pytest.mark.parametrize("rest_kind", ["at_rest", "pi", "random"])
 @pytest.mark.parametrize("term", eh.TERMS)
-def test_degenerate_elements_match_numpy(term, rest_kind):
+def test_degenerate_elements_match_numpy(term, rest_kind, filter):
     x = {"stretch": _stretch_cases, "bend": _bend_cases, "twist": _twist_cases}[term]()
     n = len(x)
     current = {"stretch": stretch.length, "bend": bend.angle, "twist": twist.angle}[term](x)
@@ -114,7 +116,7 @@ def test_degenerate_elements_match_numpy(term, rest_kind):
         rest = (current * rng.uniform(0.5, 1.5, n) if term == "stretch"
                 else rng.uniform(-np.pi, np.pi, n) if term == "twist" else rng.uniform(0, np.pi, n))
     k = rng.uniform(0.5, 2.0, n)
-    _compare(term, x, rest, k)
+    _compare(term, x, rest, k, filter)
 
 
 @pytest.mark.parametrize("term", eh.TERMS)
@@ -156,6 +158,7 @@ def test_bad_arguments_are_value_errors():
     with pytest.raises(ValueError, match="filters"):
         compiled.add_gradient_hessian(arrays, x, np.zeros_like(x), np.zeros((5, 3, 21)), 3, False,
                                       filter="numerical")
+    assert "numerical" not in compiled.FILTERS and "abs" not in compiled.FILTERS
     with pytest.raises(ValueError, match="half bandwidth"):
         compiled.add_gradient_hessian(arrays, x, np.zeros_like(x), np.zeros((5, 3, 15)), 2, False)
     with pytest.raises(ValueError, match="reach vertex"):
@@ -242,7 +245,7 @@ def _assembled(sim, x):
     return g, asm.gradient(x), asm.energy(x), (rowptr.copy(), cols.copy(), vals.copy())
 
 
-@pytest.mark.parametrize("filter", ["analytic", "none"])
+@pytest.mark.parametrize("filter", ["analytic", "none", "abs"])
 @pytest.mark.parametrize("mat_type", ["baij", "sbaij"])
 @pytest.mark.parametrize("kind", ["hairball", "straight"])
 def test_assembled_matrix_matches_numpy_kernels(kind, mat_type, filter):

@@ -10,10 +10,8 @@
   theta against differences of bend.angle, and twist's exact W jacobian J against
   differences of twist.w_matrix.
 
-The energy and gradient checks run on both the NumPy kernels and the compiled ones
-(lc_petsc.elements.compiled, through tests/compiled_elements.py); the exact Hessian is
-NumPy's only (the compiled kernels implement the analytic filter: their Hessian is checked
-against finite differences where it is exact, in test_elements_compiled.py).
+The energy, gradient and exact-Hessian checks run on both the NumPy kernels and the
+compiled ones (lc_petsc.elements.compiled, through tests/compiled_elements.py).
 """
 
 import numpy as np
@@ -88,10 +86,11 @@ def test_gradient_vs_fd_energy_h2(term, scale, impl):
                                  final_max=1e-2)
 
 
+@pytest.mark.parametrize("impl", IMPLEMENTATIONS)
 @pytest.mark.parametrize("scale", SCALES)
 @pytest.mark.parametrize("term", eh.TERMS)
-def test_exact_hessian_vs_fd_gradient_h2(term, scale):
-    mod = MODULES[term]
+def test_exact_hessian_vs_fd_gradient_h2(term, scale, impl):
+    mod = IMPLEMENTATIONS[impl][term]
     x, rest, k = _case(term, scale, _seed(term, scale))
     H = mod.hessian(x, rest, k, filter="none")
     m = 3 * eh.NVERT[term]

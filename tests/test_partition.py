@@ -3,6 +3,8 @@ default): wisps are numbered along a Hilbert curve of their roots, ranks get con
 runs of that numbering, and outputs keep the scene's order.  Run serially and (the
 mpi-marked tests) by tests/test_mpi_launch.py under mpiexec -n 2 and -n 3."""
 
+from pathlib import Path
+
 import h5py
 import numpy as np
 import pytest
@@ -11,10 +13,8 @@ from mpi4py import MPI
 from lc_petsc import parallel
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, SolverConfig,
                              TimeConfig)
-from lc_petsc.scene.sources import ArraySource, FileSource, ReorderedSource, wisp_roots
+from lc_petsc.scene.sources import FileSource, ReorderedSource, wisp_roots
 from lc_petsc.simulator import build_simulator
-
-from pathlib import Path
 
 FRINGE = Path(__file__).resolve().parents[1] / "configs" / "data" / "fringe.h5"
 comm = MPI.COMM_WORLD

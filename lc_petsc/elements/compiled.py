@@ -4,7 +4,7 @@ The same energies, gradients and filtered Hessians as :mod:`stretch`, :mod:`bend
 :mod:`twist` (which stay the tested reference; ``tests/test_elements_compiled.py`` checks
 these against them to round-off), evaluated element by element and written straight into
 the band storage of :class:`lc_petsc.assembly.Assembler`: no per-element Hessian array,
-only a few scalars (and a 4 x 12 scratch for twist) per element.  Still plain Python,
+only a few scalars (and a column scratch of at most 8 x 12) per element.  Still plain Python,
 compiled by Numba on first use and cached on disk (``cache=True``: in ``__pycache__``
 next to this file, or ``NUMBA_CACHE_DIR`` if set; see docs/performance.md).
 
@@ -13,18 +13,19 @@ kernels (the assembler dispatches).  No PETSc, no MPI.
 
 Layout (shared with the assembler):
 
-* ``x`` (nv, 3) local positions; ``start`` (n,) int64 first vertex of each element (its
-  vertices are ``start + 0..k-1``); ``rest``, ``stiffness`` (n,) float64 (validated
-  once by :func:`check_term`);
-* ``g`` (nv, 3) vertex gradient, added to;
+* ``terms``: name -> (``start``, ``rest``, ``stiffness``) from :func:`element_arrays`:
+  ``start`` (n,) int64 first vertex of each element (its vertices are
+  ``start + 0..k-1``, nondecreasing), ``rest``, ``stiffness`` (n,) float64, validated
+  once;
+* ``x`` (nv, 3) local positions; ``g`` (nv, 3) vertex gradient, added to;
 * ``band`` (nv, 3, 3 (2 b + 1)): ``band[i, r, 3 (d + b) + c]`` is entry
-  (3 i + r, 3 (i + d) + c) of the matrix, added to; with ``upper`` only d >= 0 is
-  written (SBAIJ).
+  (3 i + r, 3 (i + d) + c) of the matrix, set (zeroed and summed in the same pass); with
+  ``upper`` only d >= 0 is written (SBAIJ).
 
-Each kernel returns ``(energy, bad)``: the summed energy (when asked for) and the index
-of the first element with a non-finite position or a zero-length edge (the rule of
-:func:`common.edge_lengths`), or -1.  On ``bad >= 0`` nothing is guaranteed about the
-outputs, and the caller re-runs the NumPy kernel, which raises the documented
+All terms are evaluated in one pass over the vertices (:func:`_terms`), element
+functions ``_v_stretch``, ``_v_bend``, ``_v_twist`` inlined.  A non-finite position or a
+zero-length edge (the rule of :func:`common.edge_lengths`) stops the pass; the NumPy
+kernel of that term is then run to raise its documented
 :class:`~lc_petsc.elements.common.ElementError`.
 """
 
@@ -45,7 +46,7 @@ except ImportError:                 # pragma: no cover - numba is a dependency
     numba = None
 
 #: Filters the compiled kernels implement (others fall back to NumPy).
-FILTERS = ("analytic",)
+FILTERS = ("analytic", "none")
 
 #: What each kernel computes: the energy only, the gradient, gradient + Hessian.
 ENERGY, GRADIENT, HESSIAN = 0, 1, 2
@@ -183,8 +184,9 @@ def _vscale_of(x, i0, k):
 
 # ---------------------------------------------------------------------- stretch
 @_jit
-def _v_stretch(x, i, Lbar, k, mode, g, band, b, upper):
-    """One stretch element on vertices i, i+1: (energy, bad)."""
+def _v_stretch(x, i, Lbar, k, mode, g, band, b, upper, exact):
+    """One stretch element on vertices i, i+1: (energy, bad); ``exact``: the exact
+    Hessian (filter "none"), else the analytic filter."""
     scale, finite = _vscale_of(x, i, 2)
     ev = _vsub(_vpoint(x, i + 1), _vpoint(x, i))
     L, zero = _vbad_edge(ev, scale)
@@ -198,7 +200,9 @@ def _v_stretch(x, i, Lbar, k, mode, g, band, b, upper):
     if mode != HESSIAN:
         return 0.0, False
     eh = _vdiv(ev, L)
-    perp = max(k * (1.0 - Lbar / L), 0.0)
+    perp = k * (1.0 - Lbar / L)
+    if not exact:
+        perp = max(perp, 0.0)
     kp = k - perp
     for r in range(3):
         for c in range(3):
@@ -222,9 +226,44 @@ def _vstore(a, j, vec, f):
 
 
 @_jit
-def _v_bend(x, i, rest, k, mode, g, band, b, upper, u, v):
-    """One bend element on vertices i .. i+2: (energy, bad).  u, v (3, 3) are scratch:
-    the kept eigenvectors (times the roots of their eigenvalues) on the two edges."""
+def _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, fu, fv, first):
+    """The eigenpairs ``first`` .. 5 of the unit-column Hessian of Psi(theta)
+    (angle.AngleFrame.eigensystem, away from its degenerate points) into rows 0.. of
+    u, v (times fu, fv: the column scaling) and w (their eigenvalues)."""
+    if c > 0.0:
+        one_plus, one_minus = 1.0 + c, s * s / (1.0 + c)
+    elif c < 0.0:
+        one_plus, one_minus = s * s / (1.0 - c), 1.0 - c
+    else:
+        one_plus, one_minus = 1.0, 1.0
+    lam2 = k + math.sqrt(k * k + d * d)
+    rr = d / lam2 if lam2 > 0.0 else 0.0
+    scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
+    lams = (-d * one_minus / s_safe, d * one_plus / s_safe, lam2, -d * rr, -d, d)
+    for j in range(first, 6):
+        if j == 0:
+            top, bot, f = n, n, _SQRT_HALF
+        elif j == 1:
+            top, bot, f = n, _vscale(n, -1.0), _SQRT_HALF
+        elif j == 2:
+            top, bot, f = _vsub(_vscale(t0, rr), b0), _vadd(_vscale(t1, rr), b1), scn
+        elif j == 3:
+            top, bot, f = _vadd(t0, _vscale(b0, rr)), _vsub(t1, _vscale(b1, rr)), scn
+        elif j == 4:
+            top, bot, f = _vadd(t0, b0), _vsub(b1, t1), 0.5
+        else:
+            top, bot, f = _vsub(t0, b0), _vsub(_vscale(t1, -1.0), b1), 0.5
+        _vstore(u, j - first, _vscale(top, f), fu)
+        _vstore(v, j - first, _vscale(bot, f), fv)
+        w[j - first] = lams[j]
+
+
+@_jit
+def _v_bend(x, i, rest, k, mode, g, band, b, upper, exact, u, v, w):
+    """One bend element on vertices i .. i+2: (energy, bad).  u, v (6, 3), w (6,) are
+    scratch: the Hessian's eigenvectors on the two edges and their weights, the
+    analytic filter's three kept ones (the roots of the eigenvalues folded in, no
+    weights) or, ``exact``, all six with their eigenvalues (angle.AngleFrame.eigensystem)."""
     scale, finite = _vscale_of(x, i, 3)
     x1 = _vpoint(x, i + 1)
     e0 = _vsub(_vpoint(x, i), x1)
@@ -254,45 +293,79 @@ def _v_bend(x, i, rest, k, mode, g, band, b, upper, u, v):
         _vadd_to(g, i + 1, (-gu[0] - gv[0], -gu[1] - gv[1], -gu[2] - gv[2]))
     if mode != HESSIAN:
         return 0.0, False
-    # the analytic filter's kept eigenpairs (angle.AngleFrame.positive_part), times the
-    # square roots of their eigenvalues, on the unit edges [top; bottom], then / |e|
-    if degenerate:
-        cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
-        r0 = math.sqrt(2.0 * k)
-        _vstore(u, 0, _vscale(n, _SQRT_HALF), r0 / l0)
-        _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), r0 / l1)
-        _vstore(u, 1, _vscale(b0, _SQRT_HALF), r0 / l0)
-        _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), r0 / l1)
-        _vstore(u, 2, n, 0.0)
-        _vstore(v, 2, n, 0.0)
-    else:
-        sd = 1.0 if d >= 0.0 else -1.0
-        ad = abs(d)
-        lam2 = k + math.sqrt(k * k + d * d)
-        rr = d / lam2 if lam2 > 0.0 else 0.0
-        sc = sd * c
-        if sc < 0.0:
-            one_plus = s * s / (1.0 + abs(sc))
+    if exact:
+        m = 6
+        if degenerate:
+            # the cone rule (angle.AngleFrame._cone_eigensystem)
+            cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
+            zero3 = (0.0, 0.0, 0.0)
+            _vstore(u, 0, _vscale(n, _SQRT_HALF), 1.0 / l0)
+            _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), 1.0 / l1)
+            _vstore(u, 1, _vscale(b0, _SQRT_HALF), 1.0 / l0)
+            _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), 1.0 / l1)
+            _vstore(u, 2, _vscale(n, _SQRT_HALF), 1.0 / l0)
+            _vstore(v, 2, _vscale(n, cs * _SQRT_HALF), 1.0 / l1)
+            _vstore(u, 3, _vscale(b0, _SQRT_HALF), 1.0 / l0)
+            _vstore(v, 3, _vscale(b0, cs * _SQRT_HALF), 1.0 / l1)
+            _vstore(u, 4, t0, 1.0 / l0)
+            _vstore(v, 4, zero3, 1.0 / l1)
+            _vstore(u, 5, zero3, 1.0 / l0)
+            _vstore(v, 5, t0, 1.0 / l1)
+            w[0] = w[1] = 2.0 * k
+            w[2] = w[3] = w[4] = w[5] = 0.0
         else:
-            one_plus = 1.0 + sc
-        scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
-        rs = rr * scn
-        hsd = 0.5 * sd
-        root0, root1, root2 = math.sqrt(lam2), math.sqrt(ad * one_plus / s_safe), math.sqrt(ad)
-        _vstore(u, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)), root0 / l0)
-        _vstore(v, 0, _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / l1)
-        _vstore(u, 1, _vscale(n, _SQRT_HALF), root1 / l0)
-        _vstore(v, 1, _vscale(n, -_SQRT_HALF * sd), root1 / l1)
-        _vstore(u, 2, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)), root2 / l0)
-        _vstore(v, 2, _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / l1)
-    # H = sum_j c_j c_j^T with c_j = [u_j; -u_j - v_j; v_j]: from three 3x3 products,
-    # block (a, c) of vertices (i + a, i + c) at band[i + a, :, 3 (c - a + b):]
+            _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, 1.0 / l0, 1.0 / l1, 0)
+    else:
+        m = 3
+        # the analytic filter's kept eigenpairs (angle.AngleFrame.positive_part), times
+        # the square roots of their eigenvalues, on the unit edges [top; bottom], / |e|
+        if degenerate:
+            cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
+            r0 = math.sqrt(2.0 * k)
+            _vstore(u, 0, _vscale(n, _SQRT_HALF), r0 / l0)
+            _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), r0 / l1)
+            _vstore(u, 1, _vscale(b0, _SQRT_HALF), r0 / l0)
+            _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), r0 / l1)
+            _vstore(u, 2, n, 0.0)
+            _vstore(v, 2, n, 0.0)
+        else:
+            sd = 1.0 if d >= 0.0 else -1.0
+            ad = abs(d)
+            lam2 = k + math.sqrt(k * k + d * d)
+            rr = d / lam2 if lam2 > 0.0 else 0.0
+            sc = sd * c
+            if sc < 0.0:
+                one_plus = s * s / (1.0 + abs(sc))
+            else:
+                one_plus = 1.0 + sc
+            scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
+            rs = rr * scn
+            hsd = 0.5 * sd
+            root0, root1, root2 = math.sqrt(lam2), math.sqrt(ad * one_plus / s_safe), math.sqrt(ad)
+            _vstore(u, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)), root0 / l0)
+            _vstore(v, 0, _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / l1)
+            _vstore(u, 1, _vscale(n, _SQRT_HALF), root1 / l0)
+            _vstore(v, 1, _vscale(n, -_SQRT_HALF * sd), root1 / l1)
+            _vstore(u, 2, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)), root2 / l0)
+            _vstore(v, 2, _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / l1)
+    # H = sum_j w_j c_j c_j^T with c_j = [u_j; -u_j - v_j; v_j]: from three 3x3
+    # products, block (a, c) of vertices (i + a, i + c) at band[i + a, :, 3 (c - a + b):]
     for r in range(3):
         for q in range(3):
-            uu = u[0, r] * u[0, q] + u[1, r] * u[1, q] + u[2, r] * u[2, q]
-            uv = u[0, r] * v[0, q] + u[1, r] * v[1, q] + u[2, r] * v[2, q]
-            vu = v[0, r] * u[0, q] + v[1, r] * u[1, q] + v[2, r] * u[2, q]
-            vv = v[0, r] * v[0, q] + v[1, r] * v[1, q] + v[2, r] * v[2, q]
+            if exact:
+                uu = uv = vu = vv = 0.0
+                for j in range(m):
+                    wu = w[j] * u[j, r]
+                    wv = w[j] * v[j, r]
+                    uu += wu * u[j, q]
+                    uv += wu * v[j, q]
+                    vu += wv * u[j, q]
+                    vv += wv * v[j, q]
+            else:               # three columns, weights 1: unrolled
+                uu = u[0, r] * u[0, q] + u[1, r] * u[1, q] + u[2, r] * u[2, q]
+                uv = u[0, r] * v[0, q] + u[1, r] * v[1, q] + u[2, r] * v[2, q]
+                vu = v[0, r] * u[0, q] + v[1, r] * u[1, q] + v[2, r] * u[2, q]
+                vv = v[0, r] * v[0, q] + v[1, r] * v[1, q] + v[2, r] * v[2, q]
             h01 = -uu - uv
             h12 = -uv - vv
             band[i, r, 3 * b + q] += uu
@@ -322,9 +395,10 @@ def _v_in_plane(cols, j, top, bot, fu, fv, al, be):
 
 
 @_jit
-def _v_twist(x, i, rest, k, mode, g, band, b, upper, cols):
-    """One twist element on vertices i .. i+3: (energy, bad).  cols (4, 12) is scratch:
-    the element Hessian's four columns."""
+def _v_twist(x, i, rest, k, mode, g, band, b, upper, exact, cols, wts, u, v):
+    """One twist element on vertices i .. i+3: (energy, bad).  cols (8, 12), wts (8,)
+    are scratch: the element Hessian's columns and weights (analytic: four, unweighted;
+    ``exact``: eight, twist._exact_columns); u, v (6, 3) scratch for the eigenpairs."""
     scale, finite = _vscale_of(x, i, 4)
     x1 = _vpoint(x, i + 1)
     x2 = _vpoint(x, i + 2)
@@ -364,19 +438,30 @@ def _v_twist(x, i, rest, k, mode, g, band, b, upper, cols):
     _vadd_to(g, i + 3, gb)
     if mode != HESSIAN:
         return 0.0, False
-    # in-plane pairs 0 and 2 of angle.AngleFrame.positive_part, mapped by P^T
-    sd = 1.0 if d >= 0.0 else -1.0
-    ad = abs(d)
-    lam2 = k + math.sqrt(k * k + d * d)
-    rr = d / lam2 if lam2 > 0.0 else 0.0
-    scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
-    rs = rr * scn
-    hsd = 0.5 * sd
-    root0, root2 = math.sqrt(lam2), math.sqrt(ad)
-    _v_in_plane(cols, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)),
-                _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / la, root0 / lb, al, be)
-    _v_in_plane(cols, 1, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)),
-                _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / la, root2 / lb, al, be)
+    if exact:
+        # the four in-plane eigenpairs with their eigenvalues, mapped by P^T
+        m = 8
+        _v_eigenpairs(u, v, wts, t0, t1, b0, b1, n, c, s, 1.0, d, k, 1.0 / la, 1.0 / lb, 2)
+        for j in range(4):
+            _v_in_plane(cols, j, (u[j, 0], u[j, 1], u[j, 2]), (v[j, 0], v[j, 1], v[j, 2]),
+                        1.0, 1.0, al, be)
+        wts[4] = wts[5] = 1.0
+        wts[6] = wts[7] = -1.0
+    else:
+        # in-plane pairs 0 and 2 of angle.AngleFrame.positive_part, mapped by P^T
+        m = 4
+        sd = 1.0 if d >= 0.0 else -1.0
+        ad = abs(d)
+        lam2 = k + math.sqrt(k * k + d * d)
+        rr = d / lam2 if lam2 > 0.0 else 0.0
+        scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
+        rs = rr * scn
+        hsd = 0.5 * sd
+        root0, root2 = math.sqrt(lam2), math.sqrt(ad)
+        _v_in_plane(cols, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)),
+                    _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / la, root0 / lb, al, be)
+        _v_in_plane(cols, 1, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)),
+                    _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / la, root2 / lb, al, be)
     # out-of-plane pairs: PSD part of 1/2 (p m^T + m p^T) (twist._out_of_plane and
     # twist._balanced_columns)
     inv_l1 = math.sqrt(inv_l1_sq)
@@ -402,12 +487,15 @@ def _v_twist(x, i, rest, k, mode, g, band, b, upper, cols):
         else:
             inv_gs = 0.0
             gs = 0.0
-        for q in range(3):
-            cols[2 + j, q] = 0.5 * (m0[q] * gs)
-            cols[2 + j, 3 + q] = 0.5 * (lw[q] * inv_gs + m1[q] * gs)
-            cols[2 + j, 6 + q] = 0.5 * (-lw[q] * inv_gs + m2[q] * gs)
-            cols[2 + j, 9 + q] = 0.5 * (m3[q] * gs)
-    # H = sum_j cols_j cols_j^T, block by block (upper blocks and their transposes)
+        # the plus column (both filters) and, exact, the minus column
+        for sign, row in ((1.0, (4 if exact else 2) + j), (-1.0, 6 + j)):
+            if sign > 0.0 or exact:
+                for q in range(3):
+                    cols[row, q] = 0.5 * (sign * (m0[q] * gs))
+                    cols[row, 3 + q] = 0.5 * (lw[q] * inv_gs + sign * (m1[q] * gs))
+                    cols[row, 6 + q] = 0.5 * (-lw[q] * inv_gs + sign * (m2[q] * gs))
+                    cols[row, 9 + q] = 0.5 * (sign * (m3[q] * gs))
+    # H = sum_j w_j cols_j cols_j^T, block by block (upper blocks and their transposes)
     for a in range(4):
         for cc in range(a, 4):
             dd = cc - a
@@ -415,8 +503,13 @@ def _v_twist(x, i, rest, k, mode, g, band, b, upper, cols):
                 ra = 3 * a + r
                 for q in range(3):
                     qc = 3 * cc + q
-                    hv = (cols[0, ra] * cols[0, qc] + cols[1, ra] * cols[1, qc]
-                          + cols[2, ra] * cols[2, qc] + cols[3, ra] * cols[3, qc])
+                    if exact:
+                        hv = 0.0
+                        for j in range(m):
+                            hv += wts[j] * cols[j, ra] * cols[j, qc]
+                    else:       # four columns, weights 1: unrolled
+                        hv = (cols[0, ra] * cols[0, qc] + cols[1, ra] * cols[1, qc]
+                              + cols[2, ra] * cols[2, qc] + cols[3, ra] * cols[3, qc])
                     band[i + a, r, 3 * (dd + b) + q] += hv
                     if dd != 0 and not upper:
                         band[i + cc, q, 3 * (b - dd) + r] += hv
@@ -425,15 +518,15 @@ def _v_twist(x, i, rest, k, mode, g, band, b, upper, cols):
 
 @_jit
 def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
-           mode, g, band, b, upper):
+           mode, g, band, b, upper, exact):
     """All terms in one pass over the vertices (elements in order of their first
     vertex), so each band row is written while it is in cache; with HESSIAN the band
     rows are zeroed on the way (row v + b just before the elements starting at v, the
     first to touch it).  Returns (energy, term, element): term 0, 1, 2 and the first bad
     element of that term, or -1, -1."""
     energy = 0.0
-    u, v = np.empty((3, 3)), np.empty((3, 3))
-    cols = np.empty((4, 12))
+    u, v, w = np.empty((6, 3)), np.empty((6, 3)), np.empty(8)
+    cols = np.empty((8, 12))
     nv = x.shape[0]
     zero = mode == HESSIAN
     if zero:
@@ -444,19 +537,21 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
         if zero and vtx + b < nv:
             band[vtx + b, :, :] = 0.0
         while ps < s_start.shape[0] and s_start[ps] == vtx:
-            en, bad = _v_stretch(x, vtx, s_rest[ps], s_k[ps], mode, g, band, b, upper)
+            en, bad = _v_stretch(x, vtx, s_rest[ps], s_k[ps], mode, g, band, b, upper, exact)
             if bad:
                 return energy, 0, ps
             energy += en
             ps += 1
         while pb < b_start.shape[0] and b_start[pb] == vtx:
-            en, bad = _v_bend(x, vtx, b_rest[pb], b_k[pb], mode, g, band, b, upper, u, v)
+            en, bad = _v_bend(x, vtx, b_rest[pb], b_k[pb], mode, g, band, b, upper, exact,
+                              u, v, w)
             if bad:
                 return energy, 1, pb
             energy += en
             pb += 1
         while pt < t_start.shape[0] and t_start[pt] == vtx:
-            en, bad = _v_twist(x, vtx, t_rest[pt], t_k[pt], mode, g, band, b, upper, cols)
+            en, bad = _v_twist(x, vtx, t_rest[pt], t_k[pt], mode, g, band, b, upper, exact,
+                               cols, w, u, v)
             if bad:
                 return energy, 2, pt
             energy += en
@@ -484,7 +579,7 @@ def element_arrays(name, start, rest, stiffness):
     return (start, *check_term(name, rest, stiffness))
 
 
-def _run(terms, x, mode, g, band, b, upper):
+def _run(terms, x, mode, g, band, b, upper, exact=False):
     """Run the fused pass over ``terms`` (name -> :func:`element_arrays`)."""
     x = np.ascontiguousarray(x, np.float64)
     for name, (start, _, _) in terms.items():
@@ -494,7 +589,8 @@ def _run(terms, x, mode, g, band, b, upper):
         if mode == HESSIAN and k - 1 > b:
             raise ValueError(f"{name}: a half bandwidth of {b} cannot hold {k}-vertex elements")
     arrays = [terms.get(name, _NO_ELEMENTS) for name in TERMS]
-    energy, term, bad = _terms(x, *arrays[0], *arrays[1], *arrays[2], mode, g, band, b, upper)
+    energy, term, bad = _terms(x, *arrays[0], *arrays[1], *arrays[2], mode, g, band, b, upper,
+                                 exact)
     if bad >= 0:
         # The NumPy kernel names the problem (ElementError); it must raise here.
         name = TERMS[term]
@@ -522,7 +618,7 @@ def add_gradient_hessian(terms, x, g, band, b, upper, filter="analytic"):
         raise ValueError(f"compiled kernels implement the filters {FILTERS}, not {filter!r}")
     if band.shape != (len(x), 3, 3 * (2 * b + 1)):
         raise ValueError(f"band must have shape {(len(x), 3, 3 * (2 * b + 1))}, got {band.shape}")
-    _run(terms, x, HESSIAN, g, band, int(b), bool(upper))
+    _run(terms, x, HESSIAN, g, band, int(b), bool(upper), filter == "none")
 
 
 @_jit
@@ -555,6 +651,7 @@ def warm_up():
     g = np.zeros((4, 3))
     band = np.zeros((4, 3, 21))
     for mode in (ENERGY, GRADIENT, HESSIAN):
-        _terms(x, *one, *one, *one, mode, g, band, 3, False)
+        for exact in (False, True):
+            _terms(x, *one, *one, *one, mode, g, band, 3, False, exact)
     _gather_blocks(band, one[0], one[0], np.zeros(9), True)
     return time.perf_counter() - t0

@@ -18,6 +18,13 @@ array: written in place into PETSc's value array of the rank's block (BAIJ and t
 AIJ copy; see ``Assembler._probe_value_arrays``), else by ONE ``setValuesBlockedCSR``
 call.  No per-element PETSc calls.
 
+Compiled kernels (``kernels="compiled"``, the default; ``-lc_element_kernels``).  For
+the filters :mod:`lc_petsc.elements.compiled` implements (analytic, none), one compiled loop per term goes
+from the positions straight to the band array and the gradient (no padding, no Hessian
+buffers), and a compiled gather fills the CSR value array; its time is reported under
+``elements``.  Other filters, and ``kernels="numpy"``, run the NumPy kernels as above
+(their padded buffers are made on first use).  docs/performance.md has the figures.
+
 Matrix type: the solver plan's (lc_petsc/solver_plan.py: ``baij`` (bs 3) unless
 ``-mat_type`` or the preconditioner asks for another); ``sbaij`` and ``aij`` (block size
 3) get the same values.
@@ -25,12 +32,14 @@ Matrix type: the solver plan's (lc_petsc/solver_plan.py: ``baij`` (bs 3) unless
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from petsc4py import PETSc
 
-from lc_petsc.elements import bend, stretch, twist
+from lc_petsc.elements import bend, compiled, stretch, twist
 from lc_petsc.petsc_capi import has_value_array, value_array
-from lc_petsc.solver_plan import SUPPORTED_MAT_TYPES, base_type
+from lc_petsc.solver_plan import ELEMENT_KERNELS, SUPPORTED_MAT_TYPES, base_type
 
 KERNELS = {"stretch": stretch, "bend": bend, "twist": twist}
 
@@ -39,9 +48,15 @@ class Assembler:
     """Owns the band array, the CSR pattern and the PETSc matrix of one rank's wisps."""
 
     def __init__(self, scene, comm, timers, filter="analytic", mat_type="baij", pmat_type=None,
-                 options_prefix=""):
+                 options_prefix="", kernels="compiled"):
         self.scene, self.comm, self.timers, self.filter = scene, comm, timers, filter
         self.options_prefix = options_prefix
+        if kernels not in ELEMENT_KERNELS:
+            raise ValueError(f"-lc_element_kernels {kernels!r}: use compiled (Numba, the "
+                             f"default) or numpy (the reference kernels)")
+        self.kernels = kernels
+        #: seconds spent compiling (or loading from Numba's cache) the compiled kernels
+        self.compile_seconds = _warm_up_in_turn(comm) if kernels == "compiled" else 0.0
         nv, b = scene.nv, scene.bandwidth
         self.b = b
         # Band storage R[i, r, 3 (d + b) + c] = entry (3 i + r, 3 (i + d) + c): an element's
@@ -60,8 +75,12 @@ class Assembler:
         pin = scene.pinned
         jc = np.clip(j, 0, max(nv - 1, 0))
         self.pin_mask = self.valid & (pin[:, None] | (pin[jc] if nv else np.zeros_like(self.valid)))
+        self.pin_rows, self.pin_diags = np.nonzero(self.pin_mask)
         self.pinned_idx = np.flatnonzero(pin)
-        self.padded = {name: PaddedTerm(t, nv) for name, t in scene.terms.items()}
+        self._padded = None
+        # the compiled kernels' element arrays: (start, rest, stiffness) per term
+        self.elements = {name: compiled.element_arrays(name, t.start, t.rest, t.stiffness)
+                         for name, t in scene.terms.items()}
         self.mat = self._create_matrix(mat_type)
         self.pmat = self._create_pmat(pmat_type)
         self.mat_block = self.pmat_block = None     # see _probe_value_arrays
@@ -100,10 +119,11 @@ class Assembler:
         if self.mat_type == "sbaij":
             keep[:, :b] = False
         rows, diags = np.nonzero(keep)
+        self.csr_rows, self.csr_diags = rows.astype(np.int64), diags.astype(np.int64)
         self.csr_blocks = rows * (2 * b + 1) + diags     # into B as (nv * (2b+1), 9)
         # Persistent buffers: fresh 100 MB arrays every Newton iteration cost more in page
         # faults than the copies themselves.
-        self.blocks = buffer((nv, 2 * b + 1, 3, 3))
+        self.blocks = buffer((nv, 2 * b + 1, 3, 3)) if self.kernels == "numpy" else None
         self.values = buffer((len(rows), 9))
         self.block_counts = keep.sum(axis=1).astype(PETSc.IntType)
         self.rowptr = np.concatenate([[0], np.cumsum(self.block_counts)]).astype(PETSc.IntType)
@@ -141,10 +161,19 @@ class Assembler:
         return P
 
     # ------------------------------------------------------------------ values
+    @property
+    def padded(self):
+        """The NumPy kernels' padded terms (see :class:`PaddedTerm`), made on first use."""
+        if self._padded is None:
+            self._padded = {name: PaddedTerm(t, self.scene.nv) for name, t in self.scene.terms.items()}
+        return self._padded
+
     def energy(self, x):
         """Elastic energy of this rank's enabled terms at local positions x (nv, 3)."""
         e = 0.0
         with self.timers("elements"):
+            if self.kernels == "compiled":
+                return compiled.energy(self.elements, x)
             for name, t in self.padded.items():
                 e += float(KERNELS[name].energy(x[t.index], t.rest, t.stiffness).sum())
         return e
@@ -153,6 +182,9 @@ class Assembler:
         """Elastic gradient (nv, 3) of this rank's enabled terms."""
         g = np.zeros_like(x)
         with self.timers("elements"):
+            if self.kernels == "compiled":
+                compiled.add_gradient(self.elements, x, g)
+                return g
             for name, t in self.padded.items():
                 _add_gradient(g, KERNELS[name].gradient(x[t.index], t.rest, t.stiffness))
         return g
@@ -165,9 +197,13 @@ class Assembler:
         """
         R, b = self.R, self.b
         g = np.zeros_like(x)
+        sym = self.mat_type == "sbaij"
+        if self.kernels == "compiled" and self.filter in compiled.FILTERS:
+            with self.timers("elements"):       # band rows zeroed in the same pass
+                compiled.add_gradient_hessian(self.elements, x, g, R, b, sym, self.filter)
+            return g
         with self.timers("assembly"):
             R[...] = 0.0
-        sym = self.mat_type == "sbaij"
         for name, t in self.padded.items():
             with self.timers("elements"):
                 ge, h = KERNELS[name].gradient_hessian(t.positions(x), t.rest, t.stiffness,
@@ -227,10 +263,18 @@ class Assembler:
         possible (:meth:`_probe_value_arrays`), else with one CSR call each."""
         with self.timers("assembly"):
             B, b = self.B, self.b
-            B[self.pin_mask] = 0.0
+            B[self.pin_rows, self.pin_diags] = 0.0
             B[self.pinned_idx, b] = np.eye(3)
             A = self.mat
-            if self.mat_block is not None:
+            if self.kernels == "compiled":
+                if self.mat_block is not None:
+                    with value_array(self.mat_block, self.values.size) as v:
+                        compiled.gather_blocks(self.R, self.csr_rows, self.csr_diags, v, True)
+                else:
+                    compiled.gather_blocks(self.R, self.csr_rows, self.csr_diags,
+                                           self.values.reshape(-1), False)
+                    A.setValuesBlockedCSR(self.rowptr, self.cols, self.values.ravel())
+            elif self.mat_block is not None:
                 np.copyto(self.blocks, B.transpose(0, 1, 3, 2))          # column-major blocks
                 with value_array(self.mat_block, self.values.size) as v:
                     np.take(self.blocks.reshape(-1, 9), self.csr_blocks, axis=0, out=v.reshape(-1, 9))
@@ -248,6 +292,20 @@ class Assembler:
                     self.pmat.setValuesCSR(self.p_rowptr, self.p_cols, self.p_values)
                 self.pmat.assemble()
         return A
+
+
+def _warm_up_in_turn(comm):
+    """Compile the kernels on rank 0 first (it writes Numba's cache), then load them on
+    the other ranks: ranks sharing a machine do not all compile at once.  Returns this
+    rank's seconds, waiting for rank 0 included."""
+    mpi = comm.tompi4py()
+    t0 = time.perf_counter()
+    if mpi.rank == 0:
+        compiled.warm_up()
+    mpi.Barrier()
+    if mpi.rank != 0:
+        compiled.warm_up()
+    return time.perf_counter() - t0
 
 
 def _block_storing(mat, stored):

@@ -130,7 +130,7 @@ def term_warnings(sim):
         n_in = int(comm.allreduce(int(inside.sum())))
         if n_in:
             wisp_of = np.searchsorted(sc.offsets, np.arange(len(depth)), side="right") - 1
-            wisps = np.unique(wisp_of[inside]) + sc.first_wisp
+            wisps = np.unique(sim.wisp_order[np.unique(wisp_of[inside]) + sc.first_wisp])
             n_w = int(comm.allreduce(len(wisps)))
             first_w = int(global_min(comm, int(wisps[0]) if len(wisps) else 1 << 62))
             deepest = float(global_max(comm, float(depth[inside].max(initial=0.0))))

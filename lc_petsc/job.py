@@ -211,14 +211,14 @@ class Job:
         skipped = []
         try:
             if args.restart == "latest":
-                ck, skipped = find_latest(checkpoint_folder(self.out), comm, sim.scene, sim.n_wisps,
+                ck, skipped = find_latest(checkpoint_folder(self.out), comm, sim.user, sim.n_wisps,
                                           sim.n_vertices, sim.head)
                 for m in skipped:
                     warn(comm, f"skipping an invalid checkpoint: {m}")
                 if skipped:
                     warn(comm, f"falling back to {ck['path']}, the newest valid checkpoint")
             else:
-                ck = load_checkpoint(args.restart, comm, sim.scene, sim.n_wisps, sim.n_vertices, sim.head)
+                ck = load_checkpoint(args.restart, comm, sim.user, sim.n_wisps, sim.n_vertices, sim.head)
         except CheckpointError as e:
             raise Refused(str(e)) from None
         ck["skipped"] = skipped
@@ -234,7 +234,7 @@ class Job:
         if cfg.time.frames <= ck["frame"]:
             raise Refused(f"{ck['path']}: the checkpoint is at frame {ck['frame']}, the run ends at frame "
                           f"{cfg.time.frames} (time.frames / --frames is the total): nothing to do")
-        same_rest = np.array_equal(ck["rest"], sim.scene.x_rest) and np.array_equal(ck["pinned"], sim.scene.pinned)
+        same_rest = np.array_equal(ck["rest"], sim.user.x_rest) and np.array_equal(ck["pinned"], sim.user.pinned)
         if global_max(comm, int(not same_rest)) != 0:
             if not args.force:
                 raise Refused(f"{ck['path']}: the checkpoint's rest positions or pinned vertices differ "
@@ -245,7 +245,7 @@ class Job:
                              if comm.rank == 0 else None)
         if problem:
             raise Refused(problem)
-        sim.restore(ck)
+        sim.restore(dict(ck, x=sim.user.from_user(ck["x"]), v=sim.user.from_user(ck["v"])))
         return ck
 
     def _check_disk(self, rows_kept):
@@ -303,7 +303,7 @@ class Job:
     def _open_frames(self):
         from lc_petsc import __version__
         from lc_petsc.io.frames import FramesWriter
-        sim, cfg, sc = self.sim, self.cfg, self.sim.scene
+        sim, cfg = self.sim, self.cfg
         attrs = {"config": cfg.to_dict(), "config_file": str(Path(self.args.config).resolve()),
                  "terms": sim.terms_run(), "dt": cfg.time.dt, "every": cfg.output.every,
                  "frames": cfg.time.frames, "description": cfg.scene.description,
@@ -312,12 +312,13 @@ class Job:
         with sim.timers("io"):
             self.writer = FramesWriter(
                 self.out / "frames.h5", self.comm, n_wisps=sim.n_wisps, n_vertices=sim.n_vertices,
-                first_wisp=int(sim.ranges[self.comm.rank]), first_vertex=sc.first_vertex,
-                local_offsets=sc.offsets, rest_positions=sc.x_rest, pinned=sc.pinned,
-                radius=sc.radius, n_out=1 + cfg.time.frames // cfg.output.every, attrs=attrs,
+                first_wisp=sim.user.first_wisp, first_vertex=sim.user.first_vertex,
+                local_offsets=sim.user.offsets, rest_positions=sim.user.x_rest,
+                pinned=sim.user.pinned, radius=sim.user.radius,
+                n_out=1 + cfg.time.frames // cfg.output.every, attrs=attrs,
                 resume_rows=None if self.restart is None else start // cfg.output.every + 1)
             if self.restart is None:
-                self.writer.write_frame(0.0, sim.x)
+                self.writer.write_frame(0.0, sim.user.to_user(sim.x))
         self.times = [0.0] if self.restart is None else list(self.writer.times_kept)
 
     def _loop(self):
@@ -344,7 +345,7 @@ class Job:
                 it = sim.integrator
                 if it.frame % every == 0:
                     with sim.timers("io"):
-                        self.writer.write_frame(it.t, sim.x)
+                        self.writer.write_frame(it.t, sim.user.to_user(sim.x))
                     self.times.append(it.t)
                 if ck_every and it.frame % ck_every == 0:
                     self._checkpoint()
@@ -548,7 +549,8 @@ class Checkpointer:
         sim, cfg = job.sim, job.cfg
         try:
             path, secs, size = write_checkpoint(
-                job.out, job.comm, frame=it.frame, t=it.t, x=it.x, v=it.v, scene=sim.scene,
+                job.out, job.comm, frame=it.frame, t=it.t, x=sim.user.to_user(it.x),
+                v=sim.user.to_user(it.v), scene=sim.user,
                 n_wisps=sim.n_wisps, n_vertices=sim.n_vertices, head=sim.head, dt=cfg.time.dt,
                 every=cfg.output.every, config_dict=self.config_dict, config_toml=job.cfg_text,
                 petsc_options=self.petsc_options, keep=cfg.output.checkpoints_kept, version=self.version)

@@ -53,7 +53,7 @@ def apply_perturbation(batch, scene_cfg, rest_lengths_fn=None):
             s = (xw - xw[0]) @ axis
             xw[free] -= ((1.0 - scene_cfg.smash_factor) * s[free])[:, None] * axis
         elif kind == "jitter":
-            rng = np.random.default_rng([scene_cfg.seed, batch.first_wisp + w, 1])
+            rng = np.random.default_rng([scene_cfg.seed, int(batch.ids()[w]), 1])
             xw[free] += rng.uniform(-scene_cfg.jitter, scene_cfg.jitter, size=(int(free.sum()), 3))
         elif kind == "straighten":
             L = np.linalg.norm(np.diff(batch.positions[a:b], axis=0), axis=1)
@@ -82,6 +82,10 @@ class Simulator:
         self.timers = Timers()
         cfg = config
         source = source_from_config(cfg.scene, cfg.material, cfg.physics)
+        self.plan = plan = SolverPlan.resolve(cfg.solver.effective_options(),
+                                              strand_contact="strand_collision" in cfg.physics.terms)
+        user_sizes = np.asarray(source.sizes)
+        source, self.wisp_order = parallel.order_wisps(source, plan.wisp_order)
         self.n_wisps = source.n_wisps
         self.ranges = parallel.partition(source.sizes, comm.size)
         w0, w1 = int(self.ranges[comm.rank]), int(self.ranges[comm.rank + 1])
@@ -93,18 +97,18 @@ class Simulator:
                                            int(voff[w0]), self.n_vertices)
         parallel.collective_raise(comm, problems)
         self.scene = scene
+        # outputs in the scene's wisp order (parallel.UserLayout)
+        self.user = parallel.UserLayout(comm, self.wisp_order, user_sizes, self.ranges, scene)
         x0 = apply_perturbation(batch, cfg.scene)
-        self.plan = plan = SolverPlan.resolve(cfg.solver.effective_options(),
-                                              strand_contact="strand_collision" in cfg.physics.terms)
         with plan.active():
             self.assembler = Assembler(scene, self.pcomm, self.timers,
                                        filter=element_filter(cfg.solver.filter),
                                        mat_type=plan.mat_type, pmat_type=plan.pmat_type,
-                                       options_prefix=plan.prefix)
+                                       options_prefix=plan.prefix, kernels=plan.element_kernels)
         self.strand = None
         if plan.contact_pc is not None:
             self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, plan,
-                                          self.assembler.mat_type)
+                                          self.assembler.mat_type, user=self.user)
         self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), plan,
                                    P=self.assembler.pmat)
         self.head = HeadMotion(cfg.physics)
@@ -157,13 +161,14 @@ class Simulator:
                 callback(self)
 
     def gather_positions(self, root=0):
-        """Global positions (n_vertices, 3) on ``root`` (None elsewhere)."""
-        parts = self.comm.gather(self.x, root=root)
+        """Global positions (n_vertices, 3) on ``root`` (None elsewhere), in the scene's
+        wisp order."""
+        parts = self.comm.gather(self.user.to_user(self.x), root=root)
         return np.concatenate(parts) if self.comm.rank == root else None
 
     def wisp_offsets(self):
-        """Global wisp offsets (n_wisps + 1,), on every rank."""
-        return parallel.global_wisp_offsets(self.comm, self.scene.offsets)
+        """Vertex offsets (n_wisps + 1,) of the wisps in the scene's order."""
+        return parallel.global_wisp_offsets(self.comm, self.user.offsets)
 
     def terms_run(self):
         """The modelled terms: elastic terms with elements built, plus gravity and head
@@ -192,6 +197,8 @@ class Simulator:
             "terms": self.terms_run(),
             "petsc_options": self.solver.describe(),
             "mat_type": self.assembler.mat.getType(),
+            "element_kernels": self.assembler.kernels,
+            "jit_compile_s": parallel.global_max(self.comm, self.assembler.compile_seconds),
             "config": self.config.to_dict(),
             **self._contact_summary(),
         }
@@ -226,7 +233,7 @@ class Simulator:
             self.strand.destroy()
 
 
-def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type):
+def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user=None):
     """The strand-strand contact of ``cfg`` (docs/contact.md); thickness default: twice
     the smallest vertex radius of the scene; the preconditioner is built from the whole
     Newton matrix or the strand matrix alone as ``plan.contact_pc`` says."""
@@ -241,6 +248,8 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type):
     if cfg.physics.strand_contact_mode == "ccd":
         report = check_rest_pose(strand)
         if report.pairs and cfg.physics.strand_rest_overlap == "error":
+            if user is not None:        # name the pair in the scene's numbering
+                report.worst = user.scene_numbers(report.worst)
             strand.destroy()
             raise RestPoseOverlapError(report.message())
     return strand

@@ -19,7 +19,10 @@ decides itself, before any PETSc object exists:
 * the per-wisp block Jacobi (``-lc_wisp_blocks fused|separate``, None for another
   preconditioner);
 * with strand contact, what the preconditioner is built from (``-lc_contact_pc
-  coupled|strands``).
+  coupled|strands``);
+* lc_petsc's own build choices read from the same database: the element kernels
+  (``-lc_element_kernels compiled|numpy``) and the wisp order of the partition
+  (``-lc_wisp_order spatial|input``).
 
 The plan is frozen and built once per simulator; the assembler, the linear solver, the
 strand contact and the run summary read it instead of the database.  Its config
@@ -46,6 +49,7 @@ from petsc4py import PETSc
 
 from lc_petsc.errors import ConfigError
 from lc_petsc.options import option_pairs
+from lc_petsc.parallel import WISP_ORDERS
 from lc_petsc.petsc_capi import option_used
 
 #: the paper's solver (SPEC 5): CG with one exact block-Jacobi block per wisp
@@ -53,6 +57,8 @@ DEFAULTS = MappingProxyType({"ksp_type": "cg", "ksp_rtol": "1e-6", "ksp_max_it":
                              "pc_type": "bjacobi"})
 WISP_BLOCK_MODES = ("fused", "separate")
 CONTACT_PC_MODES = ("coupled", "strands")
+#: ``-lc_element_kernels``: the compiled (Numba) kernels or the NumPy reference kernels
+ELEMENT_KERNELS = ("compiled", "numpy")
 #: operator types the assembler can fill
 SUPPORTED_MAT_TYPES = ("baij", "sbaij", "aij")
 
@@ -138,7 +144,8 @@ class SolverPlan:
     itself; ``pc_type``: the preconditioner (lower case); ``wisp_blocks``: ``fused`` /
     ``separate`` per-wisp block Jacobi, None for another preconditioner;
     ``contact_pc``: ``coupled`` / ``strands`` with strand contact, else None;
-    ``sub_solver``: the per-wisp blocks' default sub-solver options.
+    ``sub_solver``: the per-wisp blocks' default sub-solver options;
+    ``element_kernels``: ``compiled`` / ``numpy``; ``wisp_order``: ``spatial`` / ``input``.
     """
 
     prefix: str
@@ -149,6 +156,8 @@ class SolverPlan:
     wisp_blocks: Optional[str]
     contact_pc: Optional[str]
     sub_solver: Mapping[str, str]
+    element_kernels: str
+    wisp_order: str
     _layers: _Layers = field(repr=False, compare=False)
 
     @classmethod
@@ -167,7 +176,13 @@ class SolverPlan:
         return cls(prefix=prefix, options=MappingProxyType(dict(layers.options)),
                    mat_type=mat_type, pmat_type=pmat_type, pc_type=pc_type,
                    wisp_blocks=wisp_blocks, contact_pc=contact_pc,
-                   sub_solver=MappingProxyType(sub_solver_defaults(mat_type)), _layers=layers)
+                   sub_solver=MappingProxyType(sub_solver_defaults(mat_type)),
+                   element_kernels=_choice(layers, "lc_element_kernels", ELEMENT_KERNELS,
+                                           "compiled (Numba, the default) or numpy (the reference kernels)"),
+                   wisp_order=_choice(layers, "lc_wisp_order", WISP_ORDERS,
+                                      "spatial (wisps ordered along a space-filling curve of their "
+                                      "roots, the default) or input (the scene's order)"),
+                   _layers=layers)
 
     @contextmanager
     def active(self):
@@ -282,6 +297,14 @@ def _pmat_type(layers: _Layers, mat_type: str, strand_pc: bool = False):
     pc = (layers.lookup("pc_type") or DEFAULTS["pc_type"]).lower()
     extracts = pc == "bjacobi" and (_wisp_block_mode(layers) != "fused" or strand_pc)
     return "aij" if extracts and base_type(mat_type) == "baij" else None
+
+
+def _choice(layers: _Layers, key, choices, meaning):
+    """The value of option ``key`` among ``choices`` (the first is the default)."""
+    value = layers.lookup(key) or choices[0]
+    if value not in choices:
+        raise ConfigError(f"-{key} {value!r}: use {meaning}")
+    return value
 
 
 def _wisp_block_mode(layers: _Layers):

@@ -7,7 +7,9 @@ iterations, peak memory per rank.
 
 The first frame is reported on its own (it touches every buffer for the first time);
 then ``--frames`` more frames are timed one by one and their medians reported: what a
-long run pays per frame. Phase times are the maximum over ranks.
+long run pays per frame. Phase times are the maximum over ranks. The compiled element
+kernels' JIT time (compile, or load from Numba's cache) is part of the build and printed
+on its own; ``-lc_element_kernels numpy`` runs the NumPy kernels instead.
 """
 
 import argparse
@@ -54,13 +56,17 @@ def main():
         fmt = lambda d: ", ".join(f"{k} {v:.3f}" for k, v in d.items() if v > 0)  # noqa: E731
         print(f"hairball {s['wisps']} wisps, {s['dofs']} DoFs, {comm.size} rank(s), "
               f"solver {s['petsc_options']}")
-        print(f"build (scene + rest state + pattern + KSP): {t_build:.3f} s")
+        print(f"build (scene + rest state + pattern + KSP): {t_build:.3f} s, of which JIT of the "
+              f"{s['element_kernels']} element kernels {s['jit_compile_s']:.3f} s")
         print(f"first frame: {first_wall:.3f} s ({fmt(first_phases)})")
         if walls:
             med = {k: statistics.median(p[k] for p in phases) for k in phases[0]}
             print(f"wall time per frame, median of {len(walls)} frames after the first: "
                   f"{statistics.median(walls):.3f} s (all: {', '.join(f'{w:.3f}' for w in walls)})")
             print(f"per phase, median s per frame: {fmt(med)}")
+            its = statistics.median(s["newton_iterations"][1:])
+            print(f"elements + assembly per Newton iteration: "
+                  f"{1e3 * (med['elements'] + med['assembly']) / its:.1f} ms")
         print(f"Newton iterations per frame: {s['newton_iterations']}")
         print(f"KSP iterations per Newton solve: {s['ksp_iterations']}  reasons: {set(s['ksp_reasons'])}")
         print(f"peak RSS per rank (MiB): {[round(r) for r in rss_all]}; total {sum(rss_all):.0f} MiB")

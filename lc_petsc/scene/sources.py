@@ -27,11 +27,20 @@ class WispBatch:
     pinned: np.ndarray              # (n_vertices_local,) bool
     youngs_modulus: Optional[np.ndarray] = None   # (n_wisps_local,) overrides
     density: Optional[np.ndarray] = None          # (n_wisps_local,) overrides
+    #: (n_wisps_local,) the wisps' numbers in the scene's own order (default: contiguous
+    #: from first_wisp); differs when the simulator renumbers them (ReorderedSource)
+    scene_ids: Optional[np.ndarray] = None
 
     @property
     def n_wisps(self) -> int:
         """Number of wisps in the batch."""
         return len(self.offsets) - 1
+
+    def ids(self) -> np.ndarray:
+        """The wisps' numbers in the scene's order: for messages and per-wisp seeds."""
+        if self.scene_ids is not None:
+            return self.scene_ids
+        return np.arange(self.first_wisp, self.first_wisp + self.n_wisps)
 
     @property
     def n_vertices(self) -> int:
@@ -279,6 +288,84 @@ class GeneratedSource(SceneSource):
         return WispBatch(first_wisp=w0, offsets=off,
                          positions=np.concatenate(xs) if xs else np.zeros((0, 3)),
                          radius=rad, pinned=_pin_first(sizes, self.n_pinned))
+
+
+def wisp_roots(source, chunk=512):
+    """First vertex (n_wisps, 3) of every wisp of ``source``, read ``chunk`` wisps at a
+    time (memory bounded by the chunk)."""
+    roots = np.empty((source.n_wisps, 3))
+    for w0 in range(0, source.n_wisps, chunk):
+        w1 = min(source.n_wisps, w0 + chunk)
+        batch = source.load(w0, w1)
+        roots[w0:w1] = batch.positions[batch.offsets[:-1]]
+    return roots
+
+
+class ReorderedSource(SceneSource):
+    """``source`` with its wisps renumbered: wisp i here is wisp ``order[i]`` there.
+
+    A rank's wisps are loaded as runs of consecutive source wisps; when they are
+    scattered (a shuffled groom), as one covering range that is then cut (at most the
+    whole scene's rest state, transiently)."""
+
+    #: more runs than this: load the covering range instead of run by run
+    MAX_RUNS = 32
+
+    def __init__(self, source, order):
+        self.source = source
+        self.order = np.asarray(order, np.int64)
+        if not np.array_equal(np.sort(self.order), np.arange(source.n_wisps)):
+            raise ValueError(f"a wisp order must be a permutation of the {source.n_wisps} wisps")
+        self.n_wisps = source.n_wisps
+        self.sizes = np.asarray(source.sizes)[self.order]
+
+    def _load(self, w0, w1):
+        want = self.order[w0:w1]
+        if len(want) == 0:
+            return _renumbered(self.source.load(0, 0), [], w0)
+        breaks = np.flatnonzero(np.diff(want) != 1) + 1
+        if len(breaks) + 1 <= self.MAX_RUNS:
+            parts = []
+            for run in np.split(want, breaks):
+                b = self.source.load(int(run[0]), int(run[-1]) + 1)
+                parts.append((b, np.arange(len(run))))
+            return _concat([_renumbered(b, idx, 0) for b, idx in parts], w0)
+        lo, hi = int(want.min()), int(want.max()) + 1
+        return _renumbered(self.source.load(lo, hi), want - lo, w0)
+
+    def load(self, w0, w1):
+        batch = self._load(w0, w1)
+        batch.scene_ids = self.order[w0:w1].copy()
+        return batch
+
+
+def _renumbered(batch, idx, first_wisp):
+    """The wisps ``idx`` (in that order) of ``batch`` as a new batch."""
+    idx = np.asarray(idx, np.int64)
+    off = batch.offsets
+    rows = (np.concatenate([np.arange(off[i], off[i + 1]) for i in idx]) if len(idx)
+            else np.zeros(0, np.int64))
+    sizes = off[idx + 1] - off[idx]
+    return WispBatch(first_wisp=first_wisp,
+                     offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+                     positions=batch.positions[rows], radius=batch.radius[rows],
+                     pinned=batch.pinned[rows],
+                     youngs_modulus=None if batch.youngs_modulus is None else batch.youngs_modulus[idx],
+                     density=None if batch.density is None else batch.density[idx])
+
+
+def _concat(batches, first_wisp):
+    """Batches one after the other as one batch starting at wisp ``first_wisp``."""
+    sizes = np.concatenate([np.diff(b.offsets) for b in batches])
+
+    def cat(name):
+        vals = [getattr(b, name) for b in batches]
+        return None if any(v is None for v in vals) else np.concatenate(vals)
+    return WispBatch(first_wisp=first_wisp,
+                     offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+                     positions=np.concatenate([b.positions for b in batches]),
+                     radius=cat("radius"), pinned=cat("pinned"),
+                     youngs_modulus=cat("youngs_modulus"), density=cat("density"))
 
 
 def source_from_config(scene, material, physics) -> SceneSource:

@@ -102,21 +102,22 @@ class LocalScene:
         x = batch.positions
         nw = batch.n_wisps
         wid = np.repeat(np.arange(nw), np.diff(off))
+        ids = batch.ids()             # wisp numbers in the scene's order, for messages
         for w in range(nw):
             n = int(off[w + 1] - off[w])
             if n < 4:
-                problems.append(f"wisp {batch.first_wisp + w} has {n} vertices; a wisp needs at least 4")
+                problems.append(f"wisp {ids[w]} has {n} vertices; a wisp needs at least 4")
         bad = ~np.isfinite(x).all(axis=1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             w = int(wid[i])
-            problems.append(f"wisp {batch.first_wisp + w}, vertex {i - off[w]} (global vertex "
+            problems.append(f"wisp {ids[w]}, vertex {i - off[w]} (global vertex "
                             f"{first_vertex + i}): position {x[i].tolist()} is not finite")
         bad = ~(np.isfinite(batch.radius) & (batch.radius > 0))
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             w = int(wid[i])
-            problems.append(f"wisp {batch.first_wisp + w}, vertex {i - off[w]}: radius "
+            problems.append(f"wisp {ids[w]}, vertex {i - off[w]}: radius "
                             f"{batch.radius[i]!r} must be finite and positive")
         E = np.full(nw, float(material.youngs_modulus))
         if batch.youngs_modulus is not None:
@@ -129,7 +130,7 @@ class LocalScene:
             badw = ~(np.isfinite(arr) & (arr > 0))
             if badw.any():
                 w = int(np.flatnonzero(badw)[0])
-                problems.append(f"wisp {batch.first_wisp + w}: {name} {arr[w]!r} must be finite and positive")
+                problems.append(f"wisp {ids[w]}: {name} {arr[w]!r} must be finite and positive")
         if problems:
             return None, problems
 
@@ -139,7 +140,7 @@ class LocalScene:
         if zero.any():
             j = int(np.flatnonzero(zero)[0])
             w = int(wid[es[j]])
-            problems.append(f"wisp {batch.first_wisp + w}, edge {es[j] - off[w]}: rest length "
+            problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length "
                             f"{Lbar[j]!r} is zero (coincident vertices)")
             return None, problems
         r_e = 0.5 * (batch.radius[es] + batch.radius[es + 1])
@@ -173,7 +174,7 @@ class LocalScene:
             if badk.any():
                 j = int(np.flatnonzero(badk)[0])
                 w = int(wid[t.start[j]])
-                problems.append(f"wisp {batch.first_wisp + w}: {t.name} stiffness "
+                problems.append(f"wisp {ids[w]}: {t.name} stiffness "
                                 f"{t.stiffness[j]!r} of element {t.start[j] - off[w]} is invalid")
         if problems:
             return None, problems

@@ -1,6 +1,6 @@
 """Derivative checks of the element kernels (supplement's recipe).
 
-* energy == independent reference energy;
+* energy == independent reference energy (NumPy and compiled kernels);
 * gradient vs central differences of the kernel's energy, and exact Hessian
   (filter="none") vs central differences of the kernel's gradient, with the error shrinking
   as h^2 over four step sizes (every halving ratio ~4, fitted log-log slope ~2), per element,
@@ -9,6 +9,9 @@
 * bend.angle / twist.angle / twist.w_matrix against their definitions, the SPEC gradient of
   theta against differences of bend.angle, and twist's exact W jacobian J against
   differences of twist.w_matrix.
+
+The energy, gradient and exact-Hessian checks run on both the NumPy kernels and the
+compiled ones (lc_petsc.elements.compiled, through tests/compiled_elements.py).
 """
 
 import numpy as np
@@ -16,9 +19,11 @@ import pytest
 
 from lc_petsc.elements import bend, stretch, twist
 
+import compiled_elements
 import element_helpers as eh
 
 MODULES = {"stretch": stretch, "bend": bend, "twist": twist}
+IMPLEMENTATIONS = {"numpy": MODULES, "compiled": {t: compiled_elements.module(t) for t in MODULES}}
 SCALES = [1e-3, 1.0, 1e2]
 # step sizes relative to the edge-length scale, halving
 HS_REL = np.array([8e-3, 4e-3, 2e-3, 1e-3])
@@ -34,10 +39,11 @@ def _seed(term, scale):
     return 1000 * eh.TERMS.index(term) + int(round(np.log10(scale))) + 10
 
 
+@pytest.mark.parametrize("impl", IMPLEMENTATIONS)
 @pytest.mark.parametrize("scale", SCALES)
 @pytest.mark.parametrize("term", eh.TERMS)
-def test_energy_matches_reference(term, scale):
-    mod = MODULES[term]
+def test_energy_matches_reference(term, scale, impl):
+    mod = IMPLEMENTATIONS[impl][term]
     x, rest, k = _case(term, scale, _seed(term, scale))
     E = mod.energy(x, rest, k)
     assert E.shape == (N,)
@@ -46,10 +52,11 @@ def test_energy_matches_reference(term, scale):
     assert np.all(Eref > 0)  # the cases are away from rest
 
 
+@pytest.mark.parametrize("impl", IMPLEMENTATIONS)
 @pytest.mark.parametrize("scale", SCALES)
 @pytest.mark.parametrize("term", eh.TERMS)
-def test_gradient_matches_closed_form_reference(term, scale):
-    mod = MODULES[term]
+def test_gradient_matches_closed_form_reference(term, scale, impl):
+    mod = IMPLEMENTATIONS[impl][term]
     x, rest, k = _case(term, scale, _seed(term, scale))
     g = mod.gradient(x, rest, k)
     assert g.shape == (N, eh.NVERT[term], 3)
@@ -60,10 +67,11 @@ def test_gradient_matches_closed_form_reference(term, scale):
     np.testing.assert_allclose(g.sum(axis=1), 0, atol=1e-12 * np.abs(g).max())
 
 
+@pytest.mark.parametrize("impl", IMPLEMENTATIONS)
 @pytest.mark.parametrize("scale", SCALES)
 @pytest.mark.parametrize("term", eh.TERMS)
-def test_gradient_vs_fd_energy_h2(term, scale):
-    mod = MODULES[term]
+def test_gradient_vs_fd_energy_h2(term, scale, impl):
+    mod = IMPLEMENTATIONS[impl][term]
     x, rest, k = _case(term, scale, _seed(term, scale))
     g = mod.gradient(x, rest, k).reshape(N, -1)
     gnorm = np.linalg.norm(g, axis=1)
@@ -78,10 +86,11 @@ def test_gradient_vs_fd_energy_h2(term, scale):
                                  final_max=1e-2)
 
 
+@pytest.mark.parametrize("impl", IMPLEMENTATIONS)
 @pytest.mark.parametrize("scale", SCALES)
 @pytest.mark.parametrize("term", eh.TERMS)
-def test_exact_hessian_vs_fd_gradient_h2(term, scale):
-    mod = MODULES[term]
+def test_exact_hessian_vs_fd_gradient_h2(term, scale, impl):
+    mod = IMPLEMENTATIONS[impl][term]
     x, rest, k = _case(term, scale, _seed(term, scale))
     H = mod.hessian(x, rest, k, filter="none")
     m = 3 * eh.NVERT[term]

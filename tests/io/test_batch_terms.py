@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig
+from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, SolverConfig,
+                             TimeConfig)
 from lc_petsc.diagnostics import term_warnings
 from lc_petsc.elements import bend, head_contact, stretch, twist
 from lc_petsc.simulator import build_simulator
@@ -35,11 +36,12 @@ def _counting(monkeypatch):
     return calls
 
 
-def _hairball(terms, n_wisps=4, frames=3):
+def _hairball(terms, n_wisps=4, frames=3, kernels="numpy"):
     return SimConfig(scene=SceneConfig(kind="hairball", n_wisps=n_wisps, seed=2),
                      material=MaterialConfig(youngs_modulus=2.5e8),
                      physics=PhysicsConfig(terms=terms, head_motion="shake", head_period=0.5),
-                     time=TimeConfig(frames=frames))
+                     time=TimeConfig(frames=frames),
+                     solver=SolverConfig(options=f"-lc_element_kernels {kernels}"))
 
 
 def _run(cfg):
@@ -54,7 +56,8 @@ def _run(cfg):
     s = sim.summary()
     info = sim.assembler.mat.getInfo()
     out = dict(summary=s, nz=info["nz_allocated"], peak=peak, scene_terms=set(sim.scene.terms),
-               padded=set(sim.assembler.padded), snap=snap)
+               padded=set(sim.assembler._padded or ()), elements=set(sim.assembler.elements),
+               snap=snap)
     sim.close()
     return out
 
@@ -63,17 +66,28 @@ def _bytes_from(snap, fragment):
     return sum(st.size for st in snap.statistics("filename") if fragment in st.traceback[0].filename)
 
 
-def test_term_off_is_not_computed_allocated_or_timed(monkeypatch):
+@pytest.mark.parametrize("kernels", ["numpy", "compiled"])
+def test_term_off_is_not_computed_allocated_or_timed(monkeypatch, kernels):
     calls = _counting(monkeypatch)
-    full = _run(_hairball(("stretch", "bend", "twist", "gravity", "head_collision")))
+    full = _run(_hairball(("stretch", "bend", "twist", "gravity", "head_collision"), kernels=kernels))
     on = dict(calls)
     for k in calls:
         calls[k] = 0
-    lean = _run(_hairball(("stretch", "bend", "gravity")))
+    lean = _run(_hairball(("stretch", "bend", "gravity"), kernels=kernels))
     off = dict(calls)
+    assert full["summary"]["element_kernels"] == kernels
     # call counts: twist and head contact run when on, never when off
-    assert on[("twist", "gradient_hessian")] > 0 and on[("head_contact", "active")] > 0
+    assert on[("head_contact", "active")] > 0
     assert all(v == 0 for (m, _), v in off.items() if m in ("twist", "head_contact")), off
+    assert "twist" in full["elements"] and "twist" not in lean["elements"]
+    assert lean["nz"] / full["nz"] == pytest.approx(5 / 7, rel=0.03)   # (2b+1) blocks per row
+    if kernels == "compiled":
+        # one compiled pass per Newton iteration: the NumPy kernels and their padded
+        # buffers are never used
+        assert all(v == 0 for (m, f), v in on.items() if m != "head_contact" and f in KERNEL_FUNCS), on
+        assert not full["padded"] and not lean["padded"]
+        return
+    assert on[("twist", "gradient_hessian")] > 0
     assert off[("bend", "gradient_hessian")] == on[("bend", "gradient_hessian")] > 0
     # phase timings: no contact time at all without head_collision
     assert full["summary"]["timings_s"]["collision"] > 0
@@ -81,7 +95,6 @@ def test_term_off_is_not_computed_allocated_or_timed(monkeypatch):
     # allocation: no twist elements or buffers; the band narrows from 3 to 2 blocks
     assert "twist" in full["scene_terms"] and "twist" in full["padded"]
     assert "twist" not in lean["scene_terms"] and "twist" not in lean["padded"]
-    assert lean["nz"] / full["nz"] == pytest.approx(5 / 7, rel=0.03)   # (2b+1) blocks per row
     assert _bytes_from(lean["snap"], "elements/twist.py") == 0
     assert _bytes_from(lean["snap"], "elements/head_contact.py") == 0
     nv = 4 * 101

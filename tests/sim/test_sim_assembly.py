@@ -28,18 +28,20 @@ def _dense_reference(sim, x, dt):
     return K
 
 
+@pytest.mark.parametrize("kernels", ["compiled", "numpy"])
 @pytest.mark.parametrize("mat_type", ["baij", "sbaij", "aij"])
 @pytest.mark.parametrize("terms", [("stretch",), ("stretch", "bend"), ("stretch", "bend", "twist")])
-def test_matrix_matches_dense_reference(mat_type, terms):
+def test_matrix_matches_dense_reference(mat_type, terms, kernels):
     cfg = SimConfig(scene=SceneConfig(kind="hairball", n_wisps=2, perturbation="jitter", jitter=0.2),
                     physics=PhysicsConfig(terms=terms + ("gravity",)),
-                    solver=SolverConfig(options=f"-mat_type {mat_type}"))
+                    solver=SolverConfig(options=f"-mat_type {mat_type} -lc_element_kernels {kernels}"))
     sim = build_simulator(cfg, comm=MPI.COMM_SELF)
     try:
         x = sim.x
         dt = cfg.time.dt
         asm = sim.assembler
         assert asm.b == max(len(t) for t in [terms]) and asm.mat_type == mat_type
+        assert asm.kernels == kernels
         # BAIJ values are written in place (probed storage order); SBAIJ / AIJ by CSR call
         assert (asm.mat_block is not None) == (mat_type == "baij")
         g_fused = asm.assemble(x)

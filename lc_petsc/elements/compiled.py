@@ -1,0 +1,657 @@
+"""Compiled (Numba) element kernels fused with the band assembly.
+
+The same energies, gradients and filtered Hessians as :mod:`stretch`, :mod:`bend` and
+:mod:`twist` (which stay the tested reference; ``tests/test_elements_compiled.py`` checks
+these against them to round-off), evaluated element by element and written straight into
+the band storage of :class:`lc_petsc.assembly.Assembler`: no per-element Hessian array,
+only a few scalars (and a column scratch of at most 8 x 12) per element.  Still plain Python,
+compiled by Numba on first use and cached on disk (``cache=True``: in ``__pycache__``
+next to this file, or ``NUMBA_CACHE_DIR`` if set; see docs/performance.md).
+
+Implemented: the filters in :data:`FILTERS`; any other filter is evaluated by the NumPy
+kernels (the assembler dispatches).  No PETSc, no MPI.
+
+Layout (shared with the assembler):
+
+* ``terms``: name -> (``start``, ``rest``, ``stiffness``) from :func:`element_arrays`:
+  ``start`` (n,) int64 first vertex of each element (its vertices are
+  ``start + 0..k-1``, nondecreasing), ``rest``, ``stiffness`` (n,) float64, validated
+  once;
+* ``x`` (nv, 3) local positions; ``g`` (nv, 3) vertex gradient, added to;
+* ``band`` (nv, 3, 3 (2 b + 1)): ``band[i, r, 3 (d + b) + c]`` is entry
+  (3 i + r, 3 (i + d) + c) of the matrix, set (zeroed and summed in the same pass); with
+  ``upper`` only d >= 0 is written (SBAIJ).
+
+All terms are evaluated in one pass over the vertices (:func:`_terms`), element
+functions ``_v_stretch``, ``_v_bend``, ``_v_twist`` inlined.  A non-finite position or a
+zero-length edge (the rule of :func:`common.edge_lengths`) stops the pass; the NumPy
+kernel of that term is then run to raise its documented
+:class:`~lc_petsc.elements.common.ElementError`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from lc_petsc.elements import bend, stretch, twist
+from lc_petsc.elements.angle import STRAIGHT_TOL
+from lc_petsc.elements.common import (_ZERO_EDGE_ULPS, check_finite, check_per_element)
+
+try:
+    import numba
+except ImportError:                 # pragma: no cover - numba is a dependency
+    numba = None
+
+#: Filters the compiled kernels implement (others fall back to NumPy).
+FILTERS = ("analytic", "none")
+
+#: What each kernel computes: the energy only, the gradient, gradient + Hessian.
+ENERGY, GRADIENT, HESSIAN = 0, 1, 2
+
+_EDGE_TOL = _ZERO_EDGE_ULPS * np.finfo(np.float64).eps
+_TWIST_TOL = twist.DEGENERATE_TOL
+_SQRT_HALF = math.sqrt(0.5)
+_PI = math.pi
+_TWO_PI = 2.0 * math.pi
+
+
+def available():
+    """Whether Numba is importable (it is a dependency of lc_petsc)."""
+    return numba is not None
+
+
+def check_term(name, rest, stiffness):
+    """The rest values and stiffnesses of a term, validated as the NumPy kernels do."""
+    n = len(rest)
+    if name == "stretch":
+        rest = check_per_element(rest, n, name, "rest length", positive=True)
+    else:
+        rest = check_finite(rest, n, name, "rest angle")
+    stiffness = check_per_element(stiffness, n, name, "stiffness")
+    # copies: the checks return read-only broadcasts, a different Numba type
+    return np.array(rest, np.float64), np.array(stiffness, np.float64)
+
+
+def _jit(fn):
+    """Numba-compile ``fn``, cached on disk; helpers (``_v*``) are inlined.  Strict IEEE
+    arithmetic (no fastmath): the NaN checks stay valid, and near degenerate geometry
+    (sin theta ~ 1e-6) the results stay within round-off of the NumPy kernels, which
+    FMA contraction would not (measured: 1e-10 relative, for no measurable speed-up)."""
+    if numba is None:               # pragma: no cover
+        return fn
+    options = dict(cache=True, error_model="numpy")
+    if fn.__name__.startswith("_v"):
+        options["inline"] = "always"
+    return numba.njit(**options)(fn)
+
+
+# ---------------------------------------------------------------- 3-vectors as tuples
+@_jit
+def _vsub(u, v):
+    return (u[0] - v[0], u[1] - v[1], u[2] - v[2])
+
+
+@_jit
+def _vadd(u, v):
+    return (u[0] + v[0], u[1] + v[1], u[2] + v[2])
+
+
+@_jit
+def _vscale(u, s):
+    return (u[0] * s, u[1] * s, u[2] * s)
+
+
+@_jit
+def _vdiv(u, s):
+    return (u[0] / s, u[1] / s, u[2] / s)
+
+
+@_jit
+def _vdot(u, v):
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+@_jit
+def _vcross(u, v):
+    return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+
+
+@_jit
+def _vnorm(u):
+    return math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+
+
+@_jit
+def _vperp(v):
+    """Unit vector perpendicular to v (as :func:`angle.any_perpendicular`)."""
+    a0, a1, a2 = abs(v[0]), abs(v[1]), abs(v[2])
+    if a0 <= a1 and a0 <= a2:
+        p = (0.0, v[2], -v[1])              # v x e0
+    elif a1 <= a2:
+        p = (-v[2], 0.0, v[0])              # v x e1
+    else:
+        p = (v[1], -v[0], 0.0)              # v x e2
+    return _vdiv(p, _vnorm(p))
+
+
+@_jit
+def _vangle(u, lu, v, lv):
+    """The angle frame of u, v (lengths lu, lv), as angle.AngleFrame: unit t0, t1,
+    t0 x t1, cos, sin and theta = atan2(sin, cos)."""
+    t0 = _vdiv(u, lu)
+    t1 = _vdiv(v, lv)
+    tx = _vcross(t0, t1)
+    s = _vnorm(tx)
+    c = _vdot(t0, t1)
+    return t0, t1, tx, c, s, math.atan2(s, c)
+
+
+@_jit
+def _vpoint(x, i):
+    return (x[i, 0], x[i, 1], x[i, 2])
+
+
+@_jit
+def _vadd_to(g, i, u):
+    g[i, 0] += u[0]
+    g[i, 1] += u[1]
+    g[i, 2] += u[2]
+
+
+@_jit
+def _vbad_edge(e, scale):
+    """Zero-length edge at the round-off level of the coordinates (common.edge_lengths)."""
+    length = _vnorm(e)
+    return length, (length <= _EDGE_TOL * scale) or length == 0.0
+
+
+@_jit
+def _vscale_of(x, i0, k):
+    """(largest |coordinate| of vertices i0..i0+k-1, whether all are finite)."""
+    scale = 0.0
+    total = 0.0
+    for i in range(i0, i0 + k):
+        for c in range(3):
+            a = abs(x[i, c])
+            total += a
+            if a > scale:
+                scale = a
+    return scale, math.isfinite(total)
+
+
+# ---------------------------------------------------------------------- stretch
+@_jit
+def _v_stretch(x, i, Lbar, k, mode, g, band, b, upper, exact):
+    """One stretch element on vertices i, i+1: (energy, bad); ``exact``: the exact
+    Hessian (filter "none"), else the analytic filter."""
+    scale, finite = _vscale_of(x, i, 2)
+    ev = _vsub(_vpoint(x, i + 1), _vpoint(x, i))
+    L, zero = _vbad_edge(ev, scale)
+    if not finite or zero:
+        return 0.0, True
+    if mode == ENERGY:
+        return 0.5 * k * (L - Lbar) ** 2, False
+    ge = _vscale(ev, k * (L - Lbar) / L)
+    _vadd_to(g, i, _vscale(ge, -1.0))
+    _vadd_to(g, i + 1, ge)
+    if mode != HESSIAN:
+        return 0.0, False
+    eh = _vdiv(ev, L)
+    perp = k * (1.0 - Lbar / L)
+    if not exact:
+        perp = max(perp, 0.0)
+    kp = k - perp
+    for r in range(3):
+        for c in range(3):
+            h = kp * (eh[r] * eh[c])
+            if r == c:
+                h += perp
+            band[i, r, 3 * b + c] += h
+            band[i + 1, r, 3 * b + c] += h
+            band[i, r, 3 * (b + 1) + c] -= h
+            if not upper:
+                band[i + 1, r, 3 * (b - 1) + c] -= h
+    return 0.0, False
+
+
+# ------------------------------------------------------------------------- bend
+@_jit
+def _vstore(a, j, vec, f):
+    a[j, 0] = vec[0] * f
+    a[j, 1] = vec[1] * f
+    a[j, 2] = vec[2] * f
+
+
+@_jit
+def _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, fu, fv, first):
+    """The eigenpairs ``first`` .. 5 of the unit-column Hessian of Psi(theta)
+    (angle.AngleFrame.eigensystem, away from its degenerate points) into rows 0.. of
+    u, v (times fu, fv: the column scaling) and w (their eigenvalues)."""
+    if c > 0.0:
+        one_plus, one_minus = 1.0 + c, s * s / (1.0 + c)
+    elif c < 0.0:
+        one_plus, one_minus = s * s / (1.0 - c), 1.0 - c
+    else:
+        one_plus, one_minus = 1.0, 1.0
+    lam2 = k + math.sqrt(k * k + d * d)
+    rr = d / lam2 if lam2 > 0.0 else 0.0
+    scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
+    lams = (-d * one_minus / s_safe, d * one_plus / s_safe, lam2, -d * rr, -d, d)
+    for j in range(first, 6):
+        if j == 0:
+            top, bot, f = n, n, _SQRT_HALF
+        elif j == 1:
+            top, bot, f = n, _vscale(n, -1.0), _SQRT_HALF
+        elif j == 2:
+            top, bot, f = _vsub(_vscale(t0, rr), b0), _vadd(_vscale(t1, rr), b1), scn
+        elif j == 3:
+            top, bot, f = _vadd(t0, _vscale(b0, rr)), _vsub(t1, _vscale(b1, rr)), scn
+        elif j == 4:
+            top, bot, f = _vadd(t0, b0), _vsub(b1, t1), 0.5
+        else:
+            top, bot, f = _vsub(t0, b0), _vsub(_vscale(t1, -1.0), b1), 0.5
+        _vstore(u, j - first, _vscale(top, f), fu)
+        _vstore(v, j - first, _vscale(bot, f), fv)
+        w[j - first] = lams[j]
+
+
+@_jit
+def _v_bend(x, i, rest, k, mode, g, band, b, upper, exact, u, v, w):
+    """One bend element on vertices i .. i+2: (energy, bad).  u, v (6, 3), w (6,) are
+    scratch: the Hessian's eigenvectors on the two edges and their weights, the
+    analytic filter's three kept ones (the roots of the eigenvalues folded in, no
+    weights) or, ``exact``, all six with their eigenvalues (angle.AngleFrame.eigensystem)."""
+    scale, finite = _vscale_of(x, i, 3)
+    x1 = _vpoint(x, i + 1)
+    e0 = _vsub(_vpoint(x, i), x1)
+    e1 = _vsub(_vpoint(x, i + 2), x1)
+    l0, zero0 = _vbad_edge(e0, scale)
+    l1, zero1 = _vbad_edge(e1, scale)
+    if not finite or zero0 or zero1:
+        return 0.0, True
+    t0, t1, tx, c, s, theta = _vangle(e0, l0, e1, l1)
+    if mode == ENERGY:
+        return 0.5 * k * (theta - rest) ** 2, False
+    d = k * (theta - rest)
+    degenerate = s < STRAIGHT_TOL
+    if degenerate:
+        n = _vperp(t0)
+        s_safe = 1.0
+    else:
+        n = _vdiv(tx, s)
+        s_safe = s
+    b0 = _vcross(t0, n)
+    b1 = _vcross(t1, n)
+    if not degenerate:
+        gu = _vscale(_vdiv(b0, l0), d)
+        gv = _vscale(_vdiv(b1, -l1), d)
+        _vadd_to(g, i, gu)
+        _vadd_to(g, i + 2, gv)
+        _vadd_to(g, i + 1, (-gu[0] - gv[0], -gu[1] - gv[1], -gu[2] - gv[2]))
+    if mode != HESSIAN:
+        return 0.0, False
+    if exact:
+        m = 6
+        if degenerate:
+            # the cone rule (angle.AngleFrame._cone_eigensystem)
+            cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
+            zero3 = (0.0, 0.0, 0.0)
+            _vstore(u, 0, _vscale(n, _SQRT_HALF), 1.0 / l0)
+            _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), 1.0 / l1)
+            _vstore(u, 1, _vscale(b0, _SQRT_HALF), 1.0 / l0)
+            _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), 1.0 / l1)
+            _vstore(u, 2, _vscale(n, _SQRT_HALF), 1.0 / l0)
+            _vstore(v, 2, _vscale(n, cs * _SQRT_HALF), 1.0 / l1)
+            _vstore(u, 3, _vscale(b0, _SQRT_HALF), 1.0 / l0)
+            _vstore(v, 3, _vscale(b0, cs * _SQRT_HALF), 1.0 / l1)
+            _vstore(u, 4, t0, 1.0 / l0)
+            _vstore(v, 4, zero3, 1.0 / l1)
+            _vstore(u, 5, zero3, 1.0 / l0)
+            _vstore(v, 5, t0, 1.0 / l1)
+            w[0] = w[1] = 2.0 * k
+            w[2] = w[3] = w[4] = w[5] = 0.0
+        else:
+            _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, 1.0 / l0, 1.0 / l1, 0)
+    else:
+        m = 3
+        # the analytic filter's kept eigenpairs (angle.AngleFrame.positive_part), times
+        # the square roots of their eigenvalues, on the unit edges [top; bottom], / |e|
+        if degenerate:
+            cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
+            r0 = math.sqrt(2.0 * k)
+            _vstore(u, 0, _vscale(n, _SQRT_HALF), r0 / l0)
+            _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), r0 / l1)
+            _vstore(u, 1, _vscale(b0, _SQRT_HALF), r0 / l0)
+            _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), r0 / l1)
+            _vstore(u, 2, n, 0.0)
+            _vstore(v, 2, n, 0.0)
+        else:
+            sd = 1.0 if d >= 0.0 else -1.0
+            ad = abs(d)
+            lam2 = k + math.sqrt(k * k + d * d)
+            rr = d / lam2 if lam2 > 0.0 else 0.0
+            sc = sd * c
+            if sc < 0.0:
+                one_plus = s * s / (1.0 + abs(sc))
+            else:
+                one_plus = 1.0 + sc
+            scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
+            rs = rr * scn
+            hsd = 0.5 * sd
+            root0, root1, root2 = math.sqrt(lam2), math.sqrt(ad * one_plus / s_safe), math.sqrt(ad)
+            _vstore(u, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)), root0 / l0)
+            _vstore(v, 0, _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / l1)
+            _vstore(u, 1, _vscale(n, _SQRT_HALF), root1 / l0)
+            _vstore(v, 1, _vscale(n, -_SQRT_HALF * sd), root1 / l1)
+            _vstore(u, 2, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)), root2 / l0)
+            _vstore(v, 2, _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / l1)
+    # H = sum_j w_j c_j c_j^T with c_j = [u_j; -u_j - v_j; v_j]: from three 3x3
+    # products, block (a, c) of vertices (i + a, i + c) at band[i + a, :, 3 (c - a + b):]
+    for r in range(3):
+        for q in range(3):
+            if exact:
+                uu = uv = vu = vv = 0.0
+                for j in range(m):
+                    wu = w[j] * u[j, r]
+                    wv = w[j] * v[j, r]
+                    uu += wu * u[j, q]
+                    uv += wu * v[j, q]
+                    vu += wv * u[j, q]
+                    vv += wv * v[j, q]
+            else:               # three columns, weights 1: unrolled
+                uu = u[0, r] * u[0, q] + u[1, r] * u[1, q] + u[2, r] * u[2, q]
+                uv = u[0, r] * v[0, q] + u[1, r] * v[1, q] + u[2, r] * v[2, q]
+                vu = v[0, r] * u[0, q] + v[1, r] * u[1, q] + v[2, r] * u[2, q]
+                vv = v[0, r] * v[0, q] + v[1, r] * v[1, q] + v[2, r] * v[2, q]
+            h01 = -uu - uv
+            h12 = -uv - vv
+            band[i, r, 3 * b + q] += uu
+            band[i, r, 3 * (b + 1) + q] += h01
+            band[i, r, 3 * (b + 2) + q] += uv
+            band[i + 1, r, 3 * b + q] += uu + uv + vu + vv
+            band[i + 1, r, 3 * (b + 1) + q] += h12
+            band[i + 2, r, 3 * b + q] += vv
+            if not upper:
+                band[i + 1, q, 3 * (b - 1) + r] += h01
+                band[i + 2, q, 3 * (b - 2) + r] += uv
+                band[i + 2, q, 3 * (b - 1) + r] += h12
+    return 0.0, False
+
+
+# ------------------------------------------------------------------------ twist
+@_jit
+def _v_in_plane(cols, j, top, bot, fu, fv, al, be):
+    """Column j of the twist Hessian: P^T [top fu; bot fv] (twist.simplified_transpose)."""
+    for q in range(3):
+        uq = top[q] * fu
+        vq = bot[q] * fv
+        cols[j, q] = uq
+        cols[j, 3 + q] = (al - 1.0) * uq + be * vq
+        cols[j, 6 + q] = -al * uq - (1.0 + be) * vq
+        cols[j, 9 + q] = vq
+
+
+@_jit
+def _v_twist(x, i, rest, k, mode, g, band, b, upper, exact, cols, wts, u, v):
+    """One twist element on vertices i .. i+3: (energy, bad).  cols (8, 12), wts (8,)
+    are scratch: the element Hessian's columns and weights (analytic: four, unweighted;
+    ``exact``: eight, twist._exact_columns); u, v (6, 3) scratch for the eigenpairs."""
+    scale, finite = _vscale_of(x, i, 4)
+    x1 = _vpoint(x, i + 1)
+    x2 = _vpoint(x, i + 2)
+    e0 = _vsub(_vpoint(x, i), x1)
+    e1 = _vsub(x2, x1)
+    e2 = _vsub(_vpoint(x, i + 3), x2)
+    l0, zero0 = _vbad_edge(e0, scale)
+    l1, zero1 = _vbad_edge(e1, scale)
+    l2, zero2 = _vbad_edge(e2, scale)
+    if not finite or zero0 or zero1 or zero2:
+        return 0.0, True
+    inv_l1_sq = 1.0 / (l1 * l1)
+    al = _vdot(e0, e1) * inv_l1_sq
+    be = _vdot(e2, e1) * inv_l1_sq
+    av = _vsub(e0, _vscale(e1, al))
+    bv = _vsub(e2, _vscale(e1, be))
+    la, lb = _vnorm(av), _vnorm(bv)
+    if not (la >= _TWIST_TOL * l0 and lb >= _TWIST_TOL * l2):
+        return 0.0, False         # collinear outer edge: the element is dropped
+    sigma = -1.0 if _vdot(_vcross(av, bv), e1) < 0.0 else 1.0
+    t0, t1, tx, c, s, theta = _vangle(av, la, bv, lb)
+    if s < STRAIGHT_TOL:           # a, b parallel: the frame turns about e1
+        n = _vscale(e1, sigma * math.sqrt(inv_l1_sq))
+    else:
+        n = _vdiv(tx, s)
+    dphi = _PI - ((_PI - (sigma * theta - rest)) % _TWO_PI)
+    if mode == ENERGY:
+        return 0.5 * k * dphi * dphi, False
+    d = sigma * k * dphi
+    b0 = _vcross(t0, n)
+    b1 = _vcross(t1, n)
+    ga = _vscale(_vdiv(b0, la), d)
+    gb = _vscale(_vdiv(b1, -lb), d)
+    _vadd_to(g, i, ga)
+    _vadd_to(g, i + 1, _vadd(_vscale(ga, al - 1.0), _vscale(gb, be)))
+    _vadd_to(g, i + 2, _vsub(_vscale(ga, -al), _vscale(gb, 1.0 + be)))
+    _vadd_to(g, i + 3, gb)
+    if mode != HESSIAN:
+        return 0.0, False
+    if exact:
+        # the four in-plane eigenpairs with their eigenvalues, mapped by P^T
+        m = 8
+        _v_eigenpairs(u, v, wts, t0, t1, b0, b1, n, c, s, 1.0, d, k, 1.0 / la, 1.0 / lb, 2)
+        for j in range(4):
+            _v_in_plane(cols, j, (u[j, 0], u[j, 1], u[j, 2]), (v[j, 0], v[j, 1], v[j, 2]),
+                        1.0, 1.0, al, be)
+        wts[4] = wts[5] = 1.0
+        wts[6] = wts[7] = -1.0
+    else:
+        # in-plane pairs 0 and 2 of angle.AngleFrame.positive_part, mapped by P^T
+        m = 4
+        sd = 1.0 if d >= 0.0 else -1.0
+        ad = abs(d)
+        lam2 = k + math.sqrt(k * k + d * d)
+        rr = d / lam2 if lam2 > 0.0 else 0.0
+        scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
+        rs = rr * scn
+        hsd = 0.5 * sd
+        root0, root2 = math.sqrt(lam2), math.sqrt(ad)
+        _v_in_plane(cols, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)),
+                    _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / la, root0 / lb, al, be)
+        _v_in_plane(cols, 1, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)),
+                    _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / la, root2 / lb, al, be)
+    # out-of-plane pairs: PSD part of 1/2 (p m^T + m p^T) (twist._out_of_plane and
+    # twist._balanced_columns)
+    inv_l1 = math.sqrt(inv_l1_sq)
+    e1h = _vscale(e1, inv_l1)
+    osc = sigma * _SQRT_HALF
+    mu = osc / la
+    st0 = _vscale(t0, s)
+    for j in range(2):
+        eps = 1.0 if j == 0 else -1.0
+        nu = eps * osc / lb
+        w = _vscale(_vadd(t0, _vscale(t1, eps)), osc * inv_l1)
+        m0 = _vscale(e1h, 2.0 * mu)
+        m1 = _vsub(_vscale(e1h, 2.0 * ((al - 1.0) * mu + be * nu)), w)
+        m2 = _vadd(_vscale(e1h, -2.0 * (al * mu + (1.0 + be) * nu)), w)
+        m3 = _vscale(e1h, 2.0 * nu)
+        cs = (1.0 - c) if eps > 0.0 else (1.0 + c)
+        lw = _vscale(_vsub(_vscale(b0, cs), _vscale(st0, eps)), d * osc * inv_l1)
+        norm_p = math.sqrt(2.0 * _vdot(lw, lw))
+        norm_m = math.sqrt(_vdot(m0, m0) + _vdot(m1, m1) + _vdot(m2, m2) + _vdot(m3, m3))
+        if norm_p > 0.0 and norm_m > 0.0:
+            inv_gs = math.sqrt(norm_m / norm_p)
+            gs = math.sqrt(norm_p / norm_m)
+        else:
+            inv_gs = 0.0
+            gs = 0.0
+        # the plus column (both filters) and, exact, the minus column
+        for sign, row in ((1.0, (4 if exact else 2) + j), (-1.0, 6 + j)):
+            if sign > 0.0 or exact:
+                for q in range(3):
+                    cols[row, q] = 0.5 * (sign * (m0[q] * gs))
+                    cols[row, 3 + q] = 0.5 * (lw[q] * inv_gs + sign * (m1[q] * gs))
+                    cols[row, 6 + q] = 0.5 * (-lw[q] * inv_gs + sign * (m2[q] * gs))
+                    cols[row, 9 + q] = 0.5 * (sign * (m3[q] * gs))
+    # H = sum_j w_j cols_j cols_j^T, block by block (upper blocks and their transposes)
+    for a in range(4):
+        for cc in range(a, 4):
+            dd = cc - a
+            for r in range(3):
+                ra = 3 * a + r
+                for q in range(3):
+                    qc = 3 * cc + q
+                    if exact:
+                        hv = 0.0
+                        for j in range(m):
+                            hv += wts[j] * cols[j, ra] * cols[j, qc]
+                    else:       # four columns, weights 1: unrolled
+                        hv = (cols[0, ra] * cols[0, qc] + cols[1, ra] * cols[1, qc]
+                              + cols[2, ra] * cols[2, qc] + cols[3, ra] * cols[3, qc])
+                    band[i + a, r, 3 * (dd + b) + q] += hv
+                    if dd != 0 and not upper:
+                        band[i + cc, q, 3 * (b - dd) + r] += hv
+    return 0.0, False
+
+
+@_jit
+def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
+           mode, g, band, b, upper, exact):
+    """All terms in one pass over the vertices (elements in order of their first
+    vertex), so each band row is written while it is in cache; with HESSIAN the band
+    rows are zeroed on the way (row v + b just before the elements starting at v, the
+    first to touch it).  Returns (energy, term, element): term 0, 1, 2 and the first bad
+    element of that term, or -1, -1."""
+    energy = 0.0
+    u, v, w = np.empty((6, 3)), np.empty((6, 3)), np.empty(8)
+    cols = np.empty((8, 12))
+    nv = x.shape[0]
+    zero = mode == HESSIAN
+    if zero:
+        for r in range(min(b, nv)):
+            band[r, :, :] = 0.0
+    ps = pb = pt = 0
+    for vtx in range(nv):
+        if zero and vtx + b < nv:
+            band[vtx + b, :, :] = 0.0
+        while ps < s_start.shape[0] and s_start[ps] == vtx:
+            en, bad = _v_stretch(x, vtx, s_rest[ps], s_k[ps], mode, g, band, b, upper, exact)
+            if bad:
+                return energy, 0, ps
+            energy += en
+            ps += 1
+        while pb < b_start.shape[0] and b_start[pb] == vtx:
+            en, bad = _v_bend(x, vtx, b_rest[pb], b_k[pb], mode, g, band, b, upper, exact,
+                              u, v, w)
+            if bad:
+                return energy, 1, pb
+            energy += en
+            pb += 1
+        while pt < t_start.shape[0] and t_start[pt] == vtx:
+            en, bad = _v_twist(x, vtx, t_rest[pt], t_k[pt], mode, g, band, b, upper, exact,
+                               cols, w, u, v)
+            if bad:
+                return energy, 2, pt
+            energy += en
+            pt += 1
+    return energy, -1, -1
+
+
+TERMS = ("stretch", "bend", "twist")
+_REFERENCE = {"stretch": stretch, "bend": bend, "twist": twist}
+_K = {"stretch": 2, "bend": 3, "twist": 4}
+_NO_ELEMENTS = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+_NO_G = np.zeros((0, 3))
+_NO_BAND = np.zeros((0, 3, 3))
+
+
+def element_arrays(name, start, rest, stiffness):
+    """(start, rest, stiffness) of a term as the kernels take them: validated as the
+    NumPy kernels do, contiguous, ``start`` (n,) int64 nondecreasing."""
+    if name not in _K:
+        raise ValueError(f"unknown term {name!r}: use one of {', '.join(TERMS)}")
+    start = np.ascontiguousarray(start, np.int64)
+    if start.ndim != 1 or len(start) != len(rest) or (len(start) and np.any(np.diff(start) < 0)):
+        raise ValueError(f"{name}: element first vertices must be a nondecreasing (n,) array "
+                         f"matching the {len(rest)} rest values")
+    return (start, *check_term(name, rest, stiffness))
+
+
+def _run(terms, x, mode, g, band, b, upper, exact=False):
+    """Run the fused pass over ``terms`` (name -> :func:`element_arrays`)."""
+    x = np.ascontiguousarray(x, np.float64)
+    for name, (start, _, _) in terms.items():
+        k = _K[name]
+        if len(start) and (start[0] < 0 or start[-1] + k > len(x)):
+            raise ValueError(f"{name}: elements reach vertex {int(start[-1]) + k - 1} of {len(x)}")
+        if mode == HESSIAN and k - 1 > b:
+            raise ValueError(f"{name}: a half bandwidth of {b} cannot hold {k}-vertex elements")
+    arrays = [terms.get(name, _NO_ELEMENTS) for name in TERMS]
+    energy, term, bad = _terms(x, *arrays[0], *arrays[1], *arrays[2], mode, g, band, b, upper,
+                                 exact)
+    if bad >= 0:
+        # The NumPy kernel names the problem (ElementError); it must raise here.
+        name = TERMS[term]
+        start, rest, stiffness = arrays[term]
+        _REFERENCE[name].energy(x[start[:, None] + np.arange(_K[name])], rest, stiffness)
+        raise RuntimeError(f"{name}: the compiled kernel rejected element {bad} but the "
+                           f"NumPy kernel accepted it")
+    return energy
+
+
+def energy(terms, x):
+    """Summed energy of ``terms`` (name -> :func:`element_arrays`) at positions x (nv, 3)."""
+    return _run(terms, x, ENERGY, _NO_G, _NO_BAND, 0, False)
+
+
+def add_gradient(terms, x, g):
+    """Add the gradient of ``terms`` to g (nv, 3)."""
+    _run(terms, x, GRADIENT, g, _NO_BAND, 0, False)
+
+
+def add_gradient_hessian(terms, x, g, band, b, upper, filter="analytic"):
+    """Add the gradient to g (nv, 3) and set ``band`` (nv, 3, 3 (2 b + 1)) to the
+    ``filter``-ed Hessian of ``terms`` (module doc; ``upper``: only d >= 0)."""
+    if filter not in FILTERS:
+        raise ValueError(f"compiled kernels implement the filters {FILTERS}, not {filter!r}")
+    if band.shape != (len(x), 3, 3 * (2 * b + 1)):
+        raise ValueError(f"band must have shape {(len(x), 3, 3 * (2 * b + 1))}, got {band.shape}")
+    _run(terms, x, HESSIAN, g, band, int(b), bool(upper), filter == "none")
+
+
+@_jit
+def _gather_blocks(band, rows, diags, out, column_major):
+    """out[9 j:9 j + 9] = block (rows[j], rows[j] + diags[j] - b) of ``band`` (module
+    doc; ``diags`` counts from the band's first diagonal), row-major or column-major."""
+    for j in range(rows.shape[0]):
+        i, d = rows[j], diags[j]
+        o = 9 * j
+        for r in range(3):
+            for c in range(3):
+                if column_major:
+                    out[o + 3 * c + r] = band[i, r, 3 * d + c]
+                else:
+                    out[o + 3 * r + c] = band[i, r, 3 * d + c]
+
+
+def gather_blocks(band, rows, diags, out, column_major):
+    """Copy the band's blocks (rows[j], diagonal diags[j]) into the flat ``out``
+    (9 per block), as a PETSc BAIJ value array stores them (``column_major``) or as
+    ``MatSetValuesBlocked`` takes them."""
+    _gather_blocks(band, rows, diags, out, bool(column_major))
+
+
+def warm_up():
+    """Compile (or load from the cache) every kernel; returns the seconds it took."""
+    t0 = time.perf_counter()
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
+    one = (np.zeros(1, np.int64), np.ones(1), np.ones(1))
+    g = np.zeros((4, 3))
+    band = np.zeros((4, 3, 21))
+    for mode in (ENERGY, GRADIENT, HESSIAN):
+        for exact in (False, True):
+            _terms(x, *one, *one, *one, mode, g, band, 3, False, exact)
+    _gather_blocks(band, one[0], one[0], np.zeros(9), True)
+    return time.perf_counter() - t0

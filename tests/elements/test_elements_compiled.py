@@ -1,0 +1,276 @@
+"""The compiled element kernels (lc_petsc.elements.compiled) against the NumPy ones.
+
+The NumPy kernels are the tested reference; the compiled ones must give the same
+energies, gradients and Hessians (every filter they implement) to round-off on random and degenerate
+elements (straight and folded bends, collinear twist edges, planar twists, theta and phi
+near 0 and pi, tiny edges), raise the same ElementError on bad input, write the band
+layout of the assembler (full and upper-only), and assemble the same PETSc matrix.
+Their Hessian is also checked against finite differences of their own gradient where
+the analytic filter is exact (stretch under tension, bend and twist at rest).
+"""
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, SolverConfig
+from lc_petsc.elements import ElementError, bend, compiled, stretch, twist
+from lc_petsc.elements.angle import STRAIGHT_TOL
+from lc_petsc.simulator import build_simulator
+
+import compiled_elements as ce
+import element_helpers as eh
+
+MODULES = {"stretch": stretch, "bend": bend, "twist": twist}
+#: agreement "to round-off": relative to the largest entry of the element's array
+RTOL = 1e-12
+
+
+def _compare(term, x, rest, k, filter, rtol=RTOL):
+    """Compiled vs NumPy energy, gradient and ``filter``-ed Hessian of elements x
+    (n, k, 3); returns the largest relative differences (energy, gradient, Hessian)."""
+    ref = MODULES[term]
+    e0 = ref.energy(x, rest, k)
+    g0, h0 = ref.gradient_hessian(x, rest, k, filter=filter)
+    e1 = ce.energy(term, x, rest, k)
+    g1, h1 = ce.gradient_hessian(term, x, rest, k, filter=filter)
+    n = len(x)
+    # Reference magnitudes from the element's Hessian (H ~ k / L^2): near rest the energy
+    # and gradient are round-off themselves, so they are compared on the scale of H L^2
+    # and H L (L the element's longest edge).
+    L = np.abs(np.diff(x, axis=1)).max(axis=(1, 2))
+    h_size = np.abs(h0.reshape(n, -1)).max(axis=1)
+    sizes = (np.maximum(np.abs(e0), h_size * L * L),
+             np.maximum(np.abs(g0.reshape(n, -1)).max(axis=1), h_size * L), h_size)
+    errs = [np.abs(e0 - e1),
+            np.abs((g0 - g1).reshape(n, -1)).max(axis=1),
+            np.abs((h0 - h1).reshape(n, -1)).max(axis=1)]
+    for what, err, size in zip(("energy", "gradient", "Hessian"), errs, sizes):
+        assert np.all(err <= rtol * size), f"{term} {what}: differences {err / np.where(size > 0, size, 1)}"
+    assert np.isfinite(h1).all() and np.isfinite(g1).all()
+    errs = [e / np.where(size > 0, size, 1) for e, size in zip(errs, sizes)]
+    return [float(e.max()) for e in errs]
+
+
+@pytest.mark.parametrize("filter", compiled.FILTERS)
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e2])
+@pytest.mark.parametrize("term", eh.TERMS)
+def test_random_elements_match_numpy(term, scale, filter):
+    rng = np.random.default_rng(7 + eh.TERMS.index(term))
+    x, rest, k = eh.random_case(term, rng, 300, scale)
+    k[::17] = 0.0                        # zero stiffness (e.g. padding) gives exact zeros
+    _compare(term, x, rest, k, filter)
+
+
+def _rotated(x, seed):
+    R = eh.random_rotation(np.random.default_rng(seed))
+    return x @ R.T + np.array([0.3, -1.2, 2.0])
+
+
+def _bend_cases():
+    """Bends at and near the cone points theta = pi, 0, and with tiny edges."""
+    cases = []
+    for s in [0.0, 1e-12, 0.5 * STRAIGHT_TOL, 2 * STRAIGHT_TOL, 1e-6, 1e-3]:
+        c = np.sqrt(1 - s * s)
+        cases.append(eh.bend_from_units(np.array([1.0, 0, 0]), np.array([-c, s, 0])))      # ~pi
+        cases.append(eh.bend_from_units(np.array([1.0, 0, 0]), np.array([c, s, 0]), L1=0.5))  # ~0
+    cases.append(eh.bend_from_units(np.array([0, 1.0, 0]), np.array([0.6, 0.8, 0]), L0=1e-9, L1=1e-9))
+    cases.append(eh.bend_from_units(np.array([0, 1.0, 0]), np.array([0.6, -0.8, 0]), L0=1e-9, L1=2.0))
+    return np.stack([_rotated(x, i) for i, x in enumerate(cases)])
+
+
+def _twist_cases():
+    """Twists: straight, collinear outer edges, planar (phi = 0, pi), near planar, tiny."""
+    e1 = np.array([0.0, 0.0, 1.0])
+    a = np.array([1.0, 0.0, 0.0])
+    cases = [np.array([[0, 0, -1.0], [0, 0, 0], [0, 0, 1.0], [0, 0, 2.0]])]    # straight
+    for r in [0.0, 1e-9, 0.5e-6, 2e-6, 1e-4]:      # a outer edge (nearly) along e1
+        cases.append(eh.twist_from_ab(r * a, np.array([0, 1.0, 0]), e1))
+    for phi in [0.0, 1e-12, 1e-9, 0.5 * STRAIGHT_TOL, 1e-7, 1e-4, np.pi - 1e-9, np.pi, -np.pi + 1e-12]:
+        b = np.array([np.cos(phi), np.sin(phi), 0.0]) * 0.7
+        cases.append(eh.twist_from_ab(a, b, e1))
+    cases.append(eh.twist_from_ab(1e-9 * a, 1e-9 * np.array([0.0, 1.0, 0]), 1e-9 * e1))
+    return np.stack([_rotated(x, 100 + i) for i, x in enumerate(cases)])
+
+
+def _stretch_cases():
+    e = np.array([0.6, 0.0, 0.8])
+    return np.stack([_rotated(np.array([np.zeros(3), L * e]), 200 + i)
+                     for i, L in enumerate([1e-9, 1e-3, 0.5, 1.0, 2.0, 1e3])])
+
+
+@pytest.mark.parametrize("filter", compiled.FILTERS)
+@pytest.mark.parametrize("rest_kind", ["at_rest", "pi", "random"])
+@pytest.mark.parametrize("term", eh.TERMS)
+def test_degenerate_elements_match_numpy(term, rest_kind, filter):
+    x = {"stretch": _stretch_cases, "bend": _bend_cases, "twist": _twist_cases}[term]()
+    n = len(x)
+    current = {"stretch": stretch.length, "bend": bend.angle, "twist": twist.angle}[term](x)
+    rng = np.random.default_rng(3)
+    if rest_kind == "at_rest":
+        rest = current.copy()
+    elif rest_kind == "pi":
+        rest = np.full(n, np.pi) if term != "stretch" else current * 1.5
+    else:
+        rest = (current * rng.uniform(0.5, 1.5, n) if term == "stretch"
+                else rng.uniform(-np.pi, np.pi, n) if term == "twist" else rng.uniform(0, np.pi, n))
+    k = rng.uniform(0.5, 2.0, n)
+    _compare(term, x, rest, k, filter)
+
+
+@pytest.mark.parametrize("term", eh.TERMS)
+def test_bad_elements_raise_the_numpy_error(term):
+    kv = eh.NVERT[term]
+    rng = np.random.default_rng(5)
+    x, rest, k = eh.random_case(term, rng, 4, 1.0)
+    xv = np.ascontiguousarray(x.reshape(-1, 3))
+    start = np.arange(4, dtype=np.int64) * kv
+    arrays = {term: compiled.element_arrays(term, start, rest, k)}
+    for bad, what in [(np.nan, "non-finite"), (np.inf, "non-finite"), ("zero", "zero length")]:
+        y = xv.copy()
+        if bad == "zero":
+            y[2 * kv + 1] = y[2 * kv]         # element 2: its first edge has zero length
+        else:
+            y[2 * kv + 1, 1] = bad
+        with pytest.raises(ElementError) as numpy_error:
+            MODULES[term].energy(y.reshape(4, kv, 3), rest, k)
+        assert what in str(numpy_error.value) and "element 2" in str(numpy_error.value)
+        for call in (lambda: compiled.energy(arrays, y),
+                     lambda: compiled.add_gradient(arrays, y, np.zeros_like(y)),
+                     lambda: compiled.add_gradient_hessian(arrays, y, np.zeros_like(y),
+                                                           np.zeros((len(y), 3, 21)), 3, False)):
+            with pytest.raises(ElementError) as compiled_error:
+                call()
+            assert str(compiled_error.value) == str(numpy_error.value)
+
+
+def test_bad_arguments_are_value_errors():
+    start = np.array([0, 2, 1], np.int64)
+    with pytest.raises(ValueError, match="nondecreasing"):
+        compiled.element_arrays("bend", start, np.ones(3), np.ones(3))
+    with pytest.raises(ValueError, match="unknown term"):
+        compiled.element_arrays("shear", start, np.ones(3), np.ones(3))
+    with pytest.raises(ElementError, match="stiffness"):
+        compiled.element_arrays("bend", np.arange(3), np.ones(3), -np.ones(3))
+    arrays = {"twist": compiled.element_arrays("twist", np.arange(2), np.zeros(2), np.ones(2))}
+    x = np.random.default_rng(0).normal(size=(5, 3))
+    with pytest.raises(ValueError, match="filters"):
+        compiled.add_gradient_hessian(arrays, x, np.zeros_like(x), np.zeros((5, 3, 21)), 3, False,
+                                      filter="numerical")
+    assert "numerical" not in compiled.FILTERS and "abs" not in compiled.FILTERS
+    with pytest.raises(ValueError, match="half bandwidth"):
+        compiled.add_gradient_hessian(arrays, x, np.zeros_like(x), np.zeros((5, 3, 15)), 2, False)
+    with pytest.raises(ValueError, match="reach vertex"):
+        compiled.energy(arrays, x[:4])
+
+
+def test_band_layout_of_a_wisp_full_and_upper():
+    """Several terms on one curly wisp: the band (full, and upper-only for SBAIJ) equals
+    the sum of the NumPy element Hessians scattered into a dense matrix."""
+    rng = np.random.default_rng(11)
+    wisp = eh.helix_wisp(30)
+    x = wisp + rng.normal(scale=0.05, size=wisp.shape)
+    nv, b = len(x), 3
+    dense = np.zeros((3 * nv, 3 * nv))
+    g_ref = np.zeros((nv, 3))
+    arrays = {}
+    for term, kv in eh.NVERT.items():
+        start = np.arange(nv - kv + 1)
+        xe = x[start[:, None] + np.arange(kv)]
+        cur = {"stretch": stretch.length, "bend": bend.angle, "twist": twist.angle}[term](xe)
+        rest = cur * 1.1 if term == "stretch" else cur + rng.uniform(-0.3, 0.3, len(cur))
+        k = rng.uniform(0.5, 2.0, len(start))
+        arrays[term] = compiled.element_arrays(term, start, rest, k)
+        ge, he = MODULES[term].gradient_hessian(xe, rest, k)
+        for e, s in enumerate(start):
+            dense[3 * s:3 * (s + kv), 3 * s:3 * (s + kv)] += he[e]
+            g_ref[s:s + kv] += ge[e]
+    for upper in (False, True):
+        band = np.full((nv, 3, 3 * (2 * b + 1)), np.nan)   # the pass zeroes every row itself
+        g = np.zeros((nv, 3))
+        compiled.add_gradient_hessian(arrays, x, g, band, b, upper)
+        got = ce.band_to_dense(band, b, upper)
+        assert np.abs(got - dense).max() <= RTOL * np.abs(dense).max()
+        assert np.abs(g - g_ref).max() <= RTOL * np.abs(g_ref).max()
+        if upper:   # the lower band stays zero
+            assert not band[:, :, :3 * b].any()
+
+
+@pytest.mark.parametrize("term", eh.TERMS)
+def test_hessian_vs_fd_of_gradient_where_the_filter_is_exact(term):
+    """Stretch under tension, bend and twist at rest: the analytic filter keeps the exact
+    Hessian there, so the compiled Hessian must match central differences of the compiled
+    gradient with an error shrinking as h^2."""
+    rng = np.random.default_rng(21)
+    x, rest, k = eh.random_case(term, rng, 5, 1.0)
+    if term == "stretch":
+        rest = stretch.length(x) * 0.8
+    else:
+        rest = {"bend": bend.angle, "twist": twist.angle}[term](x)
+    mod = ce.module(term)
+    H = mod.hessian(x, rest, k)
+    # not the trivial zero: at rest the angle terms keep k grad(theta) grad(theta)^T
+    assert np.all(np.linalg.norm(H.reshape(5, -1), axis=1) > 0.1 * k.min())
+    hs = np.array([8e-3, 4e-3, 2e-3, 1e-3])
+    errs = []
+    for h in hs:
+        Hfd = eh.fd_hessian_of_gradient(lambda y: mod.gradient(y, rest, k), x, h)
+        errs.append(np.linalg.norm((Hfd - H).reshape(5, -1), axis=1)
+                    / np.linalg.norm(H.reshape(5, -1), axis=1))
+    errs = np.array(errs)
+    for e in range(5):
+        eh.assert_h2_convergence(hs, errs[:, e], f"compiled {term} Hessian, element {e}",
+                                 final_max=1e-4)
+
+
+def _simulator(kernels, kind, mat_type, filter="analytic"):
+    scene = (SceneConfig(kind="hairball", n_wisps=3, perturbation="jitter", jitter=0.2)
+             if kind == "hairball" else SceneConfig(kind="straight", n_vertices=12))
+    cfg = SimConfig(scene=scene, material=MaterialConfig(youngs_modulus=1e9),
+                    physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity")),
+                    solver=SolverConfig(options=f"-mat_type {mat_type} -lc_element_kernels {kernels}",
+                                        filter=filter))
+    return build_simulator(cfg, comm=MPI.COMM_SELF)
+
+
+def _assembled(sim, x):
+    asm = sim.assembler
+    g = asm.assemble(x)
+    asm.add_mass(sim.scene.mass / sim.config.time.dt ** 2)
+    A = asm.commit()
+    if asm.mat_type == "sbaij":
+        A.setOption(PETSc.Mat.Option.GETROW_UPPERTRIANGULAR, True)
+    rowptr, cols, vals = A.getValuesCSR()
+    return g, asm.gradient(x), asm.energy(x), (rowptr.copy(), cols.copy(), vals.copy())
+
+
+@pytest.mark.parametrize("filter", ["analytic", "none", "abs"])
+@pytest.mark.parametrize("mat_type", ["baij", "sbaij"])
+@pytest.mark.parametrize("kind", ["hairball", "straight"])
+def test_assembled_matrix_matches_numpy_kernels(kind, mat_type, filter):
+    """The Newton matrix, gradient and energy from the compiled kernels equal the NumPy
+    kernels' (a filter they do not implement falls back to NumPy: the same values)."""
+    sims = {kv: _simulator(kv, kind, mat_type, filter) for kv in ("numpy", "compiled")}
+    try:
+        x = sims["numpy"].x
+        if kind == "straight":     # straight strand: every bend at pi, every twist dropped
+            assert np.allclose(bend.angle(x[np.arange(len(x) - 2)[:, None] + np.arange(3)]), np.pi)
+        ref, got = (_assembled(sims[kv], x) for kv in ("numpy", "compiled"))
+        for a, b_ in zip(ref[:2], got[:2]):
+            assert np.abs(a - b_).max() <= RTOL * max(np.abs(a).max(), 1e-300)
+        assert abs(ref[2] - got[2]) <= RTOL * max(abs(ref[2]), 1e-300)
+        (p0, c0, v0), (p1, c1, v1) = ref[3], got[3]
+        assert np.array_equal(p0, p1) and np.array_equal(c0, c1)
+        assert np.abs(v0 - v1).max() <= RTOL * np.abs(v0).max()
+        # which path ran: compiled elements only for the filters they implement
+        asm = sims["compiled"].assembler
+        assert (asm._padded is None) == (filter in compiled.FILTERS)
+    finally:
+        for s in sims.values():
+            s.close()
+
+
+def test_unknown_kernels_option_is_a_clear_error():
+    with pytest.raises(ValueError, match="-lc_element_kernels 'fortran'.*compiled.*numpy"):
+        _simulator("fortran", "straight", "baij")

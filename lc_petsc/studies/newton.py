@@ -202,7 +202,11 @@ class _TermFilter:
 def dense_newton_matrix(sim, filters):
     """The Newton matrix (M/dt^2 + Hessians) of the integrator's current frame at its
     current positions, dense over the free DoFs (one rank, small scenes), with
-    ``filters`` {term: filter} (terms not named: exact).  Returns (n_free_dofs,)^2."""
+    ``filters`` {term: filter} (terms not named: exact).  Needs a simulator built with
+    ``-lc_element_kernels numpy``.  Returns (n_free_dofs,)^2."""
+    if sim.assembler.kernels != "numpy":
+        raise ValueError("dense_newton_matrix swaps the NumPy element kernels: build the "
+                         "simulator with -lc_element_kernels numpy")
     from lc_petsc import assembly
     it = sim.integrator
     saved = dict(assembly.KERNELS)
@@ -248,6 +252,8 @@ def filter_rates(cfg, comm, combos, frames=3, log=print):
     cfg.time.newton_iterations = 60
     cfg.time.newton_increment_tol = 1e-12
     cfg.solver.filter = "exact_or_analytic"
+    # dense_newton_matrix swaps the NumPy kernels' filters; the compiled ones would not see it
+    cfg.solver.options = (cfg.solver.options + " -lc_element_kernels numpy").strip()
     sim = build_simulator(cfg.validate(), comm)
     rows = []
     try:

@@ -8,7 +8,8 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    size = the largest segment box extent + 2 d0 over all ranks, one allreduce, and
    at least 1/128 of the scene's extent) touched by its segments' boxes inflated by
    d0, found through a boolean array over the cells, and the lists are allgathered
-   (about 28k cells per rank of the 2K hairball on 2 ranks, vs 100k segments).  One box per rank, the first plan, selects
+   (about 28k cells per rank of the 2K hairball on 2 ranks, vs 100k segments).  One box per
+   rank, the first plan, selects
    3x more ghosts here: a rank's wisps span a spherical cap whose box covers much of
    the other ranks' hair (measured at rest on 2 ranks: 30% of rank 1's segments vs 9%).
 2. **Ghosts.** A pair of segments on ranks q < r is computed by rank q (the owner of the
@@ -141,11 +142,13 @@ class SumOperator:
         self.A, self.C = A, None
 
     def mult(self, mat, x, y):
+        """y = (A + C) x."""
         self.A.mult(x, y)
         if self.C is not None:
             self.C.multAdd(x, y, y)
 
-    def getDiagonal(self, mat, d):       # C has no diagonal blocks
+    def getDiagonal(self, mat, d):
+        """The diagonal of A (C has no diagonal blocks)."""
         self.A.getDiagonal(d)
 
 
@@ -628,7 +631,7 @@ class StrandContact:
         band blocks to ``asm`` (before its ``commit``) and rebuilds the contact matrix C.
         Collective."""
         from mpi4py import MPI
-        sc, b = self.scene, asm.b
+        sc = self.scene
         with self.timers("collision"):
             with collectively(self.comm, "strand contact"):
                 X, gA, gB, fA, fB, oA, oB, d = self._pairs(x)
@@ -720,6 +723,7 @@ class StrandContact:
         self.C = C
 
     def destroy(self):
+        """Destroy the contact's PETSc objects (collective)."""
         if self.shell_ctx is not None:
             self.shell_ctx.C = None
         for m in (self.shell, self.op, self.C, self.vec, self.state, self.correction,

@@ -56,6 +56,9 @@ from lc_petsc.errors import SolverError
 
 
 class Integrator:
+    """Backward-Euler time stepping of one simulator: per frame, Newton iterations of
+    assembly, linear solve, line search and update, with pinned roots and the head."""
+
     def __init__(self, scene, assembler, solver, comm, timers, config, head):
         self.scene, self.asm, self.solver, self.comm = scene, assembler, solver, comm
         self.timers, self.cfg, self.head = timers, config, head
@@ -134,6 +137,7 @@ class Integrator:
 
     # -------------------------------------------------------------- one frame
     def step(self):
+        """Advance one frame (collective)."""
         cfg, sc = self.cfg, self.scene
         dt = cfg.time.dt
         self.t_next = self.t + dt

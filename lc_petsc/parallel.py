@@ -22,7 +22,7 @@ from lc_petsc.errors import SimulationError
 #: environment variables by which a user chooses the BLAS / OpenMP thread count
 THREAD_COUNT_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
                           "BLIS_NUM_THREADS")
-_thread_limits = []
+_thread_limits: list = []
 
 
 def limit_blas_threads():

@@ -16,11 +16,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from lc_petsc.elements import segment_contact
-from lc_petsc.errors import RestPoseOverlapError
 
 
 @dataclass
 class RestPoseReport:
+    """What the rest-pose check found: pairs of segments of different wisps closer than
+    the contact thickness, and the closest pair."""
+
     thickness: float
     pairs: int                       # pairs closer than the thickness, over all ranks
     min_distance: float              # inf when no pair is within the search radius
@@ -28,6 +30,7 @@ class RestPoseReport:
                                      # (global indices) of the closest pair's segments
 
     def message(self) -> str:
+        """The report for a person: count, closest pair (wisps, vertices), distance."""
         wa, va, wb, vb = self.worst
         return (f"rest pose: {self.pairs} pair(s) of segments of different wisps are closer than "
                 f"the contact thickness {self.thickness:g} cm; the closest: wisp {wa} segment "

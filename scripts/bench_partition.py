@@ -110,8 +110,8 @@ def main():
                   f"ghost fraction {r['ghost_fraction']:.3f}", flush=True)
     if comm.rank != 0:
         return
-    head = (f"| groom | -lc_wisp_order | frame s | collision s | ghost fraction | pairs | "
-            f"cross-rank pairs |\n|---|---|---|---|---|---|---|")
+    head = ("| groom | -lc_wisp_order | frame s | collision s | ghost fraction | pairs | "
+            "cross-rank pairs |\n|---|---|---|---|---|---|---|")
     lines = [head] + [f"| {r['groom']} | {r['order']} | {r['frame_s']:.3f} | {r['collision_s']:.3f} | "
                       f"{r['ghost_fraction']:.3f} | {r['pairs']:.0f} | {r['cross_rank_pairs']} |"
                       for r in rows]

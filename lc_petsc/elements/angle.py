@@ -60,6 +60,7 @@ def dot3(u, v):
 
 
 def norm3(u):
+    """Euclidean norms of the columns of u (3, m)."""
     return np.sqrt(dot3(u, u))
 
 

@@ -20,6 +20,7 @@ _ZERO_EDGE_ULPS = 64.0
 
 
 def check_filter(filter):
+    """``filter`` if it names a Hessian filter, else a ValueError listing them."""
     if filter not in FILTERS:
         raise ValueError(f"unknown Hessian filter {filter!r}: use one of {', '.join(FILTERS)}")
     return filter

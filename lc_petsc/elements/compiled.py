@@ -43,7 +43,7 @@ from lc_petsc.elements.common import (_ZERO_EDGE_ULPS, check_finite, check_per_e
 try:
     import numba
 except ImportError:                 # pragma: no cover - numba is a dependency
-    numba = None
+    numba = None                    # type: ignore[assignment]
 
 #: Filters the compiled kernels implement (others fall back to NumPy).
 FILTERS = ("analytic", "none")

@@ -35,11 +35,13 @@ def active(x, center, radius):
 
 
 def energy(x, center, radius, stiffness):
+    """Penalty energy (n,) of vertices x (n, 3) inside the head sphere."""
     depth, _ = _geometry(x, center, radius)
     return 0.5 * stiffness * depth ** 2
 
 
 def gradient(x, center, radius, stiffness):
+    """Gradient (n, 3) of :func:`energy`."""
     depth, n = _geometry(x, center, radius)
     return -(stiffness * depth)[:, None] * n
 

@@ -173,7 +173,7 @@ def gradient_hessian(x, thickness, stiffness, filter="analytic", hessian=True):
         return g, H
     # exact curvature part, only for active pairs
     ia = np.flatnonzero(active)
-    xa, sa, ta, ua, da = x[ia], s[ia], t[ia], u[ia], d[ia]
+    xa, ua, da = x[ia], u[ia], d[ia]
     wa, gda = w[ia], gdf[ia]
     d1, d2 = xa[:, 1] - xa[:, 0], xa[:, 3] - xa[:, 2]
     a, e, b = _dot(d1, d1), _dot(d2, d2), _dot(d1, d2)

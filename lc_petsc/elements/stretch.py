@@ -8,8 +8,8 @@ Hessian in e: k eh eh^T + k (1 - Lbar/L) (I - eh eh^T). The perpendicular eigenv
 k (1 - Lbar/L) (multiplicity 2) is negative under compression; the filters clamp it at 0
 ("analytic" in closed form, "numerical" through numpy.linalg.eigh of the 3x3 Hessian in
 e; both are the exact projection); "abs" replaces it by its absolute value
-k |1 - Lbar/L| (Chen et al. 2024), the exact Hessian wherever that is PSD. The vertex Hessian is D^T H D with D = [-I, I], i.e.
-[[H, -H], [-H, H]].
+k |1 - Lbar/L| (Chen et al. 2024), the exact Hessian wherever that is PSD. The vertex
+Hessian is D^T H D with D = [-I, I], i.e. [[H, -H], [-H, H]].
 
 Shapes: x (n, 2, 3); rest_length, stiffness (n,) or scalars; energy (n,); gradient
 (n, 2, 3); hessian (n, 6, 6), vertex-major.

@@ -334,6 +334,7 @@ class ReorderedSource(SceneSource):
         return _renumbered(self.source.load(lo, hi), want - lo, w0)
 
     def load(self, w0, w1):
+        """Wisps w0:w1 in the partition's order, with their scene numbers."""
         batch = self._load(w0, w1)
         batch.scene_ids = self.order[w0:w1].copy()
         return batch

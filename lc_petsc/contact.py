@@ -51,18 +51,13 @@ from petsc4py import PETSc
 
 from lc_petsc.crossings import ball_pairs
 from lc_petsc.elements import segment_ccd, segment_contact
-from lc_petsc.parallel import collectively
+from lc_petsc.parallel import collectively, global_min, global_reduce
 
 MODES = ("penalty", "ccd")
 #: limiter rounds that shrink the step fractions by the pairs' safe fractions before
 #: the rounds that stop the offending vertices outright (limit_step)
 SCALE_ROUNDS = 8
 NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
-
-
-def _mpi_min():
-    from mpi4py import MPI
-    return MPI.MIN
 
 
 class _OccupancyGrid:
@@ -73,10 +68,9 @@ class _OccupancyGrid:
     occupancy of a rank is a boolean array over all cells)."""
 
     def __init__(self, lo, hi, d0, comm):
-        from mpi4py import MPI
-        buf = np.concatenate([-lo.min(axis=0, initial=np.inf), hi.max(axis=0, initial=-np.inf),
-                              [(hi - lo).max(initial=0.0)]])
-        comm.Allreduce(MPI.IN_PLACE, buf, op=MPI.MAX)
+        buf = global_reduce(comm, np.concatenate([-lo.min(axis=0, initial=np.inf),
+                                                  hi.max(axis=0, initial=-np.inf),
+                                                  [(hi - lo).max(initial=0.0)]]), "max")
         self.empty = not np.all(np.isfinite(buf))          # no segment on any rank
         if self.empty:
             return
@@ -330,7 +324,7 @@ class StrandContact:
         only if that holds on every rank)."""
         if self._pairs_cache is not None and (active or not self._pairs_cache[1]):
             same = np.array_equal(self._pairs_cache[0], x)
-            if self.comm.allreduce(int(same), op=_mpi_min()):       # the same on all ranks
+            if global_min(self.comm, int(same)):       # the same on all ranks
                 out, was_active = self._pairs_cache[2], self._pairs_cache[1]
                 if active and not was_active:
                     keep = out[-1] < self.d0
@@ -405,10 +399,8 @@ class StrandContact:
         ||A||_2 capped at 1/2 by :func:`segment_ccd.affine_field`).  One field for all
         ranks (the broad phase's proof needs the same u on both sides of a pair): the
         sums are allreduced and rank 0's solution is broadcast.  Collective."""
-        from mpi4py import MPI
         M, R = segment_ccd.affine_sums(S, T - S)
-        buf = np.concatenate([M.ravel(), R.ravel()])
-        self.comm.Allreduce(MPI.IN_PLACE, buf, op=MPI.SUM)
+        buf = global_reduce(self.comm, np.concatenate([M.ravel(), R.ravel()]), "sum")
         field = segment_ccd.affine_field(buf[:16].reshape(4, 4), buf[16:].reshape(4, 3)) \
             if self.comm.rank == 0 else None
         return self.comm.bcast(field, root=0)
@@ -544,12 +536,11 @@ class StrandContact:
         """(active pairs, pairs closer than d0 / 2, minimum distance over candidate
         pairs) over all ranks (exempt pairs excluded); the minimum is inf when no two
         segments of different wisps are within the search radius."""
-        from mpi4py import MPI
         with self.timers("collision"):
             with collectively(self.comm, "strand contact (measure)"):
                 d = self._pairs(x, active=False)[-1]
             n, deep = self.comm.allreduce(np.array([np.sum(d < self.d0), np.sum(d < 0.5 * self.d0)]))
-            dmin = self.comm.allreduce(float(d.min(initial=np.inf)), op=MPI.MIN)
+            dmin = global_min(self.comm, float(d.min(initial=np.inf)))
         return int(n), int(deep), dmin
 
     def separate(self, x, floor=0.5, target=0.6, max_iterations=20, max_step=0.25):
@@ -630,7 +621,6 @@ class StrandContact:
         """Contact gradient (nv, 3) (pinned rows zero) of this rank's vertices; adds the
         band blocks to ``asm`` (before its ``commit``) and rebuilds the contact matrix C.
         Collective."""
-        from mpi4py import MPI
         sc = self.scene
         with self.timers("collision"):
             with collectively(self.comm, "strand contact"):
@@ -682,7 +672,7 @@ class StrandContact:
             n_global, n_cross = self.comm.allreduce(np.array([m, int(np.sum(oA != oB))]))
             self.last_pairs = int(n_global)
             self.cross_pairs.append(int(n_cross))
-            self.last_min_distance = self.comm.allreduce(self.last_min_distance, op=MPI.MIN)
+            self.last_min_distance = global_min(self.comm, self.last_min_distance)
             self._rebuild_matrix(n_global, dn, on, X, H, gA, gB)
         return gc
 

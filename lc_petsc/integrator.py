@@ -50,7 +50,7 @@ from __future__ import annotations
 import numpy as np
 
 from lc_petsc.elements import head_contact
-from lc_petsc.parallel import collectively
+from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.scene.state import vertex_wisp_length
 from lc_petsc.errors import SolverError
 
@@ -308,8 +308,7 @@ class Integrator:
         in one reduction."""
         local = np.array([(np.linalg.norm(dx, axis=1) / self.wisp_length).max(initial=0.0),
                           np.abs(dx).max(initial=0.0)])
-        total = np.empty(2)
-        self.comm.Allreduce(local, total, op=_max())
+        total = global_reduce(self.comm, local, "max")
         return float(total[0]), float(total[1])
 
     def _newton_converged(self, increment, absolute):
@@ -458,8 +457,3 @@ def project_rest_lengths(x, free, offsets, rest_edge, mass):
 #: iterations of 1e-2 / 3e-3 / always and 2 / 6 halvings on the hairball and smash).
 EXACT_BELOW = 3e-3
 EXACT_HALVINGS = 6
-
-
-def _max():
-    from mpi4py import MPI
-    return MPI.MAX

@@ -60,6 +60,34 @@ SCALE_ROUNDS = 8
 NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
 
 
+class FrameTally:
+    """Statistics by frame of a count recorded several times a frame (once per Newton
+    iteration, say), so that they grow with the frames, not the iterations.
+
+    Entry k of ``sums``, ``counts`` (records), ``maxima`` and ``lasts`` covers the k-th
+    :meth:`start_frame` of the run (the integrator calls it at each step's start); entry
+    0 holds what was recorded before the first one (the set-up, e.g. the rest-pose check)."""
+
+    def __init__(self):
+        self.sums, self.counts, self.maxima, self.lasts = [0], [0], [0], [0]
+
+    def start_frame(self):
+        """Open the next frame's entry."""
+        for stat in (self.sums, self.counts, self.maxima, self.lasts):
+            stat.append(0)
+
+    def add(self, n):
+        """Record the count ``n`` in the current frame."""
+        self.sums[-1] += n
+        self.counts[-1] += 1
+        self.maxima[-1] = max(self.maxima[-1], n)
+        self.lasts[-1] = n
+
+    def means(self):
+        """The mean count per record of every frame with records."""
+        return [s / c for s, c in zip(self.sums, self.counts) if c]
+
+
 class _OccupancyGrid:
     """A uniform grid common to all ranks over every segment box inflated by d0 (one
     ``Allreduce``).  The cell size is at least the largest box extent + 2 d0, so an
@@ -182,8 +210,10 @@ class StrandContact:
         self.op = None                  # the assembled Newton matrix A + C (coupled_pc)
         self.shell = self.shell_ctx = None      # the shell A + C (strand-only pmat)
         self.last_pairs, self.last_min_distance = 0, np.inf
-        self.ghosts_received = []
-        self.cross_pairs = []           # active pairs straddling ranks, per assemble
+        # per frame, not per call (they are made every Newton iteration): ghost segments
+        # received per exchange, active pairs straddling ranks per assemble
+        self.ghosts_received = FrameTally()
+        self.cross_pairs = FrameTally()
         self._pairs_cache = None          # (x, active, pairs) of the last _pairs call
         self.last_separation = (0, 0, 0)
         if mode not in MODES:
@@ -272,7 +302,7 @@ class StrandContact:
                                        + [P[m].reshape(-1, 6) for P in Ps], axis=1))
         recv = comm.alltoall(send) if comm.size > 1 else [None]
         parts = [r for r in recv if r is not None and len(r)]
-        self.ghosts_received.append(int(sum(len(r) for r in parts)))
+        self.ghosts_received.add(int(sum(len(r) for r in parts)))
         owner = [np.full(len(self.seg), comm.rank)]
         for q, r in enumerate(recv):
             if r is not None and len(r):
@@ -532,6 +562,11 @@ class StrandContact:
                 e = float(segment_contact.energy(X, self.d0, self.k).sum()) if len(X) else 0.0
             return self.comm.allreduce(e)
 
+    def start_frame(self):
+        """A new frame: the per-frame statistics start new entries."""
+        self.ghosts_received.start_frame()
+        self.cross_pairs.start_frame()
+
     def measure(self, x):
         """(active pairs, pairs closer than d0 / 2, minimum distance over candidate
         pairs) over all ranks (exempt pairs excluded); the minimum is inf when no two
@@ -671,7 +706,7 @@ class StrandContact:
             on[1:] += loc[:-1, 34]
             n_global, n_cross = self.comm.allreduce(np.array([m, int(np.sum(oA != oB))]))
             self.last_pairs = int(n_global)
-            self.cross_pairs.append(int(n_cross))
+            self.cross_pairs.add(int(n_cross))
             self.last_min_distance = global_min(self.comm, self.last_min_distance)
             self._rebuild_matrix(n_global, dn, on, X, H, gA, gB)
         return gc

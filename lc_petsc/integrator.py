@@ -150,6 +150,7 @@ class Integrator:
         if cfg.time.initial_guess == "follow_the_leader":
             x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
         if self.strand is not None:             # ccd mode: no crossing on x_old -> first iterate
+            self.strand.start_frame()
             x = self.strand.collision_free_frame(x_old, x)
         n_it = 0
         converged = None

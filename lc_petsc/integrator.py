@@ -57,9 +57,12 @@ from lc_petsc.errors import SolverError
 
 class Integrator:
     """Backward-Euler time stepping of one simulator: per frame, Newton iterations of
-    assembly, linear solve, line search and update, with pinned roots and the head."""
+    assembly, linear solve, line search and update, with pinned roots and the head.
 
-    def __init__(self, scene, assembler, solver, comm, timers, config, head):
+    ``x0``: this rank's initial positions (n_local, 3); ``strand``: the strand contact
+    (:class:`~lc_petsc.contact.StrandContact`), None without it."""
+
+    def __init__(self, scene, assembler, solver, comm, timers, config, head, x0, strand=None):
         self.scene, self.asm, self.solver, self.comm = scene, assembler, solver, comm
         self.timers, self.cfg, self.head = timers, config, head
         terms = set(config.physics.terms)
@@ -67,13 +70,16 @@ class Integrator:
         self.contact = "head_collision" in terms
         self.free = ~scene.pinned
         self.f_ext = scene.mass[:, None] * self.gravity[None, :]
-        self.x = scene.x_rest.copy()
+        self.x = np.array(x0, float)
+        if self.x.shape != scene.x_rest.shape:
+            raise ValueError(f"Integrator: initial positions of shape {self.x.shape}, expected "
+                             f"{scene.x_rest.shape} (this rank's vertices, 3)")
         self.v = np.zeros_like(self.x)
         self.t = 0.0
         self.frame = 0
         self.newton_iterations = []
         self.xv, self.bv = assembler.mat.createVecs()
-        self.strand = None
+        self.strand = strand
         self.contact_pairs = []
         self.contact_deep_pairs = []
         self.contact_min_distance = []

@@ -77,9 +77,8 @@ class Simulator:
         self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), plan,
                                    P=self.assembler.pmat)
         self.head = HeadMotion(cfg.physics)
-        self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg, self.head)
-        self.integrator.x = x0
-        self.integrator.strand = self.strand
+        self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg,
+                                     self.head, x0, strand=self.strand)
         if self.strand is not None:
             # A Python-shell operator still alive when petsc4py finalizes crashes the
             # interpreter at exit: close a simulator that was never closed before that

@@ -51,7 +51,7 @@ from petsc4py import PETSc
 
 from lc_petsc.crossings import ball_pairs
 from lc_petsc.elements import segment_ccd, segment_contact
-from lc_petsc.parallel import collectively
+from lc_petsc.parallel import collectively, global_min, global_reduce
 
 MODES = ("penalty", "ccd")
 #: limiter rounds that shrink the step fractions by the pairs' safe fractions before
@@ -60,9 +60,32 @@ SCALE_ROUNDS = 8
 NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
 
 
-def _mpi_min():
-    from mpi4py import MPI
-    return MPI.MIN
+class FrameTally:
+    """Statistics by frame of a count recorded several times a frame (once per Newton
+    iteration, say), so that they grow with the frames, not the iterations.
+
+    Entry k of ``sums``, ``counts`` (records), ``maxima`` and ``lasts`` covers the k-th
+    :meth:`start_frame` of the run (the integrator calls it at each step's start); entry
+    0 holds what was recorded before the first one (the set-up, e.g. the rest-pose check)."""
+
+    def __init__(self):
+        self.sums, self.counts, self.maxima, self.lasts = [0], [0], [0], [0]
+
+    def start_frame(self):
+        """Open the next frame's entry."""
+        for stat in (self.sums, self.counts, self.maxima, self.lasts):
+            stat.append(0)
+
+    def add(self, n):
+        """Record the count ``n`` in the current frame."""
+        self.sums[-1] += n
+        self.counts[-1] += 1
+        self.maxima[-1] = max(self.maxima[-1], n)
+        self.lasts[-1] = n
+
+    def means(self):
+        """The mean count per record of every frame with records."""
+        return [s / c for s, c in zip(self.sums, self.counts) if c]
 
 
 class _OccupancyGrid:
@@ -73,10 +96,9 @@ class _OccupancyGrid:
     occupancy of a rank is a boolean array over all cells)."""
 
     def __init__(self, lo, hi, d0, comm):
-        from mpi4py import MPI
-        buf = np.concatenate([-lo.min(axis=0, initial=np.inf), hi.max(axis=0, initial=-np.inf),
-                              [(hi - lo).max(initial=0.0)]])
-        comm.Allreduce(MPI.IN_PLACE, buf, op=MPI.MAX)
+        buf = global_reduce(comm, np.concatenate([-lo.min(axis=0, initial=np.inf),
+                                                  hi.max(axis=0, initial=-np.inf),
+                                                  [(hi - lo).max(initial=0.0)]]), "max")
         self.empty = not np.all(np.isfinite(buf))          # no segment on any rank
         if self.empty:
             return
@@ -188,8 +210,10 @@ class StrandContact:
         self.op = None                  # the assembled Newton matrix A + C (coupled_pc)
         self.shell = self.shell_ctx = None      # the shell A + C (strand-only pmat)
         self.last_pairs, self.last_min_distance = 0, np.inf
-        self.ghosts_received = []
-        self.cross_pairs = []           # active pairs straddling ranks, per assemble
+        # per frame, not per call (they are made every Newton iteration): ghost segments
+        # received per exchange, active pairs straddling ranks per assemble
+        self.ghosts_received = FrameTally()
+        self.cross_pairs = FrameTally()
         self._pairs_cache = None          # (x, active, pairs) of the last _pairs call
         self.last_separation = (0, 0, 0)
         if mode not in MODES:
@@ -278,7 +302,7 @@ class StrandContact:
                                        + [P[m].reshape(-1, 6) for P in Ps], axis=1))
         recv = comm.alltoall(send) if comm.size > 1 else [None]
         parts = [r for r in recv if r is not None and len(r)]
-        self.ghosts_received.append(int(sum(len(r) for r in parts)))
+        self.ghosts_received.add(int(sum(len(r) for r in parts)))
         owner = [np.full(len(self.seg), comm.rank)]
         for q, r in enumerate(recv):
             if r is not None and len(r):
@@ -330,7 +354,7 @@ class StrandContact:
         only if that holds on every rank)."""
         if self._pairs_cache is not None and (active or not self._pairs_cache[1]):
             same = np.array_equal(self._pairs_cache[0], x)
-            if self.comm.allreduce(int(same), op=_mpi_min()):       # the same on all ranks
+            if global_min(self.comm, int(same)):       # the same on all ranks
                 out, was_active = self._pairs_cache[2], self._pairs_cache[1]
                 if active and not was_active:
                     keep = out[-1] < self.d0
@@ -405,10 +429,8 @@ class StrandContact:
         ||A||_2 capped at 1/2 by :func:`segment_ccd.affine_field`).  One field for all
         ranks (the broad phase's proof needs the same u on both sides of a pair): the
         sums are allreduced and rank 0's solution is broadcast.  Collective."""
-        from mpi4py import MPI
         M, R = segment_ccd.affine_sums(S, T - S)
-        buf = np.concatenate([M.ravel(), R.ravel()])
-        self.comm.Allreduce(MPI.IN_PLACE, buf, op=MPI.SUM)
+        buf = global_reduce(self.comm, np.concatenate([M.ravel(), R.ravel()]), "sum")
         field = segment_ccd.affine_field(buf[:16].reshape(4, 4), buf[16:].reshape(4, 3)) \
             if self.comm.rank == 0 else None
         return self.comm.bcast(field, root=0)
@@ -540,16 +562,20 @@ class StrandContact:
                 e = float(segment_contact.energy(X, self.d0, self.k).sum()) if len(X) else 0.0
             return self.comm.allreduce(e)
 
+    def start_frame(self):
+        """A new frame: the per-frame statistics start new entries."""
+        self.ghosts_received.start_frame()
+        self.cross_pairs.start_frame()
+
     def measure(self, x):
         """(active pairs, pairs closer than d0 / 2, minimum distance over candidate
         pairs) over all ranks (exempt pairs excluded); the minimum is inf when no two
         segments of different wisps are within the search radius."""
-        from mpi4py import MPI
         with self.timers("collision"):
             with collectively(self.comm, "strand contact (measure)"):
                 d = self._pairs(x, active=False)[-1]
             n, deep = self.comm.allreduce(np.array([np.sum(d < self.d0), np.sum(d < 0.5 * self.d0)]))
-            dmin = self.comm.allreduce(float(d.min(initial=np.inf)), op=MPI.MIN)
+            dmin = global_min(self.comm, float(d.min(initial=np.inf)))
         return int(n), int(deep), dmin
 
     def separate(self, x, floor=0.5, target=0.6, max_iterations=20, max_step=0.25):
@@ -630,7 +656,6 @@ class StrandContact:
         """Contact gradient (nv, 3) (pinned rows zero) of this rank's vertices; adds the
         band blocks to ``asm`` (before its ``commit``) and rebuilds the contact matrix C.
         Collective."""
-        from mpi4py import MPI
         sc = self.scene
         with self.timers("collision"):
             with collectively(self.comm, "strand contact"):
@@ -681,8 +706,8 @@ class StrandContact:
             on[1:] += loc[:-1, 34]
             n_global, n_cross = self.comm.allreduce(np.array([m, int(np.sum(oA != oB))]))
             self.last_pairs = int(n_global)
-            self.cross_pairs.append(int(n_cross))
-            self.last_min_distance = self.comm.allreduce(self.last_min_distance, op=MPI.MIN)
+            self.cross_pairs.add(int(n_cross))
+            self.last_min_distance = global_min(self.comm, self.last_min_distance)
             self._rebuild_matrix(n_global, dn, on, X, H, gA, gB)
         return gc
 

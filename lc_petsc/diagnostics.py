@@ -17,16 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.parallel import global_max, global_min
-
-
-def _reduce(comm, values, op):
-    """Element-wise ``op`` (``"sum"`` or ``"max"``) of the floats ``values`` over the
-    ranks of ``comm``, in one Allreduce."""
-    from mpi4py import MPI
-    buf = np.array(values, float)
-    comm.Allreduce(MPI.IN_PLACE, buf, op={"sum": MPI.SUM, "max": MPI.MAX}[op])
-    return buf
+from lc_petsc.parallel import global_max, global_min, global_reduce
 
 
 def wisp_curl_radius(x, turn=5):
@@ -66,8 +57,8 @@ def shape_measures(comm, x, x_rest, offsets, turn=5):
             r = wisp_curl_radius(x[a:b], turn)
             sums[0:3] += (r, r0, 1)
             sums[6] = max(sums[6], abs(r / r0 - 1))
-    tot = _reduce(comm, sums[:6], "sum")
-    mx = _reduce(comm, sums[6:], "max")
+    tot = global_reduce(comm, sums[:6], "sum")
+    mx = global_reduce(comm, sums[6:], "max")
     out = {"wisp_length": tot[3] / max(tot[5], 1), "wisp_length_rest": tot[4] / max(tot[5], 1)}
     out["wisp_length_ratio"] = out["wisp_length"] / out["wisp_length_rest"] if tot[4] > 0 else None
     out["wisp_length_max_dev"] = float(mx[1])

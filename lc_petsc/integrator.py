@@ -50,16 +50,19 @@ from __future__ import annotations
 import numpy as np
 
 from lc_petsc.elements import head_contact
-from lc_petsc.parallel import collectively
+from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.scene.state import vertex_wisp_length
 from lc_petsc.errors import SolverError
 
 
 class Integrator:
     """Backward-Euler time stepping of one simulator: per frame, Newton iterations of
-    assembly, linear solve, line search and update, with pinned roots and the head."""
+    assembly, linear solve, line search and update, with pinned roots and the head.
 
-    def __init__(self, scene, assembler, solver, comm, timers, config, head):
+    ``x0``: this rank's initial positions (n_local, 3); ``strand``: the strand contact
+    (:class:`~lc_petsc.contact.StrandContact`), None without it."""
+
+    def __init__(self, scene, assembler, solver, comm, timers, config, head, x0, strand=None):
         self.scene, self.asm, self.solver, self.comm = scene, assembler, solver, comm
         self.timers, self.cfg, self.head = timers, config, head
         terms = set(config.physics.terms)
@@ -67,13 +70,16 @@ class Integrator:
         self.contact = "head_collision" in terms
         self.free = ~scene.pinned
         self.f_ext = scene.mass[:, None] * self.gravity[None, :]
-        self.x = scene.x_rest.copy()
+        self.x = np.array(x0, float)
+        if self.x.shape != scene.x_rest.shape:
+            raise ValueError(f"Integrator: initial positions of shape {self.x.shape}, expected "
+                             f"{scene.x_rest.shape} (this rank's vertices, 3)")
         self.v = np.zeros_like(self.x)
         self.t = 0.0
         self.frame = 0
         self.newton_iterations = []
         self.xv, self.bv = assembler.mat.createVecs()
-        self.strand = None
+        self.strand = strand
         self.contact_pairs = []
         self.contact_deep_pairs = []
         self.contact_min_distance = []
@@ -150,6 +156,7 @@ class Integrator:
         if cfg.time.initial_guess == "follow_the_leader":
             x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
         if self.strand is not None:             # ccd mode: no crossing on x_old -> first iterate
+            self.strand.start_frame()
             x = self.strand.collision_free_frame(x_old, x)
         n_it = 0
         converged = None
@@ -308,8 +315,7 @@ class Integrator:
         in one reduction."""
         local = np.array([(np.linalg.norm(dx, axis=1) / self.wisp_length).max(initial=0.0),
                           np.abs(dx).max(initial=0.0)])
-        total = np.empty(2)
-        self.comm.Allreduce(local, total, op=_max())
+        total = global_reduce(self.comm, local, "max")
         return float(total[0]), float(total[1])
 
     def _newton_converged(self, increment, absolute):
@@ -458,8 +464,3 @@ def project_rest_lengths(x, free, offsets, rest_edge, mass):
 #: iterations of 1e-2 / 3e-3 / always and 2 / 6 halvings on the hairball and smash).
 EXACT_BELOW = 3e-3
 EXACT_HALVINGS = 6
-
-
-def _max():
-    from mpi4py import MPI
-    return MPI.MAX

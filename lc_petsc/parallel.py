@@ -106,6 +106,15 @@ def global_min(comm, value):
     return comm.allreduce(value, op=MPI.MIN)
 
 
+def global_reduce(comm, values, op):
+    """Element-wise ``op`` (``"sum"``, ``"max"`` or ``"min"``) of the floats ``values``
+    over the ranks of ``comm`` (on every rank), in one buffer ``Allreduce``."""
+    from mpi4py import MPI
+    buf = np.array(values, float)
+    comm.Allreduce(MPI.IN_PLACE, buf, op={"sum": MPI.SUM, "max": MPI.MAX, "min": MPI.MIN}[op])
+    return buf
+
+
 def global_wisp_offsets(comm, local_offsets) -> np.ndarray:
     """Global wisp offsets (n_wisps + 1,) int64 from every rank's local ones (its wisps'
     vertex offsets, starting at 0): wisp w owns vertices ``offsets[w]:offsets[w + 1]``

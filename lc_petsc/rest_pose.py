@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lc_petsc.elements import segment_contact
-from lc_petsc.errors import RestPoseOverlapError  # noqa: F401  (re-exported)
+from lc_petsc.errors import RestPoseOverlapError  # noqa: F401 - re-exported: the check's error type
 
 
 @dataclass

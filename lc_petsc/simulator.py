@@ -17,6 +17,7 @@ from lc_petsc.integrator import Integrator
 from lc_petsc.errors import RestPoseOverlapError
 from lc_petsc.rest_pose import check_rest_pose
 from lc_petsc.scene.kinematics import HeadMotion
+from lc_petsc.scene.perturbation import apply_perturbation
 from lc_petsc.scene.sources import source_from_config
 from lc_petsc.scene.state import LocalScene
 from lc_petsc.solver import LinearSolver
@@ -27,42 +28,6 @@ from lc_petsc.timing import Timers
 def _mpi_comm(comm):
     from mpi4py import MPI
     return MPI.COMM_WORLD if comm is None else comm
-
-
-def apply_perturbation(batch, scene_cfg, rest_lengths_fn=None):
-    """Initial positions of this rank's wisps after SPEC 6's perturbation (free vertices).
-
-    ``smash`` scales each free vertex's coordinate along its wisp's axis (root -> last
-    vertex direction; the paper's x for a wisp lying along x) about the root by
-    ``smash_factor``; ``jitter`` adds seeded uniform offsets (stream [seed, wisp, 1]);
-    ``straighten`` puts the free vertices on the vertical line (-y) below the last pinned
-    vertex of the wisp, keeping rest edge lengths.
-    """
-    x = batch.positions.copy()
-    kind = scene_cfg.perturbation
-    if kind == "none":
-        return x
-    off = batch.offsets
-    for w in range(batch.n_wisps):
-        a, b = int(off[w]), int(off[w + 1])
-        xw = x[a:b]
-        free = ~batch.pinned[a:b]
-        if kind == "smash":
-            axis = xw[-1] - xw[0]
-            axis /= np.linalg.norm(axis)
-            s = (xw - xw[0]) @ axis
-            xw[free] -= ((1.0 - scene_cfg.smash_factor) * s[free])[:, None] * axis
-        elif kind == "jitter":
-            rng = np.random.default_rng([scene_cfg.seed, int(batch.ids()[w]), 1])
-            xw[free] += rng.uniform(-scene_cfg.jitter, scene_cfg.jitter, size=(int(free.sum()), 3))
-        elif kind == "straighten":
-            L = np.linalg.norm(np.diff(batch.positions[a:b], axis=0), axis=1)
-            pinned_idx = np.flatnonzero(~free)
-            p = int(pinned_idx[-1]) if len(pinned_idx) else 0
-            for i in range(p + 1, b - a):
-                xw[i] = xw[i - 1] + np.array([0.0, -L[i - 1], 0.0])
-        x[a:b] = xw
-    return x
 
 
 def element_filter(solver_filter):
@@ -112,9 +77,8 @@ class Simulator:
         self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), plan,
                                    P=self.assembler.pmat)
         self.head = HeadMotion(cfg.physics)
-        self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg, self.head)
-        self.integrator.x = x0
-        self.integrator.strand = self.strand
+        self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg,
+                                     self.head, x0, strand=self.strand)
         if self.strand is not None:
             # A Python-shell operator still alive when petsc4py finalizes crashes the
             # interpreter at exit: close a simulator that was never closed before that

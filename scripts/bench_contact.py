@@ -70,7 +70,7 @@ def main():
         sep = (found,) + tuple(sim.strand.last_separation[1:])
         rows.append({"frame": f, "wall": wall, "phases": ph, "ksp": its, "pairs": pairs,
                      "dmin": dmin if math.isfinite(dmin) else None,     # None: no pair in range
-                     "deep": deep, "separated": sep, "ghosts": sim.strand.ghosts_received[-1]})
+                     "deep": deep, "separated": sep, "ghosts": sim.strand.ghosts_received.lasts[-1]})
         if comm.rank == 0:
             print(f"frame {f:3d}: {wall:6.2f} s  collision {ph['collision']:5.2f}  solve "
                   f"{ph['solve']:5.2f}  elements {ph['elements']:5.2f}  assembly {ph['assembly']:5.2f}"

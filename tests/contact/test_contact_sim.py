@@ -341,3 +341,37 @@ def test_penalty_mode_lets_fast_wisps_pass_through(crossing):
         sim.close()
     n = [count_crossings(X[k], X[k + 1], [0, N, 2 * N])["crossings"] for k in range(6)]
     assert sum(n) > 0, n
+
+
+def test_frame_tally_keeps_statistics_by_frame():
+    from lc_petsc.contact import FrameTally
+    t = FrameTally()
+    t.add(4)                       # set-up, before the first frame
+    t.start_frame()
+    for n in (3, 7, 5):
+        t.add(n)
+    t.start_frame()
+    t.start_frame()
+    t.add(2)
+    assert (t.sums, t.counts, t.maxima, t.lasts) == ([4, 15, 0, 2], [1, 3, 0, 1], [4, 7, 0, 2],
+                                                     [4, 5, 0, 2])
+    assert t.means() == [4.0, 5.0, 2.0]
+
+
+def test_contact_statistics_grow_by_frame_not_by_newton_iteration(crossing):
+    """One entry per frame (plus the set-up's); every Newton iteration assembles once."""
+    from mpi4py import MPI
+    frames = 3
+    cfg = crossing_config(frames)
+    cfg.time.newton_iterations = 5
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        sim.run()
+        its = sim.summary()["newton_iterations"]
+        ghosts, cross = sim.strand.ghosts_received, sim.strand.cross_pairs
+        assert len(ghosts.counts) == len(cross.counts) == frames + 1
+        assert cross.counts == [0] + list(its)
+        assert all(c >= n for c, n in zip(ghosts.counts[1:], its))
+        assert cross.sums == [0] * (frames + 1)          # one rank: no pair straddles ranks
+    finally:
+        sim.close()

@@ -21,7 +21,7 @@ def run(c, newton_iterations):
         sim.run()
         X = sim.gather_positions()
         summ = sim.summary()
-        cross = sum(sim.strand.cross_pairs)
+        cross = sum(sim.strand.cross_pairs.sums)
     finally:
         sim.close()
     return X, summ, cross

@@ -10,7 +10,7 @@ import lc_petsc.simulator as simmod
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig)
 from lc_petsc.contact import StrandContact
 from lc_petsc.elements.segment_contact import distance
-from lc_petsc.rest_pose import RestPoseOverlapError
+from lc_petsc.errors import RestPoseOverlapError
 from lc_petsc.scene import geometry
 from lc_petsc.scene.sources import ArraySource, GeneratedSource
 

@@ -106,7 +106,7 @@ class ArraySource(SceneSource):
 
 #: memory a run needs per vertex, a lower estimate (element Hessians and gradients, the
 #: BAIJ matrix and its ILU factor, the state vectors); the check below refuses a file
-#: whose vertex count cannot fit in the machine's memory even at this rate
+#: whose vertex count cannot fit in the memory of the job's nodes even at this rate
 BYTES_PER_VERTEX = 4096
 #: rows read at a time when the whole of a dataset is checked (constant memory)
 _CHECK_ROWS = 1 << 20
@@ -125,6 +125,26 @@ def machine_memory() -> int:
     return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
 
 
+def job_nodes(environ=None) -> int:
+    """Number of machines (nodes) this MPI job spans, from the launcher's environment,
+    without communicating (the strands-file check runs before any collective).
+
+    Open MPI (the only MPI here) exports the job's rank count and the rank count on this
+    node: nodes = ceil(world / local), assuming ranks spread evenly, as mpiexec does by
+    default.  Slurm's ``SLURM_JOB_NUM_NODES`` is used where Open MPI's are missing; a
+    process started without either is one node."""
+    import os
+    env = os.environ if environ is None else environ
+    try:
+        world = int(env.get("OMPI_COMM_WORLD_SIZE", 0))
+        local = int(env.get("OMPI_COMM_WORLD_LOCAL_SIZE", 0))
+        if world > 0 and local > 0:
+            return max(1, -(-world // local))
+        return max(1, int(env.get("SLURM_JOB_NUM_NODES", 1)))
+    except ValueError:
+        return 1
+
+
 def _chunks(dset, n):
     for a in range(0, n, _CHECK_ROWS):
         yield dset[a:min(n, a + _CHECK_ROWS)]
@@ -136,7 +156,8 @@ def check_strands_file(path):
     the dataset: not HDF5, empty or truncated; a dataset that is missing, a group, a soft
     or external link, stored in external files or virtual; the wrong type (complex,
     strings, float offsets or pins); the wrong shape or length; values out of range; a
-    vertex count whose run cannot fit in this machine's memory."""
+    vertex count whose run cannot fit in the memory of the job's nodes (:func:`job_nodes`
+    of this machine's size)."""
     import os
     import h5py
     where = f"strands file {path}"
@@ -182,11 +203,14 @@ def check_strands_file(path):
                 raise SceneError(f"{where}: /wisp_offsets must be 1-D with n_wisps + 1 >= 2 entries, "
                                  f"got shape {off.shape}")
             nw = int(off.shape[0]) - 1
-            need, have = BYTES_PER_VERTEX * nv + 8 * (nw + 1), machine_memory()
+            # the run's memory is spread over every node of the job, not held by one
+            nodes = job_nodes()
+            need, have = BYTES_PER_VERTEX * nv + 8 * (nw + 1), machine_memory() * nodes
             if need > have:
+                on = "this machine has" if nodes == 1 else f"this job's {nodes} nodes have"
                 raise SceneError(f"{where}: /positions declares {nv:,} vertices; a run needs at least "
-                                 f"{BYTES_PER_VERTEX} bytes per vertex, {need / 1e9:.3g} GB, and this "
-                                 f"machine has {have / 1e9:.3g} GB of memory")
+                                 f"{BYTES_PER_VERTEX} bytes per vertex, {need / 1e9:.3g} GB, and {on} "
+                                 f"{have / 1e9:.3g} GB of memory; run on more nodes or use a smaller groom")
             for name, n in (("radius", nv), ("pinned", nv), ("youngs_modulus", nw), ("density", nw)):
                 if name in dsets and dsets[name].shape != (n,):
                     per = "vertex" if n == nv else "wisp"

@@ -129,6 +129,31 @@ def test_huge_declared_vertex_count_refused_before_reading(tmp_path):
         FileSource(str(p))
 
 
+def test_memory_check_counts_every_node_of_the_job(tmp_path, monkeypatch):
+    """The memory estimate is held against the memory of all the job's nodes, not one:
+    a groom needing 3 machines' worth is refused on one node and on two, and passes the
+    memory check on four (8 ranks, 2 per node); the node count comes from the launcher."""
+    from lc_petsc.scene import sources
+    assert sources.job_nodes({"OMPI_COMM_WORLD_SIZE": "8", "OMPI_COMM_WORLD_LOCAL_SIZE": "2"}) == 4
+    assert sources.job_nodes({"OMPI_COMM_WORLD_SIZE": "3", "OMPI_COMM_WORLD_LOCAL_SIZE": "2"}) == 2
+    assert sources.job_nodes({"SLURM_JOB_NUM_NODES": "16"}) == 16
+    assert sources.job_nodes({}) == 1
+    # a machine of 1 MiB: 768 vertices need 3 MiB at 4 kiB per vertex
+    monkeypatch.setattr(sources, "machine_memory", lambda: 1 << 20)
+    path = _good(tmp_path / "g.h5")
+    with h5py.File(path) as f:
+        nv = f["positions"].shape[0]
+    monkeypatch.setattr(sources, "BYTES_PER_VERTEX", 3 * (1 << 20) // nv)
+    for nodes, refused in ((1, True), (2, True), (4, False)):
+        monkeypatch.setattr(sources, "job_nodes", lambda n=nodes: n)
+        if refused:
+            where = "this machine has" if nodes == 1 else f"this job's {nodes} nodes have"
+            with pytest.raises(ValueError, match=f"{where} .* GB of memory; run on more nodes"):
+                sources.FileSource(str(path))
+        else:
+            assert sources.FileSource(str(path)).n_wisps > 0
+
+
 def test_main_job_reports_once_with_exit_2(tmp_path, capsys):
     path = _make(tmp_path, "short radius")
     cfg = tmp_path / "f.toml"

@@ -50,7 +50,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.crossings import ball_pairs
-from lc_petsc.elements import segment_ccd, segment_contact
+from lc_petsc.elements import compiled_ccd, segment_ccd, segment_contact
 from lc_petsc.parallel import collectively, global_min, global_reduce
 
 MODES = ("penalty", "ccd")
@@ -224,11 +224,13 @@ class StrandContact:
         if mode == "ccd":
             self.step_fraction = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
             self.shrink = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
-        self.limited_vertices = []      # per limit_step call: vertices whose step was cut
-        self.limit_rounds = []          # per call: rounds of the limiter
-        self.tight_inclusion_pairs = 0  # pairs passed to ipctk by the limiter, this rank
-        self.unresolved_pairs = []      # per _safe_fractions call: pairs left (see there)
-        self.frame_fixes = []           # per collision_free_frame call (2 per frame): vertices held back
+        # the limiter's statistics by frame (FrameTally): vertices whose step was cut (per
+        # limit_step call), its rounds, vertices held back on the frame paths (per
+        # collision_free_frame call, 2 a frame), pairs left unresolved and candidate pairs
+        # over all ranks (per _safe_fractions call)
+        self.limited_vertices, self.limit_rounds = FrameTally(), FrameTally()
+        self.frame_fixes, self.unresolved_pairs = FrameTally(), FrameTally()
+        self.limiter_candidates = FrameTally()
 
     def system(self, A, strand_pmat=None):
         """(operator, preconditioning matrix) of the Newton system A + C, after
@@ -394,8 +396,8 @@ class StrandContact:
         with self.timers("collision"):
             beta, n_limited, rounds, fallback = self._safe_fractions(x, target,
                                                                      self.min_separation * self.d0)
-            self.limited_vertices.append(n_limited)
-            self.limit_rounds.append(rounds)
+            self.limited_vertices.add(n_limited)
+            self.limit_rounds.add(rounds)
         return _held_back(fallback, target, beta)
 
     def collision_free_frame(self, x_old, x):
@@ -410,18 +412,8 @@ class StrandContact:
             return x
         with self.timers("collision"):
             beta, n_limited, _, fallback = self._safe_fractions(x_old, x, 0.05 * self.d0)
-            self.frame_fixes.append(n_limited)
+            self.frame_fixes.add(n_limited)
         return _held_back(fallback, x, beta)
-
-    def _pair_fractions(self, S, E, m):
-        """Safe fractions of pairs on their paths S -> E (k, 4, 3) at min distance m (k,):
-        conservative advancement, Tight-Inclusion for the pairs it leaves open."""
-        t, unresolved = segment_ccd.safe_fraction(S, E, m, iterations=100)
-        u = np.flatnonzero(unresolved)
-        if len(u):
-            t[u] = np.maximum(t[u], segment_ccd.tight_inclusion_toi(S[u], E[u], m[u])[1])
-            self.tight_inclusion_pairs += len(u)
-        return t
 
     def _motion_field(self, S, T):
         """(A, b, L): the affine field u(x) = A x + b fitted to the displacements T - S
@@ -451,14 +443,16 @@ class StrandContact:
            within reach_A + reach_B, reach = h + (m / 2 + rho) / (1 - L)
            (:func:`segment_ccd.field_reach`, with the proof; rho = the segment's largest
            |f|, h its half length, L the field's Lipschitz constant).  Boxes centre +-
-           reach select the ghosts (:meth:`_gather_segments`), balls of that radius the
-           candidates (:func:`ball_pairs`), so a rank gets every segment
-           (:meth:`_gather_segments`), so a rank gets every segment that can reach its
-           own during the step for any fractions; the same bound on the segment
-           distance at S, (1 - L) d(S) <= m + rho_A + rho_B, then discards most of
-           them.  Hair swinging with the head moves by u, not by f: the reach is set
-           by how much a segment moves relative to the bulk.
-        2. Rounds: a pair whose current path comes closer than half its floor m
+           reach select the ghosts (:meth:`_gather_segments`: a rank gets every segment
+           that can reach its own during the step, for any fractions), balls of that
+           radius the candidates (:func:`ball_pairs`), one set for all rounds.  Hair
+           swinging with the head moves by u, not by f: the reach is set by how much a
+           segment moves relative to the bulk.
+        2. Pair test (:func:`compiled_ccd.limit_pairs`, compiled): on the pair's current
+           path, swept spheres around the centre paths discard most candidates without
+           a distance; the others get conservative advancement with up to
+           compiled_ccd.MAX_STEPS steps (no Tight-Inclusion: see docs/contact.md).
+        3. Rounds: a pair whose current path comes closer than half its floor m
            (min_distance, or half its distance at S) multiplies the fractions of its
            free vertices by its safe fraction at m (the first SCALE_ROUNDS rounds; its
            path then keeps m, clear of the m / 2 test, so round-off cannot flip its
@@ -466,15 +460,13 @@ class StrandContact:
            all move by u keeps at least (1 - L) of its distance plus its pinned
            vertices' residuals; with L <= 1/2 and no pinned vertex it stays clear of
            the m / 2 test, so each round after the scaling ones stops at least one more
-           vertex and the loop ends.  Safe fractions: conservative advancement
-           (:func:`segment_ccd.safe_fraction`), Tight-Inclusion for the pairs it leaves
-           open.  The smallest factor per vertex is taken over all ranks (a reverse
-           scatter with MAX_VALUES of 1 - factor to the vertex owner), and the new
-           fractions come back to every pair through a scatter.  Only pairs with a
-           changed vertex are recomputed.  A pair whose free vertices are all stopped
-           can still be hit by its pinned vertices' residual motion (a root segment
-           turning with the head differently from the fitted field): such pairs are
-           left as they are and counted in ``unresolved_pairs``."""
+           vertex and the loop ends.  The smallest factor per vertex is taken over all
+           ranks (a reverse scatter with MAX_VALUES of 1 - factor to the vertex owner),
+           and the new fractions come back to every pair through a scatter.  Only pairs
+           with a changed vertex are tested again.  A pair whose free vertices are all
+           stopped can still be hit by its pinned vertices' residual motion (a root
+           segment turning with the head differently from the fitted field): such pairs
+           are left as they are and counted in ``unresolved_pairs``."""
         nv, d0 = self.scene.nv, self.d0
         md = float(min_distance)
         A, b, L = self._motion_field(S, T)
@@ -490,33 +482,27 @@ class StrandContact:
         ij = ball_pairs(0.5 * (PB[:, 0] + PB[:, 1]), 0.5 * (PB[:, 1, 0] - PB[:, 0, 0]))
         i, j = ij[:, 0], ij[:, 1]
         keep = (wisp[i] != wisp[j]) & ((i < n_local) | (j < n_local))
-        keep &= ~(~free[i]).all(axis=1) | ~(~free[j]).all(axis=1)    # pinned pairs move rigidly
+        keep &= free[i].any(axis=1) | free[j].any(axis=1)       # pinned pairs move rigidly
         i, j = i[keep], j[keep]
-        if len(i):      # the bound on the segment distance at S (see 1.)
-            rho_all = np.maximum(np.linalg.norm(PT - PH, axis=2).max(axis=1), 0.0)
-            dS = segment_contact.distance(np.concatenate([PS[i], PS[j]], axis=1))
-            ok = (1.0 - L) * dS <= md + rho_all[i] + rho_all[j]
-            i, j = i[ok], j[ok]
-        if len(i):     # rest-exempt pairs (docs/contact.md) are not limited either
-            Xr = np.concatenate([Prest[i], Prest[j]], axis=1)
-            ok = segment_contact.distance(Xr) >= d0
-            i, j = i[ok], j[ok]
-        gidx = np.stack([gv[i], gv[i] + 1, gv[j], gv[j] + 1], axis=1)
-        V, inv = np.unique(gidx, return_inverse=True)
-        inv = inv.reshape(-1, 4)
-        SV, TV, HV = np.zeros((len(V), 3)), np.zeros((len(V), 3)), np.zeros((len(V), 3))
-        fV = np.zeros(len(V), bool)
-        for k, (src, e) in enumerate(((i, 0), (i, 1), (j, 0), (j, 1))):
-            SV[inv[:, k]], TV[inv[:, k]], HV[inv[:, k]] = PS[src, e], PT[src, e], PH[src, e]
-            fV[inv[:, k]] = free[src, e]
-        Spair = SV[inv]
-        m_pair = np.minimum(md, 0.5 * segment_contact.distance(Spair)) if len(inv) else np.zeros(0)
+        swap = gv[i] > gv[j]            # the smaller global segment first, on any partition
+        i, j = np.where(swap, j, i), np.where(swap, i, j)
+        self.limiter_candidates.add(int(self.comm.allreduce(len(i))))
+        # the segments' vertices: V sorted global vertices, sv (m, 2) their index in V
+        V, sv = np.unique(np.stack([gv, gv + 1], axis=1), return_inverse=True)
+        sv = sv.reshape(-1, 2)
+        SV, TV, HV = np.empty((len(V), 3)), np.empty((len(V), 3)), np.empty((len(V), 3))
+        fV = np.empty(len(V), bool)
+        for e in (0, 1):
+            SV[sv[:, e]], TV[sv[:, e]], HV[sv[:, e]] = PS[:, e], PT[:, e], PH[:, e]
+            fV[sv[:, e]] = free[:, e]
+        inv = np.concatenate([sv[i], sv[j]], axis=1)
+        exempt = np.zeros(len(inv), np.int8)      # rest-exempt: 0 unknown, 1 no, 2 yes
         self.step_fraction.set(1.0)
         beta = self.step_fraction.array           # this rank's vertices, a view
         limited = np.zeros(nv, bool)
         rounds = 0
         with _VertexGather(self.step_fraction, V, 1) as vg:
-            tau = np.ones(len(inv))
+            tau, factor = np.ones(len(inv)), np.ones(len(inv))
             bV_prev = None
             while True:
                 bV = vg.gather(self.step_fraction).copy()
@@ -527,21 +513,23 @@ class StrandContact:
                 bV_prev = bV
                 E = HV + bV[:, None] * (TV - HV)
                 E[bV == 1.0] = TV[bV == 1.0]
-                if len(redo):
-                    tau[redo] = self._pair_fractions(Spair[redo], E[inv[redo]], 0.5 * m_pair[redo])
+                compiled_ccd.limit_pairs(SV, E, inv, redo, md, rounds < SCALE_ROUNDS, tau, factor)
                 hit = tau < 1.0
+                new = np.flatnonzero(hit & (exempt == 0))
+                if len(new):     # rest-exempt pairs (docs/contact.md) are not limited
+                    Xr = np.concatenate([Prest[i[new]], Prest[j[new]]], axis=1)
+                    exempt[new] = np.where(segment_contact.distance(Xr) < d0, 2, 1)
+                hit &= exempt != 2
                 # held back as far as it goes: only the pinned vertices' residual motion
                 # moves the pair closer (counted, not fixable by the free vertices)
                 stuck = hit & stopped[inv].all(axis=1)
                 hit &= ~stuck
-                h_ = np.flatnonzero(hit)
-                factor = np.zeros(len(h_))
-                if rounds < SCALE_ROUNDS and len(h_):
-                    factor = self._pair_fractions(Spair[h_], E[inv[h_]], m_pair[h_])
                 if self.comm.allreduce(int(hit.sum())) == 0:
                     break
+                h_ = np.flatnonzero(hit)
                 fmin = np.ones(len(V))
-                np.minimum.at(fmin, inv[hit].ravel(), np.repeat(factor, 4))
+                f_ = factor[h_] if rounds < SCALE_ROUNDS else np.zeros(len(h_))
+                np.minimum.at(fmin, inv[h_].ravel(), np.repeat(f_, 4))
                 fmin[~fV] = 1.0                 # pinned vertices keep their prescribed motion
                 self.shrink.zeroEntries()
                 vg.reverse(1.0 - fmin, self.shrink, PETSc.InsertMode.MAX_VALUES)
@@ -549,7 +537,7 @@ class StrandContact:
                 beta *= 1.0 - sh
                 limited |= sh > 0.0
                 rounds += 1
-            self.unresolved_pairs.append(int(self.comm.allreduce(int(stuck.sum()))))
+            self.unresolved_pairs.add(int(self.comm.allreduce(int(stuck.sum()))))
         beta = np.where(self.scene.pinned, 1.0, beta)
         return beta, int(self.comm.allreduce(int(limited.sum()))), rounds, H
 
@@ -564,8 +552,9 @@ class StrandContact:
 
     def start_frame(self):
         """A new frame: the per-frame statistics start new entries."""
-        self.ghosts_received.start_frame()
-        self.cross_pairs.start_frame()
+        for tally in (self.ghosts_received, self.cross_pairs, self.limited_vertices, self.limit_rounds,
+                      self.frame_fixes, self.unresolved_pairs, self.limiter_candidates):
+            tally.start_frame()
 
     def measure(self, x):
         """(active pairs, pairs closer than d0 / 2, minimum distance over candidate

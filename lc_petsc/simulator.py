@@ -180,10 +180,14 @@ class Simulator:
             "min_distance_per_frame": [None if not np.isfinite(d) else d for d in dmin],
             "min_distance": float(min(dmin)) if dmin and np.isfinite(min(dmin)) else None,
             "mode": self.strand.mode,
-            "limited_vertices_per_newton_step": list(self.strand.limited_vertices),
-            "limiter_rounds_per_newton_step": list(self.strand.limit_rounds),
-            "frame_path_held_vertices": list(self.strand.frame_fixes),
-            "ccd_unresolved_pairs": list(self.strand.unresolved_pairs)}}
+            # the ccd limiter, per frame: vertices limited (summed over the Newton steps),
+            # most rounds of a Newton step, vertices held back on the frame paths, pairs left
+            # unresolved, most candidate pairs of a limiter call
+            "limited_vertices_per_frame": self.strand.limited_vertices.sums[1:],
+            "limiter_rounds_per_frame": self.strand.limit_rounds.maxima[1:],
+            "frame_path_held_vertices_per_frame": self.strand.frame_fixes.sums[1:],
+            "ccd_unresolved_pairs_per_frame": self.strand.unresolved_pairs.sums[1:],
+            "limiter_candidates_per_frame": self.strand.limiter_candidates.maxima[1:]}}
 
     def close(self):
         """Destroy the PETSc objects of this simulator (collective)."""

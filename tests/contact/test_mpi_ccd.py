@@ -59,13 +59,13 @@ def test_wisps_driven_together_never_cross(monkeypatch):
         c = summ["contact"]
         if sub.rank == 0:
             print(f"\nccd on {sub.size} rank(s): crossings per step {crossings}, min distance "
-                  f"{c['min_distance']:.4g} cm (d0 = {D0}), limited vertices per Newton step "
-                  f"{c['limited_vertices_per_newton_step']}, held on the frame paths "
-                  f"{c['frame_path_held_vertices']}")
+                  f"{c['min_distance']:.4g} cm (d0 = {D0}), limited vertices per frame "
+                  f"{c['limited_vertices_per_frame']}, held on the frame paths "
+                  f"{c['frame_path_held_vertices_per_frame']}")
             assert sum(crossings) == 0, crossings
             assert sum(c["pairs_per_frame"]) > 0
             # the limiter did the work (on a Newton step or on a frame's path)
-            assert max(c["limited_vertices_per_newton_step"] + c["frame_path_held_vertices"]) > 0
+            assert max(c["limited_vertices_per_frame"] + c["frame_path_held_vertices_per_frame"]) > 0
             assert c["min_distance"] > 0.0
     finally:
         sub.Free()
@@ -82,7 +82,7 @@ def run_touching(c, frames=10):
 def test_ccd_rank_invariance_and_no_crossing(monkeypatch):
     """Six in-phase wisps, head shaking: 0 crossings, and 2 / 3 ranks follow 1 rank.
     Only the straight stems are pinned: a pinned helix vertex turning with the head
-    into a held-back neighbour is the limiter's known gap (ccd_unresolved_pairs)."""
+    into a held-back neighbour is the limiter's known gap (ccd_unresolved_pairs_per_frame)."""
     monkeypatch.setattr(simmod, "source_from_config",
                         lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
     X, summ = run_touching(comm)
@@ -94,11 +94,11 @@ def test_ccd_rank_invariance_and_no_crossing(monkeypatch):
         err = float(np.abs(X[-1] - ref[-1]).max() / np.abs(ref[-1]).max())
         c = summ["contact"]
         ok = sum(crossings) == 0 and sum(c["pairs_per_frame"]) > 0 and err <= 1e-8 \
-            and max(c["limited_vertices_per_newton_step"]) > 0 and sum(c["ccd_unresolved_pairs"]) == 0
+            and max(c["limited_vertices_per_frame"]) > 0 and sum(c["ccd_unresolved_pairs_per_frame"]) == 0
         msg = (f"{comm.size} ranks: crossings {crossings}, relative difference to 1 rank {err:.3e}, "
-               f"pairs per frame {c['pairs_per_frame']}, limited vertices per Newton step "
-               f"{c['limited_vertices_per_newton_step']}, held on the frame paths "
-                  f"{c['frame_path_held_vertices']}")
+               f"pairs per frame {c['pairs_per_frame']}, limited vertices per frame "
+               f"{c['limited_vertices_per_frame']}, held on the frame paths "
+               f"{c['frame_path_held_vertices_per_frame']}")
         print("\n" + msg)
     ok, msg = comm.bcast((ok, msg))
     assert ok, msg

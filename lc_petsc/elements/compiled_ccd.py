@@ -1,0 +1,186 @@
+"""Compiled (Numba) conservative advancement of segment pairs for the ccd step limiter.
+
+The same advancement as :func:`lc_petsc.elements.segment_ccd.safe_fraction` (the tested
+NumPy reference; ``tests/contact/test_ccd.py`` checks this against it and against
+sampled paths), pair by pair in a compiled loop, so a pair may take up to
+``max_steps`` (default 10,000) steps instead of a vectorised pass of 100: pairs sliding
+along each other close by, for which the motion bound is far from tight, are resolved
+here instead of by Tight-Inclusion (which the limiter no longer uses: at a positive
+minimum distance it is not a safe bound, see docs/contact.md).  A pair that runs out of
+steps keeps the last t reached, which is safe (d >= m on [0, t]).
+
+Compiled on first use and cached on disk like :mod:`lc_petsc.elements.compiled`
+(strict IEEE arithmetic).  No PETSc, no MPI.
+
+Layout: pairs index four points of vertex arrays (``inv`` (k, 4) into ``S``, ``E``
+(nv, 3): segment A = points 0, 1, segment B = points 2, 3), so the limiter never
+builds per-pair copies of its positions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lc_petsc.elements.compiled import _jit, _vdot, _vnorm, _vsub
+from lc_petsc.elements.segment_contact import PARALLEL_TOL
+
+#: steps of conservative advancement per pair (and per call)
+MAX_STEPS = 10000
+
+_TINY = float(np.finfo(np.float64).tiny)
+
+
+@_jit
+def _vlerp(S, E, i, t):
+    """S[i] + t (E[i] - S[i])."""
+    return (S[i, 0] + t * (E[i, 0] - S[i, 0]), S[i, 1] + t * (E[i, 1] - S[i, 1]),
+            S[i, 2] + t * (E[i, 2] - S[i, 2]))
+
+
+@_jit
+def _vclip01(v):
+    return min(max(v, 0.0), 1.0)
+
+
+@_jit
+def _vdistance(x0, x1, x2, x3):
+    """Segment-segment distance, the clamped algorithm (and parallel rule) of
+    :func:`segment_contact.closest_points`."""
+    d1, d2, r = _vsub(x1, x0), _vsub(x3, x2), _vsub(x0, x2)
+    a, e = _vdot(d1, d1), _vdot(d2, d2)
+    b, c, f = _vdot(d1, d2), _vdot(d1, r), _vdot(d2, r)
+    a_s, e_s = max(a, _TINY), max(e, _TINY)
+    denom = max(a * e - b * b, 0.0)
+    s = 0.0
+    if not denom <= PARALLEL_TOL * a * e:
+        s = _vclip01((b * f - c * e) / denom)
+    t = (b * s + f) / e_s
+    if t < 0.0:
+        s = _vclip01(-c / a_s)
+    elif t > 1.0:
+        s = _vclip01((b - c) / a_s)
+    t = _vclip01(t)
+    return _vnorm((x0[0] + s * d1[0] - x2[0] - t * d2[0], x0[1] + s * d1[1] - x2[1] - t * d2[1],
+                   x0[2] + s * d1[2] - x2[2] - t * d2[2]))
+
+
+@_jit
+def _vpair_distance(S, E, p, t):
+    """Distance of the pair of points p (4,) of the path S -> E at time t."""
+    return _vdistance(_vlerp(S, E, p[0], t), _vlerp(S, E, p[1], t), _vlerp(S, E, p[2], t),
+                      _vlerp(S, E, p[3], t))
+
+
+@_jit
+def _vrel(S, E, p):
+    """The motion bound rel = max_ij |D a_i - D b_j| (segment_ccd.relative_motion)."""
+    out = 0.0
+    for i in range(2):
+        for j in range(2, 4):
+            a, b = p[i], p[j]
+            r = ((E[a, 0] - S[a, 0]) - (E[b, 0] - S[b, 0]), (E[a, 1] - S[a, 1]) - (E[b, 1] - S[b, 1]),
+                 (E[a, 2] - S[a, 2]) - (E[b, 2] - S[b, 2]))
+            out = max(out, _vnorm(r))
+    return out
+
+
+@_jit
+def _vadvance(S, E, p, m, d_start, rel, max_steps, rtol):
+    """Conservative advancement of pair p at min distance m from its distance d_start
+    at t = 0: the largest t in [0, 1] reached with d >= m on [0, t] (see
+    segment_ccd.safe_fraction)."""
+    gap = d_start - m
+    if gap >= rel:
+        return 1.0
+    tol = max(rtol * m, 1e-300)
+    if not gap > rtol * m:
+        return 0.0
+    t = 0.0
+    for _ in range(max_steps):
+        t_new = t + gap / rel
+        if t_new >= 1.0:
+            return 1.0
+        t = t_new
+        gap = _vpair_distance(S, E, p, t) - m
+        if not gap > tol:
+            break
+    return t
+
+
+@_jit
+def _safe_fraction(S, E, inv, m, max_steps, rtol, out):
+    for k in range(inv.shape[0]):
+        p = inv[k]
+        d = _vpair_distance(S, E, p, 0.0)
+        out[k] = _vadvance(S, E, p, m[k], d, _vrel(S, E, p), max_steps, rtol)
+
+
+@_jit
+def _limit_pairs(S, E, inv, redo, md, scale, max_steps, rtol, tau, factor):
+    for q in range(redo.shape[0]):
+        k = redo[q]
+        p = inv[k]
+        tau[k] = 1.0
+        factor[k] = 1.0
+        # swept spheres: segment X(t) lies within h(t) <= max(h(0), h(1)) of its centre
+        # c(t) = c(0) + t Dc, so d(t) >= min_t |cA(t) - cB(t)| - hA - hB
+        w = [0.0, 0.0, 0.0]
+        v = [0.0, 0.0, 0.0]
+        for c in range(3):
+            w[c] = 0.5 * (S[p[0], c] + S[p[1], c] - S[p[2], c] - S[p[3], c])
+            v[c] = 0.5 * (E[p[0], c] + E[p[1], c] - E[p[2], c] - E[p[3], c]) - w[c]
+        vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+        ts = 0.0
+        if vv > 0.0:
+            ts = _vclip01(-(w[0] * v[0] + w[1] * v[1] + w[2] * v[2]) / vv)
+        gc = math.sqrt((w[0] + ts * v[0]) ** 2 + (w[1] + ts * v[1]) ** 2 + (w[2] + ts * v[2]) ** 2)
+        h = 0.0
+        for a, b in ((p[0], p[1]), (p[2], p[3])):
+            hs = math.sqrt((S[b, 0] - S[a, 0]) ** 2 + (S[b, 1] - S[a, 1]) ** 2 + (S[b, 2] - S[a, 2]) ** 2)
+            he = math.sqrt((E[b, 0] - E[a, 0]) ** 2 + (E[b, 1] - E[a, 1]) ** 2 + (E[b, 2] - E[a, 2]) ** 2)
+            h += 0.5 * max(hs, he)
+        if gc - h >= 0.5 * md:
+            continue
+        d = _vpair_distance(S, E, p, 0.0)
+        m = min(md, 0.5 * d)
+        rel = _vrel(S, E, p)
+        tau[k] = _vadvance(S, E, p, 0.5 * m, d, rel, max_steps, rtol)
+        if tau[k] < 1.0:
+            factor[k] = _vadvance(S, E, p, m, d, rel, max_steps, rtol) if scale else 0.0
+
+
+def safe_fraction(start, end, min_distance, max_steps=MAX_STEPS, rtol=1e-3):
+    """t (n,): the safe path fractions of :func:`segment_ccd.safe_fraction` for pairs
+    ``start``, ``end`` (n, 4, 3) at ``min_distance`` (scalar or (n,)), with up to
+    ``max_steps`` steps per pair."""
+    S = np.ascontiguousarray(start, np.float64).reshape(-1, 3)
+    E = np.ascontiguousarray(end, np.float64).reshape(-1, 3)
+    if S.shape != E.shape or S.shape[0] % 4:
+        raise ValueError(f"compiled_ccd: start {np.shape(start)} and end {np.shape(end)} must both be (n, 4, 3)")
+    n = S.shape[0] // 4
+    m = np.ascontiguousarray(np.broadcast_to(np.asarray(min_distance, np.float64), (n,)))
+    out = np.empty(n)
+    _safe_fraction(S, E, np.arange(4 * n, dtype=np.int64).reshape(n, 4), m, int(max_steps), float(rtol), out)
+    return out
+
+
+def limit_pairs(S, E, inv, redo, min_distance, scale, tau, factor, max_steps=MAX_STEPS, rtol=1e-3):
+    """The limiter's pair test (:meth:`lc_petsc.contact.StrandContact._safe_fractions`)
+    on the pairs ``inv[redo]`` (points into the vertex positions ``S`` at the path's
+    start and ``E`` at its end, (nv, 3)), written into ``tau`` and ``factor`` (k,) at
+    ``redo``: with the pair's floor m = min(``min_distance``, d(S) / 2), ``tau`` is its
+    safe fraction at m / 2 and, where that is below 1, ``factor`` its safe fraction at
+    m if ``scale``, else 0 (1 elsewhere).  Pairs whose swept spheres (centre paths,
+    radius the larger half length at the ends) stay ``min_distance`` / 2 apart get 1
+    without a distance computation."""
+    _limit_pairs(S, E, inv, redo, float(min_distance), bool(scale), int(max_steps), float(rtol), tau, factor)
+
+
+def warm_up():
+    """Compile (or load from the cache) the kernels."""
+    S = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 1], [1, 1, 1]])
+    safe_fraction(S[None], S[None] + 0.1, 0.01)
+    limit_pairs(S, S + 0.1, np.arange(4, dtype=np.int64).reshape(1, 4), np.zeros(1, np.int64), 0.01,
+                True, np.ones(1), np.ones(1))

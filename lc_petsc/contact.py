@@ -439,15 +439,15 @@ class StrandContact:
         Collective.
 
         1. Broad phase on relative motion: whatever the fractions, every vertex moves by
-           u(S) + beta f, so a pair can come within m only if its centres at S are
-           within reach_A + reach_B, reach = h + (m / 2 + rho) / (1 - L)
-           (:func:`segment_ccd.field_reach`, with the proof; rho = the segment's largest
-           |f|, h its half length, L the field's Lipschitz constant).  Boxes centre +-
-           reach select the ghosts (:meth:`_gather_segments`: a rank gets every segment
-           that can reach its own during the step, for any fractions), balls of that
-           radius the candidates (:func:`ball_pairs`), one set for all rounds.  Hair
-           swinging with the head moves by u, not by f: the reach is set by how much a
-           segment moves relative to the bulk.
+           u(S) + beta f, so relative to the field a segment's points stay in the hull
+           of its vertices at S and at S + f, and a pair can come within m only if the
+           balls of :func:`segment_ccd.field_balls` around those hulls (grown by
+           (m / 2 + L rho) / (1 - L), rho = the segment's largest |f|, L the field's
+           Lipschitz constant; proof there) touch.  Boxes around the balls select the
+           ghosts (:meth:`_gather_segments`: a rank gets every segment that can reach
+           its own during the step, for any fractions), :func:`ball_pairs` the
+           candidates, one set for all rounds.  Hair swinging with the head moves by u,
+           not by f: the balls are set by how much a segment moves relative to the bulk.
         2. Pair test (:func:`compiled_ccd.limit_pairs`, compiled): on the pair's current
            path, swept spheres around the centre paths discard most candidates without
            a distance; the others get conservative advancement with up to
@@ -471,14 +471,11 @@ class StrandContact:
         md = float(min_distance)
         A, b, L = self._motion_field(S, T)
         H = S + (S @ A.T + b)
-        fn = np.linalg.norm(T - H, axis=1)
-        Pc = np.stack([S[self.seg], S[self.seg + 1]], axis=1)
-        c = Pc.mean(axis=1)
-        h = 0.5 * np.linalg.norm(Pc[:, 1] - Pc[:, 0], axis=1)
-        rho = np.maximum(fn[self.seg], fn[self.seg + 1])
-        reach = segment_ccd.field_reach(h, rho, L, md)[:, None]
+        F = T - H
+        c, r = segment_ccd.field_balls(np.stack([S[self.seg], S[self.seg + 1]], axis=1),
+                                       np.stack([F[self.seg], F[self.seg + 1]], axis=1), L, md)
         (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \
-            self._gather_segments(S, (T, H), inflate=0.0, boxes=(c - reach, c + reach))
+            self._gather_segments(S, (T, H), inflate=0.0, boxes=(c - r[:, None], c + r[:, None]))
         ij = ball_pairs(0.5 * (PB[:, 0] + PB[:, 1]), 0.5 * (PB[:, 1, 0] - PB[:, 0, 0]))
         i, j = ij[:, 0], ij[:, 1]
         keep = (wisp[i] != wisp[j]) & ((i < n_local) | (j < n_local))

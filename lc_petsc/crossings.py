@@ -4,7 +4,7 @@
   centres grouped by radius, so one fast or stretched segment does not widen the
   search radius for everybody.  The one broad phase of the project: the penalty
   contact's (balls of half length + d0 / 2), the limiter's and this counter's (balls
-  of the relative reach, :func:`segment_ccd.field_reach`).
+  of the relative reach, :func:`segment_ccd.field_balls`).
 * :func:`count_crossings`: edge-edge crossings between segments of different wisps
   (optionally between non-adjacent segments of one wisp) on the linear path between
   two configurations (two consecutive frames): the relative broad phase, the motion
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.elements.segment_ccd import affine_field, affine_sums, field_reach, tight_inclusion_toi
+from lc_petsc.elements.segment_ccd import affine_field, affine_sums, field_balls, tight_inclusion_toi
 from lc_petsc.elements.segment_contact import distance
 
 
@@ -68,14 +68,13 @@ def segments(offsets):
 def candidate_pairs(X0, X1, offsets, self_contact=False, margin=0.0):
     """Segment pairs (k, 2) of global first vertices that can come within ``margin`` on
     the linear path X0 -> X1 (n_vertices, 3) (the relative broad phase of
-    :func:`segment_ccd.field_reach`, with the affine field fitted to X1 - X0); different
+    :func:`segment_ccd.field_balls`, with the affine field fitted to X1 - X0); different
     wisps, or with ``self_contact`` also segments of one wisp sharing no vertex."""
     seg, wisp = segments(offsets)
     A, b, L = affine_field(*affine_sums(X0, X1 - X0))
-    f = np.linalg.norm(X1 - X0 - (X0 @ A.T + b), axis=1)
-    c = 0.5 * (X0[seg] + X0[seg + 1])
-    h = 0.5 * np.linalg.norm(X0[seg + 1] - X0[seg], axis=1)
-    ij = ball_pairs(c, field_reach(h, np.maximum(f[seg], f[seg + 1]), L, margin))
+    f = X1 - X0 - (X0 @ A.T + b)
+    ij = ball_pairs(*field_balls(np.stack([X0[seg], X0[seg + 1]], axis=1),
+                                 np.stack([f[seg], f[seg + 1]], axis=1), L, margin))
     i, j = ij[:, 0], ij[:, 1]
     keep = wisp[i] != wisp[j]
     if self_contact:

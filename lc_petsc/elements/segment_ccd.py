@@ -33,7 +33,7 @@ from lc_petsc.elements.common import check_positions
 from lc_petsc.elements.segment_contact import distance
 
 __all__ = ["relative_motion", "safe_fraction", "tight_inclusion_toi", "affine_sums",
-           "affine_field", "field_reach"]
+           "affine_field", "field_balls"]
 
 
 def relative_motion(start, end):
@@ -156,20 +156,29 @@ def affine_field(M, R, max_lipschitz=0.5):
     return A, b, L
 
 
-def field_reach(half_length, residual, lipschitz, min_distance):
-    """Reach (m,) of segments for the relative broad phase: a box centre +- reach
-    around each segment's centre at the start (max norm) contains every pair that can
-    come within ``min_distance`` on any path whose vertex displacements are
-    u(x_start) + beta f, beta in [0, 1] per vertex, u affine with Lipschitz constant
-    ``lipschitz`` L < 1 and |f| <= ``residual`` (m,) (the largest of the segment's two
-    vertices).  ``half_length`` (m,) at the start.
+def field_balls(start, residual, lipschitz, min_distance):
+    """Balls (centre (m, 3), radius (m,)) of segments for the relative broad phase: two
+    segments can come within ``min_distance`` on a path whose vertex displacements are
+    u(x_start) + beta f, beta in [0, 1] per vertex (any fractions), u affine with
+    Lipschitz constant ``lipschitz`` L < 1, f the ``residual`` (m, 2, 3) of the
+    segments' vertices, only if their balls touch.  ``start`` (m, 2, 3).
 
-    Proof.  A point p of segment A and q of B (fixed parameters) move by
-    u(p0) - u(q0) + r_A - r_B relative to each other, |r_A| <= rho_A (a convex
-    combination of its vertices' beta f), so |p(t) - q(t)| >= |p0 - q0| - t L |p0 - q0|
-    - t (rho_A + rho_B) >= (1 - L) d0 - rho_A - rho_B with d0 the segment distance at the
-    start.  The pair comes within m only if d0 <= (m + rho_A + rho_B) / (1 - L), and
-    d0 >= |c_A - c_B| - h_A - h_B, so |c_A - c_B| <= reach_A + reach_B with
-    reach = h + (m / 2 + rho) / (1 - L); the max-norm boxes contain the balls."""
-    return np.asarray(half_length, float) + (0.5 * float(min_distance) + np.asarray(residual, float)) \
-        / (1.0 - float(lipschitz))
+    Proof.  Point p of segment A (parameter s) is at p0 + t (A p0 + b) + t r_p at time
+    t, r_p = (1 - s) beta_0 f_0 + s beta_1 f_1, so with y_p = p0 + t r_p (a convex
+    combination of points of [x_v, x_v + f_v]: y_p lies in the convex hull K_A of the
+    segment's two vertices and their residual ends) p - q = y_p - y_q + t A (p0 - q0).
+    As |p0 - q0| <= |y_p - y_q| + rho_A + rho_B (rho = the segment's largest |f|),
+    |p - q| >= (1 - L) |y_p - y_q| - L (rho_A + rho_B): the pair comes within m only if
+    dist(K_A, K_B) < sum over the two of (m / 2 + L rho) / (1 - L).  The ball is the
+    one around the mean of K's four corners through its farthest corner, grown by that
+    term.  Hair swinging with the bulk moves by u and sweeps nothing: the balls are set
+    by how far a segment moves relative to the fitted field, and stretch along that
+    motion only."""
+    S = np.asarray(start, float)
+    f = np.asarray(residual, float)
+    K = np.concatenate([S, S + f], axis=1)                     # (m, 4, 3)
+    c = K.mean(axis=1)
+    r = np.sqrt(np.einsum("mkc,mkc->mk", K - c[:, None], K - c[:, None]).max(axis=1, initial=0.0))
+    rho = np.sqrt(np.einsum("mkc,mkc->mk", f, f).max(axis=1, initial=0.0))
+    L = float(lipschitz)
+    return c, r + (0.5 * float(min_distance) + L * rho) / (1.0 - L)

@@ -125,13 +125,14 @@ def relative_candidates(S, T, seg, m):
     (candidate pairs, fallback H, absolute-box pairs)."""
     A, b, L = segment_ccd.affine_field(*segment_ccd.affine_sums(S, T - S))
     H = S + S @ A.T + b
-    fn = np.linalg.norm(T - H, axis=1)
-    c = 0.5 * (S[seg] + S[seg + 1])
+    F = T - H
+    c0 = 0.5 * (S[seg] + S[seg + 1])
     h = 0.5 * np.linalg.norm(S[seg + 1] - S[seg], axis=1)
-    reach = segment_ccd.field_reach(h, np.maximum(fn[seg], fn[seg + 1]), L, m)
+    c, r = segment_ccd.field_balls(np.stack([S[seg], S[seg + 1]], axis=1),
+                                   np.stack([F[seg], F[seg + 1]], axis=1), L, m)
     dn = np.linalg.norm(T - S, axis=1)
     absolute = h + np.maximum(dn[seg], dn[seg + 1]) + 0.5 * m
-    return ball_pairs(c, reach), H, ball_pairs(c, absolute)
+    return ball_pairs(c, r), H, ball_pairs(c0, absolute)
 
 
 @pytest.mark.parametrize("motion", ["random", "rigid", "rigid_plus_noise", "shear"])

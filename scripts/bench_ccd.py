@@ -62,8 +62,9 @@ def main():
     for mode in a.modes:
         rows, s = run(a.config, mode, a.frames)
         allrows += rows
-        extra[mode] = {k: s.get(k) for k in ("ccd_unresolved_pairs", "frame_path_held_vertices",
-                                               "limited_vertices_per_newton_step")}
+        extra[mode] = {k: s.get(k) for k in ("ccd_unresolved_pairs_per_frame", "frame_path_held_vertices_per_frame",
+                                               "limited_vertices_per_frame", "limiter_rounds_per_frame",
+                                               "limiter_candidates_per_frame")}
     if MPI.COMM_WORLD.rank:
         return
     print(f"\n{a.config}, {MPI.COMM_WORLD.size} rank(s), {a.frames} frames per mode (medians):")
@@ -78,6 +79,13 @@ def main():
         dm = [x["min_distance"] for x in r if x["min_distance"] is not None and np.isfinite(x["min_distance"])]
         print(f"| {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {sum(cr)}, {max(cr)} | "
               f"{min(dm) if dm else float('nan'):.4g} | {np.median([x['cg'] for x in r]):.0f} |")
+    for mode in a.modes:
+        if extra[mode].get("limiter_candidates_per_frame"):
+            e = extra[mode]
+            print(f"{mode} limiter per frame: candidate pairs (largest call) {e['limiter_candidates_per_frame']}, "
+                  f"vertices limited {e['limited_vertices_per_frame']}, rounds (most) "
+                  f"{e['limiter_rounds_per_frame']}, held on the frame paths "
+                  f"{e['frame_path_held_vertices_per_frame']}, unresolved pairs {e['ccd_unresolved_pairs_per_frame']}")
     if len(a.modes) == 2:
         w = [np.median([x["wall_s"] for x in allrows if x["mode"] == m]) for m in a.modes]
         print(f"wall per frame {a.modes[1]} / {a.modes[0]}: {w[1] / w[0]:.2f}")

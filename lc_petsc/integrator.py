@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.elements import head_contact
+from lc_petsc.elements import compiled, head_contact
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.scene.state import vertex_wisp_length
 from lc_petsc.errors import SolverError
@@ -196,7 +196,8 @@ class Integrator:
             raise FloatingPointError(f"frame {self.frame}: non-finite position at global vertex "
                                      f"{min(b for b in bad_any if b >= 0)}")
         if cfg.time.length_projection:
-            x = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass)
+            with self.timers("update"):
+                x = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass)
         self.newton_iterations.append(n_it)
         self.newton_increment.append(increment)
         self.newton_converged.append(converged)
@@ -233,9 +234,10 @@ class Integrator:
         per-vertex fractions of a retracted step stretch the edges it cuts (measured on
         six touching wisps: contact pairs grew 5x over 10 frames and 2 ranks left the
         serial trajectory, 3.7e-1 against 3.8e-11 with the linear update)."""
-        if self.retract:
-            return retract_edge_lengths(x, step, self.free, self.scene.offsets, self.scene.mass)
-        return x + step
+        with self.timers("update"):
+            if self.retract:
+                return retract_edge_lengths(x, step, self.free, self.scene.offsets, self.scene.mass)
+            return x + step
 
     # -------------------------------------------------------------- Newton system
     def _assemble_system(self, x, it, filter=None):
@@ -386,71 +388,29 @@ def retract_edge_lengths(x, dx, free, offsets, mass=None):
     Newton's convergence rate is kept) and has the same fixed points.  On a wisp with no
     pinned vertex the mass-weighted mean correction is removed (``mass`` given): the
     step then changes the wisp's momentum as x + dx does.  Each wisp's result depends on
-    that wisp alone (rank-count invariant to the last bit).
+    that wisp alone (rank-count invariant to the last bit).  One compiled pass
+    (:func:`lc_petsc.elements.compiled.edge_lengths`).
     x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
     Returns (nv, 3)."""
-    out = x + dx
-    if len(x) < 2:
-        return out
-    e = x[1:] - x[:-1]
-    new = out[1:] - out[:-1]
-    L = np.linalg.norm(e, axis=1)
-    length = L + np.einsum("ij,ij->i", e, new - e) / np.where(L > 0, L, 1.0)
-    return _set_edge_lengths(out, np.where(L > 0, length, 0.0), free, offsets, mass)
+    return compiled.edge_lengths(x, dx, None, free, offsets, mass)
 
 
 def _set_edge_lengths(x, length, free, offsets, mass=None):
     """x with every edge (v - 1, v) that ends at a free vertex v of the same wisp given
     the length ``length[v - 1]`` (> 0; its direction kept), the corrections accumulated
-    from the root (or the last pinned vertex) outwards in one vectorised pass; edges of
-    zero length or with a length <= 0 are left alone.  ``mass``: see
-    :func:`_remove_mean_on_unpinned`.  x (nv, 3), length (nv - 1,), free (nv,) bool,
-    offsets (n_wisps + 1,).  Returns (nv, 3)."""
-    nv = len(x)
-    off = np.asarray(offsets)
-    sizes = np.diff(off)
-    if nv < 2 or len(sizes) == 0:
-        return x.copy()
-    edge = x[1:] - x[:-1]
-    n = np.linalg.norm(edge, axis=1)
-    ok = (n > 0) & (length > 0)
-    correction = np.zeros_like(x)
-    correction[1:][ok] = edge[ok] * (length[ok] / n[ok] - 1.0)[:, None]
-    # edges into pinned vertices and across wisps are not corrected; the sums restart
-    # at every wisp's first vertex and at pinned vertices
-    reset = ~free.copy()
-    reset[off[:-1]] = True
-    correction[reset] = 0.0
-    wisp = np.repeat(np.arange(len(sizes)), sizes)
-    pos = np.arange(nv) - off[:-1][wisp]
-    table = np.zeros((len(sizes), int(sizes.max()), 3))
-    table[wisp, pos] = correction
-    np.cumsum(table, axis=1, out=table)
-    last_reset = np.maximum.accumulate(np.where(reset, np.arange(nv), 0))
-    total = table[wisp, pos] - table[wisp, pos - (np.arange(nv) - last_reset)]
-    if mass is not None:
-        _remove_mean_on_unpinned(total, free, off, mass)
-    return x + total
-
-
-def _remove_mean_on_unpinned(correction, free, offsets, mass):
-    """Subtract, in place, the mass-weighted mean of ``correction`` (nv, 3) on every wisp
-    without a pinned vertex: a position correction then leaves such a wisp's momentum
-    (of the velocity (x - x_n) / dt) unchanged."""
-    sizes = np.diff(offsets)
-    wisp = np.repeat(np.arange(len(sizes)), sizes)
-    unpinned = np.bincount(wisp, weights=(~free).astype(float), minlength=len(sizes)) == 0
-    if unpinned.any():
-        m = np.bincount(wisp, weights=mass, minlength=len(sizes))
-        mean = np.stack([np.bincount(wisp, weights=mass * correction[:, c], minlength=len(sizes))
-                         for c in range(3)], axis=1) / np.where(m > 0, m, 1.0)[:, None]
-        correction[unpinned[wisp]] -= mean[wisp[unpinned[wisp]]]
+    from the root (or the last pinned vertex) outwards; edges of zero length or with a
+    length <= 0 are left alone.  On a wisp with no pinned vertex the mass-weighted mean
+    of the corrections is removed (``mass`` given): the wisp's momentum (of the velocity
+    (x - x_n) / dt) is then unchanged.  One compiled pass
+    (:func:`lc_petsc.elements.compiled.edge_lengths`).  x (nv, 3), length (nv - 1,),
+    free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.  Returns (nv, 3)."""
+    return compiled.edge_lengths(x, None, length, free, offsets, mass)
 
 
 def project_rest_lengths(x, free, offsets, rest_edge, mass):
     """``time.length_projection``: the frame's final positions with every edge that ends
     at a free vertex set to its rest length, its direction kept, from each wisp's root
-    (or last pinned vertex) outwards (:func:`_set_edge_lengths`, one vectorised pass);
+    (or last pinned vertex) outwards (:func:`_set_edge_lengths`, one compiled pass);
     on a wisp with no pinned vertex the mass-weighted mean of the corrections is
     removed, so its momentum is kept (its lengths too: a uniform shift).  x (nv, 3),
     free (nv,) bool, offsets (n_wisps + 1,), rest_edge (nv - 1,), mass (nv,).

@@ -1,14 +1,22 @@
 """Phase timers: one PETSc log event per phase (``-log_view`` shows them) plus wall-clock
-totals in a dict for summary.json."""
+and CPU-time totals in dicts (wall for summary.json, both for the benchmarks).
+
+CPU time is the process's (``time.process_time``: user + system of all its threads).
+On a machine shared with other jobs it is the figure that measures the work: wall time
+also holds the time the process waited for a core.
+"""
 
 from __future__ import annotations
 
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 from petsc4py import PETSc
 
-PHASES = ("elements", "filter", "assembly", "solve", "collision", "io")
+#: ``update``: the Newton update after the solve (``Integrator.update``: the edge
+#: retraction) and the final rest-length projection.
+PHASES = ("elements", "filter", "assembly", "solve", "collision", "update", "io")
 _EVENTS: dict[str, PETSc.Log.Event] = {}
 
 
@@ -19,42 +27,73 @@ def _event(name):
 
 
 class Timers:
-    """Wall-clock totals per phase (``with timers("solve"): ...``), each phase also a
-    PETSc log event."""
+    """Wall-clock and CPU-time totals per phase (``with timers("solve"): ...``), each
+    phase also a PETSc log event.  A phase entered inside another (same or other name)
+    is counted in both."""
 
     def __init__(self):
         self.totals = {p: 0.0 for p in PHASES}
+        self.cpu = {p: 0.0 for p in PHASES}
 
     @contextmanager
     def __call__(self, phase):
-        """Time the block as ``phase`` (wall clock and PETSc log event)."""
+        """Time the block as ``phase`` (wall clock, CPU time and PETSc log event)."""
         ev = _event(phase)
         ev.begin()
+        c0 = time.process_time()
         t0 = time.perf_counter()
         try:
             yield
         finally:
             self.totals[phase] = self.totals.get(phase, 0.0) + time.perf_counter() - t0
+            self.cpu[phase] = self.cpu.get(phase, 0.0) + time.process_time() - c0
             ev.end()
 
     def as_dict(self):
-        """{phase: seconds so far} (a copy)."""
+        """{phase: wall seconds so far} (a copy)."""
         return dict(self.totals)
 
+    def cpu_dict(self):
+        """{phase: CPU seconds so far} (a copy)."""
+        return dict(self.cpu)
 
-def timed_frame(sim):
+
+@dataclass
+class FrameTiming:
+    """One frame's figures (:func:`frame_timing`): ``wall`` seconds; ``phases`` {phase:
+    wall seconds, maximum over ranks}; ``ksp`` the KSP iterations of the frame's linear
+    solves; ``cpu`` {phase: CPU seconds, maximum over ranks}; ``cpu_total`` the frame's
+    CPU seconds summed over the ranks (the job's work)."""
+
+    wall: float
+    phases: dict
+    ksp: list
+    cpu: dict
+    cpu_total: float
+
+
+def frame_timing(sim):
     """Step the simulator ``sim`` by one frame between two barriers (the benchmarks' frame
-    timer).  Returns (wall seconds, {phase: this frame's seconds, maximum over ranks},
-    [KSP iterations of the frame's linear solves])."""
+    timer); returns its :class:`FrameTiming`.  Collective."""
     from lc_petsc.parallel import global_max
     comm = sim.comm
-    before = sim.timers.as_dict()
+    before, cpu_before = sim.timers.as_dict(), sim.timers.cpu_dict()
     n_ksp = len(sim.solver.iterations)
     comm.Barrier()
     t0 = time.perf_counter()
+    c0 = time.process_time()
     sim.step()
+    c1 = time.process_time()
     comm.Barrier()
     wall = time.perf_counter() - t0
-    after = sim.timers.as_dict()
+    after, cpu_after = sim.timers.as_dict(), sim.timers.cpu_dict()
     phases = {k: global_max(comm, after[k] - before.get(k, 0.0)) for k in after}
-    return wall, phases, sim.solver.iterations[n_ksp:]
+    cpu = {k: global_max(comm, cpu_after[k] - cpu_before.get(k, 0.0)) for k in cpu_after}
+    return FrameTiming(wall, phases, sim.solver.iterations[n_ksp:], cpu, comm.allreduce(c1 - c0))
+
+
+def timed_frame(sim):
+    """:func:`frame_timing` as (wall seconds, {phase: wall seconds, maximum over ranks},
+    [KSP iterations of the frame's linear solves])."""
+    f = frame_timing(sim)
+    return f.wall, f.phases, f.ksp

@@ -643,6 +643,97 @@ def gather_blocks(band, rows, diags, out, column_major):
     _gather_blocks(band, rows, diags, out, bool(column_major))
 
 
+# ------------------------------------------------ edge lengths (the Newton update)
+@_jit
+def _edge_lengths(x, dx, length, free, offsets, mass, retract, out):
+    """out = the positions of lc_petsc.integrator._set_edge_lengths, wisp by wisp.
+
+    ``retract``: the positions are x + dx and the lengths |e| + eh . de of the edges e
+    of x (integrator.retract_edge_lengths; ``length`` unused), else the positions are x
+    and the lengths ``length`` (nv - 1,) (dx unused).  Walking each wisp from its root,
+    the correction of vertex v is the sum of (length / |edge| - 1) edge over the edges
+    (u - 1, u) since the last pinned vertex (edges of zero length or with a length <= 0
+    add nothing); on a wisp without a pinned vertex, with ``mass`` (nv,) non-empty, the
+    mass-weighted mean correction is removed."""
+    for w in range(offsets.shape[0] - 1):
+        lo, hi = offsets[w], offsets[w + 1]
+        c0 = c1 = c2 = 0.0
+        pinned = False
+        for v in range(lo, hi):
+            p0 = x[v, 0]
+            p1 = x[v, 1]
+            p2 = x[v, 2]
+            if retract:
+                p0 += dx[v, 0]
+                p1 += dx[v, 1]
+                p2 += dx[v, 2]
+            if v == lo or not free[v]:
+                pinned = pinned or not free[v]
+                c0 = c1 = c2 = 0.0
+            else:
+                e0, e1, e2 = out[v - 1, 3], out[v - 1, 4], out[v - 1, 5]   # x + dx at v - 1
+                d0, d1, d2 = p0 - e0, p1 - e1, p2 - e2
+                n = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                if retract:
+                    f0, f1, f2 = x[v, 0] - x[v - 1, 0], x[v, 1] - x[v - 1, 1], x[v, 2] - x[v - 1, 2]
+                    L = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
+                    if L > 0.0:
+                        target = L + (f0 * (d0 - f0) + f1 * (d1 - f1) + f2 * (d2 - f2)) / L
+                    else:
+                        target = 0.0
+                else:
+                    target = length[v - 1]
+                if n > 0.0 and target > 0.0:
+                    f = target / n - 1.0
+                    c0 += d0 * f
+                    c1 += d1 * f
+                    c2 += d2 * f
+            out[v, 0], out[v, 1], out[v, 2] = c0, c1, c2
+            out[v, 3], out[v, 4], out[v, 5] = p0, p1, p2
+        if not pinned and mass.shape[0] > 0:
+            m = s0 = s1 = s2 = 0.0
+            for v in range(lo, hi):
+                m += mass[v]
+                s0 += mass[v] * out[v, 0]
+                s1 += mass[v] * out[v, 1]
+                s2 += mass[v] * out[v, 2]
+            if not m > 0.0:
+                m = 1.0
+            s0, s1, s2 = s0 / m, s1 / m, s2 / m
+            for v in range(lo, hi):
+                out[v, 0] -= s0
+                out[v, 1] -= s1
+                out[v, 2] -= s2
+    for v in range(x.shape[0]):
+        out[v, 0] += out[v, 3]
+        out[v, 1] += out[v, 4]
+        out[v, 2] += out[v, 5]
+
+
+def edge_lengths(x, dx, length, free, offsets, mass):
+    """The positions of :func:`lc_petsc.integrator._set_edge_lengths` (``dx`` None: x
+    with edge lengths ``length`` (nv - 1,)) or of
+    :func:`lc_petsc.integrator.retract_edge_lengths` (``length`` None: x + dx with the
+    linearised lengths), in one compiled pass over each wisp.  x, dx (nv, 3), free (nv,)
+    bool, offsets (n_wisps + 1,) covering 0..nv, mass (nv,) or None.  Returns (nv, 3)."""
+    x = np.ascontiguousarray(x, np.float64)
+    nv = len(x)
+    retract = dx is not None
+    dx = np.ascontiguousarray(dx, np.float64) if retract else x
+    length = np.zeros(0) if retract else np.ascontiguousarray(length, np.float64)
+    offsets = np.ascontiguousarray(offsets, np.int64)
+    if dx.shape != x.shape or x.ndim != 2 or x.shape[1:] != (3,):
+        raise ValueError(f"edge lengths: x and dx must be (nv, 3), got {x.shape} and {dx.shape}")
+    if len(offsets) < 1 or offsets[0] != 0 or offsets[-1] != nv or np.any(np.diff(offsets) < 0):
+        raise ValueError(f"edge lengths: wisp offsets must rise from 0 to {nv}")
+    if not retract and len(length) != max(nv - 1, 0):
+        raise ValueError(f"edge lengths: {len(length)} lengths for {nv} vertices, need {nv - 1}")
+    mass = np.zeros(0) if mass is None else np.ascontiguousarray(mass, np.float64)
+    out = np.empty((nv, 6))     # (correction, x (+ dx)) per vertex, then the result
+    _edge_lengths(x, dx, length, np.ascontiguousarray(free, np.bool_), offsets, mass, retract, out)
+    return out[:, :3].copy()
+
+
 def warm_up():
     """Compile (or load from the cache) every kernel; returns the seconds it took."""
     t0 = time.perf_counter()
@@ -654,4 +745,7 @@ def warm_up():
         for exact in (False, True):
             _terms(x, *one, *one, *one, mode, g, band, 3, False, exact)
     _gather_blocks(band, one[0], one[0], np.zeros(9), True)
+    off = np.array([0, 4])
+    edge_lengths(x, g, None, np.ones(4, bool), off, np.ones(4))
+    edge_lengths(x, None, np.ones(3), np.ones(4, bool), off, None)
     return time.perf_counter() - t0

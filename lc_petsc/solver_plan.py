@@ -20,7 +20,8 @@ decides itself, before any PETSc object exists:
   preconditioner);
 * with strand contact, what the preconditioner is built from (``-lc_contact_pc
   coupled|strands|clusters``; ``clusters``: lc_petsc/contact_pc.py, with its caps
-  ``-lc_cluster_max_wisps`` and ``-lc_cluster_max_couplings``);
+  ``-lc_cluster_max_wisps``, ``-lc_cluster_max_blocks`` and its fallback threshold
+  ``-lc_cluster_min_captured``);
 * the factorisation defaults: MUMPS gets the AMF ordering (``-mat_mumps_icntl_7 2``)
   unless the options say otherwise;
 * lc_petsc's own build choices read from the same database: the element kernels
@@ -50,7 +51,7 @@ from typing import Mapping, Optional
 
 from petsc4py import PETSc
 
-from lc_petsc.contact_pc import MAX_COUPLINGS, MAX_WISPS
+from lc_petsc.contact_pc import MAX_BLOCKS, MAX_WISPS, MIN_CAPTURED
 from lc_petsc.errors import ConfigError
 from lc_petsc.options import option_pairs
 from lc_petsc.parallel import WISP_ORDERS
@@ -161,8 +162,8 @@ class SolverPlan:
     itself; ``pc_type``: the preconditioner (lower case); ``wisp_blocks``: ``fused`` /
     ``separate`` per-wisp block Jacobi, None for another preconditioner;
     ``contact_pc``: ``coupled`` / ``strands`` / ``clusters`` with strand contact, else
-    None; ``cluster_caps``: (max wisps, max coupled pairs) per cluster with
-    ``clusters``, else None;
+    None; ``cluster_caps``: (max wisps, max cross blocks, min captured share) of the
+    clusters with ``clusters``, else None;
     ``sub_solver``: the per-wisp blocks' default sub-solver options and the
     factorisation defaults (:func:`factor_defaults`);
     ``element_kernels``: ``compiled`` / ``numpy``; ``wisp_order``: ``spatial`` / ``input``.
@@ -175,7 +176,7 @@ class SolverPlan:
     pc_type: str
     wisp_blocks: Optional[str]
     contact_pc: Optional[str]
-    cluster_caps: Optional[tuple[int, int]]
+    cluster_caps: Optional[tuple[int, int, float]]
     sub_solver: Mapping[str, str]
     element_kernels: str
     wisp_order: str
@@ -386,8 +387,9 @@ def _positive_int(layers: _Layers, key, default):
 
 
 def _cluster_caps(layers: _Layers, mat_type, wisp_blocks):
-    """(max wisps, max coupled pairs) per cluster of ``-lc_contact_pc clusters``, after
-    checking that the cluster preconditioner can run with the other options."""
+    """(max wisps, max cross blocks, min captured share) of the clusters of
+    ``-lc_contact_pc clusters``, after checking that the cluster preconditioner can run
+    with the other options."""
     if base_type(mat_type) != "baij":
         raise ConfigError(f"-lc_contact_pc clusters reads the block (BAIJ) matrices; drop "
                           f"-mat_type {mat_type} (or use -mat_type baij)")
@@ -395,5 +397,13 @@ def _cluster_caps(layers: _Layers, mat_type, wisp_blocks):
         raise ConfigError("-lc_contact_pc clusters sets the block Jacobi blocks itself (the "
                           "per-wisp blocks fused, grown into clusters); drop "
                           "-pc_bjacobi_blocks / -pc_bjacobi_local_blocks / -lc_wisp_blocks separate")
+    share = layers.lookup("lc_cluster_min_captured")
+    try:
+        captured = MIN_CAPTURED if share is None else float(share)
+    except ValueError:
+        captured = -1.0
+    if not 0.0 <= captured <= 1.0:
+        raise ConfigError(f"-lc_cluster_min_captured {share!r}: use a number from 0 (always "
+                          f"cluster) to 1 (cluster only when every coupling fits)")
     return (_positive_int(layers, "lc_cluster_max_wisps", MAX_WISPS),
-            _positive_int(layers, "lc_cluster_max_couplings", MAX_COUPLINGS))
+            _positive_int(layers, "lc_cluster_max_blocks", MAX_BLOCKS), captured)

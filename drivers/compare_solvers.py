@@ -2,7 +2,8 @@
 
   mpiexec -n P python drivers/compare_solvers.py [--wisps 250 500 1000 2000]
       [--sets default mumps_cholesky ...] [--sets-dir configs/solvers] [--budget 60]
-      [--frames 1] [--systems N] [--repeats 1] [--config SCENE.toml] [--no-head-contact]
+      [--frames 1] [--skip-frames 0] [--systems N] [--repeats 1] [--config SCENE.toml]
+      [--no-head-contact]
       [--strand-contact] [--no-reference]
       [--skip-after-budget]
       [--out out/compare_solvers] [PETSc options ...]
@@ -11,7 +12,8 @@ For each hairball size (or the scene of ``--config``; ``--wisps`` then sets
 ``scene.n_wisps``), the simulator runs ``--frames`` frames with its own solver while every
 Newton system (matrix + right-hand side) is recorded; every option set
 (``configs/solvers/*.opts``: drop a file there to add one) then solves exactly those
-systems.  Reported per set: setup and solve time, Krylov iterations, converged reason,
+systems (``--skip-frames K``: after K frames run unrecorded, e.g. to reach the
+contact of a later frame).  Reported per set: setup and solve time, Krylov iterations, converged reason,
 true relative residual, error against a MUMPS LU solve of the same system, RSS growth.
 A set that exceeds ``--budget`` seconds (per size) is stopped and reported as such.
 ``--repeats N`` replays every set N times on the same systems (the sets interleaved, so
@@ -57,6 +59,8 @@ def main(argv=None):
     ap.add_argument("--sets-dir", default=str(ROOT / "configs" / "solvers"))
     ap.add_argument("--budget", type=float, default=60.0, help="seconds per set and size")
     ap.add_argument("--frames", type=int, default=1, help="frames recorded (3 systems each)")
+    ap.add_argument("--skip-frames", type=int, default=0,
+                    help="frames run before the recorded ones (not recorded)")
     ap.add_argument("--systems", type=int, default=None,
                     help="record only the first N Newton systems (e.g. 1 to let a slow set "
                          "run to convergence on one system within the budget)")
@@ -86,10 +90,11 @@ def main(argv=None):
     cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)
     run_comparison(lambda n: hairball_config(base, n), args.wisps, sets, comm, args.out,
                    budget_s=args.budget, frames=args.frames, reference=not args.no_reference,
-                   repeats=args.repeats, max_systems=args.systems,
+                   repeats=args.repeats, max_systems=args.systems, skip_frames=args.skip_frames,
                    skip_after_budget=args.skip_after_budget,
                    log=lambda *a: (log(*a), sys.stdout.flush()),
                    meta={"command": cmd, "sets": sets, "repeats": args.repeats,
+                         "config": args.config,
                          "head_contact": not args.no_head_contact, "strand_contact": args.strand_contact})
     log(f"wrote {args.out}/table.md, summary.csv, rows.csv, results.json"
         + (", time_vs_wisps.png" if len(set(args.wisps)) > 1 else ""))

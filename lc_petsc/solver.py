@@ -53,6 +53,7 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
+from lc_petsc.contact_pc import ClusterPC
 from lc_petsc.errors import SolverError
 from lc_petsc.petsc_capi import bjacobi_set_local_blocks
 from lc_petsc.solver_plan import DEFAULTS, SolverPlan
@@ -89,6 +90,11 @@ class LinearSolver:
             elif self.wisp_blocks == "fused":
                 bjacobi_set_local_blocks(pc, [int(np.sum(wisp_rows))])
             ksp.setFromOptions()
+            self.clusters = None
+            if plan.contact_pc == "clusters":     # the per-wisp blocks grown into clusters
+                self.clusters = ClusterPC(wisp_rows, *plan.cluster_caps)
+                pc.setType(PETSc.PC.Type.PYTHON)
+                pc.setPythonContext(self.clusters)
         self.iterations: list[int] = []
         self.reasons: list[str] = []
         self.rtol = float(ksp.getTolerances()[0])
@@ -99,6 +105,8 @@ class LinearSolver:
         pc = self.ksp.getPC()
         A, P = self.ksp.getOperators()
         blocks = f" -lc_wisp_blocks {self.wisp_blocks}" if self.wisp_blocks else ""
+        if self.clusters is not None:
+            blocks = " -lc_contact_pc clusters (lc_petsc/contact_pc.py)"
         return (f"-ksp_type {self.ksp.getType()} -pc_type {pc.getType()}{blocks} "
                 f"-mat_type {A.getType()} (preconditioner built from {P.getType()}) "
                 f"(options: {self.plan.effective()})")

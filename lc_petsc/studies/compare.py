@@ -29,14 +29,15 @@ SUMMARY_COLUMNS = ["wisps", "dofs", "ranks", "set", "status", "n_systems", "n_ok
                    "rss_delta_mib", "set_peak_mib", "budget_s", "message"]
 
 
-def record(config, comm, frames=1, max_systems=None):
-    """Run ``frames`` frames of ``config`` with the simulator's own solver, recording
-    every Newton system.  Returns (systems, wisp_rows, info)."""
+def record(config, comm, frames=1, max_systems=None, skip_frames=0):
+    """Run ``skip_frames`` + ``frames`` frames of ``config`` with the simulator's own
+    solver, recording every Newton system of the last ``frames``.  Returns (systems,
+    wisp_rows, info)."""
     sim = build_simulator(config, comm)
-    rec = SystemRecorder(sim, max_systems=max_systems)
+    rec = SystemRecorder(sim, max_systems=max_systems, first_frame=skip_frames)
     t0 = time.perf_counter()
     try:
-        sim.run(frames)
+        sim.run(skip_frames + frames)
         info = {"wisps": sim.n_wisps, "dofs": 3 * sim.n_vertices, "ranks": comm.size,
                 "record_wall_s": time.perf_counter() - t0,
                 "sim_ksp_iterations": list(sim.solver.iterations),
@@ -141,9 +142,10 @@ def details_table(summary):
 
 def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frames=1,
                    max_systems=None, reference=True, log=print, meta=None,
-                   skip_after_budget=False, repeats=1):
+                   skip_after_budget=False, repeats=1, skip_frames=0):
     """The whole study: for each size, record once, replay with each set (``repeats``
-    times, the sets interleaved; summaries report median times); write
+    times, the sets interleaved; summaries report median times; the first
+    ``skip_frames`` frames run unrecorded); write
     ``rows.csv``, ``summary.csv``, ``results.json``, ``table.md`` and (with more than
     one size) ``time_vs_wisps.png`` into ``out_dir`` (rank 0).  Returns the summary."""
     out = Path(out_dir)
@@ -152,7 +154,8 @@ def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frame
     rows, infos = [], []
     for n in sizes:
         cfg = make_config(n)
-        systems, wisp_rows, info = record(cfg, comm, frames=frames, max_systems=max_systems)
+        systems, wisp_rows, info = record(cfg, comm, frames=frames, max_systems=max_systems,
+                                          skip_frames=skip_frames)
         infos.append(info)
         log(f"[{n} wisps] {info['dofs']} DoFs: recorded {len(systems)} Newton systems in "
             f"{info['record_wall_s']:.2f} s (simulator's KSP iterations {info['sim_ksp_iterations']}"
@@ -187,6 +190,7 @@ def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frame
         report.write_csv(rows, out / "rows.csv", ROW_COLUMNS)
         report.write_csv(summary, out / "summary.csv", SUMMARY_COLUMNS)
         report.write_json({"meta": dict(meta or {}, budget_s=budget_s, frames=frames,
+                                        skip_frames=skip_frames,
                                         peak_rss_mib_rank0=peak_rss_mib()),
                            "scenes": infos, "summary": summary, "rows": rows},
                           out / "results.json")

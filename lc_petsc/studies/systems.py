@@ -3,8 +3,8 @@
 :class:`SystemRecorder` wraps ``sim.solver.solve`` from outside (no core change): at
 every Newton solve it copies the operator (``sim.assembler.mat``, the recorded matrix
 type, BAIJ by default) and the right-hand side, plus the frame's start positions (for
-GAMG's rigid-body near-null space) and, with strand contact, the strand matrix alone (the
-simulator's preconditioning matrix).  :func:`replay` then solves exactly those systems
+GAMG's rigid-body near-null space) and, with strand contact, the strand matrix A and the
+contact matrix C apart (besides their assembled sum).  :func:`replay` then solves exactly those systems
 with one option set (``configs/solvers/*.opts``), timing setup and solve separately,
 so that differences between sets are the solver's alone.
 
@@ -15,7 +15,10 @@ database only while its solver uses them, so no set sees another's), the KSP is
 the matrix types are the plan's.  One persistent
 operator per set is refilled for each system (``MatCopy`` with the same nonzero
 pattern), so a direct solver's symbolic factorisation is reused across systems as it
-would be in a run.
+would be in a run.  With strand contact the replay builds the operators the simulator
+builds (:meth:`lc_petsc.contact.StrandContact.system`): for ``-lc_contact_pc strands``
+and ``clusters`` the Python-shell operator A x + C x over the strand matrix A, which is
+also the preconditioning matrix (or its AIJ copy); for ``coupled`` the assembled sum.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from pathlib import Path
 import numpy as np
 from petsc4py import PETSc
 
+from lc_petsc.contact import SumOperator
 from lc_petsc.parallel import global_max, global_min
 from lc_petsc.solver import LinearSolver, reason_name
 from lc_petsc.solver_plan import SolverPlan, base_type
@@ -46,22 +50,26 @@ class RecordedSystem:
     newton_it: int
     coupled: bool = False       # strand contact couples wisps: the pattern varies
     # coupled systems: the strand matrix without the contact matrix C, i.e. the
-    # simulator's preconditioning matrix (no entry couples two wisps)
+    # simulator's preconditioning matrix (no entry couples two wisps), and C
     wisp_local: PETSc.Mat | None = None
+    C: PETSc.Mat | None = None
 
 
 class SystemRecorder:
-    """Copy every Newton system ``sim`` solves (up to ``max_systems``)."""
+    """Copy every Newton system ``sim`` solves (up to ``max_systems``) from frame
+    ``first_frame`` on."""
 
-    def __init__(self, sim, max_systems=None):
+    def __init__(self, sim, max_systems=None, first_frame=0):
         self.sim = sim
         self.max_systems = max_systems
+        self.first_frame = int(first_frame)
         self.systems: list[RecordedSystem] = []
         self.wisp_rows = 3 * np.diff(sim.scene.offsets)
         self._orig = sim.solver.solve
 
         def solve(b, x, frame, newton_it):
-            if self.max_systems is None or len(self.systems) < self.max_systems:
+            if frame >= self.first_frame and (self.max_systems is None
+                                              or len(self.systems) < self.max_systems):
                 A = sim.assembler.mat.copy()
                 # strand contact: the simulator's operator is the shell A + C (C the
                 # contact matrix, coupling wisps); record the assembled sum, and A alone
@@ -71,9 +79,10 @@ class SystemRecorder:
                 if C is not None:
                     wisp_local = A.copy()
                     A.axpy(1.0, C, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+                    C = C.copy()
                 self.systems.append(RecordedSystem(
                     A, b.copy(), np.array(sim.integrator.x, float), int(frame), int(newton_it),
-                    coupled=C is not None, wisp_local=wisp_local))
+                    coupled=C is not None, wisp_local=wisp_local, C=C))
             return self._orig(b, x, frame, newton_it)
 
         sim.solver.solve = solve
@@ -91,7 +100,7 @@ class SystemRecorder:
 def destroy_systems(systems):
     """Destroy the PETSc objects of ``systems``."""
     for s in systems:
-        for m in (s.A, s.b, s.wisp_local):
+        for m in (s.A, s.b, s.wisp_local, s.C):
             if m is not None:
                 m.destroy()
 
@@ -200,21 +209,11 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
     except ValueError as e:
         return [dict(base, system=i, status="error", message=str(e)) for i in range(len(systems))]
 
-    def pmat_of(s):
-        """The preconditioning matrix of system ``s`` (None: the operator).  The per-wisp
-        block Jacobi gets the strand matrix without the contact matrix, as in the
-        simulator (``fused`` requires it; ``separate`` extracts the same blocks anyway)."""
-        if wisp_blocks and s.wisp_local is not None:
-            return _convert(s.wisp_local, pmat_type or mat_type)
-        return _convert(s.A, pmat_type) if pmat_type else None
-
-    mat_type, pmat_type, wisp_blocks = plan.mat_type, plan.pmat_type, plan.wisp_blocks
     comm.Barrier()
     exact_memory = global_min(comm, int(start_memory_window())) == 1
     rss0_local = current_rss_mib()
     rss0 = global_max(comm, rss0_local)
-    A = _convert(systems[0].A, mat_type)
-    P = pmat_of(systems[0])
+    A, P, owned = _operators(systems[0], plan)
     ls = None
     spent = 0.0
     t_start = [0.0]
@@ -225,7 +224,7 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
                                       comm=A.getComm())
             c.array[:] = systems[0].coords.ravel()
             near_null = PETSc.NullSpace().createRigidBody(c)
-            A.setNearNullSpace(near_null)
+            (A if P is None else P).setNearNullSpace(near_null)
             c.destroy()
         t0 = time.perf_counter()
         try:
@@ -247,24 +246,23 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
         stopped = None
         for i, s in enumerate(systems):
             row = dict(base, system=i, frame=s.frame, newton_it=s.newton_it,
-                       mat_type=A.getType(), dofs=A.getSize()[0])
+                       mat_type=(P if A.getType() == PETSc.Mat.Type.PYTHON else A).getType(),
+                       dofs=A.getSize()[0])
             if stopped is not None:
                 rows.append(dict(row, status="budget", message=stopped))
                 continue
             if i > 0 and any(x.coupled for x in systems):
                 # contact changes the pattern from system to system: new operators
                 # (direct solvers redo their symbolic factorisation, as they must)
-                newA = _convert(s.A, mat_type)
-                newP = pmat_of(s)
+                newA, newP, new_owned = _operators(s, plan)
                 if near_null is not None:
-                    newA.setNearNullSpace(near_null)
+                    (newA if newP is None else newP).setNearNullSpace(near_null)
                 ksp.setOperators(newA, newA if newP is None else newP)
-                A.destroy()
-                if P is not None:
-                    P.destroy()
-                A, P = newA, newP
+                for M in owned:
+                    M.destroy()
+                A, P, owned = newA, newP, new_owned
             elif i > 0:   # refill the persistent operator(s): same pattern, new values
-                for M, t in ((A, mat_type), (P, pmat_type)):
+                for M, t in ((A, plan.mat_type), (P, plan.pmat_type)):
                     if M is not None:
                         src = _convert(s.A, t)
                         src.copy(M, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
@@ -325,7 +323,22 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
     finally:
         if ls is not None:
             ls.destroy()
-        A.destroy()
-        if P is not None:
-            P.destroy()
+        for M in owned:
+            M.destroy()
     return rows
+
+
+def _operators(s, plan):
+    """(operator, preconditioning matrix or None for the operator, matrices to destroy)
+    of the recorded system ``s`` as the simulator builds them (module doc)."""
+    if s.coupled and plan.contact_pc in ("strands", "clusters"):
+        A = _convert(s.wisp_local, plan.mat_type)
+        ctx = SumOperator(A)
+        ctx.C = _convert(s.C, plan.mat_type)
+        op = PETSc.Mat().createPython(A.getSizes(), context=ctx, comm=A.getComm())
+        op.setUp()
+        P = _convert(s.wisp_local, plan.pmat_type) if plan.pmat_type else A
+        return op, P, [op, A, ctx.C] + ([P] if P is not A else [])
+    op = _convert(s.A, plan.mat_type)
+    P = _convert(s.A, plan.pmat_type) if plan.pmat_type else None
+    return op, P, [op] + ([P] if P is not None else [])

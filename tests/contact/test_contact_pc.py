@@ -1,0 +1,240 @@
+"""The contact-aware preconditioner (-lc_contact_pc clusters, lc_petsc/contact_pc.py) and
+MUMPS's ordering default: clustering against a brute-force reference, the preconditioner
+against dense solves of its cluster blocks, SPD, the fallback, plan errors, both contact
+preconditioners on a run, and rank invariance of the solve (mpi)."""
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import lc_petsc.simulator as simmod
+from lc_petsc.contact_pc import cluster_labels, wisp_couplings
+from lc_petsc.errors import ConfigError
+from lc_petsc.solver_plan import SolverPlan
+from sim_helpers import touching_wisps_config, touching_wisps_source
+
+
+def brute_force_clusters(n, pairs, weights, counts, max_wisps, max_blocks):
+    """The greedy merge with explicit sets (the reference of cluster_labels)."""
+    member = {w: {w} for w in range(n)}
+    blocks = {w: 0 for w in range(n)}
+    for e in sorted(range(len(pairs)), key=lambda e: (-weights[e], e)):
+        a, b = (min(member[w]) for w in pairs[e])
+        if a == b:
+            blocks[a] += counts[e]
+            continue
+        if len(member[a]) + len(member[b]) > max_wisps or blocks[a] + blocks[b] + counts[e] > max_blocks:
+            continue
+        merged = member[a] | member[b]
+        total = blocks[a] + blocks[b] + counts[e]
+        for w in merged:
+            member[w] = merged
+        blocks[min(merged)] = total
+    return np.array([min(member[w]) for w in range(n)])
+
+
+@pytest.mark.parametrize("max_wisps, max_blocks", [(10 ** 6, 10 ** 9), (4, 10 ** 9), (64, 40), (3, 25)])
+def test_clusters_equal_brute_force(max_wisps, max_blocks):
+    rng = np.random.default_rng(3)
+    n = 60
+    pairs = np.unique(np.sort(rng.integers(0, n, (150, 2)), axis=1), axis=0)
+    pairs = pairs[pairs[:, 0] < pairs[:, 1]]
+    weights = rng.choice([1.0, 2.0, 3.0], len(pairs))          # ties on purpose
+    counts = rng.integers(1, 12, len(pairs))
+    got = cluster_labels(n, pairs, weights, counts, max_wisps, max_blocks)
+    ref = brute_force_clusters(n, pairs, weights, counts, max_wisps, max_blocks)
+    np.testing.assert_array_equal(got, ref)
+    sizes = np.bincount(got, minlength=n)
+    assert sizes.max() <= max_wisps
+    if max_wisps > n and max_blocks > counts.sum():     # no cap: the connected components
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+        g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        _, comp = connected_components(g, directed=False)
+        assert len(np.unique(comp)) == len(np.unique(got))
+        for c in np.unique(comp):
+            assert len(np.unique(got[comp == c])) == 1
+    else:
+        assert sizes.max() > 1      # the caps still let some clusters form
+
+
+def test_wisp_couplings_sums_blocks_per_wisp_pair():
+    # 4 vertices: wisps 0 (v0, v1), 1 (v2), 2 (v3); blocks (0,2) (1,2) (2,0) (2,1) (1,3) (3,1)
+    ia = np.array([0, 1, 3, 5, 6])
+    ja = np.array([2, 2, 3, 0, 1, 1])
+    blocks = np.arange(6, dtype=float)[:, None, None] * np.eye(3)
+    pairs, w, counts = wisp_couplings(ia, ja, blocks, np.array([0, 0, 1, 2]))
+    np.testing.assert_array_equal(pairs, [[0, 1], [0, 2]])
+    np.testing.assert_allclose(w, [np.sqrt(3) * (0 + 1), np.sqrt(3) * 2])
+    np.testing.assert_array_equal(counts, [2, 1])
+
+
+def dense(M):
+    D = M.convert("dense", PETSc.Mat())
+    try:
+        return D.getDenseArray().copy()
+    finally:
+        D.destroy()
+
+
+def one_frame(monkeypatch, options, comm=MPI.COMM_SELF):
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: touching_wisps_source())
+    sim = simmod.build_simulator(touching_wisps_config(1, options=options), comm=comm)
+    sim.run()
+    return sim
+
+
+def test_cluster_pc_is_the_exact_inverse_of_its_cluster_blocks(monkeypatch):
+    sim = one_frame(monkeypatch, "-ksp_rtol 1e-12 -lc_contact_pc clusters")
+    try:
+        pc = sim.solver.ksp.getPC()
+        ctx = sim.solver.clusters
+        assert pc.getType() == "python" and ctx.stats["clusters"] >= 1, ctx.stats
+        op, _ = sim.solver.ksp.getOperators()
+        A, C = dense(op.getPythonContext().A), dense(op.getPythonContext().C)
+        K = A + C
+        wisp = ctx.vertex_wisp.repeat(3)
+        # the clusters of the last set-up, from the PC's own rows
+        in_cluster = np.zeros(len(K), bool)
+        in_cluster[ctx.dofs] = True
+        rng = np.random.default_rng(0)
+        r = rng.standard_normal(len(K))
+        x, y = op.createVecs()
+        x.array[:] = r
+        pc.apply(x, y)
+        got = y.array.copy()
+        # singleton wisps: their block of A (the contact cross blocks never touch them)
+        for w in np.unique(wisp[~in_cluster]):
+            i = np.flatnonzero(wisp == w)
+            np.testing.assert_allclose(got[i], np.linalg.solve(A[np.ix_(i, i)], r[i]),
+                                       rtol=1e-9, atol=1e-14 * np.abs(got).max())
+        # clusters: the dense solve of the cluster's block of A + C (cluster = the wisps
+        # coupled to each other inside the cluster rows)
+        i = np.flatnonzero(in_cluster)
+        sub = K[np.ix_(i, i)]
+        np.testing.assert_allclose(got[i], np.linalg.solve(sub, r[i]), rtol=1e-8,
+                                   atol=1e-12 * np.abs(got[i]).max())
+        # P is SPD: the dense preconditioning matrix built from the same rule
+        P = A.copy()
+        P[np.ix_(i, i)] = sub
+        assert np.abs(P - P.T).max() <= 1e-12 * np.abs(P).max()
+        assert np.linalg.eigvalsh(P).min() > 0
+        # and applying it is symmetric: u . P^-1 v == v . P^-1 u
+        u, v = rng.standard_normal((2, len(K)))
+        Pu, Pv = [], []
+        for vec, out in ((u, Pu), (v, Pv)):
+            x.array[:] = vec
+            pc.apply(x, y)
+            out.append(y.array.copy())
+        assert abs(u @ Pv[0] - v @ Pu[0]) <= 1e-10 * abs(u @ Pv[0])
+        # a control: the couplings matter (the per-wisp inverse is not the cluster one)
+        assert np.abs(C[np.ix_(i, i)]).max() > 0
+        x.destroy()
+        y.destroy()
+    finally:
+        sim.close()
+
+
+def test_both_contact_preconditioners_same_trajectory_clusters_cut_iterations(monkeypatch):
+    runs = {}
+    for mode in ("strands", "clusters"):
+        sim = one_frame(monkeypatch, f"-ksp_rtol 1e-12 -ksp_max_it 5000 -lc_contact_pc {mode}")
+        try:
+            sim.run(2)
+            runs[mode] = (sim.gather_positions(), list(sim.solver.iterations),
+                          sim.summary()["contact"]["pairs_per_frame"])
+        finally:
+            sim.close()
+    (xs, its_s, pairs_s), (xc, its_c, pairs_c) = runs["strands"], runs["clusters"]
+    assert pairs_s == pairs_c and sum(pairs_c) > 0
+    assert np.abs(xs - xc).max() <= 1e-8 * np.abs(xs).max()
+    assert max(its_c) <= 2, its_c     # exact: every coupled wisp in a cluster on one rank (rtol 1e-12)
+    assert min(its_s[1:]) > 10, its_s       # control: blind to the couplings
+
+
+def test_fallback_keeps_the_per_wisp_blocks(monkeypatch):
+    # at most 2 wisps per cluster leaves couplings out; asking clusters to hold all of
+    # the coupling weight makes the set-up fall back to the per-wisp blocks
+    sim = one_frame(monkeypatch, "-ksp_rtol 1e-12 -lc_contact_pc clusters "
+                                 "-lc_cluster_max_wisps 2 -lc_cluster_min_captured 1")
+    try:
+        st = sim.solver.clusters.stats
+        assert st["fallback"] and st["clusters"] == 0 and st["captured"] < 1.0, st
+        assert sim.solver.clusters.cluster is None
+        assert sim.solver.iterations[-1] > 10      # the last solve ran with the fallback
+    finally:
+        sim.close()
+    sim = one_frame(monkeypatch, "-ksp_rtol 1e-12 -lc_contact_pc clusters -lc_cluster_max_wisps 2 "
+                                 "-lc_cluster_min_captured 0")
+    try:
+        st = sim.solver.clusters.stats
+        assert not st["fallback"] and st["clusters"] >= 1 and st["largest"] <= 2, st
+    finally:
+        sim.close()
+
+
+@pytest.mark.parametrize("options, match", [
+    ("-lc_contact_pc tiles", "use coupled"),
+    ("-lc_contact_pc clusters -pc_type gamg", "cannot be combined with -pc_type gamg"),
+    ("-lc_contact_pc clusters -ksp_type preonly", "preonly"),
+    ("-lc_contact_pc clusters -mat_type aij", "BAIJ"),
+    ("-lc_contact_pc clusters -lc_wisp_blocks separate", "sets the block Jacobi blocks"),
+    ("-lc_contact_pc clusters -lc_cluster_max_wisps 0", "whole number >= 1"),
+    ("-lc_contact_pc clusters -lc_cluster_max_blocks 2.5", "whole number >= 1"),
+    ("-lc_contact_pc clusters -lc_cluster_min_captured 1.5", "from 0"),
+])
+def test_plan_refuses_bad_cluster_options(options, match):
+    with pytest.raises(ConfigError, match=match):
+        SolverPlan.resolve(options, strand_contact=True)
+
+
+def test_plan_cluster_caps_and_mumps_ordering_default():
+    plan = SolverPlan.resolve("-lc_contact_pc clusters -lc_cluster_max_wisps 8", strand_contact=True)
+    assert plan.contact_pc == "clusters" and plan.cluster_caps == (8, 1024, 0.9)
+    assert plan.pmat_type is None               # the strand matrix itself, no AIJ copy
+    assert SolverPlan.resolve("", strand_contact=True).cluster_caps is None
+    mumps = "-ksp_type preonly -pc_type cholesky -pc_factor_mat_solver_type mumps"
+    assert SolverPlan.resolve(mumps).sub_solver["mat_mumps_icntl_7"] == "2"
+    assert "mat_mumps_icntl_7" not in SolverPlan.resolve("").sub_solver
+    # the config's (or command line's) choice wins over the code default
+    plan = SolverPlan.resolve(mumps + " -mat_mumps_icntl_7 5")
+    assert plan.effective()["mat_mumps_icntl_7"] == "5"
+
+
+def test_mumps_runs_with_amf_unless_told_otherwise(monkeypatch):
+    mumps = "-ksp_type preonly -pc_type cholesky -pc_factor_mat_solver_type mumps"
+    for extra, expected in (("", 2), (" -mat_mumps_icntl_7 0", 0)):
+        sim = one_frame(monkeypatch, mumps + extra)
+        try:
+            F = sim.solver.ksp.getPC().getFactorMatrix()
+            assert F.getMumpsIcntl(7) == expected
+        finally:
+            sim.close()
+
+
+@pytest.mark.mpi
+def test_cluster_solve_rank_invariant(monkeypatch):
+    comm = MPI.COMM_WORLD
+    options = "-ksp_rtol 1e-13 -ksp_max_it 5000 -lc_contact_pc clusters"
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: touching_wisps_source())
+    sim = simmod.build_simulator(touching_wisps_config(2, options=options), comm=comm)
+    try:
+        sim.run()
+        X = sim.gather_positions()
+        its = sim.solver.iterations
+    finally:
+        sim.close()
+    ok, msg = True, ""
+    if comm.rank == 0:
+        ref = simmod.build_simulator(touching_wisps_config(2, options=options), comm=MPI.COMM_SELF)
+        try:
+            ref.run()
+            R = ref.gather_positions()
+        finally:
+            ref.close()
+        err = float(np.abs(X - R).max() / np.abs(R).max())
+        ok = err <= 1e-9 and max(its) <= (2 if comm.size == 1 else 60)
+        msg = f"{comm.size} ranks: relative difference {err:.2e}, CG iterations {its}"
+    ok, msg = comm.bcast((ok, msg))
+    assert ok, msg

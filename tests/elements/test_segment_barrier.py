@@ -156,3 +156,26 @@ def test_penalty_matched_stiffness_equals_the_penalty_force_at_half_thickness():
     kappa = sb.penalty_matched_stiffness(k)
     b1 = sb.barrier(np.array([DHAT / 2]), DHAT, kappa)[1][0]
     assert -b1 == pytest.approx(k * DHAT / 2, rel=1e-12)
+
+
+def test_gradient_and_exact_hessian_against_ipc_toolkit():
+    """IPC Toolkit's edge-edge squared distance with its derivatives and its barrier's
+    scalar derivatives (independent code): b'(d) grad d and
+    b''(d) grad d grad d^T + b'(d) Hess d with d = sqrt(D), grad d = grad D / (2 d),
+    Hess d = (Hess D / 2 - grad d grad d^T) / d."""
+    ipctk = pytest.importorskip("ipctk")
+    rng = np.random.default_rng(4)
+    X = np.concatenate([crossing_pairs(8, rng, gap=0.08, jitter=0.05), vertex_edge_pairs(4, rng)])
+    g = sb.gradient(X, DHAT, KAPPA).reshape(len(X), 12)
+    H = sb.hessian(X, DHAT, KAPPA, filter="none")
+    for k, (a0, a1, b0, b1) in enumerate(X):
+        kind = ipctk.edge_edge_distance_type(a0, a1, b0, b1)
+        d = np.sqrt(ipctk.edge_edge_distance(a0, a1, b0, b1, kind))
+        gd = ipctk.edge_edge_distance_gradient(a0, a1, b0, b1, kind) / (2 * d)
+        hd = (ipctk.edge_edge_distance_hessian(a0, a1, b0, b1, kind) / 2 - np.outer(gd, gd)) / d
+        p1 = KAPPA * ipctk.barrier_first_derivative(d, DHAT)
+        p2 = KAPPA * ipctk.barrier_second_derivative(d, DHAT)
+        assert sb.energy(X[k:k + 1], DHAT, KAPPA)[0] == pytest.approx(KAPPA * ipctk.barrier(d, DHAT), rel=1e-12)
+        np.testing.assert_allclose(g[k], p1 * gd, rtol=0, atol=1e-11 * np.abs(g[k]).max())
+        np.testing.assert_allclose(H[k], p2 * np.outer(gd, gd) + p1 * hd, rtol=0,
+                                   atol=1e-10 * np.abs(H[k]).max())

@@ -26,6 +26,8 @@ SCENE_KINDS = ("wisp4c", "hairball", "straight", "file", "usd")
 PERTURBATIONS = ("none", "smash", "jitter", "straighten")
 STRAND_CONTACT_MODES = ("penalty", "ccd")
 STRAND_REST_OVERLAP = ("error", "exempt")
+#: physics.strand_contact_potential: the penalty 1/2 k (d0 - d)^2 or the IPC log barrier
+STRAND_CONTACT_POTENTIALS = ("penalty", "barrier")
 #: terms with element kernels (lc_petsc/elements), in assembly order
 ELASTIC_TERMS = ("stretch", "bend", "twist")
 #: terms evaluated per vertex or per contact pair
@@ -207,6 +209,12 @@ class PhysicsConfig:
     # ccd mode: rest-pose pairs of different wisps closer than d0 stop the run ("error")
     # or are exempt from contact ("exempt", as in penalty mode)
     strand_rest_overlap: str = "error"
+    # the contact energy on the pair distance d: "penalty" 1/2 k (d0 - d)^2, or "barrier"
+    # -kappa (d - d0)^2 ln(d / d0) (IPC's, infinite at d = 0; needs strand_contact_mode =
+    # "ccd"), kappa = strand_barrier_stiffness (dyn/cm; None: strand_stiffness / (1 + 2 ln 2),
+    # the barrier's force then equals the penalty's at d = d0 / 2); docs/contact.md, "Barrier"
+    strand_contact_potential: str = "penalty"
+    strand_barrier_stiffness: Optional[float] = None
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
@@ -243,6 +251,17 @@ class PhysicsConfig:
         if self.strand_rest_overlap not in STRAND_REST_OVERLAP:
             raise ConfigError(f"physics.strand_rest_overlap must be one of {STRAND_REST_OVERLAP}, "
                               f"got {self.strand_rest_overlap!r}")
+        if self.strand_contact_potential not in STRAND_CONTACT_POTENTIALS:
+            raise ConfigError(f"physics.strand_contact_potential must be one of "
+                              f"{STRAND_CONTACT_POTENTIALS}, got {self.strand_contact_potential!r}")
+        if self.strand_contact_potential == "barrier" and self.strand_contact_mode != "ccd" and \
+                "strand_collision" in terms:
+            raise ConfigError("physics.strand_contact_potential = \"barrier\" needs "
+                              "physics.strand_contact_mode = \"ccd\" (the barrier is infinite where "
+                              "segments touch, and only the ccd limiter keeps every step "
+                              f"collision-free); got strand_contact_mode = {self.strand_contact_mode!r}")
+        if self.strand_barrier_stiffness is not None:
+            _positive("physics.strand_barrier_stiffness", self.strand_barrier_stiffness)
 
 
 #: Newton's first iterate: x_n + dt v_n, or that projected onto the rest edge lengths.
@@ -562,6 +581,11 @@ _CONDITIONAL_KEYS = {
                                       "'strand_collision' in physics.terms"),
     ("physics", "strand_separation"): (lambda c: "strand_collision" in c.physics.terms,
                                        "'strand_collision' in physics.terms"),
+    ("physics", "strand_contact_potential"): (lambda c: "strand_collision" in c.physics.terms,
+                                              "'strand_collision' in physics.terms"),
+    ("physics", "strand_barrier_stiffness"): (
+        lambda c: "strand_collision" in c.physics.terms and c.physics.strand_contact_potential == "barrier",
+        "'strand_collision' in physics.terms and physics.strand_contact_potential = 'barrier'"),
 }
 
 

@@ -50,10 +50,12 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.crossings import ball_pairs
-from lc_petsc.elements import compiled_ccd, segment_ccd, segment_contact
+from lc_petsc.elements import compiled_ccd, segment_barrier, segment_ccd, segment_contact
 from lc_petsc.parallel import collectively, global_min, global_reduce
 
 MODES = ("penalty", "ccd")
+#: the contact energy on the pair distance: kernel module by name (same call signatures)
+POTENTIALS = {"penalty": segment_contact, "barrier": segment_barrier}
 #: limiter rounds that shrink the step fractions by the pairs' safe fractions before
 #: the rounds that stop the offending vertices outright (limit_step)
 SCALE_ROUNDS = 8
@@ -179,11 +181,15 @@ class StrandContact:
 
     ``comm``: mpi4py communicator; ``pcomm``: the PETSc one (same group).
     ``thickness`` d0 (cm), ``stiffness`` k (dyn/cm), ``filter`` the Hessian filter of
-    :mod:`segment_contact` (``analytic`` = Gauss-Newton).
+    :mod:`segment_contact` (``analytic`` = Gauss-Newton).  ``potential``: ``penalty``
+    (:mod:`segment_contact`) or ``barrier`` (:mod:`segment_barrier`, ccd mode only, its
+    stiffness ``barrier_stiffness``, default
+    :func:`segment_barrier.penalty_matched_stiffness` of k).
     """
 
     def __init__(self, scene, comm, pcomm, timers, thickness, stiffness, filter="analytic",
-                 mat_type="baij", coupled_pc=True, mode="penalty", min_separation=0.25):
+                 mat_type="baij", coupled_pc=True, mode="penalty", min_separation=0.25,
+                 potential="penalty", barrier_stiffness=None):
         if scene.bandwidth < 1:
             raise ValueError("strand_collision needs the stretch term (the contact blocks of a "
                              "segment live in the strand band); add 'stretch' to physics.terms")
@@ -219,6 +225,18 @@ class StrandContact:
         if mode not in MODES:
             raise ValueError(f"strand contact mode {mode!r}: use one of {', '.join(MODES)}")
         self.mode, self.min_separation = mode, float(min_separation)
+        if potential not in POTENTIALS:
+            raise ValueError(f"strand contact potential {potential!r}: use one of {', '.join(POTENTIALS)}")
+        if potential == "barrier" and mode != "ccd":
+            raise ValueError("the barrier potential needs mode 'ccd' (collision-free steps: the "
+                             "barrier is infinite where segments touch)")
+        self.potential, self.kernel = potential, POTENTIALS[potential]
+        self.barrier_stiffness = None
+        if potential == "barrier":
+            self.barrier_stiffness = float(segment_barrier.penalty_matched_stiffness(self.k)
+                                           if barrier_stiffness is None else barrier_stiffness)
+        #: the stiffness the potential's kernel takes (k or kappa)
+        self.kernel_stiffness = self.k if potential == "penalty" else self.barrier_stiffness
         # ccd mode (see limit_step): per-vertex step fractions, in a Vec by global vertex
         self.step_fraction = self.shrink = None
         if mode == "ccd":
@@ -544,7 +562,7 @@ class StrandContact:
         with self.timers("collision"):
             with collectively(self.comm, "strand contact (energy)"):
                 X = self._pairs(x)[0]
-                e = float(segment_contact.energy(X, self.d0, self.k).sum()) if len(X) else 0.0
+                e = float(self.kernel.energy(X, self.d0, self.kernel_stiffness).sum()) if len(X) else 0.0
             return self.comm.allreduce(e)
 
     def start_frame(self):
@@ -647,7 +665,7 @@ class StrandContact:
             with collectively(self.comm, "strand contact"):
                 X, gA, gB, fA, fB, oA, oB, d = self._pairs(x)
                 m = len(X)
-                g, H = segment_contact.gradient_hessian(X, self.d0, self.k, filter=self.filter) \
+                g, H = self.kernel.gradient_hessian(X, self.d0, self.kernel_stiffness, filter=self.filter) \
                     if m else (np.zeros((0, 4, 3)), np.zeros((0, 12, 12)))
                 free = np.concatenate([fA, fB], axis=1)                          # (m, 4)
                 pin = np.flatnonzero(~free.all(axis=1))

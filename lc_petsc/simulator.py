@@ -180,6 +180,8 @@ class Simulator:
             "min_distance_per_frame": [None if not np.isfinite(d) else d for d in dmin],
             "min_distance": float(min(dmin)) if dmin and np.isfinite(min(dmin)) else None,
             "mode": self.strand.mode,
+            "potential": self.strand.potential,
+            "barrier_stiffness": self.strand.barrier_stiffness,
             # the ccd limiter, per frame: vertices limited (summed over the Newton steps),
             # most rounds of a Newton step, vertices held back on the frame paths, pairs left
             # unresolved, most candidate pairs of a limiter call
@@ -212,7 +214,9 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user=None):
     strand = StrandContact(scene, comm, pcomm, timers, d0, cfg.physics.strand_stiffness,
                            filter=element_filter(cfg.solver.filter), mat_type=mat_type,
                            coupled_pc=plan.contact_pc == "coupled", mode=cfg.physics.strand_contact_mode,
-                           min_separation=cfg.physics.strand_min_separation)
+                           min_separation=cfg.physics.strand_min_separation,
+                           potential=cfg.physics.strand_contact_potential,
+                           barrier_stiffness=cfg.physics.strand_barrier_stiffness)
     if cfg.physics.strand_contact_mode == "ccd":
         report = check_rest_pose(strand)
         if report.pairs and cfg.physics.strand_rest_overlap == "error":

@@ -2,7 +2,7 @@ r"""Strand contact modes side by side: crossings per frame step, minimum distanc
 per-frame wall time and phases, Newton and CG iterations (prints figures, not a test).
 
     mpiexec -n 2 .venv/bin/python scripts/bench_ccd.py configs/hairball_demo.toml --frames 6 \\
-        --modes penalty ccd [--json out/bench_ccd.json]
+        --modes penalty ccd [ccd+barrier] [--json out/bench_ccd.json]
 
 Runs each mode in turn in the same process (back to back, so the machine's load hits
 both alike) and ends with a table of medians.
@@ -21,9 +21,12 @@ from lc_petsc.timing import timed_frame
 
 
 def run(path, mode, frames):
+    """``mode``: a strand_contact_mode, or mode+potential (``ccd+barrier``)."""
     comm = MPI.COMM_WORLD
     cfg = load_config(path)
-    cfg.physics.strand_contact_mode = mode
+    cfg.physics.strand_contact_mode, _, potential = mode.partition("+")
+    if potential:
+        cfg.physics.strand_contact_potential = potential
     sim = build_simulator(cfg, comm=comm)
     off = sim.wisp_offsets()
     rows = []

@@ -61,7 +61,7 @@ PARALLEL_TOL = 1e-10
 _ZERO_DIST = 1e-14
 
 __all__ = ["FILTERS", "PARALLEL_TOL", "closest_points", "distance", "energy", "gradient",
-           "hessian", "gradient_hessian", "separation"]
+           "hessian", "gradient_hessian", "potential_gradient_hessian", "separation"]
 
 
 def _dot(a, b):
@@ -156,19 +156,37 @@ def gradient_hessian(x, thickness, stiffness, filter="analytic", hessian=True):
     """(gradient (n, 4, 3), Hessian (n, 12, 12) or None) in one pass."""
     check_filter(filter)
     x, d0, k = _prepare(x, thickness, stiffness)
+
+    def derivatives(d, active):
+        gap = np.where(active, d0 - d, 0.0)
+        kk = np.where(active, k, 0.0)
+        return -(kk * gap), kk
+
+    return potential_gradient_hessian(x, d0, derivatives, filter=filter, hessian=hessian)
+
+
+def potential_gradient_hessian(x, d0, derivatives, filter="analytic", hessian=True):
+    """Gradient (n, 4, 3) and Hessian (n, 12, 12) (or None) of a potential Psi(d) of the
+    segment-segment distance d that vanishes for d >= d0 (n,): the chain rule
+    psi'(d) grad d and psi''(d) grad d grad d^T + psi'(d) Hess d, with the filters of the
+    module doc (``analytic``: the first Hessian term only, PSD when psi'' >= 0).
+
+    ``derivatives(d, active)`` gets the distances (n,) and the mask d < d0 and returns
+    (psi', psi'') (n,), zero where not active.  Shared by this penalty and the barrier
+    of :mod:`lc_petsc.elements.segment_barrier`; x must be validated already."""
+    check_filter(filter)
     n_pairs = len(x)
     s, t, u, d, free_s, free_t, parallel = closest_points(x)
     nrm = _normal(x, u, d)
     w = _weights(s, t)
     active = d < d0
-    gap = np.where(active, d0 - d, 0.0)
-    kk = np.where(active, k, 0.0)
+    psi1, psi2 = derivatives(d, active)
     gd = w[:, :, None] * nrm[:, None, :]                      # grad d, (n, 4, 3)
-    g = -(kk * gap)[:, None, None] * gd
+    g = psi1[:, None, None] * gd
     if not hessian:
         return g, None
     gdf = gd.reshape(n_pairs, 12)
-    H = kk[:, None, None] * gdf[:, :, None] * gdf[:, None, :]
+    H = psi2[:, None, None] * gdf[:, :, None] * gdf[:, None, :]
     if filter == "analytic" or not active.any():
         return g, H
     # exact curvature part, only for active pairs
@@ -202,8 +220,7 @@ def gradient_hessian(x, thickness, stiffness, filter="analytic", hessian=True):
     hessF = JtJ - B @ Minv @ B.transpose(0, 2, 1)
     dsafe = np.maximum(da, 1e-8 * d0[ia])      # intersecting pairs: bounded by rule
     hessd = (hessF - gda[:, :, None] * gda[:, None, :]) / dsafe[:, None, None]
-    psi1 = -(kk[ia] * gap[ia])
-    Hx = H[ia] + psi1[:, None, None] * hessd
+    Hx = H[ia] + psi1[ia][:, None, None] * hessd
     Hx = 0.5 * (Hx + Hx.transpose(0, 2, 1))
     if filter in ("numerical", "abs"):
         lam, V = np.linalg.eigh(Hx)

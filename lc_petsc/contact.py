@@ -45,6 +45,8 @@ identity).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from petsc4py import PETSc
 
@@ -218,6 +220,9 @@ class StrandContact:
         if mode not in MODES:
             raise ValueError(f"strand contact mode {mode!r}: use one of {', '.join(MODES)}")
         self.mode, self.min_separation = mode, float(min_separation)
+        #: seconds compiling (or loading from Numba's cache) the compiled broad phase and
+        #: limiter kernels, at set-up (not in any frame)
+        self.compile_seconds = _warm_up_in_turn(comm)
         # ccd mode (see limit_step): per-vertex step fractions, in a Vec by global vertex
         self.step_fraction = self.shrink = None
         if mode == "ccd":
@@ -728,6 +733,18 @@ class StrandContact:
                 m.destroy()
         self.shell = self.op = self.C = self.vec = self.state = self.correction = None
         self.step_fraction = self.shrink = None
+
+
+def _warm_up_in_turn(comm):
+    """Compile :mod:`compiled_ccd` on rank 0 first (it writes Numba's cache), then load
+    it on the other ranks; returns this rank's seconds, waiting included."""
+    t0 = time.perf_counter()
+    if comm.rank == 0:
+        compiled_ccd.warm_up()
+    comm.Barrier()
+    if comm.rank != 0:
+        compiled_ccd.warm_up()
+    return time.perf_counter() - t0
 
 
 def _held_back(start, end, beta):

@@ -184,6 +184,7 @@ def warm_up():
     safe_fraction(S[None], S[None] + 0.1, 0.01)
     limit_pairs(S, S + 0.1, np.arange(4, dtype=np.int64).reshape(1, 4), np.zeros(1, np.int64), 0.01,
                 True, np.ones(1), np.ones(1))
+    box_pairs(S, S + 1.0, np.arange(4))
 
 
 # ---------------------------------------------------------------- broad phase

@@ -16,10 +16,9 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    segment with the smaller global index: ranks own increasing vertex ranges), so rank
    r sends to every lower rank q, with one ``alltoall``, the segments whose box touches
    a cell occupied by q: only segments that can be within d0 of one of q's.
-3. **Broad phase.** :func:`lc_petsc.crossings.ball_pairs` over balls of radius half
-   length + d0 / 2 around the local + ghost segments' centres
-   (:meth:`StrandContact.candidates`), which contains every pair closer than d0, then
-   an exact box-overlap test inflated by d0.  Rebuilt from the current positions
+3. **Broad phase.** :func:`compiled_ccd.box_pairs` over the local + ghost segments'
+   boxes grown by d0 / 2 (:meth:`StrandContact.candidates`), which contains every pair
+   closer than d0.  Rebuilt from the current positions
    (reused only for bit-identical positions), so no margin for motion is needed: the
    search is exact, not predictive.
    Pairs of the same wisp are excluded (no self-contact; see docs/contact.md).
@@ -46,11 +45,13 @@ identity).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from petsc4py import PETSc
 
-from lc_petsc.crossings import ball_pairs
 from lc_petsc.elements import compiled_ccd, segment_barrier, segment_ccd, segment_contact
+from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.parallel import collectively, global_min, global_reduce
 
 MODES = ("penalty", "ccd")
@@ -237,6 +238,9 @@ class StrandContact:
                                            if barrier_stiffness is None else barrier_stiffness)
         #: the stiffness the potential's kernel takes (k or kappa)
         self.kernel_stiffness = self.k if potential == "penalty" else self.barrier_stiffness
+        #: seconds compiling (or loading from Numba's cache) the compiled broad phase and
+        #: limiter kernels, at set-up (not in any frame)
+        self.compile_seconds = _warm_up_in_turn(comm)
         # ccd mode (see limit_step): per-vertex step fractions, in a Vec by global vertex
         self.step_fraction = self.shrink = None
         if mode == "ccd":
@@ -339,29 +343,15 @@ class StrandContact:
     @staticmethod
     def candidates(P, wisp, n_local, d0):
         """Index pairs (i, j), i < j, of segments of different wisps that may be closer
-        than d0 (at least one of them local).
-
-        Two segments closer than d0 have centres within h_i + h_j + d0 (h the half
-        lengths), so :func:`ball_pairs` over balls of radius h + d0 / 2 finds every
-        such pair (a stretched segment lands in a level of its own and does not widen
-        the search for the others); survivors pass an exact box-overlap test inflated
-        by d0."""
+        than d0 (at least one of them local): their boxes grown by d0 / 2 overlap
+        (:func:`compiled_ccd.box_pairs`, exact)."""
         if len(P) < 2:
             return np.zeros((0, 2), np.int64)
-        c = 0.5 * (P[:, 0] + P[:, 1])
-        half = 0.5 * np.linalg.norm(P[:, 1] - P[:, 0], axis=1)
-        ij = ball_pairs(c, half + 0.5 * d0)
-        i, j = ij[:, 0], ij[:, 1]
-        keep = wisp[i] != wisp[j]
+        ij = box_pairs(np.minimum(P[:, 0], P[:, 1]) - 0.5 * d0, np.maximum(P[:, 0], P[:, 1]) + 0.5 * d0,
+                       group=wisp)
         if n_local < len(P):
-            keep &= (i < n_local) | (j < n_local)
-        i, j = i[keep], j[keep]
-        lo = np.minimum(P[:, 0], P[:, 1]) - 0.5 * d0
-        hi = np.maximum(P[:, 0], P[:, 1]) + 0.5 * d0
-        ok = np.ones(len(i), bool)
-        for a in range(3):
-            ok &= (hi[i, a] >= lo[j, a]) & (lo[i, a] <= hi[j, a])
-        return np.stack([i[ok], j[ok]], axis=1)
+            ij = ij[(ij[:, 0] < n_local) | (ij[:, 1] < n_local)]
+        return ij
 
     def _pairs(self, x, active=True):
         """Pairs as (X (n, 4, 3), gvA, gvB, freeA, freeB, ownerA, ownerB, d), the segment
@@ -459,13 +449,13 @@ class StrandContact:
         1. Broad phase on relative motion: whatever the fractions, every vertex moves by
            u(S) + beta f, so relative to the field a segment's points stay in the hull
            of its vertices at S and at S + f, and a pair can come within m only if the
-           balls of :func:`segment_ccd.field_balls` around those hulls (grown by
+           boxes of :func:`segment_ccd.field_boxes` around those hulls (grown by
            (m / 2 + L rho) / (1 - L), rho = the segment's largest |f|, L the field's
-           Lipschitz constant; proof there) touch.  Boxes around the balls select the
-           ghosts (:meth:`_gather_segments`: a rank gets every segment that can reach
-           its own during the step, for any fractions), :func:`ball_pairs` the
-           candidates, one set for all rounds.  Hair swinging with the head moves by u,
-           not by f: the balls are set by how much a segment moves relative to the bulk.
+           Lipschitz constant; proof there) overlap.  They select the ghosts
+           (:meth:`_gather_segments`: a rank gets every segment that can reach its own
+           during the step, for any fractions), :func:`box_pairs` the candidates, one
+           set for all rounds.  Hair swinging with the head moves by u,
+           not by f: the boxes are set by how much a segment moves relative to the bulk.
         2. Pair test (:func:`compiled_ccd.limit_pairs`, compiled): on the pair's current
            path, swept spheres around the centre paths discard most candidates without
            a distance; the others get conservative advancement with up to
@@ -490,13 +480,13 @@ class StrandContact:
         A, b, L = self._motion_field(S, T)
         H = S + (S @ A.T + b)
         F = T - H
-        c, r = segment_ccd.field_balls(np.stack([S[self.seg], S[self.seg + 1]], axis=1),
-                                       np.stack([F[self.seg], F[self.seg + 1]], axis=1), L, md)
+        lo, hi = segment_ccd.field_boxes(np.stack([S[self.seg], S[self.seg + 1]], axis=1),
+                                         np.stack([F[self.seg], F[self.seg + 1]], axis=1), L, md)
         (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \
-            self._gather_segments(S, (T, H), inflate=0.0, boxes=(c - r[:, None], c + r[:, None]))
-        ij = ball_pairs(0.5 * (PB[:, 0] + PB[:, 1]), 0.5 * (PB[:, 1, 0] - PB[:, 0, 0]))
+            self._gather_segments(S, (T, H), inflate=0.0, boxes=(lo, hi))
+        ij = box_pairs(PB[:, 0], PB[:, 1], group=wisp)
         i, j = ij[:, 0], ij[:, 1]
-        keep = (wisp[i] != wisp[j]) & ((i < n_local) | (j < n_local))
+        keep = (i < n_local) | (j < n_local)
         keep &= free[i].any(axis=1) | free[j].any(axis=1)       # pinned pairs move rigidly
         i, j = i[keep], j[keep]
         swap = gv[i] > gv[j]            # the smaller global segment first, on any partition
@@ -761,6 +751,18 @@ class StrandContact:
                 m.destroy()
         self.shell = self.op = self.C = self.vec = self.state = self.correction = None
         self.step_fraction = self.shrink = None
+
+
+def _warm_up_in_turn(comm):
+    """Compile :mod:`compiled_ccd` on rank 0 first (it writes Numba's cache), then load
+    it on the other ranks; returns this rank's seconds, waiting included."""
+    t0 = time.perf_counter()
+    if comm.rank == 0:
+        compiled_ccd.warm_up()
+    comm.Barrier()
+    if comm.rank != 0:
+        compiled_ccd.warm_up()
+    return time.perf_counter() - t0
 
 
 def _held_back(start, end, beta):

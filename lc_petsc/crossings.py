@@ -1,10 +1,10 @@
 """Swept-box broad phase and the edge-edge crossing counter over frames.
 
-* :func:`ball_pairs`: all pairs of touching balls, exact, through kd-trees over the
-  centres grouped by radius, so one fast or stretched segment does not widen the
-  search radius for everybody.  The one broad phase of the project: the penalty
-  contact's (balls of half length + d0 / 2), the limiter's and this counter's (balls
-  of the relative reach, :func:`segment_ccd.field_balls`).
+* :func:`lc_petsc.elements.compiled_ccd.box_pairs`: all pairs of overlapping boxes,
+  exact, through a uniform grid in a compiled loop.  The one broad phase of the
+  project: the penalty contact's (segment boxes grown by d0 / 2), the limiter's and
+  this counter's (boxes relative to the fitted affine field,
+  :func:`segment_ccd.field_boxes`).
 * :func:`count_crossings`: edge-edge crossings between segments of different wisps
   (optionally between non-adjacent segments of one wisp) on the linear path between
   two configurations (two consecutive frames): the relative broad phase, the motion
@@ -17,43 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.elements.segment_ccd import affine_field, affine_sums, field_balls, tight_inclusion_toi
+from lc_petsc.elements.compiled_ccd import box_pairs
+from lc_petsc.elements.segment_ccd import affine_field, affine_sums, field_boxes, tight_inclusion_toi
 from lc_petsc.elements.segment_contact import distance
-
-
-def ball_pairs(c, r, ratio=1.5):
-    """Index pairs (k, 2), i < j, of the balls centre c (n, 3), radius r (n,) that touch
-    (|c_i - c_j| <= r_i + r_j, to a relative 1e-12: never fewer), exact.
-
-    The balls are grouped by radius (levels a factor ``ratio`` apart); one kd-tree per
-    level, ``query_pairs`` within a level (radius twice the level's largest) and
-    ``sparse_distance_matrix`` between levels, so one fast or stretched segment does not
-    widen the search for everybody; survivors pass the exact test."""
-    from scipy.spatial import cKDTree
-    c = np.asarray(c, float)
-    r = np.asarray(r, float)
-    if len(c) < 2:
-        return np.zeros((0, 2), np.int64)
-    floor = max(float(r.max()) * 1e-6, 1e-12)
-    level = np.floor(np.log(np.maximum(r, floor) / max(float(r.min()), floor)) / np.log(ratio)).astype(np.int64)
-    groups = [np.flatnonzero(level == k) for k in np.unique(level)]
-    # unbalanced, non-compact: faster to build, and faster to query here (measured)
-    trees = [cKDTree(c[g], balanced_tree=False, compact_nodes=False) for g in groups]
-    rmax = [float(r[g].max()) for g in groups]
-    slack = 1.0 + 1e-12
-    parts = []
-    for a, (ga, ta) in enumerate(zip(groups, trees)):
-        p = ta.query_pairs(2.0 * rmax[a] * slack, output_type="ndarray")
-        parts.append(ga[p])
-        for b in range(a + 1, len(groups)):
-            m = ta.sparse_distance_matrix(trees[b], (rmax[a] + rmax[b]) * slack, output_type="ndarray")
-            parts.append(np.stack([ga[m["i"]], groups[b][m["j"]]], axis=1))
-    ij = np.concatenate(parts).astype(np.int64)
-    i, j = ij[:, 0], ij[:, 1]
-    d = c[i] - c[j]
-    ok = np.einsum("ij,ij->i", d, d) <= ((r[i] + r[j]) * slack) ** 2
-    i, j = i[ok], j[ok]
-    return np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1)
 
 
 def segments(offsets):
@@ -68,13 +34,14 @@ def segments(offsets):
 def candidate_pairs(X0, X1, offsets, self_contact=False, margin=0.0):
     """Segment pairs (k, 2) of global first vertices that can come within ``margin`` on
     the linear path X0 -> X1 (n_vertices, 3) (the relative broad phase of
-    :func:`segment_ccd.field_balls`, with the affine field fitted to X1 - X0); different
+    :func:`segment_ccd.field_boxes`, with the affine field fitted to X1 - X0); different
     wisps, or with ``self_contact`` also segments of one wisp sharing no vertex."""
     seg, wisp = segments(offsets)
     A, b, L = affine_field(*affine_sums(X0, X1 - X0))
     f = X1 - X0 - (X0 @ A.T + b)
-    ij = ball_pairs(*field_balls(np.stack([X0[seg], X0[seg + 1]], axis=1),
-                                 np.stack([f[seg], f[seg + 1]], axis=1), L, margin))
+    ij = box_pairs(*field_boxes(np.stack([X0[seg], X0[seg + 1]], axis=1),
+                                np.stack([f[seg], f[seg + 1]], axis=1), L, margin),
+                   group=None if self_contact else wisp)
     i, j = ij[:, 0], ij[:, 1]
     keep = wisp[i] != wisp[j]
     if self_contact:

@@ -174,6 +174,7 @@ class Simulator:
         dmin = self.integrator.contact_min_distance
         return {"contact": {
             "thickness": self.strand.d0, "stiffness": self.strand.k,
+            "jit_compile_s": parallel.global_max(self.comm, self.strand.compile_seconds),
             "pairs_per_frame": list(self.integrator.contact_pairs),
             "pairs_below_half_thickness_per_frame": list(self.integrator.contact_deep_pairs),
             "pairs_separated_per_frame": list(self.integrator.contact_separated),

@@ -5,7 +5,11 @@ per-frame wall time and phases, Newton and CG iterations (prints figures, not a 
         --modes penalty ccd [ccd+barrier] [--json out/bench_ccd.json]
 
 Runs each mode in turn in the same process (back to back, so the machine's load hits
-both alike) and ends with a table of medians.
+both alike) and ends with a table of medians.  Two versions side by side (say main's
+and a branch's ``--json`` of the same command):
+
+    .venv/bin/python scripts/bench_ccd.py --compare out/main.json out/branch.json \\
+        --labels main branch [--plot docs/figures/bench_ccd_demo.png]
 """
 
 import argparse
@@ -54,13 +58,63 @@ def run(path, mode, frames):
     return rows, s
 
 
+def compare(paths, labels, plot=None):
+    """Table (and with ``plot`` a figure) of several ``--json`` results side by side."""
+    runs = []
+    for path in paths:
+        with open(path) as f:
+            runs.append(json.load(f))
+    labels = labels or paths
+    print(f"{runs[0]['config']}, {runs[0]['ranks']} rank(s), medians per frame:")
+    print("| version | mode | wall / frame (s) | collision (s) | collision share | crossings | "
+          "min distance (cm) | limiter candidates per call, largest |")
+    print("|---|---|---|---|---|---|---|---|")
+    for label, run in zip(labels, runs):
+        for mode in dict.fromkeys(r["mode"] for r in run["rows"]):
+            r = [x for x in run["rows"] if x["mode"] == mode]
+            w = np.median([x["wall_s"] for x in r])
+            c = np.median([x["phases_s"].get("collision", 0.0) for x in r])
+            dm = [x["min_distance"] for x in r if x["min_distance"] is not None and np.isfinite(x["min_distance"])]
+            cand = (run.get("limiter", {}).get(mode) or {}).get("limiter_candidates_per_frame") or []
+            print(f"| {label} | {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {sum(x['crossings'] for x in r)} | "
+                  f"{min(dm) if dm else float('nan'):.4g} | {max(cand) if cand else '-'} |")
+    if plot:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for label, run in zip(labels, runs):
+            for mode in dict.fromkeys(r["mode"] for r in run["rows"]):
+                r = [x for x in run["rows"] if x["mode"] == mode]
+                f = [x["frame"] for x in r]
+                line, = ax.plot(f, [x["wall_s"] for x in r], "o-", label=f"{label} {mode}: wall")
+                ax.plot(f, [x["phases_s"].get("collision", 0.0) for x in r], "x--", color=line.get_color(),
+                        label=f"{label} {mode}: collision")
+        ax.set_xlabel("frame")
+        ax.set_ylabel("seconds per frame")
+        ax.set_title(f"{runs[0]['config']}, {runs[0]['ranks']} rank(s)")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(plot, dpi=110)
+        print(f"wrote {plot}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("config")
+    ap.add_argument("config", nargs="?")
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--modes", nargs="+", default=["penalty", "ccd"])
     ap.add_argument("--json")
+    ap.add_argument("--compare", nargs="+", metavar="JSON", help="print --json results side by side")
+    ap.add_argument("--labels", nargs="+")
+    ap.add_argument("--plot", help="with --compare: a figure of wall and collision time per frame")
     a = ap.parse_args()
+    if a.compare:
+        if MPI.COMM_WORLD.rank == 0:
+            compare(a.compare, a.labels, a.plot)
+        return
+    if not a.config:
+        ap.error("a config (or --compare)")
     allrows, extra = [], {}
     for mode in a.modes:
         rows, s = run(a.config, mode, a.frames)

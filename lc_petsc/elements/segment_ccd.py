@@ -33,7 +33,7 @@ from lc_petsc.elements.common import check_positions
 from lc_petsc.elements.segment_contact import distance
 
 __all__ = ["relative_motion", "safe_fraction", "tight_inclusion_toi", "affine_sums",
-           "affine_field", "field_balls"]
+           "affine_field", "field_boxes"]
 
 
 def relative_motion(start, end):
@@ -156,12 +156,12 @@ def affine_field(M, R, max_lipschitz=0.5):
     return A, b, L
 
 
-def field_balls(start, residual, lipschitz, min_distance):
-    """Balls (centre (m, 3), radius (m,)) of segments for the relative broad phase: two
-    segments can come within ``min_distance`` on a path whose vertex displacements are
+def field_boxes(start, residual, lipschitz, min_distance):
+    """Boxes (lo, hi) (m, 3) of segments for the relative broad phase: two segments can
+    come within ``min_distance`` on a path whose vertex displacements are
     u(x_start) + beta f, beta in [0, 1] per vertex (any fractions), u affine with
     Lipschitz constant ``lipschitz`` L < 1, f the ``residual`` (m, 2, 3) of the
-    segments' vertices, only if their balls touch.  ``start`` (m, 2, 3).
+    segments' vertices, only if their boxes overlap.  ``start`` (m, 2, 3).
 
     Proof.  Point p of segment A (parameter s) is at p0 + t (A p0 + b) + t r_p at time
     t, r_p = (1 - s) beta_0 f_0 + s beta_1 f_1, so with y_p = p0 + t r_p (a convex
@@ -169,16 +169,15 @@ def field_balls(start, residual, lipschitz, min_distance):
     segment's two vertices and their residual ends) p - q = y_p - y_q + t A (p0 - q0).
     As |p0 - q0| <= |y_p - y_q| + rho_A + rho_B (rho = the segment's largest |f|),
     |p - q| >= (1 - L) |y_p - y_q| - L (rho_A + rho_B): the pair comes within m only if
-    dist(K_A, K_B) < sum over the two of (m / 2 + L rho) / (1 - L).  The ball is the
-    one around the mean of K's four corners through its farthest corner, grown by that
-    term.  Hair swinging with the bulk moves by u and sweeps nothing: the balls are set
-    by how far a segment moves relative to the fitted field, and stretch along that
-    motion only."""
+    dist(K_A, K_B) < sum over the two of (m / 2 + L rho) / (1 - L).  The box is K's
+    bounding box grown by that term (boxes apart along an axis by more than the sum
+    are that far apart).  Hair swinging with the bulk moves by u and sweeps nothing:
+    the boxes are set by how far a segment moves relative to the fitted field, and
+    stretch along that motion only."""
     S = np.asarray(start, float)
     f = np.asarray(residual, float)
     K = np.concatenate([S, S + f], axis=1)                     # (m, 4, 3)
-    c = K.mean(axis=1)
-    r = np.sqrt(np.einsum("mkc,mkc->mk", K - c[:, None], K - c[:, None]).max(axis=1, initial=0.0))
     rho = np.sqrt(np.einsum("mkc,mkc->mk", f, f).max(axis=1, initial=0.0))
     L = float(lipschitz)
-    return c, r + (0.5 * float(min_distance) + L * rho) / (1.0 - L)
+    grow = ((0.5 * float(min_distance) + L * rho) / (1.0 - L))[:, None]
+    return K.min(axis=1) - grow, K.max(axis=1) + grow

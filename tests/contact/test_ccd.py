@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from ccd_reference import crossing_reference
-from lc_petsc.crossings import ball_pairs, count_crossings, crossing_pairs
+from lc_petsc.crossings import count_crossings, crossing_pairs
+from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.elements import segment_ccd
 from lc_petsc.elements.segment_contact import distance
 
@@ -98,20 +99,24 @@ def test_safe_fraction_input_errors():
         segment_ccd.safe_fraction(S, S, -1.0)
 
 
-def test_ball_pairs_against_all_pairs():
+def test_box_pairs_against_all_pairs():
     rng = np.random.default_rng(1)
     n = 600
     c = rng.uniform(0, 10, size=(n, 3))
-    r = rng.uniform(0, 0.5, size=n)
-    r[:20] *= 20                          # a few big balls (fast segments)
-    r[20:25] = 0.0                        # and points
-    got = {tuple(p) for p in ball_pairs(c, r).tolist()}
+    e = rng.uniform(0, 0.5, size=(n, 3))
+    e[:20] *= 20                          # a few big boxes (fast segments)
+    e[20:25] = 0.0                        # and points
+    lo, hi = c - e, c + e
+    lo[30], hi[30] = lo[31] - [0, 0, 1], lo[31]          # touching at a corner: overlap
+    group = rng.integers(0, 40, n)
     i, j = np.triu_indices(n, 1)
-    touch = np.linalg.norm(c[i] - c[j], axis=1) <= r[i] + r[j]
-    ref = set(zip(i[touch].tolist(), j[touch].tolist()))
-    assert len(ref) > 400
-    assert got == ref
-    assert ball_pairs(c[:1], r[:1]).shape == (0, 2)
+    touch = np.all((hi[i] >= lo[j]) & (hi[j] >= lo[i]), axis=1)
+    assert touch.sum() > 400
+    np.testing.assert_array_equal(box_pairs(lo, hi), np.stack([i[touch], j[touch]], axis=1))
+    other = touch & (group[i] != group[j])
+    np.testing.assert_array_equal(box_pairs(lo, hi, group), np.stack([i[other], j[other]], axis=1))
+    assert [30, 31] in box_pairs(lo, hi).tolist()
+    assert box_pairs(lo[:1], hi[:1]).shape == (0, 2)
 
 
 def rotation(axis, angle):
@@ -128,11 +133,11 @@ def relative_candidates(S, T, seg, m):
     F = T - H
     c0 = 0.5 * (S[seg] + S[seg + 1])
     h = 0.5 * np.linalg.norm(S[seg + 1] - S[seg], axis=1)
-    c, r = segment_ccd.field_balls(np.stack([S[seg], S[seg + 1]], axis=1),
-                                   np.stack([F[seg], F[seg + 1]], axis=1), L, m)
+    lo, hi = segment_ccd.field_boxes(np.stack([S[seg], S[seg + 1]], axis=1),
+                                     np.stack([F[seg], F[seg + 1]], axis=1), L, m)
     dn = np.linalg.norm(T - S, axis=1)
-    absolute = h + np.maximum(dn[seg], dn[seg + 1]) + 0.5 * m
-    return ball_pairs(c, r), H, ball_pairs(c0, absolute)
+    absolute = (h + np.maximum(dn[seg], dn[seg + 1]) + 0.5 * m)[:, None]
+    return box_pairs(lo, hi), H, box_pairs(c0 - absolute, c0 + absolute)
 
 
 @pytest.mark.parametrize("motion", ["random", "rigid", "rigid_plus_noise", "shear"])

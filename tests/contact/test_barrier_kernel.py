@@ -9,20 +9,9 @@ import pytest
 from lc_petsc.elements import segment_barrier as sb
 from lc_petsc.elements import segment_contact as sc
 from lc_petsc.errors import ElementError
+from test_contact_kernel import crossing_pairs, vertex_edge_pairs
 
 DHAT, KAPPA = 0.3, 4.0e3
-
-
-def crossing_pairs(n, rng, gap=0.1, jitter=0.03):
-    """A along x, B along y at height ``gap``: closest points interior to both."""
-    base = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0, -1.0, gap], [0, 1.0, gap]])
-    return base + jitter * rng.normal(size=(n, 4, 3))
-
-
-def vertex_edge_pairs(n, rng):
-    """B's end x3 is its closest point (t = 1), interior on A."""
-    base = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0.2, 0.5, 1.0], [0.1, 0.02, 0.12]])
-    return base + 0.01 * rng.normal(size=(n, 4, 3))
 
 
 def fd_errors(X, h):
@@ -79,7 +68,7 @@ def test_c2_at_the_thickness():
 def test_gradient_and_exact_hessian_match_finite_differences_h2(make):
     X = make(20, np.random.default_rng(1))
     s, t, u, d, fs, ft, par = sc.closest_points(X)
-    assert np.all(d < DHAT) and np.all(d > 0.05) and not par.any()
+    assert np.all(d < DHAT) and np.all(d > 0.02) and not par.any()
     e1 = fd_errors(X, 1e-3)
     e2 = fd_errors(X, 5e-4)
     print(make.__name__, "FD rel. errors (grad, Hess) h=1e-3:", e1, "h=5e-4:", e2)

@@ -22,7 +22,8 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    (reused only for bit-identical positions), so no margin for motion is needed: the
    search is exact, not predictive.
    Pairs of the same wisp are excluded (no self-contact; see docs/contact.md).
-4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` on the candidates, the
+4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` (the penalty; or the
+   barrier of :mod:`lc_petsc.elements.segment_barrier`, ccd mode) on the candidates, the
    smaller global segment first (so the arithmetic of a pair does not depend on the
    partition); active pairs have d < d0.
 5. **Assembly.** Per active pair, each segment gets its gradient (2 x 3), its own 2x2

@@ -1,7 +1,9 @@
 """The barrier potential (physics.strand_contact_potential = "barrier") in the simulator:
 a wisp pressed onto another with three times the penalty's largest force (k d0) keeps
 its distance with the barrier, while with the penalty in ccd mode the limiter lets the
-gap shrink towards zero (the control); the config refuses the barrier without ccd.
+gap shrink towards zero (the control); Newton converges in the frames where crossing
+wisps come into contact, where it cycles with the penalty (the control); the config
+refuses the barrier without ccd.
 The barrier run is collective (1 rank here, 2 under tests/test_mpi_launch.py, one
 wisp per rank)."""
 
@@ -14,6 +16,7 @@ from lc_petsc.config import (ConfigError, MaterialConfig, PhysicsConfig, SceneCo
                              SolverConfig, TimeConfig)
 from lc_petsc.crossings import count_crossings
 from lc_petsc.scene.sources import ArraySource
+from test_contact_sim import D0 as CROSS_D0, crossing_config, crossing_separation, crossing_source
 
 N, D0, K = 21, 0.2, 1.0e3      # vertices per wisp, contact thickness (cm), penalty k (dyn/cm)
 FRAMES = 6
@@ -95,6 +98,38 @@ def test_penalty_in_ccd_mode_lets_the_pressed_pair_close_in(pressed):
     print(f"\npenalty (ccd): crossings {cross}, min distance / d0 per frame {np.round(dmin, 4).tolist()}")
     assert sum(cross) == 0
     assert dmin.min() < 0.05                         # measured 0.008 (frame 4)
+
+
+def converge_crossing(potential, frames=8, cap=20, speed=2.5):
+    """Newton to a relative increment of 1e-6 (at most ``cap`` iterations) on the crossing
+    wisps of test_contact_sim (A up, B down at ``speed``; contact from frame 4): (iterations
+    per frame, converged per frame, minimum separation at the crossing / d0)."""
+    cfg = crossing_config(frames, strand_contact_mode="ccd", strand_contact_potential=potential)
+    cfg.time.newton_iterations, cfg.time.newton_increment_tol = cap, 1e-6
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        n = sim.scene.nv // 2
+        sim.integrator.v[:n, 1], sim.integrator.v[n:, 1] = speed, -speed
+        X = [sim.x.copy()]
+        for _ in range(frames):
+            sim.step()
+            X.append(sim.x.copy())
+        summ = sim.summary()
+    finally:
+        sim.close()
+    return summ["newton_iterations"], summ["newton_converged"], crossing_separation(X).min() / CROSS_D0
+
+
+def test_barrier_newton_converges_where_the_penalty_cycles(monkeypatch):
+    """docs/newton.md: with the penalty (psi'' jumps at d0) the frames where the pairs
+    come into contact do not converge; the C2 barrier converges in every frame."""
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: crossing_source())
+    its, conv, sep = converge_crossing("barrier")
+    print(f"\nbarrier: Newton iterations {its}, converged {conv}, min separation {sep:.3f} d0")
+    assert all(conv) and max(its) <= 12 and sep > 0.5            # measured max 11, 0.985 d0
+    its, conv, sep = converge_crossing("penalty")
+    print(f"penalty (ccd): Newton iterations {its}, converged {conv}, min separation {sep:.3f} d0")
+    assert not all(conv) and max(its) == 20                     # frames 5, 6 hit the cap
 
 
 def test_barrier_needs_ccd_mode():

@@ -21,10 +21,12 @@ def vertex_edge_pairs(n, rng):
     return base + 0.01 * rng.normal(size=(n, 4, 3))
 
 
-def fd_errors(X, h, filter="none"):
+def fd_errors(X, h, filter="none", kernel=sc, d0=D0, k=K):
+    """Largest relative errors of ``kernel``'s gradient (central differences of the
+    energy) and Hessian with ``filter`` (central differences of the gradient)."""
     n = len(X)
-    g = sc.gradient(X, D0, K).reshape(n, 12)
-    H = sc.hessian(X, D0, K, filter=filter)
+    g = kernel.gradient(X, d0, k).reshape(n, 12)
+    H = kernel.hessian(X, d0, k, filter=filter)
     gfd, Hfd = np.zeros_like(g), np.zeros_like(H)
     flat = X.reshape(n, 12)
     for j in range(12):
@@ -32,8 +34,8 @@ def fd_errors(X, h, filter="none"):
         Xp[:, j] += h
         Xm[:, j] -= h
         Xp, Xm = Xp.reshape(n, 4, 3), Xm.reshape(n, 4, 3)
-        gfd[:, j] = (sc.energy(Xp, D0, K) - sc.energy(Xm, D0, K)) / (2 * h)
-        Hfd[:, :, j] = (sc.gradient(Xp, D0, K) - sc.gradient(Xm, D0, K)).reshape(n, 12) / (2 * h)
+        gfd[:, j] = (kernel.energy(Xp, d0, k) - kernel.energy(Xm, d0, k)) / (2 * h)
+        Hfd[:, :, j] = (kernel.gradient(Xp, d0, k) - kernel.gradient(Xm, d0, k)).reshape(n, 12) / (2 * h)
     return (np.abs(gfd - g).max() / np.abs(g).max(), np.abs(Hfd - H).max() / np.abs(H).max())
 
 

@@ -9,38 +9,9 @@ import pytest
 from lc_petsc.elements import segment_barrier as sb
 from lc_petsc.elements import segment_contact as sc
 from lc_petsc.errors import ElementError
+from test_contact_kernel import crossing_pairs, fd_errors, vertex_edge_pairs
 
 DHAT, KAPPA = 0.3, 4.0e3
-
-
-def crossing_pairs(n, rng, gap=0.1, jitter=0.03):
-    """A along x, B along y at height ``gap``: closest points interior to both."""
-    base = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0, -1.0, gap], [0, 1.0, gap]])
-    return base + jitter * rng.normal(size=(n, 4, 3))
-
-
-def vertex_edge_pairs(n, rng):
-    """B's end x3 is its closest point (t = 1), interior on A."""
-    base = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0.2, 0.5, 1.0], [0.1, 0.02, 0.12]])
-    return base + 0.01 * rng.normal(size=(n, 4, 3))
-
-
-def fd_errors(X, h):
-    """Largest relative errors of the gradient (central differences of the energy) and
-    of the exact Hessian (central differences of the gradient)."""
-    n = len(X)
-    g = sb.gradient(X, DHAT, KAPPA).reshape(n, 12)
-    H = sb.hessian(X, DHAT, KAPPA, filter="none")
-    gfd, Hfd = np.zeros_like(g), np.zeros_like(H)
-    flat = X.reshape(n, 12)
-    for j in range(12):
-        Xp, Xm = flat.copy(), flat.copy()
-        Xp[:, j] += h
-        Xm[:, j] -= h
-        Xp, Xm = Xp.reshape(n, 4, 3), Xm.reshape(n, 4, 3)
-        gfd[:, j] = (sb.energy(Xp, DHAT, KAPPA) - sb.energy(Xm, DHAT, KAPPA)) / (2 * h)
-        Hfd[:, :, j] = (sb.gradient(Xp, DHAT, KAPPA) - sb.gradient(Xm, DHAT, KAPPA)).reshape(n, 12) / (2 * h)
-    return np.abs(gfd - g).max() / np.abs(g).max(), np.abs(Hfd - H).max() / np.abs(H).max()
 
 
 def test_scalar_barrier_matches_its_closed_form_and_finite_differences():
@@ -79,9 +50,9 @@ def test_c2_at_the_thickness():
 def test_gradient_and_exact_hessian_match_finite_differences_h2(make):
     X = make(20, np.random.default_rng(1))
     s, t, u, d, fs, ft, par = sc.closest_points(X)
-    assert np.all(d < DHAT) and np.all(d > 0.05) and not par.any()
-    e1 = fd_errors(X, 1e-3)
-    e2 = fd_errors(X, 5e-4)
+    assert np.all(d < DHAT) and np.all(d > 0.02) and not par.any()
+    e1 = fd_errors(X, 1e-3, kernel=sb, d0=DHAT, k=KAPPA)
+    e2 = fd_errors(X, 5e-4, kernel=sb, d0=DHAT, k=KAPPA)
     print(make.__name__, "FD rel. errors (grad, Hess) h=1e-3:", e1, "h=5e-4:", e2)
     assert e1[0] < 1e-4 and e1[1] < 1e-3
     assert 3.0 < e1[0] / e2[0] < 5.0 and 3.0 < e1[1] / e2[1] < 5.0

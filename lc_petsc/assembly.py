@@ -33,6 +33,7 @@ Matrix type: the solver plan's (lc_petsc/solver_plan.py: ``baij`` (bs 3) unless
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager, nullcontext
 
 import numpy as np
 from petsc4py import PETSc
@@ -75,16 +76,32 @@ class Assembler:
         pin = scene.pinned
         jc = np.clip(j, 0, max(nv - 1, 0))
         self.pin_mask = self.valid & (pin[:, None] | (pin[jc] if nv else np.zeros_like(self.valid)))
-        self.pin_rows, self.pin_diags = np.nonzero(self.pin_mask)
         self.pinned_idx = np.flatnonzero(pin)
         self._padded = None
         # the compiled kernels' element arrays: (start, rest, stiffness) per term
         self.elements = {name: compiled.element_arrays(name, t.start, t.rest, t.stiffness)
                          for name, t in scene.terms.items()}
         self.mat = self._create_matrix(mat_type)
+        # pinned rows and columns among the stored blocks (SBAIJ: upper only)
+        self.pin_rows, self.pin_diags = np.nonzero(self.pin_mask & self.stored)
         self.pmat = self._create_pmat(pmat_type)
         self.mat_block = self.pmat_block = None     # see _probe_value_arrays
         self._probe_value_arrays()
+        # The compiled kernels write column-major 3x3 blocks in block-CSR order
+        # (``layout``): straight into the BAIJ block's value array (``direct``), else
+        # into ``block_values``, copied to the matrix by the CSR call.
+        self.layout = compiled.BlockLayout.block_csr(self.stored, b)
+        self.block_index = np.where(self.layout.base >= 0, self.layout.base // 9, -1)
+        self.direct = kernels == "compiled" and self.mat_block is not None
+        #: (nv, 3) indices of the entries (r, r) of the diagonal blocks in block_array()
+        self.diagonal_entries = self.layout.base[:, b, None] + 4 * np.arange(3)
+        self.block_values = buffer(self.n_values) if kernels == "compiled" and not self.direct \
+            else None
+        if self.pmat is not None:
+            self.p_from_values = self._band_to_values(self.p_from_band)
+        if self.mat_block is None:
+            self.values = buffer((len(self.csr_rows), 9))
+        self._in_blocks = False     # this iteration's values are in block_array(), not in R
         self.commit()   # first fill (PETSc's one-off row compression) at build, not frame 0
 
     # ------------------------------------------------------------------ pattern
@@ -119,12 +136,14 @@ class Assembler:
         if self.mat_type == "sbaij":
             keep[:, :b] = False
         rows, diags = np.nonzero(keep)
+        self.stored = keep
         self.csr_rows, self.csr_diags = rows.astype(np.int64), diags.astype(np.int64)
         self.csr_blocks = rows * (2 * b + 1) + diags     # into B as (nv * (2b+1), 9)
         # Persistent buffers: fresh 100 MB arrays every Newton iteration cost more in page
         # faults than the copies themselves.
         self.blocks = buffer((nv, 2 * b + 1, 3, 3)) if self.kernels == "numpy" else None
-        self.values = buffer((len(rows), 9))
+        self.n_values = 9 * len(rows)
+        self.values = None      # the CSR call's value buffer (without in-place writes)
         self.block_counts = keep.sum(axis=1).astype(PETSc.IntType)
         self.rowptr = np.concatenate([[0], np.cumsum(self.block_counts)]).astype(PETSc.IntType)
         self.cols = (sc.first_vertex + rows + diags - b).astype(PETSc.IntType)
@@ -198,9 +217,12 @@ class Assembler:
         R, b = self.R, self.b
         g = np.zeros_like(x)
         sym = self.mat_type == "sbaij"
+        self._in_blocks = False
         if self.kernels == "compiled" and self.filter in compiled.FILTERS:
-            with self.timers("elements"):       # band rows zeroed in the same pass
-                compiled.add_gradient_hessian(self.elements, x, g, R, b, sym, self.filter)
+            with self.timers("elements"), self.block_array() as v:   # rows zeroed on the way
+                compiled.add_gradient_hessian_into(self.elements, x, g, v, self.layout, sym,
+                                                   self.filter)
+            self._in_blocks = True
             return g
         with self.timers("assembly"):
             R[...] = 0.0
@@ -219,24 +241,64 @@ class Assembler:
                     R[a:, :, 3 * (b - a + first):3 * (b - a + k)] += rows[:nv - a, a, :, 3 * first:]
         return g
 
+    @contextmanager
+    def block_array(self):
+        """The compiled kernels' flat value array (:attr:`layout`): PETSc's, of the BAIJ
+        block (``direct``), or :attr:`block_values`."""
+        if self.direct:
+            with value_array(self.mat_block, self.n_values) as v:
+                yield v
+        else:
+            yield self.block_values
+
+    @contextmanager
+    def _blocks(self):
+        """(view, at): this iteration's 3x3 blocks (row-major) are ``view[at(i, d + b)]``
+        for local block rows i and band diagonals d (arrays or scalars, broadcast): the
+        band B, or :meth:`block_array` when the compiled pass wrote there."""
+        if not self._in_blocks:
+            yield self.B, lambda rows, diags: (rows, diags)
+            return
+        with self.block_array() as v:
+            yield (v.reshape(-1, 3, 3).transpose(0, 2, 1),
+                   lambda rows, diags: (self.block_index[rows, diags],))
+
     def add_diagonal(self, idx, blocks):
         """Add 3x3 blocks (m, 3, 3) on the diagonal of local vertices idx (unique)."""
-        self.B[idx, self.b] += blocks
+        with self._blocks() as (view, at):
+            view[at(idx, self.b)] += blocks
 
     def add_band_blocks(self, idx, h00, h01, h11):
         """Add 2x2 blocks of segments (v, v+1) for the local first vertices v = idx
         (unique, never a wisp's last vertex): h00 to block (v, v), h01 to (v, v+1) and
         its transpose to (v+1, v), h11 to (v+1, v+1); all (m, 3, 3).  Used by strand
         contact (lc_petsc/contact.py); needs a half bandwidth >= 1."""
-        B, b = self.B, self.b
-        B[idx, b] += h00
-        B[idx + 1, b] += h11
-        B[idx, b + 1] += h01
-        B[idx + 1, b - 1] += h01.transpose(0, 2, 1)
+        b = self.b
+        with self._blocks() as (view, at):
+            view[at(idx, b)] += h00
+            view[at(idx + 1, b)] += h11
+            view[at(idx, b + 1)] += h01
+            view[at(idx + 1, b - 1)] += h01.transpose(0, 2, 1)
 
     def add_mass(self, diag):
         """Add diag (nv,) * I on the diagonal (M / dt^2)."""
-        self.B[:, self.b, [0, 1, 2], [0, 1, 2]] += diag[:, None]
+        if not self._in_blocks:
+            self.B[:, self.b, [0, 1, 2], [0, 1, 2]] += diag[:, None]
+            return
+        with self.block_array() as v:
+            v[self.diagonal_entries] += diag[:, None]
+
+    def _band_to_values(self, band_index):
+        """Indices into the BAIJ value array (:attr:`layout`) of the entries at the flat
+        indices ``band_index`` of the band R (all inside the stored blocks)."""
+        width = self.R.shape[2]
+        i, rest = np.divmod(band_index, 3 * width)
+        r, col = np.divmod(rest, width)
+        dd, c = np.divmod(col, 3)
+        base = self.layout.base[i, dd]
+        if np.any(base < 0):
+            raise ValueError("band entries outside the stored blocks")    # pragma: no cover
+        return base + r * self.layout.row_stride + c * self.layout.col_stride
 
     def _probe_value_arrays(self):
         """Let :meth:`commit` write the values straight into the rank-local blocks of the
@@ -247,7 +309,7 @@ class Assembler:
         a probe fill through the CSR call reads back (the CSR call stays in use
         otherwise, e.g. for SBAIJ or an AIJ operator)."""
         if self.mat_type == "baij":
-            probe = np.arange(1.0, self.values.size + 1.0)
+            probe = np.arange(1.0, self.n_values + 1.0)
             self.mat.setValuesBlockedCSR(self.rowptr, self.cols, probe)
             self.mat.assemble()
             stored = probe.reshape(-1, 3, 3).transpose(0, 2, 1).ravel()    # blocks column-major
@@ -263,12 +325,18 @@ class Assembler:
         possible (:meth:`_probe_value_arrays`), else with one CSR call each."""
         with self.timers("assembly"):
             B, b = self.B, self.b
-            B[self.pin_rows, self.pin_diags] = 0.0
-            B[self.pinned_idx, b] = np.eye(3)
+            with self._blocks() as (view, at):
+                view[at(self.pin_rows, self.pin_diags)] = 0.0
+                view[at(self.pinned_idx, b)] = np.eye(3)
             A = self.mat
-            if self.kernels == "compiled":
+            if self._in_blocks:
+                if not self.direct:                     # else the compiled pass wrote them there
+                    self.values.reshape(-1, 3, 3)[...] = \
+                        self.block_values.reshape(-1, 3, 3).transpose(0, 2, 1)
+                    A.setValuesBlockedCSR(self.rowptr, self.cols, self.values.ravel())
+            elif self.kernels == "compiled":
                 if self.mat_block is not None:
-                    with value_array(self.mat_block, self.values.size) as v:
+                    with value_array(self.mat_block, self.n_values) as v:
                         compiled.gather_blocks(self.R, self.csr_rows, self.csr_diags, v, True)
                 else:
                     compiled.gather_blocks(self.R, self.csr_rows, self.csr_diags,
@@ -276,7 +344,7 @@ class Assembler:
                     A.setValuesBlockedCSR(self.rowptr, self.cols, self.values.ravel())
             elif self.mat_block is not None:
                 np.copyto(self.blocks, B.transpose(0, 1, 3, 2))          # column-major blocks
-                with value_array(self.mat_block, self.values.size) as v:
+                with value_array(self.mat_block, self.n_values) as v:
                     np.take(self.blocks.reshape(-1, 9), self.csr_blocks, axis=0, out=v.reshape(-1, 9))
             else:
                 np.copyto(self.blocks, B)
@@ -284,14 +352,23 @@ class Assembler:
                 A.setValuesBlockedCSR(self.rowptr, self.cols, self.values.ravel())
             A.assemble()
             if self.pmat is not None:
-                if self.pmat_block is not None:
-                    with value_array(self.pmat_block, len(self.p_values)) as v:
-                        np.take(self.R.reshape(-1), self.p_from_band, out=v)
-                else:
-                    np.take(self.R.reshape(-1), self.p_from_band, out=self.p_values)
-                    self.pmat.setValuesCSR(self.p_rowptr, self.p_cols, self.p_values)
+                self._fill_pmat()
                 self.pmat.assemble()
         return A
+
+
+    def _fill_pmat(self):
+        """The AIJ copy's values from the band or (direct fill) from the BAIJ values."""
+        p = self.p_values
+        with value_array(self.pmat_block, len(p)) if self.pmat_block is not None \
+                else nullcontext(p) as out:
+            if self._in_blocks:
+                with self.block_array() as v:
+                    np.take(v, self.p_from_values, out=out)
+            else:
+                np.take(self.R.reshape(-1), self.p_from_band, out=out)
+        if self.pmat_block is None:
+            self.pmat.setValuesCSR(self.p_rowptr, self.p_cols, p)
 
 
 def _warm_up_in_turn(comm):

@@ -162,6 +162,28 @@ def _vadd_to(g, i, u):
 
 
 @_jit
+def _vput(vals, o, r, c, h):
+    """Add h to entry (r, c) of the column-major block at offset o (BlockLayout:
+    base[i, d + b]).  The kernels read the offsets of an element's blocks into locals
+    first: a store into ``vals`` may alias ``base`` for the compiler."""
+    vals[o + r + 3 * c] += h
+
+
+@_jit
+def _vzero_row(vals, base, i):
+    """Zero the stored blocks of block row i (BlockLayout.block_csr: one contiguous run)."""
+    lo, hi = -1, -1
+    for dd in range(base.shape[1]):
+        o = base[i, dd]
+        if o >= 0:
+            hi = o + 9
+            if lo < 0:
+                lo = o
+    if lo >= 0:
+        vals[lo:hi] = 0.0
+
+
+@_jit
 def _vbad_edge(e, scale):
     """Zero-length edge at the round-off level of the coordinates (common.edge_lengths)."""
     length = _vnorm(e)
@@ -184,7 +206,7 @@ def _vscale_of(x, i0, k):
 
 # ---------------------------------------------------------------------- stretch
 @_jit
-def _v_stretch(x, i, Lbar, k, mode, g, band, b, upper, exact):
+def _v_stretch(x, i, Lbar, k, mode, g, vals, base, b, upper, exact):
     """One stretch element on vertices i, i+1: (energy, bad); ``exact``: the exact
     Hessian (filter "none"), else the analytic filter."""
     scale, finite = _vscale_of(x, i, 2)
@@ -199,21 +221,22 @@ def _v_stretch(x, i, Lbar, k, mode, g, band, b, upper, exact):
     _vadd_to(g, i + 1, ge)
     if mode != HESSIAN:
         return 0.0, False
+    o00, o11, o01, o10 = base[i, b], base[i + 1, b], base[i, b + 1], base[i + 1, b - 1]
     eh = _vdiv(ev, L)
     perp = k * (1.0 - Lbar / L)
     if not exact:
         perp = max(perp, 0.0)
     kp = k - perp
-    for r in range(3):
-        for c in range(3):
+    for c in range(3):              # column-major blocks: r runs along memory
+        for r in range(3):
             h = kp * (eh[r] * eh[c])
             if r == c:
                 h += perp
-            band[i, r, 3 * b + c] += h
-            band[i + 1, r, 3 * b + c] += h
-            band[i, r, 3 * (b + 1) + c] -= h
+            _vput(vals, o00, r, c, h)
+            _vput(vals, o11, r, c, h)
+            _vput(vals, o01, r, c, -h)
             if not upper:
-                band[i + 1, r, 3 * (b - 1) + c] -= h
+                _vput(vals, o10, r, c, -h)
     return 0.0, False
 
 
@@ -259,7 +282,7 @@ def _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, fu, fv, first)
 
 
 @_jit
-def _v_bend(x, i, rest, k, mode, g, band, b, upper, exact, u, v, w):
+def _v_bend(x, i, rest, k, mode, g, vals, base, b, upper, exact, u, v, w):
     """One bend element on vertices i .. i+2: (energy, bad).  u, v (6, 3), w (6,) are
     scratch: the Hessian's eigenvectors on the two edges and their weights, the
     analytic filter's three kept ones (the roots of the eigenvalues folded in, no
@@ -349,7 +372,10 @@ def _v_bend(x, i, rest, k, mode, g, band, b, upper, exact, u, v, w):
             _vstore(u, 2, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)), root2 / l0)
             _vstore(v, 2, _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / l1)
     # H = sum_j w_j c_j c_j^T with c_j = [u_j; -u_j - v_j; v_j]: from three 3x3
-    # products, block (a, c) of vertices (i + a, i + c) at band[i + a, :, 3 (c - a + b):]
+    # products, block (a, c) of vertices (i + a, i + c) on band diagonal c - a
+    o00, o01, o02 = base[i, b], base[i, b + 1], base[i, b + 2]
+    o11, o12, o22 = base[i + 1, b], base[i + 1, b + 1], base[i + 2, b]
+    o10, o20, o21 = base[i + 1, b - 1], base[i + 2, b - 2], base[i + 2, b - 1]
     for r in range(3):
         for q in range(3):
             if exact:
@@ -368,16 +394,16 @@ def _v_bend(x, i, rest, k, mode, g, band, b, upper, exact, u, v, w):
                 vv = v[0, r] * v[0, q] + v[1, r] * v[1, q] + v[2, r] * v[2, q]
             h01 = -uu - uv
             h12 = -uv - vv
-            band[i, r, 3 * b + q] += uu
-            band[i, r, 3 * (b + 1) + q] += h01
-            band[i, r, 3 * (b + 2) + q] += uv
-            band[i + 1, r, 3 * b + q] += uu + uv + vu + vv
-            band[i + 1, r, 3 * (b + 1) + q] += h12
-            band[i + 2, r, 3 * b + q] += vv
+            _vput(vals, o00, r, q, uu)
+            _vput(vals, o01, r, q, h01)
+            _vput(vals, o02, r, q, uv)
+            _vput(vals, o11, r, q, uu + uv + vu + vv)
+            _vput(vals, o12, r, q, h12)
+            _vput(vals, o22, r, q, vv)
             if not upper:
-                band[i + 1, q, 3 * (b - 1) + r] += h01
-                band[i + 2, q, 3 * (b - 2) + r] += uv
-                band[i + 2, q, 3 * (b - 1) + r] += h12
+                _vput(vals, o10, q, r, h01)
+                _vput(vals, o20, q, r, uv)
+                _vput(vals, o21, q, r, h12)
     return 0.0, False
 
 
@@ -395,7 +421,7 @@ def _v_in_plane(cols, j, top, bot, fu, fv, al, be):
 
 
 @_jit
-def _v_twist(x, i, rest, k, mode, g, band, b, upper, exact, cols, wts, u, v):
+def _v_twist(x, i, rest, k, mode, g, vals, base, b, upper, exact, cols, wts, u, v):
     """One twist element on vertices i .. i+3: (energy, bad).  cols (8, 12), wts (8,)
     are scratch: the element Hessian's columns and weights (analytic: four, unweighted;
     ``exact``: eight, twist._exact_columns); u, v (6, 3) scratch for the eigenpairs."""
@@ -499,6 +525,7 @@ def _v_twist(x, i, rest, k, mode, g, band, b, upper, exact, cols, wts, u, v):
     for a in range(4):
         for cc in range(a, 4):
             dd = cc - a
+            o_up, o_low = base[i + a, dd + b], base[i + cc, b - dd]
             for r in range(3):
                 ra = 3 * a + r
                 for q in range(3):
@@ -510,20 +537,21 @@ def _v_twist(x, i, rest, k, mode, g, band, b, upper, exact, cols, wts, u, v):
                     else:       # four columns, weights 1: unrolled
                         hv = (cols[0, ra] * cols[0, qc] + cols[1, ra] * cols[1, qc]
                               + cols[2, ra] * cols[2, qc] + cols[3, ra] * cols[3, qc])
-                    band[i + a, r, 3 * (dd + b) + q] += hv
+                    _vput(vals, o_up, r, q, hv)
                     if dd != 0 and not upper:
-                        band[i + cc, q, 3 * (b - dd) + r] += hv
+                        _vput(vals, o_low, q, r, hv)
     return 0.0, False
 
 
 @_jit
 def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
-           mode, g, band, b, upper, exact):
+           mode, g, vals, base, b, upper, exact):
     """All terms in one pass over the vertices (elements in order of their first
-    vertex), so each band row is written while it is in cache; with HESSIAN the band
-    rows are zeroed on the way (row v + b just before the elements starting at v, the
-    first to touch it).  Returns (energy, term, element): term 0, 1, 2 and the first bad
-    element of that term, or -1, -1."""
+    vertex), so each block row is written while it is in cache; with HESSIAN the
+    stored blocks of each row are zeroed on the way (row v + b just before the elements
+    starting at v, the first to touch it).  The matrix goes to ``vals`` as
+    :class:`BlockLayout` ``base`` places it (column-major blocks).  Returns (energy, term, element):
+    term 0, 1, 2 and the first bad element of that term, or -1, -1."""
     energy = 0.0
     u, v, w = np.empty((6, 3)), np.empty((6, 3)), np.empty(8)
     cols = np.empty((8, 12))
@@ -531,27 +559,27 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
     zero = mode == HESSIAN
     if zero:
         for r in range(min(b, nv)):
-            band[r, :, :] = 0.0
+            _vzero_row(vals, base, r)
     ps = pb = pt = 0
     for vtx in range(nv):
         if zero and vtx + b < nv:
-            band[vtx + b, :, :] = 0.0
+            _vzero_row(vals, base, vtx + b)
         while ps < s_start.shape[0] and s_start[ps] == vtx:
-            en, bad = _v_stretch(x, vtx, s_rest[ps], s_k[ps], mode, g, band, b, upper, exact)
+            en, bad = _v_stretch(x, vtx, s_rest[ps], s_k[ps], mode, g, vals, base, b, upper, exact)
             if bad:
                 return energy, 0, ps
             energy += en
             ps += 1
         while pb < b_start.shape[0] and b_start[pb] == vtx:
-            en, bad = _v_bend(x, vtx, b_rest[pb], b_k[pb], mode, g, band, b, upper, exact,
-                              u, v, w)
+            en, bad = _v_bend(x, vtx, b_rest[pb], b_k[pb], mode, g, vals, base, b, upper,
+                              exact, u, v, w)
             if bad:
                 return energy, 1, pb
             energy += en
             pb += 1
         while pt < t_start.shape[0] and t_start[pt] == vtx:
-            en, bad = _v_twist(x, vtx, t_rest[pt], t_k[pt], mode, g, band, b, upper, exact,
-                               cols, w, u, v)
+            en, bad = _v_twist(x, vtx, t_rest[pt], t_k[pt], mode, g, vals, base, b, upper,
+                               exact, cols, w, u, v)
             if bad:
                 return energy, 2, pt
             energy += en
@@ -564,7 +592,7 @@ _REFERENCE = {"stretch": stretch, "bend": bend, "twist": twist}
 _K = {"stretch": 2, "bend": 3, "twist": 4}
 _NO_ELEMENTS = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
 _NO_G = np.zeros((0, 3))
-_NO_BAND = np.zeros((0, 3, 3))
+_NO_VALUES = np.zeros(0)
 
 
 def element_arrays(name, start, rest, stiffness):
@@ -579,18 +607,57 @@ def element_arrays(name, start, rest, stiffness):
     return (start, *check_term(name, rest, stiffness))
 
 
-def _run(terms, x, mode, g, band, b, upper, exact=False):
+class BlockLayout:
+    """Where the matrix's 3x3 blocks live in a flat value array: entry (r, c) of block
+    (i, i + d), |d| <= b, is ``values[base[i, d + b] + r * row_stride + c * col_stride]``
+    (``base`` (nv, 2 b + 1) int64, -1 where the block is not stored: outside the wisp,
+    or below the diagonal for SBAIJ).  Blocks not stored must never be written: the
+    elements stay inside their wisp."""
+
+    def __init__(self, base, row_stride, col_stride, b):
+        self.base = np.ascontiguousarray(base, np.int64)
+        self.row_stride, self.col_stride, self.b = int(row_stride), int(col_stride), int(b)
+        if self.base.ndim != 2 or self.base.shape[1] != 2 * self.b + 1:
+            raise ValueError(f"BlockLayout: base must be (nv, {2 * self.b + 1}), got {self.base.shape}")
+
+    @classmethod
+    def band(cls, nv, b):
+        """The band storage (nv, 3, 3 (2 b + 1)) of the module doc, flattened."""
+        width = 3 * (2 * b + 1)
+        base = 3 * width * np.arange(nv)[:, None] + 3 * np.arange(2 * b + 1)[None, :]
+        return cls(base, width, 1, b)
+
+    @classmethod
+    def block_csr(cls, stored, b):
+        """A block-CSR value array (PETSc SeqBAIJ: block rows in order, each row's
+        blocks by column, each block column-major) holding the blocks ``stored``
+        (nv, 2 b + 1) bool: block (i, i + d) at ``stored[i, d + b]``."""
+        stored = np.asarray(stored, bool)
+        base = np.full(stored.shape, -1, np.int64)
+        base[stored] = 9 * np.arange(int(stored.sum()))
+        return cls(base, 1, 3, b)
+
+    def size(self):
+        """The smallest value array the layout fits."""
+        last = int(self.base.max(initial=-1))
+        return 0 if last < 0 else last + 2 * self.row_stride + 2 * self.col_stride + 1
+
+
+_NO_LAYOUT = BlockLayout(np.zeros((0, 1), np.int64), 0, 0, 0)
+
+
+def _run(terms, x, mode, g, values, layout, upper, exact=False):
     """Run the fused pass over ``terms`` (name -> :func:`element_arrays`)."""
     x = np.ascontiguousarray(x, np.float64)
     for name, (start, _, _) in terms.items():
         k = _K[name]
         if len(start) and (start[0] < 0 or start[-1] + k > len(x)):
             raise ValueError(f"{name}: elements reach vertex {int(start[-1]) + k - 1} of {len(x)}")
-        if mode == HESSIAN and k - 1 > b:
-            raise ValueError(f"{name}: a half bandwidth of {b} cannot hold {k}-vertex elements")
+        if mode == HESSIAN and k - 1 > layout.b:
+            raise ValueError(f"{name}: a half bandwidth of {layout.b} cannot hold {k}-vertex elements")
     arrays = [terms.get(name, _NO_ELEMENTS) for name in TERMS]
-    energy, term, bad = _terms(x, *arrays[0], *arrays[1], *arrays[2], mode, g, band, b, upper,
-                                 exact)
+    energy, term, bad = _terms(x, *arrays[0], *arrays[1], *arrays[2], mode, g, values,
+                               layout.base, layout.b, upper, exact)
     if bad >= 0:
         # The NumPy kernel names the problem (ElementError); it must raise here.
         name = TERMS[term]
@@ -603,22 +670,43 @@ def _run(terms, x, mode, g, band, b, upper, exact=False):
 
 def energy(terms, x):
     """Summed energy of ``terms`` (name -> :func:`element_arrays`) at positions x (nv, 3)."""
-    return _run(terms, x, ENERGY, _NO_G, _NO_BAND, 0, False)
+    return _run(terms, x, ENERGY, _NO_G, _NO_VALUES, _NO_LAYOUT, False)
 
 
 def add_gradient(terms, x, g):
     """Add the gradient of ``terms`` to g (nv, 3)."""
-    _run(terms, x, GRADIENT, g, _NO_BAND, 0, False)
+    _run(terms, x, GRADIENT, g, _NO_VALUES, _NO_LAYOUT, False)
 
 
 def add_gradient_hessian(terms, x, g, band, b, upper, filter="analytic"):
     """Add the gradient to g (nv, 3) and set ``band`` (nv, 3, 3 (2 b + 1)) to the
-    ``filter``-ed Hessian of ``terms`` (module doc; ``upper``: only d >= 0)."""
+    ``filter``-ed Hessian of ``terms`` (module doc; ``upper``: only d >= 0), through
+    a block array of the whole band (:func:`add_gradient_hessian_into`)."""
+    nv, width = len(x), 2 * b + 1
+    if band.shape != (nv, 3, 3 * width):
+        raise ValueError(f"band must have shape {(nv, 3, 3 * width)}, got {band.shape}")
+    values = np.zeros(9 * nv * width)
+    add_gradient_hessian_into(terms, x, g, values, BlockLayout.block_csr(np.ones((nv, width)), b),
+                              upper, filter)
+    # values[9 (i width + d + b) + r + 3 c] -> band[i, r, 3 (d + b) + c]
+    band.reshape(nv, 3, width, 3)[...] = values.reshape(nv, width, 3, 3).transpose(0, 3, 1, 2)
+
+
+def add_gradient_hessian_into(terms, x, g, values, layout, upper, filter="analytic"):
+    """Add the gradient to g (nv, 3) and set the blocks of the flat ``values`` that
+    ``layout`` (:class:`BlockLayout`, column-major blocks: :meth:`BlockLayout.block_csr`)
+    stores to the ``filter``-ed Hessian of ``terms`` (``upper``: only blocks with
+    d >= 0 are written): e.g. straight into PETSc's SeqBAIJ value array, with no band
+    or per-element buffer in between."""
     if filter not in FILTERS:
         raise ValueError(f"compiled kernels implement the filters {FILTERS}, not {filter!r}")
-    if band.shape != (len(x), 3, 3 * (2 * b + 1)):
-        raise ValueError(f"band must have shape {(len(x), 3, 3 * (2 * b + 1))}, got {band.shape}")
-    _run(terms, x, HESSIAN, g, band, int(b), bool(upper), filter == "none")
+    if (layout.row_stride, layout.col_stride) != (1, 3):
+        raise ValueError("the compiled kernels write column-major 3x3 blocks: use "
+                         "BlockLayout.block_csr")
+    if layout.base.shape[0] != len(x) or values.ndim != 1 or len(values) < layout.size():
+        raise ValueError(f"values ({values.shape}) and layout ({layout.base.shape} blocks) do "
+                         f"not fit {len(x)} vertices: build the layout for these values")
+    _run(terms, x, HESSIAN, g, values, layout, bool(upper), filter == "none")
 
 
 @_jit
@@ -741,9 +829,10 @@ def warm_up():
     one = (np.zeros(1, np.int64), np.ones(1), np.ones(1))
     g = np.zeros((4, 3))
     band = np.zeros((4, 3, 21))
+    layout = BlockLayout.block_csr(np.ones((4, 7)), 3)
     for mode in (ENERGY, GRADIENT, HESSIAN):
         for exact in (False, True):
-            _terms(x, *one, *one, *one, mode, g, band, 3, False, exact)
+            _terms(x, *one, *one, *one, mode, g, np.zeros(9 * 28), layout.base, 3, False, exact)
     _gather_blocks(band, one[0], one[0], np.zeros(9), True)
     off = np.array([0, 4])
     edge_lengths(x, g, None, np.ones(4, bool), off, np.ones(4))

@@ -195,8 +195,8 @@ def test_plan_cluster_caps_and_mumps_ordering_default():
     assert plan.pmat_type is None               # the strand matrix itself, no AIJ copy
     assert SolverPlan.resolve("", strand_contact=True).cluster_caps is None
     mumps = "-ksp_type preonly -pc_type cholesky -pc_factor_mat_solver_type mumps"
-    assert SolverPlan.resolve(mumps).sub_solver["mat_mumps_icntl_7"] == "2"
-    assert "mat_mumps_icntl_7" not in SolverPlan.resolve("").sub_solver
+    assert dict(SolverPlan.resolve(mumps).factor) == {"mat_mumps_icntl_7": "2"}
+    assert dict(SolverPlan.resolve("").factor) == {}
     # the config's (or command line's) choice wins over the code default
     plan = SolverPlan.resolve(mumps + " -mat_mumps_icntl_7 5")
     assert plan.effective()["mat_mumps_icntl_7"] == "5"

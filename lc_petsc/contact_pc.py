@@ -58,12 +58,21 @@ MIN_CAPTURED = 0.9
 ORDERING = "qmd"
 
 
-def block_csr(M):
-    """(ia, ja, blocks (nnzb, 3, 3) row-major) of the sequential BAIJ (bs 3) matrix ``M``."""
+def block_rows(M, rows=None):
+    """Block rows of the sequential BAIJ (bs 3) matrix ``M``: (row of each block (k,),
+    as a position in ``rows`` (default: every row), column (k,), block (k, 3, 3)
+    row-major).  Only the selected blocks are copied out of PETSc's (column-major)
+    value array."""
     ia, ja = M.getRowIJ(compressed=True)
+    ia, ja = ia.astype(np.int64), ja.astype(np.int64)
+    if rows is None:
+        rows = np.arange(len(ia) - 1)
+    counts = ia[rows + 1] - ia[rows]
+    first = np.repeat(ia[rows] - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+    idx = first + np.arange(int(counts.sum()))
     with value_array(M, 9 * len(ja)) as v:
-        blocks = v.reshape(-1, 3, 3).transpose(0, 2, 1).copy()      # PETSc: column-major
-    return ia.astype(np.int64), ja.astype(np.int64), blocks
+        blocks = v.reshape(-1, 3, 3)[idx].transpose(0, 2, 1)
+    return np.repeat(np.arange(len(rows)), counts), ja[idx], blocks
 
 
 def local_block(M):
@@ -71,12 +80,11 @@ def local_block(M):
     return M if M.getComm().getSize() == 1 else M.getDiagonalBlock()
 
 
-def wisp_couplings(ia, ja, blocks, vertex_wisp):
-    """Coupled wisp pairs of a cross-block matrix: (pairs (m, 2) with a < b, weights (m,)
-    the summed Frobenius norms of their blocks, counts (m,) their blocks), pairs sorted
-    by (a, b)."""
-    rows = np.repeat(np.arange(len(ia) - 1), np.diff(ia))
-    a, b = vertex_wisp[rows], vertex_wisp[ja]
+def wisp_couplings(rows, cols, blocks, vertex_wisp):
+    """Coupled wisp pairs of the blocks (``rows``, ``cols``: vertices (k,); ``blocks``
+    (k, 3, 3)) of a cross-block matrix: (pairs (m, 2) with a < b, weights (m,) the summed
+    Frobenius norms of their blocks, counts (m,) their blocks), pairs sorted by (a, b)."""
+    a, b = vertex_wisp[rows], vertex_wisp[cols]
     keep = a < b                            # each coupling once (C is symmetric)
     n = int(vertex_wisp.max(initial=-1)) + 1
     key, inverse, count = np.unique(a[keep] * n + b[keep], return_inverse=True,
@@ -120,16 +128,6 @@ def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blo
     smallest = np.full(n_wisps, n_wisps, np.int64)
     np.minimum.at(smallest, roots, np.arange(n_wisps))
     return smallest[roots]
-
-
-def _take_rows(ia, ja, blocks, rows):
-    """Block rows ``rows`` of a block CSR matrix: (row of each block (k,) as position in
-    ``rows``, columns (k,), blocks (k, 3, 3))."""
-    counts = ia[rows + 1] - ia[rows]
-    total = int(counts.sum())
-    first = np.repeat(ia[rows] - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
-    idx = first + np.arange(total)
-    return np.repeat(np.arange(len(rows)), counts), ja[idx], blocks[idx]
 
 
 class ClusterPC:
@@ -183,8 +181,8 @@ class ClusterPC:
         self.stats = stats
         if C_loc is None or n_w < 2:
             return
-        ic, jc, bc = block_csr(C_loc)
-        pairs, weights, counts = wisp_couplings(ic, jc, bc, self.vertex_wisp)
+        rc, cc, vc = block_rows(C_loc)
+        pairs, weights, counts = wisp_couplings(rc, cc, vc, self.vertex_wisp)
         stats["couplings"] = len(pairs)
         if not len(pairs):
             return
@@ -208,13 +206,11 @@ class ClusterPC:
                           sizes) + np.arange(int(sizes.sum()))
         pos = np.full(len(self.vertex_wisp), -1, np.int64)
         pos[verts] = np.arange(len(verts))
-        ia, ja, ba = block_csr(A_loc)
-        ra, ca, va = _take_rows(ia, ja, ba, verts)
-        rc, cc, vc = _take_rows(ic, jc, bc, verts)
-        inside = label[self.vertex_wisp[verts[rc]]] == label[self.vertex_wisp[cc]]
-        rows = np.concatenate([ra, rc[inside]])
-        cols = np.concatenate([pos[ca], pos[cc[inside]]])
-        vals = np.concatenate([va, vc[inside]])
+        ra, ca, va = block_rows(A_loc, verts)
+        keep = (pos[rc] >= 0) & (label[self.vertex_wisp[rc]] == label[self.vertex_wisp[cc]])
+        rows = np.concatenate([ra, pos[rc[keep]]])
+        cols = np.concatenate([pos[ca], pos[cc[keep]]])
+        vals = np.concatenate([va, vc[keep]])
         order = np.lexsort((cols, rows))
         indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=len(verts)))])
         m = 3 * len(verts)

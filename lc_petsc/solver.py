@@ -35,6 +35,13 @@ this module creates the KSP with the code defaults, which the options override
   ``-pc_bjacobi_blocks`` / ``-pc_bjacobi_local_blocks`` (e.g.
   configs/solvers/bjacobi_rank.opts) replace the per-wisp blocks altogether.
 
+With strand contact, ``-lc_contact_pc clusters`` (opt-in) grows the fused per-wisp
+blocks into clusters of wisps coupled by contact, each solved exactly
+(lc_petsc/contact_pc.py, a ``PCPYTHON`` set up here after ``setFromOptions``: the
+options select it, so no ``-pc_type`` can undo it; docs/contact_solver.md).  MUMPS
+(``-pc_factor_mat_solver_type mumps``) gets the AMF ordering ``-mat_mumps_icntl_7 2``
+as a code default (the plan's sub-solver layer: the options win).
+
 Matrix type: MUMPS refuses BAIJ and GAMG refuses BAIJ, so when such a solver is asked
 for without ``-mat_type``, the plan picks ``sbaij`` (MUMPS Cholesky) or ``aij``; an
 explicit ``-mat_type baij`` with them is a configuration error naming the options to use.
@@ -71,7 +78,9 @@ class LinearSolver:
     """The KSP of the Newton systems.  ``P`` (default: ``A``) must not couple two wisps
     when the per-wisp block Jacobi is ``fused`` (see the module doc); with strand
     contact and ``-lc_contact_pc coupled`` it does, and the fused block is then an
-    ILU(0) of the coupled rank matrix, not per-wisp LUs (docs/contact.md)."""
+    ILU(0) of the coupled rank matrix, not per-wisp LUs (docs/contact.md).  With
+    ``-lc_contact_pc clusters``, ``clusters`` is the :class:`ClusterPC` context (None
+    otherwise)."""
 
     def __init__(self, A, wisp_rows, plan: SolverPlan, P=None):
         self.plan = plan
@@ -90,8 +99,8 @@ class LinearSolver:
             elif self.wisp_blocks == "fused":
                 bjacobi_set_local_blocks(pc, [int(np.sum(wisp_rows))])
             ksp.setFromOptions()
-            self.clusters = None
-            if plan.contact_pc == "clusters":     # the per-wisp blocks grown into clusters
+            self.clusters: ClusterPC | None = None
+            if plan.cluster_caps is not None:     # the per-wisp blocks grown into clusters
                 self.clusters = ClusterPC(wisp_rows, *plan.cluster_caps)
                 pc.setType(PETSc.PC.Type.PYTHON)
                 pc.setPythonContext(self.clusters)

@@ -164,7 +164,7 @@ class SolverPlan:
     ``contact_pc``: ``coupled`` / ``strands`` / ``clusters`` with strand contact, else
     None; ``cluster_caps``: (max wisps, max cross blocks, min captured share) of the
     clusters with ``clusters``, else None;
-    ``sub_solver``: the per-wisp blocks' default sub-solver options and the
+    ``sub_solver``: the per-wisp blocks' default sub-solver options; ``factor``: the
     factorisation defaults (:func:`factor_defaults`);
     ``element_kernels``: ``compiled`` / ``numpy``; ``wisp_order``: ``spatial`` / ``input``.
     """
@@ -178,6 +178,7 @@ class SolverPlan:
     contact_pc: Optional[str]
     cluster_caps: Optional[tuple[int, int, float]]
     sub_solver: Mapping[str, str]
+    factor: Mapping[str, str]
     element_kernels: str
     wisp_order: str
     _layers: _Layers = field(repr=False, compare=False)
@@ -199,8 +200,8 @@ class SolverPlan:
         return cls(prefix=prefix, options=MappingProxyType(dict(layers.options)),
                    mat_type=mat_type, pmat_type=pmat_type, pc_type=pc_type,
                    wisp_blocks=wisp_blocks, contact_pc=contact_pc, cluster_caps=caps,
-                   sub_solver=MappingProxyType({**sub_solver_defaults(mat_type),
-                                                **factor_defaults(layers)}),
+                   sub_solver=MappingProxyType(sub_solver_defaults(mat_type)),
+                   factor=MappingProxyType(factor_defaults(layers)),
                    element_kernels=_choice(layers, "lc_element_kernels", ELEMENT_KERNELS,
                                            "compiled (Numba, the default) or numpy (the reference kernels)"),
                    wisp_order=_choice(layers, "lc_wisp_order", WISP_ORDERS,
@@ -210,10 +211,10 @@ class SolverPlan:
 
     @contextmanager
     def active(self):
-        """The plan's config options and sub-solver defaults in the options database
+        """The plan's config options, sub-solver and factorisation defaults in the options database
         (the command line's win) while PETSc objects are created, set from options,
         set up and used; removed again on exit."""
-        with self._layers.active(self.sub_solver):
+        with self._layers.active({**self.sub_solver, **self.factor}):
             yield
 
     def effective(self):
@@ -225,10 +226,11 @@ class SolverPlan:
 
     def options_used(self, command_line, mat_type):
         """The options in effect, as recorded in summary.json's ``petsc_options_used``:
-        code defaults < sub-solver defaults < config < command line, and the operator's
-        actual ``mat_type``."""
+        code defaults < sub-solver and factorisation defaults < config < command line, and
+        the operator's actual ``mat_type``."""
         used = dict(DEFAULTS)
         used.update(self.sub_solver)
+        used.update(self.factor)
         used.update(self.options)
         used.update(command_line)
         used["mat_type"] = mat_type

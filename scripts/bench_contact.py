@@ -8,7 +8,10 @@ segment distance over the run.
 Scene: --config (default configs/hairball_2k.toml: the paper's 2,000-wisp hairball, head
 turning about z, y, x, gravity, head and strand contact with d0 = twice the tip radius,
 dt = 1/30, 3 Newton iterations), with strand_collision switched on if the config has it
-off.  ``--wisps``, ``--stiffness``, ``--thickness`` override the config.  Phase times
+off.  ``--wisps``, ``--stiffness``, ``--thickness`` override the config; ``--mode
+penalty|ccd`` sets ``physics.strand_contact_mode``.  The solver is the config's, PETSc
+options on the command line win (e.g. ``-lc_contact_pc clusters``; with it, the
+clusters per Newton iteration are printed).  Phase times
 are maxima over ranks.  ``--json FILE`` writes the per-frame figures; give the files
 of several runs (e.g. 1 and 2 ranks) to scripts/report_contact.py for a table side by
 side and a plot.
@@ -41,6 +44,8 @@ def main():
     ap.add_argument("--wisps", type=int, default=None)
     ap.add_argument("--thickness", type=float, default=None)
     ap.add_argument("--stiffness", type=float, default=None)
+    ap.add_argument("--mode", choices=("penalty", "ccd"), default=None,
+                    help="strand contact mode (default: the config's)")
     ap.add_argument("--json", default=None)
     args, _ = ap.parse_known_args()
     comm = MPI.COMM_WORLD
@@ -53,6 +58,8 @@ def main():
         cfg.physics.strand_thickness = args.thickness
     if args.stiffness is not None:
         cfg.physics.strand_stiffness = args.stiffness
+    if args.mode is not None:
+        cfg.physics.strand_contact_mode = args.mode
     cfg.time.frames = args.frames
     t0 = time.perf_counter()
     sim = build_simulator(cfg)
@@ -76,6 +83,12 @@ def main():
                   f"{ph['solve']:5.2f}  elements {ph['elements']:5.2f}  assembly {ph['assembly']:5.2f}"
                   f"  CG {its}  pairs {pairs} (< d0/2: {deep}; separated {sep[0]} in {sep[1]} rounds)"
                   f"  dmin {dmin:.4f}", flush=True)
+            clusters = getattr(sim.solver, "clusters", None)
+            if clusters is not None:
+                print("           clusters (rank 0, per Newton iteration): "
+                      + "; ".join(f"{h['clusters']} holding {h['wisps']} wisps (largest {h['largest']}, "
+                                  f"captured {h['captured']:.2f}{', fallback' if h['fallback'] else ''})"
+                                  for h in clusters.history[-len(its):]), flush=True)
     s = sim.summary()
     if comm.rank == 0:
         run = {"ranks": comm.size, "d0": sim.strand.d0, "build": t_build, "config": args.config,

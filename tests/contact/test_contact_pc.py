@@ -60,11 +60,11 @@ def test_clusters_equal_brute_force(max_wisps, max_blocks):
 
 
 def test_wisp_couplings_sums_blocks_per_wisp_pair():
-    # 4 vertices: wisps 0 (v0, v1), 1 (v2), 2 (v3); blocks (0,2) (1,2) (2,0) (2,1) (1,3) (3,1)
-    ia = np.array([0, 1, 3, 5, 6])
-    ja = np.array([2, 2, 3, 0, 1, 1])
+    # 4 vertices: wisps 0 (v0, v1), 1 (v2), 2 (v3); blocks (0,2) (1,2) (1,3) (2,0) (2,1) (3,1)
+    rows = np.array([0, 1, 1, 2, 2, 3])
+    cols = np.array([2, 2, 3, 0, 1, 1])
     blocks = np.arange(6, dtype=float)[:, None, None] * np.eye(3)
-    pairs, w, counts = wisp_couplings(ia, ja, blocks, np.array([0, 0, 1, 2]))
+    pairs, w, counts = wisp_couplings(rows, cols, blocks, np.array([0, 0, 1, 2]))
     np.testing.assert_array_equal(pairs, [[0, 1], [0, 2]])
     np.testing.assert_allclose(w, [np.sqrt(3) * (0 + 1), np.sqrt(3) * 2])
     np.testing.assert_array_equal(counts, [2, 1])
@@ -195,8 +195,8 @@ def test_plan_cluster_caps_and_mumps_ordering_default():
     assert plan.pmat_type is None               # the strand matrix itself, no AIJ copy
     assert SolverPlan.resolve("", strand_contact=True).cluster_caps is None
     mumps = "-ksp_type preonly -pc_type cholesky -pc_factor_mat_solver_type mumps"
-    assert SolverPlan.resolve(mumps).sub_solver["mat_mumps_icntl_7"] == "2"
-    assert "mat_mumps_icntl_7" not in SolverPlan.resolve("").sub_solver
+    assert dict(SolverPlan.resolve(mumps).factor) == {"mat_mumps_icntl_7": "2"}
+    assert dict(SolverPlan.resolve("").factor) == {}
     # the config's (or command line's) choice wins over the code default
     plan = SolverPlan.resolve(mumps + " -mat_mumps_icntl_7 5")
     assert plan.effective()["mat_mumps_icntl_7"] == "5"

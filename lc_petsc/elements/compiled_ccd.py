@@ -267,7 +267,8 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
 
 def box_pairs(lo, hi, group=None):
     """Index pairs (k, 2), i < j, of the axis-aligned boxes lo, hi (n, 3) that overlap
-    (closed boxes), exact, sorted; with ``group`` (n,) only pairs of different groups.
+    (closed boxes), exact, in the grid's order (the same for the same input); with
+    ``group`` (n,) only pairs of different groups.
     A uniform grid (cell: twice the median box extent, at most 1024 cells per axis) in
     a compiled loop: the cost is the boxes' cell entries and the pairs sharing a cell."""
     lo = np.ascontiguousarray(lo, np.float64)
@@ -276,10 +277,11 @@ def box_pairs(lo, hi, group=None):
     if n < 2:
         return np.zeros((0, 2), np.int64)
     ext = hi - lo
-    span = float((hi.max(axis=0) - lo.min(axis=0)).max())
-    cell = max(2.0 * float(np.median(ext.max(axis=1))), span / 1024.0, 1e-12)
-    origin = lo.min(axis=0)
-    dims = (np.floor((hi.max(axis=0) - origin) / cell).astype(np.int64) + 1)
+    origin, top = lo.min(axis=0), hi.max(axis=0)
+    span = float((top - origin).max())
+    cell = max(2.0 * float(np.median(np.maximum(np.maximum(ext[:, 0], ext[:, 1]), ext[:, 2]))),
+               span / 1024.0, 1e-12)
+    dims = (np.floor((top - origin) / cell).astype(np.int64) + 1)
     g = np.zeros(n, np.int64) if group is None else np.ascontiguousarray(group, np.int64)
     args = (lo, hi, g, group is None, origin, cell, dims)
     out = np.empty((8 * n, 2), np.int64)
@@ -287,5 +289,4 @@ def box_pairs(lo, hi, group=None):
     if found > len(out):                # more than guessed: once more, with room
         out = np.empty((found, 2), np.int64)
         _box_pairs(*args, out)
-    out = out[:found]
-    return out[np.lexsort((out[:, 1], out[:, 0]))]
+    return out[:found]

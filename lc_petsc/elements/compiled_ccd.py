@@ -30,6 +30,8 @@ from lc_petsc.elements.segment_contact import PARALLEL_TOL
 MAX_STEPS = 10000
 
 _TINY = float(np.finfo(np.float64).tiny)
+#: boxes touching more grid cells than this are tested against all boxes (box_pairs)
+BIG_CELLS = 512
 
 
 @_jit
@@ -211,16 +213,23 @@ def _box_cells(lo, hi, origin, cell, dims):
 def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
     """Overlapping boxes (i < j) through a uniform grid: each box is listed in every cell
     it touches, pairs are tested within a cell and reported once, in the cell holding
-    the lower corner of their intersection.  Returns their number; the first len(out)
+    the lower corner of their intersection.  Boxes touching more than BIG_CELLS cells
+    are tested against every box instead.  Returns their number; the first len(out)
     of them are written to ``out``."""
     rng, count = _box_cells(lo, hi, origin, cell, dims)
+    n = count.shape[0]
+    big = count > BIG_CELLS
     total = 0
-    for i in range(count.shape[0]):
+    for i in range(n):
+        if big[i]:
+            count[i] = 0
         total += count[i]
     keys = np.empty(total, np.int64)
     ids = np.empty(total, np.int64)
     k = 0
-    for i in range(count.shape[0]):
+    for i in range(n):
+        if big[i]:
+            continue
         for x in range(rng[i, 0], rng[i, 3] + 1):
             for y in range(rng[i, 1], rng[i, 4] + 1):
                 for z in range(rng[i, 2], rng[i, 5] + 1):
@@ -262,24 +271,44 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
                         out[found, 0], out[found, 1] = min(i, j), max(i, j)
                     found += 1
         start = stop
+    # big boxes (a wild iterate's segment) against all boxes, each pair once
+    for i in range(n):
+        if not big[i]:
+            continue
+        for j in range(n):
+            if j == i or (big[j] and j < i) or (not same_group and group[i] == group[j]):
+                continue
+            ok = True
+            for a in range(3):
+                if hi[i, a] < lo[j, a] or hi[j, a] < lo[i, a]:
+                    ok = False
+                    break
+            if ok:
+                if found < out.shape[0]:
+                    out[found, 0], out[found, 1] = min(i, j), max(i, j)
+                found += 1
     return found
 
 
 def box_pairs(lo, hi, group=None):
     """Index pairs (k, 2), i < j, of the axis-aligned boxes lo, hi (n, 3) that overlap
-    (closed boxes), exact, sorted; with ``group`` (n,) only pairs of different groups.
+    (closed boxes), exact, in the grid's order (the same for the same input); with
+    ``group`` (n,) only pairs of different groups.
     A uniform grid (cell: twice the median box extent, at most 1024 cells per axis) in
-    a compiled loop: the cost is the boxes' cell entries and the pairs sharing a cell."""
+    a compiled loop: the cost is the boxes' cell entries and the pairs sharing a cell;
+    a box over more than :data:`BIG_CELLS` cells (one wild segment, say) is tested
+    against all boxes rather than listed in all its cells."""
     lo = np.ascontiguousarray(lo, np.float64)
     hi = np.ascontiguousarray(hi, np.float64)
     n = len(lo)
     if n < 2:
         return np.zeros((0, 2), np.int64)
     ext = hi - lo
-    span = float((hi.max(axis=0) - lo.min(axis=0)).max())
-    cell = max(2.0 * float(np.median(ext.max(axis=1))), span / 1024.0, 1e-12)
-    origin = lo.min(axis=0)
-    dims = (np.floor((hi.max(axis=0) - origin) / cell).astype(np.int64) + 1)
+    origin, top = lo.min(axis=0), hi.max(axis=0)
+    span = float((top - origin).max())
+    cell = max(2.0 * float(np.median(np.maximum(np.maximum(ext[:, 0], ext[:, 1]), ext[:, 2]))),
+               span / 1024.0, 1e-12)
+    dims = (np.floor((top - origin) / cell).astype(np.int64) + 1)
     g = np.zeros(n, np.int64) if group is None else np.ascontiguousarray(group, np.int64)
     args = (lo, hi, g, group is None, origin, cell, dims)
     out = np.empty((8 * n, 2), np.int64)
@@ -287,5 +316,4 @@ def box_pairs(lo, hi, group=None):
     if found > len(out):                # more than guessed: once more, with room
         out = np.empty((found, 2), np.int64)
         _box_pairs(*args, out)
-    out = out[:found]
-    return out[np.lexsort((out[:, 1], out[:, 0]))]
+    return out[:found]

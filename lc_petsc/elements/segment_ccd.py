@@ -18,11 +18,11 @@ swinging together is not limited, unlike per-vertex displacement bounds.
 t += (d(t) - m) / rel while the gap to the minimum distance ``m`` is positive.  Every
 t it reaches is safe (d >= m on [0, t]); it reaches 1 when the pair never comes within
 m, and converges to the first time d = m otherwise (linearly; it stops after
-``iterations`` steps at a safe t).  Used by :mod:`lc_petsc.contact` to limit every
-position update, with IPC Toolkit's Tight-Inclusion CCD (:func:`tight_inclusion_toi`)
-for the pairs it leaves unresolved.  The crossing counter (:mod:`lc_petsc.crossings`)
-checks paths with Tight-Inclusion at min distance 0 and the NumPy reference of the
-tests, independently of this advancement.
+``iterations`` steps at a safe t).  This vectorised version is the tested reference of
+the compiled one the limiter of :mod:`lc_petsc.contact` runs
+(:mod:`lc_petsc.elements.compiled_ccd`, pair by pair, up to 10,000 steps).  The crossing
+counter (:mod:`lc_petsc.crossings`) checks paths with IPC Toolkit's Tight-Inclusion CCD
+(:func:`tight_inclusion_toi`, min distance 0), independently of this advancement.
 """
 
 from __future__ import annotations
@@ -176,8 +176,11 @@ def field_boxes(start, residual, lipschitz, min_distance):
     stretch along that motion only."""
     S = np.asarray(start, float)
     f = np.asarray(residual, float)
-    K = np.concatenate([S, S + f], axis=1)                     # (m, 4, 3)
-    rho = np.sqrt(np.einsum("mkc,mkc->mk", f, f).max(axis=1, initial=0.0))
+    E = S + f
+    # elementwise over the four corners (reductions over a middle axis of 4 are slow)
+    lo = np.minimum(np.minimum(S[:, 0], S[:, 1]), np.minimum(E[:, 0], E[:, 1]))
+    hi = np.maximum(np.maximum(S[:, 0], S[:, 1]), np.maximum(E[:, 0], E[:, 1]))
+    rho = np.sqrt(np.maximum(np.einsum("mc,mc->m", f[:, 0], f[:, 0]), np.einsum("mc,mc->m", f[:, 1], f[:, 1])))
     L = float(lipschitz)
     grow = ((0.5 * float(min_distance) + L * rho) / (1.0 - L))[:, None]
-    return K.min(axis=1) - grow, K.max(axis=1) + grow
+    return lo - grow, hi + grow

@@ -112,10 +112,18 @@ def test_box_pairs_against_all_pairs():
     i, j = np.triu_indices(n, 1)
     touch = np.all((hi[i] >= lo[j]) & (hi[j] >= lo[i]), axis=1)
     assert touch.sum() > 400
-    np.testing.assert_array_equal(box_pairs(lo, hi), np.stack([i[touch], j[touch]], axis=1))
+    def sort(p):
+        return p[np.lexsort((p[:, 1], p[:, 0]))]
+    np.testing.assert_array_equal(sort(box_pairs(lo, hi)), np.stack([i[touch], j[touch]], axis=1))
     other = touch & (group[i] != group[j])
-    np.testing.assert_array_equal(box_pairs(lo, hi, group), np.stack([i[other], j[other]], axis=1))
+    np.testing.assert_array_equal(sort(box_pairs(lo, hi, group)), np.stack([i[other], j[other]], axis=1))
     assert [30, 31] in box_pairs(lo, hi).tolist()
+    # boxes over more than BIG_CELLS cells are tested against all: one spans the scene
+    lo[40], hi[40] = -1.0, 11.0
+    lo[41], hi[41] = [-1.0, 2.0, 2.0], [11.0, 3.0, 3.0]
+    touch = np.all((hi[i] >= lo[j]) & (hi[j] >= lo[i]), axis=1)
+    np.testing.assert_array_equal(sort(box_pairs(lo, hi)), np.stack([i[touch], j[touch]], axis=1))
+    assert (touch & ((i == 40) | (j == 40))).sum() == n - 1
     assert box_pairs(lo[:1], hi[:1]).shape == (0, 2)
 
 

@@ -1,6 +1,8 @@
 """The shipped 4K and 8K hairballs set a contact thickness below their closest rest pair,
 so strand_contact_mode = "ccd" runs on them without rest-pose exemptions."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -12,7 +14,7 @@ from lc_petsc.scene.sources import source_from_config
 
 @pytest.mark.parametrize("name, closest", [("hairball_4k", 0.0945), ("hairball_8k", 0.0604)])
 def test_big_hairballs_are_clear_of_their_thickness(name, closest):
-    cfg = load_config(f"configs/{name}.toml")
+    cfg = load_config(Path(__file__).resolve().parents[2] / "configs" / f"{name}.toml")
     d0 = cfg.physics.strand_thickness
     n = cfg.scene.n_wisps
     b = source_from_config(cfg.scene, cfg.material, cfg.physics).load(0, n)

@@ -291,7 +291,7 @@ class Assembler:
             self.B[:, self.b, [0, 1, 2], [0, 1, 2]] += diag[:, None]
             return
         with self.block_array() as v:
-            v[self.diagonal_entries] += diag[:, None]
+            compiled.add_diagonal(v, self.diagonal_entries, diag)
 
     def _band_to_values(self, band_index):
         """Indices into the BAIJ value array (:attr:`layout`) of the entries at the flat

@@ -19,11 +19,16 @@ AIJ copy; see ``Assembler._probe_value_arrays``), else by ONE ``setValuesBlocked
 call.  No per-element PETSc calls.
 
 Compiled kernels (``kernels="compiled"``, the default; ``-lc_element_kernels``).  For
-the filters :mod:`lc_petsc.elements.compiled` implements (analytic, none), one compiled loop per term goes
-from the positions straight to the band array and the gradient (no padding, no Hessian
-buffers), and a compiled gather fills the CSR value array; its time is reported under
-``elements``.  Other filters, and ``kernels="numpy"``, run the NumPy kernels as above
-(their padded buffers are made on first use).  docs/performance.md has the figures.
+the filters :mod:`lc_petsc.elements.compiled` implements (analytic, none), one compiled
+pass goes from the positions straight to the gradient and the column-major 3x3 blocks
+in block-CSR order (:class:`~lc_petsc.elements.compiled.BlockLayout`): written into
+PETSc's SeqBAIJ value array of the rank's block when the probe allows it
+(``direct``), else into ``block_values`` for one ``setValuesBlockedCSR`` call.  Mass,
+contact blocks and pinned rows then go to the same array (:meth:`Assembler._blocks`),
+and the AIJ preconditioning copy is gathered from it; the band array is not used.  Its
+time is reported under ``elements``.  Other filters, and ``kernels="numpy"``, run the
+NumPy kernels into the band as above (their padded buffers are made on first use).
+docs/performance.md has the figures.
 
 Matrix type: the solver plan's (lc_petsc/solver_plan.py: ``baij`` (bs 3) unless
 ``-mat_type`` or the preconditioner asks for another); ``sbaij`` and ``aij`` (block size
@@ -286,7 +291,7 @@ class Assembler:
             self.B[:, self.b, [0, 1, 2], [0, 1, 2]] += diag[:, None]
             return
         with self.block_array() as v:
-            v[self.diagonal_entries] += diag[:, None]
+            compiled.add_diagonal(v, self.diagonal_entries, diag)
 
     def _band_to_values(self, band_index):
         """Indices into the BAIJ value array (:attr:`layout`) of the entries at the flat

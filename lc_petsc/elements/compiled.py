@@ -1,9 +1,11 @@
-"""Compiled (Numba) element kernels fused with the band assembly.
+"""Compiled (Numba) element kernels fused with the assembly, and the edge-length pass of
+the Newton update.
 
 The same energies, gradients and filtered Hessians as :mod:`stretch`, :mod:`bend` and
 :mod:`twist` (which stay the tested reference; ``tests/test_elements_compiled.py`` checks
 these against them to round-off), evaluated element by element and written straight into
-the band storage of :class:`lc_petsc.assembly.Assembler`: no per-element Hessian array,
+the matrix's block-CSR value array (:class:`BlockLayout`; PETSc's own SeqBAIJ array in
+:class:`lc_petsc.assembly.Assembler`): no per-element Hessian array,
 only a few scalars (and a column scratch of at most 8 x 12) per element.  Still plain Python,
 compiled by Numba on first use and cached on disk (``cache=True``: in ``__pycache__``
 next to this file, or ``NUMBA_CACHE_DIR`` if set; see docs/performance.md).
@@ -18,9 +20,12 @@ Layout (shared with the assembler):
   ``start + 0..k-1``, nondecreasing), ``rest``, ``stiffness`` (n,) float64, validated
   once;
 * ``x`` (nv, 3) local positions; ``g`` (nv, 3) vertex gradient, added to;
-* ``band`` (nv, 3, 3 (2 b + 1)): ``band[i, r, 3 (d + b) + c]`` is entry
-  (3 i + r, 3 (i + d) + c) of the matrix, set (zeroed and summed in the same pass); with
-  ``upper`` only d >= 0 is written (SBAIJ).
+* ``values`` flat, with a :class:`BlockLayout`: entry (r, c) of block (i, i + d) at
+  ``values[base[i, d + b] + r + 3 c]`` (column-major blocks, each block row's blocks
+  contiguous), set (zeroed and summed in the same pass); with ``upper`` only d >= 0 is
+  written (SBAIJ);
+* ``band`` (nv, 3, 3 (2 b + 1)) (:func:`add_gradient_hessian`, for the tests):
+  ``band[i, r, 3 (d + b) + c]`` is entry (3 i + r, 3 (i + d) + c) of the matrix.
 
 All terms are evaluated in one pass over the vertices (:func:`_terms`), element
 functions ``_v_stretch``, ``_v_bend``, ``_v_twist`` inlined.  A non-finite position or a
@@ -612,20 +617,14 @@ class BlockLayout:
     (i, i + d), |d| <= b, is ``values[base[i, d + b] + r * row_stride + c * col_stride]``
     (``base`` (nv, 2 b + 1) int64, -1 where the block is not stored: outside the wisp,
     or below the diagonal for SBAIJ).  Blocks not stored must never be written: the
-    elements stay inside their wisp."""
+    elements stay inside their wisp.  The kernels take :meth:`block_csr` layouts
+    (column-major blocks, a row's blocks contiguous)."""
 
     def __init__(self, base, row_stride, col_stride, b):
         self.base = np.ascontiguousarray(base, np.int64)
         self.row_stride, self.col_stride, self.b = int(row_stride), int(col_stride), int(b)
         if self.base.ndim != 2 or self.base.shape[1] != 2 * self.b + 1:
             raise ValueError(f"BlockLayout: base must be (nv, {2 * self.b + 1}), got {self.base.shape}")
-
-    @classmethod
-    def band(cls, nv, b):
-        """The band storage (nv, 3, 3 (2 b + 1)) of the module doc, flattened."""
-        width = 3 * (2 * b + 1)
-        base = 3 * width * np.arange(nv)[:, None] + 3 * np.arange(2 * b + 1)[None, :]
-        return cls(base, width, 1, b)
 
     @classmethod
     def block_csr(cls, stored, b):
@@ -731,6 +730,21 @@ def gather_blocks(band, rows, diags, out, column_major):
     _gather_blocks(band, rows, diags, out, bool(column_major))
 
 
+@_jit
+def _add_diagonal(values, index, diag):
+    """values[index[j, c]] += diag[j] for c = 0, 1, 2."""
+    for j in range(index.shape[0]):
+        for c in range(3):
+            values[index[j, c]] += diag[j]
+
+
+def add_diagonal(values, index, diag):
+    """Add diag (nv,) to the entries index (nv, 3) of the flat ``values`` (the
+    diagonals of the diagonal blocks: M / dt^2): one compiled loop (a NumPy fancy-index
+    add costs 15-25 ms at 2,000 wisps)."""
+    _add_diagonal(values, np.ascontiguousarray(index, np.int64), np.ascontiguousarray(diag, np.float64))
+
+
 # ------------------------------------------------ edge lengths (the Newton update)
 @_jit
 def _edge_lengths(x, dx, length, free, offsets, mass, retract, out):
@@ -834,6 +848,7 @@ def warm_up():
         for exact in (False, True):
             _terms(x, *one, *one, *one, mode, g, np.zeros(9 * 28), layout.base, 3, False, exact)
     _gather_blocks(band, one[0], one[0], np.zeros(9), True)
+    add_diagonal(np.zeros(9), np.zeros((1, 3), np.int64), np.ones(1))
     off = np.array([0, 4])
     edge_lengths(x, g, None, np.ones(4, bool), off, np.ones(4))
     edge_lengths(x, None, np.ones(3), np.ones(4, bool), off, None)

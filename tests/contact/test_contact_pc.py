@@ -144,6 +144,8 @@ def test_both_contact_preconditioners_same_trajectory_clusters_cut_iterations(mo
             sim.run(2)
             runs[mode] = (sim.gather_positions(), list(sim.solver.iterations),
                           sim.summary()["contact"]["pairs_per_frame"])
+            if mode == "clusters":      # set up once per Newton solve, not more
+                assert len(sim.solver.clusters.history) == len(sim.solver.iterations)
         finally:
             sim.close()
     (xs, its_s, pairs_s), (xc, its_c, pairs_c) = runs["strands"], runs["clusters"]

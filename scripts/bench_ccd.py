@@ -82,7 +82,7 @@ def compare(paths, labels, plot=None):
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-        fig, ax = plt.subplots(figsize=(7, 4))
+        fig, ax = plt.subplots(figsize=(9, 4))
         for label, run in zip(labels, runs):
             for mode in dict.fromkeys(r["mode"] for r in run["rows"]):
                 r = [x for x in run["rows"] if x["mode"] == mode]
@@ -93,7 +93,7 @@ def compare(paths, labels, plot=None):
         ax.set_xlabel("frame")
         ax.set_ylabel("seconds per frame")
         ax.set_title(f"{runs[0]['config']}, {runs[0]['ranks']} rank(s)")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         fig.tight_layout()
         fig.savefig(plot, dpi=110)
         print(f"wrote {plot}")

@@ -7,7 +7,7 @@ this module creates the KSP with the code defaults, which the options override
 * ``-ksp_type cg -ksp_rtol 1e-6 -ksp_max_it 1000``;
 * ``-pc_type bjacobi`` with **one exact block per wisp** (the paper's preconditioner).
   The preconditioning matrix never couples two wisps (strand-contact cross blocks live
-  in a separate matrix C of the operator, see lc_petsc/contact.py; only the opt-in
+  in a separate matrix C of the operator, see lc_petsc/contact.py; only
   ``-lc_contact_pc coupled`` puts them in), so its rank-local
   diagonal block is block diagonal by wisp, and *one* factorisation of that rank block
   is the set of per-wisp factorisations.  Hence two ways to build the same
@@ -35,7 +35,7 @@ this module creates the KSP with the code defaults, which the options override
   ``-pc_bjacobi_blocks`` / ``-pc_bjacobi_local_blocks`` (e.g.
   configs/solvers/bjacobi_rank.opts) replace the per-wisp blocks altogether.
 
-With strand contact, ``-lc_contact_pc clusters`` (opt-in) grows the fused per-wisp
+With strand contact, ``-lc_contact_pc clusters`` (the default there) grows the fused per-wisp
 blocks into clusters of wisps coupled by contact, each solved exactly
 (lc_petsc/contact_pc.py, a ``PCPYTHON`` set up here after ``setFromOptions``: the
 options select it, so no ``-pc_type`` can undo it; docs/contact_solver.md).  MUMPS

@@ -192,9 +192,9 @@ class SolverPlan:
         lc_petsc's own options with a bad value."""
         layers = _Layers(config_options, prefix)
         mat_type = _operator_type(layers)
-        contact_pc = _contact_pc(layers) if strand_contact else None
-        pmat_type = _pmat_type(layers, mat_type, strand_pc=contact_pc == "strands")
         wisp_blocks = _wisp_block_mode(layers)
+        contact_pc = _contact_pc(layers, mat_type, wisp_blocks) if strand_contact else None
+        pmat_type = _pmat_type(layers, mat_type, strand_pc=contact_pc == "strands")
         pc_type = (layers.lookup("pc_type") or DEFAULTS["pc_type"]).lower()
         caps = _cluster_caps(layers, mat_type, wisp_blocks) if contact_pc == "clusters" else None
         return cls(prefix=prefix, options=MappingProxyType(dict(layers.options)),
@@ -347,17 +347,26 @@ def _wisp_block_mode(layers: _Layers):
     return mode
 
 
-def _contact_pc(layers: _Layers):
+def _contact_pc(layers: _Layers, mat_type, wisp_blocks):
     """What the preconditioner of a run with strand contact is built from.
 
-    ``-lc_contact_pc coupled|strands``: the whole Newton matrix A + C, or the strand
-    matrix A without the contact couplings between wisps.  Default: ``strands`` for
-    block Jacobi (one exact block per wisp; an ILU(0) of the coupled rank block was
-    measured to be indefinite, DIVERGED_INDEFINITE_PC, on the 2,000-wisp hairball),
+    ``-lc_contact_pc coupled|strands|clusters``: the whole Newton matrix A + C, the
+    strand matrix A without the contact couplings between wisps, or exact blocks of the
+    groups of wisps coupled by contact (lc_petsc/contact_pc.py).  Default: ``clusters``
+    for the default block Jacobi on BAIJ with fused per-wisp blocks (measured on the
+    demo hairball, 90 frames, 2 ranks: CG 44.4 -> 10.5 per solve, solve 33.8 -> 15.7 s;
+    on the 2K hairball 86 -> 29 CG per frame; where contact is too dense for clusters it
+    falls back to the per-wisp blocks, docs/contact_solver.md), ``strands`` for other
+    block Jacobi set-ups (one exact block per wisp; an ILU(0) of the coupled rank block
+    was measured to be indefinite, DIVERGED_INDEFINITE_PC, on the 2,000-wisp hairball),
     ``coupled`` for every other preconditioner (a direct solver then solves the Newton
     system exactly, AMG sees the whole matrix)."""
     bjacobi = (layers.lookup("pc_type") or DEFAULTS["pc_type"]).lower() == "bjacobi"
-    mode = layers.lookup("lc_contact_pc") or ("strands" if bjacobi else "coupled")
+    if bjacobi:
+        default = "clusters" if base_type(mat_type) == "baij" and wisp_blocks == "fused" else "strands"
+    else:
+        default = "coupled"
+    mode = layers.lookup("lc_contact_pc") or default
     if mode not in CONTACT_PC_MODES:
         raise ConfigError(f"-lc_contact_pc {mode!r}: use coupled (precondition with the "
                           f"whole Newton matrix, contact couplings included), strands (the "

@@ -195,7 +195,15 @@ def test_plan_cluster_caps_and_mumps_ordering_default():
     plan = SolverPlan.resolve("-lc_contact_pc clusters -lc_cluster_max_wisps 8", strand_contact=True)
     assert plan.contact_pc == "clusters" and plan.cluster_caps == (8, 1024, 0.9)
     assert plan.pmat_type is None               # the strand matrix itself, no AIJ copy
-    assert SolverPlan.resolve("", strand_contact=True).cluster_caps is None
+    # the default with contact: clusters for block Jacobi on BAIJ with fused blocks, the
+    # per-wisp strand blocks where clusters cannot run, none without contact
+    default = SolverPlan.resolve("", strand_contact=True)
+    assert default.contact_pc == "clusters" and default.cluster_caps == (64, 1024, 0.9)
+    for other in ("-lc_wisp_blocks separate", "-mat_type aij", "-lc_contact_pc strands"):
+        plan = SolverPlan.resolve(other, strand_contact=True)
+        assert plan.contact_pc == "strands" and plan.cluster_caps is None, other
+    assert SolverPlan.resolve("-pc_type gamg", strand_contact=True).contact_pc == "coupled"
+    assert SolverPlan.resolve("").cluster_caps is None
     mumps = "-ksp_type preonly -pc_type cholesky -pc_factor_mat_solver_type mumps"
     assert dict(SolverPlan.resolve(mumps).factor) == {"mat_mumps_icntl_7": "2"}
     assert dict(SolverPlan.resolve("").factor) == {}

@@ -60,7 +60,8 @@ def test_fused_and_separate_give_the_same_cg_iterations_and_iterates(touching, t
     the CG iteration counts are equal solve by solve and every solution agrees to
     round-off (they are bitwise equal in practice), over 30 contact-coupled solves."""
     monkeypatch.chdir(tmp_path)
-    opts = f"-ksp_rtol 1e-10 -ksp_max_it 5000 -lc_pmat_type {pmat}"
+    # the per-wisp blocks themselves (the default with contact grows them into clusters)
+    opts = f"-ksp_rtol 1e-10 -ksp_max_it 5000 -lc_pmat_type {pmat} -lc_contact_pc strands"
     fused, its_f, pairs, view_f = run_recording(opts + " -lc_wisp_blocks fused")
     separate, its_s, pairs_s, view_s = run_recording(opts + " -lc_wisp_blocks separate")
     assert sum(pairs) > 100 and pairs == pairs_s
@@ -75,12 +76,14 @@ def test_fused_and_separate_give_the_same_cg_iterations_and_iterates(touching, t
 
 def test_default_is_fused_on_the_operator_itself(touching, tmp_path, monkeypatch):
     """The default: fused blocks factored from the BAIJ operator's strand matrix (no AIJ
-    copy) without strand contact, from its AIJ copy with strand contact (round-off of
+    copy) without strand contact, from its AIJ copy with strand contact and
+    ``-lc_contact_pc strands`` (the per-wisp blocks without clusters; round-off of
     the block ILU, see lc_petsc.solver_plan._pmat_type); separate blocks get the AIJ copy (PETSc's
     BAIJ block extraction is quadratic in the wisp count).  Both reach the same
     trajectory to the CG tolerance."""
     monkeypatch.chdir(tmp_path)
-    sims = [simmod.build_simulator(touching_wisps_config(3, "-ksp_rtol 1e-12 -ksp_max_it 5000"
+    sims = [simmod.build_simulator(touching_wisps_config(3, "-ksp_rtol 1e-12 -ksp_max_it 5000 "
+                                                         "-lc_contact_pc strands"
                                                          + extra), comm=MPI.COMM_SELF)
             for extra in ("", " -lc_wisp_blocks separate")]
     try:

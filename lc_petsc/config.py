@@ -268,6 +268,10 @@ class PhysicsConfig:
 INITIAL_GUESSES = ("inertial", "follow_the_leader")
 #: How a Newton step updates positions: x + dx, or with the edge lengths retracted.
 NEWTON_UPDATES = ("linear", "edge_retraction")
+#: time.unconverged: a frame whose Newton misses the tolerance at the deepest cutback
+UNCONVERGED = ("accept", "error")
+#: time.max_substeps above this is refused (dt / 1024 is a millisecond at 1/30 s)
+MAX_SUBSTEPS = 1024
 
 
 @dataclass
@@ -281,6 +285,11 @@ class TimeConfig:
     incremental potential G.  ``newton_update``, ``initial_guess`` and
     ``length_projection`` (final positions onto the rest edge lengths): see
     lc_petsc/integrator.py and docs/newton.md.
+
+    Step cutback (only with a tolerance): a frame whose Newton misses it within the cap
+    is redone as 2 steps of dt / 2, each cut again if it fails, up to ``max_substeps``
+    (a power of 2; 1: off) steps in the frame; a frame still missing it is accepted and
+    reported (``unconverged = "accept"``) or ends the run (``"error"``).
     """
 
     dt: float = 1.0 / 30.0
@@ -292,6 +301,8 @@ class TimeConfig:
     initial_guess: str = "inertial"
     newton_update: str = "edge_retraction"
     length_projection: bool = False
+    max_substeps: int = 8
+    unconverged: str = "accept"
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
@@ -319,6 +330,16 @@ class TimeConfig:
         if not isinstance(self.length_projection, bool):
             raise ConfigError(f"time.length_projection must be true or false, "
                               f"got {self.length_projection!r}")
+        _int_at_least("time.max_substeps", self.max_substeps, 1)
+        if self.max_substeps & (self.max_substeps - 1) or self.max_substeps > MAX_SUBSTEPS:
+            raise ConfigError(f"time.max_substeps must be a power of 2 (1, 2, 4, ... {MAX_SUBSTEPS}; "
+                              f"a failed step is halved), got {self.max_substeps!r}")
+        if float(self.dt) / self.max_substeps < MIN_DT:
+            raise ConfigError(f"time.max_substeps = {self.max_substeps} makes the smallest step "
+                              f"time.dt / {self.max_substeps} = {float(self.dt) / self.max_substeps:.3g} s, "
+                              f"below {MIN_DT:g} s; use a smaller time.max_substeps")
+        if self.unconverged not in UNCONVERGED:
+            raise ConfigError(f"time.unconverged must be one of {UNCONVERGED}, got {self.unconverged!r}")
 
 
 @dataclass

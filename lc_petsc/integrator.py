@@ -47,12 +47,25 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
 
 from __future__ import annotations
 
+from typing import NamedTuple, Optional
+
 import numpy as np
 
 from lc_petsc.elements import compiled, head_contact
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.scene.state import vertex_wisp_length
-from lc_petsc.errors import SolverError
+from lc_petsc.errors import SimulationError, SolverError
+
+
+class _Solve(NamedTuple):
+    """One backward-Euler step's Newton: iterations, converged (None without a
+    tolerance), the last relative increment, exact Hessians replaced by filtered ones,
+    and with strand contact (pairs, deep pairs, min distance, pairs separated)."""
+    iterations: int
+    converged: Optional[bool]
+    increment: float
+    fallbacks: int
+    contact: Optional[tuple]
 
 
 class Integrator:
@@ -77,7 +90,11 @@ class Integrator:
         self.v = np.zeros_like(self.x)
         self.t = 0.0
         self.frame = 0
-        self.newton_iterations = []
+        self.dt = config.time.dt        # the current step's (a substep's with cutback)
+        self.newton_iterations = []     # per frame: every attempt's iterations (the cost)
+        self.newton_substeps = []       # per frame: the backward-Euler steps kept (1: no cutback)
+        self.newton_substep_iterations = []   # per frame: the kept steps' iterations
+        self._discarded = 0             # the frame's iterations of attempts cut back
         self.xv, self.bv = assembler.mat.createVecs()
         self.strand = strand
         self.contact_pairs = []
@@ -116,7 +133,7 @@ class Integrator:
 
     def incremental_potential(self, x):
         """G(x), summed over all ranks."""
-        dt = self.cfg.time.dt
+        dt = self.dt
         with collectively(self.comm, f"frame {self.frame}: incremental potential"):
             d = (x - self.xhat)[self.free]
             m = self.scene.mass[self.free]
@@ -131,7 +148,7 @@ class Integrator:
 
     def gradient(self, x, elastic=None):
         """grad G at x (pinned rows zeroed); ``elastic`` reuses an elastic gradient."""
-        dt = self.cfg.time.dt
+        dt = self.dt
         if elastic is None:
             elastic = self.asm.gradient(x)
         g = self.scene.mass[:, None] * (x - self.xhat) / dt ** 2 + elastic - self.f_ext
@@ -143,10 +160,63 @@ class Integrator:
 
     # -------------------------------------------------------------- one frame
     def step(self):
-        """Advance one frame (collective)."""
+        """Advance one frame (collective): one backward-Euler step of ``time.dt``, with
+        step cutback when a tolerance is set (:meth:`_advance`).  Per frame: the Newton
+        iterations of every attempt, the substeps kept, whether all of them converged
+        and their largest final increment."""
+        cfg = self.cfg
+        if self.strand is not None:             # per frame: the statistics' entries
+            self.strand.start_frame()
+        self._discarded = 0
+        solves = self._advance(cfg.time.dt, self.t + cfg.time.dt, cfg.time.max_substeps)
+        conv = [s.converged for s in solves]
+        converged = None if conv[0] is None else all(conv)
+        if converged is False and cfg.time.unconverged == "error":
+            raise SimulationError(
+                f"frame {self.frame}: Newton did not reach the tolerance within time.newton_iterations = "
+                f"{cfg.time.newton_iterations} in {len(solves)} substep(s) of dt / {len(solves)} "
+                f"(last relative increment {max(s.increment for s in solves):.3g}); raise "
+                f"time.newton_iterations or time.max_substeps, loosen the tolerance, or set "
+                f"time.unconverged = \"accept\"")
+        self.newton_iterations.append(self._discarded + sum(s.iterations for s in solves))
+        self.newton_substeps.append(len(solves))
+        self.newton_substep_iterations.append([s.iterations for s in solves])
+        self.newton_increment.append(max(s.increment for s in solves))
+        self.newton_converged.append(converged)
+        self.exact_hessian_fallbacks.append(sum(s.fallbacks for s in solves))
+        if self.strand is not None:             # the figures at the frame's end
+            pairs, deep, dmin, _ = solves[-1].contact
+            self.contact_pairs.append(pairs)
+            self.contact_deep_pairs.append(deep)
+            self.contact_min_distance.append(dmin)
+            if cfg.physics.strand_separation:
+                self.contact_separated.append(max(s.contact[3] for s in solves))
+        self.frame += 1
+
+    def _advance(self, dt, t_next, substeps):
+        """Backward-Euler steps from (x, v, t) to ``t_next`` (collective).  Step cutback:
+        when this step's Newton misses the tolerance within the cap and ``substeps``
+        (the most this step may be split into) is at least 2, its result is discarded
+        (its iterations counted in ``_discarded``) and the step redone from its start
+        state as two steps of dt / 2, each cut again if it fails (up to ``substeps``
+        in all).  The decision is the same on every rank (the increments are reduced).
+        Returns the kept steps' :class:`_Solve` records, in time order."""
+        start = self.x, self.v, self.t
+        solve = self._backward_euler(dt, t_next)
+        if solve.converged is not False or substeps < 2:
+            return [solve]
+        self._discarded += solve.iterations
+        self.x, self.v, self.t = start
+        half = substeps // 2
+        return self._advance(0.5 * dt, start[2] + 0.5 * dt, half) + self._advance(0.5 * dt, t_next, half)
+
+    def _backward_euler(self, dt, t_next):
+        """One backward-Euler step of ``dt`` from (x, v, t) to ``t_next`` (head and
+        pinned vertices at ``t_next``): Newton, the strand-contact hooks, then x, v and
+        t are updated (collective).  Returns its :class:`_Solve` record."""
         cfg, sc = self.cfg, self.scene
-        dt = cfg.time.dt
-        self.t_next = self.t + dt
+        self.dt = dt
+        self.t_next = t_next
         x_old = self.x.copy()
         self.xhat = self.x + dt * self.v
         x = self.xhat.copy()
@@ -156,14 +226,13 @@ class Integrator:
         if cfg.time.initial_guess == "follow_the_leader":
             x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
         if self.strand is not None:             # ccd mode: no crossing on x_old -> first iterate
-            self.strand.start_frame()
             x = self.strand.collision_free_frame(x_old, x)
         n_it = 0
         converged = None
         increment = np.inf
         if self.history is not None:
             self._force_scale = self.frame_force_scale()
-        self.exact_hessian_fallbacks.append(0)
+        fallbacks = 0
         for it in range(cfg.time.newton_iterations):
             n_it += 1
             exact = self._exact_hessian(increment)
@@ -174,7 +243,7 @@ class Integrator:
                 alpha = self._line_search(x, g, dx, EXACT_HALVINGS)
             if dx is None or alpha is None:     # no exact Newton step: a filtered one
                 exact = False
-                self.exact_hessian_fallbacks[-1] += 1
+                fallbacks += 1
                 g = self._assemble_system(x, it)
                 dx = self._solve_step(g, it)
                 alpha = 1.0
@@ -198,13 +267,11 @@ class Integrator:
         if cfg.time.length_projection:
             with self.timers("update"):
                 x = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass)
-        self.newton_iterations.append(n_it)
-        self.newton_increment.append(increment)
-        self.newton_converged.append(converged)
+        contact = None
         if self.strand is not None:
             pairs, deep, dmin = self.strand.measure(x)
+            n_sep = 0
             if cfg.physics.strand_separation:
-                n_sep = 0
                 self.strand.last_separation = (0, 0, 0)
                 # a separation's corrections can bring pairs it did not see within d0/2,
                 # and its Jacobi rounds are capped: re-measure, and separate again if so
@@ -214,17 +281,14 @@ class Integrator:
                     x, n, _ = self.strand.separate(x)
                     n_sep = max(n_sep, n)
                     pairs, deep, dmin = self.strand.measure(x)
-                self.contact_separated.append(n_sep)
             if self.strand.mode == "ccd":       # the straight path x_old -> x must not cross
                 x = self.strand.collision_free_frame(x_old, x)
                 pairs, deep, dmin = self.strand.measure(x)
-            self.contact_pairs.append(pairs)
-            self.contact_deep_pairs.append(deep)
-            self.contact_min_distance.append(dmin)
+            contact = pairs, deep, dmin, n_sep
         self.v = (x - x_old) / dt
         self.x = x
         self.t = self.t_next
-        self.frame += 1
+        return _Solve(n_it, converged, increment, fallbacks, contact)
 
     def update(self, x, step):
         """The next Newton iterate from x and the (scaled) step: x + step, or with
@@ -243,7 +307,7 @@ class Integrator:
     def _assemble_system(self, x, it, filter=None):
         """Fill the Newton matrix at x (element and strand-contact Hessians with
         ``filter``, default the configured one); returns grad G."""
-        asm, sc, dt = self.asm, self.scene, self.cfg.time.dt
+        asm, sc, dt = self.asm, self.scene, self.dt
         chosen = asm.filter
         if filter is not None:
             asm.filter = filter
@@ -340,7 +404,7 @@ class Integrator:
         f = self.free
         elastic = self.asm.gradient(self.x)
         parts = np.array([np.sum(self.f_ext[f] ** 2),
-                          np.sum((self.scene.mass[f, None] * self.v[f]) ** 2) / self.cfg.time.dt ** 2,
+                          np.sum((self.scene.mass[f, None] * self.v[f]) ** 2) / self.dt ** 2,
                           np.sum(elastic[f] ** 2)])
         return float(np.sqrt(self.comm.allreduce(parts)).sum())
 
@@ -354,7 +418,7 @@ class Integrator:
         residual reduction and two evaluations of G)."""
         G_old, G_new = self.incremental_potential(x_old), self.incremental_potential(x_new)
         self.history.append(dict(
-            frame=self.frame, iteration=it, increment=increment, alpha=alpha,
+            frame=self.frame, dt=self.dt, iteration=it, increment=increment, alpha=alpha,
             residual=self.relative_residual(g), energy=G_new,
             energy_decrease=G_old - G_new, exact=bool(exact)))
 

@@ -59,6 +59,10 @@ def format_report(s) -> str:
     if conv_frames:
         lines.append(f"  Newton converged (time.newton_increment_tol / newton_tol) in "
                      f"{sum(conv_frames)} of {len(conv_frames)} frames")
+    subs = s.get("newton_substeps", [])
+    if any(n > 1 for n in subs):
+        lines.append(f"  step cutback (time.max_substeps) in {sum(n > 1 for n in subs)} of {len(subs)} "
+                     f"frames, at most {max(subs)} substeps")
     if incs:
         lines.append(f"  last Newton increment / wisp length: median {np.median(incs):.2e}, "
                      f"max {max(incs):.2e}")

@@ -1,0 +1,116 @@
+"""Step cutback against a larger Newton cap (docs/newton.md, fourth round): per setting,
+frames converged to the tolerance, Newton iterations per frame (every attempt, the
+cost) and per backward-Euler solve kept, frames cut back, CPU s per frame.
+
+  .venv/bin/python scripts/bench_cutback.py [--scenes hairball10 smash] [--frames 30]
+      [--tol 1e-6] [--setting NAME=CAP,SUBSTEPS[,DT]] [--out out/cutback]
+
+Every setting: ``solver.filter = "exact_or_analytic"``, the edge retraction, the
+tolerance ``time.newton_increment_tol``; CAP is ``time.newton_iterations``, SUBSTEPS
+``time.max_substeps`` (1: no cutback), DT the step (default the scene's).  The scenes
+are those of scripts/newton_history.py.  Prints a markdown table (also written to
+--out/cutback.md, rows in cutback.json).  Runs with the lc_petsc it imports, so the
+no-cutback settings also run on a checkout without ``time.max_substeps`` (then
+ignored) for a side-by-side with main.
+"""
+
+import argparse
+import copy
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import petsc4py
+
+petsc4py.init(sys.argv[:1])
+from mpi4py import MPI  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from newton_history import scene  # noqa: E402
+
+from lc_petsc.simulator import build_simulator  # noqa: E402
+
+DEFAULT_SETTINGS = ["cap 30, no cutback=30,1", "cap 6, cutback=6,8", "cap 10, cutback=10,8",
+                    "cap 15, cutback=15,8", "dt 1/120, cap 30, no cutback=30,1,0.008333333333333333"]
+
+
+def run(base, cap, substeps, dt, frames, tol, comm):
+    """One setting: the summary figures (dict)."""
+    cfg = copy.deepcopy(base)
+    cfg.solver.filter = "exact_or_analytic"
+    cfg.time.newton_update = "edge_retraction"
+    cfg.time.newton_increment_tol = tol
+    cfg.time.newton_tol = None
+    cfg.time.newton_iterations = cap
+    cfg.time.max_substeps = substeps
+    if dt is not None:
+        cfg.time.dt = dt
+    # the same simulated time at every dt
+    n = int(round(frames * base.time.dt / cfg.time.dt))
+    cfg.time.frames = n
+    sim = build_simulator(cfg.validate(), comm)
+    try:
+        c0 = time.process_time()
+        for _ in range(n):
+            sim.step()
+        cpu = comm.allreduce(time.process_time() - c0, op=MPI.MAX)
+        s = sim.summary()
+    finally:
+        sim.close()
+    its = s["newton_iterations"]
+    subs = s.get("newton_substeps") or [1] * n
+    per_solve = [i for row in s.get("newton_substep_iterations") or [[i] for i in its] for i in row]
+    # a frame at a smaller dt: the iterations of the dt of the scene's frame
+    group = n // frames
+    its_frame = [sum(its[k:k + group]) for k in range(0, n, group)]
+    conv = s["newton_converged"]
+    return {"frames": frames, "converged": sum(all(conv[k:k + group]) for k in range(0, n, group)),
+            "median_its": statistics.median(its_frame), "worst_its": max(its_frame),
+            "median_solve": statistics.median(per_solve), "worst_solve": max(per_solve),
+            "cutback_frames": sum(k > 1 for k in subs), "max_substeps": max(subs),
+            "total_its": sum(its), "cpu_per_frame": cpu / frames,
+            "worst_increment": max(v for v in s["newton_increment"] if v is not None)}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", nargs="+", default=["hairball10", "smash"])
+    p.add_argument("--frames", type=int, default=30)
+    p.add_argument("--tol", type=float, default=1e-6)
+    p.add_argument("--setting", action="append", help="NAME=CAP,SUBSTEPS[,DT] (repeatable)")
+    p.add_argument("--out", default="out/cutback")
+    a = p.parse_args(argv)
+    comm = MPI.COMM_WORLD
+    rows = []
+    for name in a.scenes:
+        base = scene(name)
+        for spec in a.setting or DEFAULT_SETTINGS:
+            label, _, vals = spec.rpartition("=")
+            parts = vals.split(",")
+            if len(parts) not in (2, 3):
+                raise SystemExit(f"--setting {spec!r}: use NAME=CAP,SUBSTEPS[,DT]")
+            cap, substeps = int(parts[0]), int(parts[1])
+            dt = float(parts[2]) if len(parts) == 3 else None
+            r = run(base, cap, substeps, dt, a.frames, a.tol, comm)
+            rows.append({"scene": Path(name).stem, "setting": label, **r})
+            if comm.rank == 0:
+                print(f"  {rows[-1]}", flush=True)
+    if comm.rank == 0:
+        head = ("| scene | setting | frames converged | Newton its / frame median | worst | its / solve median "
+                "| worst | frames cut back | most substeps | CPU s / frame | worst final increment |")
+        lines = [head, "|" + "---|" * 11]
+        for r in rows:
+            lines.append(f"| {r['scene']} | {r['setting']} | {r['converged']}/{r['frames']} | {r['median_its']:g} "
+                         f"| {r['worst_its']} | {r['median_solve']:g} | {r['worst_solve']} | {r['cutback_frames']} "
+                         f"| {r['max_substeps']} | {r['cpu_per_frame']:.3f} | {r['worst_increment']:.1e} |")
+        out = Path(a.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "cutback.md").write_text("\n".join(lines) + "\n")
+        (out / "cutback.json").write_text(json.dumps(rows, indent=1))
+        print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

@@ -45,6 +45,7 @@ class Settings:
     initial_guess: str = TimeConfig.initial_guess
     newton_increment_tol: Optional[float] = None
     length_projection: bool = TimeConfig.length_projection
+    max_substeps: int = TimeConfig.max_substeps     # step cutback (with a tolerance only)
 
     def label(self):
         """A short human-readable name of the settings."""
@@ -54,6 +55,8 @@ class Settings:
             parts.append(f"tol={self.newton_tol:g}")
         if self.newton_increment_tol is not None:
             parts.append(f"inc<{self.newton_increment_tol:g}")
+        if (self.newton_tol, self.newton_increment_tol) != (None, None) and self.max_substeps > 1:
+            parts.append(f"cutback<={self.max_substeps}")
         if self.line_search:
             parts.append("LS")
         if self.newton_update != "linear":
@@ -91,6 +94,11 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
         + [(f"exact_or_analytic inc<{t:g}",
             replace(base, filter="exact_or_analytic", newton_update="edge_retraction",
                     newton_iterations=30, newton_increment_tol=t)) for t in (1e-3, 1e-4, 1e-6)],
+        # step cutback against the cap alone (docs/newton.md, fourth round)
+        "cutback": [(f"inc<{t:g} cap {n}" + (" no cutback" if m == 1 else f" cutback {m}"),
+                     replace(base, filter="exact_or_analytic", newton_update="edge_retraction",
+                             newton_iterations=n, newton_increment_tol=t, max_substeps=m))
+                    for t in (1e-3, 1e-6) for n, m in ((30, 1), (30, 8), (10, 8))],
     }
     for a in (axes or ax):
         for name, s in ax[a]:
@@ -158,6 +166,7 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.initial_guess = s.initial_guess
     cfg.time.newton_increment_tol = s.newton_increment_tol
     cfg.time.length_projection = s.length_projection
+    cfg.time.max_substeps = s.max_substeps
     cfg.solver.filter = s.filter
     cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options,
                                               f"-ksp_rtol {s.ksp_rtol:g}") if x)

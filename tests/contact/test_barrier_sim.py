@@ -106,6 +106,7 @@ def converge_crossing(potential, frames=8, cap=20, speed=2.5):
     per frame, converged per frame, minimum separation at the crossing / d0)."""
     cfg = crossing_config(frames, strand_contact_mode="ccd", strand_contact_potential=potential)
     cfg.time.newton_iterations, cfg.time.newton_increment_tol = cap, 1e-6
+    cfg.time.max_substeps = 1       # Newton of one step: cutback would hide the cycling
     sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
     try:
         n = sim.scene.nv // 2

@@ -41,9 +41,10 @@ def test_rank_invariance_converged_newton():
     decision (exact step kept or not, converged or not) is collective, so the parallel
     run takes the serial run's iterations and reaches its positions (measured: frames 2
     and 3 converge in 21 and 14 iterations, frames 0 and 1 hit the cap of 30; two exact
-    steps are replaced by filtered ones in frame 0)."""
+    steps are replaced by filtered ones in frame 0; no cutback: tests/sim/test_step_cutback.py)."""
     cfg = small_hairball_config(n_wisps=5, frames=4, newton_iterations=30,
-                                newton_increment_tol=1e-6, newton_update="edge_retraction")
+                                newton_increment_tol=1e-6, newton_update="edge_retraction",
+                                max_substeps=1)
     cfg.solver.filter = "exact_or_analytic"
     X, summ = run_positions(cfg)
     ref, ref_summ = serial_reference(cfg)

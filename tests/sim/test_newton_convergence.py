@@ -140,8 +140,8 @@ def test_stopping_rule_and_summary():
     assert all(n < 30 for n in s["newton_iterations"])
     assert len(s["newton_exact_fallbacks"]) == 3
     assert s["converged"]               # the replaced indefinite solves are not recorded
-    # the cap stops it: not converged, and the last increment says how far it is
-    s = _summary(_smash(frames=1, newton_iterations=3, newton_increment_tol=1e-7))
+    # the cap stops it (no cutback): not converged, and the last increment says how far it is
+    s = _summary(_smash(frames=1, newton_iterations=3, newton_increment_tol=1e-7, max_substeps=1))
     assert s["newton_converged"] == [False] and s["newton_iterations"] == [3]
     assert s["newton_increment"][0] > 1e-7
     # no tolerance: a fixed count, converged is null

@@ -47,7 +47,8 @@ def test_variants_cover_the_axes():
     names = [n for _, n, _ in v]
     assert names[0] == "base" and len(names) == len(set(names))
     for n in ("newton 1", "newton 12", "rtol 1e-02", "rtol 1e-10", "dt 1/120", "filter none",
-              "filter numerical", "line search"):
+              "filter numerical", "line search", "inc<1e-06 cap 30 no cutback",
+              "inc<1e-06 cap 10 cutback 8"):
         assert n in names
     assert sum(s == BASE for _, _, s in v) == 1
 

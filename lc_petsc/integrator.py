@@ -61,6 +61,7 @@ class _Solve(NamedTuple):
     """One backward-Euler step's Newton: iterations, converged (None without a
     tolerance), the last relative increment, exact Hessians replaced by filtered ones,
     and with strand contact (pairs, deep pairs, min distance, pairs separated)."""
+
     iterations: int
     converged: Optional[bool]
     increment: float

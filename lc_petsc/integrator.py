@@ -17,6 +17,15 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   is set, as soon as the last step's largest vertex increment relative to its wisp's
   rest length is below ``newton_increment_tol`` (and/or the absolute one below
   ``newton_tol`` cm); per frame ``newton_converged`` and ``newton_increment`` record it.
+* Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
+  misses it within the cap is redone from its start state as two backward-Euler steps
+  of dt / 2 (head, pins and head sphere at their own times), each cut again if it
+  fails, up to ``max_substeps`` steps in the frame (:meth:`Integrator._advance`); every
+  frame starts at the full dt again, so frames, checkpoints and restarts stay at frame
+  times.  Strand contact's per-step hooks (ccd first iterate and frame path,
+  separation, measures) run per substep, its statistics' entries per frame.  A frame
+  still short of the tolerance is kept (``time.unconverged = "accept"``) or ends the
+  run (``"error"``: :class:`SimulationError`).
 * ``solver.filter = "exact_or_analytic"``: once the relative increment is below
   :data:`EXACT_BELOW` the exact Hessian is assembled and its step kept when CG finds no
   indefiniteness and Armijo holds within :data:`EXACT_HALVINGS` halvings; otherwise the

@@ -3,12 +3,12 @@ frames converged to the tolerance, Newton iterations per frame (every attempt, t
 cost) and per backward-Euler solve kept, frames cut back, CPU s per frame.
 
   .venv/bin/python scripts/bench_cutback.py [--scenes hairball10 smash] [--frames 30]
-      [--tol 1e-6] [--setting NAME=CAP,SUBSTEPS[,DT]] [--out out/cutback]
+      [--tol 1e-6] [--wisps 10] [--setting NAME=CAP,SUBSTEPS[,DT]] [--out out/cutback]
 
 Every setting: ``solver.filter = "exact_or_analytic"``, the edge retraction, the
 tolerance ``time.newton_increment_tol``; CAP is ``time.newton_iterations``, SUBSTEPS
 ``time.max_substeps`` (1: no cutback), DT the step (default the scene's).  The scenes
-are those of scripts/newton_history.py.  Prints a markdown table (also written to
+are those of scripts/newton_history.py (demo10: the demo with strand contact).  Prints a markdown table (also written to
 --out/cutback.md, rows in cutback.json).  Runs with the lc_petsc it imports, so the
 no-cutback settings also run on a checkout without ``time.max_substeps`` (then
 ignored) for a side-by-side with main.
@@ -79,13 +79,14 @@ def main(argv=None):
     p.add_argument("--scenes", nargs="+", default=["hairball10", "smash"])
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--tol", type=float, default=1e-6)
+    p.add_argument("--wisps", type=int, default=10, help="wisps of hairball10 / demo10 (default 10)")
     p.add_argument("--setting", action="append", help="NAME=CAP,SUBSTEPS[,DT] (repeatable)")
     p.add_argument("--out", default="out/cutback")
     a = p.parse_args(argv)
     comm = MPI.COMM_WORLD
     rows = []
     for name in a.scenes:
-        base = scene(name)
+        base = scene(name, a.wisps)
         for spec in a.setting or DEFAULT_SETTINGS:
             label, _, vals = spec.rpartition("=")
             parts = vals.split(",")

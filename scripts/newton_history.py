@@ -9,7 +9,8 @@ SPEC: comma-separated key=value: filter=analytic|numerical|none|abs|exact_or_ana
 update=linear|edge_retraction, guess=inertial|follow_the_leader, ls=0|1 (line search),
 terms=stretch+gravity, head=0 (no head contact), strands=0, options=-ksp_type gmres.
 hairball10 is configs/hairball_demo.toml cut to 10 wisps (--wisps) without strand
-contact (head contact and the shaking head kept); smash is configs/smash.toml.
+contact (head contact and the shaking head kept), demo10 the same with strand contact;
+smash is configs/smash.toml.
 Outputs in --out: newton.csv (every iteration), newton.json, newton.md (table),
 newton_<scene>.png (increment per iteration: frame 0 and the median over frames).
 """
@@ -46,10 +47,11 @@ DEFAULT_VARIANTS = [
 
 
 def scene(name, wisps=10):
-    if name == "hairball10":
+    if name in ("hairball10", "demo10"):
         cfg = load_config(ROOT / "configs" / "hairball_demo.toml")
         cfg.scene.n_wisps = wisps
-        cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
+        if name == "hairball10":
+            cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
         return cfg
     if name == "smash":
         return load_config(ROOT / "configs" / "smash.toml")

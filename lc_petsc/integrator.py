@@ -184,8 +184,9 @@ class Integrator:
         if converged is False and cfg.time.unconverged == "error":
             raise SimulationError(
                 f"frame {self.frame}: Newton did not reach the tolerance within time.newton_iterations = "
-                f"{cfg.time.newton_iterations} in {len(solves)} substep(s) of dt / {len(solves)} "
-                f"(last relative increment {max(s.increment for s in solves):.3g}); raise "
+                f"{cfg.time.newton_iterations} in {len(solves)} substep(s) (time.max_substeps = "
+                f"{cfg.time.max_substeps}; largest final relative increment "
+                f"{max(s.increment for s in solves):.3g}); raise "
                 f"time.newton_iterations or time.max_substeps, loosen the tolerance, or set "
                 f"time.unconverged = \"accept\"")
         self.newton_iterations.append(self._discarded + sum(s.iterations for s in solves))

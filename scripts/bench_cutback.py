@@ -100,12 +100,12 @@ def main(argv=None):
                 print(f"  {rows[-1]}", flush=True)
     if comm.rank == 0:
         head = ("| scene | setting | frames converged | Newton its / frame median | worst | its / solve median "
-                "| worst | frames cut back | most substeps | CPU s / frame | worst final increment |")
-        lines = [head, "|" + "---|" * 11]
+                "| worst | frames cut back | most substeps | total its | CPU s / frame | worst final increment |")
+        lines = [head, "|" + "---|" * 12]
         for r in rows:
             lines.append(f"| {r['scene']} | {r['setting']} | {r['converged']}/{r['frames']} | {r['median_its']:g} "
                          f"| {r['worst_its']} | {r['median_solve']:g} | {r['worst_solve']} | {r['cutback_frames']} "
-                         f"| {r['max_substeps']} | {r['cpu_per_frame']:.3f} | {r['worst_increment']:.1e} |")
+                         f"| {r['max_substeps']} | {r['total_its']} | {r['cpu_per_frame']:.3f} | {r['worst_increment']:.1e} |")
         out = Path(a.out)
         out.mkdir(parents=True, exist_ok=True)
         (out / "cutback.md").write_text("\n".join(lines) + "\n")

@@ -105,7 +105,8 @@ def main(argv=None):
         for r in rows:
             lines.append(f"| {r['scene']} | {r['setting']} | {r['converged']}/{r['frames']} | {r['median_its']:g} "
                          f"| {r['worst_its']} | {r['median_solve']:g} | {r['worst_solve']} | {r['cutback_frames']} "
-                         f"| {r['max_substeps']} | {r['total_its']} | {r['cpu_per_frame']:.3f} | {r['worst_increment']:.1e} |")
+                         f"| {r['max_substeps']} | {r['total_its']} | {r['cpu_per_frame']:.3f} "
+                         f"| {r['worst_increment']:.1e} |")
         out = Path(a.out)
         out.mkdir(parents=True, exist_ok=True)
         (out / "cutback.md").write_text("\n".join(lines) + "\n")

@@ -75,8 +75,8 @@ def compare(paths, labels, plot=None):
     labels = labels or paths
     print(f"{runs[0]['config']}, {runs[0]['ranks']} rank(s), medians per frame:")
     print("| version | mode | wall / frame (s) | collision (s) | collision share | crossings | "
-          "min distance (cm) | limiter candidates per call, largest |")
-    print("|---|---|---|---|---|---|---|---|")
+          "self crossings | min distance (cm) | limiter candidates per call, largest |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for label, run in zip(labels, runs):
         for mode in dict.fromkeys(r["mode"] for r in run["rows"]):
             r = [x for x in run["rows"] if x["mode"] == mode]
@@ -84,8 +84,9 @@ def compare(paths, labels, plot=None):
             c = np.median([x["phases_s"].get("collision", 0.0) for x in r])
             dm = [x["min_distance"] for x in r if x["min_distance"] is not None and np.isfinite(x["min_distance"])]
             cand = (run.get("limiter", {}).get(mode) or {}).get("limiter_candidates_per_frame") or []
+            cs = [x["self_crossings"] for x in r if "self_crossings" in x]     # not in older runs
             print(f"| {label} | {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {sum(x['crossings'] for x in r)} | "
-                  f"{min(dm) if dm else float('nan'):.4g} | {max(cand) if cand else '-'} |")
+                  f"{sum(cs) if cs else '-'} | {min(dm) if dm else float('nan'):.4g} | {max(cand) if cand else '-'} |")
     if plot:
         import matplotlib
         matplotlib.use("Agg")

@@ -21,6 +21,7 @@ from lc_petsc.elements.segment_contact import distance
 from lc_petsc.errors import RestPoseOverlapError
 from lc_petsc.scene import geometry
 from lc_petsc.scene.sources import ArraySource
+from test_mpi_ccd import frames_run
 
 comm = MPI.COMM_WORLD
 NV = 30             # vertices per smashed wisp: a 4C helix without its stem, 6 turns 0.5 cm apart
@@ -39,34 +40,27 @@ def smash_source(n_wisps=1, spacing=3.0):
                        root_radius=0.08, tip_radius=0.05)
 
 
-def smash_config(frames, self_contact, mode="ccd"):
+def smash_config(frames, self_contact):
     return SimConfig(scene=SceneConfig(kind="straight"), material=MaterialConfig(youngs_modulus=2e6),
                      physics=PhysicsConfig(terms=("stretch", "bend", "twist", "strand_collision"),
                                            strand_thickness=D0, strand_stiffness=1e4,
-                                           strand_contact_mode=mode, strand_self_contact=self_contact),
+                                           strand_contact_mode="ccd", strand_self_contact=self_contact),
                      time=TimeConfig(frames=frames),
                      solver=SolverConfig(options="-ksp_rtol 1e-12 -ksp_max_it 5000"))
 
 
-def run_smash(c, frames, self_contact, n_wisps=1, mode="ccd"):
+def run_smash(c, frames, self_contact, n_wisps=1):
     """Positions at the start and after each frame (gathered on rank 0) and the summary:
     the vertices start moving along the axis towards the wisp's middle at SQUEEZE times
     their distance from it, so the coil is crushed within 1-2 frames."""
-    sim = simmod.build_simulator(smash_config(frames, self_contact, mode), comm=c)
-    try:
-        sc = sim.scene
-        v = np.zeros_like(sim.x)
-        for w in range(sc.n_wisps):
-            a, b = sc.offsets[w], sc.offsets[w + 1]
-            v[a:b, 1] = SQUEEZE * (sim.x[a:b, 1].mean() - sim.x[a:b, 1])
-        sim.integrator.v = v
-        X = [sim.gather_positions()]
-        for _ in range(frames):
-            sim.step()
-            X.append(sim.gather_positions())
-        return X, sim.summary()
-    finally:
-        sim.close()
+    sim = simmod.build_simulator(smash_config(frames, self_contact), comm=c)
+    sc = sim.scene
+    v = np.zeros_like(sim.x)
+    for w in range(sc.n_wisps):
+        a, b = sc.offsets[w], sc.offsets[w + 1]
+        v[a:b, 1] = SQUEEZE * (sim.x[a:b, 1].mean() - sim.x[a:b, 1])
+    sim.integrator.v = v
+    return frames_run(sim, frames)
 
 
 def self_crossings(X, n_wisps=1):

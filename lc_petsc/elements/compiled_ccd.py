@@ -220,9 +220,9 @@ def _box_pairs(lo, hi, group, arc, min_gap, origin, cell, dims, out):
     """Overlapping boxes (i < j) through a uniform grid: each box is listed in every cell
     it touches, pairs are tested within a cell and reported once, in the cell holding
     the lower corner of their intersection.  Pairs of one group are skipped unless their
-    gap along the strand (``arc``, see box_pairs) is at least ``min_gap``.  Boxes touching more than BIG_CELLS cells
-    are tested against every box instead.  Returns their number; the first len(out)
-    of them are written to ``out``."""
+    gap along the strand (``arc``, see box_pairs) is at least ``min_gap``.  Boxes
+    touching more than BIG_CELLS cells are tested against every box instead.  Returns
+    their number; the first len(out) of them are written to ``out``."""
     rng, count = _box_cells(lo, hi, origin, cell, dims)
     n = count.shape[0]
     big = count > BIG_CELLS

@@ -204,6 +204,16 @@ def test_rest_pose_reports_a_same_wisp_overlap(monkeypatch):
     assert "strand_self_contact" in msg
     # control: without self-contact the same groom passes the check
     simmod.build_simulator(smash_config(1, False), comm=MPI.COMM_SELF).close()
+    # the explicit exemption: the squashed turns never interact, the rest do
+    cfg = smash_config(1, True)
+    cfg.physics.strand_rest_overlap = "exempt"
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        sim.run(1)
+        assert np.all(np.isfinite(sim.x))
+        assert sim.summary()["contact"]["pairs_per_frame"] == [0]
+    finally:
+        sim.close()
 
 
 def test_self_contact_config_is_checked():

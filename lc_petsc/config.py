@@ -215,6 +215,10 @@ class PhysicsConfig:
     # the barrier's force then equals the penalty's at d = d0 / 2); docs/contact.md, "Barrier"
     strand_contact_potential: str = "penalty"
     strand_barrier_stiffness: Optional[float] = None
+    # also pairs of segments of one wisp that are not neighbours along it (less than
+    # pi / 2 d0 of rest strand between them): penalty/barrier, ccd limiter, rest-pose
+    # check (docs/contact.md, "Self-contact")
+    strand_self_contact: bool = False
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
@@ -262,6 +266,9 @@ class PhysicsConfig:
                               f"collision-free); got strand_contact_mode = {self.strand_contact_mode!r}")
         if self.strand_barrier_stiffness is not None:
             _positive("physics.strand_barrier_stiffness", self.strand_barrier_stiffness)
+        if not isinstance(self.strand_self_contact, bool):
+            raise ConfigError(f"physics.strand_self_contact must be true or false, "
+                              f"got {self.strand_self_contact!r}")
 
 
 #: Newton's first iterate: x_n + dt v_n, or that projected onto the rest edge lengths.
@@ -604,6 +611,8 @@ _CONDITIONAL_KEYS = {
                                        "'strand_collision' in physics.terms"),
     ("physics", "strand_contact_potential"): (lambda c: "strand_collision" in c.physics.terms,
                                               "'strand_collision' in physics.terms"),
+    ("physics", "strand_self_contact"): (lambda c: "strand_collision" in c.physics.terms,
+                                         "'strand_collision' in physics.terms"),
     ("physics", "strand_barrier_stiffness"): (
         lambda c: "strand_collision" in c.physics.terms and c.physics.strand_contact_potential == "barrier",
         "'strand_collision' in physics.terms and physics.strand_contact_potential = 'barrier'"),

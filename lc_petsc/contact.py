@@ -21,7 +21,8 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    closer than d0.  Rebuilt from the current positions
    (reused only for bit-identical positions), so no margin for motion is needed: the
    search is exact, not predictive.
-   Pairs of the same wisp are excluded (no self-contact; see docs/contact.md).
+   Pairs of the same wisp are excluded, unless ``self_contact``: then only neighbours
+   along the strand are (:data:`NEIGHBOUR_GAP`; docs/contact.md, "Self-contact").
 4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` (the penalty; or the
    barrier of :mod:`lc_petsc.elements.segment_barrier`, ccd mode) on the candidates, the
    smaller global segment first (so the arithmetic of a pair does not depend on the
@@ -61,6 +62,10 @@ POTENTIALS = {"penalty": segment_contact, "barrier": segment_barrier}
 #: limiter rounds that shrink the step fractions by the pairs' safe fractions before
 #: the rounds that stop the offending vertices outright (limit_step)
 SCALE_ROUNDS = 8
+#: self-contact: segments of one wisp with less than NEIGHBOUR_GAP d0 of rest strand
+#: between them are neighbours, never a pair (those sharing a vertex always; pi / 2 d0 is
+#: the arc of the tightest hairpin of a strand of thickness d0, whose legs touch)
+NEIGHBOUR_GAP = 0.5 * np.pi
 NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
 
 
@@ -186,12 +191,13 @@ class StrandContact:
     :mod:`segment_contact` (``analytic`` = Gauss-Newton).  ``potential``: ``penalty``
     (:mod:`segment_contact`) or ``barrier`` (:mod:`segment_barrier`, ccd mode only, its
     stiffness ``barrier_stiffness``, default
-    :func:`segment_barrier.penalty_matched_stiffness` of k).
+    :func:`segment_barrier.penalty_matched_stiffness` of k).  ``self_contact``: also
+    pairs of one wisp that are not neighbours along it (:data:`NEIGHBOUR_GAP`).
     """
 
     def __init__(self, scene, comm, pcomm, timers, thickness, stiffness, filter="analytic",
                  mat_type="baij", coupled_pc=True, mode="penalty", min_separation=0.25,
-                 potential="penalty", barrier_stiffness=None):
+                 potential="penalty", barrier_stiffness=None, self_contact=False):
         if scene.bandwidth < 1:
             raise ValueError("strand_collision needs the stretch term (the contact blocks of a "
                              "segment live in the strand band); add 'stretch' to physics.terms")
@@ -207,6 +213,15 @@ class StrandContact:
         self.seg_free = np.stack([free[self.seg], free[self.seg + 1]], axis=1)
         self.N = int(scene.n_vertices_global)
         self.P_rest = np.stack([scene.x_rest[self.seg], scene.x_rest[self.seg + 1]], axis=1)
+        # self-contact: rest arc length along the wisp at both ends of each segment (a
+        # wisp lives on one rank, so ghosts never pair with a segment of their own wisp)
+        self.self_contact = bool(self_contact)
+        self.neighbour_gap = NEIGHBOUR_GAP * self.d0
+        edge = np.linalg.norm(self.P_rest[:, 1] - self.P_rest[:, 0], axis=1)
+        first = np.r_[True, self.seg_wisp[1:] != self.seg_wisp[:-1]]
+        start = np.cumsum(edge) - edge
+        start -= np.maximum.accumulate(np.where(first, start, 0.0))
+        self.seg_arc = np.stack([start, start + edge], axis=1)
         self.vec = PETSc.Vec().createMPI((NB * nv, NB * self.N), bsize=NB, comm=pcomm)
         self.mat_type, self.coupled_pc = mat_type, bool(coupled_pc)
         # separation (see :meth:`separate`): positions + inverse mass per vertex, and the
@@ -341,15 +356,26 @@ class StrandContact:
         free = np.concatenate([self.seg_free, G[:, 2:4].astype(bool)])
         return Pall, Prest, gv, wisp, free, np.concatenate(owner), len(self.seg)
 
+    def self_pairs(self, n):
+        """``box_pairs``' keywords for the first n segments of :meth:`_gather_segments`
+        (local, then ghosts): with self-contact, the segments' rest arc lengths (0 for
+        ghosts: a ghost pairs with no segment of its own wisp) and the neighbour gap."""
+        if not self.self_contact:
+            return {}
+        arc = np.zeros((n, 2))
+        arc[:len(self.seg)] = self.seg_arc
+        return {"arc": arc, "min_gap": self.neighbour_gap}
+
     @staticmethod
-    def candidates(P, wisp, n_local, d0):
-        """Index pairs (i, j), i < j, of segments of different wisps that may be closer
+    def candidates(P, wisp, n_local, d0, **self_pairs):
+        """Index pairs (i, j), i < j, of segments of different wisps (and, with the
+        keywords of :meth:`self_pairs`, non-neighbours of one wisp) that may be closer
         than d0 (at least one of them local): their boxes grown by d0 / 2 overlap
         (:func:`compiled_ccd.box_pairs`, exact)."""
         if len(P) < 2:
             return np.zeros((0, 2), np.int64)
         ij = box_pairs(np.minimum(P[:, 0], P[:, 1]) - 0.5 * d0, np.maximum(P[:, 0], P[:, 1]) + 0.5 * d0,
-                       group=wisp)
+                       group=wisp, **self_pairs)
         if n_local < len(P):
             ij = ij[(ij[:, 0] < n_local) | (ij[:, 1] < n_local)]
         return ij
@@ -372,7 +398,7 @@ class StrandContact:
                     out = tuple(a[keep] for a in out)
                 return out
         (P,), Prest, gv, wisp, free, owner, n_local = self._gather_segments(x)
-        ij = self.candidates(P, wisp, n_local, self.d0)
+        ij = self.candidates(P, wisp, n_local, self.d0, **self.self_pairs(len(P)))
         i, j = ij[:, 0], ij[:, 1]
         swap = gv[i] > gv[j]
         i, j = np.where(swap, j, i), np.where(swap, i, j)
@@ -485,7 +511,7 @@ class StrandContact:
                                          np.stack([F[self.seg], F[self.seg + 1]], axis=1), L, md)
         (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \
             self._gather_segments(S, (T, H), inflate=0.0, boxes=(lo, hi))
-        ij = box_pairs(PB[:, 0], PB[:, 1], group=wisp)
+        ij = box_pairs(PB[:, 0], PB[:, 1], group=wisp, **self.self_pairs(len(PB)))
         i, j = ij[:, 0], ij[:, 1]
         keep = (i < n_local) | (j < n_local)
         keep &= free[i].any(axis=1) | free[j].any(axis=1)       # pinned pairs move rigidly

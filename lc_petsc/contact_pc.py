@@ -212,12 +212,17 @@ class ClusterPC:
         cols = np.concatenate([pos[ca], pos[cc[keep]]])
         vals = np.concatenate([va, vc[keep]])
         order = np.lexsort((cols, rows))
+        rows, cols, vals = rows[order], cols[order], vals[order]
+        # a self-contact pair's cross blocks can fall on its wisp's band (segments two
+        # apart): one summed block per position (a CSR row must not repeat a column)
+        first = np.flatnonzero(np.r_[True, (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1])])
+        if len(first) < len(rows):
+            rows, cols, vals = rows[first], cols[first], np.add.reduceat(vals, first, axis=0)
         indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=len(verts)))])
         m = 3 * len(verts)
         M = PETSc.Mat().createBAIJ(size=(m, m), bsize=3, comm=PETSc.COMM_SELF,
-                                   csr=(indptr.astype(PETSc.IntType),
-                                        cols[order].astype(PETSc.IntType),
-                                        np.ascontiguousarray(vals[order]).ravel()))
+                                   csr=(indptr.astype(PETSc.IntType), cols.astype(PETSc.IntType),
+                                        np.ascontiguousarray(vals).ravel()))
         self.cluster_mat = M
         self.cluster = PETSc.PC().create(comm=PETSc.COMM_SELF)
         self.cluster.setType(PETSc.PC.Type.LU)

@@ -1,4 +1,5 @@
-"""Rest-pose check of strand contact: pairs of segments of different wisps that are
+"""Rest-pose check of strand contact: pairs of segments of different wisps (with
+``physics.strand_self_contact`` also non-neighbouring segments of one wisp) that are
 already closer than the contact thickness d0 in the groom.
 
 Such pairs are interlocked or touching coils: the penalty cannot tell which side is
@@ -21,25 +22,29 @@ from lc_petsc.errors import RestPoseOverlapError  # noqa: F401 - re-exported: th
 
 @dataclass
 class RestPoseReport:
-    """What the rest-pose check found: pairs of segments of different wisps closer than
-    the contact thickness, and the closest pair."""
+    """What the rest-pose check found: pairs of segments of different wisps (and, with
+    self-contact, of one wisp) closer than the contact thickness, and the closest pair."""
 
     thickness: float
     pairs: int                       # pairs closer than the thickness, over all ranks
     min_distance: float              # inf when no pair is within the search radius
     worst: tuple = ()                # (wisp A, vertex A, wisp B, vertex B): first vertices
                                      # (global indices) of the closest pair's segments
+    self_contact: bool = False       # pairs of one wisp were checked too
 
     def message(self) -> str:
         """The report for a person: count, closest pair (wisps, vertices), distance."""
         wa, va, wb, vb = self.worst
-        return (f"rest pose: {self.pairs} pair(s) of segments of different wisps are closer than "
+        which, fold = ("of different wisps or of one wisp (not neighbours along it)",
+                       " or physics.strand_self_contact = false (for a wisp folded onto itself)") \
+            if self.self_contact else ("of different wisps", "")
+        return (f"rest pose: {self.pairs} pair(s) of segments {which} are closer than "
                 f"the contact thickness {self.thickness:g} cm; the closest: wisp {wa} segment "
                 f"(vertices {va}, {va + 1}) and wisp {wb} segment (vertices {vb}, {vb + 1}), "
                 f"{self.min_distance:.3g} cm apart (global vertex indices).  Untangle the groom "
                 f"(e.g. give neighbouring coils the same phase), lower physics.strand_thickness "
                 f"below that distance, or set physics.strand_rest_overlap = \"exempt\" to let "
-                f"these pairs pass through each other")
+                f"these pairs pass through each other{fold}")
 
 
 def check_rest_pose(strand) -> RestPoseReport:
@@ -47,7 +52,7 @@ def check_rest_pose(strand) -> RestPoseReport:
     :class:`lc_petsc.contact.StrandContact`'s scene, over all ranks.  Collective."""
     comm, d0 = strand.comm, strand.d0
     (P,), _, gv, wisp, _, _, n_local = strand._gather_segments(strand.scene.x_rest)
-    ij = strand.candidates(P, wisp, n_local, d0)
+    ij = strand.candidates(P, wisp, n_local, d0, **strand.self_pairs(len(P)))
     i, j = ij[:, 0], ij[:, 1]
     d = segment_contact.distance(np.concatenate([P[i], P[j]], axis=1)) if len(ij) else np.zeros(0)
     close = d < d0
@@ -61,4 +66,5 @@ def check_rest_pose(strand) -> RestPoseReport:
     best = min(comm.allgather(local_worst))          # the same on every rank
     dmin, va, vb, wa, wb = best
     return RestPoseReport(thickness=d0, pairs=n, min_distance=float(dmin),
-                          worst=(wa, va, wb, vb) if np.isfinite(dmin) else ())
+                          worst=(wa, va, wb, vb) if np.isfinite(dmin) else (),
+                          self_contact=strand.self_contact)

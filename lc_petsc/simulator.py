@@ -219,7 +219,8 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user=None):
                            coupled_pc=plan.contact_pc == "coupled", mode=cfg.physics.strand_contact_mode,
                            min_separation=cfg.physics.strand_min_separation,
                            potential=cfg.physics.strand_contact_potential,
-                           barrier_stiffness=cfg.physics.strand_barrier_stiffness)
+                           barrier_stiffness=cfg.physics.strand_barrier_stiffness,
+                           self_contact=cfg.physics.strand_self_contact)
     if cfg.physics.strand_contact_mode == "ccd":
         report = check_rest_pose(strand)
         if report.pairs and cfg.physics.strand_rest_overlap == "error":

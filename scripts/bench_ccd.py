@@ -2,7 +2,10 @@ r"""Strand contact modes side by side: crossings per frame step, minimum distanc
 per-frame wall time and phases, Newton and CG iterations (prints figures, not a test).
 
     mpiexec -n 2 .venv/bin/python scripts/bench_ccd.py configs/hairball_demo.toml --frames 6 \\
-        --modes penalty ccd [ccd+barrier] [--json out/bench_ccd.json]
+        --modes penalty ccd [ccd+barrier] [ccd+self] [--json out/bench_ccd.json]
+
+(``+self``: physics.strand_self_contact on.)  Crossings are counted between different
+wisps and, as ``self crossings``, between segments of one wisp sharing no vertex.
 
 Runs each mode in turn in the same process (back to back, so the machine's load hits
 both alike) and ends with a table of medians.  Two versions side by side (say main's
@@ -25,11 +28,13 @@ from lc_petsc.timing import timed_frame
 
 
 def run(path, mode, frames):
-    """``mode``: a strand_contact_mode, or mode+potential (``ccd+barrier``)."""
+    """``mode``: a strand_contact_mode, then optionally ``+barrier`` (the potential) and
+    ``+self`` (self-contact), e.g. ``ccd+barrier+self``."""
     comm = MPI.COMM_WORLD
     cfg = load_config(path)
-    cfg.physics.strand_contact_mode, _, potential = mode.partition("+")
-    if potential:
+    cfg.physics.strand_contact_mode, *extras = mode.split("+")
+    cfg.physics.strand_self_contact = "self" in extras
+    for potential in set(extras) - {"self"}:
         cfg.physics.strand_contact_potential = potential
     sim = build_simulator(cfg, comm=comm)
     off = sim.wisp_offsets()
@@ -42,14 +47,17 @@ def run(path, mode, frames):
             it = sim.integrator
             if comm.rank == 0:
                 r = count_crossings(prev, cur, off)
+                n_self = count_crossings(prev, cur, off, self_contact=True)["crossings"] - r["crossings"]
                 row = {"frame": f, "mode": mode, "wall_s": wall, "phases_s": phases,
-                       "crossings": r["crossings"], "min_distance": it.contact_min_distance[-1],
+                       "crossings": r["crossings"], "self_crossings": n_self,
+                       "min_distance": it.contact_min_distance[-1],
                        "newton": it.newton_iterations[-1],
                        "cg": int(sum(sim.solver.iterations[-it.newton_iterations[-1]:])),
                        "pairs": it.contact_pairs[-1]}
                 rows.append(row)
                 print(f"{mode:8s} frame {f:3d}: {wall:6.2f} s (collision {phases.get('collision', 0):.2f}, "
-                      f"solve {phases.get('solve', 0):.2f}), crossings {r['crossings']:4d}, min distance "
+                      f"solve {phases.get('solve', 0):.2f}), crossings {r['crossings']:4d} (self {n_self}), "
+                      f"min distance "
                       f"{row['min_distance']:.4g} cm, pairs {row['pairs']}, CG {row['cg']}", flush=True)
             prev = cur
         s = sim.summary()["contact"]
@@ -67,8 +75,8 @@ def compare(paths, labels, plot=None):
     labels = labels or paths
     print(f"{runs[0]['config']}, {runs[0]['ranks']} rank(s), medians per frame:")
     print("| version | mode | wall / frame (s) | collision (s) | collision share | crossings | "
-          "min distance (cm) | limiter candidates per call, largest |")
-    print("|---|---|---|---|---|---|---|---|")
+          "self crossings | min distance (cm) | limiter candidates per call, largest |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for label, run in zip(labels, runs):
         for mode in dict.fromkeys(r["mode"] for r in run["rows"]):
             r = [x for x in run["rows"] if x["mode"] == mode]
@@ -76,8 +84,9 @@ def compare(paths, labels, plot=None):
             c = np.median([x["phases_s"].get("collision", 0.0) for x in r])
             dm = [x["min_distance"] for x in r if x["min_distance"] is not None and np.isfinite(x["min_distance"])]
             cand = (run.get("limiter", {}).get(mode) or {}).get("limiter_candidates_per_frame") or []
+            cs = [x["self_crossings"] for x in r if "self_crossings" in x]     # not in older runs
             print(f"| {label} | {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {sum(x['crossings'] for x in r)} | "
-                  f"{min(dm) if dm else float('nan'):.4g} | {max(cand) if cand else '-'} |")
+                  f"{sum(cs) if cs else '-'} | {min(dm) if dm else float('nan'):.4g} | {max(cand) if cand else '-'} |")
     if plot:
         import matplotlib
         matplotlib.use("Agg")
@@ -126,15 +135,16 @@ def main():
         return
     print(f"\n{a.config}, {MPI.COMM_WORLD.size} rank(s), {a.frames} frames per mode (medians):")
     print("| mode | wall / frame (s) | collision (s) | collision share | crossings (total, max/step) "
-          "| min distance (cm) | CG / frame |")
-    print("|---|---|---|---|---|---|---|")
+          "| self crossings (total, max/step) | min distance (cm) | CG / frame |")
+    print("|---|---|---|---|---|---|---|---|")
     for mode in a.modes:
         r = [x for x in allrows if x["mode"] == mode]
         w = np.median([x["wall_s"] for x in r])
         c = np.median([x["phases_s"].get("collision", 0.0) for x in r])
         cr = [x["crossings"] for x in r]
+        cs = [x["self_crossings"] for x in r]
         dm = [x["min_distance"] for x in r if x["min_distance"] is not None and np.isfinite(x["min_distance"])]
-        print(f"| {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {sum(cr)}, {max(cr)} | "
+        print(f"| {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {sum(cr)}, {max(cr)} | {sum(cs)}, {max(cs)} | "
               f"{min(dm) if dm else float('nan'):.4g} | {np.median([x['cg'] for x in r]):.0f} |")
     for mode in a.modes:
         if extra[mode].get("limiter_candidates_per_frame"):

@@ -210,12 +210,19 @@ def _box_cells(lo, hi, origin, cell, dims):
 
 
 @_jit
-def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
+def _arc_gap(arc, i, j):
+    """The length of strand between segments i and j of one wisp (< 0 for one segment)."""
+    return max(arc[j, 0] - arc[i, 1], arc[i, 0] - arc[j, 1])
+
+
+@_jit
+def _box_pairs(lo, hi, group, arc, min_gap, origin, cell, dims, out):
     """Overlapping boxes (i < j) through a uniform grid: each box is listed in every cell
     it touches, pairs are tested within a cell and reported once, in the cell holding
-    the lower corner of their intersection.  Boxes touching more than BIG_CELLS cells
-    are tested against every box instead.  Returns their number; the first len(out)
-    of them are written to ``out``."""
+    the lower corner of their intersection.  Pairs of one group are skipped unless their
+    gap along the strand (``arc``, see box_pairs) is at least ``min_gap``.  Boxes
+    touching more than BIG_CELLS cells are tested against every box instead.  Returns
+    their number; the first len(out) of them are written to ``out``."""
     rng, count = _box_cells(lo, hi, origin, cell, dims)
     n = count.shape[0]
     big = count > BIG_CELLS
@@ -249,7 +256,7 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
             i = ids[p]
             for q in range(p + 1, stop):
                 j = ids[q]
-                if not same_group and group[i] == group[j]:
+                if group[i] == group[j] and _arc_gap(arc, i, j) < min_gap:
                     continue
                 ok = True
                 for a in range(3):
@@ -276,7 +283,7 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
         if not big[i]:
             continue
         for j in range(n):
-            if j == i or (big[j] and j < i) or (not same_group and group[i] == group[j]):
+            if j == i or (big[j] and j < i) or (group[i] == group[j] and _arc_gap(arc, i, j) < min_gap):
                 continue
             ok = True
             for a in range(3):
@@ -290,10 +297,13 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
     return found
 
 
-def box_pairs(lo, hi, group=None):
+def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0):
     """Index pairs (k, 2), i < j, of the axis-aligned boxes lo, hi (n, 3) that overlap
     (closed boxes), exact, in the grid's order (the same for the same input); with
-    ``group`` (n,) only pairs of different groups.
+    ``group`` (n,) only pairs of different groups, and with ``arc`` (n, 2) (the rest arc
+    length along its wisp at each end of a box's segment) also pairs of one group with
+    at least ``min_gap`` of strand between them (self-contact: neighbours along the
+    strand are skipped inside the loop, so they cost nothing).
     A uniform grid (cell: twice the median box extent, at most 1024 cells per axis) in
     a compiled loop: the cost is the boxes' cell entries and the pairs sharing a cell;
     a box over more than :data:`BIG_CELLS` cells (one wild segment, say) is tested
@@ -309,8 +319,13 @@ def box_pairs(lo, hi, group=None):
     cell = max(2.0 * float(np.median(np.maximum(np.maximum(ext[:, 0], ext[:, 1]), ext[:, 2]))),
                span / 1024.0, 1e-12)
     dims = (np.floor((top - origin) / cell).astype(np.int64) + 1)
-    g = np.zeros(n, np.int64) if group is None else np.ascontiguousarray(group, np.int64)
-    args = (lo, hi, g, group is None, origin, cell, dims)
+    g = np.arange(n, dtype=np.int64) if group is None else np.ascontiguousarray(group, np.int64)
+    if arc is None:                     # one group: no pair of it
+        arc, min_gap = np.zeros((n, 2)), np.inf
+    arc = np.ascontiguousarray(arc, np.float64)
+    if arc.shape != (n, 2):
+        raise ValueError(f"box_pairs: arc must be (n_boxes, 2) = ({n}, 2), got {arc.shape}")
+    args = (lo, hi, g, arc, float(min_gap), origin, cell, dims)
     out = np.empty((8 * n, 2), np.int64)
     found = _box_pairs(*args, out)
     if found > len(out):                # more than guessed: once more, with room

@@ -210,6 +210,39 @@ def _box_cells(lo, hi, origin, cell, dims):
 
 
 @_jit
+def _radix_order(keys, bits):
+    """Stable argsort of non-negative int keys < 2**bits: LSD radix sort, 15-bit digits
+    (Numba's argsort took 0.16 s for the 480k cell entries of the 2K hairball)."""
+    n = keys.shape[0]
+    order = np.arange(n)
+    tmp = np.empty(n, np.int64)
+    shift = 0
+    while shift < bits:
+        cnt = np.zeros(32769, np.int64)
+        for k in range(n):
+            cnt[((keys[order[k]] >> shift) & 32767) + 1] += 1
+        for d in range(32768):
+            cnt[d + 1] += cnt[d]
+        for k in range(n):
+            o = order[k]
+            d = (keys[o] >> shift) & 32767
+            tmp[cnt[d]] = o
+            cnt[d] += 1
+        order, tmp = tmp, order
+        shift += 15
+    return order
+
+
+@_jit
+def _overlap(X, p, Y, q):
+    """Closed boxes X[p] and Y[q] ((lo, hi) rows of 6) overlap."""
+    for a in range(3):
+        if X[p, 3 + a] < Y[q, a] or Y[q, 3 + a] < X[p, a]:
+            return False
+    return True
+
+
+@_jit
 def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
     """Overlapping boxes (i < j) through a uniform grid: each box is listed in every cell
     it touches, pairs are tested within a cell and reported once, in the cell holding
@@ -218,6 +251,8 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
     of them are written to ``out``."""
     rng, count = _box_cells(lo, hi, origin, cell, dims)
     n = count.shape[0]
+    LH = np.empty((n, 6))
+    LH[:, :3], LH[:, 3:] = lo, hi
     big = count > BIG_CELLS
     total = 0
     for i in range(n):
@@ -236,8 +271,14 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
                     keys[k] = (x * dims[1] + y) * dims[2] + z
                     ids[k] = i
                     k += 1
-    order = np.argsort(keys)
+    bits = 1
+    while (1 << bits) < dims[0] * dims[1] * dims[2]:
+        bits += 1
+    order = _radix_order(keys, bits)
+    # the entries' boxes and groups copied in cell order: the pair loop streams memory
     keys, ids = keys[order], ids[order]
+    B = LH[ids]
+    G = group[ids]
     found = 0
     start = 0
     while start < total:
@@ -245,31 +286,23 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
         stop = start
         while stop < total and keys[stop] == key:
             stop += 1
+        cx, cy, cz = key // (dims[1] * dims[2]), (key // dims[2]) % dims[1], key % dims[2]
         for p in range(start, stop):
-            i = ids[p]
-            for q in range(p + 1, stop):
-                j = ids[q]
-                if not same_group and group[i] == group[j]:
+            q = p + 1
+            if not same_group:      # a cell lists boxes by index: skip the run of p's group
+                while q < stop and G[q] == G[p]:
+                    q += 1
+            for q in range(q, stop):
+                if (not same_group and G[p] == G[q]) or not _overlap(B, p, B, q):
                     continue
-                ok = True
-                for a in range(3):
-                    if hi[i, a] < lo[j, a] or hi[j, a] < lo[i, a]:
-                        ok = False
-                        break
-                if not ok:
-                    continue
+                i, j = ids[p], ids[q]
                 # report in the cell of the intersection's lower corner only
-                own = True
-                for a in range(3):
-                    c = max(rng[i, a], rng[j, a])
-                    if c != (key // (dims[1] * dims[2]) if a == 0 else
-                             (key // dims[2]) % dims[1] if a == 1 else key % dims[2]):
-                        own = False
-                        break
-                if own:
-                    if found < out.shape[0]:
-                        out[found, 0], out[found, 1] = min(i, j), max(i, j)
-                    found += 1
+                if max(rng[i, 0], rng[j, 0]) != cx or max(rng[i, 1], rng[j, 1]) != cy or \
+                        max(rng[i, 2], rng[j, 2]) != cz:
+                    continue
+                if found < out.shape[0]:
+                    out[found, 0], out[found, 1] = min(i, j), max(i, j)
+                found += 1
         start = stop
     # big boxes (a wild iterate's segment) against all boxes, each pair once
     for i in range(n):
@@ -278,12 +311,7 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
         for j in range(n):
             if j == i or (big[j] and j < i) or (not same_group and group[i] == group[j]):
                 continue
-            ok = True
-            for a in range(3):
-                if hi[i, a] < lo[j, a] or hi[j, a] < lo[i, a]:
-                    ok = False
-                    break
-            if ok:
+            if _overlap(LH, i, LH, j):
                 if found < out.shape[0]:
                     out[found, 0], out[found, 1] = min(i, j), max(i, j)
                 found += 1

@@ -535,7 +535,11 @@ class StrandContact:
         i, j = i[keep], j[keep]
         swap = gv[i] > gv[j]            # the smaller global segment first, on any partition
         ci, cj = np.where(swap, j, i), np.where(swap, i, j)
-        keep = free[ci].any(axis=1) | free[cj].any(axis=1)       # pinned pairs move rigidly
+        # the pair test needs the pairs within reach md only: their boxes are these shrunk
+        # by the difference of the growths, the same for every segment (field_boxes)
+        shrink = 0.5 * (reach - md) / (1.0 - L)
+        keep = ((PB[ci, 0] + shrink <= PB[cj, 1] - shrink) & (PB[cj, 0] + shrink <= PB[ci, 1] - shrink)).all(axis=1)
+        keep &= free[ci].any(axis=1) | free[cj].any(axis=1)       # pinned pairs move rigidly
         i, j = ci[keep], cj[keep]
         self.limiter_candidates.add(int(self.comm.allreduce(len(i))))
         # the segments' vertices: V sorted global vertices, sv (m, 2) their index in V

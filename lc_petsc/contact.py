@@ -525,21 +525,16 @@ class StrandContact:
         # closer than d0 at the path's end (round-off aside), so the next _pairs call at
         # the limited positions reuses them (_reached) instead of its own broad phase
         reach = max(md, d0 * (1.0 + 1e-6))
-        lo, hi = segment_ccd.field_boxes(np.stack([S[self.seg], S[self.seg + 1]], axis=1),
-                                         np.stack([F[self.seg], F[self.seg + 1]], axis=1), L, reach)
+        lo, hi = compiled_ccd.field_boxes(S, F, self.seg, L, reach)
         (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \
             self._gather_segments(S, (T, H), inflate=0.0, boxes=(lo, hi))
         ij = box_pairs(PB[:, 0], PB[:, 1], group=wisp)
-        i, j = ij[:, 0], ij[:, 1]
-        keep = (i < n_local) | (j < n_local)
-        i, j = i[keep], j[keep]
-        swap = gv[i] > gv[j]            # the smaller global segment first, on any partition
-        ci, cj = np.where(swap, j, i), np.where(swap, i, j)
-        # the pair test needs the pairs within reach md only: their boxes are these shrunk
-        # by the difference of the growths, the same for every segment (field_boxes)
-        shrink = 0.5 * (reach - md) / (1.0 - L)
-        keep = ((PB[ci, 0] + shrink <= PB[cj, 1] - shrink) & (PB[cj, 0] + shrink <= PB[ci, 1] - shrink)).all(axis=1)
-        keep &= free[ci].any(axis=1) | free[cj].any(axis=1)       # pinned pairs move rigidly
+        # the pairs with a local segment, the smaller global segment first (on any
+        # partition); the pair test needs those within reach md only, whose boxes are
+        # these shrunk by the difference of the growths (the same for every segment), and
+        # with a free vertex (pinned pairs move rigidly)
+        ci, cj, keep = compiled_ccd.order_candidates(ij, n_local, gv, PB[:, 0], PB[:, 1],
+                                                     0.5 * (reach - md) / (1.0 - L), free)
         i, j = ci[keep], cj[keep]
         self.limiter_candidates.add(int(self.comm.allreduce(len(i))))
         # the segments' vertices: V sorted global vertices, sv (m, 2) their index in V

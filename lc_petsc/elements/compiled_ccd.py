@@ -180,6 +180,62 @@ def limit_pairs(S, E, inv, redo, min_distance, scale, tau, factor, max_steps=MAX
     _limit_pairs(S, E, inv, redo, float(min_distance), bool(scale), int(max_steps), float(rtol), tau, factor)
 
 
+@_jit
+def _field_boxes(S, F, seg, lipschitz, m, lo, hi):
+    for k in range(seg.shape[0]):
+        a, b = seg[k], seg[k] + 1
+        ra = F[a, 0] * F[a, 0] + F[a, 1] * F[a, 1] + F[a, 2] * F[a, 2]
+        rb = F[b, 0] * F[b, 0] + F[b, 1] * F[b, 1] + F[b, 2] * F[b, 2]
+        grow = (0.5 * m + lipschitz * math.sqrt(max(ra, rb))) / (1.0 - lipschitz)
+        for c in range(3):
+            ea, eb = S[a, c] + F[a, c], S[b, c] + F[b, c]
+            lo[k, c] = min(min(S[a, c], S[b, c]), min(ea, eb)) - grow
+            hi[k, c] = max(max(S[a, c], S[b, c]), max(ea, eb)) + grow
+
+
+def field_boxes(S, F, seg, lipschitz, min_distance):
+    """:func:`lc_petsc.elements.segment_ccd.field_boxes` (the reference, with the proof)
+    of the segments (seg[k], seg[k] + 1) of the vertex positions ``S`` and residuals
+    ``F`` (nv, 3), without per-segment copies: (lo, hi) (len(seg), 3)."""
+    lo, hi = np.empty((len(seg), 3)), np.empty((len(seg), 3))
+    _field_boxes(np.ascontiguousarray(S, np.float64), np.ascontiguousarray(F, np.float64),
+                 np.ascontiguousarray(seg, np.int64), float(lipschitz), float(min_distance), lo, hi)
+    return lo, hi
+
+
+@_jit
+def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, ci, cj, near):
+    k = 0
+    for q in range(ij.shape[0]):
+        a, b = ij[q, 0], ij[q, 1]
+        if a >= n_local and b >= n_local:
+            continue
+        if gv[a] > gv[b]:
+            a, b = b, a
+        ci[k], cj[k] = a, b
+        ok = free[a, 0] or free[a, 1] or free[b, 0] or free[b, 1]     # else rigid
+        for c in range(3):
+            if not ok:
+                break
+            ok = lo[a, c] + shrink <= hi[b, c] - shrink and lo[b, c] + shrink <= hi[a, c] - shrink
+        near[k] = ok
+        k += 1
+    return k
+
+
+def order_candidates(ij, n_local, gv, lo, hi, shrink, free):
+    """The limiter's candidates from the box pairs ``ij`` (k, 2) of local + ghost segments:
+    (ci, cj, near): the pairs with a local segment (index < ``n_local``), the smaller
+    first global vertex ``gv`` first, and ``near`` where their boxes lo, hi shrunk by
+    ``shrink`` still overlap and a segment has a free vertex (``free`` (m, 2))."""
+    n = len(ij)
+    ci, cj, near = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.bool_)
+    k = _order_candidates(np.ascontiguousarray(ij, np.int64), int(n_local), np.ascontiguousarray(gv, np.int64),
+                          np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
+                          float(shrink), np.ascontiguousarray(free, np.bool_), ci, cj, near)
+    return ci[:k], cj[:k], near[:k]
+
+
 def warm_up():
     """Compile (or load from the cache) the kernels."""
     S = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 1], [1, 1, 1]])
@@ -187,6 +243,9 @@ def warm_up():
     limit_pairs(S, S + 0.1, np.arange(4, dtype=np.int64).reshape(1, 4), np.zeros(1, np.int64), 0.01,
                 True, np.ones(1), np.ones(1))
     box_pairs(S, S + 1.0, np.arange(4))
+    seg = np.array([0, 2])
+    lo, hi = field_boxes(S, S, seg, 0.1, 0.01)
+    order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool))
 
 
 # ---------------------------------------------------------------- broad phase

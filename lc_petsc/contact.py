@@ -20,7 +20,9 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    boxes grown by d0 / 2 (:meth:`StrandContact.candidates`), which contains every pair
    closer than d0.  Rebuilt from the current positions
    (reused only for bit-identical positions), so no margin for motion is needed: the
-   search is exact, not predictive.
+   search is exact, not predictive.  In ccd mode every position the contact sees comes
+   out of a limiter call, whose candidates (reach d0) and path end cover it: the pairs
+   are taken from there instead (:meth:`StrandContact._reached`, the same pairs).
    Pairs of the same wisp are excluded (no self-contact; see docs/contact.md).
 4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` (the penalty; or the
    barrier of :mod:`lc_petsc.elements.segment_barrier`, ccd mode) on the candidates, the
@@ -497,6 +499,10 @@ class StrandContact:
            during the step, for any fractions), :func:`box_pairs` the candidates, one
            set for all rounds.  Hair swinging with the head moves by u,
            not by f: the boxes are set by how much a segment moves relative to the bulk.
+           The boxes are built for a reach of d0 (more than m): the candidates then hold
+           every pair closer than d0 at the path's end, which the contact's next pair
+           search at the limited positions takes (:meth:`_reached`); the pair test gets
+           those within reach m (the boxes shrunk by the growths' difference).
         2. Pair test (:func:`compiled_ccd.limit_pairs`, compiled): on the pair's current
            path, swept spheres around the centre paths discard most candidates without
            a distance; the others get conservative advancement with up to
@@ -532,9 +538,10 @@ class StrandContact:
         # the pairs with a local segment, the smaller global segment first (on any
         # partition); the pair test needs those within reach md only, whose boxes are
         # these shrunk by the difference of the growths (the same for every segment), and
-        # with a free vertex (pinned pairs move rigidly)
-        ci, cj, keep = compiled_ccd.order_candidates(ij, n_local, gv, PB[:, 0], PB[:, 1],
-                                                     0.5 * (reach - md) / (1.0 - L), free)
+        # with a free vertex (pinned pairs move rigidly); shrunk by a hair less, so that
+        # round-off cannot drop a pair that boxes built for md would keep
+        shrink = 0.5 * (reach - md) / (1.0 - L) * (1.0 - 1e-9)
+        ci, cj, keep = compiled_ccd.order_candidates(ij, n_local, gv, PB[:, 0], PB[:, 1], shrink, free)
         i, j = ci[keep], cj[keep]
         self.limiter_candidates.add(int(self.comm.allreduce(len(i))))
         # the segments' vertices: V sorted global vertices, sv (m, 2) their index in V

@@ -428,9 +428,8 @@ class StrandContact:
         x_end, P, Prest, gv, free, owner, i, j = self._limited
         if not global_min(self.comm, int(np.array_equal(x_end, x))):
             return None
-        lo = np.minimum(P[:, 0], P[:, 1]) - 0.5 * self.d0
-        hi = np.maximum(P[:, 0], P[:, 1]) + 0.5 * self.d0
-        ov = np.flatnonzero(((lo[i] <= hi[j]) & (lo[j] <= hi[i])).all(axis=1))
+        ov = compiled_ccd.pairs_overlap(i, j, np.minimum(P[:, 0], P[:, 1]), np.maximum(P[:, 0], P[:, 1]),
+                                        0.5 * self.d0)
         return P, Prest, gv, free, owner, i[ov], j[ov]
 
     # ------------------------------------------------------------- ccd mode

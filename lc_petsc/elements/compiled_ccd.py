@@ -204,6 +204,15 @@ def field_boxes(S, F, seg, lipschitz, min_distance):
 
 
 @_jit
+def _grown_overlap(lo, hi, a, b, grow):
+    """Closed boxes a and b of lo, hi, each grown by ``grow`` (< 0: shrunk), overlap."""
+    for c in range(3):
+        if hi[a, c] + grow < lo[b, c] - grow or hi[b, c] + grow < lo[a, c] - grow:
+            return False
+    return True
+
+
+@_jit
 def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, ci, cj, near):
     k = 0
     for q in range(ij.shape[0]):
@@ -213,14 +222,25 @@ def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, ci, cj, near):
         if gv[a] > gv[b]:
             a, b = b, a
         ci[k], cj[k] = a, b
-        ok = free[a, 0] or free[a, 1] or free[b, 0] or free[b, 1]     # else rigid
-        for c in range(3):
-            if not ok:
-                break
-            ok = lo[a, c] + shrink <= hi[b, c] - shrink and lo[b, c] + shrink <= hi[a, c] - shrink
-        near[k] = ok
+        rigid = not (free[a, 0] or free[a, 1] or free[b, 0] or free[b, 1])
+        near[k] = not rigid and _grown_overlap(lo, hi, a, b, -shrink)
         k += 1
     return k
+
+
+@_jit
+def _pairs_overlap(i, j, lo, hi, grow, out):
+    for k in range(i.shape[0]):
+        out[k] = _grown_overlap(lo, hi, i[k], j[k], grow)
+
+
+def pairs_overlap(i, j, lo, hi, grow):
+    """(k,) bool: the closed boxes i[k] and j[k] of lo, hi (m, 3), each grown by
+    ``grow``, overlap (the arithmetic of :func:`box_pairs` on boxes grown beforehand)."""
+    out = np.empty(len(i), np.bool_)
+    _pairs_overlap(np.ascontiguousarray(i, np.int64), np.ascontiguousarray(j, np.int64),
+                   np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64), float(grow), out)
+    return out
 
 
 def order_candidates(ij, n_local, gv, lo, hi, shrink, free):
@@ -246,6 +266,7 @@ def warm_up():
     seg = np.array([0, 2])
     lo, hi = field_boxes(S, S, seg, 0.1, 0.01)
     order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool))
+    pairs_overlap(seg[:1], seg[1:], lo, hi, 0.01)
 
 
 # ---------------------------------------------------------------- broad phase

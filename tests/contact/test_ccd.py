@@ -307,3 +307,12 @@ def test_compiled_field_boxes_and_candidate_order_match_numpy():
     want &= free[i].any(axis=1) | free[j].any(axis=1)
     np.testing.assert_array_equal(near, want)
     assert 0 < near.sum() < len(near) and len(ci) < len(ij)       # both filters bite
+    # pairs_overlap: box_pairs' test on the boxes grown by 0.02 (the contact's reuse)
+    grown = box_pairs(lo - 0.02, hi + 0.02, seg // 10)
+    k = rng.integers(0, len(seg), size=(400, 2))
+    ov = compiled_ccd.pairs_overlap(k[:, 0], k[:, 1], lo, hi, 0.02)
+    listed = {tuple(p) for p in grown.tolist()}
+    same_wisp = seg[k[:, 0]] // 10 == seg[k[:, 1]] // 10
+    want = [(min(a, b), max(a, b)) in listed for a, b in k]
+    np.testing.assert_array_equal(ov[~same_wisp], np.array(want)[~same_wisp])
+    assert 0 < ov.sum() < len(ov)

@@ -181,6 +181,15 @@ def limit_pairs(S, E, inv, redo, min_distance, scale, tau, factor, max_steps=MAX
 
 
 @_jit
+def _grown_overlap(lo, hi, a, b, grow):
+    """Closed boxes a and b of lo, hi, each grown by ``grow`` (< 0: shrunk), overlap."""
+    for c in range(3):
+        if hi[a, c] + grow < lo[b, c] - grow or hi[b, c] + grow < lo[a, c] - grow:
+            return False
+    return True
+
+
+@_jit
 def _field_boxes(S, F, seg, lipschitz, m, lo, hi):
     for k in range(seg.shape[0]):
         a, b = seg[k], seg[k] + 1
@@ -201,15 +210,6 @@ def field_boxes(S, F, seg, lipschitz, min_distance):
     _field_boxes(np.ascontiguousarray(S, np.float64), np.ascontiguousarray(F, np.float64),
                  np.ascontiguousarray(seg, np.int64), float(lipschitz), float(min_distance), lo, hi)
     return lo, hi
-
-
-@_jit
-def _grown_overlap(lo, hi, a, b, grow):
-    """Closed boxes a and b of lo, hi, each grown by ``grow`` (< 0: shrunk), overlap."""
-    for c in range(3):
-        if hi[a, c] + grow < lo[b, c] - grow or hi[b, c] + grow < lo[a, c] - grow:
-            return False
-    return True
 
 
 @_jit
@@ -314,15 +314,6 @@ def _radix_order(keys, bits):
 
 
 @_jit
-def _overlap(X, p, Y, q):
-    """Closed boxes X[p] and Y[q] ((lo, hi) rows of 6) overlap."""
-    for a in range(3):
-        if X[p, 3 + a] < Y[q, a] or Y[q, 3 + a] < X[p, a]:
-            return False
-    return True
-
-
-@_jit
 def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
     """Overlapping boxes (i < j) through a uniform grid: each box is listed in every cell
     it touches, pairs are tested within a cell and reported once, in the cell holding
@@ -331,8 +322,6 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
     of them are written to ``out``."""
     rng, count = _box_cells(lo, hi, origin, cell, dims)
     n = count.shape[0]
-    LH = np.empty((n, 6))
-    LH[:, :3], LH[:, 3:] = lo, hi
     big = count > BIG_CELLS
     total = 0
     for i in range(n):
@@ -357,8 +346,7 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
     order = _radix_order(keys, bits)
     # the entries' boxes and groups copied in cell order: the pair loop streams memory
     keys, ids = keys[order], ids[order]
-    B = LH[ids]
-    G = group[ids]
+    Blo, Bhi, G = lo[ids], hi[ids], group[ids]
     found = 0
     start = 0
     while start < total:
@@ -373,7 +361,7 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
                 while q < stop and G[q] == G[p]:
                     q += 1
             for q in range(q, stop):
-                if (not same_group and G[p] == G[q]) or not _overlap(B, p, B, q):
+                if (not same_group and G[p] == G[q]) or not _grown_overlap(Blo, Bhi, p, q, 0.0):
                     continue
                 i, j = ids[p], ids[q]
                 # report in the cell of the intersection's lower corner only
@@ -391,7 +379,7 @@ def _box_pairs(lo, hi, group, same_group, origin, cell, dims, out):
         for j in range(n):
             if j == i or (big[j] and j < i) or (not same_group and group[i] == group[j]):
                 continue
-            if _overlap(LH, i, LH, j):
+            if _grown_overlap(lo, hi, i, j, 0.0):
                 if found < out.shape[0]:
                     out[found, 0], out[found, 1] = min(i, j), max(i, j)
                 found += 1

@@ -526,9 +526,9 @@ class StrandContact:
         A, b, L = self._motion_field(S, T)
         H = S + (S @ A.T + b)
         F = T - H
-        # reach d0 (1 + 1e-6), not just md: the candidates then also hold every pair
-        # closer than d0 at the path's end (round-off aside), so the next _pairs call at
-        # the limited positions reuses them (_reached) instead of its own broad phase
+        # reach d0, not just md (and 1e-6 more, for round-off): the candidates then also
+        # hold every pair closer than d0 at the path's end, so the next _pairs call at the
+        # limited positions reuses them (_reached) instead of its own broad phase
         reach = max(md, d0 * (1.0 + 1e-6))
         lo, hi = compiled_ccd.field_boxes(S, F, self.seg, L, reach)
         (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \

@@ -20,7 +20,9 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    boxes grown by d0 / 2 (:meth:`StrandContact.candidates`), which contains every pair
    closer than d0.  Rebuilt from the current positions
    (reused only for bit-identical positions), so no margin for motion is needed: the
-   search is exact, not predictive.
+   search is exact, not predictive.  In ccd mode every position the contact sees comes
+   out of a limiter call, whose candidates (reach d0) and path end cover it: the pairs
+   are taken from there instead (:meth:`StrandContact._reached`, the same pairs).
    Pairs of the same wisp are excluded, unless ``self_contact``: then only neighbours
    along the strand are (:data:`NEIGHBOUR_GAP`; docs/contact.md, "Self-contact").
 4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` (the penalty; or the
@@ -238,6 +240,7 @@ class StrandContact:
         self.ghosts_received = FrameTally()
         self.cross_pairs = FrameTally()
         self._pairs_cache = None          # (x, active, pairs) of the last _pairs call
+        self._limited = None              # the last limiter call's end and candidates (_reached)
         self.last_separation = (0, 0, 0)
         if mode not in MODES:
             raise ValueError(f"strand contact mode {mode!r}: use one of {', '.join(MODES)}")
@@ -382,13 +385,16 @@ class StrandContact:
 
     def _pairs(self, x, active=True):
         """Pairs as (X (n, 4, 3), gvA, gvB, freeA, freeB, ownerA, ownerB, d), the segment
-        with the smaller global index first.  ``active``: only pairs closer than d0 that
-        are not exempt; otherwise also every candidate at d >= d0 (for the minimum
-        distance; exemption only concerns pairs closer than d0).  The result of the last
-        call is kept: the line search evaluates the energy at the point just assembled,
-        and the separation works on the pairs the end-of-frame measurement just found
-        (each rank compares x with its cached copy bit for bit, and the cache is used
-        only if that holds on every rank)."""
+        with the smaller global index first, the pairs closer than d0 in the order of
+        (gvA, gvB) (the same whatever produced the candidates).  ``active``: only pairs
+        closer than d0 that are not exempt; otherwise also candidates at d >= d0 (for the
+        minimum distance; exemption only concerns pairs closer than d0).  The result of
+        the last call is kept: the line search evaluates the energy at the point just
+        assembled, and the separation works on the pairs the end-of-frame measurement
+        just found (each rank compares x with its cached copy bit for bit, and the cache
+        is used only if that holds on every rank).  Positions that a limiter call just
+        produced (ccd mode) take their candidates from that call (:meth:`_reached`)
+        instead of a new ghost exchange and broad phase."""
         if self._pairs_cache is not None and (active or not self._pairs_cache[1]):
             same = np.array_equal(self._pairs_cache[0], x)
             if global_min(self.comm, int(same)):       # the same on all ranks
@@ -397,25 +403,60 @@ class StrandContact:
                     keep = out[-1] < self.d0
                     out = tuple(a[keep] for a in out)
                 return out
-        (P,), Prest, gv, wisp, free, owner, n_local = self._gather_segments(x)
-        ij = self.candidates(P, wisp, n_local, self.d0, **self.self_pairs(len(P)))
-        i, j = ij[:, 0], ij[:, 1]
-        swap = gv[i] > gv[j]
-        i, j = np.where(swap, j, i), np.where(swap, i, j)
-        X = np.concatenate([P[i], P[j]], axis=1)
-        d = segment_contact.distance(X) if len(X) else np.zeros(0)
-        keep = d < self.d0
-        # exemption: pairs already within the thickness in the rest pose (docs/contact.md)
-        sel = np.flatnonzero(keep)
-        if len(sel):
-            Xr = np.concatenate([Prest[i[sel]], Prest[j[sel]]], axis=1)
-            keep[sel] = segment_contact.distance(Xr) >= self.d0
-        if not active:
-            keep |= d >= self.d0
-        i, j = i[keep], j[keep]
-        out = X[keep], gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[keep]
+        out = None
+        reached = self._reached(x)
+        if reached is not None:
+            out = self._close_pairs(*reached, active)
+            # the limiter's candidates hold every pair closer than d0 but not every
+            # farther pair whose grown boxes overlap: the minimum over candidates is the
+            # broad phase's only while some pair is closer than d0
+            if not active and self.comm.allreduce(int(np.sum(out[-1] < self.d0))) == 0:
+                out = None
+        if out is None:
+            (P,), Prest, gv, wisp, free, owner, n_local = self._gather_segments(x)
+            ij = self.candidates(P, wisp, n_local, self.d0, **self.self_pairs(len(P)))
+            i, j = ij[:, 0], ij[:, 1]
+            swap = gv[i] > gv[j]
+            i, j = np.where(swap, j, i), np.where(swap, i, j)
+            out = self._close_pairs(P, Prest, gv, free, owner, i, j, active)
         self._pairs_cache = (x.copy(), active, out)
         return out
+
+    def _close_pairs(self, P, Prest, gv, free, owner, i, j, active):
+        """The :meth:`_pairs` tuple of the candidates (i, j) (gv[i] < gv[j]) of the
+        segments P (m, 2, 3) (rest Prest, first global vertex gv, free, owner rank)."""
+        X = np.concatenate([P[i], P[j]], axis=1)
+        d = segment_contact.distance(X) if len(X) else np.zeros(0)
+        close = d < self.d0
+        # exemption: pairs already within the thickness in the rest pose (docs/contact.md)
+        sel = np.flatnonzero(close)
+        if len(sel):
+            Xr = np.concatenate([Prest[i[sel]], Prest[j[sel]]], axis=1)
+            close[sel] = segment_contact.distance(Xr) >= self.d0
+        sel = np.flatnonzero(close)
+        # a canonical order: the assembly's sums do not depend on the candidates' order
+        sel = sel[np.argsort(gv[i[sel]] * self.N + gv[j[sel]])]
+        if not active:
+            sel = np.concatenate([sel, np.flatnonzero(d >= self.d0)])
+        i, j = i[sel], j[sel]
+        return X[sel], gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[sel]
+
+    def _reached(self, x):
+        """(P, Prest, gv, free, owner, i, j) as :meth:`_pairs` needs them, from the limiter
+        call that produced x (bit for bit on every rank), else None.  The limiter's
+        candidates are chosen with a reach of at least d0 (:meth:`_safe_fractions`), so
+        they hold every pair closer than d0 at the end of its path, and the segments'
+        positions there are known on every rank (ghosts included): the candidates whose
+        boxes grown by d0 / 2 overlap there are exactly those of :meth:`candidates`
+        among the pairs closer than d0."""
+        if self._limited is None:
+            return None
+        x_end, P, Prest, gv, free, owner, i, j = self._limited
+        if not global_min(self.comm, int(np.array_equal(x_end, x))):
+            return None
+        ov = compiled_ccd.pairs_overlap(i, j, np.minimum(P[:, 0], P[:, 1]), np.maximum(P[:, 0], P[:, 1]),
+                                        0.5 * self.d0)
+        return P, Prest, gv, free, owner, i[ov], j[ov]
 
     # ------------------------------------------------------------- ccd mode
     def limit_step(self, x, target):
@@ -483,6 +524,10 @@ class StrandContact:
            during the step, for any fractions), :func:`box_pairs` the candidates, one
            set for all rounds.  Hair swinging with the head moves by u,
            not by f: the boxes are set by how much a segment moves relative to the bulk.
+           The boxes are built for a reach of d0 (more than m): the candidates then hold
+           every pair closer than d0 at the path's end, which the contact's next pair
+           search at the limited positions takes (:meth:`_reached`); the pair test gets
+           those within reach m (the boxes shrunk by the growths' difference).
         2. Pair test (:func:`compiled_ccd.limit_pairs`, compiled): on the pair's current
            path, swept spheres around the centre paths discard most candidates without
            a distance; the others get conservative advancement with up to
@@ -507,17 +552,22 @@ class StrandContact:
         A, b, L = self._motion_field(S, T)
         H = S + (S @ A.T + b)
         F = T - H
-        lo, hi = segment_ccd.field_boxes(np.stack([S[self.seg], S[self.seg + 1]], axis=1),
-                                         np.stack([F[self.seg], F[self.seg + 1]], axis=1), L, md)
+        # reach d0, not just md (and 1e-6 more, for round-off): the candidates then also
+        # hold every pair closer than d0 at the path's end, so the next _pairs call at the
+        # limited positions reuses them (_reached) instead of its own broad phase
+        reach = max(md, d0 * (1.0 + 1e-6))
+        lo, hi = compiled_ccd.field_boxes(S, F, self.seg, L, reach)
         (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \
             self._gather_segments(S, (T, H), inflate=0.0, boxes=(lo, hi))
         ij = box_pairs(PB[:, 0], PB[:, 1], group=wisp, **self.self_pairs(len(PB)))
-        i, j = ij[:, 0], ij[:, 1]
-        keep = (i < n_local) | (j < n_local)
-        keep &= free[i].any(axis=1) | free[j].any(axis=1)       # pinned pairs move rigidly
-        i, j = i[keep], j[keep]
-        swap = gv[i] > gv[j]            # the smaller global segment first, on any partition
-        i, j = np.where(swap, j, i), np.where(swap, i, j)
+        # the pairs with a local segment, the smaller global segment first (on any
+        # partition); the pair test needs those within reach md only, whose boxes are
+        # these shrunk by the difference of the growths (the same for every segment), and
+        # with a free vertex (pinned pairs move rigidly); shrunk by a hair less, so that
+        # round-off cannot drop a pair that boxes built for md would keep
+        shrink = 0.5 * (reach - md) / (1.0 - L) * (1.0 - 1e-9)
+        ci, cj, keep = compiled_ccd.order_candidates(ij, n_local, gv, PB[:, 0], PB[:, 1], shrink, free)
+        i, j = ci[keep], cj[keep]
         self.limiter_candidates.add(int(self.comm.allreduce(len(i))))
         # the segments' vertices: V sorted global vertices, sv (m, 2) their index in V
         V, sv = np.unique(np.stack([gv, gv + 1], axis=1), return_inverse=True)
@@ -571,6 +621,8 @@ class StrandContact:
                 rounds += 1
             self.unresolved_pairs.add(int(self.comm.allreduce(int(stuck.sum()))))
         beta = np.where(self.scene.pinned, 1.0, beta)
+        # E: the path's end on every pair vertex, equal to the caller's _held_back bit for bit
+        self._limited = (_held_back(H, T, beta), E[sv], Prest, gv, free, owner, ci, cj)
         return beta, int(self.comm.allreduce(int(limited.sum()))), rounds, H
 
     # ------------------------------------------------------------- public

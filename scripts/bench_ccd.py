@@ -1,5 +1,7 @@
 r"""Strand contact modes side by side: crossings per frame step, minimum distance,
-per-frame wall time and phases, Newton and CG iterations (prints figures, not a test).
+per-frame wall time and phases, CPU time (the frame's over all ranks, and the collision
+phase's, the largest rank's: on a shared machine the figures of the work), Newton and CG
+iterations (prints figures, not a test).
 
     mpiexec -n 2 .venv/bin/python scripts/bench_ccd.py configs/hairball_demo.toml --frames 6 \\
         --modes penalty ccd [ccd+barrier] [ccd+self] [--json out/bench_ccd.json]
@@ -13,6 +15,9 @@ and a branch's ``--json`` of the same command):
 
     .venv/bin/python scripts/bench_ccd.py --compare out/main.json out/branch.json \\
         --labels main branch [--plot docs/figures/bench_ccd_demo.png]
+
+Another version's library under this script: ``PYTHONPATH=/path/to/checkout`` (its
+``lc_petsc`` is imported first).
 """
 
 import argparse
@@ -24,7 +29,7 @@ from mpi4py import MPI
 from lc_petsc.config import load_config
 from lc_petsc.crossings import count_crossings
 from lc_petsc.simulator import build_simulator
-from lc_petsc.timing import timed_frame
+from lc_petsc.timing import frame_timing
 
 
 def run(path, mode, frames):
@@ -42,7 +47,8 @@ def run(path, mode, frames):
     try:
         prev = sim.gather_positions()
         for f in range(frames):
-            wall, phases, _ = timed_frame(sim)
+            ft = frame_timing(sim)
+            wall, phases = ft.wall, ft.phases
             cur = sim.gather_positions()
             it = sim.integrator
             if comm.rank == 0:
@@ -51,12 +57,14 @@ def run(path, mode, frames):
                 row = {"frame": f, "mode": mode, "wall_s": wall, "phases_s": phases,
                        "crossings": r["crossings"], "self_crossings": n_self,
                        "min_distance": it.contact_min_distance[-1],
-                       "newton": it.newton_iterations[-1],
+                       "newton": it.newton_iterations[-1], "cpu_s": ft.cpu_total,
+                       "cpu_collision_s": ft.cpu.get("collision", 0.0),
                        "cg": int(sum(sim.solver.iterations[-it.newton_iterations[-1]:])),
                        "pairs": it.contact_pairs[-1]}
                 rows.append(row)
                 print(f"{mode:8s} frame {f:3d}: {wall:6.2f} s (collision {phases.get('collision', 0):.2f}, "
-                      f"solve {phases.get('solve', 0):.2f}), crossings {r['crossings']:4d} (self {n_self}), "
+                      f"solve {phases.get('solve', 0):.2f}; CPU {ft.cpu_total:.2f}, collision CPU "
+                      f"{row['cpu_collision_s']:.2f}), crossings {r['crossings']:4d} (self {n_self}), "
                       f"min distance "
                       f"{row['min_distance']:.4g} cm, pairs {row['pairs']}, CG {row['cg']}", flush=True)
             prev = cur
@@ -64,6 +72,12 @@ def run(path, mode, frames):
     finally:
         sim.close()
     return rows, s
+
+
+def _median(rows, key):
+    """The median of ``key`` over ``rows`` as text ('-' where runs did not record it)."""
+    v = [x[key] for x in rows if key in x]
+    return f"{np.median(v):.2f}" if v else "-"
 
 
 def compare(paths, labels, plot=None):
@@ -74,9 +88,10 @@ def compare(paths, labels, plot=None):
             runs.append(json.load(f))
     labels = labels or paths
     print(f"{runs[0]['config']}, {runs[0]['ranks']} rank(s), medians per frame:")
-    print("| version | mode | wall / frame (s) | collision (s) | collision share | crossings | "
-          "self crossings | min distance (cm) | limiter candidates per call, largest |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| version | mode | wall / frame (s) | collision (s) | collision share | CPU / frame, all ranks (s) | "
+          "collision CPU (s) | crossings | self crossings | min distance (cm) | "
+          "limiter candidates per call, largest |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for label, run in zip(labels, runs):
         for mode in dict.fromkeys(r["mode"] for r in run["rows"]):
             r = [x for x in run["rows"] if x["mode"] == mode]
@@ -85,7 +100,8 @@ def compare(paths, labels, plot=None):
             dm = [x["min_distance"] for x in r if x["min_distance"] is not None and np.isfinite(x["min_distance"])]
             cand = (run.get("limiter", {}).get(mode) or {}).get("limiter_candidates_per_frame") or []
             cs = [x["self_crossings"] for x in r if "self_crossings" in x]     # not in older runs
-            print(f"| {label} | {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {sum(x['crossings'] for x in r)} | "
+            print(f"| {label} | {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {_median(r, 'cpu_s')} | "
+                  f"{_median(r, 'cpu_collision_s')} | {sum(x['crossings'] for x in r)} | "
                   f"{sum(cs) if cs else '-'} | {min(dm) if dm else float('nan'):.4g} | {max(cand) if cand else '-'} |")
     if plot:
         import matplotlib
@@ -134,9 +150,10 @@ def main():
     if MPI.COMM_WORLD.rank:
         return
     print(f"\n{a.config}, {MPI.COMM_WORLD.size} rank(s), {a.frames} frames per mode (medians):")
-    print("| mode | wall / frame (s) | collision (s) | collision share | crossings (total, max/step) "
-          "| self crossings (total, max/step) | min distance (cm) | CG / frame |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| mode | wall / frame (s) | collision (s) | collision share | CPU / frame, all ranks (s) | "
+          "collision CPU (s) | crossings (total, max/step) | self crossings (total, max/step) | "
+          "min distance (cm) | CG / frame |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for mode in a.modes:
         r = [x for x in allrows if x["mode"] == mode]
         w = np.median([x["wall_s"] for x in r])
@@ -144,7 +161,8 @@ def main():
         cr = [x["crossings"] for x in r]
         cs = [x["self_crossings"] for x in r]
         dm = [x["min_distance"] for x in r if x["min_distance"] is not None and np.isfinite(x["min_distance"])]
-        print(f"| {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {sum(cr)}, {max(cr)} | {sum(cs)}, {max(cs)} | "
+        print(f"| {mode} | {w:.2f} | {c:.2f} | {100 * c / w:.0f}% | {_median(r, 'cpu_s')} | "
+              f"{_median(r, 'cpu_collision_s')} | {sum(cr)}, {max(cr)} | {sum(cs)}, {max(cs)} | "
               f"{min(dm) if dm else float('nan'):.4g} | {np.median([x['cg'] for x in r]):.0f} |")
     for mode in a.modes:
         if extra[mode].get("limiter_candidates_per_frame"):

@@ -180,6 +180,82 @@ def limit_pairs(S, E, inv, redo, min_distance, scale, tau, factor, max_steps=MAX
     _limit_pairs(S, E, inv, redo, float(min_distance), bool(scale), int(max_steps), float(rtol), tau, factor)
 
 
+@_jit
+def _grown_overlap(lo, hi, a, b, grow):
+    """Closed boxes a and b of lo, hi, each grown by ``grow`` (< 0: shrunk), overlap."""
+    for c in range(3):
+        if hi[a, c] + grow < lo[b, c] - grow or hi[b, c] + grow < lo[a, c] - grow:
+            return False
+    return True
+
+
+@_jit
+def _field_boxes(S, F, seg, lipschitz, m, lo, hi):
+    for k in range(seg.shape[0]):
+        a, b = seg[k], seg[k] + 1
+        ra = F[a, 0] * F[a, 0] + F[a, 1] * F[a, 1] + F[a, 2] * F[a, 2]
+        rb = F[b, 0] * F[b, 0] + F[b, 1] * F[b, 1] + F[b, 2] * F[b, 2]
+        grow = (0.5 * m + lipschitz * math.sqrt(max(ra, rb))) / (1.0 - lipschitz)
+        for c in range(3):
+            ea, eb = S[a, c] + F[a, c], S[b, c] + F[b, c]
+            lo[k, c] = min(min(S[a, c], S[b, c]), min(ea, eb)) - grow
+            hi[k, c] = max(max(S[a, c], S[b, c]), max(ea, eb)) + grow
+
+
+def field_boxes(S, F, seg, lipschitz, min_distance):
+    """:func:`lc_petsc.elements.segment_ccd.field_boxes` (the reference, with the proof)
+    of the segments (seg[k], seg[k] + 1) of the vertex positions ``S`` and residuals
+    ``F`` (nv, 3), without per-segment copies: (lo, hi) (len(seg), 3)."""
+    lo, hi = np.empty((len(seg), 3)), np.empty((len(seg), 3))
+    _field_boxes(np.ascontiguousarray(S, np.float64), np.ascontiguousarray(F, np.float64),
+                 np.ascontiguousarray(seg, np.int64), float(lipschitz), float(min_distance), lo, hi)
+    return lo, hi
+
+
+@_jit
+def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, ci, cj, near):
+    k = 0
+    for q in range(ij.shape[0]):
+        a, b = ij[q, 0], ij[q, 1]
+        if a >= n_local and b >= n_local:
+            continue
+        if gv[a] > gv[b]:
+            a, b = b, a
+        ci[k], cj[k] = a, b
+        rigid = not (free[a, 0] or free[a, 1] or free[b, 0] or free[b, 1])
+        near[k] = not rigid and _grown_overlap(lo, hi, a, b, -shrink)
+        k += 1
+    return k
+
+
+@_jit
+def _pairs_overlap(i, j, lo, hi, grow, out):
+    for k in range(i.shape[0]):
+        out[k] = _grown_overlap(lo, hi, i[k], j[k], grow)
+
+
+def pairs_overlap(i, j, lo, hi, grow):
+    """(k,) bool: the closed boxes i[k] and j[k] of lo, hi (m, 3), each grown by
+    ``grow``, overlap (the arithmetic of :func:`box_pairs` on boxes grown beforehand)."""
+    out = np.empty(len(i), np.bool_)
+    _pairs_overlap(np.ascontiguousarray(i, np.int64), np.ascontiguousarray(j, np.int64),
+                   np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64), float(grow), out)
+    return out
+
+
+def order_candidates(ij, n_local, gv, lo, hi, shrink, free):
+    """The limiter's candidates from the box pairs ``ij`` (k, 2) of local + ghost segments:
+    (ci, cj, near): the pairs with a local segment (index < ``n_local``), the smaller
+    first global vertex ``gv`` first, and ``near`` where their boxes lo, hi shrunk by
+    ``shrink`` still overlap and a segment has a free vertex (``free`` (m, 2))."""
+    n = len(ij)
+    ci, cj, near = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.bool_)
+    k = _order_candidates(np.ascontiguousarray(ij, np.int64), int(n_local), np.ascontiguousarray(gv, np.int64),
+                          np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
+                          float(shrink), np.ascontiguousarray(free, np.bool_), ci, cj, near)
+    return ci[:k], cj[:k], near[:k]
+
+
 def warm_up():
     """Compile (or load from the cache) the kernels."""
     S = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 1], [1, 1, 1]])
@@ -187,6 +263,10 @@ def warm_up():
     limit_pairs(S, S + 0.1, np.arange(4, dtype=np.int64).reshape(1, 4), np.zeros(1, np.int64), 0.01,
                 True, np.ones(1), np.ones(1))
     box_pairs(S, S + 1.0, np.arange(4))
+    seg = np.array([0, 2])
+    lo, hi = field_boxes(S, S, seg, 0.1, 0.01)
+    order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool))
+    pairs_overlap(seg[:1], seg[1:], lo, hi, 0.01)
 
 
 # ---------------------------------------------------------------- broad phase
@@ -213,6 +293,29 @@ def _box_cells(lo, hi, origin, cell, dims):
 def _arc_gap(arc, i, j):
     """The length of strand between segments i and j of one wisp (< 0 for one segment)."""
     return max(arc[j, 0] - arc[i, 1], arc[i, 0] - arc[j, 1])
+
+
+def _radix_order(keys, bits):
+    """Stable argsort of non-negative int keys < 2**bits: LSD radix sort, 15-bit digits
+    (Numba's argsort took 0.16 s for the 480k cell entries of the 2K hairball)."""
+    n = keys.shape[0]
+    order = np.arange(n)
+    tmp = np.empty(n, np.int64)
+    shift = 0
+    while shift < bits:
+        cnt = np.zeros(32769, np.int64)
+        for k in range(n):
+            cnt[((keys[order[k]] >> shift) & 32767) + 1] += 1
+        for d in range(32768):
+            cnt[d + 1] += cnt[d]
+        for k in range(n):
+            o = order[k]
+            d = (keys[o] >> shift) & 32767
+            tmp[cnt[d]] = o
+            cnt[d] += 1
+        order, tmp = tmp, order
+        shift += 15
+    return order
 
 
 @_jit
@@ -243,8 +346,14 @@ def _box_pairs(lo, hi, group, arc, min_gap, origin, cell, dims, out):
                     keys[k] = (x * dims[1] + y) * dims[2] + z
                     ids[k] = i
                     k += 1
-    order = np.argsort(keys)
+    bits = 1
+    while (1 << bits) < dims[0] * dims[1] * dims[2]:
+        bits += 1
+    order = _radix_order(keys, bits)
+    # the entries' boxes and groups copied in cell order: the pair loop streams memory
     keys, ids = keys[order], ids[order]
+    Blo, Bhi, G = lo[ids], hi[ids], group[ids]
+    skip_runs = min_gap == np.inf   # no pair of one group at all
     found = 0
     start = 0
     while start < total:
@@ -252,31 +361,25 @@ def _box_pairs(lo, hi, group, arc, min_gap, origin, cell, dims, out):
         stop = start
         while stop < total and keys[stop] == key:
             stop += 1
+        cx, cy, cz = key // (dims[1] * dims[2]), (key // dims[2]) % dims[1], key % dims[2]
         for p in range(start, stop):
-            i = ids[p]
-            for q in range(p + 1, stop):
-                j = ids[q]
-                if group[i] == group[j] and _arc_gap(arc, i, j) < min_gap:
+            q = p + 1
+            if skip_runs:           # a cell lists boxes by index: skip the run of p's group
+                while q < stop and G[q] == G[p]:
+                    q += 1
+            for q in range(q, stop):
+                i, j = ids[p], ids[q]
+                if G[p] == G[q] and _arc_gap(arc, i, j) < min_gap:
                     continue
-                ok = True
-                for a in range(3):
-                    if hi[i, a] < lo[j, a] or hi[j, a] < lo[i, a]:
-                        ok = False
-                        break
-                if not ok:
+                if not _grown_overlap(Blo, Bhi, p, q, 0.0):
                     continue
                 # report in the cell of the intersection's lower corner only
-                own = True
-                for a in range(3):
-                    c = max(rng[i, a], rng[j, a])
-                    if c != (key // (dims[1] * dims[2]) if a == 0 else
-                             (key // dims[2]) % dims[1] if a == 1 else key % dims[2]):
-                        own = False
-                        break
-                if own:
-                    if found < out.shape[0]:
-                        out[found, 0], out[found, 1] = min(i, j), max(i, j)
-                    found += 1
+                if max(rng[i, 0], rng[j, 0]) != cx or max(rng[i, 1], rng[j, 1]) != cy or \
+                        max(rng[i, 2], rng[j, 2]) != cz:
+                    continue
+                if found < out.shape[0]:
+                    out[found, 0], out[found, 1] = min(i, j), max(i, j)
+                found += 1
         start = stop
     # big boxes (a wild iterate's segment) against all boxes, each pair once
     for i in range(n):
@@ -285,12 +388,7 @@ def _box_pairs(lo, hi, group, arc, min_gap, origin, cell, dims, out):
         for j in range(n):
             if j == i or (big[j] and j < i) or (group[i] == group[j] and _arc_gap(arc, i, j) < min_gap):
                 continue
-            ok = True
-            for a in range(3):
-                if hi[i, a] < lo[j, a] or hi[j, a] < lo[i, a]:
-                    ok = False
-                    break
-            if ok:
+            if _grown_overlap(lo, hi, i, j, 0.0):
                 if found < out.shape[0]:
                     out[found, 0], out[found, 1] = min(i, j), max(i, j)
                 found += 1

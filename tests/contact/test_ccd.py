@@ -8,7 +8,7 @@ import pytest
 from ccd_reference import crossing_reference
 from lc_petsc.crossings import count_crossings, crossing_pairs
 from lc_petsc.elements.compiled_ccd import box_pairs
-from lc_petsc.elements import segment_ccd
+from lc_petsc.elements import compiled_ccd, segment_ccd
 from lc_petsc.elements.segment_contact import distance
 
 
@@ -276,3 +276,43 @@ def test_compiled_advancement_is_safe_on_sampled_paths():
     Ep = np.concatenate([A, A + [-3.0, 1.2 * m, 0]])[None]
     assert compiled_ccd.safe_fraction(Sp, Ep, m)[0] == 1.0
     assert segment_ccd.safe_fraction(Sp, Ep, m, iterations=100)[1][0]      # NumPy's 100: open
+
+
+def test_compiled_field_boxes_and_candidate_order_match_numpy():
+    """compiled_ccd.field_boxes against the reference segment_ccd.field_boxes (the proof's
+    boxes), and compiled_ccd.order_candidates against its definition in NumPy."""
+    rng = np.random.default_rng(11)
+    S = rng.normal(size=(300, 3))
+    F = rng.normal(scale=0.3, size=(300, 3))
+    seg = np.flatnonzero(np.arange(299) % 10 != 9)          # wisps of 10 vertices
+    lo, hi = compiled_ccd.field_boxes(S, F, seg, 0.3, 0.05)
+    rlo, rhi = segment_ccd.field_boxes(np.stack([S[seg], S[seg + 1]], axis=1),
+                                       np.stack([F[seg], F[seg + 1]], axis=1), 0.3, 0.05)
+    np.testing.assert_allclose(lo, rlo, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(hi, rhi, rtol=0, atol=1e-15)
+    n_local = 200
+    gv = rng.permutation(len(seg))
+    free = rng.uniform(size=(len(seg), 2)) < 0.7
+    ij = box_pairs(lo, hi, seg // 10)
+    shrink = 0.04
+    ci, cj, near = compiled_ccd.order_candidates(ij, n_local, gv, lo, hi, shrink, free)
+    i, j = ij[:, 0], ij[:, 1]
+    loc = (i < n_local) | (j < n_local)
+    i, j = i[loc], j[loc]
+    swap = gv[i] > gv[j]
+    i, j = np.where(swap, j, i), np.where(swap, i, j)
+    np.testing.assert_array_equal(ci, i)
+    np.testing.assert_array_equal(cj, j)
+    want = ((lo[i] + shrink <= hi[j] - shrink) & (lo[j] + shrink <= hi[i] - shrink)).all(axis=1)
+    want &= free[i].any(axis=1) | free[j].any(axis=1)
+    np.testing.assert_array_equal(near, want)
+    assert 0 < near.sum() < len(near) and len(ci) < len(ij)       # both filters bite
+    # pairs_overlap: box_pairs' test on the boxes grown by 0.02 (the contact's reuse)
+    grown = box_pairs(lo - 0.02, hi + 0.02, seg // 10)
+    k = rng.integers(0, len(seg), size=(400, 2))
+    ov = compiled_ccd.pairs_overlap(k[:, 0], k[:, 1], lo, hi, 0.02)
+    listed = {tuple(p) for p in grown.tolist()}
+    same_wisp = seg[k[:, 0]] // 10 == seg[k[:, 1]] // 10
+    want = [(min(a, b), max(a, b)) in listed for a, b in k]
+    np.testing.assert_array_equal(ov[~same_wisp], np.array(want)[~same_wisp])
+    assert 0 < ov.sum() < len(ov)

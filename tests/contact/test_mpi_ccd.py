@@ -9,6 +9,7 @@ from mpi4py import MPI
 
 import lc_petsc.simulator as simmod
 from lc_petsc.crossings import count_crossings
+from lc_petsc.elements.segment_contact import distance
 from sim_helpers import touching_wisps_config, touching_wisps_source
 from test_contact_sim import D0, N, crossing_config, crossing_source
 
@@ -102,3 +103,62 @@ def test_ccd_rank_invariance_and_no_crossing(monkeypatch):
         print("\n" + msg)
     ok, msg = comm.bcast((ok, msg))
     assert ok, msg
+
+
+def test_limiter_candidates_serve_the_next_pair_search(monkeypatch):
+    """The contact pairs at positions that a limiter call produced come from that call's
+    candidates (StrandContact._reached), not from a new ghost exchange and broad phase.
+    Random steps of the six wisps, each wisp also pushed sideways against its neighbours,
+    so that pairs far beyond the search radius at the step's start end in contact: at the
+    limited positions the reused pairs are every pair closer than d0 (brute force over all
+    pairs of segments of different wisps) and equal, array for array, to those of a fresh
+    exchange and broad phase."""
+    monkeypatch.setattr(simmod, "source_from_config",
+                        lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
+    cfg = touching_wisps_config(1)
+    cfg.physics.strand_contact_mode = "ccd"
+    sim = simmod.build_simulator(cfg, comm=comm)
+    try:
+        st, sc = sim.integrator.strand, sim.scene
+        d0, n = st.d0, sc.nv
+        rng = np.random.default_rng(5)
+        x = sim.integrator.x.copy()
+        wisp_of = np.repeat(np.arange(6), 30)
+        newly_close = 0
+        for trial in range(5):
+            push = np.where(wisp_of % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.25, 0.0, 0.0])
+            D = rng.normal(scale=0.08, size=(6 * 30, 3)) + push * (1 + trial % 2)
+            target = x + D[sc.first_vertex:sc.first_vertex + n]
+            x_new = st.limit_step(x, target)
+            assert st._reached(x_new) is not None
+            st._pairs_cache = None
+            got = st._pairs(x_new)
+            limited, st._limited, st._pairs_cache = st._limited, None, None
+            ref = st._pairs(x_new)                      # fresh exchange and broad phase
+            assert len(got[0]) == len(ref[0])
+            for a, b in zip(got, ref):
+                np.testing.assert_array_equal(a, b)
+            st._limited = limited
+            # brute force on rank 0 over the gathered positions
+            pairs = comm.gather(np.stack([got[1], got[2]], axis=1))
+            Xs, X0s = comm.gather(x_new), comm.gather(x)
+            if comm.rank == 0:
+                X1, X0 = np.concatenate(Xs), np.concatenate(X0s)
+                seg = np.array([v for v in range(6 * 30) if v % 30 != 29])
+                i, j = np.triu_indices(len(seg), 1)
+                i, j = i[wisp_of[seg[i]] != wisp_of[seg[j]]], j[wisp_of[seg[i]] != wisp_of[seg[j]]]
+                close = distance(np.stack([X1[seg[i]], X1[seg[i] + 1], X1[seg[j]], X1[seg[j] + 1]], axis=1)) < d0
+                want = {(seg[a], seg[b]) for a, b in zip(i[close], j[close])}
+                found = {tuple(p) for p in np.concatenate(pairs).tolist()}
+                assert found == want, (trial, len(found), len(want))
+                # pairs that a broad phase at the step's start would not have listed
+                A = np.stack([X0[seg[i]], X0[seg[i] + 1]], axis=1)
+                B = np.stack([X0[seg[j]], X0[seg[j] + 1]], axis=1)
+                apart = ((A.min(1) - 0.5 * d0 > B.max(1) + 0.5 * d0) |
+                         (B.min(1) - 0.5 * d0 > A.max(1) + 0.5 * d0)).any(axis=1)
+                newly_close += int(np.sum(close & apart))
+            x = x_new
+        print(f"\npairs newly in contact over the steps: {comm.bcast(newly_close)}")
+        assert comm.bcast(newly_close) > 0
+    finally:
+        sim.close()

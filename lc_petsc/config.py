@@ -275,6 +275,9 @@ class PhysicsConfig:
 INITIAL_GUESSES = ("inertial", "follow_the_leader")
 #: How a Newton step updates positions: x + dx, or with the edge lengths retracted.
 NEWTON_UPDATES = ("linear", "edge_retraction")
+#: time.newton: the Newton iteration's globalisation: filtered steps (solver.filter, the
+#: paper's), or a trust region on the exact Hessian (lc_petsc/trust_region.py)
+NEWTON_MODES = ("filtered", "trust_region")
 #: time.unconverged: a frame whose Newton misses the tolerance at the deepest cutback
 UNCONVERGED = ("accept", "error")
 #: time.max_substeps above this is refused (dt / 1024 is a millisecond at 1/30 s)
@@ -290,8 +293,9 @@ class TimeConfig:
     and/or the absolute one below ``newton_tol`` cm (``None``: fixed count, the paper's
     setting), whichever comes first.  ``line_search`` enables Armijo backtracking on the
     incremental potential G.  ``newton_update``, ``initial_guess`` and
-    ``length_projection`` (final positions onto the rest edge lengths): see
-    lc_petsc/integrator.py and docs/newton.md.
+    ``length_projection`` (final positions onto the rest edge lengths) and ``newton``
+    (``"filtered"`` steps or ``"trust_region"`` on the exact Hessian): see
+    lc_petsc/integrator.py, lc_petsc/trust_region.py and docs/newton.md.
 
     Step cutback (only with a tolerance): a frame whose Newton misses it within the cap
     is redone as 2 steps of dt / 2, each cut again if it fails, up to ``max_substeps``
@@ -307,6 +311,7 @@ class TimeConfig:
     line_search: bool = False
     initial_guess: str = "inertial"
     newton_update: str = "edge_retraction"
+    newton: str = "filtered"
     length_projection: bool = False
     max_substeps: int = 8
     unconverged: str = "accept"
@@ -334,6 +339,11 @@ class TimeConfig:
         if self.newton_update not in NEWTON_UPDATES:
             raise ConfigError(f"time.newton_update must be one of {NEWTON_UPDATES}, "
                               f"got {self.newton_update!r}")
+        if self.newton not in NEWTON_MODES:
+            raise ConfigError(f"time.newton must be one of {NEWTON_MODES}, got {self.newton!r}")
+        if self.newton == "trust_region" and self.line_search:
+            raise ConfigError("time.line_search = true with time.newton = \"trust_region\": the "
+                              "trust region is the globalisation; set time.line_search = false")
         if not isinstance(self.length_projection, bool):
             raise ConfigError(f"time.length_projection must be true or false, "
                               f"got {self.length_projection!r}")
@@ -475,6 +485,15 @@ class SimConfig:
         """Validate every table (:class:`ConfigError` on the first problem); returns self."""
         for part in (self.scene, self.material, self.physics, self.time, self.solver, self.output):
             part.validate()
+        if self.time.newton == "trust_region":
+            if self.solver.filter not in ("analytic", "numerical", "abs"):
+                raise ConfigError(f"time.newton = \"trust_region\" preconditions with the filtered "
+                                  f"Hessian of solver.filter, which must be positive semi-definite: "
+                                  f"use analytic, numerical or abs, not {self.solver.filter!r}")
+            if "strand_collision" in self.physics.terms:
+                raise ConfigError("time.newton = \"trust_region\" does not support strand contact "
+                                  "(its Newton matrix is the contact code's operator): remove "
+                                  "strand_collision from physics.terms or use time.newton = \"filtered\"")
         if self.scene.kind in ("wisp4c", "straight") and self.scene.n_pinned > self.scene.n_vertices:
             raise ConfigError(f"scene.n_pinned = {self.scene.n_pinned} is more than the wisp's "
                               f"{self.scene.n_vertices} vertices (scene.n_vertices)")

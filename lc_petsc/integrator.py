@@ -64,6 +64,7 @@ from lc_petsc.elements import compiled, head_contact
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.scene.state import vertex_wisp_length
 from lc_petsc.errors import SimulationError, SolverError
+from lc_petsc.trust_region import ETA, ratio, update_radius
 
 
 class _Solve(NamedTuple):
@@ -78,6 +79,18 @@ class _Solve(NamedTuple):
     contact: Optional[tuple]
 
 
+class _Region:
+    """A backward-Euler step's trust-region state: the radius (None before the first
+    iterate), grad G and G at the current iterate (g None: a new iterate, assemble),
+    and whether the last kept step was interior (not on the boundary)."""
+
+    def __init__(self):
+        self.radius = None
+        self.g = None
+        self.G = 0.0
+        self.interior = False
+
+
 class Integrator:
     """Backward-Euler time stepping of one simulator: per frame, Newton iterations of
     assembly, linear solve, line search and update, with pinned roots and the head.
@@ -85,8 +98,10 @@ class Integrator:
     ``x0``: this rank's initial positions (n_local, 3); ``strand``: the strand contact
     (:class:`~lc_petsc.contact.StrandContact`), None without it."""
 
-    def __init__(self, scene, assembler, solver, comm, timers, config, head, x0, strand=None):
+    def __init__(self, scene, assembler, solver, comm, timers, config, head, x0, strand=None,
+                 trust=None):
         self.scene, self.asm, self.solver, self.comm = scene, assembler, solver, comm
+        self.trust = trust              # the TrustRegionSolver (time.newton = "trust_region")
         self.timers, self.cfg, self.head = timers, config, head
         terms = set(config.physics.terms)
         self.gravity = np.asarray(config.physics.gravity, float) if "gravity" in terms else np.zeros(3)
@@ -118,6 +133,8 @@ class Integrator:
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
         self.history = None             # a list: per-iteration measures are appended
+        self._fallback = ""            # why the last exact step was rejected (history)
+        self._region_record = {}        # the last trust-region step's rho, radius (history)
         self._force_scale = 0.0         # the frame's force scale (with a history only)
         self.exact_hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
 
@@ -244,14 +261,29 @@ class Integrator:
         if self.history is not None:
             self._force_scale = self.frame_force_scale()
         fallbacks = 0
+        region = _Region() if self.trust is not None else None
         for it in range(cfg.time.newton_iterations):
             n_it += 1
+            if region is not None:              # trust-region Newton (lc_petsc/trust_region.py)
+                g, dx, exact = self._trust_region_step(x, it, region)
+                x_prev, x = x, self.update(x, dx)
+                increment, absolute = self.increments(x - x_prev)
+                if self.history is not None:
+                    self._record_iteration(it, x_prev, x, g, increment, 1.0, exact)
+                converged = self._newton_converged(increment, absolute)
+                if converged is not None:       # a short step is not convergence
+                    converged = converged and region.interior
+                if converged:
+                    break
+                continue
             exact = self._exact_hessian(increment)
             g = self._assemble_system(x, it, filter="none" if exact else None)
             dx = self._solve_step(g, it, may_fail=exact)
             alpha = 1.0
             if exact and dx is not None:
                 alpha = self._line_search(x, g, dx, EXACT_HALVINGS)
+            self._fallback = "" if dx is not None and alpha is not None else \
+                ("indefinite" if dx is None else "armijo")
             if dx is None or alpha is None:     # no exact Newton step: a filtered one
                 exact = False
                 fallbacks += 1
@@ -344,6 +376,38 @@ class Integrator:
             self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat))
         return g
 
+    def _trust_region_step(self, x, it, region):
+        """One trust-region iteration at x (``time.newton = "trust_region"``): the
+        exact Newton matrix and the filtered preconditioner at a new iterate (kept for a
+        rejected step's retry), the step within ``region.radius``, rho and the next
+        radius.  Returns (grad G, the step, zero if rejected, and whether it was kept)."""
+        tr = self.trust
+        if region.g is None:                    # a new iterate
+            self._assemble_system(x, it)        # filtered: the preconditioner
+            self.asm.mat.copy(tr.P, structure=tr.P.Structure.SAME_NONZERO_PATTERN)
+            region.g = self._assemble_system(x, it, filter="none")
+            region.G = self.incremental_potential(x)
+            self.bv.array[:] = -region.g.ravel()
+            if region.radius is None:           # the filtered Newton step's length
+                region.radius = tr.filtered_step_norm(self.bv)
+        g = region.g
+        self.bv.array[:] = -g.ravel()
+        with self.timers("solve"):
+            predicted, norm_d, boundary = tr.solve(self.bv, self.xv, region.radius, self.frame, it)
+        dx = self.xv.array.reshape(-1, 3).copy()
+        dx[~self.free] = 0.0
+        rho = ratio(region.G - self.incremental_potential(self.update(x, dx)), predicted, region.G)
+        region.radius = update_radius(region.radius, rho, norm_d, boundary)
+        kept = rho > ETA
+        region.interior = kept and not boundary
+        self._fallback = "" if kept else "rejected"
+        self._region_record = dict(rho=rho, radius=region.radius, step_norm=norm_d,
+                                   boundary=bool(boundary))
+        if not kept:
+            return g, np.zeros_like(dx), False
+        region.g = None
+        return g, dx, True
+
     def _exact_hessian(self, increment):
         """Whether this iteration assembles the exact Hessian: ``solver.filter =
         "exact_or_analytic"`` once the last relative increment is below
@@ -428,10 +492,14 @@ class Integrator:
         """Append iteration ``it``'s measures to ``self.history`` (diagnostics: costs a
         residual reduction and two evaluations of G)."""
         G_old, G_new = self.incremental_potential(x_old), self.incremental_potential(x_new)
+        solver = self.trust if self.trust is not None else self.solver
         self.history.append(dict(
             frame=self.frame, dt=self.dt, iteration=it, increment=increment, alpha=alpha,
             residual=self.relative_residual(g), energy=G_new,
-            energy_decrease=G_old - G_new, exact=bool(exact)))
+            energy_decrease=G_old - G_new, exact=bool(exact),
+            ksp_reason=solver.reasons[-1] if solver.reasons else "",
+            ksp_iterations=solver.iterations[-1] if solver.iterations else 0,
+            exact_rejected=self._fallback, **self._region_record))
 
 
 def follow_the_leader(x, free, offsets, rest_edge):

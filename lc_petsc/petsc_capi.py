@@ -88,3 +88,26 @@ def value_array(mat, n):
         yield np.ctypeslib.as_array(ptr, shape=(n,)) if n else np.zeros(0)
     finally:
         _call(get.replace("Get", "Restore"), *args)
+
+
+def cg_set_radius(ksp, radius):
+    """KSPCGSetRadius(ksp, radius): the trust region of KSPSTCG / KSPNASH / KSPGLTR."""
+    _call("KSPCGSetRadius", [ctypes.c_void_p, ctypes.c_double],
+          ctypes.c_void_p(ksp.handle), ctypes.c_double(radius))
+
+
+def _cg_get_real(name, ksp):
+    out = ctypes.c_double(0.0)
+    _call(name, [ctypes.c_void_p, ctypes.POINTER(ctypes.c_double)],
+          ctypes.c_void_p(ksp.handle), ctypes.byref(out))
+    return float(out.value)
+
+
+def cg_get_norm_d(ksp):
+    """KSPCGGetNormD: the last trust-region solve's step length in the preconditioner's norm."""
+    return _cg_get_real("KSPCGGetNormD", ksp)
+
+
+def cg_get_obj_fcn(ksp):
+    """KSPCGGetObjFcn: the last trust-region solve's model value 1/2 d^T A d - b . d."""
+    return _cg_get_real("KSPCGGetObjFcn", ksp)

@@ -22,6 +22,7 @@ from lc_petsc.scene.sources import source_from_config
 from lc_petsc.scene.state import LocalScene
 from lc_petsc.solver import LinearSolver
 from lc_petsc.solver_plan import SolverPlan
+from lc_petsc.trust_region import TrustRegionSolver
 from lc_petsc.timing import Timers
 
 
@@ -76,9 +77,12 @@ class Simulator:
                                           self.assembler.mat_type, user=self.user)
         self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), plan,
                                    P=self.assembler.pmat)
+        self.trust = None
+        if cfg.time.newton == "trust_region":
+            self.trust = TrustRegionSolver(self.assembler.mat, 3 * np.diff(scene.offsets), plan)
         self.head = HeadMotion(cfg.physics)
         self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg,
-                                     self.head, x0, strand=self.strand)
+                                     self.head, x0, strand=self.strand, trust=self.trust)
         if self.strand is not None:
             # A Python-shell operator still alive when petsc4py finalizes crashes the
             # interpreter at exit: close a simulator that was never closed before that
@@ -197,6 +201,8 @@ class Simulator:
     def close(self):
         """Destroy the PETSc objects of this simulator (collective)."""
         self.solver.destroy()
+        if self.trust is not None:
+            self.trust.destroy()
         self.assembler.mat.destroy()
         if self.assembler.pmat is not None:
             self.assembler.pmat.destroy()

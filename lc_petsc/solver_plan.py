@@ -210,11 +210,12 @@ class SolverPlan:
                    _layers=layers)
 
     @contextmanager
-    def active(self):
-        """The plan's config options, sub-solver and factorisation defaults in the options database
+    def active(self, extra=None):
+        """The plan's config options, sub-solver and factorisation defaults (and the
+        code defaults ``extra``, {key: value} without dashes) in the options database
         (the command line's win) while PETSc objects are created, set from options,
         set up and used; removed again on exit."""
-        with self._layers.active({**self.sub_solver, **self.factor}):
+        with self._layers.active({**self.sub_solver, **self.factor, **(extra or {})}):
             yield
 
     def effective(self):

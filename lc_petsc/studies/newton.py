@@ -22,6 +22,7 @@ VARIANT_KEYS: dict[str, tuple[str, str, Callable[[str], Any]]] = {
     "filter": ("solver", "filter", str),
     "guess": ("time", "initial_guess", str),
     "update": ("time", "newton_update", str),
+    "newton": ("time", "newton", str),
     "ls": ("time", "line_search", lambda v: v in ("1", "true", "yes", "on")),
     "terms": ("physics", "terms", lambda v: tuple(v.split("+"))),
     "options": ("solver", "options", str),
@@ -163,7 +164,7 @@ def run_study(scenes, variants, comm, out_dir, iterations=30, frames=10, tol=1e-
         return None
     report.write_csv(all_rows, out / "newton.csv",
                      ["scene", "variant", "frame", "iteration", "increment", "residual",
-                      "energy", "energy_decrease", "alpha", "exact"])
+                      "energy", "energy_decrease", "alpha", "exact", "ksp_reason", "ksp_iterations"])
     report.write_json({"tol": tol, "iterations": iterations, "frames": frames,
                        "summary": summary}, out / "newton.json")
     (out / "newton.md").write_text(markdown(summary, tol))

@@ -341,7 +341,7 @@ class TimeConfig:
                               f"got {self.newton_update!r}")
         if self.newton not in NEWTON_MODES:
             raise ConfigError(f"time.newton must be one of {NEWTON_MODES}, got {self.newton!r}")
-        if self.newton == "trust_region" and self.line_search:
+        if self.newton != "filtered" and self.line_search:
             raise ConfigError("time.line_search = true with time.newton = \"trust_region\": the "
                               "trust region is the globalisation; set time.line_search = false")
         if not isinstance(self.length_projection, bool):
@@ -485,7 +485,7 @@ class SimConfig:
         """Validate every table (:class:`ConfigError` on the first problem); returns self."""
         for part in (self.scene, self.material, self.physics, self.time, self.solver, self.output):
             part.validate()
-        if self.time.newton == "trust_region":
+        if self.time.newton != "filtered":
             if self.solver.filter not in ("analytic", "numerical", "abs"):
                 raise ConfigError(f"time.newton = \"trust_region\" preconditions with the filtered "
                                   f"Hessian of solver.filter, which must be positive semi-definite: "

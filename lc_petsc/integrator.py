@@ -64,7 +64,7 @@ from lc_petsc.elements import compiled, head_contact
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.scene.state import vertex_wisp_length
 from lc_petsc.errors import SimulationError, SolverError
-from lc_petsc.trust_region import ETA, ratio, update_radius
+from lc_petsc.trust_region import ETA, TRUST_RETRIES, ratio, update_radius
 
 
 class _Solve(NamedTuple):
@@ -81,13 +81,10 @@ class _Solve(NamedTuple):
 
 class _Region:
     """A backward-Euler step's trust-region state: the radius (None before the first
-    iterate), grad G and G at the current iterate (g None: a new iterate, assemble),
-    and whether the last kept step was interior (not on the boundary)."""
+    iterate) and whether the last step was kept and interior (not on the boundary)."""
 
     def __init__(self):
         self.radius = None
-        self.g = None
-        self.G = 0.0
         self.interior = False
 
 
@@ -264,7 +261,7 @@ class Integrator:
         region = _Region() if self.trust is not None else None
         for it in range(cfg.time.newton_iterations):
             n_it += 1
-            if region is not None:              # trust-region Newton (lc_petsc/trust_region.py)
+            if region is not None and it > 0:   # after a filtered first step: lc_petsc/trust_region.py
                 g, dx, exact = self._trust_region_step(x, it, region)
                 x_prev, x = x, self.update(x, dx)
                 increment, absolute = self.increments(x - x_prev)
@@ -377,36 +374,37 @@ class Integrator:
         return g
 
     def _trust_region_step(self, x, it, region):
-        """One trust-region iteration at x (``time.newton = "trust_region"``): the
-        exact Newton matrix and the filtered preconditioner at a new iterate (kept for a
-        rejected step's retry), the step within ``region.radius``, rho and the next
-        radius.  Returns (grad G, the step, zero if rejected, and whether it was kept)."""
+        """One trust-region iteration at x (``time.newton = "trust_region"``): the exact
+        Newton matrix and the filtered preconditioner are assembled once, then the step
+        within ``region.radius`` is solved, rho measured and the radius updated until a
+        step is kept (a rejected step shrinks the radius and is solved again, as the
+        line search halves a step: at most :data:`TRUST_RETRIES` times; then the zero
+        step).  Returns (grad G, the step, whether a step was kept)."""
         tr = self.trust
-        if region.g is None:                    # a new iterate
-            self._assemble_system(x, it)        # filtered: the preconditioner
-            self.asm.mat.copy(tr.P, structure=tr.P.Structure.SAME_NONZERO_PATTERN)
-            region.g = self._assemble_system(x, it, filter="none")
-            region.G = self.incremental_potential(x)
-            self.bv.array[:] = -region.g.ravel()
-            if region.radius is None:           # the filtered Newton step's length
-                region.radius = tr.filtered_step_norm(self.bv)
-        g = region.g
+        self._assemble_system(x, it)            # filtered: the preconditioner
+        self.asm.mat.copy(tr.P, structure=tr.P.Structure.SAME_NONZERO_PATTERN)
+        g = self._assemble_system(x, it, filter="none")
+        G = self.incremental_potential(x)
         self.bv.array[:] = -g.ravel()
-        with self.timers("solve"):
-            predicted, norm_d, boundary = tr.solve(self.bv, self.xv, region.radius, self.frame, it)
-        dx = self.xv.array.reshape(-1, 3).copy()
-        dx[~self.free] = 0.0
-        rho = ratio(region.G - self.incremental_potential(self.update(x, dx)), predicted, region.G)
-        region.radius = update_radius(region.radius, rho, norm_d, boundary)
+        if region.radius is None:               # the filtered Newton step's length
+            region.radius = tr.filtered_step_norm(self.bv)
+        for retry in range(TRUST_RETRIES + 1):
+            with self.timers("solve"):
+                predicted, norm_d, boundary = tr.solve(self.bv, self.xv, region.radius, self.frame, it)
+            dx = self.xv.array.reshape(-1, 3).copy()
+            dx[~self.free] = 0.0
+            rho = ratio(G - self.incremental_potential(self.update(x, dx)), predicted, G)
+            region.radius = update_radius(region.radius, rho, norm_d, boundary)
+            if rho > ETA:
+                break
+        else:
+            dx = np.zeros_like(dx)
         kept = rho > ETA
         region.interior = kept and not boundary
         self._fallback = "" if kept else "rejected"
         self._region_record = dict(rho=rho, radius=region.radius, step_norm=norm_d,
-                                   boundary=bool(boundary))
-        if not kept:
-            return g, np.zeros_like(dx), False
-        region.g = None
-        return g, dx, True
+                                   boundary=bool(boundary), retries=retry)
+        return g, dx, kept
 
     def _exact_hessian(self, increment):
         """Whether this iteration assembles the exact Hessian: ``solver.filter =

@@ -78,7 +78,7 @@ class Simulator:
         self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), plan,
                                    P=self.assembler.pmat)
         self.trust = None
-        if cfg.time.newton == "trust_region":
+        if cfg.time.newton != "filtered":
             self.trust = TrustRegionSolver(self.assembler.mat, 3 * np.diff(scene.offsets), plan)
         self.head = HeadMotion(cfg.physics)
         self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg,
@@ -171,7 +171,17 @@ class Simulator:
             "jit_compile_s": parallel.global_max(self.comm, self.assembler.compile_seconds),
             "config": self.config.to_dict(),
             **self._contact_summary(),
+            **self._trust_summary(),
         }
+
+    def _trust_summary(self):
+        """The trust-region solves (empty with time.newton = "filtered"): their KSP type,
+        iterations and reasons, one per solve (a rejected step's retry is a solve)."""
+        if self.trust is None:
+            return {}
+        return {"trust_region": {"ksp_type": self.trust.type,
+                                 "ksp_iterations": list(self.trust.iterations),
+                                 "ksp_reasons": list(self.trust.reasons)}}
 
     def _contact_summary(self):
         """Strand contact figures (empty when strand_collision is off)."""

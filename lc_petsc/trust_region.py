@@ -4,13 +4,15 @@ Each Newton iteration minimises the quadratic model of the incremental potential
 
     q(d) = g . d + 1/2 d^T H d,   H = M/dt^2 + the exact (unfiltered) Hessian,
 
-within a trust region ||d||_P <= radius, where P = M/dt^2 + the filtered Hessian
-(``solver.filter``, positive definite) is the preconditioning matrix: PETSc's
-trust-region CG (KSPSTCG, KSPNASH or KSPGLTR, Steihaug-Toint CG and its variants) stops
-on the region's boundary or along a direction of negative curvature of H, so the
-exact Hessian's indefiniteness far from the solution costs a shorter step instead of a
-discarded solve.  Its norm is the preconditioner's: ||d||_P = sqrt(d^T P d) (an
-energy), and with the per-wisp exact block Jacobi P^-1 g is the filtered Newton step.
+within a trust region ||d||_2 <= radius (cm, over all free coordinates of all ranks),
+preconditioned by P = M/dt^2 + the filtered Hessian (``solver.filter``, positive
+definite): PETSc's trust-region CG (KSPSTCG, KSPNASH or KSPGLTR, Steihaug-Toint CG and
+its variants) stops on the region's boundary or along a direction of negative curvature
+of H, so the exact Hessian's indefiniteness far from the solution costs a shorter step
+instead of a discarded solve.  With the per-wisp exact block Jacobi, P^-1 g is the
+filtered Newton step.  (Measured with PETSc 3.18: ``KSPCGGetNormD`` after a STCG solve
+is the Euclidean norm of the step, not its P-norm, and ``KSPCGGetObjFcn`` equals
+g . d + 1/2 d^T H d to round-off; ``tests/sim/test_trust_region.py``.)
 
 * KSP: options prefix ``tr_`` (``-tr_ksp_type stcg|nash|gltr``, ``-tr_ksp_rtol`` ...);
   the code defaults (:data:`DEFAULTS`, the per-wisp block Jacobi and its exact
@@ -19,12 +21,12 @@ energy), and with the per-wisp exact block Jacobi P^-1 g is the filtered Newton 
   The radius is set by ``KSPCGSetRadius`` and the model's value read by
   ``KSPCGGetObjFcn`` and ``KSPCGGetNormD`` (lc_petsc/petsc_capi.py; petsc4py 3.18 has
   no binding).  A KSP type that is not a trust-region CG is a configuration error.
-* First radius of each backward-Euler step: ||P^-1 g||_P, the length of the filtered
+* First radius of each backward-Euler step: ||P^-1 g||_2, the length of the filtered
   Newton step (one preconditioner application), so nothing is carried between frames
   (restarts and cutback substeps start alike).
 * Radius update (Nocedal & Wright, Algorithm 4.1): rho = actual / predicted decrease of
   G (actual along the configured update, the edge retraction by default); rho < 1/4:
-  radius = ||d||_P / 4; rho > 3/4 with the step on the boundary: radius doubled; the
+  radius = ||d|| / 4; rho > 3/4 with the step on the boundary: radius doubled; the
   step is kept if rho > :data:`ETA`.  When both decreases are at the round-off of G
   the step is kept (rho is noise there, and the step is then tiny anyway).
 """
@@ -48,6 +50,9 @@ DEFAULTS = MappingProxyType({"tr_ksp_type": "stcg", "tr_ksp_rtol": "1e-6",
                              "tr_ksp_max_it": "1000", "tr_pc_type": "bjacobi"})
 #: a step is kept when rho = actual / predicted decrease exceeds ETA
 ETA = 1e-4
+#: a rejected step is solved again with the shrunk radius at most this many times per
+#: Newton iteration (each shrinks it by 4 or more: 4^-10 of the first radius)
+TRUST_RETRIES = 10
 #: decreases below this times |G| are round-off: the step is kept
 ROUNDOFF = 1e-13
 
@@ -90,16 +95,17 @@ class TrustRegionSolver:
             self._z.destroy()
 
     def filtered_step_norm(self, b):
-        """||P^-1 b||_P = sqrt(b . P^-1 b) (all ranks): the length of the filtered Newton
-        step, the first radius.  ``b`` = -grad G (PETSc Vec); P must be filled."""
+        """||P^-1 b||_2 (all ranks): the length of the filtered Newton step (with the
+        per-wisp exact block Jacobi), the first radius.  ``b`` = -grad G (PETSc Vec);
+        P must be filled."""
         with self.plan.active(self._defaults):
             self.ksp.setUp()
             self.ksp.getPC().apply(b, self._z)
-        return float(np.sqrt(max(b.dot(self._z), 0.0)))
+        return float(self._z.norm())
 
     def solve(self, b, x, radius, frame, newton_it):
         """The trust-region step for right-hand side ``b`` = -grad G into ``x``, within
-        ``radius``.  Returns (model decrease -q(x), ||x||_P, on the boundary or along
+        ``radius``.  Returns (model decrease -q(x), ||x||_2, on the boundary or along
         negative curvature).  Records iterations and reason; raises
         :class:`SolverError` when the KSP diverges (P indefinite: a filter that is not
         positive semi-definite)."""
@@ -121,7 +127,7 @@ class TrustRegionSolver:
 
 
 def update_radius(radius, rho, norm_d, boundary):
-    """The next trust radius after a step of P-norm ``norm_d`` with ratio ``rho``
+    """The next trust radius after a step of length ``norm_d`` with ratio ``rho``
     (Nocedal & Wright, Algorithm 4.1)."""
     if rho < 0.25:
         return 0.25 * norm_d

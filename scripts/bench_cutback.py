@@ -3,11 +3,13 @@ frames converged to the tolerance, Newton iterations per frame (every attempt, t
 cost) and per backward-Euler solve kept, frames cut back, CPU s per frame.
 
   .venv/bin/python scripts/bench_cutback.py [--scenes hairball10 smash] [--frames 30]
-      [--tol 1e-6] [--wisps 10] [--setting NAME=CAP,SUBSTEPS[,DT]] [--out out/cutback]
+      [--tol 1e-6] [--wisps 10] [--setting NAME=CAP,SUBSTEPS[,DT[,NEWTON]]] [--out out/cutback]
 
 Every setting: ``solver.filter = "exact_or_analytic"``, the edge retraction, the
 tolerance ``time.newton_increment_tol``; CAP is ``time.newton_iterations``, SUBSTEPS
-``time.max_substeps`` (1: no cutback), DT the step (default the scene's).  The scenes
+``time.max_substeps`` (1: no cutback), DT the step (default the scene's; empty: the
+scene's), NEWTON ``time.newton`` (``trust_region``: with ``solver.filter = "analytic"``
+as its preconditioner, docs/newton.md fifth round).  The scenes
 are those of scripts/newton_history.py (demo10: the demo with strand contact).  Prints a markdown table (also written to
 --out/cutback.md, rows in cutback.json).  Runs with the lc_petsc it imports, so the
 no-cutback settings also run on a checkout without ``time.max_substeps`` (then
@@ -36,7 +38,7 @@ DEFAULT_SETTINGS = ["cap 30, no cutback=30,1", "cap 6, cutback=6,8", "cap 10, cu
                     "cap 15, cutback=15,8", "dt 1/120, cap 30, no cutback=30,1,0.008333333333333333"]
 
 
-def run(base, cap, substeps, dt, frames, tol, comm):
+def run(base, cap, substeps, dt, frames, tol, comm, newton=None):
     """One setting: the summary figures (dict)."""
     cfg = copy.deepcopy(base)
     cfg.solver.filter = "exact_or_analytic"
@@ -47,6 +49,10 @@ def run(base, cap, substeps, dt, frames, tol, comm):
     cfg.time.max_substeps = substeps
     if dt is not None:
         cfg.time.dt = dt
+    if newton is not None:
+        cfg.time.newton = newton
+        if newton != "filtered":
+            cfg.solver.filter = "analytic"
     # the same simulated time at every dt
     n = int(round(frames * base.time.dt / cfg.time.dt))
     cfg.time.frames = n
@@ -90,11 +96,12 @@ def main(argv=None):
         for spec in a.setting or DEFAULT_SETTINGS:
             label, _, vals = spec.rpartition("=")
             parts = vals.split(",")
-            if len(parts) not in (2, 3):
-                raise SystemExit(f"--setting {spec!r}: use NAME=CAP,SUBSTEPS[,DT]")
+            if len(parts) not in (2, 3, 4):
+                raise SystemExit(f"--setting {spec!r}: use NAME=CAP,SUBSTEPS[,DT[,NEWTON]]")
             cap, substeps = int(parts[0]), int(parts[1])
-            dt = float(parts[2]) if len(parts) == 3 else None
-            r = run(base, cap, substeps, dt, a.frames, a.tol, comm)
+            dt = float(parts[2]) if len(parts) >= 3 and parts[2] else None
+            newton = parts[3] if len(parts) == 4 else None
+            r = run(base, cap, substeps, dt, a.frames, a.tol, comm, newton)
             rows.append({"scene": Path(name).stem, "setting": label, **r})
             if comm.rank == 0:
                 print(f"  {rows[-1]}", flush=True)

@@ -81,12 +81,14 @@ def run_history(cfg, comm, log=None):
 
 def iterations_to(rows, tol):
     """Per frame, the first iteration (1-based) whose relative increment is below
-    ``tol`` (None: never within the recorded iterations)."""
+    ``tol`` (None: never within the recorded iterations).  A trust-region step that was
+    rejected or ended on the region's boundary does not count (the integrator's rule)."""
     frames = sorted({r["frame"] for r in rows})
     out = []
     for f in frames:
         its = [r for r in rows if r["frame"] == f]
-        hit = [r["iteration"] + 1 for r in its if r["increment"] < tol]
+        hit = [r["iteration"] + 1 for r in its if r["increment"] < tol
+               and r.get("exact_rejected") != "rejected" and not r.get("boundary", False)]
         out.append(hit[0] if hit else None)
     return out
 

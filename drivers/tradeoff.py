@@ -3,7 +3,7 @@ tolerances, bigger steps, a cheaper filter or a line search cost in accuracy.
 
   mpiexec -n P python drivers/tradeoff.py [--scene hairball|smash|jitter|CONFIG.toml]
       [--wisps 10] [--duration 1.0] [--axes newton ksp_rtol dt filter line_search newton_update
-      cutback]
+      cutback trust_region]
       [--ref-dt 0.008333] [--ref-tol 1e-9] [--ref converged|base]
       [--ref-method exact_or_analytic|unfiltered] [--rtols 1e-2 1e-4 ...]
       [--set NAME] [--cost wall_per_sim_s|cpu_per_sim_s] [--out out/tradeoff]
@@ -20,7 +20,9 @@ and edge retraction at 2, 3, 4, 6 iterations, the follow-the-leader guess, the
 retraction with the final positions projected onto the rest lengths at 2 and 3, and
 exact_or_analytic to increments of 1e-3, 1e-4, 1e-6 wisp lengths with a cap of 30;
 cutback: exact_or_analytic to 1e-3 and 1e-6 with a cap of 30 without step cutback
-(time.max_substeps = 1), 30 and 10 with it (8)),
+(time.max_substeps = 1), 30 and 10 with it (8); trust_region: time.newton =
+"trust_region" against exact_or_analytic to 1e-3 and 1e-6 with a cap of 30, and the
+trust region at 2, 3, 4 iterations),
 all from the base setting dt 1/30, 3 Newton iterations, rtol 1e-6, analytic filter, no
 line search, the config's default Newton update.  Positions and energies are
 compared at the common output times (every 1/30 s).  ``--set NAME`` runs every
@@ -81,7 +83,8 @@ def main(argv=None):
                          "(default: its own count)")
     ap.add_argument("--duration", type=float, default=1.0, help="simulated seconds")
     ap.add_argument("--axes", nargs="+", default=None,
-                    choices=["newton", "ksp_rtol", "dt", "filter", "line_search", "newton_update", "cutback"])
+                    choices=["newton", "ksp_rtol", "dt", "filter", "line_search", "newton_update", "cutback",
+                             "trust_region"])
     ap.add_argument("--ref-dt", type=float, default=1.0 / 120.0)
     ap.add_argument("--ref-tol", type=float, default=1e-9)
     ap.add_argument("--ref", default="converged", choices=["converged", "base"],

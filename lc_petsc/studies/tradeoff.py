@@ -46,6 +46,7 @@ class Settings:
     newton_increment_tol: Optional[float] = None
     length_projection: bool = TimeConfig.length_projection
     max_substeps: int = TimeConfig.max_substeps     # step cutback (with a tolerance only)
+    newton: str = TimeConfig.newton                 # filtered or trust_region
 
     def label(self):
         """A short human-readable name of the settings."""
@@ -63,6 +64,8 @@ class Settings:
             parts.append(self.newton_update)
         if self.initial_guess != "inertial":
             parts.append(self.initial_guess)
+        if self.newton != "filtered":
+            parts.append(self.newton)
         if self.length_projection:
             parts.append("projected")
         return " ".join(parts)
@@ -99,6 +102,15 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
                      replace(base, filter="exact_or_analytic", newton_update="edge_retraction",
                              newton_iterations=n, newton_increment_tol=t, max_substeps=m))
                     for t in (1e-3, 1e-6) for n, m in ((30, 1), (30, 8), (10, 8))],
+        # the trust region on the exact Hessian (docs/newton.md, fifth round), against
+        # exact_or_analytic at the same tolerances and fixed counts
+        "trust_region": [(f"{m} inc<{t:g}",
+                          replace(base, filter="analytic" if m == "trust_region" else "exact_or_analytic",
+                                  newton=m, newton_update="edge_retraction", newton_iterations=30,
+                                  newton_increment_tol=t))
+                         for t in (1e-3, 1e-6) for m in ("trust_region", "filtered")]
+        + [(f"trust_region N={n}", replace(base, newton="trust_region", newton_iterations=n))
+           for n in (2, 3, 4)],
     }
     for a in (axes or ax):
         for name, s in ax[a]:
@@ -167,6 +179,7 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.newton_increment_tol = s.newton_increment_tol
     cfg.time.length_projection = s.length_projection
     cfg.time.max_substeps = s.max_substeps
+    cfg.time.newton = s.newton
     cfg.solver.filter = s.filter
     cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options,
                                               f"-ksp_rtol {s.ksp_rtol:g}") if x)

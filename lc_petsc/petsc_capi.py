@@ -104,7 +104,8 @@ def _cg_get_real(name, ksp):
 
 
 def cg_get_norm_d(ksp):
-    """KSPCGGetNormD: the last trust-region solve's step length in the preconditioner's norm."""
+    """KSPCGGetNormD: the last trust-region solve's step length (with PETSc 3.18 the
+    Euclidean norm of the step, not its preconditioner norm: tests/sim/test_trust_region.py)."""
     return _cg_get_real("KSPCGGetNormD", ksp)
 
 

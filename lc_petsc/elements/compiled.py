@@ -531,20 +531,35 @@ def _v_twist(x, i, rest, k, mode, g, vals, base, b, upper, exact, cols, wts, u, 
         for cc in range(a, 4):
             dd = cc - a
             o_up, o_low = base[i + a, dd + b], base[i + cc, b - dd]
-            for r in range(3):
-                ra = 3 * a + r
-                for q in range(3):
-                    qc = 3 * cc + q
-                    if exact:
+            lower = dd != 0 and not upper
+            if exact:
+                for r in range(3):
+                    ra = 3 * a + r
+                    for q in range(3):
+                        qc = 3 * cc + q
                         hv = 0.0
                         for j in range(m):
                             hv += wts[j] * cols[j, ra] * cols[j, qc]
-                    else:       # four columns, weights 1: unrolled
+                        _vput(vals, o_up, r, q, hv)
+                        if lower:
+                            _vput(vals, o_low, q, r, hv)
+            elif lower:         # four columns, weights 1: unrolled
+                for r in range(3):
+                    ra = 3 * a + r
+                    for q in range(3):
+                        qc = 3 * cc + q
                         hv = (cols[0, ra] * cols[0, qc] + cols[1, ra] * cols[1, qc]
                               + cols[2, ra] * cols[2, qc] + cols[3, ra] * cols[3, qc])
-                    _vput(vals, o_up, r, q, hv)
-                    if dd != 0 and not upper:
+                        _vput(vals, o_up, r, q, hv)
                         _vput(vals, o_low, q, r, hv)
+            else:
+                for r in range(3):
+                    ra = 3 * a + r
+                    for q in range(3):
+                        qc = 3 * cc + q
+                        hv = (cols[0, ra] * cols[0, qc] + cols[1, ra] * cols[1, qc]
+                              + cols[2, ra] * cols[2, qc] + cols[3, ra] * cols[3, qc])
+                        _vput(vals, o_up, r, q, hv)
     return 0.0, False
 
 

@@ -1,119 +1,47 @@
-"""Census of strand-contact pairs per frame of a frames.h5: how many, how close, how old.
+"""Census of strand-contact pairs per frame of a frames.h5 (lc_petsc.pair_census).
 
     .venv/bin/python scripts/pair_census.py out/hairball_demo/frames.h5 [--thickness D0]
-        [--stiffness K] [--json FILE]
+        [--stiffness K] [--every N] [--json FILE]
 
-Per frame: the pairs of segments of different wisps closer than d0 (the run's
-``physics.strand_thickness``, or ``--thickness``, else the simulator's default, twice
-the smallest vertex radius; rest-exempt pairs, closer than d0 in
-the rest pose, counted apart), their distance histogram relative to d0, how many are
-"held" far inside (d < 0.05 d0, the ccd frame path's floor, and d < 0.25 d0, the
-Newton floor), how many are nearly parallel (|cos| > 0.9 between the segments), how
-many were already closer than d0 in the previous frame and for how many frames in a
-row (age), the distinct segments and wisps they involve, and the penalty force they
-would carry (k (d0 - d), summed).  Serial; reads one frame at a time.
+Per frame: pairs of segments of different wisps closer than d0 (rest-exempt apart),
+their d/d0 histogram, how many are held far inside (< 0.05 d0, < 0.25 d0), nearly
+parallel, kept from the previous frame and for how long, the segments and wisps
+involved.  d0 defaults to the run's strand_thickness, else twice the smallest vertex
+radius (the simulator's default).  Exits 2 for a file that is not a readable frames.h5.
 """
 
 import argparse
 import json
 import sys
 
-import numpy as np
-
-from lc_petsc.crossings import pair_positions, segments
-from lc_petsc.elements.compiled_ccd import box_pairs
-from lc_petsc.elements.segment_contact import distance
-
-#: histogram edges of d / d0
-EDGES = (0.0, 0.01, 0.05, 0.1, 0.25, 0.5, 0.75, 1.0)
-
-
-def close_pairs(X, seg, wisp, d0):
-    """(pairs (k, 2) of first global vertices, d (k,)): segments of different wisps
-    closer than d0 at positions X (n, 3), in the order of (first, second) vertex."""
-    P = np.stack([X[seg], X[seg + 1]], axis=1)
-    ij = box_pairs(P.min(axis=1) - 0.5 * d0, P.max(axis=1) + 0.5 * d0, group=wisp)
-    pairs = np.sort(np.stack([seg[ij[:, 0]], seg[ij[:, 1]]], axis=1), axis=1)
-    d = distance(pair_positions(X, pairs)) if len(pairs) else np.zeros(0)
-    keep = d < d0
-    pairs, d = pairs[keep], d[keep]
-    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
-    return pairs[order], d[order]
-
-
-def frame_census(X, rest, seg, wisp, wid, d0, k, prev_age):
-    """One frame's figures (dict) and the age (frames in a row closer than d0) of each
-    pair, keyed by (a, b) first vertices."""
-    pairs, d = close_pairs(X, seg, wisp, d0)
-    exempt = distance(pair_positions(rest, pairs)) < d0 if len(pairs) else np.zeros(0, bool)
-    A = X[pairs[:, 0] + 1] - X[pairs[:, 0]]
-    B = X[pairs[:, 1] + 1] - X[pairs[:, 1]]
-    cos = np.abs(np.einsum("ij,ij->i", A, B)) / np.maximum(
-        np.linalg.norm(A, axis=1) * np.linalg.norm(B, axis=1), 1e-300)
-    age = {}
-    ages = np.zeros(len(pairs), np.int64)
-    for n, (a, b) in enumerate(map(tuple, pairs)):
-        ages[n] = age[(a, b)] = prev_age.get((a, b), 0) + 1
-    act = ~exempt
-    r = d[act] / d0
-    hist = np.histogram(r, bins=EDGES)[0]
-    out = {
-        "pairs": int(act.sum()), "exempt": int(exempt.sum()),
-        "hist_edges": list(EDGES), "hist": [int(h) for h in hist],
-        "below_0.05": int(np.sum(r < 0.05)), "below_0.25": int(np.sum(r < 0.25)),
-        "below_0.5": int(np.sum(r < 0.5)),
-        "median_d_over_d0": float(np.median(r)) if len(r) else None,
-        "min_d_over_d0": float(r.min()) if len(r) else None,
-        "parallel": int(np.sum(cos[act] > 0.9)),
-        "kept_from_previous": int(np.sum(ages[act] > 1)),
-        "age_ge_5": int(np.sum(ages[act] >= 5)), "age_ge_10": int(np.sum(ages[act] >= 10)),
-        "median_age": float(np.median(ages[act])) if act.any() else None,
-        "segments": int(len(np.unique(pairs[act]))),
-        "wisps": int(len(np.unique(wid[pairs[act]]))),
-        "penalty_force_sum": float(k * np.sum(d0 - d[act])),
-        "penalty_force_per_pair": float(k * np.mean(d0 - d[act])) if act.any() else 0.0,
-    }
-    return out, age
+from lc_petsc.pair_census import census_frames
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("frames", help="frames.h5 of a run")
-    ap.add_argument("--thickness", type=float, help="d0 (cm); default the run's strand_thickness")
+    ap.add_argument("--thickness", type=float, help="d0 (cm); default the run's")
     ap.add_argument("--stiffness", type=float, help="k (dyn/cm); default the run's strand_stiffness")
     ap.add_argument("--every", type=int, default=1, help="every n-th frame (ages need 1)")
     ap.add_argument("--json", help="write the per-frame figures to this file")
     a = ap.parse_args(argv)
-    import h5py
+
+    def show(r):
+        print(f"frame {r['frame']:3d}: {r['pairs']:6d} pairs (exempt {r['exempt']}), d/d0 hist "
+              f"{r['hist']} (<0.05: {r['below_0.05']}, <0.25: {r['below_0.25']}), "
+              f"median d/d0 {r['median_d_over_d0'] or 0:.3f}, parallel {r['parallel']}, "
+              f"kept {r['kept_from_previous']}, age>=10 {r['age_ge_10']}, "
+              f"segments {r['segments']}, wisps {r['wisps']}", flush=True)
+
     try:
-        f = h5py.File(a.frames, "r")
-    except OSError as e:
-        print(f"pair_census.py: error: {a.frames}: {e}", file=sys.stderr)
+        rows, d0, k = census_frames(a.frames, a.thickness, a.stiffness, a.every, progress=show)
+    except (OSError, KeyError) as e:
+        print(f"pair_census.py: error: {a.frames}: not a readable frames.h5 of lc_petsc ({e})",
+              file=sys.stderr)
         return 2
-    with f:
-        cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
-        phys = cfg.get("physics") or {}
-        # the simulator's default thickness: twice the smallest vertex radius
-        d0 = a.thickness or phys.get("strand_thickness") or 2.0 * float(np.min(f["radius"][...]))
-        k = a.stiffness or float(phys.get("strand_stiffness") or 1.0e5)
-        off = np.asarray(f["wisp_offsets"][...], np.int64)
-        rest = np.asarray(f["rest_positions"][...], float)
-        seg, wisp = segments(off)
-        wid = np.repeat(np.arange(len(off) - 1), np.diff(off))
-        rows, age = [], {}
-        for t in range(0, f["positions"].shape[0], a.every):
-            X = np.asarray(f["positions"][t], float)
-            r, age = frame_census(X, rest, seg, wisp, wid, float(d0), k, age if a.every == 1 else {})
-            r["frame"] = t
-            rows.append(r)
-            print(f"frame {t:3d}: {r['pairs']:6d} pairs (exempt {r['exempt']}), d/d0 hist "
-                  f"{r['hist']} (<0.05: {r['below_0.05']}, <0.25: {r['below_0.25']}), "
-                  f"median d/d0 {r['median_d_over_d0'] or 0:.3f}, parallel {r['parallel']}, "
-                  f"kept {r['kept_from_previous']}, age>=10 {r['age_ge_10']}, "
-                  f"segments {r['segments']}, wisps {r['wisps']}", flush=True)
     if a.json:
         with open(a.json, "w") as fh:
-            json.dump({"frames": a.frames, "d0": float(d0), "k": k, "rows": rows}, fh, indent=1)
+            json.dump({"frames": a.frames, "d0": d0, "k": k, "rows": rows}, fh, indent=1)
     return 0
 
 

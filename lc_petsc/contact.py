@@ -72,6 +72,10 @@ NEIGHBOUR_GAP = 0.5 * np.pi
 #: then keeps half its distance, docs/contact.md); a rigid motion has L = 2 sin(theta / 2),
 #: so the head's serves up to MAX_RIGID_DEGREES of rotation per step
 MAX_LIPSCHITZ = 0.5
+#: conservative advancement stops within ADVANCE_RTOL m of its floor: the step count is
+#: discrete, so a looser stop (1e-3) made the fractions jump on round-off (6 wisps, 10
+#: frames: 2 ranks left 1 rank by 9e-5; 1.8e-8 at 1e-12)
+ADVANCE_RTOL = 1e-12
 #: the head's rigid motion over a Newton step (the pinned vertices stay where the
 #: frame's first iterate put them): the identity, i.e. the zero field
 NEWTON_STEP_MOTION = (np.eye(3), np.zeros(3))
@@ -618,7 +622,8 @@ class StrandContact:
                 bV_prev = bV
                 E = HV + bV[:, None] * (TV - HV)
                 E[bV == 1.0] = TV[bV == 1.0]
-                compiled_ccd.limit_pairs(SV, E, inv, redo, md, rounds < SCALE_ROUNDS, tau, factor)
+                compiled_ccd.limit_pairs(SV, E, inv, redo, md, rounds < SCALE_ROUNDS, tau, factor,
+                                         rtol=ADVANCE_RTOL)
                 hit = tau < 1.0
                 new = np.flatnonzero(hit & (exempt == 0))
                 if len(new):     # rest-exempt pairs (docs/contact.md) are not limited

@@ -68,6 +68,18 @@ SCALE_ROUNDS = 8
 #: between them are neighbours, never a pair (those sharing a vertex always; pi / 2 d0 is
 #: the arc of the tightest hairpin of a strand of thickness d0, whose legs touch)
 NEIGHBOUR_GAP = 0.5 * np.pi
+#: the limiter's field: Lipschitz constant at most 1/2 (a pair of stopped free vertices
+#: then keeps half its distance, docs/contact.md); a rigid motion has L = 2 sin(theta / 2),
+#: so the head's serves up to MAX_RIGID_DEGREES of rotation per step
+MAX_LIPSCHITZ = 0.5
+#: conservative advancement stops within ADVANCE_RTOL m of its floor: the step count is
+#: discrete, so a looser stop (1e-3) made the fractions jump on round-off (6 wisps, 10
+#: frames: 2 ranks left 1 rank by 9e-5; 1.8e-8 at 1e-12)
+ADVANCE_RTOL = 1e-12
+#: the head's rigid motion over a Newton step (the pinned vertices stay where the
+#: frame's first iterate put them): the identity, i.e. the zero field
+NEWTON_STEP_MOTION = (np.eye(3), np.zeros(3))
+MAX_RIGID_DEGREES = float(np.degrees(2.0 * np.arcsin(0.5 * MAX_LIPSCHITZ)))
 NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
 
 
@@ -470,40 +482,55 @@ class StrandContact:
         if self.mode != "ccd":
             return target
         with self.timers("collision"):
-            beta, n_limited, rounds, fallback = self._safe_fractions(x, target,
-                                                                     self.min_separation * self.d0)
+            beta, n_limited, rounds, fallback = self._safe_fractions(
+                x, target, self.min_separation * self.d0, NEWTON_STEP_MOTION)
             self.limited_vertices.add(n_limited)
             self.limit_rounds.add(rounds)
         return _held_back(fallback, target, beta)
 
-    def collision_free_frame(self, x_old, x):
-        """Positions whose linear path from ``x_old`` (the previous frame) is
-        collision-free (``ccd`` mode; else ``x``), for the frame's first Newton iterate
-        (xhat = x_old + dt v with the pinned vertices moved by the head: inertia alone
-        would carry wisps through each other) and for its end (each Newton step is
-        limited, but the straight path x_old -> x can still cross).  The free vertices
-        of pairs that meet on it are held back towards x_old: x_old + beta (x - x_old),
-        beta from :meth:`_safe_fractions`.  Collective."""
+    def collision_free_frame(self, x_old, x, motion=None):
+        """(positions, vertices held back over all ranks): positions whose linear path
+        from ``x_old`` (the previous frame) is collision-free (``ccd`` mode; else ``x``,
+        0), for the frame's first Newton iterate (xhat = x_old + dt v with the pinned
+        vertices moved by the head: inertia alone would carry wisps through each other)
+        and for its end (each Newton step is limited, but the straight path x_old -> x
+        can still cross).  The free vertices of pairs that meet on it are held back:
+        H + beta (x - H), beta from :meth:`_safe_fractions`, H = x_old carried by
+        ``motion`` (Q, q), the head's rigid motion x -> Q x + q between the two frame
+        times (:meth:`HeadMotion.rigid_motion`; the pinned vertices follow it exactly,
+        so their residual is 0 and a pair is always resolvable by its free vertices),
+        or by the fitted field (:meth:`_motion_field`) without one or when the head
+        turns by more than :data:`MAX_RIGID_DEGREES` in the step.  Collective."""
         if self.mode != "ccd":
-            return x
+            return x, 0
         with self.timers("collision"):
-            beta, n_limited, _, fallback = self._safe_fractions(x_old, x, 0.05 * self.d0)
+            beta, n_limited, _, fallback = self._safe_fractions(x_old, x, 0.05 * self.d0, motion)
             self.frame_fixes.add(n_limited)
-        return _held_back(fallback, x, beta)
+        return _held_back(fallback, x, beta), n_limited
 
-    def _motion_field(self, S, T):
-        """(A, b, L): the affine field u(x) = A x + b fitted to the displacements T - S
-        (nv, 3) of all vertices of all ranks (least squares; Lipschitz constant L =
-        ||A||_2 capped at 1/2 by :func:`segment_ccd.affine_field`).  One field for all
-        ranks (the broad phase's proof needs the same u on both sides of a pair): the
-        sums are allreduced and rank 0's solution is broadcast.  Collective."""
+    def _motion_field(self, S, T, motion=None):
+        """(A, b, L): the affine field u(x) = A x + b of the limiter's fallback S + u(S)
+        and its Lipschitz constant L = ||A||_2.  ``motion`` (Q, q), a rigid motion
+        x -> Q x + q (the head's between two frame times): u(S) = (Q - I) S + q, with
+        L = 2 sin(theta / 2), theta the rotation angle, used while L <= 1/2 (theta
+        <= :data:`MAX_RIGID_DEGREES`); the same on every rank bit for bit (no
+        reduction).  Otherwise the field fitted to the displacements T - S (nv, 3) of
+        all vertices of all ranks (least squares; L capped at 1/2 by
+        :func:`segment_ccd.affine_field`): the sums are allreduced and rank 0's
+        solution is broadcast.  One field for all ranks (the broad phase's proof
+        needs the same u on both sides of a pair).  Collective."""
+        if motion is not None:
+            A = np.asarray(motion[0], float) - np.eye(3)
+            L = float(np.linalg.norm(A, 2))
+            if L <= MAX_LIPSCHITZ:
+                return A, np.asarray(motion[1], float), L
         M, R = segment_ccd.affine_sums(S, T - S)
         buf = global_reduce(self.comm, np.concatenate([M.ravel(), R.ravel()]), "sum")
-        field = segment_ccd.affine_field(buf[:16].reshape(4, 4), buf[16:].reshape(4, 3)) \
-            if self.comm.rank == 0 else None
+        field = segment_ccd.affine_field(buf[:16].reshape(4, 4), buf[16:].reshape(4, 3),
+                                         MAX_LIPSCHITZ) if self.comm.rank == 0 else None
         return self.comm.bcast(field, root=0)
 
-    def _safe_fractions(self, S, T, min_distance):
+    def _safe_fractions(self, S, T, min_distance, motion=None):
         """(beta, vertices limited over all ranks, rounds, H): per-vertex fractions beta
         (nv,) in [0, 1] and fallback positions H (nv, 3) such that on the linear path
         from S to E = H + beta (T - H) no pair of segments of different wisps
@@ -549,7 +576,7 @@ class StrandContact:
            are left as they are and counted in ``unresolved_pairs``."""
         nv, d0 = self.scene.nv, self.d0
         md = float(min_distance)
-        A, b, L = self._motion_field(S, T)
+        A, b, L = self._motion_field(S, T, motion)
         H = S + (S @ A.T + b)
         F = T - H
         # reach d0, not just md (and 1e-6 more, for round-off): the candidates then also
@@ -595,7 +622,8 @@ class StrandContact:
                 bV_prev = bV
                 E = HV + bV[:, None] * (TV - HV)
                 E[bV == 1.0] = TV[bV == 1.0]
-                compiled_ccd.limit_pairs(SV, E, inv, redo, md, rounds < SCALE_ROUNDS, tau, factor)
+                compiled_ccd.limit_pairs(SV, E, inv, redo, md, rounds < SCALE_ROUNDS, tau, factor,
+                                         rtol=ADVANCE_RTOL)
                 hit = tau < 1.0
                 new = np.flatnonzero(hit & (exempt == 0))
                 if len(new):     # rest-exempt pairs (docs/contact.md) are not limited

@@ -250,8 +250,10 @@ class Integrator:
             x[pin] = self.head.pinned_positions(sc.x_rest[pin], self.t_next)
         if cfg.time.initial_guess == "follow_the_leader":
             x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
+        # the head's rigid motion over the step: the limiter's field on the frame paths
+        motion = self.head.rigid_motion(self.t, self.t_next)
         if self.strand is not None:             # ccd mode: no crossing on x_old -> first iterate
-            x = self.strand.collision_free_frame(x_old, x)
+            x = self.strand.collision_free_frame(x_old, x, motion)[0]
         n_it = 0
         converged = None
         increment = np.inf
@@ -321,14 +323,40 @@ class Integrator:
                     x, n, _ = self.strand.separate(x)
                     n_sep = max(n_sep, n)
                     pairs, deep, dmin = self.strand.measure(x)
-            if self.strand.mode == "ccd":       # the straight path x_old -> x must not cross
-                x = self.strand.collision_free_frame(x_old, x)
-                pairs, deep, dmin = self.strand.measure(x)
+            if self.strand.mode == "ccd":
+                x, pairs, deep, dmin, n_sep = self._collision_free_end(x_old, x, motion, deep, n_sep)
             contact = pairs, deep, dmin, n_sep
         self.v = (x - x_old) / dt
         self.x = x
         self.t = self.t_next
         return _Solve(n_it, converged, increment, fallbacks, contact)
+
+    def _collision_free_end(self, x_old, x, motion, deep, n_sep):
+        """ccd mode, the frame's end: the path check (the straight path x_old -> x must
+        not cross, :meth:`StrandContact.collision_free_frame`) and the separation
+        alternate, at most :data:`FRAME_END_ROUNDS` rounds, the path check last: a pair
+        the path check holds back ends where its path stopped (at its floor, 0.05 d0),
+        and the separation pushes it apart again before the next frame starts from it
+        (one round halved such a pair's distance every frame, docs/contact.md).  Stops
+        early once a round changes nothing (no deep pair left to separate, or no vertex
+        held back).  Returns (x, pairs, deep, min distance, pairs separated)."""
+        strand = self.strand
+        separation = self.cfg.physics.strand_separation
+        for rnd in range(FRAME_END_ROUNDS):
+            if rnd > 0:
+                if not separation or deep == 0:
+                    break
+                for _ in range(3):
+                    if deep == 0:
+                        break
+                    x, n, _ = strand.separate(x)
+                    n_sep = max(n_sep, n)
+                    pairs, deep, dmin = strand.measure(x)
+            x, held = strand.collision_free_frame(x_old, x, motion)
+            pairs, deep, dmin = strand.measure(x)
+            if held == 0:
+                break
+        return x, pairs, deep, dmin, n_sep
 
     def update(self, x, step):
         """The next Newton iterate from x and the (scaled) step: x + step, or with
@@ -565,3 +593,6 @@ def project_rest_lengths(x, free, offsets, rest_edge, mass):
 #: iterations of 1e-2 / 3e-3 / always and 2 / 6 halvings on the hairball and smash).
 EXACT_BELOW = 3e-3
 EXACT_HALVINGS = 6
+#: strand contact, ccd mode: rounds of separation + frame-path check at a frame's end
+#: (Integrator._collision_free_end, docs/contact.md "Over a whole run")
+FRAME_END_ROUNDS = 4

@@ -205,6 +205,7 @@ class Simulator:
             "limited_vertices_per_frame": self.strand.limited_vertices.sums[1:],
             "limiter_rounds_per_frame": self.strand.limit_rounds.maxima[1:],
             "frame_path_held_vertices_per_frame": self.strand.frame_fixes.sums[1:],
+            "frame_path_checks_per_frame": self.strand.frame_fixes.counts[1:],
             "ccd_unresolved_pairs_per_frame": self.strand.unresolved_pairs.sums[1:],
             "limiter_candidates_per_frame": self.strand.limiter_candidates.maxima[1:]}}
 

@@ -52,6 +52,14 @@ class HeadMotion:
         R1, T1 = self.transform(t1)
         return self.center + T1 + (x - self.center - T0) @ R0 @ R1.T
 
+    def rigid_motion(self, t0, t1):
+        """(Q (3, 3), q (3,)): the head's rigid motion from t0 to t1 as x -> Q x + q, so
+        that :meth:`carry` is ``x @ Q.T + q`` (to round-off)."""
+        R0, T0 = self.transform(t0)
+        R1, T1 = self.transform(t1)
+        Q = R1 @ R0.T
+        return Q, self.center + T1 - (self.center + T0) @ Q.T
+
     def sphere_center(self, t):
         """Centre (3,) of the head sphere at time ``t``."""
         return self.center + self.transform(t)[1]

@@ -83,7 +83,10 @@ def run_touching(c, frames=10):
 def test_ccd_rank_invariance_and_no_crossing(monkeypatch):
     """Six in-phase wisps, head shaking: 0 crossings, and 2 / 3 ranks follow 1 rank.
     Only the straight stems are pinned: a pinned helix vertex turning with the head
-    into a held-back neighbour is the limiter's known gap (ccd_unresolved_pairs_per_frame)."""
+    into a held-back neighbour is the limiter's known gap (ccd_unresolved_pairs_per_frame).
+    Bound 1e-7, the contact tolerance of docs/contact.md ("Rank invariance with the rigid
+    frame-path field"): the limiter's decisions are the same on every rank count, but its
+    fractions amplify round-off (measured 1.8e-8 on 2 ranks, 5.4e-8 on 3; main 1.5e-11)."""
     monkeypatch.setattr(simmod, "source_from_config",
                         lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
     X, summ = run_touching(comm)
@@ -94,7 +97,7 @@ def test_ccd_rank_invariance_and_no_crossing(monkeypatch):
         crossings = [count_crossings(X[k], X[k + 1], off)["crossings"] for k in range(len(X) - 1)]
         err = float(np.abs(X[-1] - ref[-1]).max() / np.abs(ref[-1]).max())
         c = summ["contact"]
-        ok = sum(crossings) == 0 and sum(c["pairs_per_frame"]) > 0 and err <= 1e-8 \
+        ok = sum(crossings) == 0 and sum(c["pairs_per_frame"]) > 0 and err <= 1e-7 \
             and max(c["limited_vertices_per_frame"]) > 0 and sum(c["ccd_unresolved_pairs_per_frame"]) == 0
         msg = (f"{comm.size} ranks: crossings {crossings}, relative difference to 1 rank {err:.3e}, "
                f"pairs per frame {c['pairs_per_frame']}, limited vertices per frame "
@@ -162,3 +165,29 @@ def test_limiter_candidates_serve_the_next_pair_search(monkeypatch):
         assert comm.bcast(newly_close) > 0
     finally:
         sim.close()
+
+
+def test_frame_end_distance_does_not_decay_over_a_run(monkeypatch):
+    """Six in-phase wisps, 3 pinned stem vertices, head shaking, 24 frames, 3 Newton
+    iterations (main: 5 crossings, 19 unresolved pairs, frame-end minimum 0.019 d0): 0
+    crossings, 0 unresolved pairs and every frame-end minimum distance >= 0.25 d0 (the
+    separation and the frame-path check alternate at the frame's end; the head's rigid
+    motion is the frame paths' field, the zero field the Newton steps')."""
+    monkeypatch.setattr(simmod, "source_from_config",
+                        lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
+    cfg = touching_wisps_config(24)
+    cfg.physics.strand_contact_mode = "ccd"
+    cfg.time.newton_iterations = 3
+    X, summ = frames_run(simmod.build_simulator(cfg, comm=comm), 24)
+    ok, msg = True, ""
+    if comm.rank == 0:
+        c, d0 = summ["contact"], cfg.physics.strand_thickness
+        off = np.arange(7) * 30
+        crossings = [count_crossings(X[k], X[k + 1], off)["crossings"] for k in range(24)]
+        dmin = min(c["min_distance_per_frame"]) / d0
+        ok = sum(crossings) == 0 and dmin >= 0.25 and sum(c["ccd_unresolved_pairs_per_frame"]) == 0 \
+            and max(c["frame_path_checks_per_frame"]) >= 2
+        msg = (f"crossings {crossings}, frame-end min distance {dmin:.3g} d0, unresolved "
+               f"{c['ccd_unresolved_pairs_per_frame']}, path checks {c['frame_path_checks_per_frame']}")
+    ok, msg = comm.bcast((ok, msg))
+    assert ok, msg

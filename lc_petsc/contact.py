@@ -79,6 +79,12 @@ ADVANCE_RTOL = 1e-12
 #: the head's rigid motion over a Newton step (the pinned vertices stay where the
 #: frame's first iterate put them): the identity, i.e. the zero field
 NEWTON_STEP_MOTION = (np.eye(3), np.zeros(3))
+#: ccd limiter: the step fractions of two neighbours on a strand differ by at most
+#: FRACTION_STRAIN L / |f| (L the edge's rest length, |f| the larger residual motion of
+#: its two vertices), so a limited update stretches no edge by more than FRACTION_STRAIN
+#: of its rest length beyond the longer of its start and target lengths (per-vertex
+#: fractions tore strands: docs/contact.md "Torn strands")
+FRACTION_STRAIN = 0.02
 MAX_RIGID_DEGREES = float(np.degrees(2.0 * np.arcsin(0.5 * MAX_LIPSCHITZ)))
 NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
 
@@ -227,6 +233,7 @@ class StrandContact:
         self.seg_free = np.stack([free[self.seg], free[self.seg + 1]], axis=1)
         self.N = int(scene.n_vertices_global)
         self.P_rest = np.stack([scene.x_rest[self.seg], scene.x_rest[self.seg + 1]], axis=1)
+        self.rest_seg_length = np.linalg.norm(self.P_rest[:, 1] - self.P_rest[:, 0], axis=1)
         # self-contact: rest arc length along the wisp at both ends of each segment (a
         # wisp lives on one rank, so ghosts never pair with a segment of their own wisp)
         self.self_contact = bool(self_contact)
@@ -646,6 +653,13 @@ class StrandContact:
                 sh = self.shrink.array
                 beta *= 1.0 - sh
                 limited |= sh > 0.0
+                # along each strand: a vertex held back holds its neighbours back too, so
+                # no edge stretches by more than FRACTION_STRAIN (the changed vertices'
+                # pairs are tested again next round)
+                smooth = smooth_fractions(beta, F, self.seg, self.rest_seg_length, ~self.scene.pinned,
+                                          FRACTION_STRAIN)
+                limited |= smooth < beta
+                beta[:] = smooth
                 rounds += 1
             self.unresolved_pairs.add(int(self.comm.allreduce(int(stuck.sum()))))
         beta = np.where(self.scene.pinned, 1.0, beta)
@@ -870,6 +884,32 @@ def _warm_up_in_turn(comm):
     if comm.rank != 0:
         compiled_ccd.warm_up()
     return time.perf_counter() - t0
+
+
+def smooth_fractions(beta, F, seg, rest_length, free, strain):
+    """The largest fractions b <= beta (nv,) with |b_i - b_j| <= strain L / max(|f_i|, |f_j|)
+    on every strand edge (i, j) = seg (m,), seg + 1 of rest length L = rest_length (m,),
+    F (nv, 3) the vertices' residual motions f; pinned vertices (free (nv,) False) keep
+    beta.  Then x_j - x_i = (1 - b_i) (H_j - H_i) + b_i (T_j - T_i) + (b_j - b_i) f_j:
+    an edge is no longer than the longer of its two ends' edges plus strain L.  A min-plus
+    distance transform along each strand (Jacobi sweeps until nothing changes; each
+    vertex depends on its own strand only, so the result does not depend on the
+    partition).  Returns (nv,)."""
+    a, b = seg, seg + 1
+    fn = np.linalg.norm(F, axis=1)
+    fmax = np.maximum(fn[a], fn[b])
+    c = np.full(len(seg), np.inf)
+    moving = fmax > 0.0
+    c[moving] = strain * rest_length[moving] / fmax[moving]
+    out = np.asarray(beta, float).copy()
+    while True:
+        new = out.copy()
+        np.minimum.at(new, a, out[b] + c)
+        np.minimum.at(new, b, out[a] + c)
+        new[~free] = out[~free]
+        if np.array_equal(new, out):
+            return out
+        out = new
 
 
 def _held_back(start, end, beta):

@@ -248,10 +248,7 @@ class Integrator:
         pin = ~self.free
         if pin.any():
             x[pin] = self.head.pinned_positions(sc.x_rest[pin], self.t_next)
-        # ccd mode always: the limiter's held-back vertices keep the first iterate's
-        # edges, and the inertial one's tore strands (docs/contact.md "Torn strands")
-        if cfg.time.initial_guess == "follow_the_leader" or \
-                (self.strand is not None and self.strand.mode == "ccd"):
+        if cfg.time.initial_guess == "follow_the_leader":
             x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
         # the head's rigid motion over the step: the limiter's field on the frame paths
         motion = self.head.rigid_motion(self.t, self.t_next)

@@ -11,6 +11,8 @@
   bound of :mod:`lc_petsc.elements.segment_ccd` to discard pairs that cannot meet, and
   IPC Toolkit's Tight-Inclusion CCD (``ipctk``, min distance 0) on the rest.
 * ``scripts/count_crossings.py`` runs it over a ``frames.h5``.
+* :func:`edge_strain`: every edge's strain against the rest pose
+  (``scripts/edge_strain.py`` per frame of a ``frames.h5``: torn strands, issue 13).
 """
 
 from __future__ import annotations
@@ -82,6 +84,19 @@ def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0):
     d1 = distance(E[other]) if other.any() else np.zeros(0)
     return {"crossings": int(hit.sum()), "pairs": pairs[hit],
             "min_distance": float(d1.min(initial=np.inf))}
+
+
+def edge_strain(x, rest, offsets):
+    """Strain |e| / |e_rest| - 1 of every edge of every wisp (n_vertices - n_wisps,), x and
+    rest (n_vertices, 3), wisps ``offsets`` (n_wisps + 1,)."""
+    x, rest = np.asarray(x, float), np.asarray(rest, float)
+    if x.shape != rest.shape or x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"edge_strain: positions and rest positions must both be (n_vertices, 3), "
+                         f"got {x.shape} and {rest.shape}")
+    inner = np.ones(len(x) - 1, bool)
+    inner[np.asarray(offsets, np.int64)[1:-1] - 1] = False      # no edge between two wisps
+    length = np.linalg.norm(np.diff(x, axis=0), axis=1)[inner]
+    return length / np.linalg.norm(np.diff(rest, axis=0), axis=1)[inner] - 1.0
 
 
 def count_frames(path, self_contact=False, progress=None):

@@ -13,7 +13,7 @@ from mpi4py import MPI
 
 from lc_petsc.config import load_config
 from lc_petsc.contact import smooth_fractions
-from lc_petsc.crossings import count_crossings
+from lc_petsc.crossings import count_crossings, edge_strain
 from lc_petsc.simulator import Simulator
 
 
@@ -38,11 +38,14 @@ def test_smooth_fractions_bounds_the_neighbours_difference():
     assert b[0] == 1.0
 
 
-def _edge_strain(x, offsets, rest):
-    inner = np.ones(len(x) - 1, bool)
-    inner[np.asarray(offsets[1:-1]) - 1] = False
-    e = np.linalg.norm(np.diff(x, axis=0), axis=1)[inner]
-    return e / np.linalg.norm(np.diff(rest, axis=0), axis=1)[inner] - 1.0
+def test_edge_strain_skips_the_gap_between_wisps():
+    rest = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [9, 0, 0], [9, 2, 0]], float)
+    x = rest.copy()
+    x[2, 0] = 3.0                                  # second edge of wisp 0 twice its length
+    x[4, 1] = 1.0                                  # wisp 1's edge half its length
+    np.testing.assert_allclose(edge_strain(x, rest, [0, 3, 5]), [0.0, 1.0, -0.5])
+    with pytest.raises(ValueError, match="both be"):
+        edge_strain(x[:4], rest, [0, 3, 5])
 
 
 @pytest.mark.slow
@@ -64,8 +67,29 @@ def test_demo_in_ccd_mode_keeps_its_edges_and_does_not_cross():
         offsets, rest = sim.wisp_offsets(), frames[0]
     finally:
         sim.close()
-    strain = _edge_strain(frames[-1], offsets, rest)
+    strain = edge_strain(frames[-1], rest, offsets)
     assert strain.max() < 0.05                   # main: +0.91
     assert strain.min() > -0.05                  # main: -0.59
     for a, b in zip(frames[:-1], frames[1:]):
         assert count_crossings(a, b, offsets)["crossings"] == 0
+
+
+def test_edge_strain_script_reports_a_torn_frame(tmp_path, capsys):
+    import runpy
+    import h5py
+    rest = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [9, 0, 0], [9, 2, 0]], float)
+    torn = rest.copy()
+    torn[2, 0] = 3.0
+    with h5py.File(tmp_path / "frames.h5", "w") as f:
+        f["wisp_offsets"] = np.array([0, 3, 5])
+        f["rest_positions"] = rest
+        f["positions"] = np.stack([rest, torn])
+    mod = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "edge_strain.py"),
+                         run_name="not_main")
+    assert mod["main"]([str(tmp_path / "frames.h5"), "--labels", "t", "--plot",
+                        str(tmp_path / "s.png")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[2].split()[1:3] == ["1", "+1.0000"]          # frame 1: one edge doubled
+    assert lines[2].split()[6] == "1"                         # edges beyond +10 %
+    assert (tmp_path / "s.png").stat().st_size > 1000
+    assert mod["main"]([str(tmp_path / "missing.h5")]) == 2

@@ -577,7 +577,12 @@ class StrandContact:
            vertex and the loop ends.  The smallest factor per vertex is taken over all
            ranks (a reverse scatter with MAX_VALUES of 1 - factor to the vertex owner),
            and the new fractions come back to every pair through a scatter.  Only pairs
-           with a changed vertex are tested again.  A pair whose free vertices are all
+           with a changed vertex are tested again.  After each round the fractions are
+           smoothed along the strands (:func:`smooth_fractions`, FRACTION_STRAIN): a
+           vertex held back holds its neighbours back too, so the limited update stretches
+           no edge by more than that (per-vertex fractions tore strands, docs/contact.md
+           "Torn strands"); they only go down, and their pairs are tested again in the
+           next round like any other change.  A pair whose free vertices are all
            stopped can still be hit by its pinned vertices' residual motion (a root
            segment turning with the head differently from the fitted field): such pairs
            are left as they are and counted in ``unresolved_pairs``."""

@@ -24,11 +24,13 @@ rank that C couples into **clusters** and solves each cluster's block of A + C e
    default, ILU(0) of the rank's block of A on a full band (= LU; lc_petsc/solver.py).
 3. **Clusters**: one sequential BAIJ matrix holding every multi-wisp cluster's block
    of A + C (clusters contiguous, so the matrix is block diagonal by cluster), factored
-   by PETSc's LU with the reverse Cuthill-McKee ordering (``-lc_cluster_ordering rcm``,
-   the default; ``qmd``, ``nd`` accepted; an ordering never mixes the clusters).  On
-   the 2K hairball's cluster matrices (28k-303k rows) RCM's fill is 1.1-1.4x qmd's but
-   its set-up (ordering + factorisation) takes 0.4-0.6x qmd's: qmd's ordering alone
-   costs up to half of its set-up (docs/contact_solver.md, "Where the 2K frame goes").
+   by PETSc's LU with the quotient-minimum-degree ordering (``-lc_cluster_ordering
+   qmd``, the default; ``rcm``, ``nd`` accepted; an ordering never mixes the
+   clusters).  On the 2K hairball's cluster matrices (28k-303k rows) RCM's fill is
+   1.1-1.4x qmd's but its set-up (ordering + factorisation) takes 0.4-0.6x qmd's
+   (qmd's ordering alone is up to half of its set-up); not the default because it
+   moves the ccd rank-invariance test past its bound (docs/contact_solver.md, "Where
+   the 2K frame goes").
 
 The preconditioning matrix is therefore P = A + (the cross blocks of C inside a
 cluster): every dropped block belongs to a whole contact pair's cross block, and a
@@ -57,9 +59,9 @@ MAX_BLOCKS = 1024
 #: ``-lc_cluster_min_captured`` default (share of the coupling weight the clusters must hold)
 MIN_CAPTURED = 0.9
 #: ``-lc_cluster_ordering`` default: the PETSc ordering of the clusters' LU
-ORDERING = "rcm"
-#: the orderings ``-lc_cluster_ordering`` accepts
-ORDERINGS = ("rcm", "qmd", "nd")
+ORDERING = "qmd"
+#: the orderings ``-lc_cluster_ordering`` accepts (the first is the default)
+ORDERINGS = (ORDERING, "rcm", "nd")
 
 
 def block_rows(M, rows=None):

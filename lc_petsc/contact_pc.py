@@ -24,9 +24,13 @@ rank that C couples into **clusters** and solves each cluster's block of A + C e
    default, ILU(0) of the rank's block of A on a full band (= LU; lc_petsc/solver.py).
 3. **Clusters**: one sequential BAIJ matrix holding every multi-wisp cluster's block
    of A + C (clusters contiguous, so the matrix is block diagonal by cluster), factored
-   by PETSc's LU with a quotient-minimum-degree ordering (``qmd``: measured on the 2K
-   hairball, fill 1.1x the matrix, against 1.2x for RCM and 2.2x for nested
-   dissection; an ordering never mixes the clusters).
+   by PETSc's LU with the quotient-minimum-degree ordering (``-lc_cluster_ordering
+   qmd``, the default; ``rcm``, ``nd`` accepted; an ordering never mixes the
+   clusters).  On the 2K hairball's cluster matrices (28k-303k rows) RCM's fill is
+   1.1-1.4x qmd's but its set-up (ordering + factorisation) takes 0.4-0.6x qmd's
+   (qmd's ordering alone is up to half of its set-up); not the default because it
+   moves the ccd rank-invariance test past its bound (docs/contact_solver.md, "Where
+   the 2K frame goes").
 
 The preconditioning matrix is therefore P = A + (the cross blocks of C inside a
 cluster): every dropped block belongs to a whole contact pair's cross block, and a
@@ -54,8 +58,10 @@ MAX_WISPS = 64
 MAX_BLOCKS = 1024
 #: ``-lc_cluster_min_captured`` default (share of the coupling weight the clusters must hold)
 MIN_CAPTURED = 0.9
-#: PETSc ordering of the clusters' LU
+#: ``-lc_cluster_ordering`` default: the PETSc ordering of the clusters' LU
 ORDERING = "qmd"
+#: the orderings ``-lc_cluster_ordering`` accepts (the first is the default)
+ORDERINGS = (ORDERING, "rcm", "nd")
 
 
 def block_rows(M, rows=None):
@@ -141,12 +147,15 @@ class ClusterPC:
     ``history`` keeps them per set-up."""
 
     def __init__(self, wisp_rows, max_wisps=MAX_WISPS, max_blocks=MAX_BLOCKS,
-                 min_captured=MIN_CAPTURED):
+                 min_captured=MIN_CAPTURED, ordering=ORDERING):
         sizes = np.asarray(wisp_rows, np.int64) // 3
         self.vertex_wisp = np.repeat(np.arange(len(sizes)), sizes)
         self.offsets = np.concatenate([[0], np.cumsum(sizes)])
         self.max_wisps, self.max_blocks = int(max_wisps), int(max_blocks)
         self.min_captured = float(min_captured)
+        if ordering not in ORDERINGS:
+            raise ValueError(f"cluster LU ordering {ordering!r}: use one of {', '.join(ORDERINGS)}")
+        self.ordering = ordering
         self.band = self.cluster = self.cluster_mat = None
         self.dofs = np.zeros(0, np.int64)
         self._x = self._y = self._cx = self._cy = None
@@ -226,7 +235,7 @@ class ClusterPC:
         self.cluster_mat = M
         self.cluster = PETSc.PC().create(comm=PETSc.COMM_SELF)
         self.cluster.setType(PETSc.PC.Type.LU)
-        self.cluster.setFactorOrdering(ORDERING)
+        self.cluster.setFactorOrdering(self.ordering)
         self.cluster.setOperators(M, M)
         self.cluster.setUp()
         self.dofs = (3 * verts[:, None] + np.arange(3)).ravel()

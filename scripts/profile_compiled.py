@@ -7,7 +7,10 @@ gradient, gradient + Hessian into PETSc's value array), the row zeroing alone, a
 ``fill(0)`` of the value array, and the assembler's ``assemble``, ``add_mass`` and
 ``commit``: minimum and median CPU ms over ``--repeats`` calls.
 
-    .venv/bin/python scripts/profile_compiled.py [--wisps 2000] [--repeats 9]
+    .venv/bin/python scripts/profile_compiled.py [--wisps 2000] [--repeats 9] [--only TERM]
+
+``--only TERM`` times that term's gradient + Hessian alone (a short run for
+interleaved A/B comparisons of one kernel).
 """
 
 import os
@@ -33,6 +36,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--wisps", type=int, default=2000)
     ap.add_argument("--repeats", type=int, default=9)
+    ap.add_argument("--only", choices=compiled.TERMS, default=None,
+                    help="time only this term's gradient + Hessian")
     args = ap.parse_args()
     cfg = SimConfig(scene=SceneConfig(kind="hairball", n_wisps=args.wisps),
                     material=MaterialConfig(youngs_modulus=1.0e9),
@@ -52,22 +57,26 @@ def main():
 
     res = {}
     with asm.block_array() as v:
-        for name in ("stretch", "bend", "twist"):
+        for name in (args.only,) if args.only else compiled.TERMS:
             one = {name: asm.elements[name]}
             res[f"{name} gradient+Hessian"] = cpu_ms(
                 lambda: compiled.add_gradient_hessian_into(one, x, g, v, asm.layout, False))
-            res[f"{name} gradient"] = cpu_ms(lambda: compiled.add_gradient(one, x, g))
-        res["all gradient+Hessian"] = cpu_ms(
-            lambda: compiled.add_gradient_hessian_into(asm.elements, x, g, v, asm.layout, False))
-        res["all gradient"] = cpu_ms(lambda: compiled.add_gradient(asm.elements, x, g))
-        res["all energy"] = cpu_ms(lambda: compiled.energy(asm.elements, x))
-        res["row zeroing only"] = cpu_ms(
-            lambda: compiled.add_gradient_hessian_into({}, x, g, v, asm.layout, False))
-        res["values.fill(0)"] = cpu_ms(lambda: v.fill(0.0))
-    res["Assembler.assemble"] = cpu_ms(lambda: asm.assemble(x))
-    mass = sim.scene.mass * 900.0
-    res["Assembler.add_mass"] = cpu_ms(lambda: asm.add_mass(mass))
-    res["Assembler.commit"] = cpu_ms(asm.commit)
+            if not args.only:
+                res[f"{name} gradient"] = cpu_ms(lambda: compiled.add_gradient(one, x, g))
+        if not args.only:
+            res["all gradient+Hessian"] = cpu_ms(
+                lambda: compiled.add_gradient_hessian_into(asm.elements, x, g, v, asm.layout,
+                                                           False))
+            res["all gradient"] = cpu_ms(lambda: compiled.add_gradient(asm.elements, x, g))
+            res["all energy"] = cpu_ms(lambda: compiled.energy(asm.elements, x))
+            res["row zeroing only"] = cpu_ms(
+                lambda: compiled.add_gradient_hessian_into({}, x, g, v, asm.layout, False))
+            res["values.fill(0)"] = cpu_ms(lambda: v.fill(0.0))
+    if not args.only:
+        res["Assembler.assemble"] = cpu_ms(lambda: asm.assemble(x))
+        mass = sim.scene.mass * 900.0
+        res["Assembler.add_mass"] = cpu_ms(lambda: asm.add_mass(mass))
+        res["Assembler.commit"] = cpu_ms(asm.commit)
     counts = {k: len(e[0]) for k, e in asm.elements.items()}
     print(f"hairball {args.wisps} wisps, {sim.scene.nv} vertices, elements {counts}, "
           f"{asm.n_values} stored values; CPU ms over {args.repeats} calls")

@@ -461,8 +461,9 @@ def _v_twist(x, i, rest, k, mode, g, vals, base, b, upper, exact, cols, wts, u, 
     d = sigma * k * dphi
     b0 = _vcross(t0, n)
     b1 = _vcross(t1, n)
-    ga = _vscale(_vdiv(b0, la), d)
-    gb = _vscale(_vdiv(b1, -lb), d)
+    inv_la, inv_lb = 1.0 / la, 1.0 / lb
+    ga = _vscale(b0, d * inv_la)
+    gb = _vscale(b1, -d * inv_lb)
     _vadd_to(g, i, ga)
     _vadd_to(g, i + 1, _vadd(_vscale(ga, al - 1.0), _vscale(gb, be)))
     _vadd_to(g, i + 2, _vsub(_vscale(ga, -al), _vscale(gb, 1.0 + be)))
@@ -472,7 +473,7 @@ def _v_twist(x, i, rest, k, mode, g, vals, base, b, upper, exact, cols, wts, u, 
     if exact:
         # the four in-plane eigenpairs with their eigenvalues, mapped by P^T
         m = 8
-        _v_eigenpairs(u, v, wts, t0, t1, b0, b1, n, c, s, 1.0, d, k, 1.0 / la, 1.0 / lb, 2)
+        _v_eigenpairs(u, v, wts, t0, t1, b0, b1, n, c, s, 1.0, d, k, inv_la, inv_lb, 2)
         for j in range(4):
             _v_in_plane(cols, j, (u[j, 0], u[j, 1], u[j, 2]), (v[j, 0], v[j, 1], v[j, 2]),
                         1.0, 1.0, al, be)
@@ -490,19 +491,21 @@ def _v_twist(x, i, rest, k, mode, g, vals, base, b, upper, exact, cols, wts, u, 
         hsd = 0.5 * sd
         root0, root2 = math.sqrt(lam2), math.sqrt(ad)
         _v_in_plane(cols, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)),
-                    _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / la, root0 / lb, al, be)
+                    _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 * inv_la, root0 * inv_lb,
+                    al, be)
         _v_in_plane(cols, 1, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)),
-                    _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / la, root2 / lb, al, be)
+                    _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 * inv_la, root2 * inv_lb,
+                    al, be)
     # out-of-plane pairs: PSD part of 1/2 (p m^T + m p^T) (twist._out_of_plane and
     # twist._balanced_columns)
     inv_l1 = math.sqrt(inv_l1_sq)
     e1h = _vscale(e1, inv_l1)
     osc = sigma * _SQRT_HALF
-    mu = osc / la
+    mu = osc * inv_la
     st0 = _vscale(t0, s)
     for j in range(2):
         eps = 1.0 if j == 0 else -1.0
-        nu = eps * osc / lb
+        nu = eps * osc * inv_lb
         w = _vscale(_vadd(t0, _vscale(t1, eps)), osc * inv_l1)
         m0 = _vscale(e1h, 2.0 * mu)
         m1 = _vsub(_vscale(e1h, 2.0 * ((al - 1.0) * mu + be * nu)), w)
@@ -510,11 +513,12 @@ def _v_twist(x, i, rest, k, mode, g, vals, base, b, upper, exact, cols, wts, u, 
         m3 = _vscale(e1h, 2.0 * nu)
         cs = (1.0 - c) if eps > 0.0 else (1.0 + c)
         lw = _vscale(_vsub(_vscale(b0, cs), _vscale(st0, eps)), d * osc * inv_l1)
-        norm_p = math.sqrt(2.0 * _vdot(lw, lw))
-        norm_m = math.sqrt(_vdot(m0, m0) + _vdot(m1, m1) + _vdot(m2, m2) + _vdot(m3, m3))
-        if norm_p > 0.0 and norm_m > 0.0:
-            inv_gs = math.sqrt(norm_m / norm_p)
-            gs = math.sqrt(norm_p / norm_m)
+        # gs = sqrt(|p| / |m|) from the squared norms: two square roots, one division
+        sq_p = 2.0 * _vdot(lw, lw)
+        sq_m = _vdot(m0, m0) + _vdot(m1, m1) + _vdot(m2, m2) + _vdot(m3, m3)
+        if sq_p > 0.0 and sq_m > 0.0:
+            gs = math.sqrt(math.sqrt(sq_p / sq_m))
+            inv_gs = 1.0 / gs
         else:
             inv_gs = 0.0
             gs = 0.0

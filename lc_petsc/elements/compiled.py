@@ -547,7 +547,7 @@ def _v_twist(x, i, rest, k, mode, g, vals, base, b, upper, exact, cols, wts, u, 
                         _vput(vals, o_up, r, q, hv)
                         if lower:
                             _vput(vals, o_low, q, r, hv)
-            elif lower:         # four columns, weights 1: unrolled
+            else:               # four columns, weights 1: unrolled
                 for r in range(3):
                     ra = 3 * a + r
                     for q in range(3):
@@ -555,15 +555,8 @@ def _v_twist(x, i, rest, k, mode, g, vals, base, b, upper, exact, cols, wts, u, 
                         hv = (cols[0, ra] * cols[0, qc] + cols[1, ra] * cols[1, qc]
                               + cols[2, ra] * cols[2, qc] + cols[3, ra] * cols[3, qc])
                         _vput(vals, o_up, r, q, hv)
-                        _vput(vals, o_low, q, r, hv)
-            else:
-                for r in range(3):
-                    ra = 3 * a + r
-                    for q in range(3):
-                        qc = 3 * cc + q
-                        hv = (cols[0, ra] * cols[0, qc] + cols[1, ra] * cols[1, qc]
-                              + cols[2, ra] * cols[2, qc] + cols[3, ra] * cols[3, qc])
-                        _vput(vals, o_up, r, q, hv)
+                        if lower:
+                            _vput(vals, o_low, q, r, hv)
     return 0.0, False
 
 

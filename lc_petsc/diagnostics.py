@@ -1,7 +1,8 @@
 """Run diagnostics, collective over the simulator's communicator:
 
 * :func:`term_warnings`: terms that are switched on but can have no effect in the
-  scene (the main job prints them and records them in summary.json);
+  scene, and settings known to spoil a term (the main job prints them and records them
+  in summary.json);
 * :func:`shape_measures`: the curl-shape measure used to choose and test the material
   parameters of the shipped scenes (mean curl radius and mean root-to-tip length of
   the wisps, relative to the rest shape).
@@ -72,7 +73,8 @@ def shape_measures(comm, x, x_rest, offsets, turn=5):
 
 
 def term_warnings(sim):
-    """Messages for terms (and head settings) that are on but can have no effect."""
+    """Messages for terms (and head settings) that are on but can have no effect, and for
+    ccd contact with the inertial first iterate (torn strands)."""
     cfg, sc, comm = sim.config, sim.scene, sim.comm
     phys = cfg.physics
     terms = set(phys.terms)
@@ -130,6 +132,13 @@ def term_warnings(sim):
                        f"at physics.head_center = {list(phys.head_center)}), up to {deepest:.3g} cm "
                        "deep: head_collision will push them out violently in the first frames; move "
                        "the wisps or the sphere")
+    if ("strand_collision" in terms and phys.strand_contact_mode == "ccd"
+            and cfg.time.initial_guess == "inertial"):
+        out.append("physics.strand_contact_mode = \"ccd\" with time.initial_guess = \"inertial\": "
+                   "the step limiter holds vertices back at the frame's first iterate, whose edges "
+                   "inertia stretches, so strands tear in the first frames (docs/contact.md, \"Torn "
+                   "strands\"); set time.initial_guess = \"follow_the_leader\" as the shipped "
+                   "hairball scenes do")
     if phys.head_motion != "static" and not has_pins and "head_collision" not in terms:
         out.append(f"physics.head_motion = {phys.head_motion!r} has no effect: no vertex is pinned "
                    "and head_collision is off")

@@ -531,14 +531,23 @@ class Integrator:
 def follow_the_leader(x, free, offsets, rest_edge):
     """Length-preserving prediction (Mueller et al. 2012): walking from each wisp's root,
     every free vertex is put at its rest edge length from its predecessor, in the
-    direction of its predicted position.  x (nv, 3) predicted positions, free (nv,)
-    bool, offsets (n_wisps + 1,), rest_edge (nv - 1,) rest length of edge (v, v + 1)
-    (edges across wisps unused).  Returns the new positions (nv, 3)."""
+    direction of its predicted position.  Only wisps whose root (first vertex) is pinned
+    have a leader: on a wisp with a free root the walk would start at an arbitrary end
+    and drag the whole strand along itself towards it (the corrections accumulate), a
+    slide that costs no energy where the strand lies across another (so Newton does not
+    undo it) and whose straight path cuts the corner through what it lies on; such wisps
+    keep their prediction (measured: a free wisp draped over another slid 0.39 d0 per
+    frame at its far end, and the ccd path check then held the pair at its floor,
+    docs/contact.md "Follow the leader in ccd mode").  x (nv, 3) predicted positions,
+    free (nv,) bool, offsets (n_wisps + 1,), rest_edge (nv - 1,) rest length of edge
+    (v, v + 1) (edges across wisps unused).  Returns the new positions (nv, 3)."""
     x = x.copy()
     off = np.asarray(offsets)
     sizes = np.diff(off)
+    rooted = np.zeros(len(sizes), bool)
+    rooted[sizes > 0] = ~free[off[:-1][sizes > 0]]
     for j in range(1, int(sizes.max(initial=0))):
-        v = off[:-1][sizes > j] + j
+        v = off[:-1][(sizes > j) & rooted] + j
         v = v[free[v]]
         d = x[v] - x[v - 1]
         n = np.linalg.norm(d, axis=1)

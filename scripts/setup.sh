@@ -5,7 +5,8 @@
 #
 #   bash scripts/setup.sh            # install
 #   bash scripts/setup.sh --demo     # install, then run configs/hairball_demo.toml under
-#                                    # mpiexec -n 2 into out/hairball_demo (one to two minutes)
+#                                    # mpiexec -n 2 into out/hairball_demo (one to two minutes on
+#                                    # 2 quiet cores; ccd contact, configs/hairball_demo.toml)
 #   LC_PETSC_VENV=/path bash ...     # put the environment elsewhere
 set -euo pipefail
 

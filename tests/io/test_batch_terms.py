@@ -142,3 +142,20 @@ def test_no_warning_when_every_term_can_act():
         assert term_warnings(sim) == []
     finally:
         sim.close()
+
+
+@pytest.mark.parametrize("mode, guess, warned", [("ccd", "inertial", True), ("ccd", "follow_the_leader", False),
+                                                 ("penalty", "inertial", False)])
+def test_warn_when_ccd_runs_with_the_inertial_first_iterate(mode, guess, warned):
+    """ccd contact tears strands from the inertial first iterate (docs/contact.md, "Torn
+    strands"): the run says which key to set."""
+    cfg = _hairball(("stretch", "bend", "gravity", "strand_collision"), frames=1)
+    cfg.physics.strand_contact_mode, cfg.time.initial_guess = mode, guess
+    sim = build_simulator(cfg, comm=SELF)
+    try:
+        w = [m for m in term_warnings(sim) if "time.initial_guess" in m]
+        assert len(w) == int(warned), w
+        if warned:
+            assert 'set time.initial_guess = "follow_the_leader"' in w[0]
+    finally:
+        sim.close()

@@ -81,6 +81,23 @@ def test_follow_the_leader_keeps_rest_lengths_and_pins():
     assert np.allclose(cos, 1.0)
 
 
+def test_follow_the_leader_leaves_a_wisp_without_a_pinned_root_alone():
+    """Without a pinned first vertex a wisp has no leader: walked from its first vertex
+    it would be dragged along itself (docs/contact.md, "Follow the leader in ccd mode")."""
+    rng = np.random.default_rng(3)
+    x, off, free = _chains(rng)
+    free[6] = True                            # wisp 1 (vertices 6-10): no pinned vertex
+    rest = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    pred = x + 0.3 * rng.normal(size=x.shape)
+    pred[~free] = x[~free]
+    got = follow_the_leader(pred, free, off, rest)
+    assert np.array_equal(got[6:11], pred[6:11])
+    # the rooted wisps are projected as before
+    assert np.allclose(np.linalg.norm(np.diff(got[1:6], axis=0), axis=1), rest[1:5], rtol=1e-12)
+    assert np.allclose(np.linalg.norm(np.diff(got[11:14], axis=0), axis=1), rest[11:13], rtol=1e-12)
+    assert not np.array_equal(got[:6], pred[:6])
+
+
 def _smash(n_vertices=31, frames=2, **time):
     return SimConfig(
         scene=SceneConfig(kind="wisp4c", n_vertices=n_vertices, perturbation="smash",

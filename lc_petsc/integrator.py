@@ -12,7 +12,9 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
 * Update ``time.newton_update``: ``linear`` (x + alpha dx) or ``edge_retraction``
   (default; :func:`retract_edge_lengths`: a linearised rotation does not stretch the
   stiff edges, the oscillation that kept the paper's Newton from converging,
-  docs/newton.md).
+  docs/newton.md) or ``corotational`` (:func:`corotational_update`: each edge also
+  turned by the rotation of its neighbourhood, so a linearised rotation of a coil does
+  not distort its bend and twist angles either).
 * Termination: ``newton_iterations`` steps (default 3, the paper) or, when a tolerance
   is set, as soon as the last step's largest vertex increment relative to its wisp's
   rest length is below ``newton_increment_tol`` (and/or the absolute one below
@@ -123,8 +125,10 @@ class Integrator:
         self.contact_deep_pairs = []
         self.contact_min_distance = []
         self.contact_separated = []
-        self.retract = config.time.newton_update == "edge_retraction" and \
-            config.physics.strand_contact_mode != "ccd"
+        # the update (x, step) -> next iterate; ccd mode: linear (see update)
+        self.retract = None if config.physics.strand_contact_mode == "ccd" else \
+            {"edge_retraction": retract_edge_lengths,
+             "corotational": corotational_update}.get(config.time.newton_update)
         self.wisp_length = vertex_wisp_length(scene.x_rest, scene.offsets)
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
         self.newton_increment = []      # per frame: the last step's relative increment
@@ -361,14 +365,16 @@ class Integrator:
     def update(self, x, step):
         """The next Newton iterate from x and the (scaled) step: x + step, or with
         ``time.newton_update = "edge_retraction"`` the same step with each free edge's
-        length set to its linearised value (:func:`retract_edge_lengths`).  With
+        length set to its linearised value (:func:`retract_edge_lengths`), with
+        ``"corotational"`` each edge also turned by its neighbourhood's rotation
+        (:func:`corotational_update`).  With
         ``physics.strand_contact_mode = "ccd"`` the update is linear: the limiter's
         per-vertex fractions of a retracted step stretch the edges it cuts (measured on
         six touching wisps: contact pairs grew 5x over 10 frames and 2 ranks left the
         serial trajectory, 3.7e-1 against 3.8e-11 with the linear update)."""
         with self.timers("update"):
-            if self.retract:
-                return retract_edge_lengths(x, step, self.free, self.scene.offsets, self.scene.mass)
+            if self.retract is not None:
+                return self.retract(x, step, self.free, self.scene.offsets, self.scene.mass)
             return x + step
 
     # -------------------------------------------------------------- Newton system
@@ -562,6 +568,24 @@ def retract_edge_lengths(x, dx, free, offsets, mass=None):
     x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
     Returns (nv, 3)."""
     return compiled.edge_lengths(x, dx, None, free, offsets, mass)
+
+
+def corotational_update(x, dx, free, offsets, mass=None):
+    """``time.newton_update = "corotational"``: like :func:`retract_edge_lengths` (each
+    free edge gets its first-order length |e| + eh . de, built from the root or the last
+    pinned vertex outwards), but each edge is first *turned* by the rotation w fitted to
+    the increments of the edges around it (itself and its two neighbours in the wisp:
+    least squares of w x e_k = de_k), R(w) e + (de - w x e), instead of moved to e + de.
+    A rigid rotation of a stretch of the wisp is then applied exactly, so the bend and
+    twist angles a linearised rotation of a coil distorts at second order (the slow mode
+    of the hairball's Newton, docs/newton.md "Sixth round") are kept.  Equal to x + dx to
+    second order in dx (Newton's rate and fixed points are kept).  On a wisp with no
+    pinned vertex the mass-weighted mean is that of x + dx (``mass`` given), so the step
+    changes its momentum as x + dx does.  Each wisp's result depends on that wisp alone.
+    Two compiled passes (:func:`lc_petsc.elements.compiled.corotate`).
+    x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
+    Returns (nv, 3)."""
+    return compiled.corotate(x, dx, free, offsets, mass)
 
 
 def _set_edge_lengths(x, length, free, offsets, mass=None):

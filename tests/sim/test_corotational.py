@@ -152,3 +152,21 @@ def test_convergence_rate_hairball_corotational():
     its = _iterations(cfg, EOA + "corotational", 4)
     assert max(its[1:]) <= 11, its
     assert _iterations(cfg, EOA + "edge_retraction", 2)[1] > 15
+
+
+def test_error_history_locates_the_slow_vertex():
+    """scripts/newton_errors.py's study on smash frame 0 (20 iterations to 1e-6 with the
+    edge retraction): the first iterate's error is the release's (> 1e-2 wisp lengths),
+    it falls to round-off by iteration 25, the last iterate is the reference (0), and
+    the profile is the wisp's per-vertex distance (cm)."""
+    from lc_petsc.studies.newton import error_history
+    cfg = load_config(ROOT / "configs" / "smash.toml")
+    cfg.solver.filter = "exact_or_analytic"
+    rows = error_history(cfg, COMM, 1, 30, wisp=0)
+    assert [r["iteration"] for r in rows] == list(range(-1, 30))
+    assert rows[0]["error"] > 1e-2 and rows[0]["increment"] is None
+    assert rows[26]["error"] < 1e-12 and rows[-1]["error"] == 0.0
+    assert all(0 <= r["vertex"] < len(r["profile"]) for r in rows)
+    # one wisp: its largest distance (cm) over the error is its length, in every row
+    lengths = [max(r["profile"]) / r["error"] for r in rows[:15]]
+    assert np.allclose(lengths, lengths[0], rtol=1e-12) and lengths[0] > 1.0

@@ -292,8 +292,8 @@ def degenerate_margins(cfg, comm, frames=10):
     out = {"bend_min_sin": np.inf, "twist_min_ratio": np.inf, "twist_exactly_degenerate": 0}
     update = it.update
 
-    def measured(x, step):
-        y = update(x, step)
+    def measured(x, step, exact=False):
+        y = update(x, step, exact)
         for name, t in sim.assembler.padded.items():
             X = t.positions(y)
             keep = (t.stiffness > 0) & it.free[t.index].any(axis=1)

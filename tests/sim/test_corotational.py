@@ -1,8 +1,8 @@
 """The corotational Newton update (``time.newton_update = "corotational"``: the exact
-steps of ``exact_or_analytic`` turned, docs/newton.md "Sixth round"): its definition,
-second-order agreement with x + dx, exact rigid rotations, momentum of a free wisp,
-degenerate (straight) wisps, and convergence-rate bounds on smash and a small hairball
-that the edge retraction fails."""
+steps of ``exact_or_analytic`` turned, docs/newton.md "Sixth round"): exact rigid
+rotations, momentum of a free wisp, degenerate (straight) wisps, and convergence-rate
+bounds on smash and a small hairball that the edge retraction fails.  Its definition and
+second-order agreement with x + dx: tests/sim/test_newton_convergence.py."""
 
 from pathlib import Path
 
@@ -12,71 +12,11 @@ from mpi4py import MPI
 from lc_petsc.config import load_config
 from lc_petsc.integrator import corotational_update, retract_edge_lengths
 from lc_petsc.studies.newton import configure, iterations_to, parse_variant, run_history
+from sim_helpers import chains as _chains
+from sim_helpers import rotate as _rotate
 
 COMM = MPI.COMM_WORLD
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _chains(rng):
-    off = np.array([0, 6, 11, 18])
-    x = np.cumsum(rng.normal(size=(18, 3)), axis=0)
-    free = np.ones(18, bool)
-    free[[0, 1, 6, 11, 14]] = False          # roots, and a pinned vertex inside wisp 2
-    return x, off, free
-
-
-def _rotate(w, e):
-    th = np.linalg.norm(w)
-    if th == 0.0:
-        return e.copy()
-    k = w / th
-    return e * np.cos(th) + np.cross(k, e) * np.sin(th) + k * (k @ e) * (1.0 - np.cos(th))
-
-
-def _sequential(x, dx, free, off):
-    """The definition, vertex by vertex: edge (v - 1, v) turned by the least-squares
-    rotation of the edges v - 2 .. v (same wisp), then given |e| + eh . de."""
-    out = x + dx
-    for w in range(len(off) - 1):
-        lo, hi = off[w], off[w + 1]
-        for v in range(lo + 1, hi):
-            if not free[v]:
-                continue
-            A, b = np.zeros((3, 3)), np.zeros(3)
-            for k in range(max(v - 2, lo), min(v + 1, hi - 1)):
-                e, de = x[k + 1] - x[k], dx[k + 1] - dx[k]
-                A += (e @ e) * np.eye(3) - np.outer(e, e)
-                b += np.cross(e, de)
-            A += 1e-10 * np.trace(A) * np.eye(3)
-            w_ = np.linalg.solve(A, b)
-            e, de = x[v] - x[v - 1], dx[v] - dx[v - 1]
-            new = _rotate(w_, e) + de - np.cross(w_, e)
-            L = np.linalg.norm(e)
-            out[v] = out[v - 1] + new / np.linalg.norm(new) * (L + e @ de / L)
-    return out
-
-
-def test_corotational_matches_its_definition_and_is_second_order():
-    rng = np.random.default_rng(1)
-    x, off, free = _chains(rng)
-    dx = 0.05 * rng.normal(size=x.shape)
-    dx[~free] = 0.0
-    got = corotational_update(x, dx, free, off)
-    assert np.abs(got - _sequential(x, dx, free, off)).max() < 1e-12
-    assert np.array_equal(got[~free], x[~free])
-    # first-order lengths of the edges that end at free vertices
-    e, de = np.diff(x, axis=0), np.diff(dx, axis=0)
-    L = np.linalg.norm(e, axis=1)
-    inner = np.ones(17, bool)
-    inner[off[1:-1] - 1] = False
-    ends_free = free[1:] & inner
-    assert np.allclose(np.linalg.norm(np.diff(got, axis=0), axis=1)[ends_free],
-                       (L + np.einsum("ij,ij->i", e, de) / L)[ends_free], rtol=1e-12)
-    # fixed point, and x + dx to second order (Newton's rate is kept)
-    assert np.array_equal(corotational_update(x, 0 * dx, free, off), x)
-    errs = [np.abs(corotational_update(x, h * dx, free, off) - (x + h * dx)).max()
-            for h in (1e-2, 5e-3)]
-    assert 3.6 < errs[0] / errs[1] < 4.4
 
 
 def test_corotational_turns_a_rigid_rotation_exactly():

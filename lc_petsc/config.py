@@ -273,8 +273,10 @@ class PhysicsConfig:
 
 #: Newton's first iterate: x_n + dt v_n, or that projected onto the rest edge lengths.
 INITIAL_GUESSES = ("inertial", "follow_the_leader")
-#: How a Newton step updates positions: x + dx, or with the edge lengths retracted.
-NEWTON_UPDATES = ("linear", "edge_retraction")
+#: How a Newton step updates positions: x + dx, with the edge lengths retracted, or so
+#: and with each edge of an exact step also turned by its neighbourhood's rotation
+#: (lc_petsc/integrator.py).
+NEWTON_UPDATES = ("linear", "edge_retraction", "corotational")
 #: time.newton: the Newton iteration's globalisation: filtered steps (solver.filter, the
 #: paper's), or a trust region on the exact Hessian (lc_petsc/trust_region.py)
 NEWTON_MODES = ("filtered", "trust_region")

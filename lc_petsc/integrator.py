@@ -12,7 +12,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
 * Update ``time.newton_update``: ``linear`` (x + alpha dx) or ``edge_retraction``
   (default; :func:`retract_edge_lengths`: a linearised rotation does not stretch the
   stiff edges, the oscillation that kept the paper's Newton from converging,
-  docs/newton.md).
+  docs/newton.md) or ``corotational`` (the same for filtered steps; the exact steps of
+  ``exact_or_analytic`` with each edge also turned by the rotation of its neighbourhood,
+  :func:`corotational_update`, so a linearised rotation of a coil does not distort its
+  bend and twist angles either).
 * Termination: ``newton_iterations`` steps (default 3, the paper) or, when a tolerance
   is set, as soon as the last step's largest vertex increment relative to its wisp's
   rest length is below ``newton_increment_tol`` (and/or the absolute one below
@@ -123,8 +126,10 @@ class Integrator:
         self.contact_deep_pairs = []
         self.contact_min_distance = []
         self.contact_separated = []
-        self.retract = config.time.newton_update == "edge_retraction" and \
-            config.physics.strand_contact_mode != "ccd"
+        # the update (x, step) -> next iterate; ccd mode: linear (see update)
+        ccd = config.physics.strand_contact_mode == "ccd"
+        self.retract = not ccd and config.time.newton_update in ("edge_retraction", "corotational")
+        self.turn_exact = not ccd and config.time.newton_update == "corotational"
         self.wisp_length = vertex_wisp_length(scene.x_rest, scene.offsets)
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
         self.newton_increment = []      # per frame: the last step's relative increment
@@ -280,7 +285,7 @@ class Integrator:
             dx = self._solve_step(g, it, may_fail=exact)
             alpha = 1.0
             if exact and dx is not None:
-                alpha = self._line_search(x, g, dx, EXACT_HALVINGS)
+                alpha = self._line_search(x, g, dx, EXACT_HALVINGS, exact=True)
             self._fallback = "" if dx is not None and alpha is not None else \
                 ("indefinite" if dx is None else "armijo")
             if dx is None or alpha is None:     # no exact Newton step: a filtered one
@@ -291,7 +296,7 @@ class Integrator:
                 alpha = 1.0
             if cfg.time.line_search and not exact:
                 alpha = self._line_search(x, g, dx, 20, give_up=False)
-            x_prev, x = x, self.update(x, alpha * dx)
+            x_prev, x = x, self.update(x, alpha * dx, exact)
             if self.strand is not None:         # ccd mode: per vertex, collision-free path
                 x = self.strand.limit_step(x_prev, x)
             increment, absolute = self.increments(x - x_prev)
@@ -358,15 +363,21 @@ class Integrator:
                 break
         return x, pairs, deep, dmin, n_sep
 
-    def update(self, x, step):
+    def update(self, x, step, exact=False):
         """The next Newton iterate from x and the (scaled) step: x + step, or with
         ``time.newton_update = "edge_retraction"`` the same step with each free edge's
-        length set to its linearised value (:func:`retract_edge_lengths`).  With
+        length set to its linearised value (:func:`retract_edge_lengths`); with
+        ``"corotational"`` the same, except that an ``exact`` step (of the exact Hessian,
+        ``solver.filter = "exact_or_analytic"``) has each edge also turned by its
+        neighbourhood's rotation (:func:`corotational_update`; turning filtered steps
+        too was measured worse, docs/newton.md "Sixth round").  With
         ``physics.strand_contact_mode = "ccd"`` the update is linear: the limiter's
         per-vertex fractions of a retracted step stretch the edges it cuts (measured on
         six touching wisps: contact pairs grew 5x over 10 frames and 2 ranks left the
         serial trajectory, 3.7e-1 against 3.8e-11 with the linear update)."""
         with self.timers("update"):
+            if exact and self.turn_exact:
+                return corotational_update(x, step, self.free, self.scene.offsets, self.scene.mass)
             if self.retract:
                 return retract_edge_lengths(x, step, self.free, self.scene.offsets, self.scene.mass)
             return x + step
@@ -440,9 +451,9 @@ class Integrator:
         :data:`EXACT_BELOW` (near the solution, where it is mostly positive definite)."""
         return self.cfg.solver.filter == "exact_or_analytic" and increment < EXACT_BELOW
 
-    def _line_search(self, x, g, dx, halvings, give_up=True):
-        """Armijo backtracking on G along update(x, alpha dx): alpha halves from 1 until
-        G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx.  After ``halvings``
+    def _line_search(self, x, g, dx, halvings, give_up=True, exact=False):
+        """Armijo backtracking on G along update(x, alpha dx, exact): alpha halves from 1
+        until G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx.  After ``halvings``
         halvings, or for an ascent direction, returns None (``give_up``) or the last
         alpha.  Collective; the alphas are recorded."""
         slope = self.comm.allreduce(float(np.sum(g * dx)))
@@ -451,7 +462,7 @@ class Integrator:
         G0 = self.incremental_potential(x)
         alpha = 1.0
         for _ in range(halvings):
-            if self.incremental_potential(self.update(x, alpha * dx)) <= G0 + 1e-4 * alpha * slope:
+            if self.incremental_potential(self.update(x, alpha * dx, exact)) <= G0 + 1e-4 * alpha * slope:
                 break
             alpha *= 0.5
         else:
@@ -571,6 +582,25 @@ def retract_edge_lengths(x, dx, free, offsets, mass=None):
     x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
     Returns (nv, 3)."""
     return compiled.edge_lengths(x, dx, None, free, offsets, mass)
+
+
+def corotational_update(x, dx, free, offsets, mass=None):
+    """``time.newton_update = "corotational"``, the update of the exact steps: like
+    :func:`retract_edge_lengths` (each
+    free edge gets its first-order length |e| + eh . de, built from the root or the last
+    pinned vertex outwards), but each edge is first *turned* by the rotation w fitted to
+    the increments of the edges around it (itself and its two neighbours in the wisp:
+    least squares of w x e_k = de_k), R(w) e + (de - w x e), instead of moved to e + de.
+    A rigid rotation of a stretch of the wisp is then applied exactly, so the bend and
+    twist angles a linearised rotation of a coil distorts at second order (the slow mode
+    of the hairball's Newton, docs/newton.md "Sixth round") are kept.  Equal to x + dx to
+    second order in dx (Newton's rate and fixed points are kept).  On a wisp with no
+    pinned vertex the mass-weighted mean is that of x + dx (``mass`` given), so the step
+    changes its momentum as x + dx does.  Each wisp's result depends on that wisp alone.
+    Two compiled passes (:func:`lc_petsc.elements.compiled.corotate`).
+    x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
+    Returns (nv, 3)."""
+    return compiled.corotate(x, dx, free, offsets, mass)
 
 
 def _set_edge_lengths(x, length, free, offsets, mass=None):

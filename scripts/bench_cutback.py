@@ -3,9 +3,10 @@ frames converged to the tolerance, Newton iterations per frame (every attempt, t
 cost) and per backward-Euler solve kept, frames cut back, CPU s per frame.
 
   .venv/bin/python scripts/bench_cutback.py [--scenes hairball10 smash] [--frames 30]
-      [--tol 1e-6] [--wisps 10] [--setting NAME=CAP,SUBSTEPS[,DT[,NEWTON]]] [--out out/cutback]
+      [--tol 1e-6] [--wisps 10] [--setting NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE]]]] [--out out/cutback]
 
-Every setting: ``solver.filter = "exact_or_analytic"``, the edge retraction, the
+Every setting: ``solver.filter = "exact_or_analytic"``, the edge retraction (or
+UPDATE: ``time.newton_update``, e.g. ``corotational``, docs/newton.md sixth round), the
 tolerance ``time.newton_increment_tol``; CAP is ``time.newton_iterations``, SUBSTEPS
 ``time.max_substeps`` (1: no cutback), DT the step (default the scene's; empty: the
 scene's), NEWTON ``time.newton`` (``trust_region``: with ``solver.filter = "analytic"``
@@ -38,11 +39,11 @@ DEFAULT_SETTINGS = ["cap 30, no cutback=30,1", "cap 6, cutback=6,8", "cap 10, cu
                     "cap 15, cutback=15,8", "dt 1/120, cap 30, no cutback=30,1,0.008333333333333333"]
 
 
-def run(base, cap, substeps, dt, frames, tol, comm, newton=None):
+def run(base, cap, substeps, dt, frames, tol, comm, newton=None, update="edge_retraction"):
     """One setting: the summary figures (dict)."""
     cfg = copy.deepcopy(base)
     cfg.solver.filter = "exact_or_analytic"
-    cfg.time.newton_update = "edge_retraction"
+    cfg.time.newton_update = update
     cfg.time.newton_increment_tol = tol
     cfg.time.newton_tol = None
     cfg.time.newton_iterations = cap
@@ -86,7 +87,7 @@ def main(argv=None):
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--tol", type=float, default=1e-6)
     p.add_argument("--wisps", type=int, default=10, help="wisps of hairball10 / demo10 (default 10)")
-    p.add_argument("--setting", action="append", help="NAME=CAP,SUBSTEPS[,DT] (repeatable)")
+    p.add_argument("--setting", action="append", help="NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE]]] (repeatable)")
     p.add_argument("--out", default="out/cutback")
     a = p.parse_args(argv)
     comm = MPI.COMM_WORLD
@@ -96,12 +97,13 @@ def main(argv=None):
         for spec in a.setting or DEFAULT_SETTINGS:
             label, _, vals = spec.rpartition("=")
             parts = vals.split(",")
-            if len(parts) not in (2, 3, 4):
-                raise SystemExit(f"--setting {spec!r}: use NAME=CAP,SUBSTEPS[,DT[,NEWTON]]")
+            if len(parts) not in (2, 3, 4, 5):
+                raise SystemExit(f"--setting {spec!r}: use NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE]]]")
             cap, substeps = int(parts[0]), int(parts[1])
             dt = float(parts[2]) if len(parts) >= 3 and parts[2] else None
-            newton = parts[3] if len(parts) == 4 else None
-            r = run(base, cap, substeps, dt, a.frames, a.tol, comm, newton)
+            newton = parts[3] if len(parts) >= 4 and parts[3] else None
+            update = parts[4] if len(parts) == 5 else "edge_retraction"
+            r = run(base, cap, substeps, dt, a.frames, a.tol, comm, newton, update)
             rows.append({"scene": Path(name).stem, "setting": label, **r})
             if comm.rank == 0:
                 print(f"  {rows[-1]}", flush=True)

@@ -6,7 +6,7 @@ smash, variants side by side (docs/newton.md).
       [--out out/newton]
 
 SPEC: comma-separated key=value: filter=analytic|numerical|none|abs|exact_or_analytic,
-update=linear|edge_retraction, guess=inertial|follow_the_leader, ls=0|1 (line search),
+update=linear|edge_retraction|corotational, guess=inertial|follow_the_leader, ls=0|1 (line search),
 terms=stretch+gravity, head=0 (no head contact), strands=0, options=-ksp_type gmres.
 hairball10 is configs/hairball_demo.toml cut to 10 wisps (--wisps) without strand
 contact (head contact and the shaking head kept), demo10 the same with strand contact;

@@ -121,3 +121,22 @@ def shared_scene_dir(comm, prefix, scene_text):
         comm.Barrier()
         if comm.rank == 0:
             shutil.rmtree(d, ignore_errors=True)
+
+
+def chains(rng):
+    """Three random polylines (18 vertices, offsets 0 6 11 18) with pinned roots and a
+    pinned vertex inside the last one: (x, offsets, free), for the Newton updates' tests."""
+    off = np.array([0, 6, 11, 18])
+    x = np.cumsum(rng.normal(size=(18, 3)), axis=0)
+    free = np.ones(18, bool)
+    free[[0, 1, 6, 11, 14]] = False          # roots, and a pinned vertex inside wisp 2
+    return x, off, free
+
+
+def rotate(w, e):
+    """e (3,) rotated by the rotation vector w (3,) (Rodrigues)."""
+    th = np.linalg.norm(w)
+    if th == 0.0:
+        return e.copy()
+    k = w / th
+    return e * np.cos(th) + np.cross(k, e) * np.sin(th) + k * (k @ e) * (1.0 - np.cos(th))

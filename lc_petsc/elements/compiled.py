@@ -824,27 +824,146 @@ def _edge_lengths(x, dx, length, free, offsets, mass, retract, out):
         out[v, 2] += out[v, 5]
 
 
+def _chain_arrays(name, x, dx, offsets):
+    """x, dx (nv, 3) float64 and offsets (n_wisps + 1,) int64, contiguous, checked
+    (ValueError naming ``name`` and what is wrong)."""
+    x = np.ascontiguousarray(x, np.float64)
+    dx = np.ascontiguousarray(dx, np.float64)
+    offsets = np.ascontiguousarray(offsets, np.int64)
+    nv = len(x)
+    if dx.shape != x.shape or x.ndim != 2 or x.shape[1:] != (3,):
+        raise ValueError(f"{name}: x and dx must be (nv, 3), got {x.shape} and {dx.shape}")
+    if len(offsets) < 1 or offsets[0] != 0 or offsets[-1] != nv or np.any(np.diff(offsets) < 0):
+        raise ValueError(f"{name}: wisp offsets must rise from 0 to {nv}")
+    return x, dx, offsets
+
+
 def edge_lengths(x, dx, length, free, offsets, mass):
     """The positions of :func:`lc_petsc.integrator._set_edge_lengths` (``dx`` None: x
     with edge lengths ``length`` (nv - 1,)) or of
     :func:`lc_petsc.integrator.retract_edge_lengths` (``length`` None: x + dx with the
     linearised lengths), in one compiled pass over each wisp.  x, dx (nv, 3), free (nv,)
     bool, offsets (n_wisps + 1,) covering 0..nv, mass (nv,) or None.  Returns (nv, 3)."""
-    x = np.ascontiguousarray(x, np.float64)
-    nv = len(x)
     retract = dx is not None
-    dx = np.ascontiguousarray(dx, np.float64) if retract else x
+    x, dx, offsets = _chain_arrays("edge lengths", x, dx if retract else x, offsets)
+    nv = len(x)
     length = np.zeros(0) if retract else np.ascontiguousarray(length, np.float64)
-    offsets = np.ascontiguousarray(offsets, np.int64)
-    if dx.shape != x.shape or x.ndim != 2 or x.shape[1:] != (3,):
-        raise ValueError(f"edge lengths: x and dx must be (nv, 3), got {x.shape} and {dx.shape}")
-    if len(offsets) < 1 or offsets[0] != 0 or offsets[-1] != nv or np.any(np.diff(offsets) < 0):
-        raise ValueError(f"edge lengths: wisp offsets must rise from 0 to {nv}")
     if not retract and len(length) != max(nv - 1, 0):
         raise ValueError(f"edge lengths: {len(length)} lengths for {nv} vertices, need {nv - 1}")
     mass = np.zeros(0) if mass is None else np.ascontiguousarray(mass, np.float64)
     out = np.empty((nv, 6))     # (correction, x (+ dx)) per vertex, then the result
     _edge_lengths(x, dx, length, np.ascontiguousarray(free, np.bool_), offsets, mass, retract, out)
+    return out[:, :3].copy()
+
+
+#: corotate: the rotation fit's regularisation, relative to the trace of its normal matrix
+#: (only a neighbourhood of collinear edges needs it: the rotation about their common
+#: line is then free, and it does not move them)
+COROTATE_EPS = 1e-10
+
+
+@_jit
+def _corotate(x, dx, free, offsets, mass, y, length):
+    """y = x + dx with every edge e ending at a free vertex turned by the rotation w fitted
+    to the increments de of the edges around it, and ``length`` (nv - 1,) = |e| + eh . de,
+    the first-order lengths (integrator.corotational_update; the lengths are set by
+    :func:`_edge_lengths` afterwards).
+
+    Edge j = (v - 1, v): w minimises sum_k |w x e_k - de_k|^2 over the edges k = j - 1,
+    j, j + 1 of the same wisp, i.e. (sum_k |e_k|^2 I - e_k e_k^T) w = sum_k e_k x de_k
+    (+ COROTATE_EPS trace I); the new edge is R(w) e + (de - w x e) (Rodrigues), equal to
+    e + de to first order and exactly R(w) e for a rigid rotation (de_k = w x e_k).  The
+    positions are accumulated from the root (or the last pinned vertex), whose x + dx is
+    kept; on a wisp with no pinned vertex (``mass`` non-empty) y is shifted so that its
+    mass-weighted mean is that of x + dx."""
+    for w in range(offsets.shape[0] - 1):
+        lo, hi = offsets[w], offsets[w + 1]
+        pinned = False
+        for v in range(lo, hi):
+            if v == lo or not free[v]:
+                pinned = pinned or not free[v]
+                for c in range(3):
+                    y[v, c] = x[v, c] + dx[v, c]
+                if v > lo:
+                    length[v - 1] = 0.0
+                continue
+            a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+            b0 = b1 = b2 = 0.0
+            for k in range(max(v - 2, lo), min(v + 1, hi - 1)):     # edges (k, k + 1)
+                e0, e1, e2 = x[k + 1, 0] - x[k, 0], x[k + 1, 1] - x[k, 1], x[k + 1, 2] - x[k, 2]
+                d0, d1, d2 = dx[k + 1, 0] - dx[k, 0], dx[k + 1, 1] - dx[k, 1], dx[k + 1, 2] - dx[k, 2]
+                ee = e0 * e0 + e1 * e1 + e2 * e2
+                a00 += ee - e0 * e0
+                a11 += ee - e1 * e1
+                a22 += ee - e2 * e2
+                a01 -= e0 * e1
+                a02 -= e0 * e2
+                a12 -= e1 * e2
+                b0 += e1 * d2 - e2 * d1
+                b1 += e2 * d0 - e0 * d2
+                b2 += e0 * d1 - e1 * d0
+            reg = COROTATE_EPS * (a00 + a11 + a22)
+            a00 += reg
+            a11 += reg
+            a22 += reg
+            c00 = a11 * a22 - a12 * a12
+            c01 = a02 * a12 - a01 * a22
+            c02 = a01 * a12 - a02 * a11
+            c11 = a00 * a22 - a02 * a02
+            c12 = a01 * a02 - a00 * a12
+            c22 = a00 * a11 - a01 * a01
+            det = a00 * c00 + a01 * c01 + a02 * c02
+            w0 = w1 = w2 = 0.0
+            if det > 0.0:
+                w0 = (c00 * b0 + c01 * b1 + c02 * b2) / det
+                w1 = (c01 * b0 + c11 * b1 + c12 * b2) / det
+                w2 = (c02 * b0 + c12 * b1 + c22 * b2) / det
+            e0, e1, e2 = x[v, 0] - x[v - 1, 0], x[v, 1] - x[v - 1, 1], x[v, 2] - x[v - 1, 2]
+            d0, d1, d2 = dx[v, 0] - dx[v - 1, 0], dx[v, 1] - dx[v - 1, 1], dx[v, 2] - dx[v - 1, 2]
+            L = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+            length[v - 1] = L + (e0 * d0 + e1 * d1 + e2 * d2) / L if L > 0.0 else 0.0
+            # w x e, and R(w) e = e + s (k x e) + (1 - c) k x (k x e), k = w / |w|
+            x0, x1, x2 = w1 * e2 - w2 * e1, w2 * e0 - w0 * e2, w0 * e1 - w1 * e0
+            xx0, xx1, xx2 = w1 * x2 - w2 * x1, w2 * x0 - w0 * x2, w0 * x1 - w1 * x0
+            th2 = w0 * w0 + w1 * w1 + w2 * w2
+            if th2 > 1e-16:
+                th = math.sqrt(th2)
+                fs, fc = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+            else:
+                fs, fc = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+            y[v, 0] = y[v - 1, 0] + e0 + (fs - 1.0) * x0 + fc * xx0 + d0
+            y[v, 1] = y[v - 1, 1] + e1 + (fs - 1.0) * x1 + fc * xx1 + d1
+            y[v, 2] = y[v - 1, 2] + e2 + (fs - 1.0) * x2 + fc * xx2 + d2
+        if not pinned and mass.shape[0] > 0:
+            m = s0 = s1 = s2 = 0.0
+            for v in range(lo, hi):
+                m += mass[v]
+                s0 += mass[v] * (x[v, 0] + dx[v, 0] - y[v, 0])
+                s1 += mass[v] * (x[v, 1] + dx[v, 1] - y[v, 1])
+                s2 += mass[v] * (x[v, 2] + dx[v, 2] - y[v, 2])
+            if not m > 0.0:
+                m = 1.0
+            for v in range(lo, hi):
+                y[v, 0] += s0 / m
+                y[v, 1] += s1 / m
+                y[v, 2] += s2 / m
+
+
+def corotate(x, dx, free, offsets, mass):
+    """The positions of :func:`lc_petsc.integrator.corotational_update`: x + dx with each
+    free edge turned by the rotation fitted to its neighbourhood's increments and given
+    its first-order length (:func:`_corotate`, then :func:`_edge_lengths`), in two
+    compiled passes over each wisp.  x, dx (nv, 3), free (nv,) bool, offsets
+    (n_wisps + 1,) covering 0..nv, mass (nv,) or None.  Returns (nv, 3)."""
+    x, dx, offsets = _chain_arrays("corotate", x, dx, offsets)
+    nv = len(x)
+    free = np.ascontiguousarray(free, np.bool_)
+    mass = np.zeros(0) if mass is None else np.ascontiguousarray(mass, np.float64)
+    y = np.empty((nv, 3))
+    length = np.zeros(max(nv - 1, 0))
+    _corotate(x, dx, free, offsets, mass, y, length)
+    out = np.empty((nv, 6))
+    _edge_lengths(y, y, length, free, offsets, mass, False, out)
     return out[:, :3].copy()
 
 
@@ -864,4 +983,5 @@ def warm_up():
     off = np.array([0, 4])
     edge_lengths(x, g, None, np.ones(4, bool), off, np.ones(4))
     edge_lengths(x, None, np.ones(3), np.ones(4, bool), off, None)
+    corotate(x, g, np.ones(4, bool), off, np.ones(4))
     return time.perf_counter() - t0

@@ -292,8 +292,8 @@ def degenerate_margins(cfg, comm, frames=10):
     out = {"bend_min_sin": np.inf, "twist_min_ratio": np.inf, "twist_exactly_degenerate": 0}
     update = it.update
 
-    def measured(x, step):
-        y = update(x, step)
+    def measured(x, step, exact=False):
+        y = update(x, step, exact)
         for name, t in sim.assembler.padded.items():
             X = t.positions(y)
             keep = (t.stiffness > 0) & it.free[t.index].any(axis=1)
@@ -318,3 +318,52 @@ def degenerate_margins(cfg, comm, frames=10):
     finally:
         sim.close()
     return out
+
+
+# ------------------------------------------------------------------ error to the solution
+def error_history(cfg, comm, frames, iterations=40, wisp=None):
+    """Per frame and Newton iteration (``iterations``, no tolerance): the largest distance
+    of the iterate to the frame's last iterate (the converged solution when the frame
+    converges within ``iterations``: check that the last rows' increments are at
+    round-off) relative to the wisp length, and where it sits: the vertex's wisp, its
+    index along the wisp and its distance to the head sphere (cm).  With ``wisp`` (a
+    wisp index of this rank), also that wisp's per-vertex distances in cm (``profile``).
+    Serial only (the iterates are compared vertex by vertex on one rank).  Rows (dicts),
+    frame and iteration 0-based; iteration -1 is the first iterate."""
+    if comm.size != 1:
+        raise ValueError("error_history runs on one rank")
+    sim = build_simulator(configure(cfg, {}, iterations, frames), comm)
+    it = sim.integrator
+    it.history = hist = []
+    iterates = []
+    record = it._record_iteration
+
+    def keep(k, x_old, x_new, *args):
+        if k == 0:
+            iterates.append(x_old.copy())
+        iterates.append(x_new.copy())
+        return record(k, x_old, x_new, *args)
+
+    it._record_iteration = keep
+    off = np.asarray(sim.scene.offsets)
+    owner = np.searchsorted(off, np.arange(sim.scene.nv), side="right") - 1
+    rows = []
+    try:
+        for f in range(frames):
+            iterates.clear()
+            sim.step()
+            c, R = sim.head.sphere_center(it.t), sim.head.radius
+            x_end = iterates[-1]
+            incs = [r["increment"] for r in hist if r["frame"] == f]
+            for k, x in enumerate(iterates):
+                d = np.linalg.norm(x - x_end, axis=1)
+                v = int(np.argmax(d / it.wisp_length))
+                row = {"frame": f, "iteration": k - 1, "error": float(d[v] / it.wisp_length[v]),
+                       "increment": incs[k - 1] if k > 0 else None, "wisp": int(owner[v]),
+                       "vertex": int(v - off[owner[v]]), "head_distance": float(np.linalg.norm(x[v] - c) - R)}
+                if wisp is not None:
+                    row["profile"] = d[off[wisp]:off[wisp + 1]].tolist()
+                rows.append(row)
+    finally:
+        sim.close()
+    return rows

@@ -111,6 +111,13 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
                          for t in (1e-3, 1e-6) for m in ("trust_region", "filtered")]
         + [(f"trust_region N={n}", replace(base, newton="trust_region", newton_iterations=n))
            for n in (2, 3, 4)],
+        # the corotational update of the exact steps against the edge retraction
+        # (docs/newton.md, sixth round); at a fixed count (filtered steps) it is the base
+        "corotational": [("corotational N=3", replace(base, newton_update="corotational"))]
+        + [(f"exact_or_analytic {u} inc<{t:g}",
+            replace(base, filter="exact_or_analytic", newton_update=u, newton_iterations=30,
+                    newton_increment_tol=t))
+           for u in ("corotational", "edge_retraction") for t in (1e-3, 1e-6)],
     }
     for a in (axes or ax):
         for name, s in ax[a]:

@@ -9,19 +9,14 @@ from mpi4py import MPI
 
 from lc_petsc.config import (ConfigError, MaterialConfig, PhysicsConfig, SceneConfig,
                              SimConfig, SolverConfig, TimeConfig)
-from lc_petsc.integrator import follow_the_leader, project_rest_lengths, retract_edge_lengths
+from lc_petsc.integrator import (corotational_update, follow_the_leader, project_rest_lengths,
+                                 retract_edge_lengths)
 from lc_petsc.simulator import build_simulator
 from lc_petsc.studies.newton import iterations_to, run_history
+from sim_helpers import chains as _chains
+from sim_helpers import rotate as _rotate
 
 COMM = MPI.COMM_WORLD
-
-
-def _chains(rng):
-    off = np.array([0, 6, 11, 18])
-    x = np.cumsum(rng.normal(size=(18, 3)), axis=0)
-    free = np.ones(18, bool)
-    free[[0, 1, 6, 11, 14]] = False          # roots, and a pinned vertex inside wisp 2
-    return x, off, free
 
 
 def _sequential_retraction(x, dx, free, off):
@@ -36,13 +31,41 @@ def _sequential_retraction(x, dx, free, off):
     return out
 
 
-def test_retraction_matches_its_definition_and_is_second_order():
+def _sequential_corotational(x, dx, free, off):
+    """The definition, vertex by vertex: edge (v - 1, v) turned by the least-squares
+    rotation of the edges v - 2 .. v (same wisp), then given |e| + eh . de."""
+    out = x + dx
+    for w in range(len(off) - 1):
+        lo, hi = off[w], off[w + 1]
+        for v in range(lo + 1, hi):
+            if not free[v]:
+                continue
+            A, b = np.zeros((3, 3)), np.zeros(3)
+            for k in range(max(v - 2, lo), min(v + 1, hi - 1)):
+                e, de = x[k + 1] - x[k], dx[k + 1] - dx[k]
+                A += (e @ e) * np.eye(3) - np.outer(e, e)
+                b += np.cross(e, de)
+            A += 1e-10 * np.trace(A) * np.eye(3)
+            w_ = np.linalg.solve(A, b)
+            e, de = x[v] - x[v - 1], dx[v] - dx[v - 1]
+            new = _rotate(w_, e) + de - np.cross(w_, e)
+            L = np.linalg.norm(e)
+            out[v] = out[v - 1] + new / np.linalg.norm(new) * (L + e @ de / L)
+    return out
+
+
+DEFINITIONS = {"retraction": _sequential_retraction, "corotational": _sequential_corotational}
+
+
+@pytest.mark.parametrize("update, definition", [(retract_edge_lengths, "retraction"),
+                                                (corotational_update, "corotational")])
+def test_update_matches_its_definition_and_is_second_order(update, definition):
     rng = np.random.default_rng(1)
     x, off, free = _chains(rng)
     dx = 0.05 * rng.normal(size=x.shape)
     dx[~free] = 0.0
-    got = retract_edge_lengths(x, dx, free, off)
-    assert np.abs(got - _sequential_retraction(x, dx, free, off)).max() < 1e-12
+    got = update(x, dx, free, off)
+    assert np.abs(got - DEFINITIONS[definition](x, dx, free, off)).max() < 1e-12
     assert np.array_equal(got[~free], x[~free])
     # first-order edge lengths, for edges ending at free vertices
     e, de = np.diff(x, axis=0), np.diff(dx, axis=0)
@@ -54,8 +77,8 @@ def test_retraction_matches_its_definition_and_is_second_order():
     assert np.allclose(np.linalg.norm(np.diff(got, axis=0), axis=1)[ends_free], want[ends_free],
                        rtol=1e-12)
     # fixed point, and agreement with x + dx to second order in dx
-    assert np.array_equal(retract_edge_lengths(x, 0 * dx, free, off), x)
-    errs = [np.abs(retract_edge_lengths(x, h * dx, free, off) - (x + h * dx)).max()
+    assert np.array_equal(update(x, 0 * dx, free, off), x)
+    errs = [np.abs(update(x, h * dx, free, off) - (x + h * dx)).max()
             for h in (1e-2, 5e-3)]
     assert 3.6 < errs[0] / errs[1] < 4.4
 

@@ -126,8 +126,9 @@ class Integrator:
         self.contact_deep_pairs = []
         self.contact_min_distance = []
         self.contact_separated = []
-        # the update (x, step) -> next iterate; ccd mode: linear (see update)
-        ccd = config.physics.strand_contact_mode == "ccd"
+        # the update (x, step) -> next iterate; ccd mode: linear (see update); the mode
+        # means nothing without strand contact (a ccd scene with strand_collision dropped)
+        ccd = strand is not None and config.physics.strand_contact_mode == "ccd"
         self.retract = not ccd and config.time.newton_update in ("edge_retraction", "corotational")
         self.turn_exact = not ccd and config.time.newton_update == "corotational"
         self.wisp_length = vertex_wisp_length(scene.x_rest, scene.offsets)

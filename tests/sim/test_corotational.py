@@ -111,3 +111,27 @@ def test_error_history_locates_the_slow_vertex():
     # one wisp: its largest distance (cm) over the error is its length, in every row
     lengths = [max(r["profile"]) / r["error"] for r in rows[:15]]
     assert np.allclose(lengths, lengths[0], rtol=1e-12) and lengths[0] > 1.0
+
+
+def test_ccd_mode_without_strand_contact_keeps_the_configured_update():
+    """ccd forces the linear update only where the limiter runs: a ccd scene with
+    strand_collision dropped (the shipped demo's mode, contact off) keeps its
+    corotational update (the merge that made ccd the demo's default forced linear here,
+    and this scene's Newton then never converged: 31 iterations at the cap)."""
+    from lc_petsc.simulator import build_simulator
+    cfg = load_config(ROOT / "configs" / "hairball_demo.toml")
+    assert cfg.physics.strand_contact_mode == "ccd"
+    cfg.scene.n_wisps = 2
+    cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
+    cfg.time.newton_update = "corotational"
+    sim = build_simulator(cfg, comm=COMM)
+    try:
+        assert sim.integrator.retract and sim.integrator.turn_exact
+    finally:
+        sim.close()
+    cfg.physics.terms = cfg.physics.terms + ("strand_collision",)
+    sim = build_simulator(cfg, comm=COMM)
+    try:
+        assert not sim.integrator.retract and not sim.integrator.turn_exact
+    finally:
+        sim.close()

@@ -62,6 +62,10 @@ MIN_CAPTURED = 0.9
 ORDERING = "qmd"
 #: the orderings ``-lc_cluster_ordering`` accepts (the first is the default)
 ORDERINGS = (ORDERING, "rcm", "nd")
+#: ``-lc_cluster_span`` default: clusters over the global contact graph (across ranks)
+SPAN = "global"
+#: the values ``-lc_cluster_span`` accepts (the first is the default)
+SPANS = (SPAN, "rank")
 
 
 def block_rows(M, rows=None):
@@ -86,18 +90,21 @@ def local_block(M):
     return M if M.getComm().getSize() == 1 else M.getDiagonalBlock()
 
 
-def wisp_couplings(rows, cols, blocks, vertex_wisp):
-    """Coupled wisp pairs of the blocks (``rows``, ``cols``: vertices (k,); ``blocks``
-    (k, 3, 3)) of a cross-block matrix: (pairs (m, 2) with a < b, weights (m,) the summed
-    Frobenius norms of their blocks, counts (m,) their blocks), pairs sorted by (a, b)."""
-    a, b = vertex_wisp[rows], vertex_wisp[cols]
-    keep = a < b                            # each coupling once (C is symmetric)
-    n = int(vertex_wisp.max(initial=-1)) + 1
+def wisp_couplings(row_wisp, col_wisp, blocks, n_wisps):
+    """Coupled wisp pairs of the blocks of a cross-block matrix (``row_wisp``,
+    ``col_wisp``: the wisps (k,) of each block's row and column vertex, in
+    ``range(n_wisps)``; ``blocks`` (k, 3, 3)): (pairs (m, 2) with a < b, weights (m,) the
+    summed Frobenius norms of their blocks in the order given, counts (m,) their
+    blocks), pairs sorted by (a, b).  Only the blocks with ``row_wisp < col_wisp`` count
+    (C is symmetric: each coupling once, from the rows of its smaller wisp)."""
+    a, b = np.asarray(row_wisp, np.int64), np.asarray(col_wisp, np.int64)
+    keep = a < b
+    n = max(int(n_wisps), 1)
     key, inverse, count = np.unique(a[keep] * n + b[keep], return_inverse=True,
                                     return_counts=True)
     weight = np.bincount(inverse, weights=np.linalg.norm(blocks[keep], axis=(1, 2)),
                          minlength=len(key))
-    return np.stack([key // max(n, 1), key % max(n, 1)], axis=1), weight, count
+    return np.stack([key // n, key % n], axis=1), weight, count
 
 
 def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blocks=MAX_BLOCKS):
@@ -136,18 +143,57 @@ def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blo
     return smallest[roots]
 
 
+def local_rows(M):
+    """This rank's rows of ``M`` with global column numbers: a sequential matrix (``M``
+    itself when sequential; else a copy the caller destroys)."""
+    if M.getComm().getSize() == 1:
+        return M
+    r0, r1 = M.getOwnershipRange()
+    rows = PETSc.IS().createStride(r1 - r0, r0, 1, comm=PETSc.COMM_SELF)
+    cols = PETSc.IS().createStride(M.getSize()[1], 0, 1, comm=PETSc.COMM_SELF)
+    try:
+        return M.createSubMatrices(rows, cols)[0]
+    finally:
+        rows.destroy()
+        cols.destroy()
+
+
+class GlobalLayout:
+    """The global wisps behind a matrix whose ranks own contiguous ranges of whole wisps
+    (lc_petsc/parallel.py): ``comm`` (mpi4py), ``n_wisps``, ``sizes`` (vertices per
+    wisp), ``offsets`` (first vertex of each, and the total), ``wisp_rank`` (owner),
+    ``vertex_wisp`` (wisp of every global vertex), ``first_wisp`` (this rank's first).
+    ``local_sizes``: the vertices of this rank's wisps (collective)."""
+
+    def __init__(self, M, local_sizes):
+        self.comm = M.getComm().tompi4py()
+        per_rank = self.comm.allgather(np.asarray(local_sizes, np.int64))
+        self.sizes = np.concatenate(per_rank)
+        self.n_wisps = len(self.sizes)
+        self.offsets = np.concatenate([[0], np.cumsum(self.sizes)])
+        self.wisp_rank = np.repeat(np.arange(len(per_rank)), [len(p) for p in per_rank])
+        self.vertex_wisp = np.repeat(np.arange(self.n_wisps), self.sizes)
+        self.first_wisp = sum(len(p) for p in per_rank[:self.comm.rank])
+        if 3 * self.offsets[self.first_wisp] != M.getOwnershipRange()[0]:
+            raise ValueError("the cluster preconditioner needs every rank's rows to be its "
+                             "wisps' vertices, numbered contiguously rank after rank")
+
+
 class ClusterPC:
     """``PCPYTHON`` context of the cluster preconditioner (see the module doc).
 
     ``wisp_rows``: matrix rows (3 x vertices) of each local wisp, in order;
     ``max_wisps``, ``max_blocks``: the cluster caps; ``min_captured``: the fallback's
-    threshold.  After each set-up, ``stats`` holds the clusters' figures (clusters,
-    wisps in clusters, largest cluster, cluster rows, factor over matrix entries, coupled
-    wisp pairs, those left out, share of the coupling weight held, fallback taken) and
-    ``history`` keeps them per set-up."""
+    threshold; ``ordering``: the clusters' LU ordering; ``span``: ``global`` (clusters
+    over the global contact graph, a cluster may hold wisps of several ranks) or
+    ``rank`` (only couplings between two wisps of one rank).  After each set-up,
+    ``stats`` holds the clusters' figures (this rank's: clusters it factors, their wisps,
+    largest, cluster rows, factor over matrix entries; global: coupled wisp pairs, those
+    left out, share of the coupling weight held, fallback taken, pairs and weight share
+    across ranks, clusters spanning ranks) and ``history`` keeps them per set-up."""
 
     def __init__(self, wisp_rows, max_wisps=MAX_WISPS, max_blocks=MAX_BLOCKS,
-                 min_captured=MIN_CAPTURED, ordering=ORDERING):
+                 min_captured=MIN_CAPTURED, ordering=ORDERING, span=SPAN):
         sizes = np.asarray(wisp_rows, np.int64) // 3
         self.vertex_wisp = np.repeat(np.arange(len(sizes)), sizes)
         self.offsets = np.concatenate([[0], np.cumsum(sizes)])
@@ -155,10 +201,13 @@ class ClusterPC:
         self.min_captured = float(min_captured)
         if ordering not in ORDERINGS:
             raise ValueError(f"cluster LU ordering {ordering!r}: use one of {', '.join(ORDERINGS)}")
-        self.ordering = ordering
-        self.band = self.cluster = self.cluster_mat = None
+        if span not in SPANS:
+            raise ValueError(f"cluster span {span!r}: use one of {', '.join(SPANS)}")
+        self.ordering, self.span = ordering, span
+        self.band = self.cluster = self.cluster_mat = self.scatter = None
         self.dofs = np.zeros(0, np.int64)
         self._x = self._y = self._cx = self._cy = None
+        self.layout: GlobalLayout | None = None
         self.stats: dict = {}
         self.history: list[dict] = []
 
@@ -179,23 +228,48 @@ class ClusterPC:
         if self._x is None or self._x.getSize() != n:
             self._x = PETSc.Vec().createWithArray(np.zeros(n), comm=PETSc.COMM_SELF)
             self._y = PETSc.Vec().createWithArray(np.zeros(n), comm=PETSc.COMM_SELF)
-        self._setup_clusters(A_loc, None if C is None else local_block(C))
+        if self.layout is None:
+            self.layout = GlobalLayout(A, np.diff(self.offsets))
+        self._setup_clusters(A, C)
         self.history.append(dict(self.stats))
 
-    def _setup_clusters(self, A_loc, C_loc):
+    def _couplings(self, C):
+        """The global coupled wisp pairs, weights and block counts of C (every rank gets
+        all of them, in (a, b) order: each pair comes from the rows of its smaller wisp)."""
+        lay = self.layout
+        rows = local_rows(C)
+        try:
+            rc, cc, vc = block_rows(rows)
+        finally:
+            if rows is not C:
+                rows.destroy()
+        found = wisp_couplings(lay.first_wisp + self.vertex_wisp[rc], lay.vertex_wisp[cc], vc,
+                               lay.n_wisps)
+        if lay.comm.size == 1:
+            return found
+        parts = lay.comm.allgather(found)
+        return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))
+
+    def _setup_clusters(self, A, C):
         self._destroy_cluster()
-        n_w = len(self.offsets) - 1
+        lay = self.layout
         stats = {"clusters": 0, "wisps": 0, "largest": 0, "rows": 0, "fill": 0.0,
-                 "couplings": 0, "couplings_left_out": 0, "captured": 1.0, "fallback": False}
+                 "couplings": 0, "couplings_left_out": 0, "captured": 1.0, "fallback": False,
+                 "cross_rank_couplings": 0, "cross_rank_weight": 0.0, "cross_rank_clusters": 0}
         self.stats = stats
-        if C_loc is None or n_w < 2:
+        if C is None or lay.n_wisps < 2:
             return
-        rc, cc, vc = block_rows(C_loc)
-        pairs, weights, counts = wisp_couplings(rc, cc, vc, self.vertex_wisp)
+        pairs, weights, counts = self._couplings(C)
+        cross = lay.wisp_rank[pairs[:, 0]] != lay.wisp_rank[pairs[:, 1]]
+        total = float(weights.sum())
+        stats.update(cross_rank_couplings=int(cross.sum()),
+                     cross_rank_weight=float(weights[cross].sum()) / total if total > 0 else 0.0)
+        if self.span == "rank":
+            pairs, weights, counts = pairs[~cross], weights[~cross], counts[~cross]
         stats["couplings"] = len(pairs)
         if not len(pairs):
             return
-        label = cluster_labels(n_w, pairs, weights, counts, self.max_wisps, self.max_blocks)
+        label = cluster_labels(lay.n_wisps, pairs, weights, counts, self.max_wisps, self.max_blocks)
         out = label[pairs[:, 0]] != label[pairs[:, 1]]
         total = float(weights.sum())
         stats.update(couplings_left_out=int(out.sum()),
@@ -203,32 +277,72 @@ class ClusterPC:
         if stats["captured"] < self.min_captured:
             stats["fallback"] = True
             return
-        count = np.bincount(label, minlength=n_w)
-        multi = count[label] > 1                                  # per wisp
-        if not multi.any():
+        count = np.bincount(label, minlength=lay.n_wisps)
+        clustered = np.flatnonzero(count[label] > 1)
+        if not len(clustered):
             return
-        # clustered wisps, grouped by cluster (stable: wisp order inside a cluster)
-        wisps = np.flatnonzero(multi)
+        # every cluster is factored by the rank holding most of its vertices (ties: the
+        # lower rank); its wisps grouped by cluster, in wisp order inside one
+        load = np.zeros((lay.n_wisps, lay.comm.size))
+        np.add.at(load, (label[clustered], lay.wisp_rank[clustered]), lay.sizes[clustered])
+        owner = np.argmax(load, axis=1)
+        stats["cross_rank_clusters"] = int(((load > 0).sum(axis=1) > 1).sum())
+        wisps = clustered[owner[label[clustered]] == lay.comm.rank]
         wisps = wisps[np.argsort(label[wisps], kind="stable")]
-        sizes = np.diff(self.offsets)[wisps]
-        verts = np.repeat(self.offsets[wisps] - np.concatenate([[0], np.cumsum(sizes)[:-1]]),
+        self._factor_clusters(A, C, wisps, label)
+        if len(wisps):
+            stats.update(clusters=len(np.unique(label[wisps])), wisps=len(wisps),
+                         largest=int(count[label[wisps]].max()), rows=len(self.dofs))
+
+    def _factor_clusters(self, A, C, wisps, label):
+        """Gather the rows of this rank's clusters (``wisps`` grouped by cluster; their
+        ``label``) of A and of the cross blocks of C inside a cluster, from whichever rank
+        owns them (collective), factor them, and set up the scatter of the cluster rows."""
+        lay = self.layout
+        sizes = lay.sizes[wisps]
+        verts = np.repeat(lay.offsets[wisps] - np.concatenate([[0], np.cumsum(sizes)[:-1]]),
                           sizes) + np.arange(int(sizes.sum()))
-        pos = np.full(len(self.vertex_wisp), -1, np.int64)
-        pos[verts] = np.arange(len(verts))
-        ra, ca, va = block_rows(A_loc, verts)
-        keep = (pos[rc] >= 0) & (label[self.vertex_wisp[rc]] == label[self.vertex_wisp[cc]])
-        rows = np.concatenate([ra, pos[rc[keep]]])
-        cols = np.concatenate([pos[ca], pos[cc[keep]]])
+        order = np.argsort(verts, kind="stable")      # the sub-matrices' rows: sorted
+        rowsets = PETSc.IS().createBlock(3, verts[order].astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+        parts = []
+        try:
+            for M in (A, C):
+                sub = M.createSubMatrices(rowsets, rowsets)[0]
+                try:
+                    parts.append(block_rows(sub) if len(verts) else None)
+                finally:
+                    sub.destroy()
+        finally:
+            rowsets.destroy()
+        self.dofs = (3 * verts[:, None] + np.arange(3)).ravel()
+        m = len(self.dofs)
+        self._cx = PETSc.Vec().createSeq(m, comm=PETSc.COMM_SELF)
+        self._cy = self._cx.duplicate()
+        x = A.createVecRight()
+        to = PETSc.IS().createGeneral(self.dofs.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+        try:
+            self.scatter = PETSc.Scatter().create(x, to, self._cx, None)
+        finally:
+            to.destroy()
+            x.destroy()
+        if not m:
+            return
+        (ra, ca, va), (rc, cc, vc) = parts
+        pos = np.empty(len(verts), np.int64)
+        pos[order] = np.arange(len(verts))            # sorted row -> grouped position
+        wl = label[lay.vertex_wisp[verts[order]]]     # cluster of each sorted row
+        keep = wl[rc] == wl[cc]
+        rows = pos[np.concatenate([ra, rc[keep]])]
+        cols = pos[np.concatenate([ca, cc[keep]])]
         vals = np.concatenate([va, vc[keep]])
-        order = np.lexsort((cols, rows))
-        rows, cols, vals = rows[order], cols[order], vals[order]
+        lex = np.lexsort((cols, rows))
+        rows, cols, vals = rows[lex], cols[lex], vals[lex]
         # a self-contact pair's cross blocks can fall on its wisp's band (segments two
         # apart): one summed block per position (a CSR row must not repeat a column)
         first = np.flatnonzero(np.r_[True, (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1])])
         if len(first) < len(rows):
             rows, cols, vals = rows[first], cols[first], np.add.reduceat(vals, first, axis=0)
         indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=len(verts)))])
-        m = 3 * len(verts)
         M = PETSc.Mat().createBAIJ(size=(m, m), bsize=3, comm=PETSc.COMM_SELF,
                                    csr=(indptr.astype(PETSc.IntType), cols.astype(PETSc.IntType),
                                         np.ascontiguousarray(vals).ravel()))
@@ -238,16 +352,12 @@ class ClusterPC:
         self.cluster.setFactorOrdering(self.ordering)
         self.cluster.setOperators(M, M)
         self.cluster.setUp()
-        self.dofs = (3 * verts[:, None] + np.arange(3)).ravel()
-        self._cx = PETSc.Vec().createSeq(m, comm=PETSc.COMM_SELF)
-        self._cy = self._cx.duplicate()
-        n_clusters = len(np.unique(label[wisps]))
-        stats.update(clusters=n_clusters, wisps=len(wisps), largest=int(count.max()), rows=m,
-                     fill=float(self.cluster.getFactorMatrix().getInfo()["nz_used"]
-                                / M.getInfo()["nz_used"]))
+        self.stats["fill"] = float(self.cluster.getFactorMatrix().getInfo()["nz_used"]
+                                   / M.getInfo()["nz_used"])
 
     def apply(self, pc, x, y):
-        """y = P^-1 x: the per-wisp LUs, then the cluster rows by the clusters' LU."""
+        """y = P^-1 x: the per-wisp LUs, then the cluster rows by the clusters' LU
+        (gathered from and scattered back to the ranks owning them)."""
         xa = x.getArray(readonly=True)
         ya = y.getArray()
         self._x.placeArray(xa)
@@ -257,16 +367,17 @@ class ClusterPC:
         finally:
             self._x.resetArray()
             self._y.resetArray()
-        if self.cluster is not None:
-            self._cx.array[:] = xa[self.dofs]
-            self.cluster.apply(self._cx, self._cy)
-            ya[self.dofs] = self._cy.array_r
+        if self.scatter is not None:
+            self.scatter.scatter(x, self._cx, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
+            if self.cluster is not None:
+                self.cluster.apply(self._cx, self._cy)
+            self.scatter.scatter(self._cy, y, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.REVERSE)
 
     def _destroy_cluster(self):
-        for obj in (self.cluster, self.cluster_mat, self._cx, self._cy):
+        for obj in (self.cluster, self.cluster_mat, self.scatter, self._cx, self._cy):
             if obj is not None:
                 obj.destroy()
-        self.cluster = self.cluster_mat = self._cx = self._cy = None
+        self.cluster = self.cluster_mat = self.scatter = self._cx = self._cy = None
         self.dofs = np.zeros(0, np.int64)
 
     def destroy(self, pc=None):

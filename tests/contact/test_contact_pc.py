@@ -64,7 +64,8 @@ def test_wisp_couplings_sums_blocks_per_wisp_pair():
     rows = np.array([0, 1, 1, 2, 2, 3])
     cols = np.array([2, 2, 3, 0, 1, 1])
     blocks = np.arange(6, dtype=float)[:, None, None] * np.eye(3)
-    pairs, w, counts = wisp_couplings(rows, cols, blocks, np.array([0, 0, 1, 2]))
+    vertex_wisp = np.array([0, 0, 1, 2])
+    pairs, w, counts = wisp_couplings(vertex_wisp[rows], vertex_wisp[cols], blocks, 3)
     np.testing.assert_array_equal(pairs, [[0, 1], [0, 2]])
     np.testing.assert_allclose(w, [np.sqrt(3) * (0 + 1), np.sqrt(3) * 2])
     np.testing.assert_array_equal(counts, [2, 1])
@@ -213,6 +214,7 @@ def test_fallback_keeps_the_per_wisp_blocks(monkeypatch):
     ("-lc_contact_pc clusters -lc_cluster_max_blocks 2.5", "whole number >= 1"),
     ("-lc_contact_pc clusters -lc_cluster_min_captured 1.5", "from 0"),
     ("-lc_contact_pc clusters -lc_cluster_ordering amd", "one of qmd, rcm, nd"),
+    ("-lc_contact_pc clusters -lc_cluster_span all", "global .* or rank"),
 ])
 def test_plan_refuses_bad_cluster_options(options, match):
     with pytest.raises(ConfigError, match=match):
@@ -221,12 +223,12 @@ def test_plan_refuses_bad_cluster_options(options, match):
 
 def test_plan_cluster_caps_and_mumps_ordering_default():
     plan = SolverPlan.resolve("-lc_contact_pc clusters -lc_cluster_max_wisps 8", strand_contact=True)
-    assert plan.contact_pc == "clusters" and plan.cluster_caps == (8, 1024, 0.9, "qmd")
+    assert plan.contact_pc == "clusters" and plan.cluster_caps == (8, 1024, 0.9, "qmd", "global")
     assert plan.pmat_type is None               # the strand matrix itself, no AIJ copy
     # the default with contact: clusters for block Jacobi on BAIJ with fused blocks, the
     # per-wisp strand blocks where clusters cannot run, none without contact
     default = SolverPlan.resolve("", strand_contact=True)
-    assert default.contact_pc == "clusters" and default.cluster_caps == (64, 1024, 0.9, "qmd")
+    assert default.contact_pc == "clusters" and default.cluster_caps == (64, 1024, 0.9, "qmd", "global")
     for other in ("-lc_wisp_blocks separate", "-mat_type aij", "-lc_contact_pc strands"):
         plan = SolverPlan.resolve(other, strand_contact=True)
         assert plan.contact_pc == "strands" and plan.cluster_caps is None, other
@@ -253,6 +255,10 @@ def test_mumps_runs_with_amf_unless_told_otherwise(monkeypatch):
 
 @pytest.mark.mpi
 def test_cluster_solve_rank_invariant(monkeypatch):
+    """Clusters span ranks (-lc_cluster_span global, the default): the preconditioner is
+    the 1-rank one on any rank count, so CG needs the 1-rank iterations (<= 2 at rtol
+    1e-13: every coupled wisp in a cluster) where rank-local clusters needed up to 33 on
+    2 ranks, and the positions equal the 1-rank run's to round-off."""
     comm = MPI.COMM_WORLD
     options = "-ksp_rtol 1e-13 -ksp_max_it 5000 -lc_contact_pc clusters"
     monkeypatch.setattr(simmod, "source_from_config", lambda *a: touching_wisps_source())
@@ -261,6 +267,7 @@ def test_cluster_solve_rank_invariant(monkeypatch):
         sim.run()
         X = sim.gather_positions()
         its = sim.solver.iterations
+        spanning = max(h["cross_rank_clusters"] for h in sim.solver.clusters.history)
     finally:
         sim.close()
     ok, msg = True, ""
@@ -269,10 +276,13 @@ def test_cluster_solve_rank_invariant(monkeypatch):
         try:
             ref.run()
             R = ref.gather_positions()
+            ref_its = ref.solver.iterations
         finally:
             ref.close()
         err = float(np.abs(X - R).max() / np.abs(R).max())
-        ok = err <= 1e-9 and max(its) <= (2 if comm.size == 1 else 60)
-        msg = f"{comm.size} ranks: relative difference {err:.2e}, CG iterations {its}"
+        # a control: on several ranks the scene's clusters do cross the partition
+        ok = err <= 1e-9 and max(its) <= 2 and max(ref_its) <= 2 and (comm.size == 1 or spanning >= 1)
+        msg = (f"{comm.size} ranks: relative difference {err:.2e}, CG iterations {its} "
+               f"(1 rank {ref_its}), clusters across ranks {spanning}")
     ok, msg = comm.bcast((ok, msg))
     assert ok, msg

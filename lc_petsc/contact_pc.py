@@ -328,8 +328,7 @@ class ClusterPC:
         if not m:
             return
         (ra, ca, va), (rc, cc, vc) = parts
-        pos = np.empty(len(verts), np.int64)
-        pos[order] = np.arange(len(verts))            # sorted row -> grouped position
+        pos = order                                   # sorted row -> grouped position
         wl = label[lay.vertex_wisp[verts[order]]]     # cluster of each sorted row
         keep = wl[rc] == wl[cc]
         rows = pos[np.concatenate([ra, rc[keep]])]

@@ -143,6 +143,32 @@ def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blo
     return smallest[roots]
 
 
+def cluster_owners(held):
+    """The rank that factors each cluster, from ``held`` (clusters, ranks): the vertices
+    of each cluster on each rank (rows without any: not a cluster).  First the rank
+    holding most of it (ties: the lower rank); then, for balance (a cluster's LU and
+    solves cost about its size, and the contact often falls on one rank's side of the
+    head), the clusters of ranks loaded above the mean move, largest first (ties: the
+    lower cluster), to the least-loaded rank as long as it stays at or below the mean.
+    Deterministic: every rank computes the same owners.  Returns (clusters,)."""
+    size = held.sum(axis=1)
+    owner = np.argmax(held, axis=1)
+    n_ranks = held.shape[1]
+    if n_ranks == 1:
+        return owner
+    load = np.bincount(owner, weights=size, minlength=n_ranks)
+    mean = load.sum() / n_ranks
+    for c in np.lexsort((np.arange(len(size)), -size)):
+        if size[c] == 0 or load[owner[c]] <= mean:
+            continue
+        q = int(np.argmin(load))
+        if load[q] + size[c] <= mean:
+            load[owner[c]] -= size[c]
+            load[q] += size[c]
+            owner[c] = q
+    return owner
+
+
 def local_rows(M):
     """This rank's rows of ``M`` with global column numbers: a sequential matrix (``M``
     itself when sequential; else a copy the caller destroys)."""
@@ -255,7 +281,8 @@ class ClusterPC:
         lay = self.layout
         stats = {"clusters": 0, "wisps": 0, "largest": 0, "rows": 0, "fill": 0.0,
                  "couplings": 0, "couplings_left_out": 0, "captured": 1.0, "fallback": False,
-                 "cross_rank_couplings": 0, "cross_rank_weight": 0.0, "cross_rank_clusters": 0}
+                 "cross_rank_couplings": 0, "cross_rank_weight": 0.0, "cross_rank_clusters": 0,
+                 "moved_rows": 0}
         self.stats = stats
         if C is None or lay.n_wisps < 2:
             return
@@ -281,12 +308,12 @@ class ClusterPC:
         clustered = np.flatnonzero(count[label] > 1)
         if not len(clustered):
             return
-        # every cluster is factored by the rank holding most of its vertices (ties: the
-        # lower rank); its wisps grouped by cluster, in wisp order inside one
-        load = np.zeros((lay.n_wisps, lay.comm.size))
-        np.add.at(load, (label[clustered], lay.wisp_rank[clustered]), lay.sizes[clustered])
-        owner = np.argmax(load, axis=1)
-        stats["cross_rank_clusters"] = int(((load > 0).sum(axis=1) > 1).sum())
+        held = np.zeros((lay.n_wisps, lay.comm.size))     # vertices per (cluster, rank)
+        np.add.at(held, (label[clustered], lay.wisp_rank[clustered]), lay.sizes[clustered])
+        stats["cross_rank_clusters"] = int(((held > 0).sum(axis=1) > 1).sum())
+        owner = cluster_owners(held)
+        stats["moved_rows"] = int(3 * (held.sum(axis=1) - held[np.arange(lay.n_wisps), owner]).sum())
+        # this rank's clusters, their wisps grouped by cluster, in wisp order inside one
         wisps = clustered[owner[label[clustered]] == lay.comm.rank]
         wisps = wisps[np.argsort(label[wisps], kind="stable")]
         self._factor_clusters(A, C, wisps, label)

@@ -9,7 +9,7 @@ import pytest
 from petsc4py import PETSc
 
 from lc_petsc.contact import SumOperator
-from lc_petsc.contact_pc import ClusterPC
+from lc_petsc.contact_pc import ClusterPC, cluster_owners
 
 #: vertices of each wisp (global order); wisp 6 has no contact (a singleton)
 SIZES = np.array([3, 4, 3, 3, 2, 3, 2])
@@ -111,3 +111,16 @@ def test_rank_span_drops_the_cross_rank_couplings():
 def test_cluster_span_is_checked():
     with pytest.raises(ValueError, match="use one of global, rank"):
         ClusterPC([9, 9], span="all")
+
+
+def test_cluster_owners_balance_the_factorisations():
+    # vertices per (cluster, rank): clusters 0-3 all on rank 1, cluster 4 split, row 5 no cluster
+    held = np.array([[0, 40], [0, 30], [0, 20], [0, 10], [6, 4], [0, 0]], float)
+    owner = cluster_owners(held)
+    # majority first (cluster 4 to rank 0: loads 10 / 100), then the largest clusters of
+    # rank 1 move to rank 0 while it stays at or below the mean (55): 40 (-> 50 / 60);
+    # 30, 20 and 10 would take rank 0 past the mean
+    np.testing.assert_array_equal(owner[:5], [0, 1, 1, 1, 0])
+    load = np.bincount(owner[:5], weights=held[:5].sum(axis=1), minlength=2)
+    np.testing.assert_array_equal(load, [50, 60])
+    np.testing.assert_array_equal(cluster_owners(held[:, :1]), np.zeros(6, int))   # one rank

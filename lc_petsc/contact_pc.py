@@ -3,41 +3,49 @@
 With strand contact the Newton operator is A + C: A the strand matrix (one band per
 wisp, with the contact blocks that fall on it) and C the contact cross blocks between
 wisps (lc_petsc/contact.py).  The per-wisp block Jacobi factors A alone and cannot see C:
-CG then needs tens of iterations per solve.  This preconditioner groups the wisps of a
-rank that C couples into **clusters** and solves each cluster's block of A + C exactly:
+CG then needs tens of iterations per solve.  This preconditioner groups the wisps that
+C couples into **clusters** and solves each cluster's block of A + C exactly:
 
-1. **Clusters.**  From the rank-local diagonal block of C (couplings between two wisps
-   of this rank; couplings to other ranks' wisps stay outside, as in block Jacobi), the
+1. **Clusters.**  From C's couplings over all ranks (``-lc_cluster_span global``, the
+   default: every rank gathers the coupled wisp pairs, each from the rows of its
+   smaller wisp, and computes the same clusters; ``rank``: only couplings between two
+   wisps of one rank, the couplings across ranks stay outside as in block Jacobi), the
    coupling weight of two wisps is the summed Frobenius norm of their cross blocks;
    wisp pairs are merged by union-find in order of decreasing weight (ties by wisp
    index), a merge being refused when the cluster would hold more than
    ``max_wisps`` wisps (``-lc_cluster_max_wisps``) or more than ``max_blocks`` cross
    blocks (``-lc_cluster_max_blocks``; the cost cap: the fill of a cluster's LU comes
    from its cross blocks, docs/contact_solver.md).  The couplings left out (refused
-   merges) are dropped from the preconditioner like the cross-rank ones.
+   merges) are dropped from the preconditioner (and with ``rank`` the cross-rank ones).
    **Fallback**: when the clusters hold less than ``min_captured``
-   (``-lc_cluster_min_captured``) of the rank's coupling weight, the contact is too
+   (``-lc_cluster_min_captured``) of the coupling weight, the contact is too
    dense for exact clusters to pay (measured on the 4K hairball: clusters holding 89%
    of it still left CG 75 of its 150 iterations, for a factorisation 50x the per-wisp
    one), and the set-up keeps the per-wisp blocks alone.
 2. **Singletons** (wisps in no cluster): the exact per-wisp factorisation of the
    default, ILU(0) of the rank's block of A on a full band (= LU; lc_petsc/solver.py).
-3. **Clusters**: one sequential BAIJ matrix holding every multi-wisp cluster's block
-   of A + C (clusters contiguous, so the matrix is block diagonal by cluster), factored
-   by PETSc's LU with the quotient-minimum-degree ordering (``-lc_cluster_ordering
-   qmd``, the default; ``rcm``, ``nd`` accepted; an ordering never mixes the
-   clusters).  On the 2K hairball's cluster matrices (28k-303k rows) RCM's fill is
-   1.1-1.4x qmd's but its set-up (ordering + factorisation) takes 0.4-0.6x qmd's
-   (qmd's ordering alone is up to half of its set-up); not the default because it
-   moves the ccd rank-invariance test past its bound (docs/contact_solver.md, "Where
-   the 2K frame goes").
+3. **Clusters**: each cluster is factored by one rank, the rank holding most of its
+   vertices, then moved to balance the ranks' cluster rows (:func:`cluster_owners`:
+   the contact of a frame often falls on one side of the head, i.e. one rank).  A rank
+   fetches its clusters' rows of A and C from their owners (``MatCreateSubMatrices``)
+   into one sequential BAIJ matrix holding every cluster's block of A + C (clusters
+   contiguous, so the matrix is block diagonal by cluster), factored by PETSc's LU
+   with the quotient-minimum-degree ordering (``-lc_cluster_ordering qmd``, the
+   default; ``rcm``, ``nd`` accepted; an ordering never mixes the clusters).  On the 2K
+   hairball's cluster matrices (28k-303k rows) RCM's fill is 1.1-1.4x qmd's but its
+   set-up (ordering + factorisation) takes 0.4-0.6x qmd's (docs/contact_solver.md,
+   "Where the 2K frame goes" and "Clusters across ranks").
+4. **Apply**: the per-wisp solves of the rank's rows, then the cluster rows: gathered
+   from their ranks (one ``VecScatter``), solved by their cluster's rank, scattered
+   back over the per-wisp values.
 
 The preconditioning matrix is therefore P = A + (the cross blocks of C inside a
 cluster): every dropped block belongs to a whole contact pair's cross block, and a
 pair's Hessian without its cross blocks keeps its (PSD) diagonal blocks, so P is
-symmetric positive definite like A + C, and applying P^-1 exactly keeps CG valid.  A
-cluster never spans ranks, so the preconditioner (not the solution) depends on the
-partition.
+symmetric positive definite like A + C, and applying P^-1 exactly keeps CG valid.  With
+``-lc_cluster_span global`` the clusters, hence P, are the same on any rank count (to
+the round-off of C's sums), so CG needs the 1-rank iterations on 2 or 3 ranks; with
+``rank`` P depends on the partition.
 
 The context is PETSc's ``PCPYTHON`` (set up by :class:`lc_petsc.solver.LinearSolver`).
 It reads C from the operator: the Python-shell matrix of lc_petsc/contact.py

@@ -269,7 +269,9 @@ class ClusterPC:
 
     def _couplings(self, C):
         """The global coupled wisp pairs, weights and block counts of C (every rank gets
-        all of them, in (a, b) order: each pair comes from the rows of its smaller wisp)."""
+        all of them, in (a, b) order: each pair comes from the rows of its smaller wisp),
+        and this rank's blocks of C: (global row vertex (k,), global column vertex (k,),
+        blocks (k, 3, 3))."""
         lay = self.layout
         rows = local_rows(C)
         try:
@@ -279,10 +281,26 @@ class ClusterPC:
                 rows.destroy()
         found = wisp_couplings(lay.first_wisp + self.vertex_wisp[rc], lay.vertex_wisp[cc], vc,
                                lay.n_wisps)
+        mine = (lay.offsets[lay.first_wisp] + rc, cc, vc)
         if lay.comm.size == 1:
-            return found
+            return found, mine
         parts = lay.comm.allgather(found)
-        return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))
+        return tuple(np.concatenate([p[k] for p in parts]) for k in range(3)), mine
+
+    def _send_cross_blocks(self, blocks, label, owner):
+        """The blocks of C (global rows, columns, values) inside a cluster that this rank
+        factors, from every rank's ``blocks`` (its rows of C) by cluster ``label`` and
+        cluster ``owner`` (collective)."""
+        lay = self.layout
+        rows, cols, vals = blocks
+        cluster = label[lay.vertex_wisp[rows]]
+        inside = (cluster == label[lay.vertex_wisp[cols]]) & (np.bincount(label, minlength=lay.n_wisps)[cluster] > 1)
+        rows, cols, vals, dest = rows[inside], cols[inside], vals[inside], owner[cluster[inside]]
+        if lay.comm.size == 1:
+            return rows, cols, vals
+        got = lay.comm.alltoall([(rows[dest == r], cols[dest == r], vals[dest == r])
+                                 for r in range(lay.comm.size)])
+        return tuple(np.concatenate([g[k] for g in got]) for k in range(3))
 
     def _setup_clusters(self, A, C):
         self._destroy_cluster()
@@ -294,7 +312,7 @@ class ClusterPC:
         self.stats = stats
         if C is None or lay.n_wisps < 2:
             return
-        pairs, weights, counts = self._couplings(C)
+        (pairs, weights, counts), c_blocks = self._couplings(C)
         cross = lay.wisp_rank[pairs[:, 0]] != lay.wisp_rank[pairs[:, 1]]
         total = float(weights.sum())
         stats.update(cross_rank_couplings=int(cross.sum()),
@@ -324,31 +342,30 @@ class ClusterPC:
         # this rank's clusters, their wisps grouped by cluster, in wisp order inside one
         wisps = clustered[owner[label[clustered]] == lay.comm.rank]
         wisps = wisps[np.argsort(label[wisps], kind="stable")]
-        self._factor_clusters(A, C, wisps, label)
+        self._factor_clusters(A, self._send_cross_blocks(c_blocks, label, owner), wisps, label)
         if len(wisps):
             stats.update(clusters=len(np.unique(label[wisps])), wisps=len(wisps),
                          largest=int(count[label[wisps]].max()), rows=len(self.dofs))
 
-    def _factor_clusters(self, A, C, wisps, label):
-        """Gather the rows of this rank's clusters (``wisps`` grouped by cluster; their
-        ``label``) of A and of the cross blocks of C inside a cluster, from whichever rank
-        owns them (collective), factor them, and set up the scatter of the cluster rows."""
+    def _factor_clusters(self, A, cross, wisps, label):
+        """Gather the rows of A of this rank's clusters (``wisps`` grouped by cluster; their
+        ``label``) from whichever rank owns them (collective), add the cross blocks inside
+        the clusters (``cross``: global rows, columns, values), factor them, and set up the
+        scatter of the cluster rows."""
         lay = self.layout
         sizes = lay.sizes[wisps]
         verts = np.repeat(lay.offsets[wisps] - np.concatenate([[0], np.cumsum(sizes)[:-1]]),
                           sizes) + np.arange(int(sizes.sum()))
         order = np.argsort(verts, kind="stable")      # the sub-matrices' rows: sorted
         rowsets = PETSc.IS().createBlock(3, verts[order].astype(PETSc.IntType), comm=PETSc.COMM_SELF)
-        parts = []
         try:
-            for M in (A, C):
-                sub = M.createSubMatrices(rowsets, rowsets)[0]
-                try:
-                    parts.append(block_rows(sub) if len(verts) else None)
-                finally:
-                    sub.destroy()
+            sub = A.createSubMatrices(rowsets, rowsets)[0]
         finally:
             rowsets.destroy()
+        try:
+            ra, ca, va = block_rows(sub) if len(verts) else (None, None, None)
+        finally:
+            sub.destroy()
         self.dofs = (3 * verts[:, None] + np.arange(3)).ravel()
         m = len(self.dofs)
         self._cx = PETSc.Vec().createSeq(m, comm=PETSc.COMM_SELF)
@@ -362,13 +379,12 @@ class ClusterPC:
             x.destroy()
         if not m:
             return
-        (ra, ca, va), (rc, cc, vc) = parts
-        pos = order                                   # sorted row -> grouped position
-        wl = label[lay.vertex_wisp[verts[order]]]     # cluster of each sorted row
-        keep = wl[rc] == wl[cc]
-        rows = pos[np.concatenate([ra, rc[keep]])]
-        cols = pos[np.concatenate([ca, cc[keep]])]
-        vals = np.concatenate([va, vc[keep]])
+        grouped = np.full(lay.offsets[-1], -1, np.int64)      # global vertex -> cluster row
+        grouped[verts] = np.arange(len(verts))
+        rc, cc, vc = cross
+        rows = np.concatenate([order[ra], grouped[rc]])       # A's rows: sorted -> grouped
+        cols = np.concatenate([order[ca], grouped[cc]])
+        vals = np.concatenate([va, vc])
         lex = np.lexsort((cols, rows))
         rows, cols, vals = rows[lex], cols[lex], vals[lex]
         # a self-contact pair's cross blocks can fall on its wisp's band (segments two

@@ -26,9 +26,10 @@ C couples into **clusters** and solves each cluster's block of A + C exactly:
    default, ILU(0) of the rank's block of A on a full band (= LU; lc_petsc/solver.py).
 3. **Clusters**: each cluster is factored by one rank, the rank holding most of its
    vertices, then moved to balance the ranks' cluster rows (:func:`cluster_owners`:
-   the contact of a frame often falls on one side of the head, i.e. one rank).  A rank
-   fetches its clusters' rows of A and C from their owners (``MatCreateSubMatrices``)
-   into one sequential BAIJ matrix holding every cluster's block of A + C (clusters
+   the contact of a frame often falls on one side of the head, i.e. one rank).  Every
+   rank sends the blocks of A (band) and C (inside a cluster) of its rows to the rank
+   factoring their cluster (one ``alltoall`` each), which puts them into one sequential
+   BAIJ matrix holding every cluster's block of A + C (clusters
    contiguous, so the matrix is block diagonal by cluster), factored by PETSc's LU
    with the quotient-minimum-degree ordering (``-lc_cluster_ordering qmd``, the
    default; ``rcm``, ``nd`` accepted; an ordering never mixes the clusters).  On the 2K
@@ -264,7 +265,7 @@ class ClusterPC:
             self._y = PETSc.Vec().createWithArray(np.zeros(n), comm=PETSc.COMM_SELF)
         if self.layout is None:
             self.layout = GlobalLayout(A, np.diff(self.offsets))
-        self._setup_clusters(A, C)
+        self._setup_clusters(A, A_loc, C)
         self.history.append(dict(self.stats))
 
     def _couplings(self, C):
@@ -287,22 +288,38 @@ class ClusterPC:
         parts = lay.comm.allgather(found)
         return tuple(np.concatenate([p[k] for p in parts]) for k in range(3)), mine
 
-    def _send_cross_blocks(self, blocks, label, owner):
-        """The blocks of C (global rows, columns, values) inside a cluster that this rank
-        factors, from every rank's ``blocks`` (its rows of C) by cluster ``label`` and
-        cluster ``owner`` (collective)."""
-        lay = self.layout
-        rows, cols, vals = blocks
-        cluster = label[lay.vertex_wisp[rows]]
-        inside = (cluster == label[lay.vertex_wisp[cols]]) & (np.bincount(label, minlength=lay.n_wisps)[cluster] > 1)
-        rows, cols, vals, dest = rows[inside], cols[inside], vals[inside], owner[cluster[inside]]
-        if lay.comm.size == 1:
+    def _to_owners(self, rows, cols, vals, dest):
+        """The blocks (global rows, columns, values) sent to this rank by every rank,
+        each sending its blocks to their ``dest`` rank (collective); in rank order."""
+        comm = self.layout.comm
+        if comm.size == 1:
             return rows, cols, vals
-        got = lay.comm.alltoall([(rows[dest == r], cols[dest == r], vals[dest == r])
-                                 for r in range(lay.comm.size)])
+        got = comm.alltoall([(rows[dest == r], cols[dest == r], vals[dest == r])
+                             for r in range(comm.size)])
         return tuple(np.concatenate([g[k] for g in got]) for k in range(3))
 
-    def _setup_clusters(self, A, C):
+    def _cluster_blocks(self, A_loc, c_blocks, label, owner):
+        """The blocks of A + C inside the clusters this rank factors (global rows,
+        columns, values; A's first), from every rank's rows: its band blocks of clustered
+        wisps (``A_loc``) and its blocks of C (``c_blocks``) inside a cluster, by cluster
+        ``label`` and cluster ``owner`` (collective)."""
+        lay = self.layout
+        count = np.bincount(label, minlength=lay.n_wisps)
+        v0 = lay.offsets[lay.first_wisp]
+        local = lay.first_wisp + np.arange(len(self.offsets) - 1)
+        local = local[count[label[local]] > 1]                      # clustered wisps here
+        sizes = lay.sizes[local]
+        verts = np.repeat(lay.offsets[local] - v0 - np.concatenate([[0], np.cumsum(sizes)[:-1]]),
+                          sizes) + np.arange(int(sizes.sum()))     # their local vertices
+        ra, ca, va = block_rows(A_loc, verts)
+        a = self._to_owners(v0 + verts[ra], v0 + ca, va, owner[label[lay.vertex_wisp[v0 + verts[ra]]]])
+        rows, cols, vals = c_blocks
+        cluster = label[lay.vertex_wisp[rows]]
+        inside = (cluster == label[lay.vertex_wisp[cols]]) & (count[cluster] > 1)
+        c = self._to_owners(rows[inside], cols[inside], vals[inside], owner[cluster[inside]])
+        return tuple(np.concatenate([a[k], c[k]]) for k in range(3))
+
+    def _setup_clusters(self, A, A_loc, C):
         self._destroy_cluster()
         lay = self.layout
         stats = {"clusters": 0, "wisps": 0, "largest": 0, "rows": 0, "fill": 0.0,
@@ -342,30 +359,19 @@ class ClusterPC:
         # this rank's clusters, their wisps grouped by cluster, in wisp order inside one
         wisps = clustered[owner[label[clustered]] == lay.comm.rank]
         wisps = wisps[np.argsort(label[wisps], kind="stable")]
-        self._factor_clusters(A, self._send_cross_blocks(c_blocks, label, owner), wisps, label)
+        self._factor_clusters(A, self._cluster_blocks(A_loc, c_blocks, label, owner), wisps)
         if len(wisps):
             stats.update(clusters=len(np.unique(label[wisps])), wisps=len(wisps),
                          largest=int(count[label[wisps]].max()), rows=len(self.dofs))
 
-    def _factor_clusters(self, A, cross, wisps, label):
-        """Gather the rows of A of this rank's clusters (``wisps`` grouped by cluster; their
-        ``label``) from whichever rank owns them (collective), add the cross blocks inside
-        the clusters (``cross``: global rows, columns, values), factor them, and set up the
-        scatter of the cluster rows."""
+    def _factor_clusters(self, A, blocks, wisps):
+        """Factor the blocks (global rows, columns, values) of this rank's clusters
+        (``wisps`` grouped by cluster) and set up the scatter of the cluster rows
+        (collective)."""
         lay = self.layout
         sizes = lay.sizes[wisps]
         verts = np.repeat(lay.offsets[wisps] - np.concatenate([[0], np.cumsum(sizes)[:-1]]),
                           sizes) + np.arange(int(sizes.sum()))
-        order = np.argsort(verts, kind="stable")      # the sub-matrices' rows: sorted
-        rowsets = PETSc.IS().createBlock(3, verts[order].astype(PETSc.IntType), comm=PETSc.COMM_SELF)
-        try:
-            sub = A.createSubMatrices(rowsets, rowsets)[0]
-        finally:
-            rowsets.destroy()
-        try:
-            ra, ca, va = block_rows(sub) if len(verts) else (None, None, None)
-        finally:
-            sub.destroy()
         self.dofs = (3 * verts[:, None] + np.arange(3)).ravel()
         m = len(self.dofs)
         self._cx = PETSc.Vec().createSeq(m, comm=PETSc.COMM_SELF)
@@ -381,10 +387,7 @@ class ClusterPC:
             return
         grouped = np.full(lay.offsets[-1], -1, np.int64)      # global vertex -> cluster row
         grouped[verts] = np.arange(len(verts))
-        rc, cc, vc = cross
-        rows = np.concatenate([order[ra], grouped[rc]])       # A's rows: sorted -> grouped
-        cols = np.concatenate([order[ca], grouped[cc]])
-        vals = np.concatenate([va, vc])
+        rows, cols, vals = grouped[blocks[0]], grouped[blocks[1]], blocks[2]
         lex = np.lexsort((cols, rows))
         rows, cols, vals = rows[lex], cols[lex], vals[lex]
         # a self-contact pair's cross blocks can fall on its wisp's band (segments two

@@ -31,11 +31,12 @@ C couples into **clusters** and solves each cluster's block of A + C exactly:
    factoring their cluster (one ``alltoall`` each), which puts them into one sequential
    BAIJ matrix holding every cluster's block of A + C (clusters
    contiguous, so the matrix is block diagonal by cluster), factored by PETSc's LU
-   with the quotient-minimum-degree ordering (``-lc_cluster_ordering qmd``, the
-   default; ``rcm``, ``nd`` accepted; an ordering never mixes the clusters).  On the 2K
-   hairball's cluster matrices (28k-303k rows) RCM's fill is 1.1-1.4x qmd's but its
-   set-up (ordering + factorisation) takes 0.4-0.6x qmd's (docs/contact_solver.md,
-   "Where the 2K frame goes" and "Clusters across ranks").
+   with the reverse Cuthill-McKee ordering (``-lc_cluster_ordering rcm``, the default;
+   ``qmd`` (quotient minimum degree), ``nd`` accepted; an ordering never mixes the
+   clusters).  On the 2K hairball's cluster matrices (28k-303k rows) RCM's fill is
+   1.1-1.4x qmd's but its set-up (ordering + factorisation) takes 0.4-0.6x qmd's
+   (qmd's ordering alone is superlinear; docs/contact_solver.md, "Where the 2K frame
+   goes" and "Clusters across ranks").
 4. **Apply**: the per-wisp solves of the rank's rows, then the cluster rows: gathered
    from their ranks (one ``VecScatter``), solved by their cluster's rank, scattered
    back over the per-wisp values.
@@ -68,9 +69,9 @@ MAX_BLOCKS = 1024
 #: ``-lc_cluster_min_captured`` default (share of the coupling weight the clusters must hold)
 MIN_CAPTURED = 0.9
 #: ``-lc_cluster_ordering`` default: the PETSc ordering of the clusters' LU
-ORDERING = "qmd"
+ORDERING = "rcm"
 #: the orderings ``-lc_cluster_ordering`` accepts (the first is the default)
-ORDERINGS = (ORDERING, "rcm", "nd")
+ORDERINGS = (ORDERING, "qmd", "nd")
 #: ``-lc_cluster_span`` default: clusters over the global contact graph (across ranks)
 SPAN = "global"
 #: the values ``-lc_cluster_span`` accepts (the first is the default)

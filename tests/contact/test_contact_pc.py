@@ -159,7 +159,7 @@ def test_both_contact_preconditioners_same_trajectory_clusters_cut_iterations(mo
 
 
 def test_cluster_orderings_same_trajectory(monkeypatch):
-    """The clusters' LU ordering (-lc_cluster_ordering, default qmd) changes only the
+    """The clusters' LU ordering (-lc_cluster_ordering, default rcm) changes only the
     round-off of the exact cluster solves: the same CG iterations and contact pairs, the
     same positions to round-off, and RCM's factor a little fuller than qmd's."""
     runs = {}
@@ -169,14 +169,14 @@ def test_cluster_orderings_same_trajectory(monkeypatch):
         try:
             sim.run(2)
             ctx = sim.solver.clusters
-            assert ctx.ordering == (ordering or "qmd")
+            assert ctx.ordering == (ordering or "rcm")
             runs[ordering] = (sim.gather_positions(), list(sim.solver.iterations),
                               sim.summary()["contact"]["pairs_per_frame"],
                               [h["fill"] for h in ctx.history if h["clusters"]])
         finally:
             sim.close()
     (xq, its_q, pairs_q, fill_q), (xr, its_r, pairs_r, fill_r) = runs["qmd"], runs["rcm"]
-    assert runs[None][1] == its_q and np.array_equal(runs[None][0], xq)      # qmd is the default
+    assert runs[None][1] == its_r and np.array_equal(runs[None][0], xr)      # rcm is the default
     assert pairs_q == pairs_r and sum(pairs_r) > 0 and its_q == its_r
     assert len(fill_r) >= 1 and len(fill_r) == len(fill_q)
     assert all(r >= q - 1e-12 for q, r in zip(fill_q, fill_r)), (fill_q, fill_r)
@@ -213,7 +213,7 @@ def test_fallback_keeps_the_per_wisp_blocks(monkeypatch):
     ("-lc_contact_pc clusters -lc_cluster_max_wisps 0", "whole number >= 1"),
     ("-lc_contact_pc clusters -lc_cluster_max_blocks 2.5", "whole number >= 1"),
     ("-lc_contact_pc clusters -lc_cluster_min_captured 1.5", "from 0"),
-    ("-lc_contact_pc clusters -lc_cluster_ordering amd", "one of qmd, rcm, nd"),
+    ("-lc_contact_pc clusters -lc_cluster_ordering amd", "one of rcm, qmd, nd"),
     ("-lc_contact_pc clusters -lc_cluster_span all", "global .* or rank"),
 ])
 def test_plan_refuses_bad_cluster_options(options, match):
@@ -223,12 +223,12 @@ def test_plan_refuses_bad_cluster_options(options, match):
 
 def test_plan_cluster_caps_and_mumps_ordering_default():
     plan = SolverPlan.resolve("-lc_contact_pc clusters -lc_cluster_max_wisps 8", strand_contact=True)
-    assert plan.contact_pc == "clusters" and plan.cluster_caps == (8, 1024, 0.9, "qmd", "global")
+    assert plan.contact_pc == "clusters" and plan.cluster_caps == (8, 1024, 0.9, "rcm", "global")
     assert plan.pmat_type is None               # the strand matrix itself, no AIJ copy
     # the default with contact: clusters for block Jacobi on BAIJ with fused blocks, the
     # per-wisp strand blocks where clusters cannot run, none without contact
     default = SolverPlan.resolve("", strand_contact=True)
-    assert default.contact_pc == "clusters" and default.cluster_caps == (64, 1024, 0.9, "qmd", "global")
+    assert default.contact_pc == "clusters" and default.cluster_caps == (64, 1024, 0.9, "rcm", "global")
     for other in ("-lc_wisp_blocks separate", "-mat_type aij", "-lc_contact_pc strands"):
         plan = SolverPlan.resolve(other, strand_contact=True)
         assert plan.contact_pc == "strands" and plan.cluster_caps is None, other

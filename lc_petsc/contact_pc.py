@@ -58,6 +58,7 @@ operator it uses the preconditioning matrix alone (all wisps singletons).
 from __future__ import annotations
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from lc_petsc.petsc_capi import value_array
@@ -295,9 +296,17 @@ class ClusterPC:
         comm = self.layout.comm
         if comm.size == 1:
             return rows, cols, vals
-        got = comm.alltoall([(rows[dest == r], cols[dest == r], vals[dest == r])
-                             for r in range(comm.size)])
-        return tuple(np.concatenate([g[k] for g in got]) for k in range(3))
+        by = np.argsort(dest, kind="stable")
+        send = np.bincount(dest, minlength=comm.size)
+        recv = np.asarray(comm.alltoall(send.tolist()), np.int64)
+        out = []
+        for a, width in ((rows, 1), (cols, 1), (vals, 9)):
+            a = np.ascontiguousarray(a[by], np.int64 if width == 1 else np.float64)
+            got = np.empty((int(recv.sum()),) + a.shape[1:], a.dtype)
+            kind = MPI.INT64_T if width == 1 else MPI.DOUBLE
+            comm.Alltoallv([a, (send * width, None), kind], [got, (recv * width, None), kind])
+            out.append(got)
+        return tuple(out)
 
     def _cluster_blocks(self, A_loc, c_blocks, label, owner):
         """The blocks of A + C inside the clusters this rank factors (global rows,

@@ -3,41 +3,51 @@
 With strand contact the Newton operator is A + C: A the strand matrix (one band per
 wisp, with the contact blocks that fall on it) and C the contact cross blocks between
 wisps (lc_petsc/contact.py).  The per-wisp block Jacobi factors A alone and cannot see C:
-CG then needs tens of iterations per solve.  This preconditioner groups the wisps of a
-rank that C couples into **clusters** and solves each cluster's block of A + C exactly:
+CG then needs tens of iterations per solve.  This preconditioner groups the wisps that
+C couples into **clusters** and solves each cluster's block of A + C exactly:
 
-1. **Clusters.**  From the rank-local diagonal block of C (couplings between two wisps
-   of this rank; couplings to other ranks' wisps stay outside, as in block Jacobi), the
+1. **Clusters.**  From C's couplings over all ranks (``-lc_cluster_span global``, the
+   default: every rank gathers the coupled wisp pairs, each from the rows of its
+   smaller wisp, and computes the same clusters; ``rank``: only couplings between two
+   wisps of one rank, the couplings across ranks stay outside as in block Jacobi), the
    coupling weight of two wisps is the summed Frobenius norm of their cross blocks;
    wisp pairs are merged by union-find in order of decreasing weight (ties by wisp
    index), a merge being refused when the cluster would hold more than
    ``max_wisps`` wisps (``-lc_cluster_max_wisps``) or more than ``max_blocks`` cross
    blocks (``-lc_cluster_max_blocks``; the cost cap: the fill of a cluster's LU comes
    from its cross blocks, docs/contact_solver.md).  The couplings left out (refused
-   merges) are dropped from the preconditioner like the cross-rank ones.
+   merges) are dropped from the preconditioner (and with ``rank`` the cross-rank ones).
    **Fallback**: when the clusters hold less than ``min_captured``
-   (``-lc_cluster_min_captured``) of the rank's coupling weight, the contact is too
+   (``-lc_cluster_min_captured``) of the coupling weight, the contact is too
    dense for exact clusters to pay (measured on the 4K hairball: clusters holding 89%
    of it still left CG 75 of its 150 iterations, for a factorisation 50x the per-wisp
    one), and the set-up keeps the per-wisp blocks alone.
 2. **Singletons** (wisps in no cluster): the exact per-wisp factorisation of the
    default, ILU(0) of the rank's block of A on a full band (= LU; lc_petsc/solver.py).
-3. **Clusters**: one sequential BAIJ matrix holding every multi-wisp cluster's block
-   of A + C (clusters contiguous, so the matrix is block diagonal by cluster), factored
-   by PETSc's LU with the quotient-minimum-degree ordering (``-lc_cluster_ordering
-   qmd``, the default; ``rcm``, ``nd`` accepted; an ordering never mixes the
+3. **Clusters**: each cluster is factored by one rank, the rank holding most of its
+   vertices, then moved to balance the ranks' cluster rows (:func:`cluster_owners`:
+   the contact of a frame often falls on one side of the head, i.e. one rank).  Every
+   rank sends the blocks of A (band) and C (inside a cluster) of its rows to the rank
+   factoring their cluster (one ``alltoall`` each), which puts them into one sequential
+   BAIJ matrix holding every cluster's block of A + C (clusters
+   contiguous, so the matrix is block diagonal by cluster), factored by PETSc's LU
+   with the reverse Cuthill-McKee ordering (``-lc_cluster_ordering rcm``, the default;
+   ``qmd`` (quotient minimum degree), ``nd`` accepted; an ordering never mixes the
    clusters).  On the 2K hairball's cluster matrices (28k-303k rows) RCM's fill is
    1.1-1.4x qmd's but its set-up (ordering + factorisation) takes 0.4-0.6x qmd's
-   (qmd's ordering alone is up to half of its set-up); not the default because it
-   moves the ccd rank-invariance test past its bound (docs/contact_solver.md, "Where
-   the 2K frame goes").
+   (qmd's ordering alone is superlinear; docs/contact_solver.md, "Where the 2K frame
+   goes" and "Clusters across ranks").
+4. **Apply**: the per-wisp solves of the rank's rows, then the cluster rows: gathered
+   from their ranks (one ``VecScatter``), solved by their cluster's rank, scattered
+   back over the per-wisp values.
 
 The preconditioning matrix is therefore P = A + (the cross blocks of C inside a
 cluster): every dropped block belongs to a whole contact pair's cross block, and a
 pair's Hessian without its cross blocks keeps its (PSD) diagonal blocks, so P is
-symmetric positive definite like A + C, and applying P^-1 exactly keeps CG valid.  A
-cluster never spans ranks, so the preconditioner (not the solution) depends on the
-partition.
+symmetric positive definite like A + C, and applying P^-1 exactly keeps CG valid.  With
+``-lc_cluster_span global`` the clusters, hence P, are the same on any rank count (to
+the round-off of C's sums), so CG needs the 1-rank iterations on 2 or 3 ranks; with
+``rank`` P depends on the partition.
 
 The context is PETSc's ``PCPYTHON`` (set up by :class:`lc_petsc.solver.LinearSolver`).
 It reads C from the operator: the Python-shell matrix of lc_petsc/contact.py
@@ -48,6 +58,7 @@ operator it uses the preconditioning matrix alone (all wisps singletons).
 from __future__ import annotations
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from lc_petsc.petsc_capi import value_array
@@ -59,9 +70,13 @@ MAX_BLOCKS = 1024
 #: ``-lc_cluster_min_captured`` default (share of the coupling weight the clusters must hold)
 MIN_CAPTURED = 0.9
 #: ``-lc_cluster_ordering`` default: the PETSc ordering of the clusters' LU
-ORDERING = "qmd"
+ORDERING = "rcm"
 #: the orderings ``-lc_cluster_ordering`` accepts (the first is the default)
-ORDERINGS = (ORDERING, "rcm", "nd")
+ORDERINGS = (ORDERING, "qmd", "nd")
+#: ``-lc_cluster_span`` default: clusters over the global contact graph (across ranks)
+SPAN = "global"
+#: the values ``-lc_cluster_span`` accepts (the first is the default)
+SPANS = (SPAN, "rank")
 
 
 def block_rows(M, rows=None):
@@ -86,18 +101,21 @@ def local_block(M):
     return M if M.getComm().getSize() == 1 else M.getDiagonalBlock()
 
 
-def wisp_couplings(rows, cols, blocks, vertex_wisp):
-    """Coupled wisp pairs of the blocks (``rows``, ``cols``: vertices (k,); ``blocks``
-    (k, 3, 3)) of a cross-block matrix: (pairs (m, 2) with a < b, weights (m,) the summed
-    Frobenius norms of their blocks, counts (m,) their blocks), pairs sorted by (a, b)."""
-    a, b = vertex_wisp[rows], vertex_wisp[cols]
-    keep = a < b                            # each coupling once (C is symmetric)
-    n = int(vertex_wisp.max(initial=-1)) + 1
+def wisp_couplings(row_wisp, col_wisp, blocks, n_wisps):
+    """Coupled wisp pairs of the blocks of a cross-block matrix (``row_wisp``,
+    ``col_wisp``: the wisps (k,) of each block's row and column vertex, in
+    ``range(n_wisps)``; ``blocks`` (k, 3, 3)): (pairs (m, 2) with a < b, weights (m,) the
+    summed Frobenius norms of their blocks in the order given, counts (m,) their
+    blocks), pairs sorted by (a, b).  Only the blocks with ``row_wisp < col_wisp`` count
+    (C is symmetric: each coupling once, from the rows of its smaller wisp)."""
+    a, b = np.asarray(row_wisp, np.int64), np.asarray(col_wisp, np.int64)
+    keep = a < b
+    n = max(int(n_wisps), 1)
     key, inverse, count = np.unique(a[keep] * n + b[keep], return_inverse=True,
                                     return_counts=True)
     weight = np.bincount(inverse, weights=np.linalg.norm(blocks[keep], axis=(1, 2)),
                          minlength=len(key))
-    return np.stack([key // max(n, 1), key % max(n, 1)], axis=1), weight, count
+    return np.stack([key // n, key % n], axis=1), weight, count
 
 
 def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blocks=MAX_BLOCKS):
@@ -136,18 +154,83 @@ def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blo
     return smallest[roots]
 
 
+def cluster_owners(held):
+    """The rank that factors each cluster, from ``held`` (clusters, ranks): the vertices
+    of each cluster on each rank (rows without any: not a cluster).  First the rank
+    holding most of it (ties: the lower rank); then, for balance (a cluster's LU and
+    solves cost about its size, and the contact often falls on one rank's side of the
+    head), the clusters of ranks loaded above the mean move, largest first (ties: the
+    lower cluster), to the least-loaded rank as long as it stays at or below the mean.
+    Deterministic: every rank computes the same owners.  Returns (clusters,)."""
+    size = held.sum(axis=1)
+    owner = np.argmax(held, axis=1)
+    n_ranks = held.shape[1]
+    if n_ranks == 1:
+        return owner
+    load = np.bincount(owner, weights=size, minlength=n_ranks)
+    mean = load.sum() / n_ranks
+    for c in np.lexsort((np.arange(len(size)), -size)):
+        if size[c] == 0 or load[owner[c]] <= mean:
+            continue
+        q = int(np.argmin(load))
+        if load[q] + size[c] <= mean:
+            load[owner[c]] -= size[c]
+            load[q] += size[c]
+            owner[c] = q
+    return owner
+
+
+def local_rows(M):
+    """This rank's rows of ``M`` with global column numbers: a sequential matrix (``M``
+    itself when sequential; else a copy the caller destroys)."""
+    if M.getComm().getSize() == 1:
+        return M
+    r0, r1 = M.getOwnershipRange()
+    rows = PETSc.IS().createStride(r1 - r0, r0, 1, comm=PETSc.COMM_SELF)
+    cols = PETSc.IS().createStride(M.getSize()[1], 0, 1, comm=PETSc.COMM_SELF)
+    try:
+        return M.createSubMatrices(rows, cols)[0]
+    finally:
+        rows.destroy()
+        cols.destroy()
+
+
+class GlobalLayout:
+    """The global wisps behind a matrix whose ranks own contiguous ranges of whole wisps
+    (lc_petsc/parallel.py): ``comm`` (mpi4py), ``n_wisps``, ``sizes`` (vertices per
+    wisp), ``offsets`` (first vertex of each, and the total), ``wisp_rank`` (owner),
+    ``vertex_wisp`` (wisp of every global vertex), ``first_wisp`` (this rank's first).
+    ``local_sizes``: the vertices of this rank's wisps (collective)."""
+
+    def __init__(self, M, local_sizes):
+        self.comm = M.getComm().tompi4py()
+        per_rank = self.comm.allgather(np.asarray(local_sizes, np.int64))
+        self.sizes = np.concatenate(per_rank)
+        self.n_wisps = len(self.sizes)
+        self.offsets = np.concatenate([[0], np.cumsum(self.sizes)])
+        self.wisp_rank = np.repeat(np.arange(len(per_rank)), [len(p) for p in per_rank])
+        self.vertex_wisp = np.repeat(np.arange(self.n_wisps), self.sizes)
+        self.first_wisp = sum(len(p) for p in per_rank[:self.comm.rank])
+        if 3 * self.offsets[self.first_wisp] != M.getOwnershipRange()[0]:
+            raise ValueError("the cluster preconditioner needs every rank's rows to be its "
+                             "wisps' vertices, numbered contiguously rank after rank")
+
+
 class ClusterPC:
     """``PCPYTHON`` context of the cluster preconditioner (see the module doc).
 
     ``wisp_rows``: matrix rows (3 x vertices) of each local wisp, in order;
     ``max_wisps``, ``max_blocks``: the cluster caps; ``min_captured``: the fallback's
-    threshold.  After each set-up, ``stats`` holds the clusters' figures (clusters,
-    wisps in clusters, largest cluster, cluster rows, factor over matrix entries, coupled
-    wisp pairs, those left out, share of the coupling weight held, fallback taken) and
-    ``history`` keeps them per set-up."""
+    threshold; ``ordering``: the clusters' LU ordering; ``span``: ``global`` (clusters
+    over the global contact graph, a cluster may hold wisps of several ranks) or
+    ``rank`` (only couplings between two wisps of one rank).  After each set-up,
+    ``stats`` holds the clusters' figures (this rank's: clusters it factors, their wisps,
+    largest, cluster rows, factor over matrix entries; global: coupled wisp pairs, those
+    left out, share of the coupling weight held, fallback taken, pairs and weight share
+    across ranks, clusters spanning ranks) and ``history`` keeps them per set-up."""
 
     def __init__(self, wisp_rows, max_wisps=MAX_WISPS, max_blocks=MAX_BLOCKS,
-                 min_captured=MIN_CAPTURED, ordering=ORDERING):
+                 min_captured=MIN_CAPTURED, ordering=ORDERING, span=SPAN):
         sizes = np.asarray(wisp_rows, np.int64) // 3
         self.vertex_wisp = np.repeat(np.arange(len(sizes)), sizes)
         self.offsets = np.concatenate([[0], np.cumsum(sizes)])
@@ -155,10 +238,13 @@ class ClusterPC:
         self.min_captured = float(min_captured)
         if ordering not in ORDERINGS:
             raise ValueError(f"cluster LU ordering {ordering!r}: use one of {', '.join(ORDERINGS)}")
-        self.ordering = ordering
-        self.band = self.cluster = self.cluster_mat = None
+        if span not in SPANS:
+            raise ValueError(f"cluster span {span!r}: use one of {', '.join(SPANS)}")
+        self.ordering, self.span = ordering, span
+        self.band = self.cluster = self.cluster_mat = self.scatter = None
         self.dofs = np.zeros(0, np.int64)
         self._x = self._y = self._cx = self._cy = None
+        self.layout: GlobalLayout | None = None
         self.stats: dict = {}
         self.history: list[dict] = []
 
@@ -179,23 +265,91 @@ class ClusterPC:
         if self._x is None or self._x.getSize() != n:
             self._x = PETSc.Vec().createWithArray(np.zeros(n), comm=PETSc.COMM_SELF)
             self._y = PETSc.Vec().createWithArray(np.zeros(n), comm=PETSc.COMM_SELF)
-        self._setup_clusters(A_loc, None if C is None else local_block(C))
+        if self.layout is None:
+            self.layout = GlobalLayout(A, np.diff(self.offsets))
+        self._setup_clusters(A, A_loc, C)
         self.history.append(dict(self.stats))
 
-    def _setup_clusters(self, A_loc, C_loc):
+    def _couplings(self, C):
+        """The global coupled wisp pairs, weights and block counts of C (every rank gets
+        all of them, in (a, b) order: each pair comes from the rows of its smaller wisp),
+        and this rank's blocks of C: (global row vertex (k,), global column vertex (k,),
+        blocks (k, 3, 3))."""
+        lay = self.layout
+        rows = local_rows(C)
+        try:
+            rc, cc, vc = block_rows(rows)
+        finally:
+            if rows is not C:
+                rows.destroy()
+        found = wisp_couplings(lay.first_wisp + self.vertex_wisp[rc], lay.vertex_wisp[cc], vc,
+                               lay.n_wisps)
+        mine = (lay.offsets[lay.first_wisp] + rc, cc, vc)
+        if lay.comm.size == 1:
+            return found, mine
+        parts = lay.comm.allgather(found)
+        return tuple(np.concatenate([p[k] for p in parts]) for k in range(3)), mine
+
+    def _to_owners(self, rows, cols, vals, dest):
+        """The blocks (global rows, columns, values) sent to this rank by every rank,
+        each sending its blocks to their ``dest`` rank (collective); in rank order."""
+        comm = self.layout.comm
+        if comm.size == 1:
+            return rows, cols, vals
+        by = np.argsort(dest, kind="stable")
+        send = np.bincount(dest, minlength=comm.size)
+        recv = np.asarray(comm.alltoall(send.tolist()), np.int64)
+        out = []
+        for a, width in ((rows, 1), (cols, 1), (vals, 9)):
+            a = np.ascontiguousarray(a[by], np.int64 if width == 1 else np.float64)
+            got = np.empty((int(recv.sum()),) + a.shape[1:], a.dtype)
+            kind = MPI.INT64_T if width == 1 else MPI.DOUBLE
+            comm.Alltoallv([a, (send * width, None), kind], [got, (recv * width, None), kind])
+            out.append(got)
+        return tuple(out)
+
+    def _cluster_blocks(self, A_loc, c_blocks, label, owner):
+        """The blocks of A + C inside the clusters this rank factors (global rows,
+        columns, values; A's first), from every rank's rows: its band blocks of clustered
+        wisps (``A_loc``) and its blocks of C (``c_blocks``) inside a cluster, by cluster
+        ``label`` and cluster ``owner`` (collective)."""
+        lay = self.layout
+        count = np.bincount(label, minlength=lay.n_wisps)
+        v0 = lay.offsets[lay.first_wisp]
+        local = lay.first_wisp + np.arange(len(self.offsets) - 1)
+        local = local[count[label[local]] > 1]                      # clustered wisps here
+        sizes = lay.sizes[local]
+        verts = np.repeat(lay.offsets[local] - v0 - np.concatenate([[0], np.cumsum(sizes)[:-1]]),
+                          sizes) + np.arange(int(sizes.sum()))     # their local vertices
+        ra, ca, va = block_rows(A_loc, verts)
+        a = self._to_owners(v0 + verts[ra], v0 + ca, va, owner[label[lay.vertex_wisp[v0 + verts[ra]]]])
+        rows, cols, vals = c_blocks
+        cluster = label[lay.vertex_wisp[rows]]
+        inside = (cluster == label[lay.vertex_wisp[cols]]) & (count[cluster] > 1)
+        c = self._to_owners(rows[inside], cols[inside], vals[inside], owner[cluster[inside]])
+        return tuple(np.concatenate([a[k], c[k]]) for k in range(3))
+
+    def _setup_clusters(self, A, A_loc, C):
         self._destroy_cluster()
-        n_w = len(self.offsets) - 1
+        lay = self.layout
         stats = {"clusters": 0, "wisps": 0, "largest": 0, "rows": 0, "fill": 0.0,
-                 "couplings": 0, "couplings_left_out": 0, "captured": 1.0, "fallback": False}
+                 "couplings": 0, "couplings_left_out": 0, "captured": 1.0, "fallback": False,
+                 "cross_rank_couplings": 0, "cross_rank_weight": 0.0, "cross_rank_clusters": 0,
+                 "moved_rows": 0}
         self.stats = stats
-        if C_loc is None or n_w < 2:
+        if C is None or lay.n_wisps < 2:
             return
-        rc, cc, vc = block_rows(C_loc)
-        pairs, weights, counts = wisp_couplings(rc, cc, vc, self.vertex_wisp)
+        (pairs, weights, counts), c_blocks = self._couplings(C)
+        cross = lay.wisp_rank[pairs[:, 0]] != lay.wisp_rank[pairs[:, 1]]
+        total = float(weights.sum())
+        stats.update(cross_rank_couplings=int(cross.sum()),
+                     cross_rank_weight=float(weights[cross].sum()) / total if total > 0 else 0.0)
+        if self.span == "rank":
+            pairs, weights, counts = pairs[~cross], weights[~cross], counts[~cross]
         stats["couplings"] = len(pairs)
         if not len(pairs):
             return
-        label = cluster_labels(n_w, pairs, weights, counts, self.max_wisps, self.max_blocks)
+        label = cluster_labels(lay.n_wisps, pairs, weights, counts, self.max_wisps, self.max_blocks)
         out = label[pairs[:, 0]] != label[pairs[:, 1]]
         total = float(weights.sum())
         stats.update(couplings_left_out=int(out.sum()),
@@ -203,32 +357,55 @@ class ClusterPC:
         if stats["captured"] < self.min_captured:
             stats["fallback"] = True
             return
-        count = np.bincount(label, minlength=n_w)
-        multi = count[label] > 1                                  # per wisp
-        if not multi.any():
+        count = np.bincount(label, minlength=lay.n_wisps)
+        clustered = np.flatnonzero(count[label] > 1)
+        if not len(clustered):
             return
-        # clustered wisps, grouped by cluster (stable: wisp order inside a cluster)
-        wisps = np.flatnonzero(multi)
+        held = np.zeros((lay.n_wisps, lay.comm.size))     # vertices per (cluster, rank)
+        np.add.at(held, (label[clustered], lay.wisp_rank[clustered]), lay.sizes[clustered])
+        stats["cross_rank_clusters"] = int(((held > 0).sum(axis=1) > 1).sum())
+        owner = cluster_owners(held)
+        stats["moved_rows"] = int(3 * (held.sum(axis=1) - held[np.arange(lay.n_wisps), owner]).sum())
+        # this rank's clusters, their wisps grouped by cluster, in wisp order inside one
+        wisps = clustered[owner[label[clustered]] == lay.comm.rank]
         wisps = wisps[np.argsort(label[wisps], kind="stable")]
-        sizes = np.diff(self.offsets)[wisps]
-        verts = np.repeat(self.offsets[wisps] - np.concatenate([[0], np.cumsum(sizes)[:-1]]),
+        self._factor_clusters(A, self._cluster_blocks(A_loc, c_blocks, label, owner), wisps)
+        if len(wisps):
+            stats.update(clusters=len(np.unique(label[wisps])), wisps=len(wisps),
+                         largest=int(count[label[wisps]].max()), rows=len(self.dofs))
+
+    def _factor_clusters(self, A, blocks, wisps):
+        """Factor the blocks (global rows, columns, values) of this rank's clusters
+        (``wisps`` grouped by cluster) and set up the scatter of the cluster rows
+        (collective)."""
+        lay = self.layout
+        sizes = lay.sizes[wisps]
+        verts = np.repeat(lay.offsets[wisps] - np.concatenate([[0], np.cumsum(sizes)[:-1]]),
                           sizes) + np.arange(int(sizes.sum()))
-        pos = np.full(len(self.vertex_wisp), -1, np.int64)
-        pos[verts] = np.arange(len(verts))
-        ra, ca, va = block_rows(A_loc, verts)
-        keep = (pos[rc] >= 0) & (label[self.vertex_wisp[rc]] == label[self.vertex_wisp[cc]])
-        rows = np.concatenate([ra, pos[rc[keep]]])
-        cols = np.concatenate([pos[ca], pos[cc[keep]]])
-        vals = np.concatenate([va, vc[keep]])
-        order = np.lexsort((cols, rows))
-        rows, cols, vals = rows[order], cols[order], vals[order]
+        self.dofs = (3 * verts[:, None] + np.arange(3)).ravel()
+        m = len(self.dofs)
+        self._cx = PETSc.Vec().createSeq(m, comm=PETSc.COMM_SELF)
+        self._cy = self._cx.duplicate()
+        x = A.createVecRight()
+        to = PETSc.IS().createGeneral(self.dofs.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+        try:
+            self.scatter = PETSc.Scatter().create(x, to, self._cx, None)
+        finally:
+            to.destroy()
+            x.destroy()
+        if not m:
+            return
+        grouped = np.full(lay.offsets[-1], -1, np.int64)      # global vertex -> cluster row
+        grouped[verts] = np.arange(len(verts))
+        rows, cols, vals = grouped[blocks[0]], grouped[blocks[1]], blocks[2]
+        lex = np.lexsort((cols, rows))
+        rows, cols, vals = rows[lex], cols[lex], vals[lex]
         # a self-contact pair's cross blocks can fall on its wisp's band (segments two
         # apart): one summed block per position (a CSR row must not repeat a column)
         first = np.flatnonzero(np.r_[True, (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1])])
         if len(first) < len(rows):
             rows, cols, vals = rows[first], cols[first], np.add.reduceat(vals, first, axis=0)
         indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=len(verts)))])
-        m = 3 * len(verts)
         M = PETSc.Mat().createBAIJ(size=(m, m), bsize=3, comm=PETSc.COMM_SELF,
                                    csr=(indptr.astype(PETSc.IntType), cols.astype(PETSc.IntType),
                                         np.ascontiguousarray(vals).ravel()))
@@ -238,16 +415,12 @@ class ClusterPC:
         self.cluster.setFactorOrdering(self.ordering)
         self.cluster.setOperators(M, M)
         self.cluster.setUp()
-        self.dofs = (3 * verts[:, None] + np.arange(3)).ravel()
-        self._cx = PETSc.Vec().createSeq(m, comm=PETSc.COMM_SELF)
-        self._cy = self._cx.duplicate()
-        n_clusters = len(np.unique(label[wisps]))
-        stats.update(clusters=n_clusters, wisps=len(wisps), largest=int(count.max()), rows=m,
-                     fill=float(self.cluster.getFactorMatrix().getInfo()["nz_used"]
-                                / M.getInfo()["nz_used"]))
+        self.stats["fill"] = float(self.cluster.getFactorMatrix().getInfo()["nz_used"]
+                                   / M.getInfo()["nz_used"])
 
     def apply(self, pc, x, y):
-        """y = P^-1 x: the per-wisp LUs, then the cluster rows by the clusters' LU."""
+        """y = P^-1 x: the per-wisp LUs, then the cluster rows by the clusters' LU
+        (gathered from and scattered back to the ranks owning them)."""
         xa = x.getArray(readonly=True)
         ya = y.getArray()
         self._x.placeArray(xa)
@@ -257,16 +430,17 @@ class ClusterPC:
         finally:
             self._x.resetArray()
             self._y.resetArray()
-        if self.cluster is not None:
-            self._cx.array[:] = xa[self.dofs]
-            self.cluster.apply(self._cx, self._cy)
-            ya[self.dofs] = self._cy.array_r
+        if self.scatter is not None:
+            self.scatter.scatter(x, self._cx, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
+            if self.cluster is not None:
+                self.cluster.apply(self._cx, self._cy)
+            self.scatter.scatter(self._cy, y, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.REVERSE)
 
     def _destroy_cluster(self):
-        for obj in (self.cluster, self.cluster_mat, self._cx, self._cy):
+        for obj in (self.cluster, self.cluster_mat, self.scatter, self._cx, self._cy):
             if obj is not None:
                 obj.destroy()
-        self.cluster = self.cluster_mat = self._cx = self._cy = None
+        self.cluster = self.cluster_mat = self.scatter = self._cx = self._cy = None
         self.dofs = np.zeros(0, np.int64)
 
     def destroy(self, pc=None):

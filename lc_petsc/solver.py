@@ -36,8 +36,8 @@ this module creates the KSP with the code defaults, which the options override
   configs/solvers/bjacobi_rank.opts) replace the per-wisp blocks altogether.
 
 With strand contact, ``-lc_contact_pc clusters`` (the default there) grows the fused per-wisp
-blocks into clusters of wisps coupled by contact, each solved exactly
-(lc_petsc/contact_pc.py, a ``PCPYTHON`` set up here after ``setFromOptions``: the
+blocks into clusters of wisps coupled by contact (across ranks by default), each solved
+exactly (lc_petsc/contact_pc.py, a ``PCPYTHON`` set up here after ``setFromOptions``: the
 options select it, so no ``-pc_type`` can undo it; docs/contact_solver.md).  MUMPS
 (``-pc_factor_mat_solver_type mumps``) gets the AMF ordering ``-mat_mumps_icntl_7 2``
 as a code default (the plan's sub-solver layer: the options win).

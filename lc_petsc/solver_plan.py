@@ -21,7 +21,8 @@ decides itself, before any PETSc object exists:
 * with strand contact, what the preconditioner is built from (``-lc_contact_pc
   coupled|strands|clusters``; ``clusters``: lc_petsc/contact_pc.py, with its caps
   ``-lc_cluster_max_wisps``, ``-lc_cluster_max_blocks``, its fallback threshold
-  ``-lc_cluster_min_captured`` and the ordering of its LU ``-lc_cluster_ordering``);
+  ``-lc_cluster_min_captured``, the ordering of its LU ``-lc_cluster_ordering`` and
+  ``-lc_cluster_span global|rank``: clusters across ranks or inside each);
 * the factorisation defaults: MUMPS gets the AMF ordering (``-mat_mumps_icntl_7 2``)
   unless the options say otherwise;
 * lc_petsc's own build choices read from the same database: the element kernels
@@ -51,7 +52,7 @@ from typing import Mapping, Optional
 
 from petsc4py import PETSc
 
-from lc_petsc.contact_pc import MAX_BLOCKS, MAX_WISPS, MIN_CAPTURED, ORDERINGS
+from lc_petsc.contact_pc import MAX_BLOCKS, MAX_WISPS, MIN_CAPTURED, ORDERINGS, SPANS
 from lc_petsc.errors import ConfigError
 from lc_petsc.options import option_pairs
 from lc_petsc.parallel import WISP_ORDERS
@@ -163,7 +164,7 @@ class SolverPlan:
     ``separate`` per-wisp block Jacobi, None for another preconditioner;
     ``contact_pc``: ``coupled`` / ``strands`` / ``clusters`` with strand contact, else
     None; ``cluster_caps``: (max wisps, max cross blocks, min captured share, LU
-    ordering) of the clusters with ``clusters``, else None;
+    ordering, span) of the clusters with ``clusters``, else None;
     ``sub_solver``: the per-wisp blocks' default sub-solver options; ``factor``: the
     factorisation defaults (:func:`factor_defaults`);
     ``element_kernels``: ``compiled`` / ``numpy``; ``wisp_order``: ``spatial`` / ``input``.
@@ -176,7 +177,7 @@ class SolverPlan:
     pc_type: str
     wisp_blocks: Optional[str]
     contact_pc: Optional[str]
-    cluster_caps: Optional[tuple[int, int, float, str]]
+    cluster_caps: Optional[tuple[int, int, float, str, str]]
     sub_solver: Mapping[str, str]
     factor: Mapping[str, str]
     element_kernels: str
@@ -399,7 +400,7 @@ def _positive_int(layers: _Layers, key, default):
 
 
 def _cluster_caps(layers: _Layers, mat_type, wisp_blocks):
-    """(max wisps, max cross blocks, min captured share, LU ordering) of the clusters
+    """(max wisps, max cross blocks, min captured share, LU ordering, span) of the clusters
     of ``-lc_contact_pc clusters``, after checking that the cluster preconditioner can run
     with the other options."""
     if base_type(mat_type) != "baij":
@@ -420,4 +421,7 @@ def _cluster_caps(layers: _Layers, mat_type, wisp_blocks):
     return (_positive_int(layers, "lc_cluster_max_wisps", MAX_WISPS),
             _positive_int(layers, "lc_cluster_max_blocks", MAX_BLOCKS), captured,
             _choice(layers, "lc_cluster_ordering", ORDERINGS,
-                    f"one of {', '.join(ORDERINGS)} (the PETSc ordering of the clusters' LU)"))
+                    f"one of {', '.join(ORDERINGS)} (the PETSc ordering of the clusters' LU)"),
+            _choice(layers, "lc_cluster_span", SPANS,
+                    "global (clusters may hold wisps of several ranks) or rank (only "
+                    "couplings inside one rank)"))

@@ -64,7 +64,8 @@ def test_wisp_couplings_sums_blocks_per_wisp_pair():
     rows = np.array([0, 1, 1, 2, 2, 3])
     cols = np.array([2, 2, 3, 0, 1, 1])
     blocks = np.arange(6, dtype=float)[:, None, None] * np.eye(3)
-    pairs, w, counts = wisp_couplings(rows, cols, blocks, np.array([0, 0, 1, 2]))
+    vertex_wisp = np.array([0, 0, 1, 2])
+    pairs, w, counts = wisp_couplings(vertex_wisp[rows], vertex_wisp[cols], blocks, 3)
     np.testing.assert_array_equal(pairs, [[0, 1], [0, 2]])
     np.testing.assert_allclose(w, [np.sqrt(3) * (0 + 1), np.sqrt(3) * 2])
     np.testing.assert_array_equal(counts, [2, 1])
@@ -158,7 +159,7 @@ def test_both_contact_preconditioners_same_trajectory_clusters_cut_iterations(mo
 
 
 def test_cluster_orderings_same_trajectory(monkeypatch):
-    """The clusters' LU ordering (-lc_cluster_ordering, default qmd) changes only the
+    """The clusters' LU ordering (-lc_cluster_ordering, default rcm) changes only the
     round-off of the exact cluster solves: the same CG iterations and contact pairs, the
     same positions to round-off, and RCM's factor a little fuller than qmd's."""
     runs = {}
@@ -168,14 +169,14 @@ def test_cluster_orderings_same_trajectory(monkeypatch):
         try:
             sim.run(2)
             ctx = sim.solver.clusters
-            assert ctx.ordering == (ordering or "qmd")
+            assert ctx.ordering == (ordering or "rcm")
             runs[ordering] = (sim.gather_positions(), list(sim.solver.iterations),
                               sim.summary()["contact"]["pairs_per_frame"],
                               [h["fill"] for h in ctx.history if h["clusters"]])
         finally:
             sim.close()
     (xq, its_q, pairs_q, fill_q), (xr, its_r, pairs_r, fill_r) = runs["qmd"], runs["rcm"]
-    assert runs[None][1] == its_q and np.array_equal(runs[None][0], xq)      # qmd is the default
+    assert runs[None][1] == its_r and np.array_equal(runs[None][0], xr)      # rcm is the default
     assert pairs_q == pairs_r and sum(pairs_r) > 0 and its_q == its_r
     assert len(fill_r) >= 1 and len(fill_r) == len(fill_q)
     assert all(r >= q - 1e-12 for q, r in zip(fill_q, fill_r)), (fill_q, fill_r)
@@ -212,7 +213,8 @@ def test_fallback_keeps_the_per_wisp_blocks(monkeypatch):
     ("-lc_contact_pc clusters -lc_cluster_max_wisps 0", "whole number >= 1"),
     ("-lc_contact_pc clusters -lc_cluster_max_blocks 2.5", "whole number >= 1"),
     ("-lc_contact_pc clusters -lc_cluster_min_captured 1.5", "from 0"),
-    ("-lc_contact_pc clusters -lc_cluster_ordering amd", "one of qmd, rcm, nd"),
+    ("-lc_contact_pc clusters -lc_cluster_ordering amd", "one of rcm, qmd, nd"),
+    ("-lc_contact_pc clusters -lc_cluster_span all", "global .* or rank"),
 ])
 def test_plan_refuses_bad_cluster_options(options, match):
     with pytest.raises(ConfigError, match=match):
@@ -221,12 +223,12 @@ def test_plan_refuses_bad_cluster_options(options, match):
 
 def test_plan_cluster_caps_and_mumps_ordering_default():
     plan = SolverPlan.resolve("-lc_contact_pc clusters -lc_cluster_max_wisps 8", strand_contact=True)
-    assert plan.contact_pc == "clusters" and plan.cluster_caps == (8, 1024, 0.9, "qmd")
+    assert plan.contact_pc == "clusters" and plan.cluster_caps == (8, 1024, 0.9, "rcm", "global")
     assert plan.pmat_type is None               # the strand matrix itself, no AIJ copy
     # the default with contact: clusters for block Jacobi on BAIJ with fused blocks, the
     # per-wisp strand blocks where clusters cannot run, none without contact
     default = SolverPlan.resolve("", strand_contact=True)
-    assert default.contact_pc == "clusters" and default.cluster_caps == (64, 1024, 0.9, "qmd")
+    assert default.contact_pc == "clusters" and default.cluster_caps == (64, 1024, 0.9, "rcm", "global")
     for other in ("-lc_wisp_blocks separate", "-mat_type aij", "-lc_contact_pc strands"):
         plan = SolverPlan.resolve(other, strand_contact=True)
         assert plan.contact_pc == "strands" and plan.cluster_caps is None, other
@@ -253,6 +255,10 @@ def test_mumps_runs_with_amf_unless_told_otherwise(monkeypatch):
 
 @pytest.mark.mpi
 def test_cluster_solve_rank_invariant(monkeypatch):
+    """Clusters span ranks (-lc_cluster_span global, the default): the preconditioner is
+    the 1-rank one on any rank count, so CG needs the 1-rank iterations (<= 2 at rtol
+    1e-13: every coupled wisp in a cluster) where rank-local clusters needed up to 33 on
+    2 ranks, and the positions equal the 1-rank run's to round-off."""
     comm = MPI.COMM_WORLD
     options = "-ksp_rtol 1e-13 -ksp_max_it 5000 -lc_contact_pc clusters"
     monkeypatch.setattr(simmod, "source_from_config", lambda *a: touching_wisps_source())
@@ -261,6 +267,7 @@ def test_cluster_solve_rank_invariant(monkeypatch):
         sim.run()
         X = sim.gather_positions()
         its = sim.solver.iterations
+        spanning = max(h["cross_rank_clusters"] for h in sim.solver.clusters.history)
     finally:
         sim.close()
     ok, msg = True, ""
@@ -269,10 +276,13 @@ def test_cluster_solve_rank_invariant(monkeypatch):
         try:
             ref.run()
             R = ref.gather_positions()
+            ref_its = ref.solver.iterations
         finally:
             ref.close()
         err = float(np.abs(X - R).max() / np.abs(R).max())
-        ok = err <= 1e-9 and max(its) <= (2 if comm.size == 1 else 60)
-        msg = f"{comm.size} ranks: relative difference {err:.2e}, CG iterations {its}"
+        # a control: on several ranks the scene's clusters do cross the partition
+        ok = err <= 1e-9 and max(its) <= 2 and max(ref_its) <= 2 and (comm.size == 1 or spanning >= 1)
+        msg = (f"{comm.size} ranks: relative difference {err:.2e}, CG iterations {its} "
+               f"(1 rank {ref_its}), clusters across ranks {spanning}")
     ok, msg = comm.bcast((ok, msg))
     assert ok, msg

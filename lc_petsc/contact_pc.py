@@ -61,6 +61,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from lc_petsc.parallel import global_wisp_offsets
 from lc_petsc.petsc_capi import value_array
 
 #: ``-lc_cluster_max_wisps`` default
@@ -204,13 +205,14 @@ class GlobalLayout:
 
     def __init__(self, M, local_sizes):
         self.comm = M.getComm().tompi4py()
-        per_rank = self.comm.allgather(np.asarray(local_sizes, np.int64))
-        self.sizes = np.concatenate(per_rank)
+        local_sizes = np.asarray(local_sizes, np.int64)
+        self.offsets = global_wisp_offsets(self.comm, np.concatenate([[0], np.cumsum(local_sizes)]))
+        self.sizes = np.diff(self.offsets)
         self.n_wisps = len(self.sizes)
-        self.offsets = np.concatenate([[0], np.cumsum(self.sizes)])
-        self.wisp_rank = np.repeat(np.arange(len(per_rank)), [len(p) for p in per_rank])
+        per_rank = self.comm.allgather(len(local_sizes))
+        self.wisp_rank = np.repeat(np.arange(len(per_rank)), per_rank)
         self.vertex_wisp = np.repeat(np.arange(self.n_wisps), self.sizes)
-        self.first_wisp = sum(len(p) for p in per_rank[:self.comm.rank])
+        self.first_wisp = sum(per_rank[:self.comm.rank])
         if 3 * self.offsets[self.first_wisp] != M.getOwnershipRange()[0]:
             raise ValueError("the cluster preconditioner needs every rank's rows to be its "
                              "wisps' vertices, numbered contiguously rank after rank")

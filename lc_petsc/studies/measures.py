@@ -9,24 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from lc_petsc.crossings import edge_strain
 from lc_petsc.parallel import global_max
 from lc_petsc.scene.state import vertex_wisp_length, wisp_lengths  # noqa: F401  (re-exported)
 
 
-def edge_mask(offsets):
-    """Mask of the rows of np.diff(x) that are real edges (not across two wisps)."""
-    n = int(offsets[-1])
-    m = np.ones(max(n - 1, 0), bool)
-    m[np.asarray(offsets[1:-1], int) - 1] = False
-    return m
-
-
 def stretch_strain(x, rest, offsets):
-    """Largest |l / l0 - 1| over all edges."""
-    m = edge_mask(offsets)
-    length = np.linalg.norm(np.diff(x, axis=0), axis=1)[m]
-    length0 = np.linalg.norm(np.diff(rest, axis=0), axis=1)[m]
-    return float(np.max(np.abs(length / length0 - 1.0), initial=0.0))
+    """Largest |l / l0 - 1| over all edges (:func:`lc_petsc.crossings.edge_strain`)."""
+    return float(np.max(np.abs(edge_strain(x, rest, offsets)), initial=0.0))
 
 
 def curl_radius(x, offsets, free=None):

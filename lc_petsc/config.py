@@ -38,6 +38,9 @@ from lc_petsc.elements.common import FILTERS as ELEMENT_FILTERS  # noqa: E402
 #: solver.filter: an element filter, or the exact Hessian with the analytic filter as
 #: fallback when the Newton matrix is indefinite
 FILTERS = ELEMENT_FILTERS + ("exact_or_analytic",)
+#: solver.exact_fallback: what replaces a failed exact step of "exact_or_analytic": the
+#: analytic filter's step, or first the exact Hessian shifted by tau M/dt^2 (docs/newton.md)
+EXACT_FALLBACKS = ("analytic", "shifted")
 #: time.frames above this is refused (a billion frames at 1/30 s is a year of motion)
 MAX_FRAMES = 10 ** 9
 #: time.dt below this is refused: the mass term M/dt^2 then swamps every elastic term in
@@ -367,12 +370,16 @@ class SolverConfig:
 
     ``options_file`` (PETSc options, one or more per line, ``#`` comments) is read first,
     then the ``options`` string; a later option wins over an earlier one, and options
-    on the command line win over both.
+    on the command line win over both.  ``exact_fallback`` (with ``filter =
+    "exact_or_analytic"``): ``"analytic"`` replaces a failed exact step by the analytic
+    filter's, ``"shifted"`` first tries the exact Hessian + tau M/dt^2 (docs/newton.md
+    "Seventh round").
     """
 
     options: str = ""
     options_file: Optional[str] = None
     filter: str = "analytic"
+    exact_fallback: str = "analytic"
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
@@ -386,6 +393,13 @@ class SolverConfig:
             _check_options(f"solver.options_file ({self.options_file})", self._file_text())
         if self.filter not in FILTERS:
             raise ConfigError(f"solver.filter must be one of {FILTERS}, got {self.filter!r}")
+        if self.exact_fallback not in EXACT_FALLBACKS:
+            raise ConfigError(f"solver.exact_fallback must be one of {EXACT_FALLBACKS}, "
+                              f"got {self.exact_fallback!r}")
+        if self.exact_fallback != "analytic" and self.filter != "exact_or_analytic":
+            raise ConfigError(f"solver.exact_fallback = {self.exact_fallback!r} applies to the exact "
+                              f"steps of solver.filter = \"exact_or_analytic\" (got solver.filter = "
+                              f"{self.filter!r}); set that filter or drop solver.exact_fallback")
 
     def _file_text(self) -> str:
         lines = Path(str(self.options_file)).read_text().splitlines()

@@ -33,6 +33,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   :data:`EXACT_BELOW` the exact Hessian is assembled and its step kept when CG finds no
   indefiniteness and Armijo holds within :data:`EXACT_HALVINGS` halvings; otherwise the
   iteration re-assembles with the analytic filter (``exact_hessian_fallbacks``).
+  With ``solver.exact_fallback = "shifted"`` the exact Hessian plus tau M/dt^2, tau in
+  :data:`EXACT_SHIFTS` (smallest first), is tried before that (docs/newton.md "Seventh
+  round": an exact step that is an ascent direction near the solution had left the
+  iteration at the analytic filter's linear rate).
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
   G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
 * ``time.length_projection``: the final iterate is projected onto the rest edge lengths
@@ -137,6 +141,7 @@ class Integrator:
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
         self.history = None             # a list: per-iteration measures are appended
         self._fallback = ""            # why the last exact step was rejected (history)
+        self._shift = 0.0              # the mass shift of the last exact step (history)
         self._region_record = {}        # the last trust-region step's rho, radius (history)
         self._force_scale = 0.0         # the frame's force scale (with a history only)
         self.exact_hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
@@ -282,13 +287,19 @@ class Integrator:
                     break
                 continue
             exact = self._exact_hessian(increment)
-            g = self._assemble_system(x, it, filter="none" if exact else None)
-            dx = self._solve_step(g, it, may_fail=exact)
-            alpha = 1.0
-            if exact and dx is not None:
-                alpha = self._line_search(x, g, dx, EXACT_HALVINGS, exact=True)
+            self._shift = 0.0
+            g, dx, alpha = self._exact_step(x, it, 0.0) if exact else (None, None, 1.0)
+            if not exact:
+                g = self._assemble_system(x, it)
+                dx = self._solve_step(g, it)
             self._fallback = "" if dx is not None and alpha is not None else \
                 ("indefinite" if dx is None else "armijo")
+            if exact and self._fallback and cfg.solver.exact_fallback == "shifted":
+                for tau in EXACT_SHIFTS:
+                    g, dx, alpha = self._exact_step(x, it, tau)
+                    if dx is not None and alpha is not None:
+                        self._shift = tau
+                        break
             if dx is None or alpha is None:     # no exact Newton step: a filtered one
                 exact = False
                 fallbacks += 1
@@ -384,9 +395,10 @@ class Integrator:
             return x + step
 
     # -------------------------------------------------------------- Newton system
-    def _assemble_system(self, x, it, filter=None):
+    def _assemble_system(self, x, it, filter=None, shift=0.0):
         """Fill the Newton matrix at x (element and strand-contact Hessians with
-        ``filter``, default the configured one); returns grad G."""
+        ``filter``, default the configured one; the mass term (1 + ``shift``) M/dt^2);
+        returns grad G."""
         asm, sc, dt = self.asm, self.scene, self.dt
         chosen = asm.filter
         if filter is not None:
@@ -397,7 +409,7 @@ class Integrator:
             with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
                 g = self.gradient(x, elastic=asm.assemble(x))
                 with self.timers("assembly"):
-                    asm.add_mass(sc.mass / dt ** 2)
+                    asm.add_mass((1.0 + shift) * sc.mass / dt ** 2)
                 _, idx, cg = self._contact_terms(x, True)
                 if cg is not None:
                     with self.timers("collision"):
@@ -445,6 +457,15 @@ class Integrator:
         self._region_record = dict(rho=rho, radius=region.radius, step_norm=norm_d,
                                    boundary=bool(boundary), retries=retry)
         return g, dx, kept
+
+    def _exact_step(self, x, it, shift):
+        """An exact Newton step at x: the exact Hessian plus ``shift`` M/dt^2, its solve
+        and the Armijo search along the (exact) update.  Returns (grad G, dx or None when
+        CG finds the matrix indefinite, alpha or None when Armijo fails)."""
+        g = self._assemble_system(x, it, filter="none", shift=shift)
+        dx = self._solve_step(g, it, may_fail=True)
+        alpha = None if dx is None else self._line_search(x, g, dx, EXACT_HALVINGS, exact=True)
+        return g, dx, alpha
 
     def _exact_hessian(self, increment):
         """Whether this iteration assembles the exact Hessian: ``solver.filter =
@@ -537,7 +558,7 @@ class Integrator:
             energy_decrease=G_old - G_new, exact=bool(exact),
             ksp_reason=solver.reasons[-1] if solver.reasons else "",
             ksp_iterations=solver.iterations[-1] if solver.iterations else 0,
-            exact_rejected=self._fallback, **self._region_record))
+            exact_rejected=self._fallback, exact_shift=self._shift, **self._region_record))
 
 
 def follow_the_leader(x, free, offsets, rest_edge):
@@ -632,6 +653,11 @@ def project_rest_lengths(x, free, offsets, rest_edge, mass):
 #: EXACT_HALVINGS halvings (measured, docs/newton.md: 3e-3 and 6 reach 1e-6 in the fewest
 #: iterations of 1e-2 / 3e-3 / always and 2 / 6 halvings on the hairball and smash).
 EXACT_BELOW = 3e-3
+#: ``solver.exact_fallback = "shifted"``: the shifts tau of the exact Hessian + tau M/dt^2
+#: tried, in order, when the exact step fails (measured: tau = 0.1 never helped on the
+#: hairball and 1 mostly did, while tau = 10 alone accepts steps too short to converge;
+#: docs/newton.md "Seventh round")
+EXACT_SHIFTS = (0.1, 1.0, 10.0, 100.0)
 EXACT_HALVINGS = 6
 #: strand contact, ccd mode: rounds of separation + frame-path check at a frame's end
 #: (Integrator._collision_free_end, docs/contact.md "Over a whole run")

@@ -3,14 +3,15 @@ frames converged to the tolerance, Newton iterations per frame (every attempt, t
 cost) and per backward-Euler solve kept, frames cut back, CPU s per frame.
 
   .venv/bin/python scripts/bench_cutback.py [--scenes hairball10 smash] [--frames 30]
-      [--tol 1e-6] [--wisps 10] [--setting NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE]]]] [--out out/cutback]
+      [--tol 1e-6] [--wisps 10] [--setting NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK]]]]] [--out out/cutback]
 
 Every setting: ``solver.filter = "exact_or_analytic"``, the edge retraction (or
 UPDATE: ``time.newton_update``, e.g. ``corotational``, docs/newton.md sixth round), the
 tolerance ``time.newton_increment_tol``; CAP is ``time.newton_iterations``, SUBSTEPS
 ``time.max_substeps`` (1: no cutback), DT the step (default the scene's; empty: the
 scene's), NEWTON ``time.newton`` (``trust_region``: with ``solver.filter = "analytic"``
-as its preconditioner, docs/newton.md fifth round).  The scenes
+as its preconditioner, docs/newton.md fifth round), FALLBACK ``solver.exact_fallback``
+(``shifted``: docs/newton.md seventh round).  The scenes
 are those of scripts/newton_history.py (demo10: the demo with strand contact).  Prints a markdown table (also written to
 --out/cutback.md, rows in cutback.json).  Runs with the lc_petsc it imports, so the
 no-cutback settings also run on a checkout without ``time.max_substeps`` (then
@@ -39,11 +40,14 @@ DEFAULT_SETTINGS = ["cap 30, no cutback=30,1", "cap 6, cutback=6,8", "cap 10, cu
                     "cap 15, cutback=15,8", "dt 1/120, cap 30, no cutback=30,1,0.008333333333333333"]
 
 
-def run(base, cap, substeps, dt, frames, tol, comm, newton=None, update="edge_retraction"):
+def run(base, cap, substeps, dt, frames, tol, comm, newton=None, update="edge_retraction",
+        fallback=None):
     """One setting: the summary figures (dict)."""
     cfg = copy.deepcopy(base)
     cfg.solver.filter = "exact_or_analytic"
     cfg.time.newton_update = update
+    if fallback is not None:
+        cfg.solver.exact_fallback = fallback
     cfg.time.newton_increment_tol = tol
     cfg.time.newton_tol = None
     cfg.time.newton_iterations = cap
@@ -87,7 +91,8 @@ def main(argv=None):
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--tol", type=float, default=1e-6)
     p.add_argument("--wisps", type=int, default=10, help="wisps of hairball10 / demo10 (default 10)")
-    p.add_argument("--setting", action="append", help="NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE]]] (repeatable)")
+    p.add_argument("--setting", action="append",
+                   help="NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK]]]] (repeatable)")
     p.add_argument("--out", default="out/cutback")
     a = p.parse_args(argv)
     comm = MPI.COMM_WORLD
@@ -97,13 +102,14 @@ def main(argv=None):
         for spec in a.setting or DEFAULT_SETTINGS:
             label, _, vals = spec.rpartition("=")
             parts = vals.split(",")
-            if len(parts) not in (2, 3, 4, 5):
-                raise SystemExit(f"--setting {spec!r}: use NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE]]]")
+            if len(parts) not in (2, 3, 4, 5, 6):
+                raise SystemExit(f"--setting {spec!r}: use NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK]]]]")
             cap, substeps = int(parts[0]), int(parts[1])
             dt = float(parts[2]) if len(parts) >= 3 and parts[2] else None
             newton = parts[3] if len(parts) >= 4 and parts[3] else None
-            update = parts[4] if len(parts) == 5 else "edge_retraction"
-            r = run(base, cap, substeps, dt, a.frames, a.tol, comm, newton, update)
+            update = parts[4] if len(parts) >= 5 and parts[4] else "edge_retraction"
+            fallback = parts[5] if len(parts) == 6 and parts[5] else None
+            r = run(base, cap, substeps, dt, a.frames, a.tol, comm, newton, update, fallback)
             rows.append({"scene": Path(name).stem, "setting": label, **r})
             if comm.rank == 0:
                 print(f"  {rows[-1]}", flush=True)

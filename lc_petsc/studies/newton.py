@@ -20,6 +20,7 @@ from lc_petsc.studies import report
 #: Variant keys (``key=value`` pairs joined by commas) and the config fields they set.
 VARIANT_KEYS: dict[str, tuple[str, str, Callable[[str], Any]]] = {
     "filter": ("solver", "filter", str),
+    "fallback": ("solver", "exact_fallback", str),
     "guess": ("time", "initial_guess", str),
     "update": ("time", "newton_update", str),
     "newton": ("time", "newton", str),

@@ -654,8 +654,8 @@ def project_rest_lengths(x, free, offsets, rest_edge, mass):
 #: iterations of 1e-2 / 3e-3 / always and 2 / 6 halvings on the hairball and smash).
 EXACT_BELOW = 3e-3
 #: ``solver.exact_fallback = "shifted"``: the shifts tau of the exact Hessian + tau M/dt^2
-#: tried, in order, when the exact step fails (measured: tau = 0.1 never helped on the
-#: hairball and 1 mostly did, while tau = 10 alone accepts steps too short to converge;
+#: tried, in order, when the exact step fails (measured on the hairball: tau = 0.1 gave
+#: no step, 1 and 10 did; starting at 10 kept accepting steps too short to converge,
 #: docs/newton.md "Seventh round")
 EXACT_SHIFTS = (0.1, 1.0, 10.0, 100.0)
 EXACT_HALVINGS = 6

@@ -89,3 +89,24 @@ def test_shifted_fallback_converges_where_the_analytic_one_stalls():
     ref, _ = _run("analytic")
     assert ref["newton_converged"][0] is False and ref["newton_exact_fallbacks"][0] >= 10
     assert sum(summ["newton_iterations"]) < sum(ref["newton_iterations"]) - 10
+
+
+def test_newton_frames_study_starts_every_variant_from_the_reference_states():
+    """scripts/newton_frames.py's study (lc_petsc/studies/newton_frames.py) on 2 frames of
+    the 5-wisp hairball: the reference converges, both variants restart frame 1 from the
+    reference's state (so the analytic fallback's stall in frame 0 does not reach it),
+    the iterate is within the tolerance of the reference solution one iteration before
+    the increment test says so (quadratic phase: the test's step certifies the previous
+    iterate), and only the shifted variant takes shifted steps (frame 0)."""
+    from lc_petsc.studies.newton_frames import compare
+    cfg = small_hairball_config(n_wisps=5, frames=2)
+    spec = "filter=exact_or_analytic,update=corotational"
+    res = compare(cfg, [("analytic", spec), ("shifted", spec + ",fallback=shifted")], COMM, 2)
+    assert res["reference_converged"]
+    a, s = res["analytic"], res["shifted"]
+    assert not a[0]["converged"] and s[0]["converged"]
+    assert a[1]["iterations"] == s[1]["iterations"] and a[1]["errors"] == s[1]["errors"]
+    for r in (a[1], s[0], s[1]):
+        assert r["true"] == r["iterations"] - 1, r
+        assert r["errors"][-1] < 1e-9 and r["first_error"] > 1e-3
+    assert s[0]["shifted_steps"] >= 1 and a[0]["shifted_steps"] == 0 == s[1]["shifted_steps"]

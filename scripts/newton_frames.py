@@ -1,0 +1,69 @@
+"""Newton variants frame by frame from the same start states (docs/newton.md, seventh
+round; logic in lc_petsc/studies/newton_frames.py).  One rank.
+
+  .venv/bin/python scripts/newton_frames.py [--scene hairball10] [--frames 30] [--tol 1e-6]
+      [--iterations 30] [--variant NAME=SPEC ...] [--wisps 10] [--out out/newton_frames.json]
+
+SPEC as in scripts/newton_history.py (e.g. filter=exact_or_analytic,update=corotational,
+fallback=shifted).  The start states are those of a run converged to 1e-9 (cap 60) with
+exact_or_analytic, corotational, shifted fallback.  Prints per variant the iterations
+per frame to the tolerance ("-": not within the cap), median / worst (a miss counts as
+cap + 1) / total, the first iteration within the tolerance of the reference solution
+("true error"), the exact steps per frame, and the median first-iterate error.
+"""
+
+import argparse
+import json
+import statistics
+import sys
+from pathlib import Path
+
+import petsc4py
+
+petsc4py.init(sys.argv[:1])
+from mpi4py import MPI  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from newton_history import scene  # noqa: E402
+
+from lc_petsc.studies.newton_frames import compare  # noqa: E402
+
+DEFAULT_VARIANTS = [
+    "corotational (sixth round)=filter=exact_or_analytic,update=corotational",
+    "corotational, shifted fallback=filter=exact_or_analytic,update=corotational,fallback=shifted",
+]
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scene", default="hairball10")
+    p.add_argument("--frames", type=int, default=30)
+    p.add_argument("--tol", type=float, default=1e-6)
+    p.add_argument("--iterations", type=int, default=30)
+    p.add_argument("--variant", action="append", help="NAME=SPEC (repeatable)")
+    p.add_argument("--wisps", type=int, default=10)
+    p.add_argument("--out", default="out/newton_frames.json")
+    a = p.parse_args(argv)
+    variants = [tuple(v.split("=", 1)) for v in (a.variant or DEFAULT_VARIANTS)]
+    res = compare(scene(a.scene, a.wisps), variants, MPI.COMM_WORLD, a.frames, a.tol, a.iterations)
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(res))
+    print(f"reference converged in every frame: {res['reference_converged']}")
+    miss = a.iterations + 1
+    for name, _ in variants:
+        rows = res[name]
+        its = [r["iterations"] if r["converged"] else miss for r in rows]
+        true = [r["true"] or miss for r in rows]
+        print(f"{name}: median {statistics.median(its):g}, worst {max(its)}, total "
+              f"{sum(r['iterations'] for r in rows)}, frames missed {its.count(miss)}")
+        print("  iterations  " + " ".join(str(i) if i < miss else "-" for i in its))
+        print(f"  true error < {a.tol:g} at (median {statistics.median(true):g})  "
+              + " ".join(str(i) if i < miss else "-" for i in true))
+        print(f"  exact steps (median {statistics.median(r['exact_steps'] for r in rows):g})  "
+              + " ".join(str(r["exact_steps"]) for r in rows)
+              + f"; shifted {sum(r['shifted_steps'] for r in rows)}")
+        print(f"  first iterate's error: median {statistics.median(r['first_error'] for r in rows):.2e}")
+
+
+if __name__ == "__main__":
+    main()

@@ -85,6 +85,14 @@ NEWTON_STEP_MOTION = (np.eye(3), np.zeros(3))
 #: of its rest length beyond the longer of its start and target lengths (per-vertex
 #: fractions tore strands: docs/contact.md "Torn strands")
 FRACTION_STRAIN = 0.02
+#: end-of-frame separation (ccd mode): after each Jacobi round's contact corrections, the
+#: edges whose length left [min(L0, L (1 - s)), max(L0, L (1 + s))] (L rest, L0 the
+#: length before the separation, s = SEPARATION_STRAIN) are projected back into it
+#: (:func:`bound_edge_lengths`); unbounded pushes tore the 2K hairball's strands
+#: (docs/contact.md "Strain-aware separation")
+SEPARATION_STRAIN = FRACTION_STRAIN
+#: red-black sweeps of :func:`bound_edge_lengths` per separation round at most
+EDGE_SWEEPS = 50
 MAX_RIGID_DEGREES = float(np.degrees(2.0 * np.arcsin(0.5 * MAX_LIPSCHITZ)))
 NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
 
@@ -243,6 +251,11 @@ class StrandContact:
         start = np.cumsum(edge) - edge
         start -= np.maximum.accumulate(np.where(first, start, 0.0))
         self.seg_arc = np.stack([start, start + edge], axis=1)
+        # an edge's index along its wisp, mod 2 (bound_edge_lengths' red-black sweeps)
+        self.seg_colour = (self.seg - scene.offsets[wid[self.seg]]) % 2
+        #: the separation's strain bound (ccd mode; penalty mode's pushes keep their
+        #: measured trajectories, and tore no strand there)
+        self.separation_strain = SEPARATION_STRAIN if mode == "ccd" else None
         self.vec = PETSc.Vec().createMPI((NB * nv, NB * self.N), bsize=NB, comm=pcomm)
         self.mat_type, self.coupled_pc = mat_type, bool(coupled_pc)
         # separation (see :meth:`separate`): positions + inverse mass per vertex, and the
@@ -718,7 +731,14 @@ class StrandContact:
         not depend on the partition, and linear momentum is conserved (pinned vertices
         excepted).  Counts and corrections are summed by global vertex in PETSc Vecs
         (off-process vertices travel to their owners); the pair vertices' positions and
-        counts come back through a VecScatter."""
+        counts come back through a VecScatter.
+
+        ccd mode (``separation_strain``): after each round's corrections, the edges whose
+        length left [min(L0, L (1 - s)), max(L0, L (1 + s))] (L rest, L0 the length at the
+        call, s = :data:`SEPARATION_STRAIN`) are projected back into it
+        (:func:`bound_edge_lengths`, mass-weighted, pinned vertices fixed; a wisp lives
+        on one rank, so no communication): a push that would tear a strand moves its
+        neighbours along instead, and a strand already torn gets no longer."""
         d0, nv = self.d0, self.scene.nv
         with self.timers("collision"):
             with collectively(self.comm, "strand contact (separation)"):
@@ -726,6 +746,7 @@ class StrandContact:
                 V, inv = np.unique(np.stack([gA, gA + 1, gB, gB + 1], axis=1), return_inverse=True)
                 inv = inv.reshape(-1, 4)
             x = x.copy()
+            bounds = self._edge_bounds(x)
             st = self.state.array.reshape(nv, 5)         # x, y, z, 1 / mass, count
             st[:, 3] = self.inverse_mass
             Vi = V.astype(PETSc.IntType)
@@ -769,8 +790,20 @@ class StrandContact:
                             acc[:, c] = np.bincount(inv[hit].ravel(), weights=dx[:, :, c].ravel(),
                                                     minlength=len(V))
                     x += add_by_vertex(acc)[:, :3]
+                    if bounds is not None:
+                        x, _ = bound_edge_lengths(x, self.seg, self.seg_colour, *bounds, self.inverse_mass)
         self.last_separation = (first, it, below)
         return x, first, it
+
+    def _edge_bounds(self, x):
+        """(lo, hi) per edge for :func:`bound_edge_lengths` in :meth:`separate`:
+        [min(L0, L (1 - s)), max(L0, L (1 + s))], L the rest length, L0 the length at x,
+        s = ``separation_strain``; None without a bound."""
+        if self.separation_strain is None:
+            return None
+        L, s = self.rest_seg_length, self.separation_strain
+        L0 = np.linalg.norm(x[self.seg + 1] - x[self.seg], axis=1)
+        return np.minimum(L0, L * (1.0 - s)), np.maximum(L0, L * (1.0 + s))
 
     def assemble(self, x, asm):
         """Contact gradient (nv, 3) (pinned rows zero) of this rank's vertices; adds the
@@ -915,6 +948,40 @@ def smooth_fractions(beta, F, seg, rest_length, free, strain):
         if np.array_equal(new, out):
             return out
         out = new
+
+
+def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, max_sweeps=EDGE_SWEEPS):
+    """(positions, sweeps): x (nv, 3) with every strand edge (i, j) = seg (m,), seg + 1
+    whose length left [lo, hi] (m,) projected back onto the nearer bound, the mass-weighted
+    projection of position-based dynamics (inverse_mass (nv,), 0 for pinned vertices,
+    which do not move; an edge between two pinned vertices, or of zero length, is left
+    alone): each end moves along the edge by its share w_i / (w_i + w_j) of the excess,
+    so sum m dx = 0.  Red-black: the edges of one ``colour`` (m,) (their index along the
+    wisp, mod 2) share no vertex, so each half sweep projects all of them at once; sweeps
+    until no edge is beyond its bound by more than 1e-12 of it, at most ``max_sweeps``.
+    Each wisp's result depends on that wisp alone (the same on any partition)."""
+    x = np.array(x, float)
+    movable = inverse_mass[seg] + inverse_mass[seg + 1] > 0.0
+    by_colour = [np.flatnonzero(movable & (colour == c)) for c in (0, 1)]
+    sweeps = 0
+    while sweeps < max_sweeps:
+        moved = False
+        for k in by_colour:
+            d = x[seg[k] + 1] - x[seg[k]]
+            length = np.sqrt(np.einsum("ij,ij->i", d, d))
+            out = ((length > hi[k] * (1.0 + 1e-12)) | (length < lo[k] * (1.0 - 1e-12))) & (length > 0.0)
+            if not out.any():
+                continue
+            moved = True
+            e, d, length = k[out], d[out], length[out]
+            wa, wb = inverse_mass[seg[e]], inverse_mass[seg[e] + 1]
+            push = d * ((length - np.clip(length, lo[e], hi[e])) / (length * (wa + wb)))[:, None]
+            x[seg[e]] += wa[:, None] * push
+            x[seg[e] + 1] -= wb[:, None] * push
+        if not moved:
+            break
+        sweeps += 1
+    return x, sweeps
 
 
 def _held_back(start, end, beta):

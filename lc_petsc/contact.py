@@ -86,8 +86,8 @@ NEWTON_STEP_MOTION = (np.eye(3), np.zeros(3))
 #: fractions tore strands: docs/contact.md "Torn strands")
 FRACTION_STRAIN = 0.02
 #: end-of-frame separation (ccd mode): after each Jacobi round's contact corrections, the
-#: edges whose length left [min(L0, L (1 - s)), max(L0, L (1 + s))] (L rest, L0 the
-#: length before the separation, s = SEPARATION_STRAIN) are projected back into it
+#: edges whose length left [L (1 - s), L (1 + s)] (L rest, s = SEPARATION_STRAIN) are
+#: projected back into it
 #: (:func:`bound_edge_lengths`); unbounded pushes tore the 2K hairball's strands
 #: (docs/contact.md "Strain-aware separation")
 SEPARATION_STRAIN = FRACTION_STRAIN
@@ -253,9 +253,12 @@ class StrandContact:
         self.seg_arc = np.stack([start, start + edge], axis=1)
         # an edge's index along its wisp, mod 2 (bound_edge_lengths' red-black sweeps)
         self.seg_colour = (self.seg - scene.offsets[wid[self.seg]]) % 2
-        #: the separation's strain bound (ccd mode; penalty mode's pushes keep their
-        #: measured trajectories, and tore no strand there)
-        self.separation_strain = SEPARATION_STRAIN if mode == "ccd" else None
+        #: the separation's edge-length bounds (lo, hi) (:meth:`separate`; ccd mode only:
+        #: penalty mode's pushes keep their measured trajectories, and tore no strand there)
+        self.edge_bounds = None
+        if mode == "ccd":
+            L = self.rest_seg_length
+            self.edge_bounds = (L * (1.0 - SEPARATION_STRAIN), L * (1.0 + SEPARATION_STRAIN))
         self.vec = PETSc.Vec().createMPI((NB * nv, NB * self.N), bsize=NB, comm=pcomm)
         self.mat_type, self.coupled_pc = mat_type, bool(coupled_pc)
         # separation (see :meth:`separate`): positions + inverse mass per vertex, and the
@@ -733,12 +736,14 @@ class StrandContact:
         (off-process vertices travel to their owners); the pair vertices' positions and
         counts come back through a VecScatter.
 
-        ccd mode (``separation_strain``): after each round's corrections, the edges whose
-        length left [min(L0, L (1 - s)), max(L0, L (1 + s))] (L rest, L0 the length at the
-        call, s = :data:`SEPARATION_STRAIN`) are projected back into it
-        (:func:`bound_edge_lengths`, mass-weighted, pinned vertices fixed; a wisp lives
-        on one rank, so no communication): a push that would tear a strand moves its
-        neighbours along instead, and a strand already torn gets no longer."""
+        ccd mode (``edge_bounds``): after each round's corrections, the edges whose
+        length left [L (1 - s), L (1 + s)] (L rest, s = :data:`SEPARATION_STRAIN`) are
+        projected back into it (:func:`bound_edge_lengths`, mass-weighted, pinned
+        vertices fixed; a wisp lives on one rank, so no communication): a push that
+        would tear a strand moves its neighbours along instead, and edges already torn
+        (by the limiter holding vertices back) are pulled back too (bounding them by
+        their length at the call instead left 13 edges beyond +-10% at frame 40 of the
+        2K hairball, docs/contact.md "Strain-aware separation")."""
         d0, nv = self.d0, self.scene.nv
         with self.timers("collision"):
             with collectively(self.comm, "strand contact (separation)"):
@@ -746,7 +751,6 @@ class StrandContact:
                 V, inv = np.unique(np.stack([gA, gA + 1, gB, gB + 1], axis=1), return_inverse=True)
                 inv = inv.reshape(-1, 4)
             x = x.copy()
-            bounds = self._edge_bounds(x)
             st = self.state.array.reshape(nv, 5)         # x, y, z, 1 / mass, count
             st[:, 3] = self.inverse_mass
             Vi = V.astype(PETSc.IntType)
@@ -790,20 +794,11 @@ class StrandContact:
                             acc[:, c] = np.bincount(inv[hit].ravel(), weights=dx[:, :, c].ravel(),
                                                     minlength=len(V))
                     x += add_by_vertex(acc)[:, :3]
-                    if bounds is not None:
-                        x, _ = bound_edge_lengths(x, self.seg, self.seg_colour, *bounds, self.inverse_mass)
+                    if self.edge_bounds is not None:
+                        x, _ = bound_edge_lengths(x, self.seg, self.seg_colour, *self.edge_bounds,
+                                                  self.inverse_mass)
         self.last_separation = (first, it, below)
         return x, first, it
-
-    def _edge_bounds(self, x):
-        """(lo, hi) per edge for :func:`bound_edge_lengths` in :meth:`separate`:
-        [min(L0, L (1 - s)), max(L0, L (1 + s))], L the rest length, L0 the length at x,
-        s = ``separation_strain``; None without a bound."""
-        if self.separation_strain is None:
-            return None
-        L, s = self.rest_seg_length, self.separation_strain
-        L0 = np.linalg.norm(x[self.seg + 1] - x[self.seg], axis=1)
-        return np.minimum(L0, L * (1.0 - s)), np.maximum(L0, L * (1.0 + s))
 
     def assemble(self, x, asm):
         """Contact gradient (nv, 3) (pinned rows zero) of this rank's vertices; adds the
@@ -957,29 +952,35 @@ def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, max_sweeps=EDGE_SWE
     which do not move; an edge between two pinned vertices, or of zero length, is left
     alone): each end moves along the edge by its share w_i / (w_i + w_j) of the excess,
     so sum m dx = 0.  Red-black: the edges of one ``colour`` (m,) (their index along the
-    wisp, mod 2) share no vertex, so each half sweep projects all of them at once; sweeps
-    until no edge is beyond its bound by more than 1e-12 of it, at most ``max_sweeps``.
-    Each wisp's result depends on that wisp alone (the same on any partition)."""
+    wisp, mod 2) share no vertex, so each half sweep projects all of them at once; after
+    the first, only the neighbours along the wisp of the edges just projected are looked
+    at again (no other edge moved).  Sweeps until no edge is beyond its bound by more
+    than 1e-12 of it, at most ``max_sweeps``.  Each wisp's result depends on that wisp
+    alone (the same on any partition)."""
     x = np.array(x, float)
-    movable = inverse_mass[seg] + inverse_mass[seg + 1] > 0.0
-    by_colour = [np.flatnonzero(movable & (colour == c)) for c in (0, 1)]
+    m = len(seg)
+    check = inverse_mass[seg] + inverse_mass[seg + 1] > 0.0
+    # the edge before / after along the same wisp (consecutive edges share a vertex)
+    joined = np.flatnonzero(seg[1:] == seg[:-1] + 1)
     sweeps = 0
-    while sweeps < max_sweeps:
-        moved = False
-        for k in by_colour:
+    while sweeps < max_sweeps and check.any():
+        for c in (0, 1):
+            k = np.flatnonzero(check & (colour == c))
+            check[k] = False
             d = x[seg[k] + 1] - x[seg[k]]
             length = np.sqrt(np.einsum("ij,ij->i", d, d))
             out = ((length > hi[k] * (1.0 + 1e-12)) | (length < lo[k] * (1.0 - 1e-12))) & (length > 0.0)
-            if not out.any():
-                continue
-            moved = True
             e, d, length = k[out], d[out], length[out]
             wa, wb = inverse_mass[seg[e]], inverse_mass[seg[e] + 1]
             push = d * ((length - np.clip(length, lo[e], hi[e])) / (length * (wa + wb)))[:, None]
             x[seg[e]] += wa[:, None] * push
             x[seg[e] + 1] -= wb[:, None] * push
-        if not moved:
-            break
+            moved = np.zeros(m + 1, bool)
+            moved[e] = True
+            near = np.zeros(m, bool)
+            near[joined] = moved[joined + 1]          # the edge before a projected one
+            near[joined + 1] |= moved[joined]         # the edge after
+            check |= near & (inverse_mass[seg] + inverse_mass[seg + 1] > 0.0)
         sweeps += 1
     return x, sweeps
 

@@ -324,10 +324,10 @@ def test_separate_caps_each_round_and_reaches_the_floor(monkeypatch):
 
 def test_separation_of_a_crowded_cluster_tears_no_strand(monkeypatch):
     """Six in-phase coils (ccd mode) pushed 0.8 cm along their row, 0.1 cm apart: 220 pairs
-    below d0 / 2.  Three separate() calls (as at a frame's end) leave none below d0 / 2,
-    and every edge within SEPARATION_STRAIN of its rest length (main: 0 pairs, but edges
-    at +11% / -23%: the pushes had no strain bound), momentum kept, the pinned stems
-    fixed."""
+    below d0 / 2, and one tip edge already torn (+30%).  Three separate() calls (as at a
+    frame's end) leave none below d0 / 2, and every edge within SEPARATION_STRAIN of its
+    rest length, the torn one included (main: 0 pairs, but edges at +30% / -23%: the
+    pushes had no strain bound), momentum kept, the pinned stems fixed."""
     from mpi4py import MPI
     from lc_petsc.contact import SEPARATION_STRAIN
     from sim_helpers import touching_wisps_config, touching_wisps_source
@@ -340,6 +340,7 @@ def test_separation_of_a_crowded_cluster_tears_no_strand(monkeypatch):
         st = sim.strand
         x = sim.x.copy()
         x[:, 0] -= 0.8 * np.repeat(np.arange(6), 30)
+        x[-1] += 0.3 * (x[-1] - x[-2])              # the last edge of the last wisp: +30%
         deep0 = st.measure(x)[1]
         y = x
         for _ in range(3):

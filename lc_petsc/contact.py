@@ -793,10 +793,15 @@ class StrandContact:
                         for c in range(3):
                             acc[:, c] = np.bincount(inv[hit].ravel(), weights=dx[:, :, c].ravel(),
                                                     minlength=len(V))
-                    x += add_by_vertex(acc)[:, :3]
+                    shift = add_by_vertex(acc)[:, :3]
+                    x += shift
                     if self.edge_bounds is not None:
+                        # after the first round, only the edges at a vertex this round
+                        # moved can have left their bounds
+                        moved = (shift != 0.0).any(axis=1)
+                        check = None if it == 0 else moved[self.seg] | moved[self.seg + 1]
                         x, _ = bound_edge_lengths(x, self.seg, self.seg_colour, *self.edge_bounds,
-                                                  self.inverse_mass)
+                                                  self.inverse_mass, check)
         self.last_separation = (first, it, below)
         return x, first, it
 
@@ -945,7 +950,7 @@ def smooth_fractions(beta, F, seg, rest_length, free, strain):
         out = new
 
 
-def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, max_sweeps=EDGE_SWEEPS):
+def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check=None, max_sweeps=EDGE_SWEEPS):
     """(positions, sweeps): x (nv, 3) with every strand edge (i, j) = seg (m,), seg + 1
     whose length left [lo, hi] (m,) projected back onto the nearer bound, the mass-weighted
     projection of position-based dynamics (inverse_mass (nv,), 0 for pinned vertices,
@@ -954,12 +959,14 @@ def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, max_sweeps=EDGE_SWE
     so sum m dx = 0.  Red-black: the edges of one ``colour`` (m,) (their index along the
     wisp, mod 2) share no vertex, so each half sweep projects all of them at once; after
     the first, only the neighbours along the wisp of the edges just projected are looked
-    at again (no other edge moved).  Sweeps until no edge is beyond its bound by more
-    than 1e-12 of it, at most ``max_sweeps``.  Each wisp's result depends on that wisp
-    alone (the same on any partition)."""
+    at again (no other edge moved).  ``check`` (m,) bool: the edges that may be out of
+    their bounds (default all).  Sweeps until no edge is beyond its bound by more than
+    1e-12 of it, at most ``max_sweeps``.  Each wisp's result depends on that wisp alone
+    (the same on any partition)."""
     x = np.array(x, float)
     m = len(seg)
-    check = inverse_mass[seg] + inverse_mass[seg + 1] > 0.0
+    movable = inverse_mass[seg] + inverse_mass[seg + 1] > 0.0
+    check = movable.copy() if check is None else check & movable
     # the edge before / after along the same wisp (consecutive edges share a vertex)
     joined = np.flatnonzero(seg[1:] == seg[:-1] + 1)
     sweeps = 0
@@ -980,7 +987,7 @@ def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, max_sweeps=EDGE_SWE
             near = np.zeros(m, bool)
             near[joined] = moved[joined + 1]          # the edge before a projected one
             near[joined + 1] |= moved[joined]         # the edge after
-            check |= near & (inverse_mass[seg] + inverse_mass[seg + 1] > 0.0)
+            check |= near & movable
         sweeps += 1
     return x, sweeps
 

@@ -34,7 +34,7 @@ def test_the_demo_runs_ccd_and_says_what_penalty_costs():
 
 @pytest.mark.parametrize("name", HAIRBALLS[1:])
 def test_large_hairballs_keep_penalty_and_say_why(name):
-    """2K-8K: penalty until ccd stops tearing strands in dense contact; the comment gives
+    """2K-8K: penalty while ccd piles contact pairs up in dense contact; the comment gives
     both modes' measured figures on the 2K hairball (docs/contact.md, "The 2K hairball in
     ccd mode") and how to switch."""
     text = (CONFIGS / f"{name}.toml").read_text()

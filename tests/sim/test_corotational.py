@@ -91,6 +91,7 @@ def test_convergence_rate_hairball_corotational():
     cfg.scene.n_wisps = 2
     cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
     cfg.time.initial_guess = "inertial"     # as measured (the demo sets FTL for its ccd contact)
+    cfg.time.length_projection = False      # likewise
     its = _iterations(cfg, EOA + "corotational", 4)
     assert max(its[1:]) <= 11, its
     assert _iterations(cfg, EOA + "edge_retraction", 2)[1] > 15

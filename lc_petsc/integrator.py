@@ -287,22 +287,20 @@ class Integrator:
                     break
                 continue
             exact = self._exact_hessian(increment)
-            self._shift = 0.0
-            g, dx, alpha = self._exact_step(x, it, 0.0) if exact else (None, None, 1.0)
+            self._shift, self._fallback = 0.0, ""
+            if exact:
+                g, dx, alpha = self._exact_step(x, it, 0.0)
+                if dx is None or alpha is None:
+                    self._fallback = "indefinite" if dx is None else "armijo"
+                    for tau in EXACT_SHIFTS if cfg.solver.exact_fallback == "shifted" else ():
+                        g, dx, alpha = self._exact_step(x, it, tau)
+                        if dx is not None and alpha is not None:
+                            self._shift = tau
+                            break
+                if dx is None or alpha is None:     # no exact Newton step: a filtered one
+                    exact = False
+                    fallbacks += 1
             if not exact:
-                g = self._assemble_system(x, it)
-                dx = self._solve_step(g, it)
-            self._fallback = "" if dx is not None and alpha is not None else \
-                ("indefinite" if dx is None else "armijo")
-            if exact and self._fallback and cfg.solver.exact_fallback == "shifted":
-                for tau in EXACT_SHIFTS:
-                    g, dx, alpha = self._exact_step(x, it, tau)
-                    if dx is not None and alpha is not None:
-                        self._shift = tau
-                        break
-            if dx is None or alpha is None:     # no exact Newton step: a filtered one
-                exact = False
-                fallbacks += 1
                 g = self._assemble_system(x, it)
                 dx = self._solve_step(g, it)
                 alpha = 1.0

@@ -322,6 +322,22 @@ def degenerate_margins(cfg, comm, frames=10):
 
 
 # ------------------------------------------------------------------ error to the solution
+def watch_iterates(it, fn):
+    """Call ``fn(x)`` on each frame's first iterate and on every Newton iterate after it:
+    wraps the integrator's per-iteration record (``it.history`` must be a list, or the
+    record is not called)."""
+    record = it._record_iteration
+
+    def keep(k, x_old, x_new, *args):
+        out = record(k, x_old, x_new, *args)
+        if k == 0:
+            fn(x_old)
+        fn(x_new)
+        return out
+
+    it._record_iteration = keep
+
+
 def error_history(cfg, comm, frames, iterations=40, wisp=None):
     """Per frame and Newton iteration (``iterations``, no tolerance): the largest distance
     of the iterate to the frame's last iterate (the converged solution when the frame
@@ -336,16 +352,8 @@ def error_history(cfg, comm, frames, iterations=40, wisp=None):
     sim = build_simulator(configure(cfg, {}, iterations, frames), comm)
     it = sim.integrator
     it.history = hist = []
-    iterates = []
-    record = it._record_iteration
-
-    def keep(k, x_old, x_new, *args):
-        if k == 0:
-            iterates.append(x_old.copy())
-        iterates.append(x_new.copy())
-        return record(k, x_old, x_new, *args)
-
-    it._record_iteration = keep
+    iterates: list = []
+    watch_iterates(it, lambda x: iterates.append(x.copy()))
     off = np.asarray(sim.scene.offsets)
     owner = np.searchsorted(off, np.arange(sim.scene.nv), side="right") - 1
     rows = []

@@ -16,7 +16,7 @@ import copy
 import numpy as np
 
 from lc_petsc.simulator import build_simulator
-from lc_petsc.studies.newton import configure, parse_variant
+from lc_petsc.studies.newton import configure, parse_variant, watch_iterates
 
 
 def _tolerance(cfg, tol, cap):
@@ -57,17 +57,9 @@ def frame_iterations(cfg, comm, states, tol=1e-6, cap=30):
     sim = build_simulator(_tolerance(cfg, tol, cap), comm)
     it = sim.integrator
     it.history = hist = []
-    record = it._record_iteration
     errors: list = []
-
-    def keep(k, x_old, x_new, *args):
-        record(k, x_old, x_new, *args)
-        solution = states[it.frame + 1][0]
-        if k == 0:
-            errors.append(float(np.max(np.linalg.norm(x_old - solution, axis=1) / it.wisp_length)))
-        errors.append(float(np.max(np.linalg.norm(x_new - solution, axis=1) / it.wisp_length)))
-
-    it._record_iteration = keep
+    watch_iterates(it, lambda x: errors.append(
+        float(np.max(np.linalg.norm(x - states[it.frame + 1][0], axis=1) / it.wisp_length))))
     rows = []
     try:
         for f in range(len(states) - 1):

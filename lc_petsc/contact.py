@@ -55,7 +55,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.elements import compiled_ccd, segment_barrier, segment_ccd, segment_contact
-from lc_petsc.elements.compiled_ccd import box_pairs
+from lc_petsc.elements.compiled_ccd import bound_edge_lengths, box_pairs, smooth_fractions
 from lc_petsc.parallel import collectively, global_min, global_reduce
 
 MODES = ("penalty", "ccd")
@@ -801,7 +801,7 @@ class StrandContact:
                         moved = (shift != 0.0).any(axis=1)
                         check = None if it == 0 else moved[self.seg] | moved[self.seg + 1]
                         x, _ = bound_edge_lengths(x, self.seg, self.seg_colour, *self.edge_bounds,
-                                                  self.inverse_mass, check)
+                                                  self.inverse_mass, check, EDGE_SWEEPS)
         self.last_separation = (first, it, below)
         return x, first, it
 
@@ -922,74 +922,6 @@ def _warm_up_in_turn(comm):
     if comm.rank != 0:
         compiled_ccd.warm_up()
     return time.perf_counter() - t0
-
-
-def smooth_fractions(beta, F, seg, rest_length, free, strain):
-    """The largest fractions b <= beta (nv,) with |b_i - b_j| <= strain L / max(|f_i|, |f_j|)
-    on every strand edge (i, j) = seg (m,), seg + 1 of rest length L = rest_length (m,),
-    F (nv, 3) the vertices' residual motions f; pinned vertices (free (nv,) False) keep
-    beta.  Then x_j - x_i = (1 - b_i) (H_j - H_i) + b_i (T_j - T_i) + (b_j - b_i) f_j:
-    an edge is no longer than the longer of its two ends' edges plus strain L.  A min-plus
-    distance transform along each strand (Jacobi sweeps until nothing changes; each
-    vertex depends on its own strand only, so the result does not depend on the
-    partition).  Returns (nv,)."""
-    a, b = seg, seg + 1
-    fn = np.linalg.norm(F, axis=1)
-    fmax = np.maximum(fn[a], fn[b])
-    c = np.full(len(seg), np.inf)
-    moving = fmax > 0.0
-    c[moving] = strain * rest_length[moving] / fmax[moving]
-    out = np.asarray(beta, float).copy()
-    while True:
-        new = out.copy()
-        np.minimum.at(new, a, out[b] + c)
-        np.minimum.at(new, b, out[a] + c)
-        new[~free] = out[~free]
-        if np.array_equal(new, out):
-            return out
-        out = new
-
-
-def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check=None, max_sweeps=EDGE_SWEEPS):
-    """(positions, sweeps): x (nv, 3) with every strand edge (i, j) = seg (m,), seg + 1
-    whose length left [lo, hi] (m,) projected back onto the nearer bound, the mass-weighted
-    projection of position-based dynamics (inverse_mass (nv,), 0 for pinned vertices,
-    which do not move; an edge between two pinned vertices, or of zero length, is left
-    alone): each end moves along the edge by its share w_i / (w_i + w_j) of the excess,
-    so sum m dx = 0.  Red-black: the edges of one ``colour`` (m,) (their index along the
-    wisp, mod 2) share no vertex, so each half sweep projects all of them at once; after
-    the first, only the neighbours along the wisp of the edges just projected are looked
-    at again (no other edge moved).  ``check`` (m,) bool: the edges that may be out of
-    their bounds (default all).  Sweeps until no edge is beyond its bound by more than
-    1e-12 of it, at most ``max_sweeps``.  Each wisp's result depends on that wisp alone
-    (the same on any partition)."""
-    x = np.array(x, float)
-    m = len(seg)
-    movable = inverse_mass[seg] + inverse_mass[seg + 1] > 0.0
-    check = movable.copy() if check is None else check & movable
-    # the edge before / after along the same wisp (consecutive edges share a vertex)
-    joined = np.flatnonzero(seg[1:] == seg[:-1] + 1)
-    sweeps = 0
-    while sweeps < max_sweeps and check.any():
-        for c in (0, 1):
-            k = np.flatnonzero(check & (colour == c))
-            check[k] = False
-            d = x[seg[k] + 1] - x[seg[k]]
-            length = np.sqrt(np.einsum("ij,ij->i", d, d))
-            out = ((length > hi[k] * (1.0 + 1e-12)) | (length < lo[k] * (1.0 - 1e-12))) & (length > 0.0)
-            e, d, length = k[out], d[out], length[out]
-            wa, wb = inverse_mass[seg[e]], inverse_mass[seg[e] + 1]
-            push = d * ((length - np.clip(length, lo[e], hi[e])) / (length * (wa + wb)))[:, None]
-            x[seg[e]] += wa[:, None] * push
-            x[seg[e] + 1] -= wb[:, None] * push
-            moved = np.zeros(m + 1, bool)
-            moved[e] = True
-            near = np.zeros(m, bool)
-            near[joined] = moved[joined + 1]          # the edge before a projected one
-            near[joined + 1] |= moved[joined]         # the edge after
-            check |= near & movable
-        sweeps += 1
-    return x, sweeps
 
 
 def _held_back(start, end, beta):

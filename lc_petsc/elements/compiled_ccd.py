@@ -267,6 +267,8 @@ def warm_up():
     lo, hi = field_boxes(S, S, seg, 0.1, 0.01)
     order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool))
     pairs_overlap(seg[:1], seg[1:], lo, hi, 0.01)
+    smooth_fractions(np.ones(4), S, seg, np.ones(2), np.ones(4, bool), 0.02)
+    bound_edge_lengths(S, seg, np.zeros(2, np.int64), np.ones(2), np.ones(2), np.ones(4), None, 1)
 
 
 # ---------------------------------------------------------------- broad phase
@@ -431,3 +433,95 @@ def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0):
         out = np.empty((found, 2), np.int64)
         _box_pairs(*args, out)
     return out[:found]
+
+
+# ---------------------------------------------------------------- passes along strands
+@_jit
+def _smooth_fractions(beta, F, seg, rest_length, free, strain, out):
+    m = len(seg)
+    c = np.empty(m)
+    for e in range(m):
+        a = seg[e]
+        fmax = max(_vnorm((F[a, 0], F[a, 1], F[a, 2])), _vnorm((F[a + 1, 0], F[a + 1, 1], F[a + 1, 2])))
+        c[e] = strain * rest_length[e] / fmax if fmax > 0.0 else np.inf
+    for i in range(len(beta)):
+        out[i] = beta[i]
+    # a chain's shortest paths are monotone: one pass from each end settles every vertex
+    for e in range(m):
+        b = seg[e] + 1
+        if free[b]:
+            out[b] = min(out[b], out[b - 1] + c[e])
+    for e in range(m - 1, -1, -1):
+        a = seg[e]
+        if free[a]:
+            out[a] = min(out[a], out[a + 1] + c[e])
+
+
+def smooth_fractions(beta, F, seg, rest_length, free, strain):
+    """The largest fractions b <= beta (nv,) with |b_i - b_j| <= strain L / max(|f_i|, |f_j|)
+    on every strand edge (i, j) = seg (m,), seg + 1 of rest length L = rest_length (m,),
+    F (nv, 3) the vertices' residual motions f; pinned vertices (free (nv,) False) keep
+    beta.  Then x_j - x_i = (1 - b_i) (H_j - H_i) + b_i (T_j - T_i) + (b_j - b_i) f_j:
+    an edge is no longer than the longer of its two ends' edges plus strain L.  A min-plus
+    distance transform along each strand (the fixed point of b_i = min(beta_i,
+    b_j + c_ij) over its edges), exact in one forward and one backward pass; ``seg``
+    ascending (each strand's edges in order).  Each vertex depends on its own strand only,
+    so the result does not depend on the partition.  Returns (nv,)."""
+    out = np.empty(len(beta))
+    _smooth_fractions(np.ascontiguousarray(beta, np.float64), np.ascontiguousarray(F, np.float64),
+                      np.ascontiguousarray(seg, np.int64), np.ascontiguousarray(rest_length, np.float64),
+                      np.ascontiguousarray(free, np.bool_), float(strain), out)
+    return out
+
+
+@_jit
+def _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps):
+    m = len(seg)
+    sweeps = 0
+    while sweeps < max_sweeps and check.any():
+        for c in (0, 1):
+            for e in range(m):
+                if not check[e] or colour[e] != c:
+                    continue
+                check[e] = False
+                a = seg[e]
+                d = (x[a + 1, 0] - x[a, 0], x[a + 1, 1] - x[a, 1], x[a + 1, 2] - x[a, 2])
+                length = _vnorm(d)
+                if not ((length > hi[e] * (1.0 + 1e-12) or length < lo[e] * (1.0 - 1e-12)) and length > 0.0):
+                    continue
+                wa, wb = inverse_mass[a], inverse_mass[a + 1]
+                s = (length - min(max(length, lo[e]), hi[e])) / (length * (wa + wb))
+                for k in range(3):
+                    x[a, k] += wa * (d[k] * s)
+                    x[a + 1, k] -= wb * (d[k] * s)
+                # only the edges before and after along the wisp (the other colour) moved
+                if e > 0 and seg[e - 1] == a - 1 and inverse_mass[a - 1] + inverse_mass[a] > 0.0:
+                    check[e - 1] = True
+                if e + 1 < m and seg[e + 1] == a + 1 and inverse_mass[a + 1] + inverse_mass[a + 2] > 0.0:
+                    check[e + 1] = True
+        sweeps += 1
+    return sweeps
+
+
+def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps):
+    """(positions, sweeps): x (nv, 3) with every strand edge (i, j) = seg (m,), seg + 1
+    whose length left [lo, hi] (m,) projected back onto the nearer bound, the mass-weighted
+    projection of position-based dynamics (inverse_mass (nv,), 0 for pinned vertices,
+    which do not move; an edge between two pinned vertices, or of zero length, is left
+    alone): each end moves along the edge by its share w_i / (w_i + w_j) of the excess,
+    so sum m dx = 0.  Red-black: the edges of one ``colour`` (m,) (their index along the
+    wisp, mod 2) share no vertex, so each half sweep is a Jacobi step over that colour;
+    after the first, only the neighbours along the wisp of the edges just projected are
+    looked at again (no other edge moved).  ``check`` (m,) bool: the edges that may be
+    out of their bounds (None: all).  Sweeps until no edge is beyond its bound by more
+    than 1e-12 of it, at most ``max_sweeps``.  Each wisp's result depends on that wisp
+    alone (the same on any partition)."""
+    x = np.array(x, np.float64)
+    seg = np.ascontiguousarray(seg, np.int64)
+    inverse_mass = np.ascontiguousarray(inverse_mass, np.float64)
+    movable = inverse_mass[seg] + inverse_mass[seg + 1] > 0.0
+    check = movable if check is None else np.asarray(check, np.bool_) & movable
+    sweeps = _bound_edge_lengths(x, seg, np.ascontiguousarray(colour, np.int64),
+                                 np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
+                                 inverse_mass, check, int(max_sweeps))
+    return x, sweeps

@@ -36,7 +36,9 @@ def format_report(s) -> str:
     """A few lines for a person: what ran, how long, where the time went, did it converge."""
     frames = s["frames"]
     wall = s["wall_time_s"]
-    per = wall / frames if frames else 0.0
+    # after a restart the wall time covers this run's frames only
+    run_frames = s.get("frames_this_run", frames)
+    per = wall / run_frames if run_frames else 0.0
     cfg = s.get("config", {})
     name = s.get("config_file", "")
     lines = [f"lc_petsc: {name}  ({s['wisps']} wisps, {s['dofs']} DoFs, {s['ranks']} rank(s), "
@@ -44,7 +46,8 @@ def format_report(s) -> str:
              f"  terms: {', '.join(s.get('terms', []))}"]
     dt = cfg.get("time", {}).get("dt")
     sim_t = f", {frames * dt:.3g} s simulated" if dt else ""
-    lines.append(f"  frames: {frames}{sim_t}; wall time {_fmt_s(wall)} "
+    this_run = f" ({run_frames} in this run)" if run_frames != frames else ""
+    lines.append(f"  frames: {frames}{sim_t}{this_run}; wall time {_fmt_s(wall)} "
                  f"({_fmt_s(per)} per frame); setup {_fmt_s(s.get('setup_time_s', 0.0))}")
     tim = s.get("timings_s", {})
     lines.append("  phases (max over ranks): " + ", ".join(

@@ -157,3 +157,15 @@ def test_run_failing_part_way_keeps_frames_and_says_so(tmp_path, capsys):
     with h5py.File(out / "frames.h5") as f:
         assert f["positions"].shape[0] == f["time"].shape[0] == 1    # the initial state only
     assert (out / "frames.xdmf").exists()
+
+
+def test_report_after_a_restart_divides_by_this_runs_frames():
+    """A run restarted at frame 30 of 40 times 10 frames: the report's per-frame figure
+    is its wall time over those 10, not over all 40 (it said 3.15 s for 12.6 s)."""
+    from lc_petsc.io.summary import format_report
+    s = {"frames": 40, "frames_this_run": 10, "wall_time_s": 126.0, "wisps": 2, "dofs": 6, "ranks": 2,
+         "config": {"time": {"dt": 1.0 / 30.0}}}
+    line = format_report(s).splitlines()[2]
+    assert "frames: 40, 1.33 s simulated (10 in this run); wall time 126.00 s (12.60 s per frame)" in line
+    del s["frames_this_run"]
+    assert "(3.15 s per frame)" in format_report(s).splitlines()[2]

@@ -1,0 +1,71 @@
+"""The compiled passes along strands (lc_petsc.elements.compiled_ccd: smooth_fractions,
+the limiter's strain bound on its per-vertex fractions, and bound_edge_lengths, the
+separation's edge projection) against their NumPy references (tests/strand_pass_reference.py),
+on random strands with pinned roots, inner pins, single-edge wisps, vertices that do
+not move, stopped vertices and torn or crushed edges."""
+
+import numpy as np
+import pytest
+
+from lc_petsc.elements.compiled_ccd import bound_edge_lengths, smooth_fractions
+from strand_pass_reference import bound_edge_lengths_reference, smooth_fractions_reference
+
+
+def strands(rng, n_wisps=40):
+    """Local strand arrays of wisps of 2-30 vertices: (offsets, seg, colour, free)."""
+    sizes = rng.integers(2, 31, n_wisps)
+    offsets = np.r_[0, np.cumsum(sizes)]
+    seg = np.concatenate([np.arange(offsets[w], offsets[w + 1] - 1) for w in range(n_wisps)])
+    wid = np.repeat(np.arange(n_wisps), sizes)
+    colour = (seg - offsets[wid[seg]]) % 2
+    free = np.ones(offsets[-1], bool)
+    free[offsets[:-1]] = rng.random(n_wisps) < 0.8          # most roots pinned
+    free[rng.random(offsets[-1]) < 0.03] = False           # a few inner pins
+    return offsets, seg, colour, free
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_smooth_fractions_equals_the_jacobi_sweeps(seed):
+    rng = np.random.default_rng(seed)
+    offsets, seg, _, free = strands(rng)
+    nv = offsets[-1]
+    beta = np.where(rng.random(nv) < 0.1, 0.0, 1.0)        # stopped vertices
+    beta[rng.random(nv) < 0.2] = rng.random()              # and partly limited ones
+    F = rng.normal(size=(nv, 3)) * rng.choice([0.0, 1e-3, 0.3], size=(nv, 1))
+    L = rng.uniform(0.2, 0.8, len(seg))
+    got = smooth_fractions(beta, F, seg, L, free, 0.02)
+    want = smooth_fractions_reference(beta, F, seg, L, free, 0.02)
+    np.testing.assert_array_equal(got, want)
+    assert np.all(got <= beta) and np.all(got[~free] == beta[~free])
+    assert (got < beta).sum() > 10                         # the transform did something
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_bound_edge_lengths_equals_the_red_black_sweeps(seed):
+    rng = np.random.default_rng(100 + seed)
+    offsets, seg, colour, free = strands(rng)
+    nv = offsets[-1]
+    inverse_mass = np.where(free, rng.uniform(0.5, 2.0, nv), 0.0)
+    x = np.cumsum(rng.normal(size=(nv, 3)) * 0.5, axis=0)
+    L = np.linalg.norm(x[seg + 1] - x[seg], axis=1)
+    x += rng.normal(size=(nv, 3)) * rng.choice([0.0, 0.05, 0.3], size=(nv, 1))    # tear, crush
+    lo, hi = 0.98 * L, 1.02 * L
+    check = None if seed % 2 else rng.random(len(seg)) < 0.5
+    for sweeps in (1, 3, 50):
+        got, n = bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass,
+                                    None if check is None else check.copy(), sweeps)
+        want, n_ref = bound_edge_lengths_reference(x, seg, colour, lo, hi, inverse_mass,
+                                                   None if check is None else check.copy(), sweeps)
+        assert n == n_ref
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
+    assert np.all(got[~free] == x[~free])
+    strain = np.linalg.norm(got[seg + 1] - got[seg], axis=1) / L - 1.0
+    movable = free[seg] | free[seg + 1]
+    assert np.abs(strain[movable]).max() < 0.02 + 1e-9 or n == 50
+    # momentum is kept on the wisps without a pinned vertex
+    unpinned = np.flatnonzero(np.minimum.reduceat(free, offsets[:-1]))
+    assert len(unpinned) > 3
+    m = 1.0 / np.where(free, inverse_mass, 1.0)
+    for w in unpinned:
+        v = slice(offsets[w], offsets[w + 1])
+        np.testing.assert_allclose((m[v, None] * (got - x)[v]).sum(axis=0), 0.0, atol=1e-12)

@@ -578,8 +578,10 @@ def quadratic_error_estimate(increments):
     row, oldest first), estimated from quadratic convergence.  A step's increment d_k is
     the error of the iterate before it, to leading order, and e_{k+1} = C e_k^2, so with
     C = d_k / d_{k-1}^2 the error after the last step is C d_k^2.  inf with fewer than
-    two such steps, or when the last did not contract (d_k >= d_{k-1})."""
-    if len(increments) < 2 or not increments[-1] < increments[-2]:
+    two such steps, when the earlier one started at or above :data:`EXACT_BELOW` (C
+    measured from there was 60x too small: a stop 1.3x above the tolerance on the demo
+    hairball, docs/newton.md "Eighth round"), or when the last did not contract."""
+    if len(increments) < 2 or not increments[-2] < EXACT_BELOW or not increments[-1] < increments[-2]:
         return np.inf
     d_prev, d = increments[-2], increments[-1]
     return d / d_prev ** 2 * d ** 2
@@ -684,9 +686,9 @@ EXACT_BELOW = 3e-3
 EXACT_SHIFTS = (0.1, 1.0, 10.0, 100.0)
 EXACT_HALVINGS = 6
 #: ``time.newton_stop = "quadratic_estimate"`` stops once the estimated error is below
-#: the tolerance / QUADRATIC_SAFETY (C varies between steps: measured 7-48 on the 10-wisp
-#: demo hairball; every stop there was within the tolerance of the converged solution,
-#: docs/newton.md "Eighth round")
+#: the tolerance / QUADRATIC_SAFETY (C varies between steps; with this factor every stop
+#: on the 10-wisp demo hairball and smash was within the tolerance of the converged
+#: solution, the worst at 0.58 of it, docs/newton.md "Eighth round")
 QUADRATIC_SAFETY = 10.0
 #: strand contact, ccd mode: rounds of separation + frame-path check at a frame's end
 #: (Integrator._collision_free_end, docs/contact.md "Over a whole run")

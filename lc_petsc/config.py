@@ -283,6 +283,9 @@ NEWTON_UPDATES = ("linear", "edge_retraction", "corotational")
 #: time.newton: the Newton iteration's globalisation: filtered steps (solver.filter, the
 #: paper's), or a trust region on the exact Hessian (lc_petsc/trust_region.py)
 NEWTON_MODES = ("filtered", "trust_region")
+#: time.newton_stop: Newton stops on the last increment, or also on the error estimated
+#: from two quadratic exact steps in a row (lc_petsc/integrator.py, docs/newton.md)
+NEWTON_STOPS = ("increment", "quadratic_estimate")
 #: time.unconverged: a frame whose Newton misses the tolerance at the deepest cutback
 UNCONVERGED = ("accept", "error")
 #: time.max_substeps above this is refused (dt / 1024 is a millisecond at 1/30 s)
@@ -297,7 +300,10 @@ class TimeConfig:
     increment relative to its wisp's rest length is below ``newton_increment_tol``
     and/or the absolute one below ``newton_tol`` cm (``None``: fixed count, the paper's
     setting), whichever comes first.  ``line_search`` enables Armijo backtracking on the
-    incremental potential G.  ``newton_update``, ``initial_guess`` and
+    incremental potential G; ``newton_stop = "quadratic_estimate"`` (with
+    ``solver.filter = "exact_or_analytic"`` and ``newton_increment_tol`` alone) also stops
+    once two full exact steps in a row predict an error below a tenth of the tolerance.
+    ``newton_update``, ``initial_guess`` and
     ``length_projection`` (final positions onto the rest edge lengths) and ``newton``
     (``"filtered"`` steps or ``"trust_region"`` on the exact Hessian): see
     lc_petsc/integrator.py, lc_petsc/trust_region.py and docs/newton.md.
@@ -317,6 +323,7 @@ class TimeConfig:
     initial_guess: str = "inertial"
     newton_update: str = "edge_retraction"
     newton: str = "filtered"
+    newton_stop: str = "increment"
     length_projection: bool = False
     max_substeps: int = 8
     unconverged: str = "accept"
@@ -346,6 +353,13 @@ class TimeConfig:
                               f"got {self.newton_update!r}")
         if self.newton not in NEWTON_MODES:
             raise ConfigError(f"time.newton must be one of {NEWTON_MODES}, got {self.newton!r}")
+        if self.newton_stop not in NEWTON_STOPS:
+            raise ConfigError(f"time.newton_stop must be one of {NEWTON_STOPS}, got {self.newton_stop!r}")
+        if self.newton_stop != "increment" and (self.newton_increment_tol is None
+                                                 or self.newton_tol is not None):
+            raise ConfigError("time.newton_stop = \"quadratic_estimate\" estimates the relative "
+                              "increment: set time.newton_increment_tol and leave time.newton_tol "
+                              "unset, or use time.newton_stop = \"increment\"")
         if self.newton != "filtered" and self.line_search:
             raise ConfigError("time.line_search = true with time.newton = \"trust_region\": the "
                               "trust region is the globalisation; set time.line_search = false")
@@ -373,13 +387,15 @@ class SolverConfig:
     on the command line win over both.  ``exact_fallback`` (with ``filter =
     "exact_or_analytic"``): ``"analytic"`` replaces a failed exact step by the analytic
     filter's, ``"shifted"`` first tries the exact Hessian + tau M/dt^2 (docs/newton.md
-    "Seventh round").
+    "Seventh round").  ``exact_stay`` (same filter): after a full, unshifted exact step
+    the next step is exact too, whatever its increment (docs/newton.md "Eighth round").
     """
 
     options: str = ""
     options_file: Optional[str] = None
     filter: str = "analytic"
     exact_fallback: str = "analytic"
+    exact_stay: bool = False
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
@@ -400,6 +416,12 @@ class SolverConfig:
             raise ConfigError(f"solver.exact_fallback = {self.exact_fallback!r} applies to the exact "
                               f"steps of solver.filter = \"exact_or_analytic\" (got solver.filter = "
                               f"{self.filter!r}); set that filter or drop solver.exact_fallback")
+        if not isinstance(self.exact_stay, bool):
+            raise ConfigError(f"solver.exact_stay must be true or false, got {self.exact_stay!r}")
+        if self.exact_stay and self.filter != "exact_or_analytic":
+            raise ConfigError(f"solver.exact_stay = true applies to the exact steps of solver.filter = "
+                              f"\"exact_or_analytic\" (got solver.filter = {self.filter!r}); set that "
+                              f"filter or drop solver.exact_stay")
 
     def _file_text(self) -> str:
         lines = Path(str(self.options_file)).read_text().splitlines()
@@ -501,6 +523,11 @@ class SimConfig:
         """Validate every table (:class:`ConfigError` on the first problem); returns self."""
         for part in (self.scene, self.material, self.physics, self.time, self.solver, self.output):
             part.validate()
+        if self.time.newton_stop != "increment" and self.solver.filter != "exact_or_analytic":
+            raise ConfigError(f"time.newton_stop = {self.time.newton_stop!r} estimates the error from "
+                              f"the exact steps of solver.filter = \"exact_or_analytic\" (got "
+                              f"solver.filter = {self.solver.filter!r}); set that filter or use "
+                              f"time.newton_stop = \"increment\"")
         if self.time.newton != "filtered":
             if self.solver.filter not in ("analytic", "numerical", "abs"):
                 raise ConfigError(f"time.newton = \"trust_region\" preconditions with the filtered "

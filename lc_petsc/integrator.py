@@ -20,6 +20,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   is set, as soon as the last step's largest vertex increment relative to its wisp's
   rest length is below ``newton_increment_tol`` (and/or the absolute one below
   ``newton_tol`` cm); per frame ``newton_converged`` and ``newton_increment`` record it.
+  ``time.newton_stop = "quadratic_estimate"`` also stops once two full exact steps in a
+  row estimate the error below the tolerance / :data:`QUADRATIC_SAFETY`
+  (:func:`quadratic_error_estimate`); ``newton_increment`` is then that estimate.
+  ``solver.exact_stay``: after a full, unshifted exact step the next one is exact too.
 * Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
   misses it within the cap is redone from its start state as two backward-Euler steps
   of dt / 2 (head, pins and head sphere at their own times), each cut again if it
@@ -272,6 +276,7 @@ class Integrator:
             self._force_scale = self.frame_force_scale()
         fallbacks = 0
         region = _Region() if self.trust is not None else None
+        quadratic = []                          # the increments of the last full exact steps in a row
         for it in range(cfg.time.newton_iterations):
             n_it += 1
             if region is not None and it > 0:   # after a filtered first step: lc_petsc/trust_region.py
@@ -286,7 +291,7 @@ class Integrator:
                 if converged:
                     break
                 continue
-            exact = self._exact_hessian(increment)
+            exact = self._exact_hessian(increment, bool(quadratic) and cfg.solver.exact_stay)
             self._shift, self._fallback = 0.0, ""
             if exact:
                 g, dx, alpha = self._exact_step(x, it, 0.0)
@@ -313,6 +318,12 @@ class Integrator:
             if self.history is not None:
                 self._record_iteration(it, x_prev, x, g, increment, alpha, exact)
             converged = self._newton_converged(increment, absolute)
+            full = exact and alpha == 1.0 and self._shift == 0.0
+            quadratic = quadratic + [increment] if full else []
+            if not converged and cfg.time.newton_stop == "quadratic_estimate":
+                estimate = quadratic_error_estimate(quadratic)
+                if estimate < cfg.time.newton_increment_tol / QUADRATIC_SAFETY:
+                    converged, increment = True, estimate
             if converged:
                 break
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
@@ -465,11 +476,13 @@ class Integrator:
         alpha = None if dx is None else self._line_search(x, g, dx, EXACT_HALVINGS, exact=True)
         return g, dx, alpha
 
-    def _exact_hessian(self, increment):
+    def _exact_hessian(self, increment, stay=False):
         """Whether this iteration assembles the exact Hessian: ``solver.filter =
         "exact_or_analytic"`` once the last relative increment is below
-        :data:`EXACT_BELOW` (near the solution, where it is mostly positive definite)."""
-        return self.cfg.solver.filter == "exact_or_analytic" and increment < EXACT_BELOW
+        :data:`EXACT_BELOW` (near the solution, where it is mostly positive definite), or
+        whatever the increment when ``stay`` (``solver.exact_stay`` after a full,
+        unshifted exact step)."""
+        return self.cfg.solver.filter == "exact_or_analytic" and (stay or increment < EXACT_BELOW)
 
     def _line_search(self, x, g, dx, halvings, give_up=True, exact=False):
         """Armijo backtracking on G along update(x, alpha dx, exact): alpha halves from 1
@@ -557,6 +570,21 @@ class Integrator:
             ksp_reason=solver.reasons[-1] if solver.reasons else "",
             ksp_iterations=solver.iterations[-1] if solver.iterations else 0,
             exact_rejected=self._fallback, exact_shift=self._shift, **self._region_record))
+
+
+def quadratic_error_estimate(increments):
+    """``time.newton_stop = "quadratic_estimate"``: the relative error of the iterate
+    after the last of ``increments`` (those of the last full, unshifted exact steps in a
+    row, oldest first), estimated from quadratic convergence.  A step's increment d_k is
+    the error of the iterate before it, to leading order, and e_{k+1} = C e_k^2, so with
+    C = d_k / d_{k-1}^2 the error after the last step is C d_k^2.  inf with fewer than
+    two such steps, when the earlier one started at or above :data:`EXACT_BELOW` (C
+    measured from there was 60x too small: a stop 1.3x above the tolerance on the demo
+    hairball, docs/newton.md "Eighth round"), or when the last did not contract."""
+    if len(increments) < 2 or not increments[-2] < EXACT_BELOW or not increments[-1] < increments[-2]:
+        return np.inf
+    d_prev, d = increments[-2], increments[-1]
+    return d / d_prev ** 2 * d ** 2
 
 
 def follow_the_leader(x, free, offsets, rest_edge):
@@ -657,6 +685,11 @@ EXACT_BELOW = 3e-3
 #: docs/newton.md "Seventh round")
 EXACT_SHIFTS = (0.1, 1.0, 10.0, 100.0)
 EXACT_HALVINGS = 6
+#: ``time.newton_stop = "quadratic_estimate"`` stops once the estimated error is below
+#: the tolerance / QUADRATIC_SAFETY (C varies between steps; with this factor every stop
+#: on the 10-wisp demo hairball and smash was within the tolerance of the converged
+#: solution, the worst at 0.58 of it, docs/newton.md "Eighth round")
+QUADRATIC_SAFETY = 10.0
 #: strand contact, ccd mode: rounds of separation + frame-path check at a frame's end
 #: (Integrator._collision_free_end, docs/contact.md "Over a whole run")
 FRAME_END_ROUNDS = 4

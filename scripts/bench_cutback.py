@@ -3,7 +3,8 @@ frames converged to the tolerance, Newton iterations per frame (every attempt, t
 cost) and per backward-Euler solve kept, frames cut back, CPU s per frame.
 
   .venv/bin/python scripts/bench_cutback.py [--scenes hairball10 smash] [--frames 30]
-      [--tol 1e-6] [--wisps 10] [--setting NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK]]]]] [--out out/cutback]
+      [--tol 1e-6] [--wisps 10] [--out out/cutback]
+      [--setting NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK[,STOP[,STAY]]]]]]]
 
 Every setting: ``solver.filter = "exact_or_analytic"``, the edge retraction (or
 UPDATE: ``time.newton_update``, e.g. ``corotational``, docs/newton.md sixth round), the
@@ -11,7 +12,8 @@ tolerance ``time.newton_increment_tol``; CAP is ``time.newton_iterations``, SUBS
 ``time.max_substeps`` (1: no cutback), DT the step (default the scene's; empty: the
 scene's), NEWTON ``time.newton`` (``trust_region``: with ``solver.filter = "analytic"``
 as its preconditioner, docs/newton.md fifth round), FALLBACK ``solver.exact_fallback``
-(``shifted``: docs/newton.md seventh round).  The scenes
+(``shifted``: docs/newton.md seventh round), STOP ``time.newton_stop`` and STAY
+``solver.exact_stay`` (1: on; docs/newton.md eighth round).  The scenes
 are those of scripts/newton_history.py (demo10: the demo with strand contact).  Prints a markdown table (also written to
 --out/cutback.md, rows in cutback.json).  Runs with the lc_petsc it imports, so the
 no-cutback settings also run on a checkout without ``time.max_substeps`` (then
@@ -41,7 +43,7 @@ DEFAULT_SETTINGS = ["cap 30, no cutback=30,1", "cap 6, cutback=6,8", "cap 10, cu
 
 
 def run(base, cap, substeps, dt, frames, tol, comm, newton=None, update="edge_retraction",
-        fallback=None):
+        fallback=None, stop=None, stay=False):
     """One setting: the summary figures (dict)."""
     cfg = copy.deepcopy(base)
     cfg.solver.filter = "exact_or_analytic"
@@ -49,6 +51,10 @@ def run(base, cap, substeps, dt, frames, tol, comm, newton=None, update="edge_re
     if fallback is not None:
         cfg.solver.exact_fallback = fallback
     cfg.time.newton_increment_tol = tol
+    if stop is not None:
+        cfg.time.newton_stop = stop
+    if stay:
+        cfg.solver.exact_stay = True
     cfg.time.newton_tol = None
     cfg.time.newton_iterations = cap
     cfg.time.max_substeps = substeps
@@ -92,7 +98,7 @@ def main(argv=None):
     p.add_argument("--tol", type=float, default=1e-6)
     p.add_argument("--wisps", type=int, default=10, help="wisps of hairball10 / demo10 (default 10)")
     p.add_argument("--setting", action="append",
-                   help="NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK]]]] (repeatable)")
+                   help="NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK[,STOP[,STAY]]]]]] (repeatable)")
     p.add_argument("--out", default="out/cutback")
     a = p.parse_args(argv)
     comm = MPI.COMM_WORLD
@@ -102,14 +108,17 @@ def main(argv=None):
         for spec in a.setting or DEFAULT_SETTINGS:
             label, _, vals = spec.rpartition("=")
             parts = vals.split(",")
-            if len(parts) not in (2, 3, 4, 5, 6):
-                raise SystemExit(f"--setting {spec!r}: use NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK]]]]")
+            if not 2 <= len(parts) <= 8:
+                raise SystemExit(f"--setting {spec!r}: use "
+                                 "NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK[,STOP[,STAY]]]]]]")
             cap, substeps = int(parts[0]), int(parts[1])
             dt = float(parts[2]) if len(parts) >= 3 and parts[2] else None
             newton = parts[3] if len(parts) >= 4 and parts[3] else None
             update = parts[4] if len(parts) >= 5 and parts[4] else "edge_retraction"
-            fallback = parts[5] if len(parts) == 6 and parts[5] else None
-            r = run(base, cap, substeps, dt, a.frames, a.tol, comm, newton, update, fallback)
+            fallback = parts[5] if len(parts) >= 6 and parts[5] else None
+            stop = parts[6] if len(parts) >= 7 and parts[6] else None
+            stay = len(parts) == 8 and parts[7] == "1"
+            r = run(base, cap, substeps, dt, a.frames, a.tol, comm, newton, update, fallback, stop, stay)
             rows.append({"scene": Path(name).stem, "setting": label, **r})
             if comm.rank == 0:
                 print(f"  {rows[-1]}", flush=True)

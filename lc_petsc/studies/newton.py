@@ -21,6 +21,8 @@ from lc_petsc.studies import report
 VARIANT_KEYS: dict[str, tuple[str, str, Callable[[str], Any]]] = {
     "filter": ("solver", "filter", str),
     "fallback": ("solver", "exact_fallback", str),
+    "stay": ("solver", "exact_stay", lambda v: v in ("1", "true", "yes", "on")),
+    "stop": ("time", "newton_stop", str),
     "guess": ("time", "initial_guess", str),
     "update": ("time", "newton_update", str),
     "newton": ("time", "newton", str),

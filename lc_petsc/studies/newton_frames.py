@@ -19,8 +19,9 @@ from lc_petsc.simulator import build_simulator
 from lc_petsc.studies.newton import configure, parse_variant, watch_iterates
 
 
-def _tolerance(cfg, tol, cap):
+def _tolerance(cfg, tol, cap, stop="increment"):
     cfg = copy.deepcopy(cfg)
+    cfg.time.newton_stop = stop
     cfg.time.newton_increment_tol = tol
     cfg.time.newton_iterations = cap
     cfg.time.max_substeps = 1
@@ -46,15 +47,15 @@ def reference_states(cfg, comm, frames, tol=1e-9, cap=60):
     return states, converged
 
 
-def frame_iterations(cfg, comm, states, tol=1e-6, cap=30):
+def frame_iterations(cfg, comm, states, tol=1e-6, cap=30, stop="increment"):
     """Each frame of ``states`` (:func:`reference_states`) solved by ``cfg`` from its start
-    state to ``tol``, cap ``cap``, no cutback.  Rows (dicts) per frame: iterations,
+    state to ``tol`` (``time.newton_stop`` ``stop``), cap ``cap``, no cutback.  Rows (dicts) per frame: iterations,
     converged, ``true`` (first iteration, 1-based, whose iterate is within ``tol`` of the
     reference solution; None: none), exact steps, the first iterate's error and the
     errors after each iteration (relative to the wisp length)."""
     if comm.size != 1:
         raise ValueError("frame_iterations runs on one rank")
-    sim = build_simulator(_tolerance(cfg, tol, cap), comm)
+    sim = build_simulator(_tolerance(cfg, tol, cap, stop), comm)
     it = sim.integrator
     it.history = hist = []
     errors: list = []
@@ -82,12 +83,15 @@ def frame_iterations(cfg, comm, states, tol=1e-6, cap=30):
 def compare(base_cfg, variants, comm, frames, tol=1e-6, cap=30, reference="filter=exact_or_analytic,"
             "update=corotational,fallback=shifted"):
     """:func:`frame_iterations` for each (name, SPEC) of ``variants`` (SPEC as in
-    scripts/newton_history.py) from the states of the ``reference`` SPEC's converged run.
+    scripts/newton_history.py, and ``stop=quadratic_estimate``: ``time.newton_stop``,
+    which needs the tolerance) from the states of the ``reference`` SPEC's converged run.
     Returns {"reference_converged": bool, name: rows}."""
     ref = configure(base_cfg, parse_variant(reference), 1, frames)
     states, ok = reference_states(ref, comm, frames)
     out: dict = {"reference_converged": ok}
     for name, spec in variants:
-        out[name] = frame_iterations(configure(base_cfg, parse_variant(spec), cap, frames),
-                                     comm, states, tol, cap)
+        variant = parse_variant(spec)
+        stop = variant.pop("stop", "increment")
+        out[name] = frame_iterations(configure(base_cfg, variant, cap, frames),
+                                     comm, states, tol, cap, stop)
     return out

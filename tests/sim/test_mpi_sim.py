@@ -36,10 +36,10 @@ def test_rank_invariance_hairball_10_frames():
         assert np.abs(ref - summ_rest(cfg)).max() > 0.5
 
 
-@pytest.mark.parametrize("update, fallback, tol, min_converged, min_fallbacks", [
-    ("edge_retraction", "analytic", 1e-9, 3, 1), ("corotational", "analytic", 1e-8, 3, 1),
-    ("corotational", "shifted", 1e-8, 4, 0)])
-def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, min_fallbacks):
+@pytest.mark.parametrize("update, fallback, tol, min_converged, min_fallbacks, quadratic", [
+    ("edge_retraction", "analytic", 1e-9, 3, 1, False), ("corotational", "analytic", 1e-8, 3, 1, False),
+    ("corotational", "shifted", 1e-8, 4, 0, False), ("corotational", "shifted", 1e-8, 4, 0, True)])
+def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, min_fallbacks, quadratic):
     """exact_or_analytic to a relative increment of 1e-6, with the edge retraction or the
     corotational update of the exact steps (docs/newton.md, sixth round; both per wisp):
     every decision (exact step kept or not, converged or not) is collective, so the
@@ -48,12 +48,17 @@ def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, 
     replaced by filtered ones in frame 0.  Frame 0 stops unconverged at the cap, which amplifies
     the reductions' round-off: the corotational run differs by 1.2e-9 relative on 2
     ranks, hence 1e-8; no cutback: tests/sim/test_step_cutback.py).  With the shifted
-    fallback (seventh round) every frame converges: 18 11 11 13, no analytic fallback."""
+    fallback (seventh round) every frame converges: 18 11 11 13, no analytic fallback.
+    ``quadratic``: with ``solver.exact_stay`` and ``time.newton_stop =
+    "quadratic_estimate"`` too (eighth round; the estimate uses the reduced increments)."""
     cfg = small_hairball_config(n_wisps=5, frames=4, newton_iterations=30,
                                 newton_increment_tol=1e-6, newton_update=update,
                                 max_substeps=1)
     cfg.solver.filter = "exact_or_analytic"
     cfg.solver.exact_fallback = fallback
+    if quadratic:
+        cfg.solver.exact_stay = True
+        cfg.time.newton_stop = "quadratic_estimate"
     X, summ = run_positions(cfg)
     ref, ref_summ = serial_reference(cfg)
     _check(X, ref, tol)

@@ -143,14 +143,19 @@ def _vperp(v):
 
 
 @_jit
-def _vangle(u, lu, v, lv):
+def _vframe(u, lu, v, lv):
     """The angle frame of u, v (lengths lu, lv), as angle.AngleFrame: unit t0, t1,
-    t0 x t1, cos, sin and theta = atan2(sin, cos)."""
+    t0 x t1, cos and sin."""
     t0 = _vdiv(u, lu)
     t1 = _vdiv(v, lv)
     tx = _vcross(t0, t1)
-    s = _vnorm(tx)
-    c = _vdot(t0, t1)
+    return t0, t1, tx, _vdot(t0, t1), _vnorm(tx)
+
+
+@_jit
+def _vangle(u, lu, v, lv):
+    """:func:`_vframe` and theta = atan2(sin, cos)."""
+    t0, t1, tx, c, s = _vframe(u, lu, v, lv)
     return t0, t1, tx, c, s, math.atan2(s, c)
 
 
@@ -196,16 +201,21 @@ def _vbad_edge(e, scale):
 
 
 @_jit
+def _vscale_add(u, scale, total):
+    """(scale, total) updated by the coordinates of u: the largest |coordinate| and the
+    sum of the |coordinates| (in order)."""
+    for a in (abs(u[0]), abs(u[1]), abs(u[2])):
+        total += a
+        scale = a if a > scale else scale
+    return scale, total
+
+
+@_jit
 def _vscale_of(x, i0, k):
     """(largest |coordinate| of vertices i0..i0+k-1, whether all are finite)."""
-    scale = 0.0
-    total = 0.0
+    scale = total = 0.0
     for i in range(i0, i0 + k):
-        for c in range(3):
-            a = abs(x[i, c])
-            total += a
-            if a > scale:
-                scale = a
+        scale, total = _vscale_add(_vpoint(x, i), scale, total)
     return scale, math.isfinite(total)
 
 
@@ -413,151 +423,297 @@ def _v_bend(x, i, rest, k, mode, g, vals, base, b, upper, exact, u, v, w):
 
 
 # ------------------------------------------------------------------------ twist
-@_jit
-def _v_in_plane(cols, j, top, bot, fu, fv, al, be):
-    """Column j of the twist Hessian: P^T [top fu; bot fv] (twist.simplified_transpose)."""
-    for q in range(3):
-        uq = top[q] * fu
-        vq = bot[q] * fv
-        cols[j, q] = uq
-        cols[j, 3 + q] = (al - 1.0) * uq + be * vq
-        cols[j, 6 + q] = -al * uq - (1.0 + be) * vq
-        cols[j, 9 + q] = vq
+#: Twist elements per batch of :func:`_twist_batch` (its scratch, about 40 kB, stays in
+#: the L1/L2 caches).
+TWIST_BATCH = 64
+_T_STRIDE = TWIST_BATCH + 8
+
+# The twist batch's scratch ``tw``: one flat array (_T_ROWS * TWIST_BATCH,), row r of
+# element j at tw[r * TWIST_BATCH + j] (one array with constant row offsets: the
+# compiler sees that the rows do not overlap, and vectorises the loops over j).  Rows:
+# the element's geometry (t0, t1, t0 x t1, e1: three rows each), its angle error dphi,
+# energy and flag (0, _T_BAD: the pass stops, _T_DROPPED: collinear outer edge); its
+# gradient on its four vertices (12 rows from _T_G), column weights (8 from _T_W),
+# Hessian columns (column c entry q in row _T_COLS + 12 c + q) and its ten upper 3x3
+# blocks (a, c), a <= c, in order, each column-major (90 rows from _T_H).
+_T_AL, _T_BE, _T_SIG, _T_IL1SQ, _T_LA, _T_LB, _T_C, _T_S, _T_DPHI, _T_EN = range(10)
+_T_T0, _T_T1, _T_TX, _T_E1, _T_FLAG = 10, 13, 16, 19, 22
+_T_X, _T_G, _T_W, _T_COLS = 23, 35, 47, 55
+_T_ROWS = _T_COLS + 96
+_T_BAD, _T_DROPPED = 1.0, 2.0
 
 
 @_jit
-def _v_twist(x, i, rest, k, mode, g, vals, base, b, upper, exact, cols, wts, u, v):
-    """One twist element on vertices i .. i+3: (energy, bad).  cols (8, 12), wts (8,)
-    are scratch: the element Hessian's columns and weights (analytic: four, unweighted;
-    ``exact``: eight, twist._exact_columns); u, v (6, 3) scratch for the eigenpairs."""
-    scale, finite = _vscale_of(x, i, 4)
-    x1 = _vpoint(x, i + 1)
-    x2 = _vpoint(x, i + 2)
-    e0 = _vsub(_vpoint(x, i), x1)
-    e1 = _vsub(x2, x1)
-    e2 = _vsub(_vpoint(x, i + 3), x2)
-    l0, zero0 = _vbad_edge(e0, scale)
-    l1, zero1 = _vbad_edge(e1, scale)
-    l2, zero2 = _vbad_edge(e2, scale)
-    if not finite or zero0 or zero1 or zero2:
-        return 0.0, True
-    inv_l1_sq = 1.0 / (l1 * l1)
-    al = _vdot(e0, e1) * inv_l1_sq
-    be = _vdot(e2, e1) * inv_l1_sq
-    av = _vsub(e0, _vscale(e1, al))
-    bv = _vsub(e2, _vscale(e1, be))
-    la, lb = _vnorm(av), _vnorm(bv)
-    if not (la >= _TWIST_TOL * l0 and lb >= _TWIST_TOL * l2):
-        return 0.0, False         # collinear outer edge: the element is dropped
-    sigma = -1.0 if _vdot(_vcross(av, bv), e1) < 0.0 else 1.0
-    t0, t1, tx, c, s, theta = _vangle(av, la, bv, lb)
+def _vput_at(tw, r, j, h):
+    """Row r of element j (twist batch scratch) = h.  The index is unsigned: no test for
+    a negative (wrap-around) index, which would make the compiler gather and scatter."""
+    tw[np.uint64(r * _T_STRIDE + j)] = h
+
+
+@_jit
+def _vat(tw, r, j):
+    """Row r of element j (twist batch scratch; :func:`_vput_at`)."""
+    return tw[np.uint64(r * _T_STRIDE + j)]
+
+
+@_jit
+def _vrow3(tw, r, j):
+    """Rows r .. r + 2 of element j (twist batch scratch)."""
+    return (_vat(tw, r, j), _vat(tw, r + 1, j), _vat(tw, r + 2, j))
+
+
+@_jit
+def _vput_row3(tw, r, j, u):
+    _vput_at(tw, r, j, u[0])
+    _vput_at(tw, r + 1, j, u[1])
+    _vput_at(tw, r + 2, j, u[2])
+
+
+@_jit
+def _v_in_plane(tw, c, j, top, bot, fu, fv, al, be):
+    """Column c of twist element j's Hessian: P^T [top fu; bot fv]
+    (twist.simplified_transpose), into the twist batch scratch tw."""
+    uq = _vscale(top, fu)
+    vq = _vscale(bot, fv)
+    _v_column(tw, c, j, uq, _vadd(_vscale(uq, al - 1.0), _vscale(vq, be)),
+              _vsub(_vscale(uq, -al), _vscale(vq, 1.0 + be)), vq)
+
+
+@_jit
+def _v_column(tw, c, j, p0, p1, p2, p3):
+    """Column c of twist element j's Hessian, its parts on the four vertices p0 .. p3,
+    into the twist batch scratch tw."""
+    r = _T_COLS + 12 * c
+    _vput_row3(tw, r, j, p0)
+    _vput_row3(tw, r + 3, j, p1)
+    _vput_row3(tw, r + 6, j, p2)
+    _vput_row3(tw, r + 9, j, p3)
+
+
+@_jit
+def _v_balanced(tw, c, j, sign, pl, mg):
+    """Column c of twist element j's Hessian: 1/2 ([0; pl; -pl; 0] + sign mg), mg the
+    four parts of a balanced out-of-plane column."""
+    _v_column(tw, c, j, _vscale(_vscale(mg[0], sign), 0.5),
+              _vscale(_vadd(pl, _vscale(mg[1], sign)), 0.5),
+              _vscale(_vadd(_vscale(pl, -1.0), _vscale(mg[2], sign)), 0.5),
+              _vscale(_vscale(mg[3], sign), 0.5))
+
+
+@_jit
+def _v_out_of_plane(tw, j, p, plus, eps, t0, t1, b0, st0, e1h, al, be, c, d, osc, mu, inv_lb,
+                    inv_l1):
+    """Out-of-plane pair p (eps = +-1) of twist element j: the plus column into column
+    plus + p, the minus column into column 6 + p of the twist batch scratch tw."""
+    nu = eps * osc * inv_lb
+    w = _vscale(_vadd(t0, _vscale(t1, eps)), osc * inv_l1)
+    m0 = _vscale(e1h, 2.0 * mu)
+    m1 = _vsub(_vscale(e1h, 2.0 * ((al - 1.0) * mu + be * nu)), w)
+    m2 = _vadd(_vscale(e1h, -2.0 * (al * mu + (1.0 + be) * nu)), w)
+    m3 = _vscale(e1h, 2.0 * nu)
+    cs = (1.0 - c) if eps > 0.0 else (1.0 + c)
+    lw = _vscale(_vsub(_vscale(b0, cs), _vscale(st0, eps)), d * osc * inv_l1)
+    # gs = sqrt(|p| / |m|) from the squared norms: two square roots, one division
+    sq_p = 2.0 * _vdot(lw, lw)
+    sq_m = _vdot(m0, m0) + _vdot(m1, m1) + _vdot(m2, m2) + _vdot(m3, m3)
+    ok = sq_p > 0.0 and sq_m > 0.0
+    gs = math.sqrt(math.sqrt(sq_p / sq_m)) if ok else 0.0
+    inv_gs = 1.0 / gs if ok else 0.0
+    # 1/2 (lw inv_gs [0; 1; -1; 0] +- gs m), lw the nonzero parts of p
+    pl = _vscale(lw, inv_gs)
+    mg = (_vscale(m0, gs), _vscale(m1, gs), _vscale(m2, gs), _vscale(m3, gs))
+    _v_balanced(tw, plus + p, j, 1.0, pl, mg)
+    _v_balanced(tw, 6 + p, j, -1.0, pl, mg)
+
+
+@_jit
+def _v_twist_frame(tw, j, k):
+    """The twist element j's unit t0, t1, normal n, binormals b0 = t0 x n, b1 = t1 x n,
+    d = sigma k dphi, 1 / la and 1 / lb, from the batch scratch ``tw``."""
+    t0 = _vrow3(tw, _T_T0, j)
+    t1 = _vrow3(tw, _T_T1, j)
+    s = _vat(tw, _T_S, j)
+    sigma = _vat(tw, _T_SIG, j)
     if s < STRAIGHT_TOL:           # a, b parallel: the frame turns about e1
-        n = _vscale(e1, sigma * math.sqrt(inv_l1_sq))
+        n = _vscale(_vrow3(tw, _T_E1, j), sigma * math.sqrt(_vat(tw, _T_IL1SQ, j)))
     else:
-        n = _vdiv(tx, s)
-    dphi = _PI - ((_PI - (sigma * theta - rest)) % _TWO_PI)
+        n = _vdiv(_vrow3(tw, _T_TX, j), s)
+    d = sigma * k * _vat(tw, _T_DPHI, j)
+    return t0, t1, n, _vcross(t0, n), _vcross(t1, n), d, 1.0 / _vat(tw, _T_LA, j), 1.0 / _vat(tw, _T_LB, j)
+
+
+@_jit
+def _twist_batch(x, start, rest, stiff, lo, hi, mode, exact, tw, hh, u, v, w):
+    """Twist elements lo .. hi - 1 (at most TWIST_BATCH) in structure-of-arrays form,
+    element lo + j in column j of the scratch: ``flag`` (B,) int8 (0, _T_BAD or
+    _T_DROPPED), ``tw`` (_T_ROWS, B) its geometry and energy; with GRADIENT ``gg``
+    (12, B) its gradient on its four vertices; with HESSIAN ``hh`` (90, B) its ten
+    upper 3x3 blocks (a, c), a <= c, in order, each column-major, from the columns
+    ``cols`` (8, 12, B) and weights ``wts`` (8, B) (analytic: four columns, weights 1;
+    ``exact``: eight, twist._exact_columns).  u, v (6, 3): the exact filter's
+    eigenpairs.  The loops over the batch are branch-free (selects) so that the
+    compiler vectorises them, except the one of atan2 and the angle's modulo."""
+    m = hi - lo
+    for j in range(m):              # the gather: not vectorised
+        i = start[lo + j]
+        for a in range(4):
+            _vput_row3(tw, _T_X + 3 * a, j, _vpoint(x, i + a))
+    for j in range(m):
+        x0, x1 = _vrow3(tw, _T_X, j), _vrow3(tw, _T_X + 3, j)
+        x2, x3 = _vrow3(tw, _T_X + 6, j), _vrow3(tw, _T_X + 9, j)
+        scale, total = _vscale_add(x0, 0.0, 0.0)
+        scale, total = _vscale_add(x1, scale, total)
+        scale, total = _vscale_add(x2, scale, total)
+        scale, total = _vscale_add(x3, scale, total)
+        finite = math.isfinite(total)
+        e0 = _vsub(x0, x1)
+        e1 = _vsub(x2, x1)
+        e2 = _vsub(x3, x2)
+        l0, zero0 = _vbad_edge(e0, scale)
+        l1, zero1 = _vbad_edge(e1, scale)
+        l2, zero2 = _vbad_edge(e2, scale)
+        inv_l1_sq = 1.0 / (l1 * l1)
+        al = _vdot(e0, e1) * inv_l1_sq
+        be = _vdot(e2, e1) * inv_l1_sq
+        av = _vsub(e0, _vscale(e1, al))
+        bv = _vsub(e2, _vscale(e1, be))
+        la, lb = _vnorm(av), _vnorm(bv)
+        dropped = not (la >= _TWIST_TOL * l0 and lb >= _TWIST_TOL * l2)
+        bad = not finite or zero0 or zero1 or zero2
+        _vput_at(tw, _T_FLAG, j, _T_BAD if bad else (_T_DROPPED if dropped else 0.0))
+        t0, t1, tx, c, s = _vframe(av, la, bv, lb)
+        _vput_at(tw, _T_AL, j, al)
+        _vput_at(tw, _T_BE, j, be)
+        _vput_at(tw, _T_SIG, j, -1.0 if _vdot(_vcross(av, bv), e1) < 0.0 else 1.0)
+        _vput_at(tw, _T_IL1SQ, j, inv_l1_sq)
+        _vput_at(tw, _T_LA, j, la)
+        _vput_at(tw, _T_LB, j, lb)
+        _vput_at(tw, _T_C, j, c)
+        _vput_at(tw, _T_S, j, s)
+        _vput_row3(tw, _T_T0, j, t0)
+        _vput_row3(tw, _T_T1, j, t1)
+        _vput_row3(tw, _T_TX, j, tx)
+        _vput_row3(tw, _T_E1, j, e1)
+    for j in range(m):              # the library calls: not vectorised
+        theta = math.atan2(_vat(tw, _T_S, j), _vat(tw, _T_C, j))
+        dphi = _PI - ((_PI - (_vat(tw, _T_SIG, j) * theta - rest[lo + j])) % _TWO_PI)
+        _vput_at(tw, _T_DPHI, j, dphi)
+        _vput_at(tw, _T_EN, j, 0.5 * stiff[lo + j] * dphi * dphi)
     if mode == ENERGY:
-        return 0.5 * k * dphi * dphi, False
-    d = sigma * k * dphi
-    b0 = _vcross(t0, n)
-    b1 = _vcross(t1, n)
-    inv_la, inv_lb = 1.0 / la, 1.0 / lb
-    ga = _vscale(b0, d * inv_la)
-    gb = _vscale(b1, -d * inv_lb)
-    _vadd_to(g, i, ga)
-    _vadd_to(g, i + 1, _vadd(_vscale(ga, al - 1.0), _vscale(gb, be)))
-    _vadd_to(g, i + 2, _vsub(_vscale(ga, -al), _vscale(gb, 1.0 + be)))
-    _vadd_to(g, i + 3, gb)
+        return
+    for j in range(m):
+        t0, t1, n, b0, b1, d, inv_la, inv_lb = _v_twist_frame(tw, j, stiff[lo + j])
+        al, be = _vat(tw, _T_AL, j), _vat(tw, _T_BE, j)
+        ga = _vscale(b0, d * inv_la)
+        gb = _vscale(b1, -d * inv_lb)
+        _vput_row3(tw, _T_G, j, ga)
+        _vput_row3(tw, _T_G + 3, j, _vadd(_vscale(ga, al - 1.0), _vscale(gb, be)))
+        _vput_row3(tw, _T_G + 6, j, _vsub(_vscale(ga, -al), _vscale(gb, 1.0 + be)))
+        _vput_row3(tw, _T_G + 9, j, gb)
     if mode != HESSIAN:
-        return 0.0, False
+        return
     if exact:
         # the four in-plane eigenpairs with their eigenvalues, mapped by P^T
-        m = 8
-        _v_eigenpairs(u, v, wts, t0, t1, b0, b1, n, c, s, 1.0, d, k, inv_la, inv_lb, 2)
-        for j in range(4):
-            _v_in_plane(cols, j, (u[j, 0], u[j, 1], u[j, 2]), (v[j, 0], v[j, 1], v[j, 2]),
-                        1.0, 1.0, al, be)
-        wts[4] = wts[5] = 1.0
-        wts[6] = wts[7] = -1.0
+        for j in range(m):
+            k = stiff[lo + j]
+            t0, t1, n, b0, b1, d, inv_la, inv_lb = _v_twist_frame(tw, j, k)
+            _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, _vat(tw, _T_C, j), _vat(tw, _T_S, j), 1.0, d,
+                          k, inv_la, inv_lb, 2)
+            for c in range(4):
+                _v_in_plane(tw, c, j, (u[c, 0], u[c, 1], u[c, 2]), (v[c, 0], v[c, 1], v[c, 2]),
+                            1.0, 1.0, _vat(tw, _T_AL, j), _vat(tw, _T_BE, j))
+            for c in range(8):
+                _vput_at(tw, _T_W + c, j, w[c] if c < 4 else (1.0 if c < 6 else -1.0))
     else:
         # in-plane pairs 0 and 2 of angle.AngleFrame.positive_part, mapped by P^T
-        m = 4
-        sd = 1.0 if d >= 0.0 else -1.0
-        ad = abs(d)
-        lam2 = k + math.sqrt(k * k + d * d)
-        rr = d / lam2 if lam2 > 0.0 else 0.0
-        scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
-        rs = rr * scn
-        hsd = 0.5 * sd
-        root0, root2 = math.sqrt(lam2), math.sqrt(ad)
-        _v_in_plane(cols, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)),
-                    _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 * inv_la, root0 * inv_lb,
-                    al, be)
-        _v_in_plane(cols, 1, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)),
-                    _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 * inv_la, root2 * inv_lb,
-                    al, be)
+        for j in range(m):
+            k = stiff[lo + j]
+            t0, t1, n, b0, b1, d, inv_la, inv_lb = _v_twist_frame(tw, j, k)
+            sd = 1.0 if d >= 0.0 else -1.0
+            ad = abs(d)
+            lam2 = k + math.sqrt(k * k + d * d)
+            rr = d / lam2 if lam2 > 0.0 else 0.0
+            scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
+            rs = rr * scn
+            hsd = 0.5 * sd
+            root0, root2 = math.sqrt(lam2), math.sqrt(ad)
+            al, be = _vat(tw, _T_AL, j), _vat(tw, _T_BE, j)
+            _v_in_plane(tw, 0, j, _vsub(_vscale(t0, rs), _vscale(b0, scn)),
+                        _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 * inv_la,
+                        root0 * inv_lb, al, be)
+            _v_in_plane(tw, 1, j, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)),
+                        _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 * inv_la,
+                        root2 * inv_lb, al, be)
     # out-of-plane pairs: PSD part of 1/2 (p m^T + m p^T) (twist._out_of_plane and
-    # twist._balanced_columns)
-    inv_l1 = math.sqrt(inv_l1_sq)
-    e1h = _vscale(e1, inv_l1)
-    osc = sigma * _SQRT_HALF
-    mu = osc * inv_la
-    st0 = _vscale(t0, s)
-    for j in range(2):
-        eps = 1.0 if j == 0 else -1.0
-        nu = eps * osc * inv_lb
-        w = _vscale(_vadd(t0, _vscale(t1, eps)), osc * inv_l1)
-        m0 = _vscale(e1h, 2.0 * mu)
-        m1 = _vsub(_vscale(e1h, 2.0 * ((al - 1.0) * mu + be * nu)), w)
-        m2 = _vadd(_vscale(e1h, -2.0 * (al * mu + (1.0 + be) * nu)), w)
-        m3 = _vscale(e1h, 2.0 * nu)
-        cs = (1.0 - c) if eps > 0.0 else (1.0 + c)
-        lw = _vscale(_vsub(_vscale(b0, cs), _vscale(st0, eps)), d * osc * inv_l1)
-        # gs = sqrt(|p| / |m|) from the squared norms: two square roots, one division
-        sq_p = 2.0 * _vdot(lw, lw)
-        sq_m = _vdot(m0, m0) + _vdot(m1, m1) + _vdot(m2, m2) + _vdot(m3, m3)
-        if sq_p > 0.0 and sq_m > 0.0:
-            gs = math.sqrt(math.sqrt(sq_p / sq_m))
-            inv_gs = 1.0 / gs
-        else:
-            inv_gs = 0.0
-            gs = 0.0
-        # the plus column (both filters) and, exact, the minus column
-        for sign, row in ((1.0, (4 if exact else 2) + j), (-1.0, 6 + j)):
-            if sign > 0.0 or exact:
-                for q in range(3):
-                    cols[row, q] = 0.5 * (sign * (m0[q] * gs))
-                    cols[row, 3 + q] = 0.5 * (lw[q] * inv_gs + sign * (m1[q] * gs))
-                    cols[row, 6 + q] = 0.5 * (-lw[q] * inv_gs + sign * (m2[q] * gs))
-                    cols[row, 9 + q] = 0.5 * (sign * (m3[q] * gs))
-    # H = sum_j w_j cols_j cols_j^T, block by block (upper blocks and their transposes)
+    # twist._balanced_columns): the plus columns (both filters) in rows ``plus``, the
+    # minus ones (used by the exact filter only) in rows 6, 7
+    plus = 4 if exact else 2
+    for j in range(m):
+        t0, t1, n, b0, b1, d, inv_la, inv_lb = _v_twist_frame(tw, j, stiff[lo + j])
+        al, be, sigma = _vat(tw, _T_AL, j), _vat(tw, _T_BE, j), _vat(tw, _T_SIG, j)
+        c, s = _vat(tw, _T_C, j), _vat(tw, _T_S, j)
+        inv_l1 = math.sqrt(_vat(tw, _T_IL1SQ, j))
+        e1h = _vscale(_vrow3(tw, _T_E1, j), inv_l1)
+        osc = sigma * _SQRT_HALF
+        mu = osc * inv_la
+        st0 = _vscale(t0, s)
+        _v_out_of_plane(tw, j, 0, plus, 1.0, t0, t1, b0, st0, e1h, al, be, c, d, osc, mu,
+                        inv_lb, inv_l1)
+        _v_out_of_plane(tw, j, 1, plus, -1.0, t0, t1, b0, st0, e1h, al, be, c, d, osc, mu,
+                        inv_lb, inv_l1)
+    # H = sum_c wts_c cols_c cols_c^T, the upper blocks
+    blk = 0
     for a in range(4):
         for cc in range(a, 4):
-            dd = cc - a
-            o_up, o_low = base[i + a, dd + b], base[i + cc, b - dd]
-            lower = dd != 0 and not upper
-            if exact:
+            for q in range(3):
+                qc = 3 * cc + q
                 for r in range(3):
                     ra = 3 * a + r
-                    for q in range(3):
-                        qc = 3 * cc + q
-                        hv = 0.0
+                    row = 9 * blk + r + 3 * q
+                    if exact:
                         for j in range(m):
-                            hv += wts[j] * cols[j, ra] * cols[j, qc]
-                        _vput(vals, o_up, r, q, hv)
-                        if lower:
-                            _vput(vals, o_low, q, r, hv)
-            else:               # four columns, weights 1: unrolled
-                for r in range(3):
-                    ra = 3 * a + r
-                    for q in range(3):
-                        qc = 3 * cc + q
-                        hv = (cols[0, ra] * cols[0, qc] + cols[1, ra] * cols[1, qc]
-                              + cols[2, ra] * cols[2, qc] + cols[3, ra] * cols[3, qc])
-                        _vput(vals, o_up, r, q, hv)
-                        if lower:
-                            _vput(vals, o_low, q, r, hv)
-    return 0.0, False
+                            hv = 0.0
+                            for c in range(8):
+                                hv += (_vat(tw, _T_W + c, j) * _vat(tw, _T_COLS + 12 * c + ra, j)
+                                       * _vat(tw, _T_COLS + 12 * c + qc, j))
+                            _vput_at(hh, row, j, hv)
+                    else:       # four columns, weights 1
+                        for j in range(m):
+                            _vput_at(hh, row, j, _vat(tw, _T_COLS + ra, j) * _vat(tw, _T_COLS + qc, j)
+                                     + _vat(tw, _T_COLS + 12 + ra, j) * _vat(tw, _T_COLS + 12 + qc, j)
+                                     + _vat(tw, _T_COLS + 24 + ra, j) * _vat(tw, _T_COLS + 24 + qc, j)
+                                     + _vat(tw, _T_COLS + 36 + ra, j) * _vat(tw, _T_COLS + 36 + qc, j))
+            blk += 1
+
+
+@_jit
+def _v_twist_put(g, vals, base, b, upper, mode, i, j, tw, hh):
+    """Add twist batch element j (on vertices i .. i + 3; :func:`_twist_batch`) to the
+    gradient g and, HESSIAN, its blocks to ``vals`` (the upper ones and, unless
+    ``upper``, their transposes)."""
+    for a in range(4):
+        for q in range(3):
+            g[i + a, q] += _vat(tw, _T_G + 3 * a + q, j)
+    if mode != HESSIAN:
+        return
+    blk = 0
+    for a in range(4):
+        for cc in range(a, 4):
+            o = base[i + a, cc - a + b]
+            for t in range(9):
+                vals[o + t] += _vat(hh, 9 * blk + t, j)
+            blk += 1
+    if upper:
+        return
+    blk = 0
+    for a in range(4):
+        for cc in range(a, 4):
+            if cc > a:
+                o = base[i + cc, b - cc + a]
+                for q in range(3):
+                    for r in range(3):
+                        _vput(vals, o, q, r, _vat(hh, 9 * blk + r + 3 * q, j))
+            blk += 1
 
 
 @_jit
@@ -571,7 +727,9 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
     term 0, 1, 2 and the first bad element of that term, or -1, -1."""
     energy = 0.0
     u, v, w = np.empty((6, 3)), np.empty((6, 3)), np.empty(8)
-    cols = np.empty((8, 12))
+    # the twist batches' scratch (_twist_batch): elements t_lo .. t_hi - 1
+    tw, hh = np.empty(_T_ROWS * _T_STRIDE), np.empty(90 * _T_STRIDE)
+    t_lo = t_hi = 0
     nv = x.shape[0]
     zero = mode == HESSIAN
     if zero:
@@ -595,11 +753,18 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
             energy += en
             pb += 1
         while pt < t_start.shape[0] and t_start[pt] == vtx:
-            en, bad = _v_twist(x, vtx, t_rest[pt], t_k[pt], mode, g, vals, base, b, upper,
-                               exact, cols, w, u, v)
-            if bad:
+            if pt == t_hi:
+                t_lo, t_hi = pt, min(pt + TWIST_BATCH, t_start.shape[0])
+                _twist_batch(x, t_start, t_rest, t_k, t_lo, t_hi, mode, exact, tw, hh, u, v, w)
+            j = pt - t_lo
+            flag = _vat(tw, _T_FLAG, j)
+            if flag == _T_BAD:
                 return energy, 2, pt
-            energy += en
+            if flag == 0.0:
+                if mode == ENERGY:
+                    energy += _vat(tw, _T_EN, j)
+                else:
+                    _v_twist_put(g, vals, base, b, upper, mode, vtx, j, tw, hh)
             pt += 1
     return energy, -1, -1
 

@@ -153,13 +153,6 @@ def _vframe(u, lu, v, lv):
 
 
 @_jit
-def _vangle(u, lu, v, lv):
-    """:func:`_vframe` and theta = atan2(sin, cos)."""
-    t0, t1, tx, c, s = _vframe(u, lu, v, lv)
-    return t0, t1, tx, c, s, math.atan2(s, c)
-
-
-@_jit
 def _vpoint(x, i):
     return (x[i, 0], x[i, 1], x[i, 2])
 
@@ -217,6 +210,87 @@ def _vscale_of(x, i0, k):
     for i in range(i0, i0 + k):
         scale, total = _vscale_add(_vpoint(x, i), scale, total)
     return scale, math.isfinite(total)
+
+
+# ------------------------------------------------------------- batches of elements
+#: Elements per batch of :func:`_bend_batch` and :func:`_twist_batch`: their loops over
+#: the batch run in structure-of-arrays form, which the compiler vectorises.
+BATCH = 64
+#: Row stride of the batch scratch arrays: not a power of two (rows would share cache sets).
+_STRIDE = BATCH + 8
+#: The flag of a bad element (non-finite, zero-length edge): the pass stops there.
+_BAD = 1.0
+
+
+@_jit
+def _vput_at(tw, r, j, h):
+    """Row r of batch element j (a flat scratch array: entry r * _STRIDE + j) = h: one
+    array with constant row offsets, so the compiler sees that rows do not overlap.  The
+    index is unsigned: no test for a negative (wrap-around) index, which would make the
+    compiler gather and scatter."""
+    tw[np.uint64(r * _STRIDE + j)] = h
+
+
+@_jit
+def _vat(tw, r, j):
+    """Row r of batch element j (:func:`_vput_at`)."""
+    return tw[np.uint64(r * _STRIDE + j)]
+
+
+@_jit
+def _vrow3(tw, r, j):
+    """Rows r .. r + 2 of batch element j."""
+    return (_vat(tw, r, j), _vat(tw, r + 1, j), _vat(tw, r + 2, j))
+
+
+@_jit
+def _vput_row3(tw, r, j, u):
+    _vput_at(tw, r, j, u[0])
+    _vput_at(tw, r + 1, j, u[1])
+    _vput_at(tw, r + 2, j, u[2])
+
+
+@_jit
+def _v_gather(x, start, lo, m, tw, row, k):
+    """Rows row .. row + 3 k - 1 of batch elements 0 .. m - 1 = the positions of their k
+    vertices (element lo + j's first vertex: start[lo + j]); an indexed loop, not
+    vectorised: the loops over the batch read these rows."""
+    for j in range(m):
+        i = start[lo + j]
+        for a in range(k):
+            _vput_row3(tw, row + 3 * a, j, _vpoint(x, i + a))
+
+
+@_jit
+def _v_put(g, vals, base, b, upper, mode, i, j, tw, g_row, hh, k):
+    """Add batch element j on vertices i .. i + k - 1 to the gradient g (its rows g_row
+    .. g_row + 3 k - 1 of tw: vertex a, coordinate q in row g_row + 3 a + q) and,
+    HESSIAN, its blocks to ``vals``: hh holds its upper blocks (a, c), a <= c, in
+    order, block n's entry (r, q) in row 9 n + r + 3 q; the lower blocks are their
+    transposes (not written with ``upper``)."""
+    for a in range(k):
+        for q in range(3):
+            g[i + a, q] += _vat(tw, g_row + 3 * a + q, j)
+    if mode != HESSIAN:
+        return
+    blk = 0
+    for a in range(k):
+        for cc in range(a, k):
+            o = base[i + a, cc - a + b]
+            for t in range(9):
+                vals[o + t] += _vat(hh, 9 * blk + t, j)
+            blk += 1
+    if upper:
+        return
+    blk = 0
+    for a in range(k):
+        for cc in range(a, k):
+            if cc > a:
+                o = base[i + cc, b - cc + a]
+                for q in range(3):
+                    for r in range(3):
+                        _vput(vals, o, q, r, _vat(hh, 9 * blk + r + 3 * q, j))
+            blk += 1
 
 
 # ---------------------------------------------------------------------- stretch
@@ -296,177 +370,210 @@ def _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, fu, fv, first)
         w[j - first] = lams[j]
 
 
+# Rows of the bend batch scratch (:func:`_bend_batch`): the element's edge lengths, cos,
+# sin, d = k (theta - rest), energy, flag (0, _BAD), t0, t1, t0 x t1 (three rows each),
+# its three vertices (9 rows from _B_X), its gradient on them (9 from _B_G), its column
+# weights (6 from _B_W) and Hessian columns [u; -u - v; v] (column c: u in rows
+# _B_U + 6 c .. + 2, v in the next three); ``hb`` (54 rows): its six upper 3x3 blocks
+# (:func:`_v_put`).
+_B_L0, _B_L1, _B_C, _B_S, _B_D, _B_EN, _B_FLAG = range(7)
+_B_T0, _B_T1, _B_TX, _B_X, _B_G, _B_W, _B_U = 7, 10, 13, 16, 25, 34, 40
+_B_ROWS = _B_U + 36
+
+
 @_jit
-def _v_bend(x, i, rest, k, mode, g, vals, base, b, upper, exact, u, v, w):
-    """One bend element on vertices i .. i+2: (energy, bad).  u, v (6, 3), w (6,) are
-    scratch: the Hessian's eigenvectors on the two edges and their weights, the
-    analytic filter's three kept ones (the roots of the eigenvalues folded in, no
-    weights) or, ``exact``, all six with their eigenvalues (angle.AngleFrame.eigensystem)."""
-    scale, finite = _vscale_of(x, i, 3)
-    x1 = _vpoint(x, i + 1)
-    e0 = _vsub(_vpoint(x, i), x1)
-    e1 = _vsub(_vpoint(x, i + 2), x1)
-    l0, zero0 = _vbad_edge(e0, scale)
-    l1, zero1 = _vbad_edge(e1, scale)
-    if not finite or zero0 or zero1:
-        return 0.0, True
-    t0, t1, tx, c, s, theta = _vangle(e0, l0, e1, l1)
-    if mode == ENERGY:
-        return 0.5 * k * (theta - rest) ** 2, False
-    d = k * (theta - rest)
+def _v_bend_frame(tb, j):
+    """Bend batch element j's unit t0, t1, normal n (any perpendicular to t0 where the
+    bend is straight), b0 = t0 x n, b1 = t1 x n, sin theta (1 where straight) and
+    whether it is straight (sin theta < STRAIGHT_TOL)."""
+    t0, t1 = _vrow3(tb, _B_T0, j), _vrow3(tb, _B_T1, j)
+    s = _vat(tb, _B_S, j)
     degenerate = s < STRAIGHT_TOL
     if degenerate:
         n = _vperp(t0)
         s_safe = 1.0
     else:
-        n = _vdiv(tx, s)
+        n = _vdiv(_vrow3(tb, _B_TX, j), s)
         s_safe = s
-    b0 = _vcross(t0, n)
-    b1 = _vcross(t1, n)
-    if not degenerate:
-        gu = _vscale(_vdiv(b0, l0), d)
-        gv = _vscale(_vdiv(b1, -l1), d)
-        _vadd_to(g, i, gu)
-        _vadd_to(g, i + 2, gv)
-        _vadd_to(g, i + 1, (-gu[0] - gv[0], -gu[1] - gv[1], -gu[2] - gv[2]))
-    if mode != HESSIAN:
-        return 0.0, False
-    if exact:
-        m = 6
-        if degenerate:
-            # the cone rule (angle.AngleFrame._cone_eigensystem)
-            cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
-            zero3 = (0.0, 0.0, 0.0)
-            _vstore(u, 0, _vscale(n, _SQRT_HALF), 1.0 / l0)
-            _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), 1.0 / l1)
-            _vstore(u, 1, _vscale(b0, _SQRT_HALF), 1.0 / l0)
-            _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), 1.0 / l1)
-            _vstore(u, 2, _vscale(n, _SQRT_HALF), 1.0 / l0)
-            _vstore(v, 2, _vscale(n, cs * _SQRT_HALF), 1.0 / l1)
-            _vstore(u, 3, _vscale(b0, _SQRT_HALF), 1.0 / l0)
-            _vstore(v, 3, _vscale(b0, cs * _SQRT_HALF), 1.0 / l1)
-            _vstore(u, 4, t0, 1.0 / l0)
-            _vstore(v, 4, zero3, 1.0 / l1)
-            _vstore(u, 5, zero3, 1.0 / l0)
-            _vstore(v, 5, t0, 1.0 / l1)
-            w[0] = w[1] = 2.0 * k
-            w[2] = w[3] = w[4] = w[5] = 0.0
-        else:
-            _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, 1.0 / l0, 1.0 / l1, 0)
+    return t0, t1, n, _vcross(t0, n), _vcross(t1, n), s_safe, degenerate
+
+
+@_jit
+def _v_bend_exact(u, v, w, t0, t1, n, b0, b1, c, s, s_safe, d, k, l0, l1, degenerate):
+    """All six eigenpairs of a bend's Hessian (angle.AngleFrame.eigensystem; the cone
+    rule where it is straight) into u, v (6, 3) (scaled by 1 / |e|) and w (6,)."""
+    if degenerate:
+        # the cone rule (angle.AngleFrame._cone_eigensystem)
+        cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
+        zero3 = (0.0, 0.0, 0.0)
+        _vstore(u, 0, _vscale(n, _SQRT_HALF), 1.0 / l0)
+        _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), 1.0 / l1)
+        _vstore(u, 1, _vscale(b0, _SQRT_HALF), 1.0 / l0)
+        _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), 1.0 / l1)
+        _vstore(u, 2, _vscale(n, _SQRT_HALF), 1.0 / l0)
+        _vstore(v, 2, _vscale(n, cs * _SQRT_HALF), 1.0 / l1)
+        _vstore(u, 3, _vscale(b0, _SQRT_HALF), 1.0 / l0)
+        _vstore(v, 3, _vscale(b0, cs * _SQRT_HALF), 1.0 / l1)
+        _vstore(u, 4, t0, 1.0 / l0)
+        _vstore(v, 4, zero3, 1.0 / l1)
+        _vstore(u, 5, zero3, 1.0 / l0)
+        _vstore(v, 5, t0, 1.0 / l1)
+        w[0] = w[1] = 2.0 * k
+        w[2] = w[3] = w[4] = w[5] = 0.0
     else:
-        m = 3
-        # the analytic filter's kept eigenpairs (angle.AngleFrame.positive_part), times
-        # the square roots of their eigenvalues, on the unit edges [top; bottom], / |e|
+        _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, 1.0 / l0, 1.0 / l1, 0)
+
+
+@_jit
+def _v_bend_analytic(t0, t1, n, b0, b1, c, s, s_safe, d, k, l0, l1, degenerate):
+    """The analytic filter's three kept eigenpairs of a bend (angle.AngleFrame.positive_part;
+    the cone rule where it is straight), times the square roots of their eigenvalues,
+    on the unit edges [top; bottom], / |e|: (u0, v0, u1, v1, u2, v2)."""
+    if degenerate:
+        cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
+        r0 = math.sqrt(2.0 * k)
+        return (_vscale(_vscale(n, _SQRT_HALF), r0 / l0), _vscale(_vscale(n, -cs * _SQRT_HALF), r0 / l1),
+                _vscale(_vscale(b0, _SQRT_HALF), r0 / l0), _vscale(_vscale(b0, -cs * _SQRT_HALF), r0 / l1),
+                _vscale(n, 0.0), _vscale(n, 0.0))
+    sd = 1.0 if d >= 0.0 else -1.0
+    ad = abs(d)
+    lam2 = k + math.sqrt(k * k + d * d)
+    rr = d / lam2 if lam2 > 0.0 else 0.0
+    sc = sd * c
+    one_plus = s * s / (1.0 + abs(sc)) if sc < 0.0 else 1.0 + sc
+    scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
+    rs = rr * scn
+    hsd = 0.5 * sd
+    root0, root1, root2 = math.sqrt(lam2), math.sqrt(ad * one_plus / s_safe), math.sqrt(ad)
+    return (_vscale(_vsub(_vscale(t0, rs), _vscale(b0, scn)), root0 / l0),
+            _vscale(_vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / l1),
+            _vscale(_vscale(n, _SQRT_HALF), root1 / l0),
+            _vscale(_vscale(n, -_SQRT_HALF * sd), root1 / l1),
+            _vscale(_vsub(_vscale(t0, 0.5), _vscale(b0, hsd)), root2 / l0),
+            _vscale(_vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / l1))
+
+
+@_jit
+def _v_bend_blocks(hb, j, r, q, uu, uv, vu, vv):
+    """Entry (r, q) of bend element j's six upper blocks from the products
+    uu = sum_c w_c u_c[r] u_c[q], uv, vu, vv (H = sum_c w_c c_c c_c^T, c_c = [u_c;
+    -u_c - v_c; v_c])."""
+    t = r + 3 * q
+    _vput_at(hb, t, j, uu)
+    _vput_at(hb, 9 + t, j, -uu - uv)
+    _vput_at(hb, 18 + t, j, uv)
+    _vput_at(hb, 27 + t, j, uu + uv + vu + vv)
+    _vput_at(hb, 36 + t, j, -uv - vv)
+    _vput_at(hb, 45 + t, j, vv)
+
+
+@_jit
+def _bend_batch(x, start, rest, stiff, lo, hi, mode, exact, tb, hb, u, v, w):
+    """Bend elements lo .. hi - 1 (at most BATCH), element lo + j in column j of the
+    flat scratch ``tb`` (_B_ROWS * _STRIDE,) (rows _B_*: :func:`_vput_at`): its flag
+    and energy; with GRADIENT its gradient (rows _B_G; zero where it is straight); with
+    HESSIAN its six upper blocks in ``hb`` (54 * _STRIDE,) (:func:`_v_put`), from its
+    columns (analytic: three, weights 1; ``exact``: six with their eigenvalues).  u, v
+    (6, 3), w (6,): scratch for the exact filter.  The loops over the batch are
+    branch-free (selects), so the compiler vectorises them, except the gather, the one
+    of atan2 and the exact filter's."""
+    m = hi - lo
+    _v_gather(x, start, lo, m, tb, _B_X, 3)
+    for j in range(m):
+        x0, x1, x2 = _vrow3(tb, _B_X, j), _vrow3(tb, _B_X + 3, j), _vrow3(tb, _B_X + 6, j)
+        scale, total = _vscale_add(x0, 0.0, 0.0)
+        scale, total = _vscale_add(x1, scale, total)
+        scale, total = _vscale_add(x2, scale, total)
+        e0 = _vsub(x0, x1)
+        e1 = _vsub(x2, x1)
+        l0, zero0 = _vbad_edge(e0, scale)
+        l1, zero1 = _vbad_edge(e1, scale)
+        bad = not math.isfinite(total) or zero0 or zero1
+        t0, t1, tx, c, s = _vframe(e0, l0, e1, l1)
+        _vput_at(tb, _B_FLAG, j, _BAD if bad else 0.0)
+        _vput_at(tb, _B_L0, j, l0)
+        _vput_at(tb, _B_L1, j, l1)
+        _vput_at(tb, _B_C, j, c)
+        _vput_at(tb, _B_S, j, s)
+        _vput_row3(tb, _B_T0, j, t0)
+        _vput_row3(tb, _B_T1, j, t1)
+        _vput_row3(tb, _B_TX, j, tx)
+    for j in range(m):              # the library call: not vectorised
+        theta = math.atan2(_vat(tb, _B_S, j), _vat(tb, _B_C, j))
+        k = stiff[lo + j]
+        _vput_at(tb, _B_EN, j, 0.5 * k * (theta - rest[lo + j]) ** 2)
+        _vput_at(tb, _B_D, j, k * (theta - rest[lo + j]))
+    if mode == ENERGY:
+        return
+    for j in range(m):
+        t0, t1, n, b0, b1, s_safe, degenerate = _v_bend_frame(tb, j)
+        d = _vat(tb, _B_D, j)
+        gu = _vscale(_vdiv(b0, _vat(tb, _B_L0, j)), d)
+        gv = _vscale(_vdiv(b1, -_vat(tb, _B_L1, j)), d)
         if degenerate:
-            cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
-            r0 = math.sqrt(2.0 * k)
-            _vstore(u, 0, _vscale(n, _SQRT_HALF), r0 / l0)
-            _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), r0 / l1)
-            _vstore(u, 1, _vscale(b0, _SQRT_HALF), r0 / l0)
-            _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), r0 / l1)
-            _vstore(u, 2, n, 0.0)
-            _vstore(v, 2, n, 0.0)
-        else:
-            sd = 1.0 if d >= 0.0 else -1.0
-            ad = abs(d)
-            lam2 = k + math.sqrt(k * k + d * d)
-            rr = d / lam2 if lam2 > 0.0 else 0.0
-            sc = sd * c
-            if sc < 0.0:
-                one_plus = s * s / (1.0 + abs(sc))
-            else:
-                one_plus = 1.0 + sc
-            scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
-            rs = rr * scn
-            hsd = 0.5 * sd
-            root0, root1, root2 = math.sqrt(lam2), math.sqrt(ad * one_plus / s_safe), math.sqrt(ad)
-            _vstore(u, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)), root0 / l0)
-            _vstore(v, 0, _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / l1)
-            _vstore(u, 1, _vscale(n, _SQRT_HALF), root1 / l0)
-            _vstore(v, 1, _vscale(n, -_SQRT_HALF * sd), root1 / l1)
-            _vstore(u, 2, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)), root2 / l0)
-            _vstore(v, 2, _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / l1)
-    # H = sum_j w_j c_j c_j^T with c_j = [u_j; -u_j - v_j; v_j]: from three 3x3
-    # products, block (a, c) of vertices (i + a, i + c) on band diagonal c - a
-    o00, o01, o02 = base[i, b], base[i, b + 1], base[i, b + 2]
-    o11, o12, o22 = base[i + 1, b], base[i + 1, b + 1], base[i + 2, b]
-    o10, o20, o21 = base[i + 1, b - 1], base[i + 2, b - 2], base[i + 2, b - 1]
+            gu = gv = (0.0, 0.0, 0.0)
+        _vput_row3(tb, _B_G, j, gu)
+        _vput_row3(tb, _B_G + 3, j, (-gu[0] - gv[0], -gu[1] - gv[1], -gu[2] - gv[2]))
+        _vput_row3(tb, _B_G + 6, j, gv)
+    if mode != HESSIAN:
+        return
+    if exact:
+        for j in range(m):
+            t0, t1, n, b0, b1, s_safe, degenerate = _v_bend_frame(tb, j)
+            _v_bend_exact(u, v, w, t0, t1, n, b0, b1, _vat(tb, _B_C, j), _vat(tb, _B_S, j),
+                          s_safe, _vat(tb, _B_D, j), stiff[lo + j], _vat(tb, _B_L0, j),
+                          _vat(tb, _B_L1, j), degenerate)
+            for c in range(6):
+                _vput_row3(tb, _B_U + 6 * c, j, (u[c, 0], u[c, 1], u[c, 2]))
+                _vput_row3(tb, _B_U + 6 * c + 3, j, (v[c, 0], v[c, 1], v[c, 2]))
+                _vput_at(tb, _B_W + c, j, w[c])
+        for r in range(3):
+            for q in range(3):
+                for j in range(m):
+                    uu = uv = vu = vv = 0.0
+                    for c in range(6):
+                        wu = _vat(tb, _B_W + c, j) * _vat(tb, _B_U + 6 * c + r, j)
+                        wv = _vat(tb, _B_W + c, j) * _vat(tb, _B_U + 6 * c + 3 + r, j)
+                        uu += wu * _vat(tb, _B_U + 6 * c + q, j)
+                        uv += wu * _vat(tb, _B_U + 6 * c + 3 + q, j)
+                        vu += wv * _vat(tb, _B_U + 6 * c + q, j)
+                        vv += wv * _vat(tb, _B_U + 6 * c + 3 + q, j)
+                    _v_bend_blocks(hb, j, r, q, uu, uv, vu, vv)
+        return
+    for j in range(m):
+        t0, t1, n, b0, b1, s_safe, degenerate = _v_bend_frame(tb, j)
+        cols = _v_bend_analytic(t0, t1, n, b0, b1, _vat(tb, _B_C, j), _vat(tb, _B_S, j), s_safe,
+                                _vat(tb, _B_D, j), stiff[lo + j], _vat(tb, _B_L0, j),
+                                _vat(tb, _B_L1, j), degenerate)
+        _vput_row3(tb, _B_U, j, cols[0])
+        _vput_row3(tb, _B_U + 3, j, cols[1])
+        _vput_row3(tb, _B_U + 6, j, cols[2])
+        _vput_row3(tb, _B_U + 9, j, cols[3])
+        _vput_row3(tb, _B_U + 12, j, cols[4])
+        _vput_row3(tb, _B_U + 15, j, cols[5])
     for r in range(3):
         for q in range(3):
-            if exact:
-                uu = uv = vu = vv = 0.0
-                for j in range(m):
-                    wu = w[j] * u[j, r]
-                    wv = w[j] * v[j, r]
-                    uu += wu * u[j, q]
-                    uv += wu * v[j, q]
-                    vu += wv * u[j, q]
-                    vv += wv * v[j, q]
-            else:               # three columns, weights 1: unrolled
-                uu = u[0, r] * u[0, q] + u[1, r] * u[1, q] + u[2, r] * u[2, q]
-                uv = u[0, r] * v[0, q] + u[1, r] * v[1, q] + u[2, r] * v[2, q]
-                vu = v[0, r] * u[0, q] + v[1, r] * u[1, q] + v[2, r] * u[2, q]
-                vv = v[0, r] * v[0, q] + v[1, r] * v[1, q] + v[2, r] * v[2, q]
-            h01 = -uu - uv
-            h12 = -uv - vv
-            _vput(vals, o00, r, q, uu)
-            _vput(vals, o01, r, q, h01)
-            _vput(vals, o02, r, q, uv)
-            _vput(vals, o11, r, q, uu + uv + vu + vv)
-            _vput(vals, o12, r, q, h12)
-            _vput(vals, o22, r, q, vv)
-            if not upper:
-                _vput(vals, o10, q, r, h01)
-                _vput(vals, o20, q, r, uv)
-                _vput(vals, o21, q, r, h12)
-    return 0.0, False
+            for j in range(m):      # three columns, weights 1: unrolled
+                u0, u1, u2 = _vat(tb, _B_U + r, j), _vat(tb, _B_U + 6 + r, j), _vat(tb, _B_U + 12 + r, j)
+                v0, v1, v2 = _vat(tb, _B_U + 3 + r, j), _vat(tb, _B_U + 9 + r, j), _vat(tb, _B_U + 15 + r, j)
+                p0, p1, p2 = _vat(tb, _B_U + q, j), _vat(tb, _B_U + 6 + q, j), _vat(tb, _B_U + 12 + q, j)
+                s0, s1, s2 = _vat(tb, _B_U + 3 + q, j), _vat(tb, _B_U + 9 + q, j), _vat(tb, _B_U + 15 + q, j)
+                _v_bend_blocks(hb, j, r, q, u0 * p0 + u1 * p1 + u2 * p2, u0 * s0 + u1 * s1 + u2 * s2,
+                               v0 * p0 + v1 * p1 + v2 * p2, v0 * s0 + v1 * s1 + v2 * s2)
 
 
 # ------------------------------------------------------------------------ twist
-#: Twist elements per batch of :func:`_twist_batch` (its scratch, about 40 kB, stays in
-#: the L1/L2 caches).
-TWIST_BATCH = 64
-_T_STRIDE = TWIST_BATCH + 8
-
-# The twist batch's scratch ``tw``: one flat array (_T_ROWS * TWIST_BATCH,), row r of
-# element j at tw[r * TWIST_BATCH + j] (one array with constant row offsets: the
-# compiler sees that the rows do not overlap, and vectorises the loops over j).  Rows:
-# the element's geometry (t0, t1, t0 x t1, e1: three rows each), its angle error dphi,
-# energy and flag (0, _T_BAD: the pass stops, _T_DROPPED: collinear outer edge); its
-# gradient on its four vertices (12 rows from _T_G), column weights (8 from _T_W),
-# Hessian columns (column c entry q in row _T_COLS + 12 c + q) and its ten upper 3x3
-# blocks (a, c), a <= c, in order, each column-major (90 rows from _T_H).
+# Rows of the twist batch scratch (:func:`_twist_batch`): the element's geometry (t0,
+# t1, t0 x t1, e1: three rows each), its angle error dphi, energy and flag (0, _BAD,
+# _T_DROPPED: collinear outer edge, dropped), its four vertices (12 rows from _T_X), its
+# gradient on them (12 rows from _T_G), its column weights (8 from _T_W) and Hessian
+# columns (column c entry q in row _T_COLS + 12 c + q); ``hh`` (90 rows): its ten
+# upper 3x3 blocks (:func:`_v_put`).
 _T_AL, _T_BE, _T_SIG, _T_IL1SQ, _T_LA, _T_LB, _T_C, _T_S, _T_DPHI, _T_EN = range(10)
 _T_T0, _T_T1, _T_TX, _T_E1, _T_FLAG = 10, 13, 16, 19, 22
 _T_X, _T_G, _T_W, _T_COLS = 23, 35, 47, 55
 _T_ROWS = _T_COLS + 96
-_T_BAD, _T_DROPPED = 1.0, 2.0
-
-
-@_jit
-def _vput_at(tw, r, j, h):
-    """Row r of element j (twist batch scratch) = h.  The index is unsigned: no test for
-    a negative (wrap-around) index, which would make the compiler gather and scatter."""
-    tw[np.uint64(r * _T_STRIDE + j)] = h
-
-
-@_jit
-def _vat(tw, r, j):
-    """Row r of element j (twist batch scratch; :func:`_vput_at`)."""
-    return tw[np.uint64(r * _T_STRIDE + j)]
-
-
-@_jit
-def _vrow3(tw, r, j):
-    """Rows r .. r + 2 of element j (twist batch scratch)."""
-    return (_vat(tw, r, j), _vat(tw, r + 1, j), _vat(tw, r + 2, j))
-
-
-@_jit
-def _vput_row3(tw, r, j, u):
-    _vput_at(tw, r, j, u[0])
-    _vput_at(tw, r + 1, j, u[1])
-    _vput_at(tw, r + 2, j, u[2])
+_T_DROPPED = 2.0
 
 
 @_jit
@@ -544,20 +651,16 @@ def _v_twist_frame(tw, j, k):
 
 @_jit
 def _twist_batch(x, start, rest, stiff, lo, hi, mode, exact, tw, hh, u, v, w):
-    """Twist elements lo .. hi - 1 (at most TWIST_BATCH) in structure-of-arrays form,
-    element lo + j in column j of the scratch: ``flag`` (B,) int8 (0, _T_BAD or
-    _T_DROPPED), ``tw`` (_T_ROWS, B) its geometry and energy; with GRADIENT ``gg``
-    (12, B) its gradient on its four vertices; with HESSIAN ``hh`` (90, B) its ten
-    upper 3x3 blocks (a, c), a <= c, in order, each column-major, from the columns
-    ``cols`` (8, 12, B) and weights ``wts`` (8, B) (analytic: four columns, weights 1;
-    ``exact``: eight, twist._exact_columns).  u, v (6, 3): the exact filter's
-    eigenpairs.  The loops over the batch are branch-free (selects) so that the
-    compiler vectorises them, except the one of atan2 and the angle's modulo."""
+    """Twist elements lo .. hi - 1 (at most BATCH), element lo + j in column j of the
+    flat scratch ``tw`` (_T_ROWS * _STRIDE,) (rows _T_*: :func:`_vput_at`): its flag
+    and energy; with GRADIENT its gradient (rows _T_G); with HESSIAN its ten upper
+    blocks in ``hh`` (90 * _STRIDE,) (:func:`_v_put`), from its columns and weights
+    (analytic: four columns, weights 1; ``exact``: eight, twist._exact_columns).  u, v
+    (6, 3), w (8,): scratch for the exact filter's eigenpairs.  The loops over the
+    batch are branch-free (selects), so the compiler vectorises them, except the
+    gather, the one of atan2 and the angle's modulo and the exact filter's."""
     m = hi - lo
-    for j in range(m):              # the gather: not vectorised
-        i = start[lo + j]
-        for a in range(4):
-            _vput_row3(tw, _T_X + 3 * a, j, _vpoint(x, i + a))
+    _v_gather(x, start, lo, m, tw, _T_X, 4)
     for j in range(m):
         x0, x1 = _vrow3(tw, _T_X, j), _vrow3(tw, _T_X + 3, j)
         x2, x3 = _vrow3(tw, _T_X + 6, j), _vrow3(tw, _T_X + 9, j)
@@ -580,7 +683,7 @@ def _twist_batch(x, start, rest, stiff, lo, hi, mode, exact, tw, hh, u, v, w):
         la, lb = _vnorm(av), _vnorm(bv)
         dropped = not (la >= _TWIST_TOL * l0 and lb >= _TWIST_TOL * l2)
         bad = not finite or zero0 or zero1 or zero2
-        _vput_at(tw, _T_FLAG, j, _T_BAD if bad else (_T_DROPPED if dropped else 0.0))
+        _vput_at(tw, _T_FLAG, j, _BAD if bad else (_T_DROPPED if dropped else 0.0))
         t0, t1, tx, c, s = _vframe(av, la, bv, lb)
         _vput_at(tw, _T_AL, j, al)
         _vput_at(tw, _T_BE, j, be)
@@ -687,36 +790,6 @@ def _twist_batch(x, start, rest, stiff, lo, hi, mode, exact, tw, hh, u, v, w):
 
 
 @_jit
-def _v_twist_put(g, vals, base, b, upper, mode, i, j, tw, hh):
-    """Add twist batch element j (on vertices i .. i + 3; :func:`_twist_batch`) to the
-    gradient g and, HESSIAN, its blocks to ``vals`` (the upper ones and, unless
-    ``upper``, their transposes)."""
-    for a in range(4):
-        for q in range(3):
-            g[i + a, q] += _vat(tw, _T_G + 3 * a + q, j)
-    if mode != HESSIAN:
-        return
-    blk = 0
-    for a in range(4):
-        for cc in range(a, 4):
-            o = base[i + a, cc - a + b]
-            for t in range(9):
-                vals[o + t] += _vat(hh, 9 * blk + t, j)
-            blk += 1
-    if upper:
-        return
-    blk = 0
-    for a in range(4):
-        for cc in range(a, 4):
-            if cc > a:
-                o = base[i + cc, b - cc + a]
-                for q in range(3):
-                    for r in range(3):
-                        _vput(vals, o, q, r, _vat(hh, 9 * blk + r + 3 * q, j))
-            blk += 1
-
-
-@_jit
 def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
            mode, g, vals, base, b, upper, exact):
     """All terms in one pass over the vertices (elements in order of their first
@@ -727,8 +800,10 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
     term 0, 1, 2 and the first bad element of that term, or -1, -1."""
     energy = 0.0
     u, v, w = np.empty((6, 3)), np.empty((6, 3)), np.empty(8)
-    # the twist batches' scratch (_twist_batch): elements t_lo .. t_hi - 1
-    tw, hh = np.empty(_T_ROWS * _T_STRIDE), np.empty(90 * _T_STRIDE)
+    # the batches' scratch (_bend_batch, _twist_batch): elements b_lo .. b_hi - 1, t_lo .. t_hi - 1
+    tb, hb = np.empty(_B_ROWS * _STRIDE), np.empty(54 * _STRIDE)
+    tw, hh = np.empty(_T_ROWS * _STRIDE), np.empty(90 * _STRIDE)
+    b_lo = b_hi = 0
     t_lo = t_hi = 0
     nv = x.shape[0]
     zero = mode == HESSIAN
@@ -746,25 +821,30 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
             energy += en
             ps += 1
         while pb < b_start.shape[0] and b_start[pb] == vtx:
-            en, bad = _v_bend(x, vtx, b_rest[pb], b_k[pb], mode, g, vals, base, b, upper,
-                              exact, u, v, w)
-            if bad:
+            if pb == b_hi:
+                b_lo, b_hi = pb, min(pb + BATCH, b_start.shape[0])
+                _bend_batch(x, b_start, b_rest, b_k, b_lo, b_hi, mode, exact, tb, hb, u, v, w)
+            j = pb - b_lo
+            if _vat(tb, _B_FLAG, j) == _BAD:
                 return energy, 1, pb
-            energy += en
+            if mode == ENERGY:
+                energy += _vat(tb, _B_EN, j)
+            else:
+                _v_put(g, vals, base, b, upper, mode, vtx, j, tb, _B_G, hb, 3)
             pb += 1
         while pt < t_start.shape[0] and t_start[pt] == vtx:
             if pt == t_hi:
-                t_lo, t_hi = pt, min(pt + TWIST_BATCH, t_start.shape[0])
+                t_lo, t_hi = pt, min(pt + BATCH, t_start.shape[0])
                 _twist_batch(x, t_start, t_rest, t_k, t_lo, t_hi, mode, exact, tw, hh, u, v, w)
             j = pt - t_lo
             flag = _vat(tw, _T_FLAG, j)
-            if flag == _T_BAD:
+            if flag == _BAD:
                 return energy, 2, pt
             if flag == 0.0:
                 if mode == ENERGY:
                     energy += _vat(tw, _T_EN, j)
                 else:
-                    _v_twist_put(g, vals, base, b, upper, mode, vtx, j, tw, hh)
+                    _v_put(g, vals, base, b, upper, mode, vtx, j, tw, _T_G, hh, 4)
             pt += 1
     return energy, -1, -1
 

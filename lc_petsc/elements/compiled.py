@@ -167,9 +167,10 @@ def _vadd_to(g, i, u):
 @_jit
 def _vput(vals, o, r, c, h):
     """Add h to entry (r, c) of the column-major block at offset o (BlockLayout:
-    base[i, d + b]).  The kernels read the offsets of an element's blocks into locals
-    first: a store into ``vals`` may alias ``base`` for the compiler."""
-    vals[o + r + 3 * c] += h
+    base[i, d + b], a stored block: o >= 0; the index is unsigned, no wrap-around
+    test).  The kernels read the offsets of an element's blocks into locals first: a
+    store into ``vals`` may alias ``base`` for the compiler."""
+    vals[np.uint64(o + r + 3 * c)] += h
 
 
 @_jit
@@ -278,7 +279,7 @@ def _v_put(g, vals, base, b, upper, mode, i, j, tw, g_row, hh, k):
         for cc in range(a, k):
             o = base[i + a, cc - a + b]
             for t in range(9):
-                vals[o + t] += _vat(hh, 9 * blk + t, j)
+                vals[np.uint64(o + t)] += _vat(hh, 9 * blk + t, j)
             blk += 1
     if upper:
         return

@@ -5,8 +5,8 @@ The same energies, gradients and filtered Hessians as :mod:`stretch`, :mod:`bend
 :mod:`twist` (which stay the tested reference; ``tests/test_elements_compiled.py`` checks
 these against them to round-off), evaluated element by element and written straight into
 the matrix's block-CSR value array (:class:`BlockLayout`; PETSc's own SeqBAIJ array in
-:class:`lc_petsc.assembly.Assembler`): no per-element Hessian array,
-only a few scalars (and a column scratch of at most 8 x 12) per element.  Still plain Python,
+:class:`lc_petsc.assembly.Assembler`): no Hessian array of the whole term,
+only scratch arrays for one batch of bend or twist elements.  Still plain Python,
 compiled by Numba on first use and cached on disk (``cache=True``: in ``__pycache__``
 next to this file, or ``NUMBA_CACHE_DIR`` if set; see docs/performance.md).
 
@@ -27,11 +27,15 @@ Layout (shared with the assembler):
 * ``band`` (nv, 3, 3 (2 b + 1)) (:func:`add_gradient_hessian`, for the tests):
   ``band[i, r, 3 (d + b) + c]`` is entry (3 i + r, 3 (i + d) + c) of the matrix.
 
-All terms are evaluated in one pass over the vertices (:func:`_terms`), element
-functions ``_v_stretch``, ``_v_bend``, ``_v_twist`` inlined.  A non-finite position or a
-zero-length edge (the rule of :func:`common.edge_lengths`) stops the pass; the NumPy
-kernel of that term is then run to raise its documented
-:class:`~lc_petsc.elements.common.ElementError`.
+All terms are evaluated in one pass over the vertices (:func:`_terms`): stretch
+element by element (``_v_stretch``, inlined); bend and twist in batches of
+:data:`BATCH` elements (:func:`_bend_batch`, :func:`_twist_batch`: loops over the batch
+in structure-of-arrays form, which the compiler vectorises, 8 elements per AVX-512
+instruction), whose gradients and blocks are then added element by element in the
+pass's order (:func:`_v_put`): the same values as element by element, bit for bit
+(strict IEEE arithmetic in each vector lane).  A non-finite position or a zero-length
+edge (the rule of :func:`common.edge_lengths`) stops the pass; the NumPy kernel of that
+term is then run to raise its documented :class:`~lc_petsc.elements.common.ElementError`.
 """
 
 from __future__ import annotations
@@ -221,6 +225,8 @@ BATCH = 64
 _STRIDE = BATCH + 8
 #: The flag of a bad element (non-finite, zero-length edge): the pass stops there.
 _BAD = 1.0
+#: Rows 0 .. 10 of the bend and twist batch scratch: the angle frame (:func:`_vput_frame`).
+_F_C, _F_S, _F_T0, _F_T1, _F_TX = 0, 1, 2, 5, 8
 
 
 @_jit
@@ -249,6 +255,16 @@ def _vput_row3(tw, r, j, u):
     _vput_at(tw, r, j, u[0])
     _vput_at(tw, r + 1, j, u[1])
     _vput_at(tw, r + 2, j, u[2])
+
+
+@_jit
+def _vput_frame(tw, j, t0, t1, tx, c, s):
+    """Rows _F_* of batch element j = its angle frame (:func:`_vframe`)."""
+    _vput_at(tw, _F_C, j, c)
+    _vput_at(tw, _F_S, j, s)
+    _vput_row3(tw, _F_T0, j, t0)
+    _vput_row3(tw, _F_T1, j, t1)
+    _vput_row3(tw, _F_TX, j, tx)
 
 
 @_jit
@@ -371,14 +387,13 @@ def _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, fu, fv, first)
         w[j - first] = lams[j]
 
 
-# Rows of the bend batch scratch (:func:`_bend_batch`): the element's edge lengths, cos,
-# sin, d = k (theta - rest), energy, flag (0, _BAD), t0, t1, t0 x t1 (three rows each),
-# its three vertices (9 rows from _B_X), its gradient on them (9 from _B_G), its column
-# weights (6 from _B_W) and Hessian columns [u; -u - v; v] (column c: u in rows
-# _B_U + 6 c .. + 2, v in the next three); ``hb`` (54 rows): its six upper 3x3 blocks
-# (:func:`_v_put`).
-_B_L0, _B_L1, _B_C, _B_S, _B_D, _B_EN, _B_FLAG = range(7)
-_B_T0, _B_T1, _B_TX, _B_X, _B_G, _B_W, _B_U = 7, 10, 13, 16, 25, 34, 40
+# Rows of the bend batch scratch (:func:`_bend_batch`): the element's angle frame (rows
+# _F_*), edge lengths, d = k (theta - rest), energy, flag (0, _BAD), its three vertices
+# (9 rows from _B_X), its gradient on them (9 from _B_G), its column weights (6 from
+# _B_W) and Hessian columns [u; -u - v; v] (column c: u in rows _B_U + 6 c .. + 2, v in
+# the next three); ``hb`` (54 rows): its six upper 3x3 blocks (:func:`_v_put`).
+_B_L0, _B_L1, _B_D, _B_EN, _B_FLAG = 11, 12, 13, 14, 15
+_B_X, _B_G, _B_W, _B_U = 16, 25, 34, 40
 _B_ROWS = _B_U + 36
 
 
@@ -387,14 +402,14 @@ def _v_bend_frame(tb, j):
     """Bend batch element j's unit t0, t1, normal n (any perpendicular to t0 where the
     bend is straight), b0 = t0 x n, b1 = t1 x n, sin theta (1 where straight) and
     whether it is straight (sin theta < STRAIGHT_TOL)."""
-    t0, t1 = _vrow3(tb, _B_T0, j), _vrow3(tb, _B_T1, j)
-    s = _vat(tb, _B_S, j)
+    t0, t1 = _vrow3(tb, _F_T0, j), _vrow3(tb, _F_T1, j)
+    s = _vat(tb, _F_S, j)
     degenerate = s < STRAIGHT_TOL
     if degenerate:
         n = _vperp(t0)
         s_safe = 1.0
     else:
-        n = _vdiv(_vrow3(tb, _B_TX, j), s)
+        n = _vdiv(_vrow3(tb, _F_TX, j), s)
         s_safe = s
     return t0, t1, n, _vcross(t0, n), _vcross(t1, n), s_safe, degenerate
 
@@ -494,13 +509,9 @@ def _bend_batch(x, start, rest, stiff, lo, hi, mode, exact, tb, hb, u, v, w):
         _vput_at(tb, _B_FLAG, j, _BAD if bad else 0.0)
         _vput_at(tb, _B_L0, j, l0)
         _vput_at(tb, _B_L1, j, l1)
-        _vput_at(tb, _B_C, j, c)
-        _vput_at(tb, _B_S, j, s)
-        _vput_row3(tb, _B_T0, j, t0)
-        _vput_row3(tb, _B_T1, j, t1)
-        _vput_row3(tb, _B_TX, j, tx)
+        _vput_frame(tb, j, t0, t1, tx, c, s)
     for j in range(m):              # the library call: not vectorised
-        theta = math.atan2(_vat(tb, _B_S, j), _vat(tb, _B_C, j))
+        theta = math.atan2(_vat(tb, _F_S, j), _vat(tb, _F_C, j))
         k = stiff[lo + j]
         _vput_at(tb, _B_EN, j, 0.5 * k * (theta - rest[lo + j]) ** 2)
         _vput_at(tb, _B_D, j, k * (theta - rest[lo + j]))
@@ -521,7 +532,7 @@ def _bend_batch(x, start, rest, stiff, lo, hi, mode, exact, tb, hb, u, v, w):
     if exact:
         for j in range(m):
             t0, t1, n, b0, b1, s_safe, degenerate = _v_bend_frame(tb, j)
-            _v_bend_exact(u, v, w, t0, t1, n, b0, b1, _vat(tb, _B_C, j), _vat(tb, _B_S, j),
+            _v_bend_exact(u, v, w, t0, t1, n, b0, b1, _vat(tb, _F_C, j), _vat(tb, _F_S, j),
                           s_safe, _vat(tb, _B_D, j), stiff[lo + j], _vat(tb, _B_L0, j),
                           _vat(tb, _B_L1, j), degenerate)
             for c in range(6):
@@ -543,7 +554,7 @@ def _bend_batch(x, start, rest, stiff, lo, hi, mode, exact, tb, hb, u, v, w):
         return
     for j in range(m):
         t0, t1, n, b0, b1, s_safe, degenerate = _v_bend_frame(tb, j)
-        cols = _v_bend_analytic(t0, t1, n, b0, b1, _vat(tb, _B_C, j), _vat(tb, _B_S, j), s_safe,
+        cols = _v_bend_analytic(t0, t1, n, b0, b1, _vat(tb, _F_C, j), _vat(tb, _F_S, j), s_safe,
                                 _vat(tb, _B_D, j), stiff[lo + j], _vat(tb, _B_L0, j),
                                 _vat(tb, _B_L1, j), degenerate)
         _vput_row3(tb, _B_U, j, cols[0])
@@ -564,14 +575,15 @@ def _bend_batch(x, start, rest, stiff, lo, hi, mode, exact, tb, hb, u, v, w):
 
 
 # ------------------------------------------------------------------------ twist
-# Rows of the twist batch scratch (:func:`_twist_batch`): the element's geometry (t0,
-# t1, t0 x t1, e1: three rows each), its angle error dphi, energy and flag (0, _BAD,
+# Rows of the twist batch scratch (:func:`_twist_batch`): the angle frame of the
+# element's projected outer edges (rows _F_*), its geometry (e1: three rows), its angle
+# error dphi, energy and flag (0, _BAD,
 # _T_DROPPED: collinear outer edge, dropped), its four vertices (12 rows from _T_X), its
 # gradient on them (12 rows from _T_G), its column weights (8 from _T_W) and Hessian
 # columns (column c entry q in row _T_COLS + 12 c + q); ``hh`` (90 rows): its ten
 # upper 3x3 blocks (:func:`_v_put`).
-_T_AL, _T_BE, _T_SIG, _T_IL1SQ, _T_LA, _T_LB, _T_C, _T_S, _T_DPHI, _T_EN = range(10)
-_T_T0, _T_T1, _T_TX, _T_E1, _T_FLAG = 10, 13, 16, 19, 22
+_T_AL, _T_BE, _T_SIG, _T_IL1SQ, _T_LA, _T_LB, _T_DPHI, _T_EN = range(11, 19)
+_T_E1, _T_FLAG = 19, 22
 _T_X, _T_G, _T_W, _T_COLS = 23, 35, 47, 55
 _T_ROWS = _T_COLS + 96
 _T_DROPPED = 2.0
@@ -638,14 +650,14 @@ def _v_out_of_plane(tw, j, p, plus, eps, t0, t1, b0, st0, e1h, al, be, c, d, osc
 def _v_twist_frame(tw, j, k):
     """The twist element j's unit t0, t1, normal n, binormals b0 = t0 x n, b1 = t1 x n,
     d = sigma k dphi, 1 / la and 1 / lb, from the batch scratch ``tw``."""
-    t0 = _vrow3(tw, _T_T0, j)
-    t1 = _vrow3(tw, _T_T1, j)
-    s = _vat(tw, _T_S, j)
+    t0 = _vrow3(tw, _F_T0, j)
+    t1 = _vrow3(tw, _F_T1, j)
+    s = _vat(tw, _F_S, j)
     sigma = _vat(tw, _T_SIG, j)
     if s < STRAIGHT_TOL:           # a, b parallel: the frame turns about e1
         n = _vscale(_vrow3(tw, _T_E1, j), sigma * math.sqrt(_vat(tw, _T_IL1SQ, j)))
     else:
-        n = _vdiv(_vrow3(tw, _T_TX, j), s)
+        n = _vdiv(_vrow3(tw, _F_TX, j), s)
     d = sigma * k * _vat(tw, _T_DPHI, j)
     return t0, t1, n, _vcross(t0, n), _vcross(t1, n), d, 1.0 / _vat(tw, _T_LA, j), 1.0 / _vat(tw, _T_LB, j)
 
@@ -692,14 +704,10 @@ def _twist_batch(x, start, rest, stiff, lo, hi, mode, exact, tw, hh, u, v, w):
         _vput_at(tw, _T_IL1SQ, j, inv_l1_sq)
         _vput_at(tw, _T_LA, j, la)
         _vput_at(tw, _T_LB, j, lb)
-        _vput_at(tw, _T_C, j, c)
-        _vput_at(tw, _T_S, j, s)
-        _vput_row3(tw, _T_T0, j, t0)
-        _vput_row3(tw, _T_T1, j, t1)
-        _vput_row3(tw, _T_TX, j, tx)
+        _vput_frame(tw, j, t0, t1, tx, c, s)
         _vput_row3(tw, _T_E1, j, e1)
     for j in range(m):              # the library calls: not vectorised
-        theta = math.atan2(_vat(tw, _T_S, j), _vat(tw, _T_C, j))
+        theta = math.atan2(_vat(tw, _F_S, j), _vat(tw, _F_C, j))
         dphi = _PI - ((_PI - (_vat(tw, _T_SIG, j) * theta - rest[lo + j])) % _TWO_PI)
         _vput_at(tw, _T_DPHI, j, dphi)
         _vput_at(tw, _T_EN, j, 0.5 * stiff[lo + j] * dphi * dphi)
@@ -721,7 +729,7 @@ def _twist_batch(x, start, rest, stiff, lo, hi, mode, exact, tw, hh, u, v, w):
         for j in range(m):
             k = stiff[lo + j]
             t0, t1, n, b0, b1, d, inv_la, inv_lb = _v_twist_frame(tw, j, k)
-            _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, _vat(tw, _T_C, j), _vat(tw, _T_S, j), 1.0, d,
+            _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, _vat(tw, _F_C, j), _vat(tw, _F_S, j), 1.0, d,
                           k, inv_la, inv_lb, 2)
             for c in range(4):
                 _v_in_plane(tw, c, j, (u[c, 0], u[c, 1], u[c, 2]), (v[c, 0], v[c, 1], v[c, 2]),
@@ -755,7 +763,7 @@ def _twist_batch(x, start, rest, stiff, lo, hi, mode, exact, tw, hh, u, v, w):
     for j in range(m):
         t0, t1, n, b0, b1, d, inv_la, inv_lb = _v_twist_frame(tw, j, stiff[lo + j])
         al, be, sigma = _vat(tw, _T_AL, j), _vat(tw, _T_BE, j), _vat(tw, _T_SIG, j)
-        c, s = _vat(tw, _T_C, j), _vat(tw, _T_S, j)
+        c, s = _vat(tw, _F_C, j), _vat(tw, _F_S, j)
         inv_l1 = math.sqrt(_vat(tw, _T_IL1SQ, j))
         e1h = _vscale(_vrow3(tw, _T_E1, j), inv_l1)
         osc = sigma * _SQRT_HALF

@@ -577,11 +577,10 @@ def _bend_batch(x, start, rest, stiff, lo, hi, mode, exact, tb, hb, u, v, w):
 # ------------------------------------------------------------------------ twist
 # Rows of the twist batch scratch (:func:`_twist_batch`): the angle frame of the
 # element's projected outer edges (rows _F_*), its geometry (e1: three rows), its angle
-# error dphi, energy and flag (0, _BAD,
-# _T_DROPPED: collinear outer edge, dropped), its four vertices (12 rows from _T_X), its
-# gradient on them (12 rows from _T_G), its column weights (8 from _T_W) and Hessian
-# columns (column c entry q in row _T_COLS + 12 c + q); ``hh`` (90 rows): its ten
-# upper 3x3 blocks (:func:`_v_put`).
+# error dphi, energy and flag (0, _BAD, _T_DROPPED: collinear outer edge, dropped), its
+# four vertices (12 rows from _T_X), its gradient on them (12 rows from _T_G), its
+# column weights (8 from _T_W) and Hessian columns (column c entry q in row
+# _T_COLS + 12 c + q); ``hh`` (90 rows): its ten upper 3x3 blocks (:func:`_v_put`).
 _T_AL, _T_BE, _T_SIG, _T_IL1SQ, _T_LA, _T_LB, _T_DPHI, _T_EN = range(11, 19)
 _T_E1, _T_FLAG = 19, 22
 _T_X, _T_G, _T_W, _T_COLS = 23, 35, 47, 55

@@ -5,8 +5,8 @@ The same energies, gradients and filtered Hessians as :mod:`stretch`, :mod:`bend
 :mod:`twist` (which stay the tested reference; ``tests/test_elements_compiled.py`` checks
 these against them to round-off), evaluated element by element and written straight into
 the matrix's block-CSR value array (:class:`BlockLayout`; PETSc's own SeqBAIJ array in
-:class:`lc_petsc.assembly.Assembler`): no per-element Hessian array,
-only a few scalars (and a column scratch of at most 8 x 12) per element.  Still plain Python,
+:class:`lc_petsc.assembly.Assembler`): no Hessian array of the whole term,
+only scratch arrays for one batch of bend or twist elements.  Still plain Python,
 compiled by Numba on first use and cached on disk (``cache=True``: in ``__pycache__``
 next to this file, or ``NUMBA_CACHE_DIR`` if set; see docs/performance.md).
 
@@ -27,11 +27,15 @@ Layout (shared with the assembler):
 * ``band`` (nv, 3, 3 (2 b + 1)) (:func:`add_gradient_hessian`, for the tests):
   ``band[i, r, 3 (d + b) + c]`` is entry (3 i + r, 3 (i + d) + c) of the matrix.
 
-All terms are evaluated in one pass over the vertices (:func:`_terms`), element
-functions ``_v_stretch``, ``_v_bend``, ``_v_twist`` inlined.  A non-finite position or a
-zero-length edge (the rule of :func:`common.edge_lengths`) stops the pass; the NumPy
-kernel of that term is then run to raise its documented
-:class:`~lc_petsc.elements.common.ElementError`.
+All terms are evaluated in one pass over the vertices (:func:`_terms`): stretch
+element by element (``_v_stretch``, inlined); bend and twist in batches of
+:data:`BATCH` elements (:func:`_bend_batch`, :func:`_twist_batch`: loops over the batch
+in structure-of-arrays form, which the compiler vectorises, 8 elements per AVX-512
+instruction), whose gradients and blocks are then added element by element in the
+pass's order (:func:`_v_put`): the same values as element by element, bit for bit
+(strict IEEE arithmetic in each vector lane).  A non-finite position or a zero-length
+edge (the rule of :func:`common.edge_lengths`) stops the pass; the NumPy kernel of that
+term is then run to raise its documented :class:`~lc_petsc.elements.common.ElementError`.
 """
 
 from __future__ import annotations
@@ -143,15 +147,13 @@ def _vperp(v):
 
 
 @_jit
-def _vangle(u, lu, v, lv):
+def _vframe(u, lu, v, lv):
     """The angle frame of u, v (lengths lu, lv), as angle.AngleFrame: unit t0, t1,
-    t0 x t1, cos, sin and theta = atan2(sin, cos)."""
+    t0 x t1, cos and sin."""
     t0 = _vdiv(u, lu)
     t1 = _vdiv(v, lv)
     tx = _vcross(t0, t1)
-    s = _vnorm(tx)
-    c = _vdot(t0, t1)
-    return t0, t1, tx, c, s, math.atan2(s, c)
+    return t0, t1, tx, _vdot(t0, t1), _vnorm(tx)
 
 
 @_jit
@@ -169,9 +171,10 @@ def _vadd_to(g, i, u):
 @_jit
 def _vput(vals, o, r, c, h):
     """Add h to entry (r, c) of the column-major block at offset o (BlockLayout:
-    base[i, d + b]).  The kernels read the offsets of an element's blocks into locals
-    first: a store into ``vals`` may alias ``base`` for the compiler."""
-    vals[o + r + 3 * c] += h
+    base[i, d + b], a stored block: o >= 0; the index is unsigned, no wrap-around
+    test).  The kernels read the offsets of an element's blocks into locals first: a
+    store into ``vals`` may alias ``base`` for the compiler."""
+    vals[np.uint64(o + r + 3 * c)] += h
 
 
 @_jit
@@ -196,17 +199,115 @@ def _vbad_edge(e, scale):
 
 
 @_jit
+def _vscale_add(u, scale, total):
+    """(scale, total) updated by the coordinates of u: the largest |coordinate| and the
+    sum of the |coordinates| (in order)."""
+    for a in (abs(u[0]), abs(u[1]), abs(u[2])):
+        total += a
+        scale = a if a > scale else scale
+    return scale, total
+
+
+@_jit
 def _vscale_of(x, i0, k):
     """(largest |coordinate| of vertices i0..i0+k-1, whether all are finite)."""
-    scale = 0.0
-    total = 0.0
+    scale = total = 0.0
     for i in range(i0, i0 + k):
-        for c in range(3):
-            a = abs(x[i, c])
-            total += a
-            if a > scale:
-                scale = a
+        scale, total = _vscale_add(_vpoint(x, i), scale, total)
     return scale, math.isfinite(total)
+
+
+# ------------------------------------------------------------- batches of elements
+#: Elements per batch of :func:`_bend_batch` and :func:`_twist_batch`: their loops over
+#: the batch run in structure-of-arrays form, which the compiler vectorises.
+BATCH = 64
+#: Row stride of the batch scratch arrays: not a power of two (rows would share cache sets).
+_STRIDE = BATCH + 8
+#: The flag of a bad element (non-finite, zero-length edge): the pass stops there.
+_BAD = 1.0
+#: Rows 0 .. 10 of the bend and twist batch scratch: the angle frame (:func:`_vput_frame`).
+_F_C, _F_S, _F_T0, _F_T1, _F_TX = 0, 1, 2, 5, 8
+
+
+@_jit
+def _vput_at(tw, r, j, h):
+    """Row r of batch element j (a flat scratch array: entry r * _STRIDE + j) = h: one
+    array with constant row offsets, so the compiler sees that rows do not overlap.  The
+    index is unsigned: no test for a negative (wrap-around) index, which would make the
+    compiler gather and scatter."""
+    tw[np.uint64(r * _STRIDE + j)] = h
+
+
+@_jit
+def _vat(tw, r, j):
+    """Row r of batch element j (:func:`_vput_at`)."""
+    return tw[np.uint64(r * _STRIDE + j)]
+
+
+@_jit
+def _vrow3(tw, r, j):
+    """Rows r .. r + 2 of batch element j."""
+    return (_vat(tw, r, j), _vat(tw, r + 1, j), _vat(tw, r + 2, j))
+
+
+@_jit
+def _vput_row3(tw, r, j, u):
+    _vput_at(tw, r, j, u[0])
+    _vput_at(tw, r + 1, j, u[1])
+    _vput_at(tw, r + 2, j, u[2])
+
+
+@_jit
+def _vput_frame(tw, j, t0, t1, tx, c, s):
+    """Rows _F_* of batch element j = its angle frame (:func:`_vframe`)."""
+    _vput_at(tw, _F_C, j, c)
+    _vput_at(tw, _F_S, j, s)
+    _vput_row3(tw, _F_T0, j, t0)
+    _vput_row3(tw, _F_T1, j, t1)
+    _vput_row3(tw, _F_TX, j, tx)
+
+
+@_jit
+def _v_gather(x, start, lo, m, tw, row, k):
+    """Rows row .. row + 3 k - 1 of batch elements 0 .. m - 1 = the positions of their k
+    vertices (element lo + j's first vertex: start[lo + j]); an indexed loop, not
+    vectorised: the loops over the batch read these rows."""
+    for j in range(m):
+        i = start[lo + j]
+        for a in range(k):
+            _vput_row3(tw, row + 3 * a, j, _vpoint(x, i + a))
+
+
+@_jit
+def _v_put(g, vals, base, b, upper, mode, i, j, tw, g_row, hh, k):
+    """Add batch element j on vertices i .. i + k - 1 to the gradient g (its rows g_row
+    .. g_row + 3 k - 1 of tw: vertex a, coordinate q in row g_row + 3 a + q) and,
+    HESSIAN, its blocks to ``vals``: hh holds its upper blocks (a, c), a <= c, in
+    order, block n's entry (r, q) in row 9 n + r + 3 q; the lower blocks are their
+    transposes (not written with ``upper``)."""
+    for a in range(k):
+        for q in range(3):
+            g[i + a, q] += _vat(tw, g_row + 3 * a + q, j)
+    if mode != HESSIAN:
+        return
+    blk = 0
+    for a in range(k):
+        for cc in range(a, k):
+            o = base[i + a, cc - a + b]
+            for t in range(9):
+                vals[np.uint64(o + t)] += _vat(hh, 9 * blk + t, j)
+            blk += 1
+    if upper:
+        return
+    blk = 0
+    for a in range(k):
+        for cc in range(a, k):
+            if cc > a:
+                o = base[i + cc, b - cc + a]
+                for q in range(3):
+                    for r in range(3):
+                        _vput(vals, o, q, r, _vat(hh, 9 * blk + r + 3 * q, j))
+            blk += 1
 
 
 # ---------------------------------------------------------------------- stretch
@@ -286,278 +387,414 @@ def _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, fu, fv, first)
         w[j - first] = lams[j]
 
 
+# Rows of the bend batch scratch (:func:`_bend_batch`): the element's angle frame (rows
+# _F_*), edge lengths, d = k (theta - rest), energy, flag (0, _BAD), its three vertices
+# (9 rows from _B_X), its gradient on them (9 from _B_G), its column weights (6 from
+# _B_W) and Hessian columns [u; -u - v; v] (column c: u in rows _B_U + 6 c .. + 2, v in
+# the next three); ``hb`` (54 rows): its six upper 3x3 blocks (:func:`_v_put`).
+_B_L0, _B_L1, _B_D, _B_EN, _B_FLAG = 11, 12, 13, 14, 15
+_B_X, _B_G, _B_W, _B_U = 16, 25, 34, 40
+_B_ROWS = _B_U + 36
+
+
 @_jit
-def _v_bend(x, i, rest, k, mode, g, vals, base, b, upper, exact, u, v, w):
-    """One bend element on vertices i .. i+2: (energy, bad).  u, v (6, 3), w (6,) are
-    scratch: the Hessian's eigenvectors on the two edges and their weights, the
-    analytic filter's three kept ones (the roots of the eigenvalues folded in, no
-    weights) or, ``exact``, all six with their eigenvalues (angle.AngleFrame.eigensystem)."""
-    scale, finite = _vscale_of(x, i, 3)
-    x1 = _vpoint(x, i + 1)
-    e0 = _vsub(_vpoint(x, i), x1)
-    e1 = _vsub(_vpoint(x, i + 2), x1)
-    l0, zero0 = _vbad_edge(e0, scale)
-    l1, zero1 = _vbad_edge(e1, scale)
-    if not finite or zero0 or zero1:
-        return 0.0, True
-    t0, t1, tx, c, s, theta = _vangle(e0, l0, e1, l1)
-    if mode == ENERGY:
-        return 0.5 * k * (theta - rest) ** 2, False
-    d = k * (theta - rest)
+def _v_bend_frame(tb, j):
+    """Bend batch element j's unit t0, t1, normal n (any perpendicular to t0 where the
+    bend is straight), b0 = t0 x n, b1 = t1 x n, sin theta (1 where straight) and
+    whether it is straight (sin theta < STRAIGHT_TOL)."""
+    t0, t1 = _vrow3(tb, _F_T0, j), _vrow3(tb, _F_T1, j)
+    s = _vat(tb, _F_S, j)
     degenerate = s < STRAIGHT_TOL
     if degenerate:
         n = _vperp(t0)
         s_safe = 1.0
     else:
-        n = _vdiv(tx, s)
+        n = _vdiv(_vrow3(tb, _F_TX, j), s)
         s_safe = s
-    b0 = _vcross(t0, n)
-    b1 = _vcross(t1, n)
-    if not degenerate:
-        gu = _vscale(_vdiv(b0, l0), d)
-        gv = _vscale(_vdiv(b1, -l1), d)
-        _vadd_to(g, i, gu)
-        _vadd_to(g, i + 2, gv)
-        _vadd_to(g, i + 1, (-gu[0] - gv[0], -gu[1] - gv[1], -gu[2] - gv[2]))
-    if mode != HESSIAN:
-        return 0.0, False
-    if exact:
-        m = 6
-        if degenerate:
-            # the cone rule (angle.AngleFrame._cone_eigensystem)
-            cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
-            zero3 = (0.0, 0.0, 0.0)
-            _vstore(u, 0, _vscale(n, _SQRT_HALF), 1.0 / l0)
-            _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), 1.0 / l1)
-            _vstore(u, 1, _vscale(b0, _SQRT_HALF), 1.0 / l0)
-            _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), 1.0 / l1)
-            _vstore(u, 2, _vscale(n, _SQRT_HALF), 1.0 / l0)
-            _vstore(v, 2, _vscale(n, cs * _SQRT_HALF), 1.0 / l1)
-            _vstore(u, 3, _vscale(b0, _SQRT_HALF), 1.0 / l0)
-            _vstore(v, 3, _vscale(b0, cs * _SQRT_HALF), 1.0 / l1)
-            _vstore(u, 4, t0, 1.0 / l0)
-            _vstore(v, 4, zero3, 1.0 / l1)
-            _vstore(u, 5, zero3, 1.0 / l0)
-            _vstore(v, 5, t0, 1.0 / l1)
-            w[0] = w[1] = 2.0 * k
-            w[2] = w[3] = w[4] = w[5] = 0.0
-        else:
-            _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, 1.0 / l0, 1.0 / l1, 0)
+    return t0, t1, n, _vcross(t0, n), _vcross(t1, n), s_safe, degenerate
+
+
+@_jit
+def _v_bend_exact(u, v, w, t0, t1, n, b0, b1, c, s, s_safe, d, k, l0, l1, degenerate):
+    """All six eigenpairs of a bend's Hessian (angle.AngleFrame.eigensystem; the cone
+    rule where it is straight) into u, v (6, 3) (scaled by 1 / |e|) and w (6,)."""
+    if degenerate:
+        # the cone rule (angle.AngleFrame._cone_eigensystem)
+        cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
+        zero3 = (0.0, 0.0, 0.0)
+        _vstore(u, 0, _vscale(n, _SQRT_HALF), 1.0 / l0)
+        _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), 1.0 / l1)
+        _vstore(u, 1, _vscale(b0, _SQRT_HALF), 1.0 / l0)
+        _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), 1.0 / l1)
+        _vstore(u, 2, _vscale(n, _SQRT_HALF), 1.0 / l0)
+        _vstore(v, 2, _vscale(n, cs * _SQRT_HALF), 1.0 / l1)
+        _vstore(u, 3, _vscale(b0, _SQRT_HALF), 1.0 / l0)
+        _vstore(v, 3, _vscale(b0, cs * _SQRT_HALF), 1.0 / l1)
+        _vstore(u, 4, t0, 1.0 / l0)
+        _vstore(v, 4, zero3, 1.0 / l1)
+        _vstore(u, 5, zero3, 1.0 / l0)
+        _vstore(v, 5, t0, 1.0 / l1)
+        w[0] = w[1] = 2.0 * k
+        w[2] = w[3] = w[4] = w[5] = 0.0
     else:
-        m = 3
-        # the analytic filter's kept eigenpairs (angle.AngleFrame.positive_part), times
-        # the square roots of their eigenvalues, on the unit edges [top; bottom], / |e|
+        _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, c, s, s_safe, d, k, 1.0 / l0, 1.0 / l1, 0)
+
+
+@_jit
+def _v_bend_analytic(t0, t1, n, b0, b1, c, s, s_safe, d, k, l0, l1, degenerate):
+    """The analytic filter's three kept eigenpairs of a bend (angle.AngleFrame.positive_part;
+    the cone rule where it is straight), times the square roots of their eigenvalues,
+    on the unit edges [top; bottom], / |e|: (u0, v0, u1, v1, u2, v2)."""
+    if degenerate:
+        cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
+        r0 = math.sqrt(2.0 * k)
+        return (_vscale(_vscale(n, _SQRT_HALF), r0 / l0), _vscale(_vscale(n, -cs * _SQRT_HALF), r0 / l1),
+                _vscale(_vscale(b0, _SQRT_HALF), r0 / l0), _vscale(_vscale(b0, -cs * _SQRT_HALF), r0 / l1),
+                _vscale(n, 0.0), _vscale(n, 0.0))
+    sd = 1.0 if d >= 0.0 else -1.0
+    ad = abs(d)
+    lam2 = k + math.sqrt(k * k + d * d)
+    rr = d / lam2 if lam2 > 0.0 else 0.0
+    sc = sd * c
+    one_plus = s * s / (1.0 + abs(sc)) if sc < 0.0 else 1.0 + sc
+    scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
+    rs = rr * scn
+    hsd = 0.5 * sd
+    root0, root1, root2 = math.sqrt(lam2), math.sqrt(ad * one_plus / s_safe), math.sqrt(ad)
+    return (_vscale(_vsub(_vscale(t0, rs), _vscale(b0, scn)), root0 / l0),
+            _vscale(_vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / l1),
+            _vscale(_vscale(n, _SQRT_HALF), root1 / l0),
+            _vscale(_vscale(n, -_SQRT_HALF * sd), root1 / l1),
+            _vscale(_vsub(_vscale(t0, 0.5), _vscale(b0, hsd)), root2 / l0),
+            _vscale(_vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / l1))
+
+
+@_jit
+def _v_bend_blocks(hb, j, r, q, uu, uv, vu, vv):
+    """Entry (r, q) of bend element j's six upper blocks from the products
+    uu = sum_c w_c u_c[r] u_c[q], uv, vu, vv (H = sum_c w_c c_c c_c^T, c_c = [u_c;
+    -u_c - v_c; v_c])."""
+    t = r + 3 * q
+    _vput_at(hb, t, j, uu)
+    _vput_at(hb, 9 + t, j, -uu - uv)
+    _vput_at(hb, 18 + t, j, uv)
+    _vput_at(hb, 27 + t, j, uu + uv + vu + vv)
+    _vput_at(hb, 36 + t, j, -uv - vv)
+    _vput_at(hb, 45 + t, j, vv)
+
+
+@_jit
+def _bend_batch(x, start, rest, stiff, lo, hi, mode, exact, tb, hb, u, v, w):
+    """Bend elements lo .. hi - 1 (at most BATCH), element lo + j in column j of the
+    flat scratch ``tb`` (_B_ROWS * _STRIDE,) (rows _B_*: :func:`_vput_at`): its flag
+    and energy; with GRADIENT its gradient (rows _B_G; zero where it is straight); with
+    HESSIAN its six upper blocks in ``hb`` (54 * _STRIDE,) (:func:`_v_put`), from its
+    columns (analytic: three, weights 1; ``exact``: six with their eigenvalues).  u, v
+    (6, 3), w (6,): scratch for the exact filter.  The loops over the batch are
+    branch-free (selects), so the compiler vectorises them, except the gather, the one
+    of atan2 and the exact filter's."""
+    m = hi - lo
+    _v_gather(x, start, lo, m, tb, _B_X, 3)
+    for j in range(m):
+        x0, x1, x2 = _vrow3(tb, _B_X, j), _vrow3(tb, _B_X + 3, j), _vrow3(tb, _B_X + 6, j)
+        scale, total = _vscale_add(x0, 0.0, 0.0)
+        scale, total = _vscale_add(x1, scale, total)
+        scale, total = _vscale_add(x2, scale, total)
+        e0 = _vsub(x0, x1)
+        e1 = _vsub(x2, x1)
+        l0, zero0 = _vbad_edge(e0, scale)
+        l1, zero1 = _vbad_edge(e1, scale)
+        bad = not math.isfinite(total) or zero0 or zero1
+        t0, t1, tx, c, s = _vframe(e0, l0, e1, l1)
+        _vput_at(tb, _B_FLAG, j, _BAD if bad else 0.0)
+        _vput_at(tb, _B_L0, j, l0)
+        _vput_at(tb, _B_L1, j, l1)
+        _vput_frame(tb, j, t0, t1, tx, c, s)
+    for j in range(m):              # the library call: not vectorised
+        theta = math.atan2(_vat(tb, _F_S, j), _vat(tb, _F_C, j))
+        k = stiff[lo + j]
+        _vput_at(tb, _B_EN, j, 0.5 * k * (theta - rest[lo + j]) ** 2)
+        _vput_at(tb, _B_D, j, k * (theta - rest[lo + j]))
+    if mode == ENERGY:
+        return
+    for j in range(m):
+        t0, t1, n, b0, b1, s_safe, degenerate = _v_bend_frame(tb, j)
+        d = _vat(tb, _B_D, j)
+        gu = _vscale(_vdiv(b0, _vat(tb, _B_L0, j)), d)
+        gv = _vscale(_vdiv(b1, -_vat(tb, _B_L1, j)), d)
         if degenerate:
-            cs = 1.0 if c > 0.0 else (-1.0 if c < 0.0 else 0.0)
-            r0 = math.sqrt(2.0 * k)
-            _vstore(u, 0, _vscale(n, _SQRT_HALF), r0 / l0)
-            _vstore(v, 0, _vscale(n, -cs * _SQRT_HALF), r0 / l1)
-            _vstore(u, 1, _vscale(b0, _SQRT_HALF), r0 / l0)
-            _vstore(v, 1, _vscale(b0, -cs * _SQRT_HALF), r0 / l1)
-            _vstore(u, 2, n, 0.0)
-            _vstore(v, 2, n, 0.0)
-        else:
+            gu = gv = (0.0, 0.0, 0.0)
+        _vput_row3(tb, _B_G, j, gu)
+        _vput_row3(tb, _B_G + 3, j, (-gu[0] - gv[0], -gu[1] - gv[1], -gu[2] - gv[2]))
+        _vput_row3(tb, _B_G + 6, j, gv)
+    if mode != HESSIAN:
+        return
+    if exact:
+        for j in range(m):
+            t0, t1, n, b0, b1, s_safe, degenerate = _v_bend_frame(tb, j)
+            _v_bend_exact(u, v, w, t0, t1, n, b0, b1, _vat(tb, _F_C, j), _vat(tb, _F_S, j),
+                          s_safe, _vat(tb, _B_D, j), stiff[lo + j], _vat(tb, _B_L0, j),
+                          _vat(tb, _B_L1, j), degenerate)
+            for c in range(6):
+                _vput_row3(tb, _B_U + 6 * c, j, (u[c, 0], u[c, 1], u[c, 2]))
+                _vput_row3(tb, _B_U + 6 * c + 3, j, (v[c, 0], v[c, 1], v[c, 2]))
+                _vput_at(tb, _B_W + c, j, w[c])
+        for r in range(3):
+            for q in range(3):
+                for j in range(m):
+                    uu = uv = vu = vv = 0.0
+                    for c in range(6):
+                        wu = _vat(tb, _B_W + c, j) * _vat(tb, _B_U + 6 * c + r, j)
+                        wv = _vat(tb, _B_W + c, j) * _vat(tb, _B_U + 6 * c + 3 + r, j)
+                        uu += wu * _vat(tb, _B_U + 6 * c + q, j)
+                        uv += wu * _vat(tb, _B_U + 6 * c + 3 + q, j)
+                        vu += wv * _vat(tb, _B_U + 6 * c + q, j)
+                        vv += wv * _vat(tb, _B_U + 6 * c + 3 + q, j)
+                    _v_bend_blocks(hb, j, r, q, uu, uv, vu, vv)
+        return
+    for j in range(m):
+        t0, t1, n, b0, b1, s_safe, degenerate = _v_bend_frame(tb, j)
+        cols = _v_bend_analytic(t0, t1, n, b0, b1, _vat(tb, _F_C, j), _vat(tb, _F_S, j), s_safe,
+                                _vat(tb, _B_D, j), stiff[lo + j], _vat(tb, _B_L0, j),
+                                _vat(tb, _B_L1, j), degenerate)
+        _vput_row3(tb, _B_U, j, cols[0])
+        _vput_row3(tb, _B_U + 3, j, cols[1])
+        _vput_row3(tb, _B_U + 6, j, cols[2])
+        _vput_row3(tb, _B_U + 9, j, cols[3])
+        _vput_row3(tb, _B_U + 12, j, cols[4])
+        _vput_row3(tb, _B_U + 15, j, cols[5])
+    for r in range(3):
+        for q in range(3):
+            for j in range(m):      # three columns, weights 1: unrolled
+                u0, u1, u2 = _vat(tb, _B_U + r, j), _vat(tb, _B_U + 6 + r, j), _vat(tb, _B_U + 12 + r, j)
+                v0, v1, v2 = _vat(tb, _B_U + 3 + r, j), _vat(tb, _B_U + 9 + r, j), _vat(tb, _B_U + 15 + r, j)
+                p0, p1, p2 = _vat(tb, _B_U + q, j), _vat(tb, _B_U + 6 + q, j), _vat(tb, _B_U + 12 + q, j)
+                s0, s1, s2 = _vat(tb, _B_U + 3 + q, j), _vat(tb, _B_U + 9 + q, j), _vat(tb, _B_U + 15 + q, j)
+                _v_bend_blocks(hb, j, r, q, u0 * p0 + u1 * p1 + u2 * p2, u0 * s0 + u1 * s1 + u2 * s2,
+                               v0 * p0 + v1 * p1 + v2 * p2, v0 * s0 + v1 * s1 + v2 * s2)
+
+
+# ------------------------------------------------------------------------ twist
+# Rows of the twist batch scratch (:func:`_twist_batch`): the angle frame of the
+# element's projected outer edges (rows _F_*), its geometry (e1: three rows), its angle
+# error dphi, energy and flag (0, _BAD, _T_DROPPED: collinear outer edge, dropped), its
+# four vertices (12 rows from _T_X), its gradient on them (12 rows from _T_G), its
+# column weights (8 from _T_W) and Hessian columns (column c entry q in row
+# _T_COLS + 12 c + q); ``hh`` (90 rows): its ten upper 3x3 blocks (:func:`_v_put`).
+_T_AL, _T_BE, _T_SIG, _T_IL1SQ, _T_LA, _T_LB, _T_DPHI, _T_EN = range(11, 19)
+_T_E1, _T_FLAG = 19, 22
+_T_X, _T_G, _T_W, _T_COLS = 23, 35, 47, 55
+_T_ROWS = _T_COLS + 96
+_T_DROPPED = 2.0
+
+
+@_jit
+def _v_in_plane(tw, c, j, top, bot, fu, fv, al, be):
+    """Column c of twist element j's Hessian: P^T [top fu; bot fv]
+    (twist.simplified_transpose), into the twist batch scratch tw."""
+    uq = _vscale(top, fu)
+    vq = _vscale(bot, fv)
+    _v_column(tw, c, j, uq, _vadd(_vscale(uq, al - 1.0), _vscale(vq, be)),
+              _vsub(_vscale(uq, -al), _vscale(vq, 1.0 + be)), vq)
+
+
+@_jit
+def _v_column(tw, c, j, p0, p1, p2, p3):
+    """Column c of twist element j's Hessian, its parts on the four vertices p0 .. p3,
+    into the twist batch scratch tw."""
+    r = _T_COLS + 12 * c
+    _vput_row3(tw, r, j, p0)
+    _vput_row3(tw, r + 3, j, p1)
+    _vput_row3(tw, r + 6, j, p2)
+    _vput_row3(tw, r + 9, j, p3)
+
+
+@_jit
+def _v_balanced(tw, c, j, sign, pl, mg):
+    """Column c of twist element j's Hessian: 1/2 ([0; pl; -pl; 0] + sign mg), mg the
+    four parts of a balanced out-of-plane column."""
+    _v_column(tw, c, j, _vscale(_vscale(mg[0], sign), 0.5),
+              _vscale(_vadd(pl, _vscale(mg[1], sign)), 0.5),
+              _vscale(_vadd(_vscale(pl, -1.0), _vscale(mg[2], sign)), 0.5),
+              _vscale(_vscale(mg[3], sign), 0.5))
+
+
+@_jit
+def _v_out_of_plane(tw, j, p, plus, eps, t0, t1, b0, st0, e1h, al, be, c, d, osc, mu, inv_lb,
+                    inv_l1):
+    """Out-of-plane pair p (eps = +-1) of twist element j: the plus column into column
+    plus + p, the minus column into column 6 + p of the twist batch scratch tw."""
+    nu = eps * osc * inv_lb
+    w = _vscale(_vadd(t0, _vscale(t1, eps)), osc * inv_l1)
+    m0 = _vscale(e1h, 2.0 * mu)
+    m1 = _vsub(_vscale(e1h, 2.0 * ((al - 1.0) * mu + be * nu)), w)
+    m2 = _vadd(_vscale(e1h, -2.0 * (al * mu + (1.0 + be) * nu)), w)
+    m3 = _vscale(e1h, 2.0 * nu)
+    cs = (1.0 - c) if eps > 0.0 else (1.0 + c)
+    lw = _vscale(_vsub(_vscale(b0, cs), _vscale(st0, eps)), d * osc * inv_l1)
+    # gs = sqrt(|p| / |m|) from the squared norms: two square roots, one division
+    sq_p = 2.0 * _vdot(lw, lw)
+    sq_m = _vdot(m0, m0) + _vdot(m1, m1) + _vdot(m2, m2) + _vdot(m3, m3)
+    ok = sq_p > 0.0 and sq_m > 0.0
+    gs = math.sqrt(math.sqrt(sq_p / sq_m)) if ok else 0.0
+    inv_gs = 1.0 / gs if ok else 0.0
+    # 1/2 (lw inv_gs [0; 1; -1; 0] +- gs m), lw the nonzero parts of p
+    pl = _vscale(lw, inv_gs)
+    mg = (_vscale(m0, gs), _vscale(m1, gs), _vscale(m2, gs), _vscale(m3, gs))
+    _v_balanced(tw, plus + p, j, 1.0, pl, mg)
+    _v_balanced(tw, 6 + p, j, -1.0, pl, mg)
+
+
+@_jit
+def _v_twist_frame(tw, j, k):
+    """The twist element j's unit t0, t1, normal n, binormals b0 = t0 x n, b1 = t1 x n,
+    d = sigma k dphi, 1 / la and 1 / lb, from the batch scratch ``tw``."""
+    t0 = _vrow3(tw, _F_T0, j)
+    t1 = _vrow3(tw, _F_T1, j)
+    s = _vat(tw, _F_S, j)
+    sigma = _vat(tw, _T_SIG, j)
+    if s < STRAIGHT_TOL:           # a, b parallel: the frame turns about e1
+        n = _vscale(_vrow3(tw, _T_E1, j), sigma * math.sqrt(_vat(tw, _T_IL1SQ, j)))
+    else:
+        n = _vdiv(_vrow3(tw, _F_TX, j), s)
+    d = sigma * k * _vat(tw, _T_DPHI, j)
+    return t0, t1, n, _vcross(t0, n), _vcross(t1, n), d, 1.0 / _vat(tw, _T_LA, j), 1.0 / _vat(tw, _T_LB, j)
+
+
+@_jit
+def _twist_batch(x, start, rest, stiff, lo, hi, mode, exact, tw, hh, u, v, w):
+    """Twist elements lo .. hi - 1 (at most BATCH), element lo + j in column j of the
+    flat scratch ``tw`` (_T_ROWS * _STRIDE,) (rows _T_*: :func:`_vput_at`): its flag
+    and energy; with GRADIENT its gradient (rows _T_G); with HESSIAN its ten upper
+    blocks in ``hh`` (90 * _STRIDE,) (:func:`_v_put`), from its columns and weights
+    (analytic: four columns, weights 1; ``exact``: eight, twist._exact_columns).  u, v
+    (6, 3), w (8,): scratch for the exact filter's eigenpairs.  The loops over the
+    batch are branch-free (selects), so the compiler vectorises them, except the
+    gather, the one of atan2 and the angle's modulo and the exact filter's."""
+    m = hi - lo
+    _v_gather(x, start, lo, m, tw, _T_X, 4)
+    for j in range(m):
+        x0, x1 = _vrow3(tw, _T_X, j), _vrow3(tw, _T_X + 3, j)
+        x2, x3 = _vrow3(tw, _T_X + 6, j), _vrow3(tw, _T_X + 9, j)
+        scale, total = _vscale_add(x0, 0.0, 0.0)
+        scale, total = _vscale_add(x1, scale, total)
+        scale, total = _vscale_add(x2, scale, total)
+        scale, total = _vscale_add(x3, scale, total)
+        finite = math.isfinite(total)
+        e0 = _vsub(x0, x1)
+        e1 = _vsub(x2, x1)
+        e2 = _vsub(x3, x2)
+        l0, zero0 = _vbad_edge(e0, scale)
+        l1, zero1 = _vbad_edge(e1, scale)
+        l2, zero2 = _vbad_edge(e2, scale)
+        inv_l1_sq = 1.0 / (l1 * l1)
+        al = _vdot(e0, e1) * inv_l1_sq
+        be = _vdot(e2, e1) * inv_l1_sq
+        av = _vsub(e0, _vscale(e1, al))
+        bv = _vsub(e2, _vscale(e1, be))
+        la, lb = _vnorm(av), _vnorm(bv)
+        dropped = not (la >= _TWIST_TOL * l0 and lb >= _TWIST_TOL * l2)
+        bad = not finite or zero0 or zero1 or zero2
+        _vput_at(tw, _T_FLAG, j, _BAD if bad else (_T_DROPPED if dropped else 0.0))
+        t0, t1, tx, c, s = _vframe(av, la, bv, lb)
+        _vput_at(tw, _T_AL, j, al)
+        _vput_at(tw, _T_BE, j, be)
+        _vput_at(tw, _T_SIG, j, -1.0 if _vdot(_vcross(av, bv), e1) < 0.0 else 1.0)
+        _vput_at(tw, _T_IL1SQ, j, inv_l1_sq)
+        _vput_at(tw, _T_LA, j, la)
+        _vput_at(tw, _T_LB, j, lb)
+        _vput_frame(tw, j, t0, t1, tx, c, s)
+        _vput_row3(tw, _T_E1, j, e1)
+    for j in range(m):              # the library calls: not vectorised
+        theta = math.atan2(_vat(tw, _F_S, j), _vat(tw, _F_C, j))
+        dphi = _PI - ((_PI - (_vat(tw, _T_SIG, j) * theta - rest[lo + j])) % _TWO_PI)
+        _vput_at(tw, _T_DPHI, j, dphi)
+        _vput_at(tw, _T_EN, j, 0.5 * stiff[lo + j] * dphi * dphi)
+    if mode == ENERGY:
+        return
+    for j in range(m):
+        t0, t1, n, b0, b1, d, inv_la, inv_lb = _v_twist_frame(tw, j, stiff[lo + j])
+        al, be = _vat(tw, _T_AL, j), _vat(tw, _T_BE, j)
+        ga = _vscale(b0, d * inv_la)
+        gb = _vscale(b1, -d * inv_lb)
+        _vput_row3(tw, _T_G, j, ga)
+        _vput_row3(tw, _T_G + 3, j, _vadd(_vscale(ga, al - 1.0), _vscale(gb, be)))
+        _vput_row3(tw, _T_G + 6, j, _vsub(_vscale(ga, -al), _vscale(gb, 1.0 + be)))
+        _vput_row3(tw, _T_G + 9, j, gb)
+    if mode != HESSIAN:
+        return
+    if exact:
+        # the four in-plane eigenpairs with their eigenvalues, mapped by P^T
+        for j in range(m):
+            k = stiff[lo + j]
+            t0, t1, n, b0, b1, d, inv_la, inv_lb = _v_twist_frame(tw, j, k)
+            _v_eigenpairs(u, v, w, t0, t1, b0, b1, n, _vat(tw, _F_C, j), _vat(tw, _F_S, j), 1.0, d,
+                          k, inv_la, inv_lb, 2)
+            for c in range(4):
+                _v_in_plane(tw, c, j, (u[c, 0], u[c, 1], u[c, 2]), (v[c, 0], v[c, 1], v[c, 2]),
+                            1.0, 1.0, _vat(tw, _T_AL, j), _vat(tw, _T_BE, j))
+            for c in range(8):
+                _vput_at(tw, _T_W + c, j, w[c] if c < 4 else (1.0 if c < 6 else -1.0))
+    else:
+        # in-plane pairs 0 and 2 of angle.AngleFrame.positive_part, mapped by P^T
+        for j in range(m):
+            k = stiff[lo + j]
+            t0, t1, n, b0, b1, d, inv_la, inv_lb = _v_twist_frame(tw, j, k)
             sd = 1.0 if d >= 0.0 else -1.0
             ad = abs(d)
             lam2 = k + math.sqrt(k * k + d * d)
             rr = d / lam2 if lam2 > 0.0 else 0.0
-            sc = sd * c
-            if sc < 0.0:
-                one_plus = s * s / (1.0 + abs(sc))
-            else:
-                one_plus = 1.0 + sc
             scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
             rs = rr * scn
             hsd = 0.5 * sd
-            root0, root1, root2 = math.sqrt(lam2), math.sqrt(ad * one_plus / s_safe), math.sqrt(ad)
-            _vstore(u, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)), root0 / l0)
-            _vstore(v, 0, _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 / l1)
-            _vstore(u, 1, _vscale(n, _SQRT_HALF), root1 / l0)
-            _vstore(v, 1, _vscale(n, -_SQRT_HALF * sd), root1 / l1)
-            _vstore(u, 2, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)), root2 / l0)
-            _vstore(v, 2, _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 / l1)
-    # H = sum_j w_j c_j c_j^T with c_j = [u_j; -u_j - v_j; v_j]: from three 3x3
-    # products, block (a, c) of vertices (i + a, i + c) on band diagonal c - a
-    o00, o01, o02 = base[i, b], base[i, b + 1], base[i, b + 2]
-    o11, o12, o22 = base[i + 1, b], base[i + 1, b + 1], base[i + 2, b]
-    o10, o20, o21 = base[i + 1, b - 1], base[i + 2, b - 2], base[i + 2, b - 1]
-    for r in range(3):
-        for q in range(3):
-            if exact:
-                uu = uv = vu = vv = 0.0
-                for j in range(m):
-                    wu = w[j] * u[j, r]
-                    wv = w[j] * v[j, r]
-                    uu += wu * u[j, q]
-                    uv += wu * v[j, q]
-                    vu += wv * u[j, q]
-                    vv += wv * v[j, q]
-            else:               # three columns, weights 1: unrolled
-                uu = u[0, r] * u[0, q] + u[1, r] * u[1, q] + u[2, r] * u[2, q]
-                uv = u[0, r] * v[0, q] + u[1, r] * v[1, q] + u[2, r] * v[2, q]
-                vu = v[0, r] * u[0, q] + v[1, r] * u[1, q] + v[2, r] * u[2, q]
-                vv = v[0, r] * v[0, q] + v[1, r] * v[1, q] + v[2, r] * v[2, q]
-            h01 = -uu - uv
-            h12 = -uv - vv
-            _vput(vals, o00, r, q, uu)
-            _vput(vals, o01, r, q, h01)
-            _vput(vals, o02, r, q, uv)
-            _vput(vals, o11, r, q, uu + uv + vu + vv)
-            _vput(vals, o12, r, q, h12)
-            _vput(vals, o22, r, q, vv)
-            if not upper:
-                _vput(vals, o10, q, r, h01)
-                _vput(vals, o20, q, r, uv)
-                _vput(vals, o21, q, r, h12)
-    return 0.0, False
-
-
-# ------------------------------------------------------------------------ twist
-@_jit
-def _v_in_plane(cols, j, top, bot, fu, fv, al, be):
-    """Column j of the twist Hessian: P^T [top fu; bot fv] (twist.simplified_transpose)."""
-    for q in range(3):
-        uq = top[q] * fu
-        vq = bot[q] * fv
-        cols[j, q] = uq
-        cols[j, 3 + q] = (al - 1.0) * uq + be * vq
-        cols[j, 6 + q] = -al * uq - (1.0 + be) * vq
-        cols[j, 9 + q] = vq
-
-
-@_jit
-def _v_twist(x, i, rest, k, mode, g, vals, base, b, upper, exact, cols, wts, u, v):
-    """One twist element on vertices i .. i+3: (energy, bad).  cols (8, 12), wts (8,)
-    are scratch: the element Hessian's columns and weights (analytic: four, unweighted;
-    ``exact``: eight, twist._exact_columns); u, v (6, 3) scratch for the eigenpairs."""
-    scale, finite = _vscale_of(x, i, 4)
-    x1 = _vpoint(x, i + 1)
-    x2 = _vpoint(x, i + 2)
-    e0 = _vsub(_vpoint(x, i), x1)
-    e1 = _vsub(x2, x1)
-    e2 = _vsub(_vpoint(x, i + 3), x2)
-    l0, zero0 = _vbad_edge(e0, scale)
-    l1, zero1 = _vbad_edge(e1, scale)
-    l2, zero2 = _vbad_edge(e2, scale)
-    if not finite or zero0 or zero1 or zero2:
-        return 0.0, True
-    inv_l1_sq = 1.0 / (l1 * l1)
-    al = _vdot(e0, e1) * inv_l1_sq
-    be = _vdot(e2, e1) * inv_l1_sq
-    av = _vsub(e0, _vscale(e1, al))
-    bv = _vsub(e2, _vscale(e1, be))
-    la, lb = _vnorm(av), _vnorm(bv)
-    if not (la >= _TWIST_TOL * l0 and lb >= _TWIST_TOL * l2):
-        return 0.0, False         # collinear outer edge: the element is dropped
-    sigma = -1.0 if _vdot(_vcross(av, bv), e1) < 0.0 else 1.0
-    t0, t1, tx, c, s, theta = _vangle(av, la, bv, lb)
-    if s < STRAIGHT_TOL:           # a, b parallel: the frame turns about e1
-        n = _vscale(e1, sigma * math.sqrt(inv_l1_sq))
-    else:
-        n = _vdiv(tx, s)
-    dphi = _PI - ((_PI - (sigma * theta - rest)) % _TWO_PI)
-    if mode == ENERGY:
-        return 0.5 * k * dphi * dphi, False
-    d = sigma * k * dphi
-    b0 = _vcross(t0, n)
-    b1 = _vcross(t1, n)
-    inv_la, inv_lb = 1.0 / la, 1.0 / lb
-    ga = _vscale(b0, d * inv_la)
-    gb = _vscale(b1, -d * inv_lb)
-    _vadd_to(g, i, ga)
-    _vadd_to(g, i + 1, _vadd(_vscale(ga, al - 1.0), _vscale(gb, be)))
-    _vadd_to(g, i + 2, _vsub(_vscale(ga, -al), _vscale(gb, 1.0 + be)))
-    _vadd_to(g, i + 3, gb)
-    if mode != HESSIAN:
-        return 0.0, False
-    if exact:
-        # the four in-plane eigenpairs with their eigenvalues, mapped by P^T
-        m = 8
-        _v_eigenpairs(u, v, wts, t0, t1, b0, b1, n, c, s, 1.0, d, k, inv_la, inv_lb, 2)
-        for j in range(4):
-            _v_in_plane(cols, j, (u[j, 0], u[j, 1], u[j, 2]), (v[j, 0], v[j, 1], v[j, 2]),
-                        1.0, 1.0, al, be)
-        wts[4] = wts[5] = 1.0
-        wts[6] = wts[7] = -1.0
-    else:
-        # in-plane pairs 0 and 2 of angle.AngleFrame.positive_part, mapped by P^T
-        m = 4
-        sd = 1.0 if d >= 0.0 else -1.0
-        ad = abs(d)
-        lam2 = k + math.sqrt(k * k + d * d)
-        rr = d / lam2 if lam2 > 0.0 else 0.0
-        scn = 1.0 / math.sqrt(2.0 * (1.0 + rr * rr))
-        rs = rr * scn
-        hsd = 0.5 * sd
-        root0, root2 = math.sqrt(lam2), math.sqrt(ad)
-        _v_in_plane(cols, 0, _vsub(_vscale(t0, rs), _vscale(b0, scn)),
-                    _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 * inv_la, root0 * inv_lb,
-                    al, be)
-        _v_in_plane(cols, 1, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)),
-                    _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 * inv_la, root2 * inv_lb,
-                    al, be)
+            root0, root2 = math.sqrt(lam2), math.sqrt(ad)
+            al, be = _vat(tw, _T_AL, j), _vat(tw, _T_BE, j)
+            _v_in_plane(tw, 0, j, _vsub(_vscale(t0, rs), _vscale(b0, scn)),
+                        _vadd(_vscale(t1, rs), _vscale(b1, scn)), root0 * inv_la,
+                        root0 * inv_lb, al, be)
+            _v_in_plane(tw, 1, j, _vsub(_vscale(t0, 0.5), _vscale(b0, hsd)),
+                        _vadd(_vscale(t1, -0.5), _vscale(b1, -hsd)), root2 * inv_la,
+                        root2 * inv_lb, al, be)
     # out-of-plane pairs: PSD part of 1/2 (p m^T + m p^T) (twist._out_of_plane and
-    # twist._balanced_columns)
-    inv_l1 = math.sqrt(inv_l1_sq)
-    e1h = _vscale(e1, inv_l1)
-    osc = sigma * _SQRT_HALF
-    mu = osc * inv_la
-    st0 = _vscale(t0, s)
-    for j in range(2):
-        eps = 1.0 if j == 0 else -1.0
-        nu = eps * osc * inv_lb
-        w = _vscale(_vadd(t0, _vscale(t1, eps)), osc * inv_l1)
-        m0 = _vscale(e1h, 2.0 * mu)
-        m1 = _vsub(_vscale(e1h, 2.0 * ((al - 1.0) * mu + be * nu)), w)
-        m2 = _vadd(_vscale(e1h, -2.0 * (al * mu + (1.0 + be) * nu)), w)
-        m3 = _vscale(e1h, 2.0 * nu)
-        cs = (1.0 - c) if eps > 0.0 else (1.0 + c)
-        lw = _vscale(_vsub(_vscale(b0, cs), _vscale(st0, eps)), d * osc * inv_l1)
-        # gs = sqrt(|p| / |m|) from the squared norms: two square roots, one division
-        sq_p = 2.0 * _vdot(lw, lw)
-        sq_m = _vdot(m0, m0) + _vdot(m1, m1) + _vdot(m2, m2) + _vdot(m3, m3)
-        if sq_p > 0.0 and sq_m > 0.0:
-            gs = math.sqrt(math.sqrt(sq_p / sq_m))
-            inv_gs = 1.0 / gs
-        else:
-            inv_gs = 0.0
-            gs = 0.0
-        # the plus column (both filters) and, exact, the minus column
-        for sign, row in ((1.0, (4 if exact else 2) + j), (-1.0, 6 + j)):
-            if sign > 0.0 or exact:
-                for q in range(3):
-                    cols[row, q] = 0.5 * (sign * (m0[q] * gs))
-                    cols[row, 3 + q] = 0.5 * (lw[q] * inv_gs + sign * (m1[q] * gs))
-                    cols[row, 6 + q] = 0.5 * (-lw[q] * inv_gs + sign * (m2[q] * gs))
-                    cols[row, 9 + q] = 0.5 * (sign * (m3[q] * gs))
-    # H = sum_j w_j cols_j cols_j^T, block by block (upper blocks and their transposes)
+    # twist._balanced_columns): the plus columns (both filters) in rows ``plus``, the
+    # minus ones (used by the exact filter only) in rows 6, 7
+    plus = 4 if exact else 2
+    for j in range(m):
+        t0, t1, n, b0, b1, d, inv_la, inv_lb = _v_twist_frame(tw, j, stiff[lo + j])
+        al, be, sigma = _vat(tw, _T_AL, j), _vat(tw, _T_BE, j), _vat(tw, _T_SIG, j)
+        c, s = _vat(tw, _F_C, j), _vat(tw, _F_S, j)
+        inv_l1 = math.sqrt(_vat(tw, _T_IL1SQ, j))
+        e1h = _vscale(_vrow3(tw, _T_E1, j), inv_l1)
+        osc = sigma * _SQRT_HALF
+        mu = osc * inv_la
+        st0 = _vscale(t0, s)
+        _v_out_of_plane(tw, j, 0, plus, 1.0, t0, t1, b0, st0, e1h, al, be, c, d, osc, mu,
+                        inv_lb, inv_l1)
+        _v_out_of_plane(tw, j, 1, plus, -1.0, t0, t1, b0, st0, e1h, al, be, c, d, osc, mu,
+                        inv_lb, inv_l1)
+    # H = sum_c wts_c cols_c cols_c^T, the upper blocks
+    blk = 0
     for a in range(4):
         for cc in range(a, 4):
-            dd = cc - a
-            o_up, o_low = base[i + a, dd + b], base[i + cc, b - dd]
-            lower = dd != 0 and not upper
-            if exact:
+            for q in range(3):
+                qc = 3 * cc + q
                 for r in range(3):
                     ra = 3 * a + r
-                    for q in range(3):
-                        qc = 3 * cc + q
-                        hv = 0.0
+                    row = 9 * blk + r + 3 * q
+                    if exact:
                         for j in range(m):
-                            hv += wts[j] * cols[j, ra] * cols[j, qc]
-                        _vput(vals, o_up, r, q, hv)
-                        if lower:
-                            _vput(vals, o_low, q, r, hv)
-            else:               # four columns, weights 1: unrolled
-                for r in range(3):
-                    ra = 3 * a + r
-                    for q in range(3):
-                        qc = 3 * cc + q
-                        hv = (cols[0, ra] * cols[0, qc] + cols[1, ra] * cols[1, qc]
-                              + cols[2, ra] * cols[2, qc] + cols[3, ra] * cols[3, qc])
-                        _vput(vals, o_up, r, q, hv)
-                        if lower:
-                            _vput(vals, o_low, q, r, hv)
-    return 0.0, False
+                            hv = 0.0
+                            for c in range(8):
+                                hv += (_vat(tw, _T_W + c, j) * _vat(tw, _T_COLS + 12 * c + ra, j)
+                                       * _vat(tw, _T_COLS + 12 * c + qc, j))
+                            _vput_at(hh, row, j, hv)
+                    else:       # four columns, weights 1
+                        for j in range(m):
+                            _vput_at(hh, row, j, _vat(tw, _T_COLS + ra, j) * _vat(tw, _T_COLS + qc, j)
+                                     + _vat(tw, _T_COLS + 12 + ra, j) * _vat(tw, _T_COLS + 12 + qc, j)
+                                     + _vat(tw, _T_COLS + 24 + ra, j) * _vat(tw, _T_COLS + 24 + qc, j)
+                                     + _vat(tw, _T_COLS + 36 + ra, j) * _vat(tw, _T_COLS + 36 + qc, j))
+            blk += 1
 
 
 @_jit
@@ -571,7 +808,11 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
     term 0, 1, 2 and the first bad element of that term, or -1, -1."""
     energy = 0.0
     u, v, w = np.empty((6, 3)), np.empty((6, 3)), np.empty(8)
-    cols = np.empty((8, 12))
+    # the batches' scratch (_bend_batch, _twist_batch): elements b_lo .. b_hi - 1, t_lo .. t_hi - 1
+    tb, hb = np.empty(_B_ROWS * _STRIDE), np.empty(54 * _STRIDE)
+    tw, hh = np.empty(_T_ROWS * _STRIDE), np.empty(90 * _STRIDE)
+    b_lo = b_hi = 0
+    t_lo = t_hi = 0
     nv = x.shape[0]
     zero = mode == HESSIAN
     if zero:
@@ -588,18 +829,30 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
             energy += en
             ps += 1
         while pb < b_start.shape[0] and b_start[pb] == vtx:
-            en, bad = _v_bend(x, vtx, b_rest[pb], b_k[pb], mode, g, vals, base, b, upper,
-                              exact, u, v, w)
-            if bad:
+            if pb == b_hi:
+                b_lo, b_hi = pb, min(pb + BATCH, b_start.shape[0])
+                _bend_batch(x, b_start, b_rest, b_k, b_lo, b_hi, mode, exact, tb, hb, u, v, w)
+            j = pb - b_lo
+            if _vat(tb, _B_FLAG, j) == _BAD:
                 return energy, 1, pb
-            energy += en
+            if mode == ENERGY:
+                energy += _vat(tb, _B_EN, j)
+            else:
+                _v_put(g, vals, base, b, upper, mode, vtx, j, tb, _B_G, hb, 3)
             pb += 1
         while pt < t_start.shape[0] and t_start[pt] == vtx:
-            en, bad = _v_twist(x, vtx, t_rest[pt], t_k[pt], mode, g, vals, base, b, upper,
-                               exact, cols, w, u, v)
-            if bad:
+            if pt == t_hi:
+                t_lo, t_hi = pt, min(pt + BATCH, t_start.shape[0])
+                _twist_batch(x, t_start, t_rest, t_k, t_lo, t_hi, mode, exact, tw, hh, u, v, w)
+            j = pt - t_lo
+            flag = _vat(tw, _T_FLAG, j)
+            if flag == _BAD:
                 return energy, 2, pt
-            energy += en
+            if flag == 0.0:
+                if mode == ENERGY:
+                    energy += _vat(tw, _T_EN, j)
+                else:
+                    _v_put(g, vals, base, b, upper, mode, vtx, j, tw, _T_G, hh, 4)
             pt += 1
     return energy, -1, -1
 

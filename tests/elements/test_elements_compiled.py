@@ -145,6 +145,28 @@ def test_bad_elements_raise_the_numpy_error(term):
             assert str(compiled_error.value) == str(numpy_error.value)
 
 
+@pytest.mark.parametrize("term", eh.TERMS)
+def test_bad_element_past_the_first_batch_raises_the_numpy_error(term):
+    """Bend and twist elements are evaluated in batches of compiled.BATCH: a zero-length
+    edge in a later batch stops the pass at that element, with the NumPy error."""
+    kv = eh.NVERT[term]
+    n = 2 * compiled.BATCH + 5
+    x, rest, k = eh.random_case(term, np.random.default_rng(11), n, 1.0)
+    xv = np.ascontiguousarray(x.reshape(-1, 3))
+    arrays = {term: compiled.element_arrays(term, np.arange(n, dtype=np.int64) * kv, rest, k)}
+    bad = compiled.BATCH + 3
+    xv[bad * kv + 1] = xv[bad * kv]
+    with pytest.raises(ElementError) as numpy_error:
+        MODULES[term].energy(xv.reshape(n, kv, 3), rest, k)
+    assert f"element {bad}" in str(numpy_error.value)
+    for call in (lambda: compiled.energy(arrays, xv),
+                 lambda: compiled.add_gradient_hessian(arrays, xv, np.zeros_like(xv),
+                                                       np.zeros((len(xv), 3, 21)), 3, False)):
+        with pytest.raises(ElementError) as compiled_error:
+            call()
+        assert str(compiled_error.value) == str(numpy_error.value)
+
+
 def test_bad_arguments_are_value_errors():
     start = np.array([0, 2, 1], np.int64)
     with pytest.raises(ValueError, match="nondecreasing"):

@@ -31,6 +31,21 @@ if _HELPERS not in sys.path:
     sys.path.insert(0, _HELPERS)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels():
+    """Compile (or load from Numba's cache) the kernels once, then freeze what the
+    compiler left: a process that compiled them holds ~570k objects that every
+    ``gc.collect()`` below would scan again (0.45 s per test, against 0.05 s when they
+    were loaded from the cache)."""
+    from lc_petsc.elements import compiled, compiled_ccd
+    compiled.warm_up()
+    compiled_ccd.warm_up()
+    gc.collect()
+    gc.freeze()
+    yield
+    gc.unfreeze()
+
+
 @pytest.fixture(autouse=True)
 def collective_teardown():
     """Garbage collection, ``PETSc.garbage_cleanup()`` and a barrier after each test."""

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lc_petsc.config import SimConfig
 from lc_petsc.io import hdf5
 from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
 from lc_petsc.parallel import global_max, on_root
@@ -222,7 +223,8 @@ class Job:
         except CheckpointError as e:
             raise Refused(str(e)) from None
         ck["skipped"] = skipped
-        diff = config_differences(ck["attrs"]["config"], cfg.to_dict(), ignore=RESTART_FREE_KEYS)
+        diff = config_differences(ck["attrs"]["config"], cfg.to_dict(), ignore=RESTART_FREE_KEYS,
+                                  defaults=SimConfig().to_dict())
         if diff and not args.force:
             raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
                           f"{', '.join(diff)}; restart with the same config or add --force")

@@ -104,9 +104,12 @@ def _normal(d):
     return json.loads(json.dumps(d))
 
 
-def config_differences(saved, current, ignore=()):
+def config_differences(saved, current, ignore=(), defaults=None):
     """Dotted keys whose values differ between two config dicts (``ignore``: keys that
-    do not change the trajectory or the frames file's layout)."""
+    do not change the trajectory or the frames file's layout).  With ``defaults`` (a
+    config dict of every key's default), a key the saved config lacks is no difference
+    while the current one holds its default: the checkpoint was written by a version
+    without that key, which ran as its default does."""
     def flat(d, pre=""):
         out = {}
         for k, v in d.items():
@@ -117,6 +120,9 @@ def config_differences(saved, current, ignore=()):
                 out[key] = v
         return out
     a, b = flat(_normal(saved)), flat(_normal(current))
+    if defaults is not None:
+        d = flat(_normal(defaults))
+        a.update({k: v for k, v in b.items() if k not in a and k in d and d[k] == v})
     return [k for k in sorted(set(a) | set(b)) if k not in ignore and a.get(k, "<absent>") != b.get(k, "<absent>")]
 
 

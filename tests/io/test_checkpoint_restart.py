@@ -273,3 +273,20 @@ def test_checkpoint_contents_and_config_keys(tmp_path):
         config_from_dict(base)
     with pytest.raises(ConfigError, match="output.checkpoints_kept must be an integer >= 1"):
         config_from_dict({"output": {"checkpoints_kept": 0}})
+
+
+def test_a_key_newer_than_the_checkpoint_is_no_difference_at_its_default():
+    """A checkpoint written before a key existed (time.newton_stop, solver.exact_stay came
+    on 2026-12-04) restarts with that key at its default, and not with another value; a
+    key of the checkpoint that changed is still a difference."""
+    from lc_petsc.config import SimConfig
+    from lc_petsc.io.checkpoint import config_differences
+    defaults = SimConfig().to_dict()
+    current = SimConfig().to_dict()
+    saved = SimConfig().to_dict()
+    del saved["time"]["newton_stop"], saved["solver"]["exact_stay"]
+    assert config_differences(saved, current, defaults=defaults) == []
+    assert config_differences(saved, current) == ["solver.exact_stay", "time.newton_stop"]
+    current["solver"]["exact_stay"] = True
+    current["time"]["dt"] = 0.01
+    assert config_differences(saved, current, defaults=defaults) == ["solver.exact_stay", "time.dt"]

@@ -55,7 +55,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.elements import compiled_ccd, segment_barrier, segment_ccd, segment_contact
-from lc_petsc.elements.compiled_ccd import bound_edge_lengths, box_pairs, smooth_fractions
+from lc_petsc.elements.compiled_ccd import box_pairs, smooth_fractions
 from lc_petsc.parallel import collectively, global_min, global_reduce
 
 MODES = ("penalty", "ccd")
@@ -147,14 +147,7 @@ class _OccupancyGrid:
 
     def corner_cells(self, lo, hi):
         """Flat cell ids (n, 8) of the 8 corners of boxes lo, hi (n, 3)."""
-        top = self.dims - 1
-        a = np.clip(np.floor((lo - self.origin) / self.cell).astype(np.int64), 0, top)
-        b = np.clip(np.floor((hi - self.origin) / self.cell).astype(np.int64), 0, top)
-        out = np.empty((len(lo), 8), np.int64)
-        for c in range(8):
-            v = [b[:, k] if (c >> k) & 1 else a[:, k] for k in range(3)]
-            out[:, c] = (v[0] * self.dims[1] + v[1]) * self.dims[2] + v[2]
-        return out
+        return compiled_ccd.corner_cells(lo, hi, self.origin, self.cell, self.dims)
 
     def mask(self, cells):
         """Boolean occupancy (size,) of the flat cell ids ``cells``."""
@@ -374,7 +367,7 @@ class StrandContact:
             if q >= comm.rank or grid.empty:
                 send.append(None)
                 continue
-            m = grid.mask(occ[q])[keys].any(axis=1)
+            m = _any_column(grid.mask(occ[q])[keys])
             send.append(np.concatenate([self.seg_gv[m, None], self.seg_wisp[m, None],
                                         self.seg_free[m], self.P_rest[m].reshape(-1, 6)]
                                        + [P[m].reshape(-1, 6) for P in Ps], axis=1))
@@ -460,21 +453,22 @@ class StrandContact:
     def _close_pairs(self, P, Prest, gv, free, owner, i, j, active):
         """The :meth:`_pairs` tuple of the candidates (i, j) (gv[i] < gv[j]) of the
         segments P (m, 2, 3) (rest Prest, first global vertex gv, free, owner rank)."""
-        X = np.concatenate([P[i], P[j]], axis=1)
-        d = segment_contact.distance(X) if len(X) else np.zeros(0)
+        # the pairs' points as rows of P viewed as (2m, 3): no per-pair copies
+        inv = np.stack([2 * i, 2 * i + 1, 2 * j, 2 * j + 1], axis=1)
+        d = compiled_ccd.indexed_distances(P.reshape(-1, 3), inv)
         close = d < self.d0
         # exemption: pairs already within the thickness in the rest pose (docs/contact.md)
         sel = np.flatnonzero(close)
         if len(sel):
-            Xr = np.concatenate([Prest[i[sel]], Prest[j[sel]]], axis=1)
-            close[sel] = segment_contact.distance(Xr) >= self.d0
+            close[sel] = compiled_ccd.indexed_distances(Prest.reshape(-1, 3), inv[sel]) >= self.d0
         sel = np.flatnonzero(close)
         # a canonical order: the assembly's sums do not depend on the candidates' order
         sel = sel[np.argsort(gv[i[sel]] * self.N + gv[j[sel]])]
         if not active:
             sel = np.concatenate([sel, np.flatnonzero(d >= self.d0)])
         i, j = i[sel], j[sel]
-        return X[sel], gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[sel]
+        X = np.concatenate([P[i], P[j]], axis=1)
+        return X, gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[sel]
 
     def _reached(self, x):
         """(P, Prest, gv, free, owner, i, j) as :meth:`_pairs` needs them, from the limiter
@@ -646,7 +640,7 @@ class StrandContact:
                 stopped = (bV == 0.0) | ~fV
                 # only pairs with a vertex whose fraction changed have a new path
                 redo = np.arange(len(inv)) if bV_prev is None else \
-                    np.flatnonzero((bV != bV_prev)[inv].any(axis=1))
+                    np.flatnonzero(_any_column((bV != bV_prev)[inv]))
                 bV_prev = bV
                 E = HV + bV[:, None] * (TV - HV)
                 E[bV == 1.0] = TV[bV == 1.0]
@@ -660,7 +654,7 @@ class StrandContact:
                 hit &= exempt != 2
                 # held back as far as it goes: only the pinned vertices' residual motion
                 # moves the pair closer (counted, not fixable by the free vertices)
-                stuck = hit & stopped[inv].all(axis=1)
+                stuck = hit & ~_any_column(~stopped[inv])
                 hit &= ~stuck
                 if self.comm.allreduce(int(hit.sum())) == 0:
                     break
@@ -734,7 +728,12 @@ class StrandContact:
         not depend on the partition, and linear momentum is conserved (pinned vertices
         excepted).  Counts and corrections are summed by global vertex in PETSc Vecs
         (off-process vertices travel to their owners); the pair vertices' positions and
-        counts come back through a VecScatter.
+        counts come back through a VecScatter.  Per round, the pairs' distances are one
+        compiled pass over the gathered positions (:func:`compiled_ccd.indexed_distances`),
+        the Vec assemblies carry the hit pairs' vertices only, and the shift and the edge
+        bounds below are one compiled pass on the state array
+        (:func:`compiled_ccd.shift_and_bound`): a round with a few pairs left costs
+        little more than its two scatters.
 
         ccd mode (``edge_bounds``): after each round's corrections, the edges whose
         length left [L (1 - s), L (1 + s)] (L rest, s = :data:`SEPARATION_STRAIN`) are
@@ -750,25 +749,25 @@ class StrandContact:
                 gA, gB = self._pairs(x)[1:3]
                 V, inv = np.unique(np.stack([gA, gA + 1, gB, gB + 1], axis=1), return_inverse=True)
                 inv = inv.reshape(-1, 4)
-            x = x.copy()
             st = self.state.array.reshape(nv, 5)         # x, y, z, 1 / mass, count
+            st[:, :3] = x
             st[:, 3] = self.inverse_mass
+            x = st[:, :3]                                # the rounds move the state's positions
             Vi = V.astype(PETSc.IntType)
             first = below = it = 0
 
-            def add_by_vertex(values):          # (len(V), 4) summed by global vertex
-                self.correction.zeroEntries()
-                self.correction.setValuesBlocked(Vi, values.ravel(), addv=PETSc.InsertMode.ADD_VALUES)
+            def add_by_vertex(rows, values):    # values (len(V), 4), summed by global vertex
+                self.correction.zeroEntries()      # over its rows (the others are zero)
+                self.correction.setValuesBlocked(Vi[rows], values[rows].ravel(),
+                                                 addv=PETSc.InsertMode.ADD_VALUES)
                 self.correction.assemblyBegin()
                 self.correction.assemblyEnd()
                 return self.correction.array.reshape(nv, 4)
 
             with _VertexGather(self.state, V, 5) as vg:
                 for it in range(max_iterations + 1):
-                    st[:, :3] = x
                     Y = vg.gather(self.state).reshape(-1, 5)
-                    P4 = Y[inv, :3]
-                    d = segment_contact.distance(P4) if len(P4) else np.zeros(0)
+                    d = compiled_ccd.indexed_distances(Y, inv)
                     hit = np.flatnonzero(d < 0.5 * (floor + target) * d0)
                     below = self.comm.allreduce(int(np.sum(d < floor * d0 * (1.0 + 1e-3))))
                     if it == 0:
@@ -777,10 +776,11 @@ class StrandContact:
                         break
                     acc = np.zeros((len(V), 4))
                     acc[:, 3] = np.bincount(inv[hit].ravel(), minlength=len(V))
-                    st[:, 4] = add_by_vertex(acc)[:, 3]
+                    rows = np.flatnonzero(acc[:, 3])       # the hit pairs' vertices
+                    st[:, 4] = add_by_vertex(rows, acc)[:, 3]
                     count = vg.gather(self.state).reshape(-1, 5)[:, 4]
                     with collectively(self.comm, "strand contact (separation)"):
-                        dx = segment_contact.separation(P4[hit], Y[inv[hit], 3], target * d0)
+                        dx = segment_contact.separation(Y[inv[hit], :3], Y[inv[hit], 3], target * d0)
                         # at most max_step d0 per pair (a pair with pinned vertices can ask
                         # for more), then / the largest count at its vertices: a vertex then
                         # moves at most max_step d0 per round; one factor per pair keeps
@@ -793,15 +793,15 @@ class StrandContact:
                         for c in range(3):
                             acc[:, c] = np.bincount(inv[hit].ravel(), weights=dx[:, :, c].ravel(),
                                                     minlength=len(V))
-                    shift = add_by_vertex(acc)[:, :3]
-                    x += shift
-                    if self.edge_bounds is not None:
+                    shift = add_by_vertex(rows, acc)
+                    if self.edge_bounds is None:
+                        x += shift[:, :3]
+                    else:
                         # after the first round, only the edges at a vertex this round
                         # moved can have left their bounds
-                        moved = (shift != 0.0).any(axis=1)
-                        check = None if it == 0 else moved[self.seg] | moved[self.seg + 1]
-                        x, _ = bound_edge_lengths(x, self.seg, self.seg_colour, *self.edge_bounds,
-                                                  self.inverse_mass, check, EDGE_SWEEPS)
+                        compiled_ccd.shift_and_bound(x, shift, self.seg, self.seg_colour, *self.edge_bounds,
+                                                     self.inverse_mass, it == 0, EDGE_SWEEPS)
+            x = x.copy()
         self.last_separation = (first, it, below)
         return x, first, it
 
@@ -922,6 +922,15 @@ def _warm_up_in_turn(comm):
     if comm.rank != 0:
         compiled_ccd.warm_up()
     return time.perf_counter() - t0
+
+
+def _any_column(flags):
+    """Rows of flags (n, k) bool with a True: ``flags.any(axis=1)``, column by column
+    (NumPy's reduction along a short last axis is several times slower)."""
+    out = flags[:, 0].copy()
+    for c in range(1, flags.shape[1]):
+        out |= flags[:, c]
+    return out
 
 
 def _held_back(start, end, beta):

@@ -54,8 +54,9 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   iteration; its calls are collective, so they run outside the rank-local guarded
   blocks.  After the Newton iterations the active pairs and the minimum segment
   distance are measured; pairs closer than half the thickness are pushed apart
-  (``physics.strand_separation``, :meth:`StrandContact.separate`, at most 3 rounds of
-  separate + measure; the pairs found are counted in ``contact_separated``), and the
+  (``physics.strand_separation``, :meth:`StrandContact.separate`, at most
+  :data:`SEPARATION_ROUNDS` Jacobi rounds over at most 3 calls, each followed by a
+  measure; the pairs found are counted in ``contact_separated``), and the
   figures at the final positions are recorded (``contact_pairs``,
   ``contact_deep_pairs`` closer than half the thickness, ``contact_min_distance``).
 * ``physics.strand_contact_mode = "ccd"``: the first iterate, every Newton update
@@ -341,47 +342,63 @@ class Integrator:
             n_sep = 0
             if cfg.physics.strand_separation:
                 self.strand.last_separation = (0, 0, 0)
-                # a separation's corrections can bring pairs it did not see within d0/2,
-                # and its Jacobi rounds are capped: re-measure, and separate again if so
-                for _ in range(3):
-                    if deep == 0:
-                        break
-                    x, n, _ = self.strand.separate(x)
-                    n_sep = max(n_sep, n)
-                    pairs, deep, dmin = self.strand.measure(x)
+                # ccd mode: the frame end's path check and measure come next
+                x, pairs, deep, dmin, n_sep = self._separate(x, pairs, deep, dmin, n_sep,
+                                                             measure=self.strand.mode != "ccd")
             if self.strand.mode == "ccd":
-                x, pairs, deep, dmin, n_sep = self._collision_free_end(x_old, x, motion, deep, n_sep)
+                x, pairs, deep, dmin, n_sep = self._collision_free_end(x_old, x, motion, n_sep)
             contact = pairs, deep, dmin, n_sep
         self.v = (x - x_old) / dt
         self.x = x
         self.t = self.t_next
         return _Solve(n_it, converged, increment, fallbacks, contact)
 
-    def _collision_free_end(self, x_old, x, motion, deep, n_sep):
+    def _collision_free_end(self, x_old, x, motion, n_sep):
         """ccd mode, the frame's end: the path check (the straight path x_old -> x must
         not cross, :meth:`StrandContact.collision_free_frame`) and the separation
         alternate, at most :data:`FRAME_END_ROUNDS` rounds, the path check last: a pair
         the path check holds back ends where its path stopped (at its floor, 0.05 d0),
         and the separation pushes it apart again before the next frame starts from it
         (one round halved such a pair's distance every frame, docs/contact.md).  Stops
-        early once a round changes nothing (no deep pair left to separate, or no vertex
-        held back).  Returns (x, pairs, deep, min distance, pairs separated)."""
+        early once no pair is deep after a path check (the separation calls are not
+        followed by a measure of their own: the one after the path check finds what
+        they left, from the path check's candidates, without a broad phase).  Returns
+        (x, pairs, deep, min distance, pairs separated)."""
         strand = self.strand
-        separation = self.cfg.physics.strand_separation
-        for rnd in range(FRAME_END_ROUNDS):
-            if rnd > 0:
-                if not separation or deep == 0:
-                    break
-                for _ in range(3):
-                    if deep == 0:
-                        break
-                    x, n, _ = strand.separate(x)
-                    n_sep = max(n_sep, n)
-                    pairs, deep, dmin = strand.measure(x)
-            x, held = strand.collision_free_frame(x_old, x, motion)
-            pairs, deep, dmin = strand.measure(x)
-            if held == 0:
+        x = strand.collision_free_frame(x_old, x, motion)[0]
+        pairs, deep, dmin = strand.measure(x)
+        for _ in range(FRAME_END_ROUNDS - 1):
+            if not self.cfg.physics.strand_separation or deep == 0:
                 break
+            x, _, _, _, n_sep = self._separate(x, pairs, deep, dmin, n_sep, measure=False)
+            x = strand.collision_free_frame(x_old, x, motion)[0]
+            pairs, deep, dmin = strand.measure(x)
+        return x, pairs, deep, dmin, n_sep
+
+    def _separate(self, x, pairs, deep, dmin, n_sep, measure=True):
+        """The separation of the pairs closer than d0 / 2 (``deep`` of them): at most
+        :data:`SEPARATION_ROUNDS` Jacobi rounds in all, over at most 3 calls of
+        :meth:`StrandContact.separate`, each followed by a measure.  A call works on
+        the pairs closer than d0 at its start and stops when none of them is deep; its
+        corrections can bring pairs it did not see within d0 / 2, which the measure
+        finds and the next call takes (3 calls of 20 rounds each paid a broad phase
+        per call for a few stubborn pairs, docs/contact.md).  Returns (x, pairs, deep,
+        min distance, pairs separated).  ``measure=False`` (ccd mode, where the frame
+        end's path check and its measure follow, which find what a call left): one call,
+        no measure, and pairs, deep and min distance come back as None."""
+        if not measure:
+            if deep:
+                x, n, _ = self.strand.separate(x, max_iterations=SEPARATION_ROUNDS)
+                n_sep = max(n_sep, n)
+            return x, None, None, None, n_sep
+        budget = SEPARATION_ROUNDS
+        for _ in range(3):
+            if deep == 0 or budget <= 0:
+                break
+            x, n, rounds = self.strand.separate(x, max_iterations=budget)
+            n_sep = max(n_sep, n)
+            budget -= max(rounds, 1)
+            pairs, deep, dmin = self.strand.measure(x)
         return x, pairs, deep, dmin, n_sep
 
     def update(self, x, step, exact=False):
@@ -690,6 +707,8 @@ EXACT_HALVINGS = 6
 #: on the 10-wisp demo hairball and smash was within the tolerance of the converged
 #: solution, the worst at 0.58 of it, docs/newton.md "Eighth round")
 QUADRATIC_SAFETY = 10.0
+#: strand contact: Jacobi rounds of the end-of-frame separation in all (Integrator._separate)
+SEPARATION_ROUNDS = 60
 #: strand contact, ccd mode: rounds of separation + frame-path check at a frame's end
 #: (Integrator._collision_free_end, docs/contact.md "Over a whole run")
 FRAME_END_ROUNDS = 4

@@ -627,7 +627,55 @@ def _previews(cfg, out, h5_path, writer, frames, title):
 
 
 def _progress(comm, args, frames, name):
-    if comm.rank != 0 or args.quiet or not sys.stderr.isatty() or frames == 0:
+    """Rank 0's progress on stderr: a bar on a terminal, plain lines in a batch log."""
+    if comm.rank != 0 or args.quiet or frames == 0:
         return None
+    if not sys.stderr.isatty():
+        return LogProgress(frames, name)
     from tqdm import tqdm
     return tqdm(total=frames, unit="frame", desc=name, dynamic_ncols=True, file=sys.stderr)
+
+
+class LogProgress:
+    """Progress for a batch job whose stderr is a file: one line after the first frame,
+    then at most one every ``interval`` seconds of wall time, and one after the last
+    (frames done, seconds per frame so far, the time left at that rate, and the last
+    frame's postfix).  The two calls of tqdm that the frame loop makes, and ``close``."""
+
+    def __init__(self, total, name, interval=30.0, stream=None, clock=time.perf_counter):
+        self.total, self.name, self.interval = int(total), name, float(interval)
+        self.stream, self.clock = stream, clock
+        self.done, self.postfix = 0, ""
+        self.t0 = self.last = clock()
+
+    def set_postfix_str(self, text, refresh=False):
+        """The text that ends the next line (tqdm's call; ``refresh`` is ignored)."""
+        self.postfix = text
+
+    def update(self, n=1):
+        """n more frames done: print a line if one is due."""
+        self.done += n
+        now = self.clock()
+        if self.done == 1 or self.done >= self.total or now - self.last >= self.interval:
+            self.last = now
+            per = (now - self.t0) / self.done
+            left = per * (self.total - self.done)
+            tail = f", {self.postfix}" if self.postfix else ""
+            print(f"{self.name}: frame {self.done}/{self.total} ({100 * self.done // self.total}%), "
+                  f"{_per_frame_text(per)} per frame, {_clock_text(left)} left{tail}",
+                  file=self.stream or sys.stderr, flush=True)
+
+    def close(self):
+        """Nothing to close (tqdm's call)."""
+
+
+def _per_frame_text(seconds):
+    return f"{seconds:.3g} s" if seconds < 60 else _clock_text(seconds)
+
+
+def _clock_text(seconds):
+    """``1 h 02 min``, ``3 min 05 s`` or ``42 s``."""
+    s = int(round(seconds))
+    if s >= 3600:
+        return f"{s // 3600} h {s % 3600 // 60:02d} min"
+    return f"{s // 60} min {s % 60:02d} s" if s >= 60 else f"{s} s"

@@ -32,6 +32,8 @@ MAX_STEPS = 10000
 _TINY = float(np.finfo(np.float64).tiny)
 #: boxes touching more grid cells than this are tested against all boxes (box_pairs)
 BIG_CELLS = 512
+#: box_pairs' grid cell: this many times the median box extent
+CELL_FACTOR = 2.0
 
 
 @_jit
@@ -181,6 +183,24 @@ def limit_pairs(S, E, inv, redo, min_distance, scale, tau, factor, max_steps=MAX
 
 
 @_jit
+def _indexed_distances(Y, inv, out):
+    for p in range(len(inv)):
+        q = inv[p]
+        out[p] = _vdistance((Y[q[0], 0], Y[q[0], 1], Y[q[0], 2]), (Y[q[1], 0], Y[q[1], 1], Y[q[1], 2]),
+                            (Y[q[2], 0], Y[q[2], 1], Y[q[2], 2]), (Y[q[3], 0], Y[q[3], 1], Y[q[3], 2]))
+
+
+def indexed_distances(Y, inv):
+    """Distances (k,) of the segment pairs whose four points are rows ``inv`` (k, 4) of
+    Y (n, c >= 3; its first three columns are the positions): segment A = points 0, 1,
+    B = points 2, 3; the clamped algorithm and parallel rule of
+    :func:`segment_contact.closest_points`, without per-pair copies."""
+    out = np.empty(len(inv))
+    _indexed_distances(np.ascontiguousarray(Y, np.float64), np.ascontiguousarray(inv, np.int64), out)
+    return out
+
+
+@_jit
 def _grown_overlap(lo, hi, a, b, grow):
     """Closed boxes a and b of lo, hi, each grown by ``grow`` (< 0: shrunk), overlap."""
     for c in range(3):
@@ -267,8 +287,39 @@ def warm_up():
     lo, hi = field_boxes(S, S, seg, 0.1, 0.01)
     order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool))
     pairs_overlap(seg[:1], seg[1:], lo, hi, 0.01)
+    indexed_distances(S, np.arange(4, dtype=np.int64).reshape(1, 4))
+    corner_cells(S, S + 1.0, np.zeros(3), 0.5, np.array([4, 4, 4]))
+    state = np.zeros((4, 5))
+    shift_and_bound(state[:, :3], state[:, 1:], seg, np.zeros(2, np.int64), np.ones(2), np.ones(2), np.ones(4),
+                    False, 1)
     smooth_fractions(np.ones(4), S, seg, np.ones(2), np.ones(4, bool), 0.02)
     bound_edge_lengths(S, seg, np.zeros(2, np.int64), np.ones(2), np.ones(2), np.ones(4), None, 1)
+
+
+@_jit
+def _corner_cells(lo, hi, origin, cell, dims, out):
+    for i in range(lo.shape[0]):
+        a = np.empty(3, np.int64)
+        b = np.empty(3, np.int64)
+        for k in range(3):
+            a[k] = min(max(int(math.floor((lo[i, k] - origin[k]) / cell)), 0), dims[k] - 1)
+            b[k] = min(max(int(math.floor((hi[i, k] - origin[k]) / cell)), 0), dims[k] - 1)
+        for c in range(8):
+            v0 = b[0] if c & 1 else a[0]
+            v1 = b[1] if c & 2 else a[1]
+            v2 = b[2] if c & 4 else a[2]
+            out[i, c] = (v0 * dims[1] + v1) * dims[2] + v2
+
+
+def corner_cells(lo, hi, origin, cell, dims):
+    """Flat ids (n, 8) of the grid cells holding the 8 corners of the boxes lo, hi (n, 3)
+    (corner c takes hi on axis k where bit k of c is set), on the grid of cubic cells of
+    side ``cell`` from ``origin`` (3,), ``dims`` (3,) cells per axis, clamped to it."""
+    lo = np.ascontiguousarray(lo, np.float64)
+    out = np.empty((len(lo), 8), np.int64)
+    _corner_cells(lo, np.ascontiguousarray(hi, np.float64), np.ascontiguousarray(origin, np.float64),
+                  float(cell), np.ascontiguousarray(dims, np.int64), out)
+    return out
 
 
 # ---------------------------------------------------------------- broad phase
@@ -417,7 +468,7 @@ def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0):
     ext = hi - lo
     origin, top = lo.min(axis=0), hi.max(axis=0)
     span = float((top - origin).max())
-    cell = max(2.0 * float(np.median(np.maximum(np.maximum(ext[:, 0], ext[:, 1]), ext[:, 2]))),
+    cell = max(CELL_FACTOR * float(np.median(np.maximum(np.maximum(ext[:, 0], ext[:, 1]), ext[:, 2]))),
                span / 1024.0, 1e-12)
     dims = (np.floor((top - origin) / cell).astype(np.int64) + 1)
     g = np.arange(n, dtype=np.int64) if group is None else np.ascontiguousarray(group, np.int64)
@@ -475,15 +526,39 @@ def smooth_fractions(beta, F, seg, rest_length, free, strain):
 
 
 @_jit
+def _flag_edge(e, check, todo, n_todo, colour):
+    """Queue edge e on its colour's list (once)."""
+    if not check[e]:
+        check[e] = True
+        c = colour[e]
+        todo[c, n_todo[c]] = e
+        n_todo[c] += 1
+
+
+@_jit
 def _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps):
     m = len(seg)
+    # work lists per colour: a half sweep visits the edges queued for it, not all m
+    todo = np.empty((2, m), np.int64)
+    n_todo = np.zeros(2, np.int64)
+    for e in range(m):
+        if check[e]:
+            c = colour[e]
+            todo[c, n_todo[c]] = e
+            n_todo[c] += 1
+    work = np.empty(m, np.int64)
     sweeps = 0
-    while sweeps < max_sweeps and check.any():
+    while sweeps < max_sweeps and n_todo[0] + n_todo[1] > 0:
         for c in (0, 1):
-            for e in range(m):
-                if not check[e] or colour[e] != c:
-                    continue
+            # the edges of one colour share no vertex: their order does not matter
+            n = n_todo[c]
+            work[:n] = todo[c, :n]
+            n_todo[c] = 0
+            for k in range(n):
+                e = work[k]
                 check[e] = False
+            for k in range(n):
+                e = work[k]
                 a = seg[e]
                 d = (x[a + 1, 0] - x[a, 0], x[a + 1, 1] - x[a, 1], x[a + 1, 2] - x[a, 2])
                 length = _vnorm(d)
@@ -491,16 +566,45 @@ def _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps)
                     continue
                 wa, wb = inverse_mass[a], inverse_mass[a + 1]
                 s = (length - min(max(length, lo[e]), hi[e])) / (length * (wa + wb))
-                for k in range(3):
-                    x[a, k] += wa * (d[k] * s)
-                    x[a + 1, k] -= wb * (d[k] * s)
+                for k3 in range(3):
+                    x[a, k3] += wa * (d[k3] * s)
+                    x[a + 1, k3] -= wb * (d[k3] * s)
                 # only the edges before and after along the wisp (the other colour) moved
                 if e > 0 and seg[e - 1] == a - 1 and inverse_mass[a - 1] + inverse_mass[a] > 0.0:
-                    check[e - 1] = True
+                    _flag_edge(e - 1, check, todo, n_todo, colour)
                 if e + 1 < m and seg[e + 1] == a + 1 and inverse_mass[a + 1] + inverse_mass[a + 2] > 0.0:
-                    check[e + 1] = True
+                    _flag_edge(e + 1, check, todo, n_todo, colour)
         sweeps += 1
     return sweeps
+
+
+@_jit
+def _shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, all_edges, max_sweeps):
+    nv, m = len(x), len(seg)
+    moved = np.zeros(nv, np.bool_)
+    for v in range(nv):
+        if shift[v, 0] != 0.0 or shift[v, 1] != 0.0 or shift[v, 2] != 0.0:
+            moved[v] = True
+            for k in range(3):
+                x[v, k] += shift[v, k]
+    check = np.zeros(m, np.bool_)
+    for e in range(m):
+        a = seg[e]
+        if (all_edges or moved[a] or moved[a + 1]) and inverse_mass[a] + inverse_mass[a + 1] > 0.0:
+            check[e] = True
+    return _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps)
+
+
+def shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, all_edges, max_sweeps):
+    """The separation's round update, in place: x (nv, 3) += shift (nv, >= 3; its first
+    three columns), then :func:`bound_edge_lengths` over every movable edge
+    (``all_edges``) or those at a vertex the shift moved.  x may be a strided view (the
+    first columns of the separation's state array).  Returns the sweeps."""
+    if x.dtype != np.float64 or x.ndim != 2 or x.shape[1] != 3 or len(shift) != len(x):
+        raise TypeError("shift_and_bound: x must be a float64 (nv, 3) array, shift (nv, >= 3)")
+    return _shift_and_bound(x, shift, np.ascontiguousarray(seg, np.int64), np.ascontiguousarray(colour, np.int64),
+                            np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
+                            np.ascontiguousarray(inverse_mass, np.float64), bool(all_edges), int(max_sweeps))
 
 
 def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps):

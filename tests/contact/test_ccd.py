@@ -316,3 +316,41 @@ def test_compiled_field_boxes_and_candidate_order_match_numpy():
     want = [(min(a, b), max(a, b)) in listed for a, b in k]
     np.testing.assert_array_equal(ov[~same_wisp], np.array(want)[~same_wisp])
     assert 0 < ov.sum() < len(ov)
+
+
+def test_indexed_distances_match_the_numpy_distance():
+    """The separation's compiled distance pass against segment_contact.distance: random,
+    parallel, touching, crossing and zero-length segments, pairs sharing points."""
+    S, E = random_motions(400, 3)
+    X = np.concatenate([S, E, S[:, [0, 1, 0, 1]]])            # the last block: A on itself
+    X[:50, 3] = X[:50, 2]                                       # zero-length B
+    X[50:60, 2:] = X[50:60, :2] + 1e-9                          # parallel, almost touching
+    Y = np.concatenate([X.reshape(-1, 3), np.ones((4 * len(X), 2))], axis=1)   # (n, 5) as separate's
+    inv = np.arange(4 * len(X)).reshape(-1, 4)
+    rng = np.random.default_rng(4)
+    inv = np.concatenate([inv, rng.integers(0, len(Y), size=(300, 4))])       # shared points
+    d = compiled_ccd.indexed_distances(Y, inv)
+    ref = distance(Y[inv, :3])
+    assert d.shape == (len(inv),) and np.all(np.isfinite(d))
+    assert np.allclose(d, ref, rtol=1e-12, atol=1e-13)
+    assert np.all(d[len(X) - len(S):len(X)] == 0.0)            # a segment against itself
+
+
+def test_corner_cells_match_the_numpy_grid():
+    """The occupancy grid's compiled corner cells against the NumPy formula they
+    replaced: boxes inside, on cell faces and outside the grid (clamped)."""
+    rng = np.random.default_rng(11)
+    origin, cell, dims = np.array([-1.0, 0.5, 2.0]), 0.25, np.array([7, 5, 9])
+    lo = origin + rng.uniform(-0.5, 2.5, size=(500, 3))
+    hi = lo + rng.uniform(0.0, 0.6, size=(500, 3))
+    lo[:50] = origin + cell * rng.integers(0, 6, size=(50, 3))         # on cell faces
+    top = dims - 1
+    a = np.clip(np.floor((lo - origin) / cell).astype(np.int64), 0, top)
+    b = np.clip(np.floor((hi - origin) / cell).astype(np.int64), 0, top)
+    want = np.empty((len(lo), 8), np.int64)
+    for c in range(8):
+        v = [b[:, k] if (c >> k) & 1 else a[:, k] for k in range(3)]
+        want[:, c] = (v[0] * dims[1] + v[1]) * dims[2] + v[2]
+    got = compiled_ccd.corner_cells(lo, hi, origin, cell, dims)
+    assert np.array_equal(got, want)
+    assert got.min() == 0 and got.max() == dims.prod() - 1             # clamped at both ends

@@ -69,3 +69,31 @@ def test_bound_edge_lengths_equals_the_red_black_sweeps(seed):
     for w in unpinned:
         v = slice(offsets[w], offsets[w + 1])
         np.testing.assert_allclose((m[v, None] * (got - x)[v]).sum(axis=0), 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("first_round", [True, False])
+def test_shift_and_bound_is_the_shift_then_the_edge_pass(first_round):
+    """The separation's fused round update, in place on the positions' columns of its
+    (nv, 5) state array: equal bit for bit to x + shift followed by bound_edge_lengths
+    over all movable edges (first round) or the edges at a shifted vertex."""
+    from lc_petsc.elements.compiled_ccd import shift_and_bound
+    rng = np.random.default_rng(7)
+    offsets, seg, colour, free = strands(rng)
+    nv = offsets[-1]
+    inverse_mass = np.where(free, rng.uniform(0.5, 2.0, nv), 0.0)
+    x = np.cumsum(rng.normal(size=(nv, 3)) * 0.5, axis=0)
+    L = np.linalg.norm(x[seg + 1] - x[seg], axis=1)
+    x += rng.normal(size=(nv, 3)) * rng.choice([0.0, 0.05], size=(nv, 1))
+    shift = np.zeros((nv, 4))
+    moved = rng.random(nv) < 0.1
+    shift[moved, :3] = rng.normal(scale=0.2, size=(moved.sum(), 3)) * inverse_mass[moved, None]
+    moved = (shift[:, :3] != 0.0).any(axis=1)      # pinned vertices do not move
+    shift[:, 3] = 5.0                              # a count column, not a position
+    state = np.zeros((nv, 5))
+    state[:, :3] = x
+    n = shift_and_bound(state[:, :3], shift, seg, colour, 0.98 * L, 1.02 * L, inverse_mass, first_round, 50)
+    check = None if first_round else moved[seg] | moved[seg + 1]
+    want, n_ref = bound_edge_lengths(x + shift[:, :3], seg, colour, 0.98 * L, 1.02 * L, inverse_mass, check, 50)
+    assert n == n_ref
+    assert np.array_equal(state[:, :3], want) and np.all(state[:, 3:] == 0.0)
+    assert not np.array_equal(want, x + shift[:, :3])      # the edge pass did something

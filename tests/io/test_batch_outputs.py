@@ -64,6 +64,32 @@ def test_demo_end_to_end(demo):
     assert p.stdout.count("lc_petsc: ") == 1 and "converged: yes" in p.stdout
     assert "per frame" in p.stdout and "phases" in p.stdout
     assert "Traceback" not in p.stderr
+    # a batch log (stderr not a terminal) shows progress as plain lines, rank 0 only
+    lines = [ln for ln in p.stderr.splitlines() if " per frame, " in ln]
+    assert lines[0].startswith(f"hairball_demo: frame 1/{DEMO_FRAMES} (25%), ")
+    assert lines[-1].startswith(f"hairball_demo: frame {DEMO_FRAMES}/{DEMO_FRAMES} (100%), ")
+    assert lines[-1].endswith("0 s left, Newton 3, KSP " + lines[-1].rsplit("KSP ", 1)[1])
+
+
+def test_log_progress_lines_at_most_every_interval():
+    import io
+
+    from lc_petsc.job import LogProgress
+    now = [0.0]
+    out = io.StringIO()
+    bar = LogProgress(100, "scene", interval=30.0, stream=out, clock=lambda: now[0])
+    for k in range(100):
+        now[0] += 2.0                       # 2 s per frame: a line every 15 frames
+        bar.set_postfix_str(f"Newton 3, KSP {k}")
+        bar.update(1)
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "scene: frame 1/100 (1%), 2 s per frame, 3 min 18 s left, Newton 3, KSP 0"
+    assert [int(ln.split()[2].split("/")[0]) for ln in lines] == [1, 16, 31, 46, 61, 76, 91, 100]
+    assert lines[-1] == "scene: frame 100/100 (100%), 2 s per frame, 0 s left, Newton 3, KSP 99"
+    slow = LogProgress(3, "s", interval=30.0, stream=out, clock=lambda: now[0])
+    now[0] += 4000.0
+    slow.update(1)
+    assert out.getvalue().splitlines()[-1] == "s: frame 1/3 (33%), 1 h 06 min per frame, 2 h 13 min left"
 
 
 def test_frames_file_layout(demo):

@@ -340,23 +340,22 @@ class Integrator:
         if self.strand is not None:
             pairs, deep, dmin = self.strand.measure(x)
             n_sep = 0
-            if cfg.physics.strand_separation:
-                self.strand.last_separation = (0, 0, 0)
-                # ccd mode: the frame end's path check and measure come next
-                x, pairs, deep, dmin, n_sep = self._separate(x, pairs, deep, dmin, n_sep,
-                                                             measure=self.strand.mode != "ccd")
+            self.strand.last_separation = (0, 0, 0)
             if self.strand.mode == "ccd":
-                x, pairs, deep, dmin, n_sep = self._collision_free_end(x_old, x, motion, n_sep)
+                x, pairs, deep, dmin, n_sep = self._collision_free_end(x_old, x, motion, deep)
+            elif cfg.physics.strand_separation:
+                x, pairs, deep, dmin, n_sep = self._separate(x, pairs, deep, dmin)
             contact = pairs, deep, dmin, n_sep
         self.v = (x - x_old) / dt
         self.x = x
         self.t = self.t_next
         return _Solve(n_it, converged, increment, fallbacks, contact)
 
-    def _collision_free_end(self, x_old, x, motion, n_sep):
+    def _collision_free_end(self, x_old, x, motion, deep):
         """ccd mode, the frame's end: the path check (the straight path x_old -> x must
         not cross, :meth:`StrandContact.collision_free_frame`) and the separation
-        alternate, at most :data:`FRAME_END_ROUNDS` rounds, the path check last: a pair
+        alternate, at most :data:`FRAME_END_ROUNDS` rounds after a first separation of the
+        ``deep`` pairs of the Newton iterate, the path check last: a pair
         the path check holds back ends where its path stopped (at its floor, 0.05 d0),
         and the separation pushes it apart again before the next frame starts from it
         (one round halved such a pair's distance every frame, docs/contact.md).  Stops
@@ -365,32 +364,30 @@ class Integrator:
         they left, from the path check's candidates, without a broad phase).  Returns
         (x, pairs, deep, min distance, pairs separated)."""
         strand = self.strand
-        x = strand.collision_free_frame(x_old, x, motion)[0]
-        pairs, deep, dmin = strand.measure(x)
-        for _ in range(FRAME_END_ROUNDS - 1):
-            if not self.cfg.physics.strand_separation or deep == 0:
+        separation = self.cfg.physics.strand_separation
+        n_sep = 0
+        for rnd in range(FRAME_END_ROUNDS):
+            if rnd > 0 and (not separation or deep == 0):
                 break
-            x, _, _, _, n_sep = self._separate(x, pairs, deep, dmin, n_sep, measure=False)
+            if separation and deep:
+                # one call of all the rounds; no measure of its own (see above)
+                x, n, _ = strand.separate(x, max_iterations=SEPARATION_ROUNDS)
+                n_sep = max(n_sep, n)
             x = strand.collision_free_frame(x_old, x, motion)[0]
             pairs, deep, dmin = strand.measure(x)
         return x, pairs, deep, dmin, n_sep
 
-    def _separate(self, x, pairs, deep, dmin, n_sep, measure=True):
+    def _separate(self, x, pairs, deep, dmin):
         """The separation of the pairs closer than d0 / 2 (``deep`` of them): at most
         :data:`SEPARATION_ROUNDS` Jacobi rounds in all, over at most 3 calls of
         :meth:`StrandContact.separate`, each followed by a measure.  A call works on
         the pairs closer than d0 at its start and stops when none of them is deep; its
         corrections can bring pairs it did not see within d0 / 2, which the measure
         finds and the next call takes (3 calls of 20 rounds each paid a broad phase
-        per call for a few stubborn pairs, docs/contact.md).  Returns (x, pairs, deep,
-        min distance, pairs separated).  ``measure=False`` (ccd mode, where the frame
-        end's path check and its measure follow, which find what a call left): one call,
-        no measure, and pairs, deep and min distance come back as None."""
-        if not measure:
-            if deep:
-                x, n, _ = self.strand.separate(x, max_iterations=SEPARATION_ROUNDS)
-                n_sep = max(n_sep, n)
-            return x, None, None, None, n_sep
+        per call for a few stubborn pairs, docs/contact.md).  Penalty mode; ccd mode
+        separates inside :meth:`_collision_free_end`.  Returns (x, pairs, deep, min
+        distance, pairs separated)."""
+        n_sep = 0
         budget = SEPARATION_ROUNDS
         for _ in range(3):
             if deep == 0 or budget <= 0:

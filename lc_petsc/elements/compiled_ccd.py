@@ -297,17 +297,22 @@ def warm_up():
 
 
 @_jit
+def _cell_of(p, i, origin, cell, dims):
+    """The cell (3 ints) holding point p[i], clamped to the grid."""
+    return (min(max(int(math.floor((p[i, 0] - origin[0]) / cell)), 0), dims[0] - 1),
+            min(max(int(math.floor((p[i, 1] - origin[1]) / cell)), 0), dims[1] - 1),
+            min(max(int(math.floor((p[i, 2] - origin[2]) / cell)), 0), dims[2] - 1))
+
+
+@_jit
 def _corner_cells(lo, hi, origin, cell, dims, out):
     for i in range(lo.shape[0]):
-        a = np.empty(3, np.int64)
-        b = np.empty(3, np.int64)
-        for k in range(3):
-            a[k] = min(max(int(math.floor((lo[i, k] - origin[k]) / cell)), 0), dims[k] - 1)
-            b[k] = min(max(int(math.floor((hi[i, k] - origin[k]) / cell)), 0), dims[k] - 1)
+        a0, a1, a2 = _cell_of(lo, i, origin, cell, dims)
+        b0, b1, b2 = _cell_of(hi, i, origin, cell, dims)
         for c in range(8):
-            v0 = b[0] if c & 1 else a[0]
-            v1 = b[1] if c & 2 else a[1]
-            v2 = b[2] if c & 4 else a[2]
+            v0 = b0 if c & 1 else a0
+            v1 = b1 if c & 2 else a1
+            v2 = b2 if c & 4 else a2
             out[i, c] = (v0 * dims[1] + v1) * dims[2] + v2
 
 
@@ -546,19 +551,14 @@ def _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps)
             c = colour[e]
             todo[c, n_todo[c]] = e
             n_todo[c] += 1
-    work = np.empty(m, np.int64)
     sweeps = 0
     while sweeps < max_sweeps and n_todo[0] + n_todo[1] > 0:
         for c in (0, 1):
-            # the edges of one colour share no vertex: their order does not matter
-            n = n_todo[c]
-            work[:n] = todo[c, :n]
-            n_todo[c] = 0
-            for k in range(n):
-                e = work[k]
+            # the edges of one colour share no vertex (their order does not matter), and
+            # a projection queues edges of the other colour only: this list stays put
+            for k in range(n_todo[c]):
+                e = todo[c, k]
                 check[e] = False
-            for k in range(n):
-                e = work[k]
                 a = seg[e]
                 d = (x[a + 1, 0] - x[a, 0], x[a + 1, 1] - x[a, 1], x[a + 1, 2] - x[a, 2])
                 length = _vnorm(d)
@@ -574,6 +574,7 @@ def _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps)
                     _flag_edge(e - 1, check, todo, n_todo, colour)
                 if e + 1 < m and seg[e + 1] == a + 1 and inverse_mass[a + 1] + inverse_mass[a + 2] > 0.0:
                     _flag_edge(e + 1, check, todo, n_todo, colour)
+            n_todo[c] = 0
         sweeps += 1
     return sweeps
 

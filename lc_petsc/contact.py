@@ -23,6 +23,8 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    search is exact, not predictive.  In ccd mode every position the contact sees comes
    out of a limiter call, whose candidates (reach d0) and path end cover it: the pairs
    are taken from there instead (:meth:`StrandContact._reached`, the same pairs).
+   The frame end's path checks after the first reuse the first one's ghosts and box
+   pairs while their boxes stay within a skin (:data:`LIMITER_SKIN`).
    Pairs of the same wisp are excluded, unless ``self_contact``: then only neighbours
    along the strand are (:data:`NEIGHBOUR_GAP`; docs/contact.md, "Self-contact").
 4. **Narrow phase.** :mod:`lc_petsc.elements.segment_contact` (the penalty; or the
@@ -93,6 +95,11 @@ FRACTION_STRAIN = 0.02
 SEPARATION_STRAIN = FRACTION_STRAIN
 #: red-black sweeps of :func:`bound_edge_lengths` per separation round at most
 EDGE_SWEEPS = 50
+#: the frame path checks (:meth:`StrandContact.collision_free_frame`) reuse their ghosts
+#: and candidate pairs while every segment's box stays inside its box of the call that
+#: found them grown by LIMITER_SKIN d0: the frame end's checks after the first move
+#: little (the separation's pushes, the holding back)
+LIMITER_SKIN = 0.5
 MAX_RIGID_DEGREES = float(np.degrees(2.0 * np.arcsin(0.5 * MAX_LIPSCHITZ)))
 NB = 35          # per segment row: g0 g1 (6) H00 H01 H11 (27) count_diag count_offdiag (2)
 
@@ -230,6 +237,7 @@ class StrandContact:
         wid = np.repeat(np.arange(scene.n_wisps), np.diff(scene.offsets))
         self.seg_wisp = (scene.first_wisp + wid[self.seg]).astype(np.int64)
         self.seg_gv = (scene.first_vertex + self.seg).astype(np.int64)
+        self.seg_ends = np.stack([self.seg, self.seg + 1], axis=1)
         free = ~scene.pinned
         self.seg_free = np.stack([free[self.seg], free[self.seg + 1]], axis=1)
         self.N = int(scene.n_vertices_global)
@@ -269,6 +277,9 @@ class StrandContact:
         self.cross_pairs = FrameTally()
         self._pairs_cache = None          # (x, active, pairs) of the last _pairs call
         self._limited = None              # the last limiter call's end and candidates (_reached)
+        self._path_cache = None           # the frame path checks' ghosts and candidates (_safe_fractions)
+        self.path_checks_reused = 0       # frame path checks that reused them (of the run)
+        self._send_masks = []             # the last _gather_segments' sent segments, per rank
         self.last_separation = (0, 0, 0)
         if mode not in MODES:
             raise ValueError(f"strand contact mode {mode!r}: use one of {', '.join(MODES)}")
@@ -345,7 +356,7 @@ class StrandContact:
         array of the list (lo, hi) for the ghosts too."""
         comm = self.comm
         d0 = self.d0 if inflate is None else float(inflate)
-        Ps = [np.stack([a[self.seg], a[self.seg + 1]], axis=1) for a in (x, *extra)]
+        Ps = [a[self.seg_ends] for a in (x, *extra)]
         if boxes is None:
             allP = Ps[0] if len(Ps) == 1 else np.concatenate(Ps, axis=1)
             lo, hi = allP.min(axis=1), allP.max(axis=1)
@@ -355,6 +366,7 @@ class StrandContact:
         # Occupancy (see the module doc and _OccupancyGrid): the cells touched by this
         # rank's boxes inflated by d0, as sorted flat ids
         send = [None]
+        self._send_masks = []
         if comm.size > 1:
             grid = _OccupancyGrid(lo, hi, d0, comm)
             own = np.zeros(0, np.int32) if grid.empty else \
@@ -366,8 +378,10 @@ class StrandContact:
         for q in range(comm.size if comm.size > 1 else 0):
             if q >= comm.rank or grid.empty:
                 send.append(None)
+                self._send_masks.append(None)
                 continue
             m = _any_column(grid.mask(occ[q])[keys])
+            self._send_masks.append(m)
             send.append(np.concatenate([self.seg_gv[m, None], self.seg_wisp[m, None],
                                         self.seg_free[m], self.P_rest[m].reshape(-1, 6)]
                                        + [P[m].reshape(-1, 6) for P in Ps], axis=1))
@@ -387,6 +401,19 @@ class StrandContact:
         free = np.concatenate([self.seg_free, G[:, 2:4].astype(bool)])
         return Pall, Prest, gv, wisp, free, np.concatenate(owner), len(self.seg)
 
+    def _exchange(self, Ps, masks):
+        """The arrays Ps (each (m, 2, 3), this rank's segments) with the ghosts' rows
+        appended, for the send masks ``masks`` of an earlier :meth:`_gather_segments`
+        call on every rank (the ghosts in that call's order)."""
+        comm = self.comm
+        if comm.size == 1:
+            return Ps
+        send = [None if m is None else np.concatenate([P[m].reshape(-1, 6) for P in Ps], axis=1)
+                for m in masks]
+        parts = [r for r in comm.alltoall(send) if r is not None and len(r)]
+        G = np.concatenate(parts) if parts else np.zeros((0, 6 * len(Ps)))
+        return [np.concatenate([P, G[:, 6 * k:6 * k + 6].reshape(-1, 2, 3)]) for k, P in enumerate(Ps)]
+
     def self_pairs(self, n):
         """``box_pairs``' keywords for the first n segments of :meth:`_gather_segments`
         (local, then ghosts): with self-contact, the segments' rest arc lengths (0 for
@@ -405,11 +432,8 @@ class StrandContact:
         (:func:`compiled_ccd.box_pairs`, exact)."""
         if len(P) < 2:
             return np.zeros((0, 2), np.int64)
-        ij = box_pairs(np.minimum(P[:, 0], P[:, 1]) - 0.5 * d0, np.maximum(P[:, 0], P[:, 1]) + 0.5 * d0,
-                       group=wisp, **self_pairs)
-        if n_local < len(P):
-            ij = ij[(ij[:, 0] < n_local) | (ij[:, 1] < n_local)]
-        return ij
+        return box_pairs(np.minimum(P[:, 0], P[:, 1]) - 0.5 * d0, np.maximum(P[:, 0], P[:, 1]) + 0.5 * d0,
+                         group=wisp, n_local=n_local, **self_pairs)
 
     def _pairs(self, x, active=True):
         """Pairs as (X (n, 4, 3), gvA, gvB, freeA, freeB, ownerA, ownerB, d), the segment
@@ -521,7 +545,8 @@ class StrandContact:
         if self.mode != "ccd":
             return x, 0
         with self.timers("collision"):
-            beta, n_limited, _, fallback = self._safe_fractions(x_old, x, 0.05 * self.d0, motion)
+            beta, n_limited, _, fallback = self._safe_fractions(x_old, x, 0.05 * self.d0, motion,
+                                                                skin=LIMITER_SKIN * self.d0)
             self.frame_fixes.add(n_limited)
         return _held_back(fallback, x, beta), n_limited
 
@@ -547,7 +572,7 @@ class StrandContact:
                                          MAX_LIPSCHITZ) if self.comm.rank == 0 else None
         return self.comm.bcast(field, root=0)
 
-    def _safe_fractions(self, S, T, min_distance, motion=None):
+    def _safe_fractions(self, S, T, min_distance, motion=None, skin=0.0):
         """(beta, vertices limited over all ranks, rounds, H): per-vertex fractions beta
         (nv,) in [0, 1] and fallback positions H (nv, 3) such that on the linear path
         from S to E = H + beta (T - H) no pair of segments of different wisps
@@ -571,7 +596,11 @@ class StrandContact:
            The boxes are built for a reach of d0 (more than m): the candidates then hold
            every pair closer than d0 at the path's end, which the contact's next pair
            search at the limited positions takes (:meth:`_reached`); the pair test gets
-           those within reach m (the boxes shrunk by the growths' difference).
+           those within reach m (the boxes shrunk by the growths' difference).  The
+           frame path checks (``skin`` > 0) exchange ghosts within 2 ``skin`` and pair
+           the boxes grown by ``skin``; a later check whose boxes all lie inside those
+           grown boxes (on every rank) reuses both and only exchanges the ghosts'
+           positions (:meth:`_exchange`): the pairs it tests are the same.
         2. Pair test (:func:`compiled_ccd.limit_pairs`, compiled): on the pair's current
            path, swept spheres around the centre paths discard most candidates without
            a distance; the others get conservative advancement with up to
@@ -606,9 +635,23 @@ class StrandContact:
         # limited positions reuses them (_reached) instead of its own broad phase
         reach = max(md, d0 * (1.0 + 1e-6))
         lo, hi = compiled_ccd.field_boxes(S, F, self.seg, L, reach)
-        (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \
-            self._gather_segments(S, (T, H), inflate=0.0, boxes=(lo, hi))
-        ij = box_pairs(PB[:, 0], PB[:, 1], group=wisp, **self.self_pairs(len(PB)))
+        cache = self._path_cache if skin > 0.0 else None
+        if cache is not None and global_min(self.comm, int(np.all(lo >= cache[0]) and np.all(hi <= cache[1]))):
+            # every box inside its skin: the ghosts and box pairs of the call that built it
+            # hold every segment and pair these boxes can reach (a superset, filtered below)
+            PS, PT, PH, PB = self._exchange([S[self.seg_ends], T[self.seg_ends], H[self.seg_ends],
+                                             np.stack([lo, hi], axis=1)], cache[2])
+            Prest, gv, wisp, free, owner, n_local, ij = cache[3]
+            self.path_checks_reused += 1
+        else:
+            # ghosts within 2 skin of a box of the receiving rank, pairs of boxes grown by skin
+            (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \
+                self._gather_segments(S, (T, H), inflate=2.0 * skin, boxes=(lo, hi))
+            ij = box_pairs(PB[:, 0] - skin, PB[:, 1] + skin, group=wisp, n_local=n_local,
+                           **self.self_pairs(len(PB)))
+            if skin > 0.0:
+                self._path_cache = (lo - skin, hi + skin, self._send_masks,
+                                    (Prest, gv, wisp, free, owner, n_local, ij))
         # the pairs with a local segment, the smaller global segment first (on any
         # partition); the pair test needs those within reach md only, whose boxes are
         # these shrunk by the difference of the growths (the same for every segment), and
@@ -635,15 +678,19 @@ class StrandContact:
         with _VertexGather(self.step_fraction, V, 1) as vg:
             tau, factor = np.ones(len(inv)), np.ones(len(inv))
             bV_prev = None
+            E = TV.copy()                       # the paths' ends: every fraction starts at 1
             while True:
                 bV = vg.gather(self.step_fraction).copy()
-                stopped = (bV == 0.0) | ~fV
-                # only pairs with a vertex whose fraction changed have a new path
-                redo = np.arange(len(inv)) if bV_prev is None else \
-                    np.flatnonzero(_any_column((bV != bV_prev)[inv]))
+                # only pairs with a vertex whose fraction changed have a new path (the
+                # fractions only go down: a changed one is below 1)
+                if bV_prev is None:
+                    redo = np.arange(len(inv))
+                else:
+                    changed = bV != bV_prev
+                    ch = np.flatnonzero(changed)
+                    E[ch] = HV[ch] + bV[ch, None] * (TV[ch] - HV[ch])
+                    redo = compiled_ccd.changed_pairs(inv, changed)
                 bV_prev = bV
-                E = HV + bV[:, None] * (TV - HV)
-                E[bV == 1.0] = TV[bV == 1.0]
                 compiled_ccd.limit_pairs(SV, E, inv, redo, md, rounds < SCALE_ROUNDS, tau, factor,
                                          rtol=ADVANCE_RTOL)
                 hit = tau < 1.0
@@ -651,14 +698,14 @@ class StrandContact:
                 if len(new):     # rest-exempt pairs (docs/contact.md) are not limited
                     Xr = np.concatenate([Prest[i[new]], Prest[j[new]]], axis=1)
                     exempt[new] = np.where(segment_contact.distance(Xr) < d0, 2, 1)
-                hit &= exempt != 2
+                h_ = np.flatnonzero(hit & (exempt != 2))
                 # held back as far as it goes: only the pinned vertices' residual motion
                 # moves the pair closer (counted, not fixable by the free vertices)
-                stuck = hit & ~_any_column(~stopped[inv])
-                hit &= ~stuck
-                if self.comm.allreduce(int(hit.sum())) == 0:
+                stopped = (bV == 0.0) | ~fV
+                stuck = ~_any_column(~stopped[inv[h_]])
+                h_ = h_[~stuck]
+                if self.comm.allreduce(len(h_)) == 0:
                     break
-                h_ = np.flatnonzero(hit)
                 fmin = np.ones(len(V))
                 f_ = factor[h_] if rounds < SCALE_ROUNDS else np.zeros(len(h_))
                 np.minimum.at(fmin, inv[h_].ravel(), np.repeat(f_, 4))

@@ -183,6 +183,26 @@ def limit_pairs(S, E, inv, redo, min_distance, scale, tau, factor, max_steps=MAX
 
 
 @_jit
+def _changed_pairs(inv, changed, out):
+    k = 0
+    for p in range(inv.shape[0]):
+        q = inv[p]
+        if changed[q[0]] or changed[q[1]] or changed[q[2]] or changed[q[3]]:
+            out[k] = p
+            k += 1
+    return k
+
+
+def changed_pairs(inv, changed):
+    """Indices (ascending) of the pairs ``inv`` (k, 4) with a point flagged in
+    ``changed`` (n,) bool: ``np.flatnonzero(changed[inv].any(axis=1))`` without the
+    (k, 4) temporaries."""
+    out = np.empty(len(inv), np.int64)
+    k = _changed_pairs(np.ascontiguousarray(inv, np.int64), np.ascontiguousarray(changed, np.bool_), out)
+    return out[:k]
+
+
+@_jit
 def _indexed_distances(Y, inv, out):
     for p in range(len(inv)):
         q = inv[p]
@@ -288,6 +308,7 @@ def warm_up():
     order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool))
     pairs_overlap(seg[:1], seg[1:], lo, hi, 0.01)
     indexed_distances(S, np.arange(4, dtype=np.int64).reshape(1, 4))
+    changed_pairs(np.arange(4, dtype=np.int64).reshape(1, 4), np.ones(4, bool))
     corner_cells(S, S + 1.0, np.zeros(3), 0.5, np.array([4, 4, 4]))
     state = np.zeros((4, 5))
     shift_and_bound(state[:, :3], state[:, 1:], seg, np.zeros(2, np.int64), np.ones(2), np.ones(2), np.ones(4),
@@ -378,11 +399,12 @@ def _radix_order(keys, bits):
 
 
 @_jit
-def _box_pairs(lo, hi, group, arc, min_gap, origin, cell, dims, out):
+def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
     """Overlapping boxes (i < j) through a uniform grid: each box is listed in every cell
     it touches, pairs are tested within a cell and reported once, in the cell holding
     the lower corner of their intersection.  Pairs of one group are skipped unless their
-    gap along the strand (``arc``, see box_pairs) is at least ``min_gap``.  Boxes
+    gap along the strand (``arc``, see box_pairs) is at least ``min_gap``, and pairs of
+    two boxes at or after ``n_local`` always.  Boxes
     touching more than BIG_CELLS cells are tested against every box instead.  Returns
     their number; the first len(out) of them are written to ``out``."""
     rng, count = _box_cells(lo, hi, origin, cell, dims)
@@ -428,6 +450,8 @@ def _box_pairs(lo, hi, group, arc, min_gap, origin, cell, dims, out):
                     q += 1
             for q in range(q, stop):
                 i, j = ids[p], ids[q]
+                if i >= n_local and j >= n_local:
+                    continue
                 if G[p] == G[q] and _arc_gap(arc, i, j) < min_gap:
                     continue
                 if not _grown_overlap(Blo, Bhi, p, q, 0.0):
@@ -445,7 +469,8 @@ def _box_pairs(lo, hi, group, arc, min_gap, origin, cell, dims, out):
         if not big[i]:
             continue
         for j in range(n):
-            if j == i or (big[j] and j < i) or (group[i] == group[j] and _arc_gap(arc, i, j) < min_gap):
+            if j == i or (big[j] and j < i) or (i >= n_local and j >= n_local) or \
+                    (group[i] == group[j] and _arc_gap(arc, i, j) < min_gap):
                 continue
             if _grown_overlap(lo, hi, i, j, 0.0):
                 if found < out.shape[0]:
@@ -454,13 +479,15 @@ def _box_pairs(lo, hi, group, arc, min_gap, origin, cell, dims, out):
     return found
 
 
-def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0):
+def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None):
     """Index pairs (k, 2), i < j, of the axis-aligned boxes lo, hi (n, 3) that overlap
     (closed boxes), exact, in the grid's order (the same for the same input); with
     ``group`` (n,) only pairs of different groups, and with ``arc`` (n, 2) (the rest arc
     length along its wisp at each end of a box's segment) also pairs of one group with
     at least ``min_gap`` of strand between them (self-contact: neighbours along the
-    strand are skipped inside the loop, so they cost nothing).
+    strand are skipped inside the loop, so they cost nothing).  With ``n_local``, only
+    pairs with a box before ``n_local`` (a rank's own segments, then its ghosts: no
+    ghost-ghost pair, which another rank finds).
     A uniform grid (cell: twice the median box extent, at most 1024 cells per axis) in
     a compiled loop: the cost is the boxes' cell entries and the pairs sharing a cell;
     a box over more than :data:`BIG_CELLS` cells (one wild segment, say) is tested
@@ -482,7 +509,7 @@ def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0):
     arc = np.ascontiguousarray(arc, np.float64)
     if arc.shape != (n, 2):
         raise ValueError(f"box_pairs: arc must be (n_boxes, 2) = ({n}, 2), got {arc.shape}")
-    args = (lo, hi, g, arc, float(min_gap), origin, cell, dims)
+    args = (lo, hi, g, arc, float(min_gap), n if n_local is None else int(n_local), origin, cell, dims)
     out = np.empty((8 * n, 2), np.int64)
     found = _box_pairs(*args, out)
     if found > len(out):                # more than guessed: once more, with room

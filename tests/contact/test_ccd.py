@@ -125,6 +125,15 @@ def test_box_pairs_against_all_pairs():
     np.testing.assert_array_equal(sort(box_pairs(lo, hi)), np.stack([i[touch], j[touch]], axis=1))
     assert (touch & ((i == 40) | (j == 40))).sum() == n - 1
     assert box_pairs(lo[:1], hi[:1]).shape == (0, 2)
+    # n_local (a rank's own boxes first, then its ghosts): no pair of two ghosts, big
+    # boxes included (40 and 41 are local, 500 made big is a ghost), in the same order
+    lo[500], hi[500] = [-1.0, 5.0, -1.0], [11.0, 6.0, 11.0]
+    touch = np.all((hi[i] >= lo[j]) & (hi[j] >= lo[i]), axis=1)
+    for n_local in (0, 1, 450, n):
+        got, full = box_pairs(lo, hi, group, n_local=n_local), box_pairs(lo, hi, group)
+        np.testing.assert_array_equal(got, full[full.min(axis=1) < n_local])
+        want = touch & (group[i] != group[j]) & (i < n_local)
+        np.testing.assert_array_equal(sort(got), np.stack([i[want], j[want]], axis=1))
 
 
 def rotation(axis, angle):
@@ -334,6 +343,16 @@ def test_indexed_distances_match_the_numpy_distance():
     assert d.shape == (len(inv),) and np.all(np.isfinite(d))
     assert np.allclose(d, ref, rtol=1e-12, atol=1e-13)
     assert np.all(d[len(X) - len(S):len(X)] == 0.0)            # a segment against itself
+
+
+def test_changed_pairs_match_numpy():
+    rng = np.random.default_rng(4)
+    inv = rng.integers(0, 300, size=(5000, 4))
+    for p in (0.0, 0.001, 0.05, 1.0):
+        changed = rng.random(300) < p
+        want = np.flatnonzero(changed[inv].any(axis=1))
+        np.testing.assert_array_equal(compiled_ccd.changed_pairs(inv, changed), want)
+    assert compiled_ccd.changed_pairs(inv[:0], changed).shape == (0,)
 
 
 def test_corner_cells_match_the_numpy_grid():

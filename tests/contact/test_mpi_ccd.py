@@ -108,6 +108,15 @@ def test_ccd_rank_invariance_and_no_crossing(monkeypatch):
     assert ok, msg
 
 
+def six_wisps_ccd(monkeypatch):
+    """A simulator of the six in-phase touching wisps (straight stems pinned) in ccd mode."""
+    monkeypatch.setattr(simmod, "source_from_config",
+                        lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
+    cfg = touching_wisps_config(1)
+    cfg.physics.strand_contact_mode = "ccd"
+    return simmod.build_simulator(cfg, comm=comm)
+
+
 def test_limiter_candidates_serve_the_next_pair_search(monkeypatch):
     """The contact pairs at positions that a limiter call produced come from that call's
     candidates (StrandContact._reached), not from a new ghost exchange and broad phase.
@@ -116,11 +125,7 @@ def test_limiter_candidates_serve_the_next_pair_search(monkeypatch):
     limited positions the reused pairs are every pair closer than d0 (brute force over all
     pairs of segments of different wisps) and equal, array for array, to those of a fresh
     exchange and broad phase."""
-    monkeypatch.setattr(simmod, "source_from_config",
-                        lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
-    cfg = touching_wisps_config(1)
-    cfg.physics.strand_contact_mode = "ccd"
-    sim = simmod.build_simulator(cfg, comm=comm)
+    sim = six_wisps_ccd(monkeypatch)
     try:
         st, sc = sim.integrator.strand, sim.scene
         d0, n = st.d0, sc.nv
@@ -163,6 +168,47 @@ def test_limiter_candidates_serve_the_next_pair_search(monkeypatch):
             x = x_new
         print(f"\npairs newly in contact over the steps: {comm.bcast(newly_close)}")
         assert comm.bcast(newly_close) > 0
+    finally:
+        sim.close()
+
+
+def test_frame_path_checks_reuse_candidates_inside_their_skin(monkeypatch):
+    """A frame path check (collision_free_frame) whose segment boxes all stay inside
+    the boxes of the check that exchanged the ghosts and found the box pairs, grown by
+    LIMITER_SKIN d0, reuses them; its result equals, bit for bit, that of a fresh
+    exchange and broad phase.  A box leaving its skin makes the next check start anew
+    (on every rank, the pair straddling ranks on 2 and 3)."""
+    sim = six_wisps_ccd(monkeypatch)
+    try:
+        st, sc = sim.integrator.strand, sim.scene
+        d0, lo, hi = st.d0, sc.first_vertex, sc.first_vertex + sc.nv
+        x_old = sim.integrator.x.copy()
+        c, s_ = np.cos(0.02), np.sin(0.02)      # the head turning a little, and moving
+        motion = (np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]), np.array([0.05, 0.0, 0.0]))
+        carried = x_old @ motion[0].T + motion[1]
+        rng = np.random.default_rng(11)
+        wisp_of = np.repeat(np.arange(6), 30)
+        push = np.where(wisp_of % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.4, 0.0, 0.0])
+        D = (rng.normal(scale=0.05, size=(6 * 30, 3)) + push)[lo:hi]
+        small = 0.05 * d0 * rng.uniform(-1.0, 1.0, size=(6 * 30, 3))[lo:hi]
+
+        def check(target, reuse):
+            target = np.where(sc.pinned[:, None], carried, target)
+            before = st.path_checks_reused
+            got = st.collision_free_frame(x_old, target, motion)
+            assert st.path_checks_reused - before == reuse
+            st._path_cache = None
+            ref = st.collision_free_frame(x_old, target, motion)      # a fresh exchange
+            np.testing.assert_array_equal(got[0], ref[0])
+            assert got[1] == ref[1]
+            return got[1]
+
+        st._path_cache = None
+        held = [check(carried + D, 0),
+                check(carried + D + small, 1),                  # inside the skin: reused
+                check(carried + 1.5 * D, 0)]                    # far outside: anew
+        print(f"\nvertices held back per check: {held}")
+        assert min(held) > 0
     finally:
         sim.close()
 

@@ -775,8 +775,9 @@ class StrandContact:
         not depend on the partition, and linear momentum is conserved (pinned vertices
         excepted).  Counts and corrections are summed by global vertex in PETSc Vecs
         (off-process vertices travel to their owners); the pair vertices' positions and
-        counts come back through a VecScatter.  Per round, the pairs' distances are one
-        compiled pass over the gathered positions (:func:`compiled_ccd.indexed_distances`),
+        counts come back through a VecScatter.  Per round, the distances of the pairs with
+        a vertex that moved are one compiled pass over the gathered positions
+        (:func:`compiled_ccd.indexed_distances`),
         the Vec assemblies carry the hit pairs' vertices only, and the shift and the edge
         bounds below are one compiled pass on the state array
         (:func:`compiled_ccd.shift_and_bound`): a round with a few pairs left costs
@@ -812,9 +813,16 @@ class StrandContact:
                 return self.correction.array.reshape(nv, 4)
 
             with _VertexGather(self.state, V, 5) as vg:
+                d = Yp = None
                 for it in range(max_iterations + 1):
                     Y = vg.gather(self.state).reshape(-1, 5)
-                    d = compiled_ccd.indexed_distances(Y, inv)
+                    if d is None:
+                        d, Yp = compiled_ccd.indexed_distances(Y, inv), Y[:, :3].copy()
+                    else:       # only the pairs with a vertex that moved have a new distance
+                        moved = _any_column(Y[:, :3] != Yp)
+                        redo = compiled_ccd.changed_pairs(inv, moved)
+                        d[redo] = compiled_ccd.indexed_distances(Y, inv[redo])
+                        Yp[moved] = Y[moved, :3]
                     hit = np.flatnonzero(d < 0.5 * (floor + target) * d0)
                     below = self.comm.allreduce(int(np.sum(d < floor * d0 * (1.0 + 1e-3))))
                     if it == 0:
@@ -869,16 +877,7 @@ class StrandContact:
                     fr = np.repeat(free[pin], 3, axis=1).astype(float)
                     g[pin] *= free[pin, :, None]
                     H[pin] *= fr[:, :, None] * fr[:, None, :]
-                rows = np.zeros((2 * m, NB))
-                for side, (o, own, oth) in enumerate(((0, oA, oB), (2, oB, oA))):
-                    R = rows[side * m:(side + 1) * m]
-                    R[:, 0:6] = g[:, o:o + 2].reshape(m, 6)
-                    Hs = H[:, 3 * o:3 * o + 6, 3 * o:3 * o + 6]
-                    R[:, 6:15] = Hs[:, 0:3, 0:3].reshape(m, 9)
-                    R[:, 15:24] = Hs[:, 0:3, 3:6].reshape(m, 9)
-                    R[:, 24:33] = Hs[:, 3:6, 3:6].reshape(m, 9)
-                    R[:, 33] = np.where(own == oth, 2.0, 0.0)
-                    R[:, 34] = np.where(own == oth, 0.0, 2.0)
+                rows = compiled_ccd.pair_rows(g, H, oA, oB)          # (2m, NB)
                 idx = np.concatenate([gA, gB]).astype(PETSc.IntType)
                 self.last_min_distance = float(d.min(initial=np.inf))
             vec = self.vec

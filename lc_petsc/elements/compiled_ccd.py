@@ -203,6 +203,39 @@ def changed_pairs(inv, changed):
 
 
 @_jit
+def _pair_rows(g, H, owner_a, owner_b, rows):
+    m = g.shape[0]
+    for side in range(2):
+        o = 2 * side
+        for p in range(m):
+            r = side * m + p
+            for a in range(2):
+                for c in range(3):
+                    rows[r, 3 * a + c] = g[p, o + a, c]
+            for c in range(3):
+                for k in range(3):
+                    rows[r, 6 + 3 * c + k] = H[p, 3 * o + c, 3 * o + k]
+                    rows[r, 15 + 3 * c + k] = H[p, 3 * o + c, 3 * o + 3 + k]
+                    rows[r, 24 + 3 * c + k] = H[p, 3 * o + 3 + c, 3 * o + 3 + k]
+            same = owner_a[p] == owner_b[p]
+            rows[r, 33] = 2.0 if same else 0.0
+            rows[r, 34] = 0.0 if same else 2.0
+
+
+def pair_rows(g, H, owner_a, owner_b):
+    """The contact assembly's per-segment rows (2m, 35) of m pairs: row p (segment A of
+    pair p) and m + p (segment B), each its gradient (6: its two vertices' of g (m, 4,
+    3)), its own blocks of the pair Hessian H (m, 12, 12): (0, 0), (0, 1), (1, 1) (9
+    each, row-major), and the preallocation counts 2, 0 (both segments on one rank,
+    ``owner_a`` == ``owner_b`` (m,)) or 0, 2."""
+    m = len(g)
+    rows = np.empty((2 * m, 35))
+    _pair_rows(np.ascontiguousarray(g, np.float64), np.ascontiguousarray(H, np.float64),
+               np.ascontiguousarray(owner_a, np.int64), np.ascontiguousarray(owner_b, np.int64), rows)
+    return rows
+
+
+@_jit
 def _indexed_distances(Y, inv, out):
     for p in range(len(inv)):
         q = inv[p]
@@ -309,6 +342,7 @@ def warm_up():
     pairs_overlap(seg[:1], seg[1:], lo, hi, 0.01)
     indexed_distances(S, np.arange(4, dtype=np.int64).reshape(1, 4))
     changed_pairs(np.arange(4, dtype=np.int64).reshape(1, 4), np.ones(4, bool))
+    pair_rows(np.zeros((1, 4, 3)), np.zeros((1, 12, 12)), seg[:1], seg[:1])
     corner_cells(S, S + 1.0, np.zeros(3), 0.5, np.array([4, 4, 4]))
     state = np.zeros((4, 5))
     shift_and_bound(state[:, :3], state[:, 1:], seg, np.zeros(2, np.int64), np.ones(2), np.ones(2), np.ones(4),

@@ -355,6 +355,26 @@ def test_changed_pairs_match_numpy():
     assert compiled_ccd.changed_pairs(inv[:0], changed).shape == (0,)
 
 
+def test_pair_rows_match_the_numpy_slices():
+    """The contact assembly's rows: gradient, own Hessian blocks and counts per segment."""
+    rng = np.random.default_rng(6)
+    m = 50
+    g, H = rng.normal(size=(m, 4, 3)), rng.normal(size=(m, 12, 12))
+    oA, oB = rng.integers(0, 3, m), rng.integers(0, 3, m)
+    want = np.zeros((2 * m, 35))
+    for side, (o, own, oth) in enumerate(((0, oA, oB), (2, oB, oA))):
+        R = want[side * m:(side + 1) * m]
+        R[:, 0:6] = g[:, o:o + 2].reshape(m, 6)
+        Hs = H[:, 3 * o:3 * o + 6, 3 * o:3 * o + 6]
+        R[:, 6:15] = Hs[:, 0:3, 0:3].reshape(m, 9)
+        R[:, 15:24] = Hs[:, 0:3, 3:6].reshape(m, 9)
+        R[:, 24:33] = Hs[:, 3:6, 3:6].reshape(m, 9)
+        R[:, 33] = np.where(own == oth, 2.0, 0.0)
+        R[:, 34] = np.where(own == oth, 0.0, 2.0)
+    np.testing.assert_array_equal(compiled_ccd.pair_rows(g, H, oA, oB), want)
+    assert compiled_ccd.pair_rows(g[:0], H[:0], oA[:0], oB[:0]).shape == (0, 35)
+
+
 def test_corner_cells_match_the_numpy_grid():
     """The occupancy grid's compiled corner cells against the NumPy formula they
     replaced: boxes inside, on cell faces and outside the grid (clamped)."""

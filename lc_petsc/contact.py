@@ -279,7 +279,6 @@ class StrandContact:
         self._limited = None              # the last limiter call's end and candidates (_reached)
         self._path_cache = None           # the frame path checks' ghosts and candidates (_safe_fractions)
         self.path_checks_reused = 0       # frame path checks that reused them (of the run)
-        self._send_masks = []             # the last _gather_segments' sent segments, per rank
         self.last_separation = (0, 0, 0)
         if mode not in MODES:
             raise ValueError(f"strand contact mode {mode!r}: use one of {', '.join(MODES)}")
@@ -346,14 +345,15 @@ class StrandContact:
             return op, op
 
     # ------------------------------------------------------------- exchange
-    def _gather_segments(self, x, extra=(), inflate=None, boxes=None):
+    def _gather_segments(self, x, extra=(), inflate=None, boxes=None, masks=None):
         """Local + ghost segments: (list of P (m, 2, 3), one per configuration ``x`` and
         ``extra`` (each (nv, 3)), rest P, global first vertex, wisp, free (m, 2), owner
         rank, n_local).  A segment's box covers all its configurations (swept bounds
         when ``extra`` holds the end of a step); ghosts are the segments whose box comes
         within ``inflate`` (default d0) of a box of the receiving rank; ``boxes`` (lo,
         hi) (m, 3) replace the segments' own boxes, and come back as a last (m, 2, 3)
-        array of the list (lo, hi) for the ghosts too."""
+        array of the list (lo, hi) for the ghosts too.  ``masks``, a list, receives the
+        segments sent to each rank (None: none), for :meth:`_exchange`."""
         comm = self.comm
         d0 = self.d0 if inflate is None else float(inflate)
         Ps = [a[self.seg_ends] for a in (x, *extra)]
@@ -366,7 +366,7 @@ class StrandContact:
         # Occupancy (see the module doc and _OccupancyGrid): the cells touched by this
         # rank's boxes inflated by d0, as sorted flat ids
         send = [None]
-        self._send_masks = []
+        masks = [] if masks is None else masks
         if comm.size > 1:
             grid = _OccupancyGrid(lo, hi, d0, comm)
             own = np.zeros(0, np.int32) if grid.empty else \
@@ -378,10 +378,10 @@ class StrandContact:
         for q in range(comm.size if comm.size > 1 else 0):
             if q >= comm.rank or grid.empty:
                 send.append(None)
-                self._send_masks.append(None)
+                masks.append(None)
                 continue
             m = _any_column(grid.mask(occ[q])[keys])
-            self._send_masks.append(m)
+            masks.append(m)
             send.append(np.concatenate([self.seg_gv[m, None], self.seg_wisp[m, None],
                                         self.seg_free[m], self.P_rest[m].reshape(-1, 6)]
                                        + [P[m].reshape(-1, 6) for P in Ps], axis=1))
@@ -645,12 +645,13 @@ class StrandContact:
             self.path_checks_reused += 1
         else:
             # ghosts within 2 skin of a box of the receiving rank, pairs of boxes grown by skin
+            masks = []
             (PS, PT, PH, PB), Prest, gv, wisp, free, owner, n_local = \
-                self._gather_segments(S, (T, H), inflate=2.0 * skin, boxes=(lo, hi))
+                self._gather_segments(S, (T, H), inflate=2.0 * skin, boxes=(lo, hi), masks=masks)
             ij = box_pairs(PB[:, 0] - skin, PB[:, 1] + skin, group=wisp, n_local=n_local,
                            **self.self_pairs(len(PB)))
             if skin > 0.0:
-                self._path_cache = (lo - skin, hi + skin, self._send_masks,
+                self._path_cache = (lo - skin, hi + skin, masks,
                                     (Prest, gv, wisp, free, owner, n_local, ij))
         # the pairs with a local segment, the smaller global segment first (on any
         # partition); the pair test needs those within reach md only, whose boxes are

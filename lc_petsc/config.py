@@ -328,6 +328,13 @@ class TimeConfig:
     max_substeps: int = 8
     unconverged: str = "accept"
 
+    @property
+    def newton_converges(self) -> bool:
+        """Newton iterates to a tolerance (``newton_tol`` or ``newton_increment_tol``), not
+        a fixed count: the linear solves default to a tighter ``-ksp_rtol``
+        (lc_petsc/solver_plan.py)."""
+        return self.newton_tol is not None or self.newton_increment_tol is not None
+
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
         _positive("time.dt", self.dt)

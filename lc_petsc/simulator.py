@@ -49,7 +49,8 @@ class Simulator:
         cfg = config
         source = source_from_config(cfg.scene, cfg.material, cfg.physics)
         self.plan = plan = SolverPlan.resolve(cfg.solver.effective_options(),
-                                              strand_contact="strand_collision" in cfg.physics.terms)
+                                              strand_contact="strand_collision" in cfg.physics.terms,
+                                              newton_converges=cfg.time.newton_converges)
         user_sizes = np.asarray(source.sizes)
         source, self.wisp_order = parallel.order_wisps(source, plan.wisp_order)
         self.n_wisps = source.n_wisps

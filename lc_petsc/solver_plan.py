@@ -58,9 +58,19 @@ from lc_petsc.options import option_pairs
 from lc_petsc.parallel import WISP_ORDERS
 from lc_petsc.petsc_capi import option_used
 
-#: the paper's solver (SPEC 5): CG with one exact block-Jacobi block per wisp
-DEFAULTS = MappingProxyType({"ksp_type": "cg", "ksp_rtol": "1e-6", "ksp_max_it": "1000",
-                             "pc_type": "bjacobi"})
+#: the paper's solver (SPEC 5): CG with one exact block-Jacobi block per wisp (its
+#: tolerance: :data:`KSP_RTOL_FIXED_COUNT` / :data:`KSP_RTOL_CONVERGING`)
+DEFAULTS = MappingProxyType({"ksp_type": "cg", "ksp_max_it": "1000", "pc_type": "bjacobi"})
+#: ``-ksp_rtol`` default of a fixed-count Newton (``time.newton_tol`` unset, the paper's
+#: 3 iterations): its truncation error dwarfs the linear solve's.  Measured on the 2K
+#: hairball's ccd frames 90 and 100 (docs/contact_solver.md, "The linear tolerance a
+#: truncated Newton needs"): one frame from the same state with 1e-4 lies 2.4e-3 /
+#: 3.5e-3 cm (RMS) from the exact solves' frame, a fourth Newton iteration moves it
+#: 4.2e-2 cm and six 9.0e-2 cm; CG needs 45 instead of 96-106 iterations per solve.
+KSP_RTOL_FIXED_COUNT = "1e-4"
+#: ``-ksp_rtol`` default of a Newton that converges to ``time.newton_tol``: tight, so
+#: that the linear error does not stall the last, quadratic, iterations
+KSP_RTOL_CONVERGING = "1e-6"
 WISP_BLOCK_MODES = ("fused", "separate")
 CONTACT_PC_MODES = ("coupled", "strands", "clusters")
 #: ``-lc_element_kernels``: the compiled (Numba) kernels or the NumPy reference kernels
@@ -167,7 +177,9 @@ class SolverPlan:
     ordering, span) of the clusters with ``clusters``, else None;
     ``sub_solver``: the per-wisp blocks' default sub-solver options; ``factor``: the
     factorisation defaults (:func:`factor_defaults`);
-    ``element_kernels``: ``compiled`` / ``numpy``; ``wisp_order``: ``spatial`` / ``input``.
+    ``element_kernels``: ``compiled`` / ``numpy``; ``wisp_order``: ``spatial`` / ``input``;
+    ``ksp_rtol``: the code default of ``-ksp_rtol`` (the options win), by the Newton's
+    stopping rule (:data:`KSP_RTOL_FIXED_COUNT`, :data:`KSP_RTOL_CONVERGING`).
     """
 
     prefix: str
@@ -182,14 +194,16 @@ class SolverPlan:
     factor: Mapping[str, str]
     element_kernels: str
     wisp_order: str
+    ksp_rtol: str
     _layers: _Layers = field(repr=False, compare=False)
 
     @classmethod
     def resolve(cls, config_options: str = "", strand_contact: bool = False,
-                prefix: str = "") -> "SolverPlan":
+                prefix: str = "", newton_converges: bool = False) -> "SolverPlan":
         """The plan of the config options ``config_options`` (a string of PETSc options)
         over the options database; ``strand_contact``: the simulation has strand-strand
-        contact.  Raises :class:`ConfigError` for options that contradict each other or
+        contact; ``newton_converges``: Newton iterates to a tolerance
+        (:attr:`TimeConfig.newton_converges`), not a fixed count, which tightens the default ``-ksp_rtol``.  Raises :class:`ConfigError` for options that contradict each other or
         lc_petsc's own options with a bad value."""
         layers = _Layers(config_options, prefix)
         mat_type = _operator_type(layers)
@@ -208,6 +222,7 @@ class SolverPlan:
                    wisp_order=_choice(layers, "lc_wisp_order", WISP_ORDERS,
                                       "spatial (wisps ordered along a space-filling curve of their "
                                       "roots, the default) or input (the scene's order)"),
+                   ksp_rtol=KSP_RTOL_CONVERGING if newton_converges else KSP_RTOL_FIXED_COUNT,
                    _layers=layers)
 
     @contextmanager
@@ -230,7 +245,7 @@ class SolverPlan:
         """The options in effect, as recorded in summary.json's ``petsc_options_used``:
         code defaults < sub-solver and factorisation defaults < config < command line, and
         the operator's actual ``mat_type``."""
-        used = dict(DEFAULTS)
+        used = dict(DEFAULTS, ksp_rtol=self.ksp_rtol)
         used.update(self.sub_solver)
         used.update(self.factor)
         used.update(self.options)

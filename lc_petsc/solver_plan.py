@@ -203,8 +203,9 @@ class SolverPlan:
         """The plan of the config options ``config_options`` (a string of PETSc options)
         over the options database; ``strand_contact``: the simulation has strand-strand
         contact; ``newton_converges``: Newton iterates to a tolerance
-        (:attr:`TimeConfig.newton_converges`), not a fixed count, which tightens the default ``-ksp_rtol``.  Raises :class:`ConfigError` for options that contradict each other or
-        lc_petsc's own options with a bad value."""
+        (:attr:`TimeConfig.newton_converges`), not a fixed count, which tightens the
+        default ``-ksp_rtol``.  Raises :class:`ConfigError` for options that contradict
+        each other or lc_petsc's own options with a bad value."""
         layers = _Layers(config_options, prefix)
         mat_type = _operator_type(layers)
         wisp_blocks = _wisp_block_mode(layers)

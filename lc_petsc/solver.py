@@ -119,7 +119,7 @@ class LinearSolver:
         blocks = f" -lc_wisp_blocks {self.wisp_blocks}" if self.wisp_blocks else ""
         if self.clusters is not None:
             blocks = " -lc_contact_pc clusters (lc_petsc/contact_pc.py)"
-        return (f"-ksp_type {self.ksp.getType()} -pc_type {pc.getType()}{blocks} "
+        return (f"-ksp_type {self.ksp.getType()} -ksp_rtol {self.rtol:g} -pc_type {pc.getType()}{blocks} "
                 f"-mat_type {A.getType()} (preconditioner built from {P.getType()}) "
                 f"(options: {self.plan.effective()})")
 

@@ -167,6 +167,7 @@ def test_default_ksp_rtol_follows_the_newton_stopping_rule(time, options, rtol):
     try:
         assert sim.solver.ksp.getTolerances()[0] == rtol
         assert float(sim.plan.options_used({}, "baij")["ksp_rtol"]) == rtol
+        assert f"-ksp_rtol {rtol:g} " in sim.solver.describe()      # the run's log and summary say it
     finally:
         sim.close()
 

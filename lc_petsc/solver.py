@@ -6,8 +6,8 @@ this module creates the KSP with the code defaults, which the options override
 
 * ``-ksp_type cg -ksp_max_it 1000``, ``-ksp_rtol`` 1e-4 for the fixed-count Newton (the
   paper's 3 iterations, whose truncation error is 10-25x the linear error that leaves,
-  measured) and 1e-6 when Newton converges to ``time.newton_tol``
-  (lc_petsc/solver_plan.py, :data:`KSP_RTOL_FIXED_COUNT`);
+  measured) and 1e-6 when Newton converges to ``time.newton_tol`` or
+  ``newton_increment_tol`` (lc_petsc/solver_plan.py, :data:`KSP_RTOL_FIXED_COUNT`);
 * ``-pc_type bjacobi`` with **one exact block per wisp** (the paper's preconditioner).
   The preconditioning matrix never couples two wisps (strand-contact cross blocks live
   in a separate matrix C of the operator, see lc_petsc/contact.py; only

@@ -61,14 +61,15 @@ from lc_petsc.petsc_capi import option_used
 #: the paper's solver (SPEC 5): CG with one exact block-Jacobi block per wisp (its
 #: tolerance: :data:`KSP_RTOL_FIXED_COUNT` / :data:`KSP_RTOL_CONVERGING`)
 DEFAULTS = MappingProxyType({"ksp_type": "cg", "ksp_max_it": "1000", "pc_type": "bjacobi"})
-#: ``-ksp_rtol`` default of a fixed-count Newton (``time.newton_tol`` unset, the paper's
-#: 3 iterations): its truncation error dwarfs the linear solve's.  Measured on the 2K
-#: hairball's ccd frames 90 and 100 (docs/contact_solver.md, "The linear tolerance a
-#: truncated Newton needs"): one frame from the same state with 1e-4 lies 2.4e-3 /
-#: 3.5e-3 cm (RMS) from the exact solves' frame, a fourth Newton iteration moves it
-#: 4.2e-2 cm and six 9.0e-2 cm; CG needs 45 instead of 96-106 iterations per solve.
+#: ``-ksp_rtol`` default of a fixed-count Newton (``time.newton_tol`` and
+#: ``newton_increment_tol`` unset, the paper's 3 iterations): its truncation error
+#: dwarfs the linear solve's.  Measured on the 2K hairball's ccd frames 90 and 100
+#: (docs/contact_solver.md, "The linear tolerance a truncated Newton needs"): one frame
+#: from the same state with 1e-4 lies 2.4e-3 / 3.5e-3 cm (RMS) from the exact solves'
+#: frame, a fourth Newton iteration moves it 4.2e-2 cm and six 9.0e-2 cm; CG needs 45
+#: instead of 96-106 iterations per solve.
 KSP_RTOL_FIXED_COUNT = "1e-4"
-#: ``-ksp_rtol`` default of a Newton that converges to ``time.newton_tol``: tight, so
+#: ``-ksp_rtol`` default of a Newton that converges to a tolerance: tight, so
 #: that the linear error does not stall the last, quadratic, iterations
 KSP_RTOL_CONVERGING = "1e-6"
 WISP_BLOCK_MODES = ("fused", "separate")

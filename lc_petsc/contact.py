@@ -702,8 +702,8 @@ class StrandContact:
                 h_ = np.flatnonzero(hit & (exempt != 2))
                 # held back as far as it goes: only the pinned vertices' residual motion
                 # moves the pair closer (counted, not fixable by the free vertices)
-                stopped = (bV == 0.0) | ~fV
-                stuck = ~_any_column(~stopped[inv[h_]])
+                iv = inv[h_]
+                stuck = ~_any_column((bV[iv] != 0.0) & fV[iv])      # no vertex left to stop
                 h_ = h_[~stuck]
                 if self.comm.allreduce(len(h_)) == 0:
                     break

@@ -57,7 +57,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.elements import compiled_ccd, segment_barrier, segment_ccd, segment_contact
-from lc_petsc.elements.compiled_ccd import box_pairs, smooth_fractions
+from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.parallel import collectively, global_min, global_reduce
 
 MODES = ("penalty", "ccd")
@@ -74,6 +74,9 @@ NEIGHBOUR_GAP = 0.5 * np.pi
 #: then keeps half its distance, docs/contact.md); a rigid motion has L = 2 sin(theta / 2),
 #: so the head's serves up to MAX_RIGID_DEGREES of rotation per step
 MAX_LIPSCHITZ = 0.5
+#: limiter rounds before the pairs to test again come from a point -> pairs incidence
+#: (built once per call) rather than a scan of all pairs
+INCIDENCE_ROUND = 3
 #: conservative advancement stops within ADVANCE_RTOL m of its floor: the step count is
 #: discrete, so a looser stop (1e-3) made the fractions jump on round-off (6 wisps, 10
 #: frames: 2 ranks left 1 rank by 9e-5; 1.8e-8 at 1e-12)
@@ -235,6 +238,9 @@ class StrandContact:
         self.seg = np.concatenate([np.arange(scene.offsets[w], scene.offsets[w + 1] - 1)
                                    for w in range(scene.n_wisps)]).astype(np.int64)
         wid = np.repeat(np.arange(scene.n_wisps), np.diff(scene.offsets))
+        self.vertex_wisp = wid.astype(np.int64)                 # local wisp of each local vertex
+        # local wisp w's segments: seg[seg_offsets[w]:seg_offsets[w + 1]]
+        self.seg_offsets = (np.asarray(scene.offsets) - np.arange(scene.n_wisps + 1)).astype(np.int64)
         self.seg_wisp = (scene.first_wisp + wid[self.seg]).astype(np.int64)
         self.seg_gv = (scene.first_vertex + self.seg).astype(np.int64)
         self.seg_ends = np.stack([self.seg, self.seg + 1], axis=1)
@@ -660,24 +666,29 @@ class StrandContact:
         # round-off cannot drop a pair that boxes built for md would keep
         shrink = 0.5 * (reach - md) / (1.0 - L) * (1.0 - 1e-9)
         ci, cj, keep = compiled_ccd.order_candidates(ij, n_local, gv, PB[:, 0], PB[:, 1], shrink, free)
-        i, j = ci[keep], cj[keep]
-        self.limiter_candidates.add(int(self.comm.allreduce(len(i))))
-        # the segments' vertices: V sorted global vertices, sv (m, 2) their index in V
+        # the segments' vertices: V sorted global vertices, sv (m, 2) their index in V;
+        # the kept pairs (i, j) and their points inv (k, 4) in V
         V, sv = np.unique(np.stack([gv, gv + 1], axis=1), return_inverse=True)
         sv = sv.reshape(-1, 2)
+        i, j, inv = compiled_ccd.kept_pair_points(ci, cj, keep, sv)
+        self.limiter_candidates.add(int(self.comm.allreduce(len(i))))
         SV, TV, HV = np.empty((len(V), 3)), np.empty((len(V), 3)), np.empty((len(V), 3))
         fV = np.empty(len(V), bool)
         for e in (0, 1):
             SV[sv[:, e]], TV[sv[:, e]], HV[sv[:, e]] = PS[:, e], PT[:, e], PH[:, e]
             fV[sv[:, e]] = free[:, e]
-        inv = np.concatenate([sv[i], sv[j]], axis=1)
         exempt = np.zeros(len(inv), np.int8)      # rest-exempt: 0 unknown, 1 no, 2 yes
         self.step_fraction.set(1.0)
         beta = self.step_fraction.array           # this rank's vertices, a view
         limited = np.zeros(nv, bool)
+        slack = compiled_ccd.edge_slack(F, self.seg, self.rest_seg_length, FRACTION_STRAIN)
+        free_vertex = ~self.scene.pinned
         rounds = 0
         with _VertexGather(self.step_fraction, V, 1) as vg:
             tau, factor = np.ones(len(inv)), np.ones(len(inv))
+            seen = np.zeros(len(inv), bool)
+            incidence = None
+            act = np.zeros(0, np.int64)         # the pairs acted on in the last round
             bV_prev = None
             E = TV.copy()                       # the paths' ends: every fraction starts at 1
             while True:
@@ -687,44 +698,49 @@ class StrandContact:
                 if bV_prev is None:
                     redo = np.arange(len(inv))
                 else:
-                    changed = bV != bV_prev
-                    ch = np.flatnonzero(changed)
+                    ch = np.flatnonzero(bV != bV_prev)
                     E[ch] = HV[ch] + bV[ch, None] * (TV[ch] - HV[ch])
-                    redo = compiled_ccd.changed_pairs(inv, changed)
+                    if incidence is None and rounds >= INCIDENCE_ROUND:
+                        incidence = compiled_ccd.point_pairs(inv, len(V))
+                    if incidence is None:
+                        redo = compiled_ccd.changed_pairs(inv, bV != bV_prev)
+                    else:
+                        redo = compiled_ccd.pairs_at_points(incidence, ch, seen)
                 bV_prev = bV
                 compiled_ccd.limit_pairs(SV, E, inv, redo, md, rounds < SCALE_ROUNDS, tau, factor,
                                          rtol=ADVANCE_RTOL)
-                hit = tau < 1.0
-                new = np.flatnonzero(hit & (exempt == 0))
+                hit = redo[tau[redo] < 1.0]     # only the tested pairs' tau changed
+                new = hit[exempt[hit] == 0]
                 if len(new):     # rest-exempt pairs (docs/contact.md) are not limited
                     Xr = np.concatenate([Prest[i[new]], Prest[j[new]]], axis=1)
                     exempt[new] = np.where(segment_contact.distance(Xr) < d0, 2, 1)
-                h_ = np.flatnonzero(hit & (exempt != 2))
+                # acted on: the pairs hit now, and those of the last round not tested again
+                # (no vertex changed: still hit, and still with a vertex left to stop)
+                seen[redo] = True
+                act = np.concatenate([act[~seen[act]], hit[exempt[hit] != 2]])
+                seen[redo] = False
                 # held back as far as it goes: only the pinned vertices' residual motion
-                # moves the pair closer (counted, not fixable by the free vertices)
-                iv = inv[h_]
-                stuck = ~_any_column((bV[iv] != 0.0) & fV[iv])      # no vertex left to stop
-                h_ = h_[~stuck]
-                if self.comm.allreduce(len(h_)) == 0:
+                # moves the pair closer (counted below, not fixable by the free vertices)
+                iv = inv[act]
+                act = act[_any_column((bV[iv] != 0.0) & fV[iv])]
+                if self.comm.allreduce(len(act)) == 0:
                     break
                 fmin = np.ones(len(V))
-                f_ = factor[h_] if rounds < SCALE_ROUNDS else np.zeros(len(h_))
-                np.minimum.at(fmin, inv[h_].ravel(), np.repeat(f_, 4))
+                f_ = factor[act] if rounds < SCALE_ROUNDS else np.zeros(len(act))
+                np.minimum.at(fmin, inv[act].ravel(), np.repeat(f_, 4))
                 fmin[~fV] = 1.0                 # pinned vertices keep their prescribed motion
                 self.shrink.zeroEntries()
                 vg.reverse(1.0 - fmin, self.shrink, PETSc.InsertMode.MAX_VALUES)
-                sh = self.shrink.array
-                beta *= 1.0 - sh
-                limited |= sh > 0.0
-                # along each strand: a vertex held back holds its neighbours back too, so
-                # no edge stretches by more than FRACTION_STRAIN (the changed vertices'
-                # pairs are tested again next round)
-                smooth = smooth_fractions(beta, F, self.seg, self.rest_seg_length, ~self.scene.pinned,
-                                          FRACTION_STRAIN)
-                limited |= smooth < beta
-                beta[:] = smooth
+                # beta *= 1 - shrink, then along each strand: a vertex held back holds its
+                # neighbours back too, so no edge stretches by more than FRACTION_STRAIN
+                # (the changed vertices' pairs are tested again next round)
+                compiled_ccd.shrink_and_smooth(beta, self.shrink.array, limited, slack, self.seg,
+                                               self.seg_offsets, self.vertex_wisp, free_vertex)
                 rounds += 1
-            self.unresolved_pairs.add(int(self.comm.allreduce(int(stuck.sum()))))
+            held = np.flatnonzero((tau < 1.0) & (exempt != 2))
+            iv = inv[held]
+            stuck = int(np.sum(~_any_column((bV[iv] != 0.0) & fV[iv])))
+            self.unresolved_pairs.add(int(self.comm.allreduce(stuck)))
         beta = np.where(self.scene.pinned, 1.0, beta)
         # E: the path's end on every pair vertex, equal to the caller's _held_back bit for bit
         self._limited = (_held_back(H, T, beta), E[sv], Prest, gv, free, owner, ci, cj)

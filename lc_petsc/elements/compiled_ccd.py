@@ -122,6 +122,12 @@ def _safe_fraction(S, E, inv, m, max_steps, rtol, out):
 
 
 @_jit
+def _half_gap(X, p, c):
+    """Coordinate c of the difference of pair p's segment centres in X."""
+    return 0.5 * (X[p[0], c] + X[p[1], c] - X[p[2], c] - X[p[3], c])
+
+
+@_jit
 def _limit_pairs(S, E, inv, redo, md, scale, max_steps, rtol, tau, factor):
     for q in range(redo.shape[0]):
         k = redo[q]
@@ -129,17 +135,15 @@ def _limit_pairs(S, E, inv, redo, md, scale, max_steps, rtol, tau, factor):
         tau[k] = 1.0
         factor[k] = 1.0
         # swept spheres: segment X(t) lies within h(t) <= max(h(0), h(1)) of its centre
-        # c(t) = c(0) + t Dc, so d(t) >= min_t |cA(t) - cB(t)| - hA - hB
-        w = [0.0, 0.0, 0.0]
-        v = [0.0, 0.0, 0.0]
-        for c in range(3):
-            w[c] = 0.5 * (S[p[0], c] + S[p[1], c] - S[p[2], c] - S[p[3], c])
-            v[c] = 0.5 * (E[p[0], c] + E[p[1], c] - E[p[2], c] - E[p[3], c]) - w[c]
-        vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+        # c(t) = c(0) + t Dc, so d(t) >= min_t |cA(t) - cB(t)| - hA - hB (scalars, not
+        # lists: a list per pair is a heap allocation, 2.5x the whole test's time)
+        w0, w1, w2 = _half_gap(S, p, 0), _half_gap(S, p, 1), _half_gap(S, p, 2)
+        v0, v1, v2 = _half_gap(E, p, 0) - w0, _half_gap(E, p, 1) - w1, _half_gap(E, p, 2) - w2
+        vv = v0 * v0 + v1 * v1 + v2 * v2
         ts = 0.0
         if vv > 0.0:
-            ts = _vclip01(-(w[0] * v[0] + w[1] * v[1] + w[2] * v[2]) / vv)
-        gc = math.sqrt((w[0] + ts * v[0]) ** 2 + (w[1] + ts * v[1]) ** 2 + (w[2] + ts * v[2]) ** 2)
+            ts = _vclip01(-(w0 * v0 + w1 * v1 + w2 * v2) / vv)
+        gc = math.sqrt((w0 + ts * v0) ** 2 + (w1 + ts * v1) ** 2 + (w2 + ts * v2) ** 2)
         h = 0.0
         for a, b in ((p[0], p[1]), (p[2], p[3])):
             hs = math.sqrt((S[b, 0] - S[a, 0]) ** 2 + (S[b, 1] - S[a, 1]) ** 2 + (S[b, 2] - S[a, 2]) ** 2)
@@ -200,6 +204,58 @@ def changed_pairs(inv, changed):
     out = np.empty(len(inv), np.int64)
     k = _changed_pairs(np.ascontiguousarray(inv, np.int64), np.ascontiguousarray(changed, np.bool_), out)
     return out[:k]
+
+
+@_jit
+def _point_pairs(inv, start, pairs):
+    for k in range(inv.shape[0]):
+        for c in range(4):
+            start[inv[k, c] + 1] += 1
+    for v in range(len(start) - 1):
+        start[v + 1] += start[v]
+    fill = start[:-1].copy()
+    for k in range(inv.shape[0]):
+        for c in range(4):
+            v = inv[k, c]
+            pairs[fill[v]] = k
+            fill[v] += 1
+
+
+def point_pairs(inv, n_points):
+    """(start (n_points + 1,), pairs (4k,)): the pairs of ``inv`` (k, 4) (points < n_points)
+    at point v are pairs[start[v]:start[v + 1]] (a counting sort; a pair once per
+    occurrence), for :func:`pairs_at_points`."""
+    inv = np.ascontiguousarray(inv, np.int64)
+    start = np.zeros(int(n_points) + 1, np.int64)
+    pairs = np.empty(inv.size, np.int64)
+    _point_pairs(inv, start, pairs)
+    return start, pairs
+
+
+@_jit
+def _pairs_at_points(start, pairs, points, seen, out):
+    k = 0
+    for v in points:
+        for q in range(start[v], start[v + 1]):
+            p = pairs[q]
+            if not seen[p]:
+                seen[p] = True
+                out[k] = p
+                k += 1
+    for q in range(k):
+        seen[out[q]] = False
+    return k
+
+
+def pairs_at_points(incidence, points, seen):
+    """The pairs (each once, in no set order) with one of ``points`` (int array) among
+    their points, from the ``incidence`` (start, pairs) of :func:`point_pairs`: the work
+    is the points' pairs, not all pairs (:func:`changed_pairs`).  ``seen`` (k,) bool all
+    False, a work array (left all False)."""
+    start, pairs = incidence
+    points = np.ascontiguousarray(points, np.int64)
+    out = np.empty(min(len(seen), int(np.sum(start[points + 1] - start[points]))), np.int64)
+    return out[:_pairs_at_points(start, pairs, points, seen, out)]
 
 
 @_jit
@@ -302,6 +358,27 @@ def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, ci, cj, near):
 
 
 @_jit
+def _kept_pair_points(ci, cj, keep, sv, i, j, inv):
+    k = 0
+    for q in range(len(ci)):
+        if keep[q]:
+            i[k], j[k] = ci[q], cj[q]
+            inv[k, 0], inv[k, 1], inv[k, 2], inv[k, 3] = sv[ci[q], 0], sv[ci[q], 1], sv[cj[q], 0], sv[cj[q], 1]
+            k += 1
+
+
+def kept_pair_points(ci, cj, keep, sv):
+    """(i, j, inv): the candidates ci, cj (k,) where ``keep``, and their points (n, 4):
+    the rows of sv (m, 2) (each segment's two points) of i, then of j; one pass (the
+    NumPy gathers and concatenation took 0.1 s per call on the 8K hairball)."""
+    n = int(np.count_nonzero(keep))
+    i, j, inv = np.empty(n, np.int64), np.empty(n, np.int64), np.empty((n, 4), np.int64)
+    _kept_pair_points(np.ascontiguousarray(ci, np.int64), np.ascontiguousarray(cj, np.int64),
+                      np.ascontiguousarray(keep, np.bool_), np.ascontiguousarray(sv, np.int64), i, j, inv)
+    return i, j, inv
+
+
+@_jit
 def _pairs_overlap(i, j, lo, hi, grow, out):
     for k in range(i.shape[0]):
         out[k] = _grown_overlap(lo, hi, i[k], j[k], grow)
@@ -348,7 +425,12 @@ def warm_up():
     shift_and_bound(state[:, :3], state[:, 1:], seg, np.zeros(2, np.int64), np.ones(2), np.ones(2), np.ones(4),
                     False, 1)
     smooth_fractions(np.ones(4), S, seg, np.ones(2), np.ones(4, bool), 0.02)
+    shrink_and_smooth(np.ones(4), np.zeros(4), np.zeros(4, bool), edge_slack(S, seg, np.ones(2), 0.02), seg,
+                      np.array([0, 2]), np.zeros(4, np.int64), np.ones(4, bool))
     bound_edge_lengths(S, seg, np.zeros(2, np.int64), np.ones(2), np.ones(2), np.ones(4), None, 1)
+    quad = np.arange(4, dtype=np.int64).reshape(1, 4)
+    pairs_at_points(point_pairs(quad, 4), np.arange(2), np.zeros(1, bool))
+    kept_pair_points(np.zeros(1, np.int64), np.ones(1, np.int64), np.ones(1, bool), quad.reshape(2, 2))
 
 
 @_jit
@@ -440,7 +522,7 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
     gap along the strand (``arc``, see box_pairs) is at least ``min_gap``, and pairs of
     two boxes at or after ``n_local`` always.  Boxes
     touching more than BIG_CELLS cells are tested against every box instead.  Returns
-    their number; the first len(out) of them are written to ``out``."""
+    (out, their number): ``out`` holds them in its first rows (grown when full)."""
     rng, count = _box_cells(lo, hi, origin, cell, dims)
     n = count.shape[0]
     big = count > BIG_CELLS
@@ -494,8 +576,7 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
                 if max(rng[i, 0], rng[j, 0]) != cx or max(rng[i, 1], rng[j, 1]) != cy or \
                         max(rng[i, 2], rng[j, 2]) != cz:
                     continue
-                if found < out.shape[0]:
-                    out[found, 0], out[found, 1] = min(i, j), max(i, j)
+                out = _push_pair(out, found, i, j)
                 found += 1
         start = stop
     # big boxes (a wild iterate's segment) against all boxes, each pair once
@@ -507,10 +588,22 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
                     (group[i] == group[j] and _arc_gap(arc, i, j) < min_gap):
                 continue
             if _grown_overlap(lo, hi, i, j, 0.0):
-                if found < out.shape[0]:
-                    out[found, 0], out[found, 1] = min(i, j), max(i, j)
+                out = _push_pair(out, found, i, j)
                 found += 1
-    return found
+    return out, found
+
+
+@_jit
+def _push_pair(out, found, i, j):
+    """``out`` (k, 2) with row ``found`` set to (min(i, j), max(i, j)), copied into an
+    array twice as long first when full (one pass: a second pass with room cost 0.7 s
+    when the 8K hairball's frame path check found 5M pairs for 430k boxes)."""
+    if found == out.shape[0]:
+        grown = np.empty((2 * out.shape[0] + 16, 2), np.int64)
+        grown[:found] = out
+        out = grown
+    out[found, 0], out[found, 1] = min(i, j), max(i, j)
+    return out
 
 
 def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None):
@@ -544,34 +637,47 @@ def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None):
     if arc.shape != (n, 2):
         raise ValueError(f"box_pairs: arc must be (n_boxes, 2) = ({n}, 2), got {arc.shape}")
     args = (lo, hi, g, arc, float(min_gap), n if n_local is None else int(n_local), origin, cell, dims)
-    out = np.empty((8 * n, 2), np.int64)
-    found = _box_pairs(*args, out)
-    if found > len(out):                # more than guessed: once more, with room
-        out = np.empty((found, 2), np.int64)
-        _box_pairs(*args, out)
+    out, found = _box_pairs(*args, np.empty((8 * n, 2), np.int64))
     return out[:found]
 
 
 # ---------------------------------------------------------------- passes along strands
 @_jit
-def _smooth_fractions(beta, F, seg, rest_length, free, strain, out):
+def _edge_slack(F, seg, rest_length, strain):
+    """Per edge, the largest difference of its two ends' fractions: strain L / max(|f_i|,
+    |f_j|) (inf when neither moves)."""
     m = len(seg)
     c = np.empty(m)
     for e in range(m):
         a = seg[e]
         fmax = max(_vnorm((F[a, 0], F[a, 1], F[a, 2])), _vnorm((F[a + 1, 0], F[a + 1, 1], F[a + 1, 2])))
         c[e] = strain * rest_length[e] / fmax if fmax > 0.0 else np.inf
+    return c
+
+
+@_jit
+def _smooth_span(out, c, seg, free, e0, e1, lowered):
+    """The min-plus transform of ``out`` in place along the edges e0 .. e1 - 1 (whole
+    strands); ``lowered`` is set where a value went down."""
+    # a chain's shortest paths are monotone: one pass from each end settles every vertex
+    for e in range(e0, e1):
+        b = seg[e] + 1
+        if free[b] and out[b - 1] + c[e] < out[b]:
+            out[b] = out[b - 1] + c[e]
+            lowered[b] = True
+    for e in range(e1 - 1, e0 - 1, -1):
+        a = seg[e]
+        if free[a] and out[a + 1] + c[e] < out[a]:
+            out[a] = out[a + 1] + c[e]
+            lowered[a] = True
+
+
+@_jit
+def _smooth_fractions(beta, F, seg, rest_length, free, strain, out):
+    c = _edge_slack(F, seg, rest_length, strain)
     for i in range(len(beta)):
         out[i] = beta[i]
-    # a chain's shortest paths are monotone: one pass from each end settles every vertex
-    for e in range(m):
-        b = seg[e] + 1
-        if free[b]:
-            out[b] = min(out[b], out[b - 1] + c[e])
-    for e in range(m - 1, -1, -1):
-        a = seg[e]
-        if free[a]:
-            out[a] = min(out[a], out[a + 1] + c[e])
+    _smooth_span(out, c, seg, free, 0, len(seg), np.zeros(len(beta), np.bool_))
 
 
 def smooth_fractions(beta, F, seg, rest_length, free, strain):
@@ -589,6 +695,41 @@ def smooth_fractions(beta, F, seg, rest_length, free, strain):
                       np.ascontiguousarray(seg, np.int64), np.ascontiguousarray(rest_length, np.float64),
                       np.ascontiguousarray(free, np.bool_), float(strain), out)
     return out
+
+
+def edge_slack(F, seg, rest_length, strain):
+    """(m,): :func:`smooth_fractions`' largest difference of fractions along each edge
+    seg (m,), seg + 1, for the residual motions F (nv, 3) (one call's, for
+    :func:`shrink_and_smooth`)."""
+    return _edge_slack(np.ascontiguousarray(F, np.float64), np.ascontiguousarray(seg, np.int64),
+                       np.ascontiguousarray(rest_length, np.float64), float(strain))
+
+
+@_jit
+def _shrink_and_smooth(beta, shrink, limited, slack, seg, seg_offsets, vertex_wisp, free):
+    touched = np.zeros(len(seg_offsets) - 1, np.bool_)
+    for v in range(len(beta)):
+        if shrink[v] > 0.0:
+            beta[v] *= 1.0 - shrink[v]
+            limited[v] = True
+            touched[vertex_wisp[v]] = True
+    for w in range(len(touched)):
+        if touched[w]:
+            _smooth_span(beta, slack, seg, free, seg_offsets[w], seg_offsets[w + 1], limited)
+
+
+def shrink_and_smooth(beta, shrink, limited, slack, seg, seg_offsets, vertex_wisp, free):
+    """The limiter's round update, in place: beta (nv,) *= 1 - ``shrink`` (nv, >= 0),
+    ``limited`` (nv,) bool set where that or the smoothing lowers a fraction, then
+    :func:`smooth_fractions` (with the edges' ``slack`` of :func:`edge_slack`) on the
+    strands with a vertex shrunk (``vertex_wisp`` (nv,) local strand index, strand w's
+    edges seg_offsets[w] .. seg_offsets[w + 1] - 1 of ``seg``).  The other strands are
+    left alone: their fractions are unchanged since their last smoothing, and the
+    transform is idempotent to the bit (adding a slack >= 0 never rounds below a
+    value), so the result is smooth_fractions' on every strand."""
+    _shrink_and_smooth(beta, np.ascontiguousarray(shrink, np.float64), limited, np.ascontiguousarray(slack),
+                       np.ascontiguousarray(seg, np.int64), np.ascontiguousarray(seg_offsets, np.int64),
+                       np.ascontiguousarray(vertex_wisp, np.int64), np.ascontiguousarray(free, np.bool_))
 
 
 @_jit

@@ -136,6 +136,25 @@ def test_box_pairs_against_all_pairs():
         np.testing.assert_array_equal(sort(got), np.stack([i[want], j[want]], axis=1))
 
 
+
+def test_box_pairs_with_more_pairs_than_its_first_guess():
+    """A dense cluster (every box overlaps every other: n (n - 1) / 2 pairs, past the
+    8 n rows box_pairs starts with) and one big box: all pairs, each once, in one pass
+    (the output grows inside the loop)."""
+    rng = np.random.default_rng(3)
+    n = 80
+    c = rng.uniform(0, 0.1, size=(n, 3))
+    lo, hi = c - 0.5, c + 0.5
+    lo[0], hi[0] = -50.0, 50.0                             # over more than BIG_CELLS cells
+    lo[1:10] += 3.0                                        # a few boxes away from the cluster
+    hi[1:10] += 3.0
+    i, j = np.triu_indices(n, 1)
+    touch = np.all((hi[i] >= lo[j]) & (hi[j] >= lo[i]), axis=1)
+    assert touch.sum() > 8 * n
+    got = box_pairs(lo, hi)
+    assert len(got) == len({tuple(p) for p in got.tolist()})
+    np.testing.assert_array_equal(got[np.lexsort((got[:, 1], got[:, 0]))], np.stack([i[touch], j[touch]], axis=1))
+
 def rotation(axis, angle):
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
     K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])

@@ -12,7 +12,7 @@ import pytest
 from mpi4py import MPI
 
 from lc_petsc.config import load_config
-from lc_petsc.contact import smooth_fractions
+from lc_petsc.elements.compiled_ccd import smooth_fractions
 from lc_petsc.crossings import count_crossings, edge_strain
 from lc_petsc.simulator import Simulator
 

@@ -7,6 +7,7 @@ not move, stopped vertices and torn or crushed edges."""
 import numpy as np
 import pytest
 
+from lc_petsc.elements import compiled_ccd
 from lc_petsc.elements.compiled_ccd import bound_edge_lengths, smooth_fractions
 from strand_pass_reference import bound_edge_lengths_reference, smooth_fractions_reference
 
@@ -97,3 +98,60 @@ def test_shift_and_bound_is_the_shift_then_the_edge_pass(first_round):
     assert n == n_ref
     assert np.array_equal(state[:, :3], want) and np.all(state[:, 3:] == 0.0)
     assert not np.array_equal(want, x + shift[:, :3])      # the edge pass did something
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_shrink_and_smooth_equals_shrinking_then_smoothing_every_strand(seed):
+    """The limiter's round update smooths only the strands with a vertex shrunk; over
+    rounds of random shrinks it equals beta *= 1 - shrink followed by smooth_fractions
+    over all strands, to the bit, and flags the same vertices as limited."""
+    rng = np.random.default_rng(seed)
+    offsets, seg, _, free = strands(rng)
+    nv, n_wisps = offsets[-1], len(offsets) - 1
+    wid = np.repeat(np.arange(n_wisps), np.diff(offsets)).astype(np.int64)
+    seg_offsets = offsets - np.arange(n_wisps + 1)
+    F = rng.normal(size=(nv, 3)) * rng.choice([0.0, 1e-3, 0.3], size=(nv, 1))
+    L = rng.uniform(0.2, 0.8, len(seg))
+    slack = compiled_ccd.edge_slack(F, seg, L, 0.02)
+    beta, want = np.ones(nv), np.ones(nv)
+    limited, want_limited = np.zeros(nv, bool), np.zeros(nv, bool)
+    skipped = 0
+    for _ in range(6):
+        shrink = np.where((rng.random(nv) < 0.03) & free, rng.uniform(0.0, 1.0, nv), 0.0)
+        compiled_ccd.shrink_and_smooth(beta, shrink, limited, slack, seg, seg_offsets, wid, free)
+        want *= 1.0 - shrink
+        want_limited |= shrink > 0.0
+        smooth = smooth_fractions(want, F, seg, L, free, 0.02)
+        want_limited |= smooth < want
+        want = smooth
+        skipped += n_wisps - len(np.unique(wid[shrink > 0.0]))
+        np.testing.assert_array_equal(beta, want)
+        np.testing.assert_array_equal(limited, want_limited)
+    assert skipped > 0 and want_limited.sum() > 20           # strands were left alone, others limited
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_pairs_at_points_equals_the_scan_of_all_pairs(seed):
+    rng = np.random.default_rng(seed)
+    n_points = 500
+    inv = rng.integers(0, n_points, (3000, 4))
+    incidence = compiled_ccd.point_pairs(inv, n_points)
+    seen = np.zeros(len(inv), bool)
+    for frac in (0.0, 0.002, 0.05, 1.0):
+        changed = rng.random(n_points) < frac
+        got = compiled_ccd.pairs_at_points(incidence, np.flatnonzero(changed), seen)
+        want = compiled_ccd.changed_pairs(inv, changed)
+        assert len(got) == len(set(got.tolist()))            # each pair once
+        np.testing.assert_array_equal(np.sort(got), want)
+        assert not seen.any()                                # the work array is left clean
+
+
+def test_kept_pair_points_equals_the_numpy_gathers():
+    rng = np.random.default_rng(1)
+    sv = rng.integers(0, 1000, (400, 2))
+    ci, cj = rng.integers(0, 400, 2000), rng.integers(0, 400, 2000)
+    keep = rng.random(2000) < 0.6
+    i, j, inv = compiled_ccd.kept_pair_points(ci, cj, keep, sv)
+    np.testing.assert_array_equal(i, ci[keep])
+    np.testing.assert_array_equal(j, cj[keep])
+    np.testing.assert_array_equal(inv, np.concatenate([sv[ci[keep]], sv[cj[keep]]], axis=1))

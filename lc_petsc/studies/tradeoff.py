@@ -19,6 +19,7 @@ from lc_petsc.config import TimeConfig
 from lc_petsc.errors import SimulationError, SolverError
 from lc_petsc.parallel import global_max
 from lc_petsc.simulator import build_simulator
+from lc_petsc.solver_plan import KSP_RTOL_CONVERGING, KSP_RTOL_FIXED_COUNT
 from lc_petsc.studies import report
 from lc_petsc.studies.measures import (BlowUp, TrajectoryRecorder, compare_trajectories,
                                        quality)
@@ -36,7 +37,8 @@ class Settings:
     dt: float = 1.0 / 30.0
     newton_iterations: int = 3
     newton_tol: Optional[float] = None
-    ksp_rtol: float = 1e-6
+    # None: the shipped default, which follows the stopping rule (solver_plan)
+    ksp_rtol: Optional[float] = None
     filter: str = "analytic"
     line_search: bool = False
     options: str = ""               # extra PETSc options (e.g. a solver set)
@@ -48,10 +50,19 @@ class Settings:
     max_substeps: int = TimeConfig.max_substeps     # step cutback (with a tolerance only)
     newton: str = TimeConfig.newton                 # filtered or trust_region
 
+    def effective_rtol(self) -> float:
+        """The Krylov tolerance the run uses: ``ksp_rtol``, or the code default for its
+        stopping rule (:data:`KSP_RTOL_FIXED_COUNT` for a fixed Newton count,
+        :data:`KSP_RTOL_CONVERGING` with a Newton tolerance)."""
+        if self.ksp_rtol is not None:
+            return float(self.ksp_rtol)
+        converges = self.newton_tol is not None or self.newton_increment_tol is not None
+        return float(KSP_RTOL_CONVERGING if converges else KSP_RTOL_FIXED_COUNT)
+
     def label(self):
         """A short human-readable name of the settings."""
         parts = [f"dt=1/{round(1 / self.dt)}", f"N={self.newton_iterations}",
-                 f"rtol={self.ksp_rtol:.0e}", self.filter]
+                 f"rtol={self.effective_rtol():.0e}", self.filter]
         if self.newton_tol is not None:
             parts.append(f"tol={self.newton_tol:g}")
         if self.newton_increment_tol is not None:
@@ -188,8 +199,8 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.max_substeps = s.max_substeps
     cfg.time.newton = s.newton
     cfg.solver.filter = s.filter
-    cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options,
-                                              f"-ksp_rtol {s.ksp_rtol:g}") if x)
+    rtol = "" if s.ksp_rtol is None else f"-ksp_rtol {s.ksp_rtol:g}"      # else the code default
+    cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options, rtol) if x)
     return cfg
 
 
@@ -272,7 +283,8 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
         res, traj, _ = run_trajectory(base_cfg, s, duration, out_dt, comm, blowup)
         if comm.rank != 0:
             continue
-        row = {"variant": name, "axis": axis, "label": s.label(), **asdict(s), **res}
+        row = {"variant": name, "axis": axis, "label": s.label(), **asdict(s), "ksp_rtol": s.effective_rtol(),
+               **res}
         row.pop("timings_s", None)
         row["stable"] = res["status"] == "ok"
         n_out = max(len(traj["times"]) - 1, 1) if traj else 1
@@ -304,7 +316,8 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
     report.write_csv(rows, out / "tradeoff.csv", cols)
     recs = recommend(rows, targets, cost=cost)
     report.write_json({"meta": dict(meta or {}, duration=duration, out_dt=out_dt),
-                       "reference": dict(asdict(ref), **{k: v for k, v in rres.items() if k != "timings_s"},
+                       "reference": dict(asdict(ref), ksp_rtol=ref.effective_rtol(),
+                                         **{k: v for k, v in rres.items() if k != "timings_s"},
                                          **rq),
                        "variants": rows, "recommendations": recs}, out / "tradeoff.json")
     report.plot_pareto(rows, out / "pareto.png", cost=cost, cost_label=COSTS[cost],

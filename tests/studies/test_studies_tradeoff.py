@@ -11,7 +11,8 @@ from mpi4py import MPI
 from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig
 from lc_petsc.studies.measures import compare_trajectories, curl_radius, stretch_strain
 from lc_petsc.studies.report import pareto_front
-from lc_petsc.studies.tradeoff import BASE, default_variants, reference_settings, run_study
+from lc_petsc.solver_plan import KSP_RTOL_CONVERGING, KSP_RTOL_FIXED_COUNT
+from lc_petsc.studies.tradeoff import BASE, configure, default_variants, reference_settings, run_study
 
 comm = MPI.COMM_WORLD
 
@@ -40,6 +41,18 @@ def test_measures_on_known_geometry():
     assert abs(e["rms_rel_error"] - np.sqrt(0.25 / 2) / L) < 1e-12
     assert abs(e["energy_rel_error"] - 0.25) < 1e-12 and e["n_common_times"] == 2
     assert pareto_front([(1, 5), (2, 3), (3, 4), (0.5, 9), (4, 1)]) == [3, 0, 1, 4]
+
+
+def test_base_runs_the_shipped_krylov_default():
+    """The study's base is what a user runs: no -ksp_rtol of its own, so the code default
+    for its stopping rule applies (and is what its label and rows report); an explicit
+    tolerance (the ksp_rtol axis) is passed on."""
+    assert BASE.ksp_rtol is None and BASE.effective_rtol() == float(KSP_RTOL_FIXED_COUNT)
+    assert "rtol=1e-04" in BASE.label()
+    converging = replace(BASE, newton_increment_tol=1e-6)
+    assert converging.effective_rtol() == float(KSP_RTOL_CONVERGING)
+    assert "-ksp_rtol" not in configure(smash(), BASE, 0.1).solver.options
+    assert "-ksp_rtol 0.01" in configure(smash(), replace(BASE, ksp_rtol=1e-2), 0.1).solver.options
 
 
 def test_variants_cover_the_axes():

@@ -56,7 +56,7 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
-from lc_petsc.elements import compiled_ccd, segment_barrier, segment_ccd, segment_contact
+from lc_petsc.elements import compiled_ccd, compiled_contact, segment_barrier, segment_ccd, segment_contact
 from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.parallel import collectively, global_min, global_reduce
 
@@ -886,15 +886,22 @@ class StrandContact:
             with collectively(self.comm, "strand contact"):
                 X, gA, gB, fA, fB, oA, oB, d = self._pairs(x)
                 m = len(X)
-                g, H = self.kernel.gradient_hessian(X, self.d0, self.kernel_stiffness, filter=self.filter) \
-                    if m else (np.zeros((0, 4, 3)), np.zeros((0, 12, 12)))
                 free = np.concatenate([fA, fB], axis=1)                          # (m, 4)
-                pin = np.flatnonzero(~free.all(axis=1))
-                if len(pin):          # pinned vertices: no contact rows or columns
-                    fr = np.repeat(free[pin], 3, axis=1).astype(float)
-                    g[pin] *= free[pin, :, None]
-                    H[pin] *= fr[:, :, None] * fr[:, None, :]
-                rows = compiled_ccd.pair_rows(g, H, oA, oB)          # (2m, NB)
+                if self.potential == "penalty" and self.filter == "analytic":
+                    # the same values, compiled and fused (no (m, 12, 12) Hessians)
+                    rows, cross_ab, cross_ba = compiled_contact.penalty_rows(X, self.d0, self.kernel_stiffness,
+                                                                             free, oA, oB)
+                else:
+                    g, H = self.kernel.gradient_hessian(X, self.d0, self.kernel_stiffness, filter=self.filter) \
+                        if m else (np.zeros((0, 4, 3)), np.zeros((0, 12, 12)))
+                    pin = np.flatnonzero(~free.all(axis=1))
+                    if len(pin):          # pinned vertices: no contact rows or columns
+                        fr = np.repeat(free[pin], 3, axis=1).astype(float)
+                        g[pin] *= free[pin, :, None]
+                        H[pin] *= fr[:, :, None] * fr[:, None, :]
+                    rows = compiled_ccd.pair_rows(g, H, oA, oB)          # (2m, NB)
+                    cross_ab = np.ascontiguousarray(H[:, 0:6, 6:12]).reshape(m, 36)
+                    cross_ba = np.ascontiguousarray(H[:, 6:12, 0:6]).reshape(m, 36)
                 idx = np.concatenate([gA, gB]).astype(PETSc.IntType)
                 self.last_min_distance = float(d.min(initial=np.inf))
             vec = self.vec
@@ -924,13 +931,14 @@ class StrandContact:
             self.last_pairs = int(n_global)
             self.cross_pairs.add(int(n_cross))
             self.last_min_distance = global_min(self.comm, self.last_min_distance)
-            self._rebuild_matrix(n_global, dn, on, X, H, gA, gB)
+            self._rebuild_matrix(n_global, dn, on, cross_ab, cross_ba, gA, gB)
         return gc
 
-    def _rebuild_matrix(self, n_global, dn, on, X, H, gA, gB):
-        """C: the cross blocks (segment A x segment B and its transpose) of the active
-        pairs, in a matrix of the strand matrix's type (for SBAIJ the A x B blocks only:
-        A's wisp precedes B's, so they are all above the diagonal)."""
+    def _rebuild_matrix(self, n_global, dn, on, cross_ab, cross_ba, gA, gB):
+        """C: the cross blocks (segment A x segment B, ``cross_ab`` (m, 36), and its
+        transpose, ``cross_ba``, each pair's 6 x 6 block row-major) of the active pairs, in
+        a matrix of the strand matrix's type (for SBAIJ the A x B blocks only: A's wisp
+        precedes B's, so they are all above the diagonal)."""
         if self.shell_ctx is not None:      # never leave a destroyed C inside the shell
             self.shell_ctx.C = None
         if self.C is not None:
@@ -952,14 +960,13 @@ class StrandContact:
             C = create(size=size, bsize=3, comm=self.pcomm,
                        nnz=(d_nnz.astype(PETSc.IntType), o_nnz.astype(PETSc.IntType)))
         C.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
-        m = len(X)
-        if m:
+        if len(gA):
             ra = np.stack([gA, gA + 1], axis=1).astype(PETSc.IntType)
             rb = np.stack([gB, gB + 1], axis=1).astype(PETSc.IntType)
             add = PETSc.InsertMode.ADD_VALUES
-            C.setValuesBlockedRCV(ra, rb, np.ascontiguousarray(H[:, 0:6, 6:12]).reshape(m, 36), addv=add)
+            C.setValuesBlockedRCV(ra, rb, cross_ab, addv=add)
             if not upper:
-                C.setValuesBlockedRCV(rb, ra, np.ascontiguousarray(H[:, 6:12, 0:6]).reshape(m, 36), addv=add)
+                C.setValuesBlockedRCV(rb, ra, cross_ba, addv=add)
         C.assemble()
         self.C = C
 
@@ -976,14 +983,16 @@ class StrandContact:
 
 
 def _warm_up_in_turn(comm):
-    """Compile :mod:`compiled_ccd` on rank 0 first (it writes Numba's cache), then load
+    """Compile :mod:`compiled_ccd` and :mod:`compiled_contact` on rank 0 first (it writes Numba's cache), then load
     it on the other ranks; returns this rank's seconds, waiting included."""
     t0 = time.perf_counter()
     if comm.rank == 0:
         compiled_ccd.warm_up()
+        compiled_contact.warm_up()
     comm.Barrier()
     if comm.rank != 0:
         compiled_ccd.warm_up()
+        compiled_contact.warm_up()
     return time.perf_counter() - t0
 
 

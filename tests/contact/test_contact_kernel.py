@@ -181,3 +181,34 @@ def test_separation_reaches_the_target_and_conserves_momentum():
         sc.separation(y, -np.ones((1, 4)), 0.2)
     with pytest.raises(ValueError, match="inverse_mass"):
         sc.separation(y, np.ones((2, 4)), 0.2)
+
+
+def test_compiled_penalty_rows_equal_the_numpy_kernel_to_the_bit():
+    """lc_petsc.elements.compiled_contact.penalty_rows (what the simulator assembles with
+    the default penalty and filter) against this module's gradient and analytic Hessian,
+    the pinned vertices zeroed and the rows and cross blocks cut out as the contact
+    assembly did before: equal to the bit, on crossing, vertex-edge, random, inactive,
+    parallel, intersecting, coincident and zero-length pairs."""
+    from lc_petsc.elements import compiled_ccd, compiled_contact
+    rng = np.random.default_rng(7)
+    X = np.concatenate([crossing_pairs(200, rng), vertex_edge_pairs(200, rng),
+                        0.3 * rng.normal(size=(2000, 4, 3))])
+    X[0, 2:] = X[0, :2] + [0.0, 0.01, 0.0]                               # parallel
+    mid = 0.5 * (X[1, 0] + X[1, 1])
+    X[1, 2], X[1, 3] = mid + [0.0, 0.0, 0.3], mid - [0.0, 0.0, 0.3]       # intersecting
+    X[2, 2:] = X[2, :2]                                                  # coincident
+    X[3, 1] = X[3, 0]                                                    # zero length
+    X[4, 2:] = X[4, :2] + 1e-7 * rng.normal(size=(2, 3))                 # nearly coincident
+    n = len(X)
+    free = rng.random((n, 4)) < 0.85
+    owner_a, owner_b = rng.integers(0, 3, n), rng.integers(0, 3, n)
+    rows, cross_ab, cross_ba = compiled_contact.penalty_rows(X, D0, K, free, owner_a, owner_b)
+    g, H = sc.gradient_hessian(X, D0, K, filter="analytic")
+    fr = free.repeat(3, axis=1).astype(float)
+    g *= free[:, :, None]
+    H *= fr[:, :, None] * fr[:, None, :]
+    np.testing.assert_array_equal(rows, compiled_ccd.pair_rows(g, H, owner_a, owner_b))
+    np.testing.assert_array_equal(cross_ab, H[:, 0:6, 6:12].reshape(n, 36))
+    np.testing.assert_array_equal(cross_ba, H[:, 6:12, 0:6].reshape(n, 36))
+    active = sc.distance(X) < D0
+    assert 0 < active.sum() < n and np.abs(cross_ab[active]).max() > 0.1 * K

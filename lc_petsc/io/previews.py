@@ -8,7 +8,9 @@ seen from -x; ``top``: x right, z down, seen from +y).  Every wisp is cut into p
 4 edges (a coil turn), drawn far to near (painter's algorithm) so near strands cover
 far ones; the nearer a piece, the more saturated, opaque and thick it is (far ones fade
 into the background; depth is scaled over the frame's strands), on a per-wisp hue of
-hair colours.  The head sphere, when the scene has one,
+hair colours.  The pieces are drawn in DEPTH_LEVELS depth bins of HUE_LEVELS hue bins,
+one compound path per bin (:func:`_stroke`): the 2K hairball's previews and contact
+sheet took 7.9 s with a path per piece, 3.7 s so.  The head sphere, when the scene has one,
 is drawn as a Lambert-shaded sphere (light from the upper left, in front); pieces
 whose middle lies behind its visible surface are hidden, the others are drawn over it
 (so occlusion is exact to a piece, about 1 cm for the 4C wisps).
@@ -30,6 +32,9 @@ VIEW_TOWARD = {"front": np.array([0.0, 0.0, 1.0]), "side": np.array([-1.0, 0.0, 
 # a wisp is drawn in pieces of this many edges (one coil turn of a 4C wisp), each at its
 # mean depth: 5x fewer paths than single edges for the same ordering at the coils' scale
 PIECE_EDGES = 4
+#: previews draw the pieces in this many depth bins, each in HUE_LEVELS hue bins
+DEPTH_LEVELS = 32
+HUE_LEVELS = 16
 HEAD_RGB = np.array([0.82, 0.74, 0.66])
 LIGHT = np.array([-0.45, 0.6, 0.66])          # screen coordinates (right, up, toward viewer)
 
@@ -55,11 +60,50 @@ def _pieces(offsets, piece=PIECE_EDGES):
     return idx, wisp
 
 
-def _wisp_colours(n_w):
-    """A per-wisp hair colour (n_w, 3): browns to auburn, shuffled so neighbours differ."""
+def _wisp_hue(n_w):
+    """A per-wisp position (n_w,) in [0, 1] on the hair colours (:func:`_hair_rgb`),
+    shuffled so neighbours differ."""
+    return np.random.default_rng(12345).permutation(max(n_w, 1))[:n_w] / max(n_w - 1, 1)
+
+
+def _hair_rgb(hue):
+    """Hair colours (n, 3) of hues (n,) in [0, 1]: browns to auburn."""
     import matplotlib.pyplot as plt
-    hue = np.random.default_rng(12345).permutation(max(n_w, 1))[:n_w] / max(n_w - 1, 1)
-    return plt.get_cmap("copper")(0.35 + 0.6 * hue)[:, :3]
+    return plt.get_cmap("copper")(0.35 + 0.6 * np.asarray(hue, float))[:, :3]
+
+
+def _stroke(ax, seg, near, hue, lw):
+    """Draw the pieces ``seg`` (n, k, 2) far to near: nearer (``near`` (n,) in [0, 1])
+    is more saturated, opaque and thick, on the hue (n,) of its wisp.  The pieces are
+    binned by depth (DEPTH_LEVELS) and hue (HUE_LEVELS) and each bin is one compound
+    path, drawn in depth order: matplotlib's cost is per path, so a 2,000-wisp frame
+    (50k pieces) draws in a fraction of the time of a path per piece, with the order and
+    the colours quantised to bins finer than the eye tells apart."""
+    from matplotlib.collections import PathCollection
+    from matplotlib.path import Path
+    from matplotlib.transforms import IdentityTransform
+    if not len(seg):
+        return
+    level = np.minimum((near * DEPTH_LEVELS).astype(int), DEPTH_LEVELS - 1)
+    tone = np.minimum((hue * HUE_LEVELS).astype(int), HUE_LEVELS - 1)
+    key = level * HUE_LEVELS + tone
+    order = np.argsort(key, kind="stable")
+    keys, first = np.unique(key[order], return_index=True)
+    bounds = np.append(first, len(order))
+    k = seg.shape[1]
+    codes = np.full(k, Path.LINETO, dtype=Path.code_type)
+    codes[0] = Path.MOVETO
+    paths = [Path(seg[order[a:b]].reshape(-1, 2), np.tile(codes, b - a)) for a, b in zip(bounds[:-1], bounds[1:])]
+    s = ((keys // HUE_LEVELS) + 0.5) / DEPTH_LEVELS
+    rgba = np.empty((len(keys), 4))
+    rgba[:, :3] = np.clip(_hair_rgb(((keys % HUE_LEVELS) + 0.5) / HUE_LEVELS) * (0.3 + 0.7 * s)[:, None]
+                          + 0.12 * s[:, None] ** 4, 0.0, 1.0)
+    rgba[:, 3] = 0.35 + 0.65 * s
+    # paths in data coordinates (no offsets): the collection's transform is the axes' data
+    pc = PathCollection(paths, facecolors="none", edgecolors=rgba, linewidths=lw * (0.4 + 0.6 * s),
+                        capstyle="round", joinstyle="round", zorder=3, transform=ax.transData,
+                        offset_transform=IdentityTransform())
+    ax.add_collection(pc)
 
 
 def _sphere_image(radius, view, n=256):
@@ -82,7 +126,6 @@ def _sphere_image(radius, view, n=256):
 def _draw(ax, x, offsets, view, limits, head=None, lw=None):
     """Draw one frame: positions ``x`` (n_vertices, 3) of the wisps ``offsets``, depth
     ordered and shaded; ``head`` = (centre, radius) or None."""
-    from matplotlib.collections import LineCollection
     x = np.asarray(x, float)
     a, b = VIEW_AXES[view][:2]
     toward = VIEW_TOWARD[view]
@@ -106,15 +149,8 @@ def _draw(ax, x, offsets, view, limits, head=None, lw=None):
         near = np.clip((depth - lo) / (hi - lo), 0.0, 1.0) if hi > lo else np.ones_like(depth)
     else:
         near = depth
-    order = np.argsort(depth[visible], kind="stable")
-    idx = np.flatnonzero(visible)[order]
-    s = near[idx]
-    rgba = np.empty((len(idx), 4))
-    rgba[:, :3] = _wisp_colours(n_w)[wisp[idx]] * (0.3 + 0.7 * s)[:, None] + 0.12 * s[:, None] ** 4
-    rgba[:, :3] = np.clip(rgba[:, :3], 0.0, 1.0)
-    rgba[:, 3] = 0.35 + 0.65 * s
-    ax.add_collection(LineCollection(seg[idx], colors=rgba, linewidths=lw * (0.4 + 0.6 * s),
-                                     capstyle="round", zorder=3))
+    idx = np.flatnonzero(visible)
+    _stroke(ax, seg[idx], near[idx], _wisp_hue(n_w)[wisp[idx]], lw)
     ax.set_xlim(limits[0])
     ax.set_ylim(limits[1])
     if view == "top":

@@ -49,9 +49,10 @@ def _vclip01(v):
 
 
 @_jit
-def _vdistance(x0, x1, x2, x3):
-    """Segment-segment distance, the clamped algorithm (and parallel rule) of
-    :func:`segment_contact.closest_points`."""
+def _vclosest(x0, x1, x2, x3):
+    """(s, t, d1, d2): the closest parameters of segments x0 x1 and x2 x3, the clamped
+    algorithm (and parallel rule) of :func:`segment_contact.closest_points`, and the
+    segments' vectors d1 = x1 - x0, d2 = x3 - x2."""
     d1, d2, r = _vsub(x1, x0), _vsub(x3, x2), _vsub(x0, x2)
     a, e = _vdot(d1, d1), _vdot(d2, d2)
     b, c, f = _vdot(d1, d2), _vdot(d1, r), _vdot(d2, r)
@@ -65,7 +66,13 @@ def _vdistance(x0, x1, x2, x3):
         s = _vclip01(-c / a_s)
     elif t > 1.0:
         s = _vclip01((b - c) / a_s)
-    t = _vclip01(t)
+    return s, _vclip01(t), d1, d2
+
+
+@_jit
+def _vdistance(x0, x1, x2, x3):
+    """Segment-segment distance (:func:`_vclosest`)."""
+    s, t, d1, d2 = _vclosest(x0, x1, x2, x3)
     return _vnorm((x0[0] + s * d1[0] - x2[0] - t * d2[0], x0[1] + s * d1[1] - x2[1] - t * d2[1],
                    x0[2] + s * d1[2] - x2[2] - t * d2[2]))
 

@@ -17,15 +17,9 @@ import math
 
 import numpy as np
 
-from lc_petsc.elements.compiled import _jit, _vcross, _vdot, _vnorm, _vsub
-from lc_petsc.elements.segment_contact import _ZERO_DIST, PARALLEL_TOL
-
-_TINY = float(np.finfo(np.float64).tiny)
-
-
-@_jit
-def _clip01(v):
-    return min(max(v, 0.0), 1.0)
+from lc_petsc.elements.compiled import _jit, _vcross, _vdot, _vnorm
+from lc_petsc.elements.compiled_ccd import _TINY, _vclosest
+from lc_petsc.elements.segment_contact import _ZERO_DIST
 
 
 @_jit
@@ -33,20 +27,7 @@ def _pair_direction(X, p, gd):
     """Closest points of pair p of X (n, 4, 3) (segment_contact.closest_points), its
     gradient of the distance gd (12,) = w (x) n, and the distance."""
     x0, x1, x2, x3 = X[p, 0], X[p, 1], X[p, 2], X[p, 3]
-    d1, d2, r = _vsub(x1, x0), _vsub(x3, x2), _vsub(x0, x2)
-    a, e = _vdot(d1, d1), _vdot(d2, d2)
-    b, c, f = _vdot(d1, d2), _vdot(d1, r), _vdot(d2, r)
-    a_s, e_s = max(a, _TINY), max(e, _TINY)
-    denom = max(a * e - b * b, 0.0)
-    s = 0.0
-    if not denom <= PARALLEL_TOL * a * e:
-        s = _clip01((b * f - c * e) / denom)
-    t = (b * s + f) / e_s
-    if t < 0.0:
-        s = _clip01(-c / a_s)
-    elif t > 1.0:
-        s = _clip01((b - c) / a_s)
-    t = _clip01(t)
+    s, t, d1, d2 = _vclosest(x0, x1, x2, x3)
     u = ((x0[0] + s * d1[0]) - (x2[0] + t * d2[0]), (x0[1] + s * d1[1]) - (x2[1] + t * d2[1]),
          (x0[2] + s * d1[2]) - (x2[2] + t * d2[2]))
     d = math.sqrt(_vdot(u, u))

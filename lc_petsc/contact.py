@@ -240,7 +240,7 @@ class StrandContact:
         wid = np.repeat(np.arange(scene.n_wisps), np.diff(scene.offsets))
         self.vertex_wisp = wid.astype(np.int64)                 # local wisp of each local vertex
         # local wisp w's segments: seg[seg_offsets[w]:seg_offsets[w + 1]]
-        self.seg_offsets = (np.asarray(scene.offsets) - np.arange(scene.n_wisps + 1)).astype(np.int64)
+        self.seg_offsets = compiled_ccd.strand_edge_offsets(scene.offsets)
         self.seg_wisp = (scene.first_wisp + wid[self.seg]).astype(np.int64)
         self.seg_gv = (scene.first_vertex + self.seg).astype(np.int64)
         self.seg_ends = np.stack([self.seg, self.seg + 1], axis=1)

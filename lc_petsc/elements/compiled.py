@@ -7,8 +7,9 @@ these against them to round-off), evaluated element by element and written strai
 the matrix's block-CSR value array (:class:`BlockLayout`; PETSc's own SeqBAIJ array in
 :class:`lc_petsc.assembly.Assembler`): no Hessian array of the whole term,
 only scratch arrays for one batch of bend or twist elements.  Still plain Python,
-compiled by Numba on first use and cached on disk (``cache=True``: in ``__pycache__``
-next to this file, or ``NUMBA_CACHE_DIR`` if set; see docs/performance.md).
+compiled by Numba on first use and cached on disk (``cache=True``, one directory per
+version of this package's element sources: :func:`kernel_cache_dir`; see
+docs/performance.md).
 
 Implemented: the filters in :data:`FILTERS`; any other filter is evaluated by the NumPy
 kernels (the assembler dispatches).  No PETSc, no MPI.
@@ -40,8 +41,11 @@ term is then run to raise its documented :class:`~lc_petsc.elements.common.Eleme
 
 from __future__ import annotations
 
+import hashlib
 import math
+import os
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -53,6 +57,27 @@ try:
     import numba
 except ImportError:                 # pragma: no cover - numba is a dependency
     numba = None                    # type: ignore[assignment]
+
+
+def kernel_cache_dir(sources=None):
+    """Numba's on-disk cache of this package's kernels: one directory per version of
+    the sources of ``lc_petsc/elements`` (a hash of its modules; ``sources``: another
+    folder, for the tests), under ``NUMBA_CACHE_DIR`` if set, else that folder's
+    ``__pycache__``.  Numba keys a cached function on its own file only, while the
+    helpers and constants it inlines come from the other modules here: without the
+    version a change there (a code update) would keep running the stale machine code."""
+    here = Path(sources or Path(__file__).resolve().parent)
+    digest = hashlib.sha1()
+    for path in sorted(here.glob("*.py")):
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    base = os.environ.get("NUMBA_CACHE_DIR") or str(here / "__pycache__")
+    return os.path.join(base, f"kernels-{digest.hexdigest()[:16]}")
+
+
+if numba is not None:
+    # read when a kernel is decorated (its cache locator is chosen then)
+    numba.config.CACHE_DIR = kernel_cache_dir()
 
 #: Filters the compiled kernels implement (others fall back to NumPy).
 FILTERS = ("analytic", "none")

@@ -45,7 +45,8 @@ def _vlerp(S, E, i, t):
 
 @_jit
 def _vclip01(v):
-    return min(max(v, 0.0), 1.0)
+    """v clipped to [0, 1] as np.clip does it (-0.0 -> +0.0, NaN stays NaN)."""
+    return 0.0 if v <= 0.0 else (1.0 if v >= 1.0 else v)
 
 
 @_jit
@@ -710,6 +711,13 @@ def edge_slack(F, seg, rest_length, strain):
     :func:`shrink_and_smooth`)."""
     return _edge_slack(np.ascontiguousarray(F, np.float64), np.ascontiguousarray(seg, np.int64),
                        np.ascontiguousarray(rest_length, np.float64), float(strain))
+
+
+def strand_edge_offsets(offsets):
+    """(n_strands + 1,): strand w's edges are w's part of the edge list of strands of
+    vertices offsets (n_strands + 1,), edges[k[w]:k[w + 1]] (a strand of n > 0 vertices
+    has n - 1 edges, an empty one none)."""
+    return np.concatenate([[0], np.cumsum(np.maximum(np.diff(offsets), 1) - 1)]).astype(np.int64)
 
 
 @_jit

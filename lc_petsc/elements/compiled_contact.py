@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from lc_petsc.elements.common import check_per_element, check_positions
 from lc_petsc.elements.compiled import _jit, _vcross, _vdot, _vnorm
 from lc_petsc.elements.compiled_ccd import _TINY, _vclosest
 from lc_petsc.elements.segment_contact import _ZERO_DIST
@@ -107,10 +108,13 @@ def penalty_rows(X, thickness, stiffness, free, owner_a, owner_b):
     preallocation counts by ``owner_a`` == ``owner_b``) and the blocks H[0:6, 6:12] and
     H[6:12, 0:6], row-major; the entries of the pinned vertices (``free`` (m, 4) False)
     are zero."""
-    X = np.ascontiguousarray(X, np.float64)
+    X = np.ascontiguousarray(check_positions(X, 4, "segment_contact"))
     m = len(X)
-    if X.shape[1:] != (4, 3) or np.shape(free) != (m, 4):
-        raise ValueError(f"penalty_rows: X must be (m, 4, 3) and free (m, 4), got {X.shape} and {np.shape(free)}")
+    if np.shape(free) != (m, 4) or np.shape(owner_a) != (m,) or np.shape(owner_b) != (m,):
+        raise ValueError(f"penalty_rows: free must be ({m}, 4) and owner_a, owner_b ({m},), got "
+                         f"{np.shape(free)}, {np.shape(owner_a)}, {np.shape(owner_b)}")
+    check_per_element(thickness, 1, "segment_contact", "thickness", positive=True)
+    check_per_element(stiffness, 1, "segment_contact", "stiffness")
     rows, cross_ab, cross_ba = np.empty((2 * m, 35)), np.empty((m, 36)), np.empty((m, 36))
     _penalty_rows(X, float(thickness), float(stiffness), np.ascontiguousarray(free, np.bool_),
                   np.ascontiguousarray(owner_a, np.int64), np.ascontiguousarray(owner_b, np.int64),

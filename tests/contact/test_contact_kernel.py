@@ -199,6 +199,7 @@ def test_compiled_penalty_rows_equal_the_numpy_kernel_to_the_bit():
     X[2, 2:] = X[2, :2]                                                  # coincident
     X[3, 1] = X[3, 0]                                                    # zero length
     X[4, 2:] = X[4, :2] + 1e-7 * rng.normal(size=(2, 3))                 # nearly coincident
+    X[5] = [[0, 0, 0], [0, 0, 0], [1, 1, 1], [2, 1, 1]]                  # zero length, t clamped
     n = len(X)
     free = rng.random((n, 4)) < 0.85
     owner_a, owner_b = rng.integers(0, 3, n), rng.integers(0, 3, n)
@@ -207,8 +208,25 @@ def test_compiled_penalty_rows_equal_the_numpy_kernel_to_the_bit():
     fr = free.repeat(3, axis=1).astype(float)
     g *= free[:, :, None]
     H *= fr[:, :, None] * fr[:, None, :]
-    np.testing.assert_array_equal(rows, compiled_ccd.pair_rows(g, H, owner_a, owner_b))
-    np.testing.assert_array_equal(cross_ab, H[:, 0:6, 6:12].reshape(n, 36))
-    np.testing.assert_array_equal(cross_ba, H[:, 6:12, 0:6].reshape(n, 36))
+    def bits(a):        # to the bit: signed zeros told apart
+        return np.ascontiguousarray(a).view(np.int64)
+    np.testing.assert_array_equal(bits(rows), bits(compiled_ccd.pair_rows(g, H, owner_a, owner_b)))
+    np.testing.assert_array_equal(bits(cross_ab), bits(H[:, 0:6, 6:12].reshape(n, 36)))
+    np.testing.assert_array_equal(bits(cross_ba), bits(H[:, 6:12, 0:6].reshape(n, 36)))
     active = sc.distance(X) < D0
     assert 0 < active.sum() < n and np.abs(cross_ab[active]).max() > 0.1 * K
+
+
+def test_compiled_penalty_rows_check_their_input():
+    from lc_petsc.elements import compiled_contact
+    from lc_petsc.errors import ElementError
+    X = crossing_pairs(3, np.random.default_rng(0))
+    free, owners = np.ones((3, 4), bool), np.zeros(3, np.int64)
+    X[1, 2, 0] = np.nan
+    with pytest.raises(ElementError, match="element 1 has a non-finite position"):
+        compiled_contact.penalty_rows(X, D0, K, free, owners, owners)
+    X[1, 2, 0] = 0.0
+    with pytest.raises(ValueError, match="free must be"):
+        compiled_contact.penalty_rows(X, D0, K, free[:2], owners, owners)
+    with pytest.raises(ElementError, match="thickness"):
+        compiled_contact.penalty_rows(X, -D0, K, free, owners, owners)

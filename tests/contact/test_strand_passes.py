@@ -107,9 +107,15 @@ def test_shrink_and_smooth_equals_shrinking_then_smoothing_every_strand(seed):
     over all strands, to the bit, and flags the same vertices as limited."""
     rng = np.random.default_rng(seed)
     offsets, seg, _, free = strands(rng)
+    # an empty strand and a one-vertex strand among them (no edges)
+    offsets = np.concatenate([offsets[:5], offsets[4:5], offsets[4:5] + 1, offsets[5:] + 1])
     nv, n_wisps = offsets[-1], len(offsets) - 1
+    seg = np.concatenate([np.arange(offsets[w], offsets[w + 1] - 1) for w in range(n_wisps)])
+    free = np.insert(free, offsets[4], True)
     wid = np.repeat(np.arange(n_wisps), np.diff(offsets)).astype(np.int64)
-    seg_offsets = offsets - np.arange(n_wisps + 1)
+    seg_offsets = compiled_ccd.strand_edge_offsets(offsets)
+    assert seg_offsets[4] == seg_offsets[5] == seg_offsets[6] and seg_offsets[-1] == len(seg)
+    np.testing.assert_array_equal(np.diff(seg_offsets), np.maximum(np.diff(offsets) - 1, 0))
     F = rng.normal(size=(nv, 3)) * rng.choice([0.0, 1e-3, 0.3], size=(nv, 1))
     L = rng.uniform(0.2, 0.8, len(seg))
     slack = compiled_ccd.edge_slack(F, seg, L, 0.02)

@@ -9,6 +9,8 @@ Their Hessian is also checked against finite differences of their own gradient w
 the analytic filter is exact (stretch under tension, bend and twist at rest).
 """
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from mpi4py import MPI
@@ -296,3 +298,22 @@ def test_assembled_matrix_matches_numpy_kernels(kind, mat_type, filter):
 def test_unknown_kernels_option_is_a_clear_error():
     with pytest.raises(ValueError, match="-lc_element_kernels 'fortran'.*compiled.*numpy"):
         _simulator("fortran", "straight", "baij")
+
+
+def test_kernel_cache_is_versioned_by_every_element_module(tmp_path, monkeypatch):
+    """Numba keys a cached kernel on its own file; the cache folder changes with any
+    module of the folder (the helpers and constants a kernel inlines), and follows
+    NUMBA_CACHE_DIR; the kernels of this process are cached in it."""
+    import numba
+    assert numba.config.CACHE_DIR == compiled.kernel_cache_dir()
+    (tmp_path / "a.py").write_text("X = 1\n")
+    (tmp_path / "b.py").write_text("def f():\n    return 1\n")
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    first = compiled.kernel_cache_dir(tmp_path)
+    assert first.startswith(str(tmp_path / "__pycache__" / "kernels-"))
+    assert compiled.kernel_cache_dir(tmp_path) == first
+    (tmp_path / "a.py").write_text("X = 2\n")              # a constant another module inlines
+    second = compiled.kernel_cache_dir(tmp_path)
+    assert second != first
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    assert compiled.kernel_cache_dir(tmp_path) == str(tmp_path / "cache" / Path(second).name)

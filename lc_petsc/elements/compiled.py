@@ -77,7 +77,7 @@ def kernel_cache_dir(sources=None):
 
 if numba is not None:
     # read when a kernel is decorated (its cache locator is chosen then)
-    numba.config.CACHE_DIR = kernel_cache_dir()
+    numba.config.CACHE_DIR = kernel_cache_dir()  # type: ignore[attr-defined]
 
 #: Filters the compiled kernels implement (others fall back to NumPy).
 FILTERS = ("analytic", "none")

@@ -37,13 +37,13 @@ Matrix type: the solver plan's (lc_petsc/solver_plan.py: ``baij`` (bs 3) unless
 
 from __future__ import annotations
 
-import time
 from contextlib import contextmanager, nullcontext
 
 import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.elements import bend, compiled, stretch, twist
+from lc_petsc.parallel import compile_in_turn
 from lc_petsc.petsc_capi import has_value_array, value_array
 from lc_petsc.solver_plan import ELEMENT_KERNELS, SUPPORTED_MAT_TYPES, base_type
 
@@ -62,7 +62,7 @@ class Assembler:
                              f"default) or numpy (the reference kernels)")
         self.kernels = kernels
         #: seconds spent compiling (or loading from Numba's cache) the compiled kernels
-        self.compile_seconds = _warm_up_in_turn(comm) if kernels == "compiled" else 0.0
+        self.compile_seconds = compile_in_turn(comm.tompi4py(), compiled.warm_up) if kernels == "compiled" else 0.0
         nv, b = scene.nv, scene.bandwidth
         self.b = b
         # Band storage R[i, r, 3 (d + b) + c] = entry (3 i + r, 3 (i + d) + c): an element's
@@ -374,20 +374,6 @@ class Assembler:
                 np.take(self.R.reshape(-1), self.p_from_band, out=out)
         if self.pmat_block is None:
             self.pmat.setValuesCSR(self.p_rowptr, self.p_cols, p)
-
-
-def _warm_up_in_turn(comm):
-    """Compile the kernels on rank 0 first (it writes Numba's cache), then load them on
-    the other ranks: ranks sharing a machine do not all compile at once.  Returns this
-    rank's seconds, waiting for rank 0 included."""
-    mpi = comm.tompi4py()
-    t0 = time.perf_counter()
-    if mpi.rank == 0:
-        compiled.warm_up()
-    mpi.Barrier()
-    if mpi.rank != 0:
-        compiled.warm_up()
-    return time.perf_counter() - t0
 
 
 def _block_storing(mat, stored):

@@ -51,14 +51,13 @@ identity).
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.elements import compiled_ccd, compiled_contact, segment_barrier, segment_ccd, segment_contact
 from lc_petsc.elements.compiled_ccd import box_pairs
-from lc_petsc.parallel import collectively, global_min, global_reduce
+from lc_petsc.parallel import collectively, compile_in_turn, global_min, global_reduce
 
 MODES = ("penalty", "ccd")
 #: the contact energy on the pair distance: kernel module by name (same call signatures)
@@ -303,7 +302,7 @@ class StrandContact:
         self.kernel_stiffness = self.k if potential == "penalty" else self.barrier_stiffness
         #: seconds compiling (or loading from Numba's cache) the compiled broad phase and
         #: limiter kernels, at set-up (not in any frame)
-        self.compile_seconds = _warm_up_in_turn(comm)
+        self.compile_seconds = compile_in_turn(comm, compiled_ccd.warm_up, compiled_contact.warm_up)
         # ccd mode (see limit_step): per-vertex step fractions, in a Vec by global vertex
         self.step_fraction = self.shrink = None
         if mode == "ccd":
@@ -698,12 +697,13 @@ class StrandContact:
                 if bV_prev is None:
                     redo = np.arange(len(inv))
                 else:
-                    ch = np.flatnonzero(bV != bV_prev)
+                    changed = bV != bV_prev
+                    ch = np.flatnonzero(changed)
                     E[ch] = HV[ch] + bV[ch, None] * (TV[ch] - HV[ch])
                     if incidence is None and rounds >= INCIDENCE_ROUND:
                         incidence = compiled_ccd.point_pairs(inv, len(V))
                     if incidence is None:
-                        redo = compiled_ccd.changed_pairs(inv, bV != bV_prev)
+                        redo = compiled_ccd.changed_pairs(inv, changed)
                     else:
                         redo = compiled_ccd.pairs_at_points(incidence, ch, seen)
                 bV_prev = bV
@@ -980,20 +980,6 @@ class StrandContact:
                 m.destroy()
         self.shell = self.op = self.C = self.vec = self.state = self.correction = None
         self.step_fraction = self.shrink = None
-
-
-def _warm_up_in_turn(comm):
-    """Compile :mod:`compiled_ccd` and :mod:`compiled_contact` on rank 0 first (it writes Numba's cache), then load
-    it on the other ranks; returns this rank's seconds, waiting included."""
-    t0 = time.perf_counter()
-    if comm.rank == 0:
-        compiled_ccd.warm_up()
-        compiled_contact.warm_up()
-    comm.Barrier()
-    if comm.rank != 0:
-        compiled_ccd.warm_up()
-        compiled_contact.warm_up()
-    return time.perf_counter() - t0
 
 
 def _any_column(flags):

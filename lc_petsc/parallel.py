@@ -13,6 +13,7 @@ vertices are exchanged, only reductions.
 from __future__ import annotations
 
 import os
+import time
 from contextlib import contextmanager
 
 import numpy as np
@@ -143,6 +144,21 @@ def collectively(comm, what):
         more = f" ({len(failed) - 1} more rank(s) failed)" if len(failed) > 1 else ""
         raise SimulationError(f"{what}: rank {rank}: {msg}{more}") from error
 
+
+
+def compile_in_turn(comm, *warm_ups):
+    """Run the kernels' ``warm_ups`` (Numba compiles, or loads its cache) on rank 0 first,
+    which writes the cache, then on the other ranks: ranks sharing a machine do not all
+    compile at once.  ``comm``: an mpi4py communicator.  Returns this rank's seconds,
+    waiting for rank 0 included (collective)."""
+    t0 = time.perf_counter()
+    for first in (True, False):
+        if (comm.rank == 0) == first:
+            for warm_up in warm_ups:
+                warm_up()
+        if first:
+            comm.Barrier()
+    return time.perf_counter() - t0
 
 #: ``-lc_wisp_order``: wisps numbered along a space-filling curve of their roots, or in
 #: the order of the scene (the groom file).

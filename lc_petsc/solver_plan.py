@@ -72,6 +72,12 @@ KSP_RTOL_FIXED_COUNT = "1e-4"
 #: ``-ksp_rtol`` default of a Newton that converges to a tolerance: tight, so
 #: that the linear error does not stall the last, quadratic, iterations
 KSP_RTOL_CONVERGING = "1e-6"
+
+
+def default_ksp_rtol(newton_converges: bool) -> str:
+    """The code default of ``-ksp_rtol`` for a Newton that converges to a tolerance
+    (:attr:`TimeConfig.newton_converges`) or runs a fixed count."""
+    return KSP_RTOL_CONVERGING if newton_converges else KSP_RTOL_FIXED_COUNT
 WISP_BLOCK_MODES = ("fused", "separate")
 CONTACT_PC_MODES = ("coupled", "strands", "clusters")
 #: ``-lc_element_kernels``: the compiled (Numba) kernels or the NumPy reference kernels
@@ -224,7 +230,7 @@ class SolverPlan:
                    wisp_order=_choice(layers, "lc_wisp_order", WISP_ORDERS,
                                       "spatial (wisps ordered along a space-filling curve of their "
                                       "roots, the default) or input (the scene's order)"),
-                   ksp_rtol=KSP_RTOL_CONVERGING if newton_converges else KSP_RTOL_FIXED_COUNT,
+                   ksp_rtol=default_ksp_rtol(newton_converges),
                    _layers=layers)
 
     @contextmanager

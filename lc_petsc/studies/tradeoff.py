@@ -19,7 +19,7 @@ from lc_petsc.config import TimeConfig
 from lc_petsc.errors import SimulationError, SolverError
 from lc_petsc.parallel import global_max
 from lc_petsc.simulator import build_simulator
-from lc_petsc.solver_plan import KSP_RTOL_CONVERGING, KSP_RTOL_FIXED_COUNT
+from lc_petsc.solver_plan import default_ksp_rtol
 from lc_petsc.studies import report
 from lc_petsc.studies.measures import (BlowUp, TrajectoryRecorder, compare_trajectories,
                                        quality)
@@ -56,8 +56,8 @@ class Settings:
         :data:`KSP_RTOL_CONVERGING` with a Newton tolerance)."""
         if self.ksp_rtol is not None:
             return float(self.ksp_rtol)
-        converges = self.newton_tol is not None or self.newton_increment_tol is not None
-        return float(KSP_RTOL_CONVERGING if converges else KSP_RTOL_FIXED_COUNT)
+        time = TimeConfig(newton_tol=self.newton_tol, newton_increment_tol=self.newton_increment_tol)
+        return float(default_ksp_rtol(time.newton_converges))
 
     def label(self):
         """A short human-readable name of the settings."""

@@ -555,9 +555,19 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
     while (1 << bits) < dims[0] * dims[1] * dims[2]:
         bits += 1
     order = _radix_order(keys, bits)
-    # the entries' boxes and groups copied in cell order: the pair loop streams memory
+    # the entries' boxes (one row per bound and axis), lower cells and groups copied in
+    # cell order: the pair loop streams memory, and its overlap test vectorises
     keys, ids = keys[order], ids[order]
-    Blo, Bhi, G = lo[ids], hi[ids], group[ids]
+    B = np.empty((6, total))
+    R = np.empty((3, total), np.int64)
+    G = np.empty(total, np.int64)
+    for k in range(total):
+        i = ids[k]
+        for a in range(3):
+            B[a, k], B[3 + a, k], R[a, k] = lo[i, a], hi[i, a], rng[i, a]
+        G[k] = group[i]
+    lx, ly, lz, hx, hy, hz = B[0], B[1], B[2], B[3], B[4], B[5]
+    flags = np.empty(total, np.bool_)
     skip_runs = min_gap == np.inf   # no pair of one group at all
     found = 0
     start = 0
@@ -568,21 +578,31 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
             stop += 1
         cx, cy, cz = key // (dims[1] * dims[2]), (key // dims[2]) % dims[1], key % dims[2]
         for p in range(start, stop):
-            q = p + 1
-            if skip_runs:           # a cell lists boxes by index: skip the run of p's group
-                while q < stop and G[q] == G[p]:
-                    q += 1
-            for q in range(q, stop):
-                i, j = ids[p], ids[q]
-                if i >= n_local and j >= n_local:
-                    continue
-                if G[p] == G[q] and _arc_gap(arc, i, j) < min_gap:
-                    continue
-                if not _grown_overlap(Blo, Bhi, p, q, 0.0):
+            i = ids[p]
+            if i >= n_local:        # a cell lists boxes by index: the rest are ghosts too
+                break
+            q0 = p + 1
+            if skip_runs:           # skip the run of p's group
+                while q0 < stop and G[q0] == G[p]:
+                    q0 += 1
+            plx, ply, plz, phx, phy, phz = lx[p], ly[p], lz[p], hx[p], hy[p], hz[p]
+            hits = 0
+            for q in range(q0, stop):   # closed boxes overlap (vectorised, no branch)
+                f = not ((phx < lx[q]) | (hx[q] < plx) | (phy < ly[q]) | (hy[q] < ply) |
+                         (phz < lz[q]) | (hz[q] < plz))
+                flags[q] = f
+                hits += f
+            if hits == 0:
+                continue
+            r0, r1, r2 = R[0, p], R[1, p], R[2, p]
+            for q in range(q0, stop):
+                if not flags[q]:
                     continue
                 # report in the cell of the intersection's lower corner only
-                if max(rng[i, 0], rng[j, 0]) != cx or max(rng[i, 1], rng[j, 1]) != cy or \
-                        max(rng[i, 2], rng[j, 2]) != cz:
+                if max(r0, R[0, q]) != cx or max(r1, R[1, q]) != cy or max(r2, R[2, q]) != cz:
+                    continue
+                j = ids[q]
+                if G[p] == G[q] and _arc_gap(arc, i, j) < min_gap:
                     continue
                 out = _push_pair(out, found, i, j)
                 found += 1

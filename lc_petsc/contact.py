@@ -261,10 +261,12 @@ class StrandContact:
         self.seg_colour = (self.seg - scene.offsets[wid[self.seg]]) % 2
         #: the separation's edge-length bounds (lo, hi) (:meth:`separate`; ccd mode only:
         #: penalty mode's pushes keep their measured trajectories, and tore no strand there)
-        self.edge_bounds = None
+        self.edge_bounds = self.edge_work = None
         if mode == "ccd":
             L = self.rest_seg_length
             self.edge_bounds = (L * (1.0 - SEPARATION_STRAIN), L * (1.0 + SEPARATION_STRAIN))
+            # the rounds after the first queue the edges at the vertices they moved
+            self.edge_work = compiled_ccd.EdgeWork(self.seg, nv)
         self.vec = PETSc.Vec().createMPI((NB * nv, NB * self.N), bsize=NB, comm=pcomm)
         self.mat_type, self.coupled_pc = mat_type, bool(coupled_pc)
         # separation (see :meth:`separate`): positions + inverse mass per vertex, and the
@@ -793,12 +795,13 @@ class StrandContact:
         excepted).  Counts and corrections are summed by global vertex in PETSc Vecs
         (off-process vertices travel to their owners); the pair vertices' positions and
         counts come back through a VecScatter.  Per round, the distances of the pairs with
-        a vertex that moved are one compiled pass over the gathered positions
-        (:func:`compiled_ccd.indexed_distances`),
+        a vertex that moved, the pairs to push and the count below the floor are one
+        compiled pass over the gathered positions (:class:`compiled_ccd.PairDistances`),
         the Vec assemblies carry the hit pairs' vertices only, and the shift and the edge
         bounds below are one compiled pass on the state array
-        (:func:`compiled_ccd.shift_and_bound`): a round with a few pairs left costs
-        little more than its two scatters.
+        (:func:`compiled_ccd.shift_and_bound`, the edges queued from the vertices the
+        round moved): a round with a few pairs left costs little more than its two
+        scatters.
 
         ccd mode (``edge_bounds``): after each round's corrections, the edges whose
         length left [L (1 - s), L (1 + s)] (L rest, s = :data:`SEPARATION_STRAIN`) are
@@ -829,19 +832,13 @@ class StrandContact:
                 self.correction.assemblyEnd()
                 return self.correction.array.reshape(nv, 4)
 
+            # per round, only the pairs with a vertex that moved get a new distance
+            distances = compiled_ccd.PairDistances(inv, len(V))
             with _VertexGather(self.state, V, 5) as vg:
-                d = Yp = None
                 for it in range(max_iterations + 1):
                     Y = vg.gather(self.state).reshape(-1, 5)
-                    if d is None:
-                        d, Yp = compiled_ccd.indexed_distances(Y, inv), Y[:, :3].copy()
-                    else:       # only the pairs with a vertex that moved have a new distance
-                        moved = _any_column(Y[:, :3] != Yp)
-                        redo = compiled_ccd.changed_pairs(inv, moved)
-                        d[redo] = compiled_ccd.indexed_distances(Y, inv[redo])
-                        Yp[moved] = Y[moved, :3]
-                    hit = np.flatnonzero(d < 0.5 * (floor + target) * d0)
-                    below = self.comm.allreduce(int(np.sum(d < floor * d0 * (1.0 + 1e-3))))
+                    hit, below = distances.refresh(Y, 0.5 * (floor + target) * d0, floor * d0 * (1.0 + 1e-3))
+                    below = self.comm.allreduce(below)
                     if it == 0:
                         first = below
                     if below == 0 or it == max_iterations:
@@ -872,7 +869,7 @@ class StrandContact:
                         # after the first round, only the edges at a vertex this round
                         # moved can have left their bounds
                         compiled_ccd.shift_and_bound(x, shift, self.seg, self.seg_colour, *self.edge_bounds,
-                                                     self.inverse_mass, it == 0, EDGE_SWEEPS)
+                                                     self.inverse_mass, it == 0, EDGE_SWEEPS, self.edge_work)
             x = x.copy()
         self.last_separation = (first, it, below)
         return x, first, it

@@ -318,6 +318,50 @@ def indexed_distances(Y, inv):
 
 
 @_jit
+def _refresh_distances(Y, Yp, inv, d, moved, hit_below, count_below, hits):
+    for v in range(len(Yp)):
+        if Y[v, 0] != Yp[v, 0] or Y[v, 1] != Yp[v, 1] or Y[v, 2] != Yp[v, 2]:
+            moved[v] = True
+            Yp[v, 0], Yp[v, 1], Yp[v, 2] = Y[v, 0], Y[v, 1], Y[v, 2]
+        else:
+            moved[v] = False
+    n_hit = n_below = 0
+    for p in range(len(inv)):
+        q = inv[p]
+        if moved[q[0]] or moved[q[1]] or moved[q[2]] or moved[q[3]]:
+            d[p] = _vdistance((Y[q[0], 0], Y[q[0], 1], Y[q[0], 2]), (Y[q[1], 0], Y[q[1], 1], Y[q[1], 2]),
+                              (Y[q[2], 0], Y[q[2], 1], Y[q[2], 2]), (Y[q[3], 0], Y[q[3], 1], Y[q[3], 2]))
+        if d[p] < hit_below:
+            hits[n_hit] = p
+            n_hit += 1
+        if d[p] < count_below:
+            n_below += 1
+    return n_hit, n_below
+
+
+class PairDistances:
+    """The separation's pair distances between rounds: per round, the distances of the
+    pairs ``inv`` (k, 4) with a point that moved are recomputed
+    (:func:`indexed_distances`' arithmetic, so the same values to the bit), in one
+    compiled pass that also lists the pairs below one threshold and counts those below
+    another."""
+
+    def __init__(self, inv, n_points):
+        self.inv = np.ascontiguousarray(inv, np.int64)
+        self.d = np.empty(len(inv))
+        self.last = np.full((int(n_points), 3), np.nan)     # every point "moved" first
+        self.moved = np.empty(int(n_points), np.bool_)
+        self.hits = np.empty(len(inv), np.int64)
+
+    def refresh(self, Y, hit_below, count_below):
+        """(pairs with d < ``hit_below`` (ascending), number with d < ``count_below``) at the
+        points' positions Y (n_points, c >= 3)."""
+        n_hit, n_below = _refresh_distances(np.ascontiguousarray(Y, np.float64), self.last, self.inv, self.d,
+                                            self.moved, float(hit_below), float(count_below), self.hits)
+        return self.hits[:n_hit].copy(), int(n_below)
+
+
+@_jit
 def _grown_overlap(lo, hi, a, b, grow):
     """Closed boxes a and b of lo, hi, each grown by ``grow`` (< 0: shrunk), overlap."""
     for c in range(3):
@@ -432,6 +476,9 @@ def warm_up():
     state = np.zeros((4, 5))
     shift_and_bound(state[:, :3], state[:, 1:], seg, np.zeros(2, np.int64), np.ones(2), np.ones(2), np.ones(4),
                     False, 1)
+    shift_and_bound(state[:, :3], np.zeros((4, 4)), seg, np.zeros(2, np.int64), np.ones(2), np.ones(2),
+                    np.ones(4), False, 1, EdgeWork(seg, 4))
+    PairDistances(np.arange(4, dtype=np.int64).reshape(1, 4), 4).refresh(state, 0.1, 0.1)
     smooth_fractions(np.ones(4), S, seg, np.ones(2), np.ones(4, bool), 0.02)
     shrink_and_smooth(np.ones(4), np.zeros(4), np.zeros(4, bool), edge_slack(S, seg, np.ones(2), 0.02), seg,
                       np.array([0, 2]), np.zeros(4, np.int64), np.ones(4, bool))
@@ -778,16 +825,10 @@ def _flag_edge(e, check, todo, n_todo, colour):
 
 
 @_jit
-def _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps):
+def _sweep_edges(x, seg, colour, lo, hi, inverse_mass, check, todo, n_todo, max_sweeps):
+    """The sweeps of :func:`bound_edge_lengths` from the queued edges ``todo`` (2, m),
+    ``n_todo`` (2,) per colour, ``check`` flagging them; ``check`` is left all False."""
     m = len(seg)
-    # work lists per colour: a half sweep visits the edges queued for it, not all m
-    todo = np.empty((2, m), np.int64)
-    n_todo = np.zeros(2, np.int64)
-    for e in range(m):
-        if check[e]:
-            c = colour[e]
-            todo[c, n_todo[c]] = e
-            n_todo[c] += 1
     sweeps = 0
     while sweeps < max_sweeps and n_todo[0] + n_todo[1] > 0:
         for c in (0, 1):
@@ -813,7 +854,24 @@ def _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps)
                     _flag_edge(e + 1, check, todo, n_todo, colour)
             n_todo[c] = 0
         sweeps += 1
+    for c in (0, 1):            # queued when the sweeps ran out
+        for k in range(n_todo[c]):
+            check[todo[c, k]] = False
     return sweeps
+
+
+@_jit
+def _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps):
+    m = len(seg)
+    # work lists per colour: a half sweep visits the edges queued for it, not all m
+    todo = np.empty((2, m), np.int64)
+    n_todo = np.zeros(2, np.int64)
+    for e in range(m):
+        if check[e]:
+            c = colour[e]
+            todo[c, n_todo[c]] = e
+            n_todo[c] += 1
+    return _sweep_edges(x, seg, colour, lo, hi, inverse_mass, check, todo, n_todo, max_sweeps)
 
 
 @_jit
@@ -833,16 +891,56 @@ def _shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, all_edges, max
     return _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps)
 
 
-def shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, all_edges, max_sweeps):
+@_jit
+def _shift_and_bound_moved(x, shift, edge_at, seg, colour, lo, hi, inverse_mass, check, todo, max_sweeps):
+    n_todo = np.zeros(2, np.int64)
+    for v in range(len(x)):
+        if shift[v, 0] != 0.0 or shift[v, 1] != 0.0 or shift[v, 2] != 0.0:
+            for k in range(3):
+                x[v, k] += shift[v, k]
+            # the edges ending and starting at v (the same flags as the scan of all edges)
+            for e in (edge_at[v - 1] if v > 0 else -1, edge_at[v]):
+                if e >= 0 and inverse_mass[seg[e]] + inverse_mass[seg[e] + 1] > 0.0:
+                    _flag_edge(e, check, todo, n_todo, colour)
+    return _sweep_edges(x, seg, colour, lo, hi, inverse_mass, check, todo, n_todo, max_sweeps)
+
+
+def edge_starts(seg, nv):
+    """(nv,): the index of the strand edge that starts at each vertex (edges seg (m,),
+    seg + 1), -1 at a strand's last vertex."""
+    out = np.full(int(nv), -1, np.int64)
+    out[np.asarray(seg, np.int64)] = np.arange(len(seg))
+    return out
+
+
+class EdgeWork:
+    """Work arrays of :func:`shift_and_bound`'s moved-vertex form, kept between the
+    separation's rounds: per vertex its edge (:func:`edge_starts`), per edge a queued flag
+    (all False between calls) and the two colours' queues."""
+
+    def __init__(self, seg, nv):
+        self.edge_at = edge_starts(seg, nv)
+        self.check = np.zeros(len(seg), np.bool_)
+        self.todo = np.empty((2, len(seg)), np.int64)
+
+
+def shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, all_edges, max_sweeps, work=None):
     """The separation's round update, in place: x (nv, 3) += shift (nv, >= 3; its first
     three columns), then :func:`bound_edge_lengths` over every movable edge
     (``all_edges``) or those at a vertex the shift moved.  x may be a strided view (the
-    first columns of the separation's state array).  Returns the sweeps."""
+    first columns of the separation's state array).  With ``work`` (an :class:`EdgeWork`
+    of these edges) and not ``all_edges`` the edges are queued from the moved vertices
+    instead of a pass over all edges (the same result to the bit: edges of one colour
+    share no vertex).  Returns the sweeps."""
     if x.dtype != np.float64 or x.ndim != 2 or x.shape[1] != 3 or len(shift) != len(x):
         raise TypeError("shift_and_bound: x must be a float64 (nv, 3) array, shift (nv, >= 3)")
-    return _shift_and_bound(x, shift, np.ascontiguousarray(seg, np.int64), np.ascontiguousarray(colour, np.int64),
-                            np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
-                            np.ascontiguousarray(inverse_mass, np.float64), bool(all_edges), int(max_sweeps))
+    seg, colour = np.ascontiguousarray(seg, np.int64), np.ascontiguousarray(colour, np.int64)
+    lo, hi = np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64)
+    inverse_mass = np.ascontiguousarray(inverse_mass, np.float64)
+    if work is not None and not all_edges:
+        return _shift_and_bound_moved(x, shift, work.edge_at, seg, colour, lo, hi, inverse_mass,
+                                      work.check, work.todo, int(max_sweeps))
+    return _shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, bool(all_edges), int(max_sweeps))
 
 
 def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps):

@@ -536,7 +536,7 @@ class StrandContact:
             self.limit_rounds.add(rounds)
         return _held_back(fallback, target, beta)
 
-    def collision_free_frame(self, x_old, x, motion=None):
+    def collision_free_frame(self, x_old, x, motion=None, reuse=True):
         """(positions, vertices held back over all ranks): positions whose linear path
         from ``x_old`` (the previous frame) is collision-free (``ccd`` mode; else ``x``,
         0), for the frame's first Newton iterate (xhat = x_old + dt v with the pinned
@@ -548,12 +548,17 @@ class StrandContact:
         times (:meth:`HeadMotion.rigid_motion`; the pinned vertices follow it exactly,
         so their residual is 0 and a pair is always resolvable by its free vertices),
         or by the fitted field (:meth:`_motion_field`) without one or when the head
-        turns by more than :data:`MAX_RIGID_DEGREES` in the step.  Collective."""
+        turns by more than :data:`MAX_RIGID_DEGREES` in the step.  ``reuse``: the check
+        keeps (or takes) the ghosts and candidate pairs of boxes grown by
+        :data:`LIMITER_SKIN` d0 for the checks after it (the frame end's); the first
+        iterate's check passes False: the Newton steps move the hair by more than the
+        skin, so the frame end never reused its pairs (2K and 8K hairballs, docs/contact.md),
+        and the grown boxes cost 3x the pairs.  Collective."""
         if self.mode != "ccd":
             return x, 0
         with self.timers("collision"):
-            beta, n_limited, _, fallback = self._safe_fractions(x_old, x, 0.05 * self.d0, motion,
-                                                                skin=LIMITER_SKIN * self.d0)
+            skin = LIMITER_SKIN * self.d0 if reuse else 0.0
+            beta, n_limited, _, fallback = self._safe_fractions(x_old, x, 0.05 * self.d0, motion, skin=skin)
             self.frame_fixes.add(n_limited)
         return _held_back(fallback, x, beta), n_limited
 

@@ -269,7 +269,7 @@ class Integrator:
         # the head's rigid motion over the step: the limiter's field on the frame paths
         motion = self.head.rigid_motion(self.t, self.t_next)
         if self.strand is not None:             # ccd mode: no crossing on x_old -> first iterate
-            x = self.strand.collision_free_frame(x_old, x, motion)[0]
+            x = self.strand.collision_free_frame(x_old, x, motion, reuse=False)[0]
         n_it = 0
         converged = None
         increment = np.inf

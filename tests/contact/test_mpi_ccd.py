@@ -213,6 +213,57 @@ def test_frame_path_checks_reuse_candidates_inside_their_skin(monkeypatch):
         sim.close()
 
 
+def test_frame_end_path_check_tests_first_only_the_pairs_that_moved(monkeypatch):
+    """The frame end's path checks after its first start from the same positions and
+    fallbacks: their first round tests only the pairs with a vertex whose path end
+    differs from the last check's final one, or that the last check left held
+    (StrandContact._first_round).  The result equals a check whose first round tests
+    every pair, bit for bit; a check from other start positions tests every pair."""
+    from lc_petsc.elements import compiled_ccd
+    sim = six_wisps_ccd(monkeypatch)
+    try:
+        st, sc = sim.integrator.strand, sim.scene
+        d0, lo, hi = st.d0, sc.first_vertex, sc.first_vertex + sc.nv
+        x_old = sim.integrator.x.copy()
+        motion = (np.eye(3), np.array([0.05, 0.0, 0.0]))
+        carried = x_old + motion[1]
+        rng = np.random.default_rng(3)
+        wisp_of = np.repeat(np.arange(6), 30)
+        push = np.where(wisp_of % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.4, 0.0, 0.0])
+        D = (rng.normal(scale=0.05, size=(6 * 30, 3)) + push)[lo:hi]
+        first_round = []
+        limit_pairs = compiled_ccd.limit_pairs
+
+        def spy(S, E, inv, redo, *a, **k):
+            if not first_round or first_round[-1] is None:
+                first_round[-1:] = [(len(redo), len(inv))]
+            return limit_pairs(S, E, inv, redo, *a, **k)
+
+        monkeypatch.setattr(compiled_ccd, "limit_pairs", spy)
+
+        def check(x_start, target):
+            first_round.append(None)
+            return st.collision_free_frame(x_start, np.where(sc.pinned[:, None], carried, target), motion)
+
+        x1, held = check(x_old, carried + D)
+        assert comm.allreduce(held) > 0
+        # a separation's few nudges, then the next check from the same start
+        nudged = x1.copy()
+        nudged[rng.random(len(x1)) < 0.05] += 0.05 * d0
+        got = check(x_old, nudged)
+        tested, kept = first_round[-1]
+        st._path_ends = None
+        ref = check(x_old, nudged)
+        np.testing.assert_array_equal(got[0], ref[0])
+        assert got[1] == ref[1] and first_round[-1] == (kept, kept)
+        assert comm.allreduce(kept) > 0 and comm.allreduce(tested) < comm.allreduce(kept) // 2
+        # other start positions: every pair
+        check(x_old + 1e-3 * d0, nudged)
+        assert first_round[-1][0] == first_round[-1][1]
+    finally:
+        sim.close()
+
+
 def test_frame_end_distance_does_not_decay_over_a_run(monkeypatch):
     """Six in-phase wisps, 3 pinned stem vertices, head shaking, 24 frames, 3 Newton
     iterations (main: 5 crossings, 19 unresolved pairs, frame-end minimum 0.019 d0): 0

@@ -100,6 +100,63 @@ def test_shift_and_bound_is_the_shift_then_the_edge_pass(first_round):
     assert not np.array_equal(want, x + shift[:, :3])      # the edge pass did something
 
 
+@pytest.mark.parametrize("sweeps", [1, 2, 50])
+def test_shift_and_bound_queued_from_the_moved_vertices_equals_the_scan(sweeps):
+    """The separation's rounds after the first queue the edges at the vertices the shift
+    moved (EdgeWork) instead of scanning all edges: the same positions and sweeps bit for
+    bit, the work flags left all False (also when the sweeps run out with edges queued),
+    so the next round starts clean; on strided positions as in the separation."""
+    from lc_petsc.elements.compiled_ccd import EdgeWork, shift_and_bound
+    rng = np.random.default_rng(sweeps)
+    offsets, seg, colour, free = strands(rng)
+    nv = offsets[-1]
+    inverse_mass = np.where(free, rng.uniform(0.5, 2.0, nv), 0.0)
+    x = np.cumsum(rng.normal(size=(nv, 3)) * 0.5, axis=0)
+    L = np.linalg.norm(x[seg + 1] - x[seg], axis=1)
+    work = EdgeWork(seg, nv)
+    changed = 0
+    for trial in range(5):
+        shift = np.zeros((nv, 4))
+        moved = rng.random(nv) < 0.2
+        shift[moved, :3] = rng.normal(scale=0.2, size=(moved.sum(), 3)) * inverse_mass[moved, None]
+        a, b = np.zeros((nv, 5)), np.zeros((nv, 5))
+        a[:, :3] = b[:, :3] = x
+        n_scan = shift_and_bound(a[:, :3], shift, seg, colour, 0.98 * L, 1.02 * L, inverse_mass, False, sweeps)
+        n_work = shift_and_bound(b[:, :3], shift, seg, colour, 0.98 * L, 1.02 * L, inverse_mass, False, sweeps,
+                                 work)
+        assert n_work == n_scan and np.array_equal(a, b)
+        assert not work.check.any()
+        changed += not np.array_equal(a[:, :3], x + shift[:, :3])
+        x = a[:, :3].copy()
+    assert changed                              # the edge pass did something
+
+
+def test_pair_distances_refresh_equals_the_distances_of_every_pair():
+    """The separation's per-round pass (PairDistances.refresh): only the pairs with a
+    point that moved get a new distance, yet the distances, the pairs listed below one
+    threshold and the count below another equal those of all pairs recomputed
+    (indexed_distances), round after round, with points moving, coinciding and NaN."""
+    from lc_petsc.elements.compiled_ccd import PairDistances, indexed_distances
+    rng = np.random.default_rng(2)
+    n = 60
+    Y = rng.normal(size=(n, 5))
+    inv = rng.integers(0, n, (300, 4))
+    inv[:5, 2:] = inv[:5, :2]                   # coincident segments (distance 0)
+    pairs = PairDistances(inv, n)
+    for r in range(8):
+        hit, below = pairs.refresh(Y, 1.0, 0.6)
+        d = indexed_distances(Y, inv)
+        np.testing.assert_array_equal(pairs.d, d)
+        np.testing.assert_array_equal(hit, np.flatnonzero(d < 1.0))
+        assert below == int(np.sum(d < 0.6))
+        moved = rng.random(n) < 0.15
+        Y[moved, :3] += rng.normal(scale=0.2, size=(moved.sum(), 3))
+        Y[moved, 3:] += 1.0                     # other columns are not positions
+        if r == 5:
+            Y[7, 0] = np.nan                    # a NaN point moves every round
+    assert np.isnan(pairs.d).any()
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_shrink_and_smooth_equals_shrinking_then_smoothing_every_strand(seed):
     """The limiter's round update smooths only the strands with a vertex shrunk; over

@@ -285,7 +285,7 @@ class StrandContact:
         self._pairs_cache = None          # (x, active, pairs) of the last _pairs call
         self._limited = None              # the last limiter call's end and candidates (_reached)
         self._path_cache = None           # the frame path checks' ghosts and candidates (_safe_fractions)
-        self._path_ends = None            # the last path check's path ends and held points (_safe_fractions)
+        self._path_ends = None            # the last skin > 0 path check's path ends and held points (_first_round)
         self.path_checks_reused = 0       # frame path checks that reused them (of the run)
         self.last_separation = (0, 0, 0)
         if mode not in MODES:
@@ -554,7 +554,9 @@ class StrandContact:
         :data:`LIMITER_SKIN` d0 for the checks after it (the frame end's); the first
         iterate's check passes False: the Newton steps move the hair by more than the
         skin, so the frame end never reused its pairs (2K and 8K hairballs, docs/contact.md),
-        and the grown boxes cost 3x the pairs.  Collective."""
+        and the grown boxes cost 3x the pairs.  It leaves the last cache alone (the frame
+        end's first check may still reuse the previous frame end's, in a scene that barely
+        moves), and neither uses nor records :meth:`_first_round`'s path ends.  Collective."""
         if self.mode != "ccd":
             return x, 0
         with self.timers("collision"):
@@ -764,9 +766,18 @@ class StrandContact:
         or after a path check with the same floor ``md``, points ``V``, starts ``SV`` and
         fallbacks ``HV`` (bit for bit: the frame end's checks after its first), only
         those with a point whose path end ``TV`` differs from that check's final one or
-        that was in a pair it left held (tau < 1).  Any other pair's first path is the
-        path it was last tested on, with tau = 1 then, so it would get 1 again: skipping
-        it changes no bit (2.3M such pairs took 0.3 s a check at 8K)."""
+        that was in a pair it left held (tau < 1).  Any other pair would get tau = 1: its
+        four points' path ends are that check's final ones, so its path is one of the
+        paths of that check's family.  If that check kept the pair, the pair was last
+        tested on that very path and got tau = 1 (tau depends on SV, E at its points and
+        md only; a pair whose point changed is always tested again before a check ends).
+        If that check did not keep it (its boxes, which hold these boxes, prove the
+        distance stays above md on every path of the family), conservative advancement
+        at m / 2 <= md / 2 reaches t = 1 with every gap above md / 2 (it would need a
+        relative motion of MAX_STEPS md / 2 to run out of steps).  So skipping it changes
+        no bit (2.3M such pairs took 0.3 s a check at 8K), as long as ADVANCE_RTOL and
+        MAX_STEPS stay the same between checks.  Only path checks with a skin record and
+        use this; the first iterate's (``reuse=False``) tests every pair."""
         prev = self._path_ends
         if skin > 0.0 and prev is not None and prev[0] == md and np.array_equal(prev[1], V) \
                 and np.array_equal(prev[2], SV) and np.array_equal(prev[3], HV):

@@ -347,7 +347,7 @@ class PairDistances:
     another."""
 
     def __init__(self, inv, n_points):
-        self.inv = np.ascontiguousarray(inv, np.int64)
+        self.inv = np.ascontiguousarray(inv, np.int64).reshape(-1, 4)
         self.d = np.empty(len(inv))
         self.last = np.full((int(n_points), 3), np.nan)     # every point "moved" first
         self.moved = np.empty(int(n_points), np.bool_)
@@ -356,6 +356,8 @@ class PairDistances:
     def refresh(self, Y, hit_below, count_below):
         """(pairs with d < ``hit_below`` (ascending), number with d < ``count_below``) at the
         points' positions Y (n_points, c >= 3)."""
+        if np.ndim(Y) != 2 or len(Y) != len(self.last) or np.shape(Y)[1] < 3:
+            raise ValueError(f"PairDistances.refresh: Y must be ({len(self.last)}, >= 3), got {np.shape(Y)}")
         n_hit, n_below = _refresh_distances(np.ascontiguousarray(Y, np.float64), self.last, self.inv, self.d,
                                             self.moved, float(hit_below), float(count_below), self.hits)
         return self.hits[:n_hit].copy(), int(n_below)
@@ -626,7 +628,9 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
         cx, cy, cz = key // (dims[1] * dims[2]), (key // dims[2]) % dims[1], key % dims[2]
         for p in range(start, stop):
             i = ids[p]
-            if i >= n_local:        # a cell lists boxes by index: the rest are ghosts too
+            # a cell lists its boxes by ascending index (listed in index order, and the
+            # radix sort is stable): the rest are ghosts too
+            if i >= n_local:
                 break
             q0 = p + 1
             if skip_runs:           # skip the run of p's group
@@ -938,6 +942,9 @@ def shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, all_edges, max_
     lo, hi = np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64)
     inverse_mass = np.ascontiguousarray(inverse_mass, np.float64)
     if work is not None and not all_edges:
+        if len(work.edge_at) != len(x) or len(work.check) != len(seg):
+            raise ValueError(f"shift_and_bound: work is for {len(work.edge_at)} vertices and {len(work.check)} "
+                             f"edges, not these {len(x)} and {len(seg)}; build EdgeWork(seg, nv) for them")
         return _shift_and_bound_moved(x, shift, work.edge_at, seg, colour, lo, hi, inverse_mass,
                                       work.check, work.todo, int(max_sweeps))
     return _shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, bool(all_edges), int(max_sweeps))

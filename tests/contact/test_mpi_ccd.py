@@ -197,8 +197,8 @@ def test_frame_path_checks_reuse_candidates_inside_their_skin(monkeypatch):
             before = st.path_checks_reused
             got = st.collision_free_frame(x_old, target, motion)
             assert st.path_checks_reused - before == reuse
-            st._path_cache = None
-            ref = st.collision_free_frame(x_old, target, motion)      # a fresh exchange
+            st._path_cache = st._path_ends = None
+            ref = st.collision_free_frame(x_old, target, motion)      # a fresh exchange, every pair tested
             np.testing.assert_array_equal(got[0], ref[0])
             assert got[1] == ref[1]
             return got[1]

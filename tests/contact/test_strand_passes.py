@@ -218,3 +218,20 @@ def test_kept_pair_points_equals_the_numpy_gathers():
     np.testing.assert_array_equal(i, ci[keep])
     np.testing.assert_array_equal(j, cj[keep])
     np.testing.assert_array_equal(inv, np.concatenate([sv[ci[keep]], sv[cj[keep]]], axis=1))
+
+
+def test_edge_work_and_pair_distances_refuse_arrays_of_other_sizes():
+    """The compiled passes do no bounds checks: work arrays built for other strands, or
+    positions with another number of points, are refused with a message, not read out of
+    bounds."""
+    from lc_petsc.elements.compiled_ccd import EdgeWork, PairDistances, shift_and_bound
+    rng = np.random.default_rng(0)
+    offsets, seg, colour, free = strands(rng, n_wisps=5)
+    nv = offsets[-1]
+    x, shift, L = np.zeros((nv, 3)), np.zeros((nv, 4)), np.ones(len(seg))
+    with pytest.raises(ValueError, match="EdgeWork"):
+        shift_and_bound(x, shift, seg, colour, L, L, np.ones(nv), False, 5, EdgeWork(seg[:-1], nv - 1))
+    pairs = PairDistances(np.zeros((0, 4), np.int64), 10)
+    with pytest.raises(ValueError, match=r"\(10, >= 3\)"):
+        pairs.refresh(np.zeros((9, 5)), 1.0, 0.5)
+    assert len(pairs.refresh(np.zeros((10, 3)), 1.0, 0.5)[0]) == 0

@@ -300,11 +300,16 @@ def pair_rows(g, H, owner_a, owner_b):
 
 
 @_jit
+def _quad_distance(Y, q):
+    """Distance of the segments of rows q[0], q[1] and q[2], q[3] of Y (first 3 columns)."""
+    return _vdistance((Y[q[0], 0], Y[q[0], 1], Y[q[0], 2]), (Y[q[1], 0], Y[q[1], 1], Y[q[1], 2]),
+                      (Y[q[2], 0], Y[q[2], 1], Y[q[2], 2]), (Y[q[3], 0], Y[q[3], 1], Y[q[3], 2]))
+
+
+@_jit
 def _indexed_distances(Y, inv, out):
     for p in range(len(inv)):
-        q = inv[p]
-        out[p] = _vdistance((Y[q[0], 0], Y[q[0], 1], Y[q[0], 2]), (Y[q[1], 0], Y[q[1], 1], Y[q[1], 2]),
-                            (Y[q[2], 0], Y[q[2], 1], Y[q[2], 2]), (Y[q[3], 0], Y[q[3], 1], Y[q[3], 2]))
+        out[p] = _quad_distance(Y, inv[p])
 
 
 def indexed_distances(Y, inv):
@@ -329,8 +334,7 @@ def _refresh_distances(Y, Yp, inv, d, moved, hit_below, count_below, hits):
     for p in range(len(inv)):
         q = inv[p]
         if moved[q[0]] or moved[q[1]] or moved[q[2]] or moved[q[3]]:
-            d[p] = _vdistance((Y[q[0], 0], Y[q[0], 1], Y[q[0], 2]), (Y[q[1], 0], Y[q[1], 1], Y[q[1], 2]),
-                              (Y[q[2], 0], Y[q[2], 1], Y[q[2], 2]), (Y[q[3], 0], Y[q[3], 1], Y[q[3], 2]))
+            d[p] = _quad_distance(Y, q)
         if d[p] < hit_below:
             hits[n_hit] = p
             n_hit += 1
@@ -879,33 +883,20 @@ def _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps)
 
 
 @_jit
-def _shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, all_edges, max_sweeps):
-    nv, m = len(x), len(seg)
-    moved = np.zeros(nv, np.bool_)
-    for v in range(nv):
-        if shift[v, 0] != 0.0 or shift[v, 1] != 0.0 or shift[v, 2] != 0.0:
-            moved[v] = True
-            for k in range(3):
-                x[v, k] += shift[v, k]
-    check = np.zeros(m, np.bool_)
-    for e in range(m):
-        a = seg[e]
-        if (all_edges or moved[a] or moved[a + 1]) and inverse_mass[a] + inverse_mass[a + 1] > 0.0:
-            check[e] = True
-    return _bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps)
-
-
-@_jit
-def _shift_and_bound_moved(x, shift, edge_at, seg, colour, lo, hi, inverse_mass, check, todo, max_sweeps):
+def _shift_and_bound(x, shift, edge_at, seg, colour, lo, hi, inverse_mass, all_edges, check, todo, max_sweeps):
     n_todo = np.zeros(2, np.int64)
     for v in range(len(x)):
         if shift[v, 0] != 0.0 or shift[v, 1] != 0.0 or shift[v, 2] != 0.0:
             for k in range(3):
                 x[v, k] += shift[v, k]
-            # the edges ending and starting at v (the same flags as the scan of all edges)
-            for e in (edge_at[v - 1] if v > 0 else -1, edge_at[v]):
-                if e >= 0 and inverse_mass[seg[e]] + inverse_mass[seg[e] + 1] > 0.0:
-                    _flag_edge(e, check, todo, n_todo, colour)
+            if not all_edges:       # the edges ending and starting at v
+                for e in (edge_at[v - 1] if v > 0 else -1, edge_at[v]):
+                    if e >= 0 and inverse_mass[seg[e]] + inverse_mass[seg[e] + 1] > 0.0:
+                        _flag_edge(e, check, todo, n_todo, colour)
+    if all_edges:
+        for e in range(len(seg)):
+            if inverse_mass[seg[e]] + inverse_mass[seg[e] + 1] > 0.0:
+                _flag_edge(e, check, todo, n_todo, colour)
     return _sweep_edges(x, seg, colour, lo, hi, inverse_mass, check, todo, n_todo, max_sweeps)
 
 
@@ -932,22 +923,23 @@ def shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, all_edges, max_
     """The separation's round update, in place: x (nv, 3) += shift (nv, >= 3; its first
     three columns), then :func:`bound_edge_lengths` over every movable edge
     (``all_edges``) or those at a vertex the shift moved.  x may be a strided view (the
-    first columns of the separation's state array).  With ``work`` (an :class:`EdgeWork`
-    of these edges) and not ``all_edges`` the edges are queued from the moved vertices
-    instead of a pass over all edges (the same result to the bit: edges of one colour
-    share no vertex).  Returns the sweeps."""
+    first columns of the separation's state array).  Without ``all_edges`` the edges are
+    queued from the moved vertices, not found by a pass over all edges (edges of one
+    colour share no vertex, so the queue's order changes no bit).  ``work``: an
+    :class:`EdgeWork` of these edges kept between calls (else one is built).  Returns
+    the sweeps."""
     if x.dtype != np.float64 or x.ndim != 2 or x.shape[1] != 3 or len(shift) != len(x):
         raise TypeError("shift_and_bound: x must be a float64 (nv, 3) array, shift (nv, >= 3)")
     seg, colour = np.ascontiguousarray(seg, np.int64), np.ascontiguousarray(colour, np.int64)
     lo, hi = np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64)
     inverse_mass = np.ascontiguousarray(inverse_mass, np.float64)
-    if work is not None and not all_edges:
-        if len(work.edge_at) != len(x) or len(work.check) != len(seg):
-            raise ValueError(f"shift_and_bound: work is for {len(work.edge_at)} vertices and {len(work.check)} "
-                             f"edges, not these {len(x)} and {len(seg)}; build EdgeWork(seg, nv) for them")
-        return _shift_and_bound_moved(x, shift, work.edge_at, seg, colour, lo, hi, inverse_mass,
-                                      work.check, work.todo, int(max_sweeps))
-    return _shift_and_bound(x, shift, seg, colour, lo, hi, inverse_mass, bool(all_edges), int(max_sweeps))
+    if work is None:
+        work = EdgeWork(seg, len(x))
+    elif len(work.edge_at) != len(x) or len(work.check) != len(seg):
+        raise ValueError(f"shift_and_bound: work is for {len(work.edge_at)} vertices and {len(work.check)} "
+                         f"edges, not these {len(x)} and {len(seg)}; build EdgeWork(seg, nv) for them")
+    return _shift_and_bound(x, shift, work.edge_at, seg, colour, lo, hi, inverse_mass, bool(all_edges),
+                            work.check, work.todo, int(max_sweeps))
 
 
 def bound_edge_lengths(x, seg, colour, lo, hi, inverse_mass, check, max_sweeps):

@@ -104,7 +104,8 @@ def test_shift_and_bound_is_the_shift_then_the_edge_pass(first_round):
 def test_shift_and_bound_queued_from_the_moved_vertices_equals_the_scan(sweeps):
     """The separation's rounds after the first queue the edges at the vertices the shift
     moved (EdgeWork) instead of scanning all edges: the same positions and sweeps bit for
-    bit, the work flags left all False (also when the sweeps run out with edges queued),
+    bit as the scan (bound_edge_lengths over the edges at a shifted vertex), the work
+    flags left all False (also when the sweeps run out with edges queued),
     so the next round starts clean; on strided positions as in the separation."""
     from lc_petsc.elements.compiled_ccd import EdgeWork, shift_and_bound
     rng = np.random.default_rng(sweeps)
@@ -120,8 +121,11 @@ def test_shift_and_bound_queued_from_the_moved_vertices_equals_the_scan(sweeps):
         moved = rng.random(nv) < 0.2
         shift[moved, :3] = rng.normal(scale=0.2, size=(moved.sum(), 3)) * inverse_mass[moved, None]
         a, b = np.zeros((nv, 5)), np.zeros((nv, 5))
-        a[:, :3] = b[:, :3] = x
-        n_scan = shift_and_bound(a[:, :3], shift, seg, colour, 0.98 * L, 1.02 * L, inverse_mass, False, sweeps)
+        b[:, :3] = x
+        # the reference: the scan of all edges for those at a shifted vertex
+        shifted = (shift[:, :3] != 0.0).any(axis=1)
+        a[:, :3], n_scan = bound_edge_lengths(x + shift[:, :3], seg, colour, 0.98 * L, 1.02 * L, inverse_mass,
+                                              shifted[seg] | shifted[seg + 1], sweeps)
         n_work = shift_and_bound(b[:, :3], shift, seg, colour, 0.98 * L, 1.02 * L, inverse_mass, False, sweeps,
                                  work)
         assert n_work == n_scan and np.array_equal(a, b)

@@ -213,11 +213,14 @@ class Assembler:
                 _add_gradient(g, KERNELS[name].gradient(x[t.index], t.rest, t.stiffness))
         return g
 
-    def assemble(self, x):
-        """Fill the band array with the filtered element Hessians; return the gradient.
+    def assemble(self, x, mass=None):
+        """Fill the band array with the filtered element Hessians, plus ``mass`` (nv,)
+        * I on the diagonal if given (M / dt^2: :meth:`add_mass`); return the gradient.
 
         One fused kernel call per term (gradient + filtered Hessian); the filter runs
-        inside it, so its time is reported under ``elements``.
+        inside it, so its time is reported under ``elements``.  The compiled kernels add
+        the mass in the same pass (each diagonal block once it is complete: the values
+        of :meth:`add_mass` after, bit for bit, without a second pass over the matrix).
         """
         R, b = self.R, self.b
         g = np.zeros_like(x)
@@ -226,7 +229,7 @@ class Assembler:
         if self.kernels == "compiled" and self.filter in compiled.FILTERS:
             with self.timers("elements"), self.block_array() as v:   # rows zeroed on the way
                 compiled.add_gradient_hessian_into(self.elements, x, g, v, self.layout, sym,
-                                                   self.filter)
+                                                   self.filter, mass)
             self._in_blocks = True
             return g
         with self.timers("assembly"):
@@ -244,6 +247,9 @@ class Assembler:
                 for a in range(k):
                     first = a if sym else 0
                     R[a:, :, 3 * (b - a + first):3 * (b - a + k)] += rows[:nv - a, a, :, 3 * first:]
+        if mass is not None:
+            with self.timers("assembly"):
+                self.add_mass(mass)
         return g
 
     @contextmanager

@@ -430,9 +430,7 @@ class Integrator:
                 self.strand.filter = filter
         try:
             with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
-                g = self.gradient(x, elastic=asm.assemble(x))
-                with self.timers("assembly"):
-                    asm.add_mass((1.0 + shift) * sc.mass / dt ** 2)
+                g = self.gradient(x, elastic=asm.assemble(x, (1.0 + shift) * sc.mass / dt ** 2))
                 _, idx, cg = self._contact_terms(x, True)
                 if cg is not None:
                     with self.timers("collision"):

@@ -5,7 +5,8 @@ rank) and times, on one Newton iterate (rest state + 0.01 cm noise), each term a
 and all together in the three modes of ``lc_petsc.elements.compiled`` (energy,
 gradient, gradient + Hessian into PETSc's value array), the row zeroing alone, a plain
 ``fill(0)`` of the value array, and the assembler's ``assemble``, ``add_mass`` and
-``commit``: minimum and median CPU ms over ``--repeats`` calls.
+``commit``, and a Newton iteration's elements + assembly (``assemble`` with the mass
+term, then ``commit``): minimum and median CPU ms over ``--repeats`` calls.
 
     .venv/bin/python scripts/profile_compiled.py [--wisps 2000] [--repeats 9] [--only TERM]
 
@@ -77,6 +78,8 @@ def main():
         mass = sim.scene.mass * 900.0
         res["Assembler.add_mass"] = cpu_ms(lambda: asm.add_mass(mass))
         res["Assembler.commit"] = cpu_ms(asm.commit)
+        # what a Newton iteration runs: the mass added in the element pass, then commit
+        res["assemble(x, mass)+commit"] = cpu_ms(lambda: (asm.assemble(x, mass), asm.commit()))
     counts = {k: len(e[0]) for k, e in asm.elements.items()}
     print(f"hairball {args.wisps} wisps, {sim.scene.nv} vertices, elements {counts}, "
           f"{asm.n_values} stored values; CPU ms over {args.repeats} calls")

@@ -54,11 +54,11 @@ def test_element_error_on_one_rank_ends_as_exit_3(shared_dir, monkeypatch, capsy
     assemble = Assembler.assemble
     calls = []
 
-    def failing(self, x):
+    def failing(self, x, mass=None):
         calls.append(1)
         if comm.rank == LAST and len(calls) == 10:     # frame 3 -> 4, first Newton iteration
             raise ValueError("injected element failure")
-        return assemble(self, x)
+        return assemble(self, x, mass)
 
     monkeypatch.setattr(Assembler, "assemble", failing)
     code = main([cfg, "--out", out, "--quiet"], comm=comm)

@@ -127,7 +127,7 @@ def test_error_on_the_last_rank_raises_on_every_rank():
     sim = build_simulator(small_hairball_config(n_wisps=4, frames=1))
     try:
         if comm.rank == comm.size - 1:
-            def broken(x):
+            def broken(x, mass=None):
                 raise FloatingPointError("injected failure")
             sim.assembler.assemble = broken
         with pytest.raises(SimulationError,

@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 from mpi4py import MPI
+from petsc4py import PETSc
 
 from lc_petsc.assembly import KERNELS
 from lc_petsc.config import PhysicsConfig, SceneConfig, SimConfig, SolverConfig, TimeConfig
@@ -57,6 +58,13 @@ def test_matrix_matches_dense_reference(mat_type, terms, kernels):
         K = _dense_reference(sim, x, dt)
         ref = K @ v
         assert np.abs(yv.array - ref).max() < 1e-12 * np.abs(ref).max()
+        # the mass added inside the element pass (the Newton iteration's call): the same
+        # matrix to the bit as add_mass after
+        if mat_type == "sbaij":     # its rows are read as their upper parts
+            A.setOption(PETSc.Mat.Option.GETROW_UPPERTRIANGULAR, True)
+        separate = A.getValuesCSR()[2].copy()
+        asm.assemble(x, sim.scene.mass / dt ** 2)
+        assert np.array_equal(asm.commit().getValuesCSR()[2], separate)
         # gradient of G against central differences of G
         it = sim.integrator
         it.xhat = sim.scene.x_rest.copy()

@@ -16,6 +16,13 @@ from sim_helpers import chains as _chains
 from sim_helpers import rotate as _rotate
 
 COMM = MPI.COMM_WORLD
+
+
+def _comm(n_wisps):
+    """COMM_WORLD if every rank gets a wisp, else each rank runs the scene alone (whole
+    wisps are distributed; these scenes have 1-2): the figures do not depend on the
+    rank count."""
+    return COMM if COMM.size <= n_wisps else MPI.COMM_SELF
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -66,7 +73,7 @@ def test_corotational_straight_wisp_is_finite_and_second_order():
 
 
 def _iterations(cfg, spec, frames, tol=1e-6, cap=30):
-    rows, _ = run_history(configure(cfg, parse_variant(spec), cap, frames), COMM)
+    rows, _ = run_history(configure(cfg, parse_variant(spec), cap, frames), _comm(cfg.scene.n_wisps))
     return [i or cap + 1 for i in iterations_to(rows, tol)]
 
 
@@ -105,7 +112,7 @@ def test_error_history_locates_the_slow_vertex():
     from lc_petsc.studies.newton import error_history
     cfg = load_config(ROOT / "configs" / "smash.toml")
     cfg.solver.filter = "exact_or_analytic"
-    rows = error_history(cfg, COMM, 1, 30, wisp=0)
+    rows = error_history(cfg, _comm(cfg.scene.n_wisps), 1, 30, wisp=0)
     assert [r["iteration"] for r in rows] == list(range(-1, 30))
     assert rows[0]["error"] > 1e-2 and rows[0]["increment"] is None
     assert rows[26]["error"] < 1e-12 and rows[-1]["error"] == 0.0
@@ -126,13 +133,13 @@ def test_ccd_mode_without_strand_contact_keeps_the_configured_update():
     cfg.scene.n_wisps = 2
     cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
     cfg.time.newton_update = "corotational"
-    sim = build_simulator(cfg, comm=COMM)
+    sim = build_simulator(cfg, comm=_comm(cfg.scene.n_wisps))
     try:
         assert sim.integrator.retract and sim.integrator.turn_exact
     finally:
         sim.close()
     cfg.physics.terms = cfg.physics.terms + ("strand_collision",)
-    sim = build_simulator(cfg, comm=COMM)
+    sim = build_simulator(cfg, comm=_comm(cfg.scene.n_wisps))
     try:
         assert not sim.integrator.retract and not sim.integrator.turn_exact
     finally:

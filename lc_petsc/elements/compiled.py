@@ -197,7 +197,8 @@ _TAN_3PI_8 = 2.41421356237309504880
 @_jit
 def _vatan2(y, x):
     """atan2(y, x) within 1 ulp of libm's (signed zeros, the axes and pi exactly as
-    libm), in arithmetic and selects only, so a loop of them vectorises (libm's is a
+    libm) while |x| + |y| does not overflow (the kernels pass a cosine and a sine),
+    in arithmetic and selects only, so a loop of them vectorises (libm's is a
     call: ~20 ns per element, the largest scalar piece of the bend and twist batches).
     Cephes' atan after reducing |y| / |x| (or its inverse) to |t| <= tan(pi / 8), the
     quadrant folded into the reduction (x < 0 or -0: pi - atan(|y| / |x|))."""

@@ -124,3 +124,55 @@ def test_cluster_owners_balance_the_factorisations():
     load = np.bincount(owner[:5], weights=held[:5].sum(axis=1), minlength=2)
     np.testing.assert_array_equal(load, [50, 60])
     np.testing.assert_array_equal(cluster_owners(held[:, :1]), np.zeros(6, int))   # one rank
+
+
+def _sum_product(A, C, comm, mat_type="baij"):
+    """(SumOperator's (A + C) r gathered, PETSc's A r + C r gathered, the product's
+    path (its band, or False for MatMult)) for dense A, C on this rank's rows."""
+    rng = np.random.default_rng(11)
+    r = rng.standard_normal(len(A)) * 10.0 ** rng.integers(-8, 9, len(A))
+    parts = np.array_split(np.arange(len(SIZES)), comm.size)
+    off = np.concatenate([[0], np.cumsum(SIZES)])
+    mine = parts[comm.rank]
+    r0, r1 = (3 * off[mine[0]], 3 * off[mine[-1] + 1]) if len(mine) else (0, 0)
+    pA, pC = petsc_baij(A, r0, r1, comm), petsc_baij(C, r0, r1, comm)
+    if mat_type != "baij":
+        pA.convert(mat_type)
+    ctx = SumOperator(pA)
+    ctx.C = pC
+    op = PETSc.Mat().createPython(pA.getSizes(), ctx, comm=comm)
+    op.setUp()
+    x, y, z = pA.createVecs() + (pA.createVecLeft(),)
+    try:
+        x.array[:] = r[r0:r1]
+        op.mult(x, y)
+        pA.mult(x, z)
+        pC.multAdd(x, z, z)
+        gather = comm.tompi4py().allgather
+        return (np.concatenate(gather(y.array.copy())), np.concatenate(gather(z.array.copy())),
+                ctx._band)
+    finally:
+        for obj in (x, y, z, op, pA, pC):
+            obj.destroy()
+
+
+@pytest.mark.mpi
+def test_sum_operator_product_equals_matmult_to_the_bit():
+    """A x through the compiled block product (lc_petsc/elements/compiled_mult.py) where
+    A is BAIJ without off-rank entries: PETSc's MatMult + MatMultAdd, bit for bit, with
+    entries of magnitudes 1e-8 to 1e8.  An A with entries of another rank's columns
+    (a coupling across the partition) or an AIJ A goes through MatMult, same numbers."""
+    comm = PETSc.COMM_WORLD
+    A, C, _ = global_matrices(np.random.default_rng(3))
+    scale = 10.0 ** np.random.default_rng(4).integers(-8, 9, A.shape)
+    A = A * np.sqrt(scale * scale.T)                   # still symmetric
+    got, want, band = _sum_product(A, C, comm)
+    assert band, "the strand-like A (wisps on one rank) must take the compiled product"
+    np.testing.assert_array_equal(got, want)
+    got, want, band = _sum_product(A, C, comm, "aij")
+    assert band is False
+    np.testing.assert_array_equal(got, want)
+    coupled = A + C                                    # A couples wisps across the partition
+    got, want, band = _sum_product(coupled, C, comm)
+    assert bool(band) == (comm.size == 1)              # serial: no other rank, still compiled
+    np.testing.assert_array_equal(got, want)

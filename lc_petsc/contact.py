@@ -60,7 +60,7 @@ from lc_petsc.elements import (compiled, compiled_ccd, compiled_contact, compile
 from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.contact_pc import local_block
 from lc_petsc.parallel import collectively, compile_in_turn, global_min, global_reduce
-from lc_petsc.petsc_capi import value_array
+from lc_petsc.petsc_capi import block_pattern, mpibaij_blocks, value_array
 
 MODES = ("penalty", "ccd")
 #: the contact energy on the pair distance: kernel module by name (same call signatures)
@@ -202,42 +202,114 @@ class SumOperator:
     measured faster per CG iteration than one matvec with the assembled sum (see
     :meth:`StrandContact.system`).
 
-    A x runs through :func:`compiled_mult.bsr3_mult` on A's value array where A is BAIJ
-    with 3x3 blocks and no entry outside the rank's diagonal block (the strand matrix:
-    every wisp's band lies on one rank): the same product as ``MatMult``, bit for bit, in
-    0.6-0.75x its time (that module).  Anything else goes through ``MatMult``.  Call
-    :meth:`refresh` when A's nonzero pattern may have changed."""
+    Both products run through :func:`compiled_mult.bsr3_mult` on the matrices' value
+    arrays where they are BAIJ with 3x3 blocks: the same products as PETSc's ``MatMult``
+    and ``MatMultAdd``, bit for bit, in 0.6-0.75x their time (that module).  A must have
+    no entry outside the rank's diagonal block (the strand matrix: every wisp's band lies
+    on one rank); C's entries in other ranks' columns (couplings across the partition)
+    come through a scatter of their x values, as in PETSc's ``MatMultAdd_MPIBAIJ``.
+    Anything else goes through PETSc.  Call :meth:`refresh` when A's nonzero pattern
+    may have changed; setting C (a new matrix every Newton iteration) rereads C's."""
 
     def __init__(self, A):
-        self.A, self.C = A, None
-        self._band = None          # (A's local block, block rows, block columns, values) or False
+        self.A = A
+        self._C = None
+        self._band = None          # A's compiled product: (local block, rows, columns, values) or False
+        self._contact = None       # C's: ([(block, rows, columns, values)], scatter, x's ghosts) or False
+
+    @property
+    def C(self):
+        """The contact matrix (None: no contact pairs)."""
+        return self._C
+
+    @C.setter
+    def C(self, C):
+        self._forget_contact()
+        self._C = C
 
     def refresh(self):
-        """Forget A's pattern (read again at the next product)."""
+        """Forget A's and C's patterns (read again at the next product)."""
         self._band = None
+        self._forget_contact()
+
+    def _forget_contact(self):
+        if self._contact:
+            for obj in self._contact[1:]:
+                if obj is not None:
+                    obj.destroy()
+        self._contact = None
+
+    def destroy(self, mat=None):
+        """Destroy the ghost scatter (PETSc calls this when the shell is destroyed)."""
+        self._forget_contact()
+
+    @staticmethod
+    def _compiled(M):
+        """(M, block rows, block columns, number of values) of the sequential BAIJ M."""
+        indptr, indices = block_pattern(M)
+        return M, indptr, indices, 9 * len(indices)
+
+    @staticmethod
+    def _bsr3(M):
+        return compiled.available() and M.getType() in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.MPIBAIJ) \
+            and M.getBlockSize() == 3
 
     def _read_band(self):
         A = self.A
-        A_loc = local_block(A)
-        if (not compiled.available() or A_loc.getType() != PETSc.Mat.Type.SEQBAIJ
-                or A_loc.getBlockSize() != 3
-                or A.getInfo(PETSc.Mat.InfoType.LOCAL)["nz_used"] != A_loc.getInfo()["nz_used"]):
+        if not self._bsr3(A):
             return False
-        indptr, indices = A_loc.getRowIJ(compressed=True)
-        return A_loc, indptr, indices, 9 * len(indices)
+        A_loc = local_block(A)
+        if A.getInfo(PETSc.Mat.InfoType.LOCAL)["nz_used"] != A_loc.getInfo()["nz_used"]:
+            return False
+        return self._compiled(A_loc)
+
+    def _read_contact(self):
+        C = self._C
+        if not self._bsr3(C):
+            return False
+        if C.getComm().getSize() == 1:
+            return [self._compiled(C)], None, None
+        diag, off, columns = mpibaij_blocks(C)
+        dofs = (3 * columns.astype(np.int64)[:, None] + np.arange(3)).ravel().astype(PETSc.IntType)
+        ghosts = PETSc.Vec().createSeq(len(dofs), comm=PETSc.COMM_SELF)
+        where = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
+        x = C.createVecRight()
+        try:
+            scatter = PETSc.Scatter().create(x, where, ghosts, None)
+        finally:
+            where.destroy()
+            x.destroy()
+        return [self._compiled(diag), self._compiled(off)], scatter, ghosts
 
     def mult(self, mat, x, y):
         """y = (A + C) x."""
         if self._band is None:
             self._band = self._read_band()
-        if self._band:
-            A_loc, indptr, indices, n = self._band
-            with value_array(A_loc, n) as values:
-                compiled_mult.bsr3_mult(indptr, indices, values, x.getArray(readonly=True), y.getArray())
-        else:
+        if self._C is not None and self._contact is None:
+            self._contact = self._read_contact()
+        forward = PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD
+        scatter, ghosts = self._contact[1:] if self._contact else (None, None)
+        if scatter is not None:         # C's off-rank columns, started first as in PETSc
+            scatter.begin(x, ghosts, *forward)
+        if not self._band:
             self.A.mult(x, y)
-        if self.C is not None:
-            self.C.multAdd(x, y, y)
+        if self._band or self._contact:
+            xa, ya = x.getArray(readonly=True), y.getArray()
+            if self._band:
+                self._product(self._band, xa, ya, False)
+            if self._contact:
+                self._product(self._contact[0][0], xa, ya, True)
+                if scatter is not None:
+                    scatter.end(x, ghosts, *forward)
+                    self._product(self._contact[0][1], ghosts.getArray(readonly=True), ya, True)
+        if self._C is not None and not self._contact:
+            self._C.multAdd(x, y, y)
+
+    @staticmethod
+    def _product(compiled_matrix, x, y, add):
+        M, indptr, indices, n = compiled_matrix
+        with value_array(M, n) as values:
+            compiled_mult.bsr3_mult(indptr, indices, values, x, y, add)
 
     def getDiagonal(self, mat, d):
         """The diagonal of A (C has no diagonal blocks)."""

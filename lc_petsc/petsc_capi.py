@@ -5,7 +5,10 @@
 * ``MatSeqAIJGetArray`` / ``MatSeqBAIJGetArray`` and their ``Restore``: the value array
   of a rank's diagonal block, written in place by lc_petsc/assembly.py (one NumPy
   gather into PETSc's memory instead of ``MatSetValues*CSR``, which searches every
-  column index again).
+  column index again);
+* ``MatMPIBAIJGetSeqBAIJ`` and ``MatGetRowIJ``: the diagonal and off-diagonal blocks of
+  an MPI BAIJ matrix, their block patterns and the off-diagonal block's global columns,
+  for the compiled product of the contact operator (lc_petsc/contact.py).
 
 Every call checks PETSc's error code and raises :class:`PetscCallError` naming the
 function.
@@ -112,3 +115,60 @@ def cg_get_norm_d(ksp):
 def cg_get_obj_fcn(ksp):
     """KSPCGGetObjFcn: the last trust-region solve's model value 1/2 d^T A d - b . d."""
     return _cg_get_real("KSPCGGetObjFcn", ksp)
+
+
+class SeqBAIJHandle:
+    """A sequential BAIJ matrix known by its C handle alone (a block of an MPI BAIJ
+    matrix from :func:`mpibaij_blocks`), usable with :func:`value_array` and
+    :func:`block_pattern`.  Borrowed: valid while its MPI matrix lives."""
+
+    def __init__(self, handle):
+        self.handle = handle
+
+    def getType(self):
+        """PETSc's type name, as petsc4py's ``Mat.getType``."""
+        return "seqbaij"
+
+
+def _int_pointer():
+    return ctypes.POINTER(ctypes.c_int32 if PETSc.IntType == np.int32 else ctypes.c_int64)
+
+
+def mpibaij_blocks(mat):
+    """(diagonal block, off-diagonal block, global block column of each column of the
+    off-diagonal block (copied)) of the MPI BAIJ ``mat`` (``MatMPIBAIJGetSeqBAIJ``); the
+    blocks are :class:`SeqBAIJHandle`."""
+    diag, off = ctypes.c_void_p(), ctypes.c_void_p()
+    colmap = _int_pointer()()
+    _call("MatMPIBAIJGetSeqBAIJ", [ctypes.c_void_p, ctypes.POINTER(ctypes.c_void_p),
+                                   ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(_int_pointer())],
+          ctypes.c_void_p(mat.handle), ctypes.byref(diag), ctypes.byref(off), ctypes.byref(colmap))
+    off_block = SeqBAIJHandle(off.value)
+    # the off-diagonal block's columns are compacted: each of 0..k-1 holds a block
+    _, indices = block_pattern(off_block)
+    k = int(indices.max()) + 1 if len(indices) else 0
+    columns = np.ctypeslib.as_array(colmap, shape=(k,)).copy() if k else np.zeros(0, PETSc.IntType)
+    return SeqBAIJHandle(diag.value), off_block, columns
+
+
+def block_pattern(mat):
+    """(block row starts (nb + 1,), block columns (k,)), copied, of the sequential BAIJ
+    ``mat`` (a petsc4py Mat or a :class:`SeqBAIJHandle`; ``MatGetRowIJ`` with block
+    compression)."""
+    n = (ctypes.c_int32 if PETSc.IntType == np.int32 else ctypes.c_int64)()
+    ia, ja = _int_pointer()(), _int_pointer()()
+    done = ctypes.c_int(0)           # PetscBool
+    args = ([ctypes.c_void_p, n.__class__, ctypes.c_int, ctypes.c_int, ctypes.POINTER(n.__class__),
+             ctypes.POINTER(_int_pointer()), ctypes.POINTER(_int_pointer()), ctypes.POINTER(ctypes.c_int)],
+            ctypes.c_void_p(mat.handle), n.__class__(0), 0, 1, ctypes.byref(n), ctypes.byref(ia),
+            ctypes.byref(ja), ctypes.byref(done))
+    _call("MatGetRowIJ", *args)
+    try:
+        if not done.value:
+            raise PetscCallError("MatGetRowIJ: the matrix gave no row structure")
+        indptr = np.ctypeslib.as_array(ia, shape=(n.value + 1,)).copy()
+        k = int(indptr[-1])
+        indices = np.ctypeslib.as_array(ja, shape=(k,)).copy() if k else np.zeros(0, PETSc.IntType)
+    finally:
+        _call("MatRestoreRowIJ", *args)
+    return indptr, indices

@@ -57,11 +57,11 @@ def main():
             xa = x.getArray(readonly=True)
             ya = np.empty_like(xa)
             A.mult(x, y)
-            compiled_mult.bsr3_mult(indptr, indices, values, xa, ya)
+            compiled_mult.bsr3_mult(indptr, indices, values, xa, ya, False)
             same = np.array_equal(ya, y.getArray(readonly=True))
             rows = {
                 "PETSc MatMult": timed(lambda: A.mult(x, y), args.repeats),
-                "compiled (bsr3_mult)": timed(lambda: compiled_mult.bsr3_mult(indptr, indices, values, xa, ya),
+                "compiled (bsr3_mult)": timed(lambda: compiled_mult.bsr3_mult(indptr, indices, values, xa, ya, False),
                                               args.repeats),
                 "NumPy sum of the values": timed(values.sum, args.repeats),
             }

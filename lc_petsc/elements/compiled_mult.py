@@ -20,16 +20,18 @@ from lc_petsc.elements.compiled import _jit
 
 
 @_jit
-def bsr3_mult(indptr, indices, values, x, y):
-    """y = M x for a sequential BAIJ matrix M with 3x3 blocks, in PETSc's storage:
-    block rows ``indptr`` (nb + 1,), block columns ``indices`` (k,), ``values`` (9 k,)
-    block by block, each block column-major; ``x`` (3 * block columns,), ``y`` (3 nb,)
-    overwritten.  The arithmetic of PETSc 3.18's ``MatMult_SeqBAIJ_3``: per block row,
-    sum_i += (v[i] x0 + v[i + 3] x1) + v[i + 6] x2, block after block."""
+def bsr3_mult(indptr, indices, values, x, y, add):
+    """y = M x (``add`` False) or y = y + M x (``add`` True) for a sequential BAIJ matrix M
+    with 3x3 blocks, in PETSc's storage: block rows ``indptr`` (nb + 1,), block columns
+    ``indices`` (k,), ``values`` (9 k,) block by block, each block column-major; ``x``
+    (3 * block columns,), ``y`` (3 nb,).  The arithmetic of PETSc 3.18's
+    ``MatMult_SeqBAIJ_3`` / ``MatMultAdd_SeqBAIJ_3``: per block row, from 0 or from y,
+    sum_i += (v[i] x0 + v[i + 3] x1) + v[i + 6] x2, block after block (a row without
+    blocks keeps y, as PETSc's compressed rows do)."""
     for i in range(len(indptr) - 1):
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
+        s0 = y[3 * i] if add else 0.0
+        s1 = y[3 * i + 1] if add else 0.0
+        s2 = y[3 * i + 2] if add else 0.0
         for k in range(indptr[i], indptr[i + 1]):
             c = 3 * indices[k]
             b = 9 * k
@@ -47,4 +49,6 @@ def bsr3_mult(indptr, indices, values, x, y):
 def warm_up():
     """Compile (or load from the cache) the kernel, for PETSc's 32-bit indices."""
     indptr, indices = np.array([0, 1], np.int32), np.array([0], np.int32)
-    bsr3_mult(indptr, indices, np.ones(9), np.ones(3), np.empty(3))
+    y = np.zeros(3)
+    for add in (False, True):
+        bsr3_mult(indptr, indices, np.ones(9), np.ones(3), y, add)

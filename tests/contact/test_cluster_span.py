@@ -127,8 +127,9 @@ def test_cluster_owners_balance_the_factorisations():
 
 
 def _sum_product(A, C, comm, mat_type="baij"):
-    """(SumOperator's (A + C) r gathered, PETSc's A r + C r gathered, the product's
-    path (its band, or False for MatMult)) for dense A, C on this rank's rows."""
+    """(SumOperator's (A + C) r gathered, PETSc's A r + C r gathered, whether A's and C's
+    products took the compiled path) for dense A, C on this rank's rows, both of
+    ``mat_type``."""
     rng = np.random.default_rng(11)
     r = rng.standard_normal(len(A)) * 10.0 ** rng.integers(-8, 9, len(A))
     parts = np.array_split(np.arange(len(SIZES)), comm.size)
@@ -138,6 +139,7 @@ def _sum_product(A, C, comm, mat_type="baij"):
     pA, pC = petsc_baij(A, r0, r1, comm), petsc_baij(C, r0, r1, comm)
     if mat_type != "baij":
         pA.convert(mat_type)
+        pC.convert(mat_type)
     ctx = SumOperator(pA)
     ctx.C = pC
     op = PETSc.Mat().createPython(pA.getSizes(), ctx, comm=comm)
@@ -150,29 +152,32 @@ def _sum_product(A, C, comm, mat_type="baij"):
         pC.multAdd(x, z, z)
         gather = comm.tompi4py().allgather
         return (np.concatenate(gather(y.array.copy())), np.concatenate(gather(z.array.copy())),
-                ctx._band)
+                (bool(ctx._band), bool(ctx._contact)))
     finally:
+        ctx.C = None
         for obj in (x, y, z, op, pA, pC):
             obj.destroy()
 
 
 @pytest.mark.mpi
 def test_sum_operator_product_equals_matmult_to_the_bit():
-    """A x through the compiled block product (lc_petsc/elements/compiled_mult.py) where
-    A is BAIJ without off-rank entries: PETSc's MatMult + MatMultAdd, bit for bit, with
-    entries of magnitudes 1e-8 to 1e8.  An A with entries of another rank's columns
-    (a coupling across the partition) or an AIJ A goes through MatMult, same numbers."""
+    """A x + C x through the compiled block product (lc_petsc/elements/compiled_mult.py)
+    where the matrices are BAIJ, C's couplings across the partition through a scatter:
+    PETSc's MatMult + MatMultAdd, bit for bit, with entries of magnitudes 1e-8 to 1e8.
+    An A with entries in another rank's columns, or AIJ matrices, go through PETSc: the
+    same numbers."""
     comm = PETSc.COMM_WORLD
     A, C, _ = global_matrices(np.random.default_rng(3))
     scale = 10.0 ** np.random.default_rng(4).integers(-8, 9, A.shape)
     A = A * np.sqrt(scale * scale.T)                   # still symmetric
-    got, want, band = _sum_product(A, C, comm)
-    assert band, "the strand-like A (wisps on one rank) must take the compiled product"
+    C = C * np.sqrt(scale * scale.T)
+    got, want, compiled = _sum_product(A, C, comm)
+    assert compiled == (True, True), "BAIJ A (wisps on one rank) and C: the compiled products"
     np.testing.assert_array_equal(got, want)
-    got, want, band = _sum_product(A, C, comm, "aij")
-    assert band is False
+    got, want, compiled = _sum_product(A, C, comm, "aij")
+    assert compiled == (False, False)
     np.testing.assert_array_equal(got, want)
     coupled = A + C                                    # A couples wisps across the partition
-    got, want, band = _sum_product(coupled, C, comm)
-    assert bool(band) == (comm.size == 1)              # serial: no other rank, still compiled
+    got, want, compiled = _sum_product(coupled, C, comm)
+    assert compiled == (comm.size == 1, True)          # serial: no other rank, still compiled
     np.testing.assert_array_equal(got, want)

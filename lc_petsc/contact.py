@@ -53,6 +53,7 @@ from __future__ import annotations
 
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from lc_petsc.elements import (compiled, compiled_ccd, compiled_contact, compiled_mult, segment_barrier,
@@ -259,7 +260,9 @@ class SumOperator:
         if not self._bsr3(A):
             return False
         A_loc = local_block(A)
-        if A.getInfo(PETSc.Mat.InfoType.LOCAL)["nz_used"] != A_loc.getInfo()["nz_used"]:
+        # every rank decides alike: a rank left in MatMult would wait for the others' ghosts
+        local = A.getInfo(PETSc.Mat.InfoType.LOCAL)["nz_used"] == A_loc.getInfo()["nz_used"]
+        if not A.getComm().tompi4py().allreduce(local, op=MPI.LAND):
             return False
         return self._compiled(A_loc)
 

@@ -181,3 +181,12 @@ def test_sum_operator_product_equals_matmult_to_the_bit():
     got, want, compiled = _sum_product(coupled, C, comm)
     assert compiled == (comm.size == 1, True)          # serial: no other rank, still compiled
     np.testing.assert_array_equal(got, want)
+    # entries in another rank's columns on rank 0 alone (wisp 1's rows, wisp 4's columns):
+    # every rank takes MatMult (a rank left alone in it would wait for the others' ghosts)
+    off = np.concatenate([[0], np.cumsum(SIZES)])
+    one_sided = A.copy()
+    rows, cols = slice(3 * off[1], 3 * off[2]), slice(3 * off[4], 3 * off[5])
+    one_sided[rows, cols] = C[rows, cols]
+    got, want, compiled = _sum_product(one_sided, C, comm)
+    assert compiled == (comm.size == 1, True)
+    np.testing.assert_array_equal(got, want)

@@ -38,7 +38,7 @@ pass's order (:func:`_v_put`): the same values as element by element, bit for bi
 copied from the transposed upper ones once the row is complete (:func:`_vcopy_lower`),
 and the mass term, if given, added to its diagonal then.  The loops vectorise only
 without calls and branches: angles come from an atan2 in arithmetic (:func:`_vatan2`,
-within 1 ulp of libm's), square roots from LLVM's intrinsic (:func:`_sqrt`), flags
+within 2 ulps of libm's), square roots from LLVM's intrinsic (:func:`_sqrt`), flags
 from ``|`` and ``&``, alternatives from selects (:func:`_vselect`).  A non-finite
 position or a zero-length edge (the rule of :func:`common.edge_lengths`) stops the pass;
 the NumPy kernel of that term is then run to raise its documented
@@ -182,7 +182,7 @@ def _vnorm(u):
     return _sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
 
 
-#: Cephes' atan(t) = t + t z P(z) / Q(z), z = t^2, |t| <= tan(pi / 8) (Q monic)
+#: Cephes' atan(t) = t + t z P(z) / Q(z), z = t^2, |t| <= 0.66 (Q monic)
 _ATAN_P = (-8.750608600031904122785e-1, -1.615753718733365076637e1, -7.500855792314704667340e1,
            -1.228866684490136173410e2, -6.485021904942025371773e1)
 _ATAN_Q = (2.485846490142306297962e1, 1.650270098316988542046e2, 4.328810604912902668951e2,
@@ -196,12 +196,15 @@ _TAN_3PI_8 = 2.41421356237309504880
 
 @_jit
 def _vatan2(y, x):
-    """atan2(y, x) within 1 ulp of libm's (signed zeros, the axes and pi exactly as
-    libm) while |x| + |y| does not overflow (the kernels pass a cosine and a sine),
-    in arithmetic and selects only, so a loop of them vectorises (libm's is a
-    call: ~20 ns per element, the largest scalar piece of the bend and twist batches).
-    Cephes' atan after reducing |y| / |x| (or its inverse) to |t| <= tan(pi / 8), the
-    quadrant folded into the reduction (x < 0 or -0: pi - atan(|y| / |x|))."""
+    """atan2(y, x) within 2 ulps of libm's (signed zeros, the axes, pi and NaN as libm)
+    while |x| + |y| does not overflow (the kernels pass a cosine and a sine), in
+    arithmetic and selects only, so a loop of them vectorises (libm's is a call: ~20 ns
+    per element, the largest scalar piece of the bend and twist batches).  Cephes' atan
+    with Cephes' reduction: |y| / |x| (or its inverse) as is up to 0.66, else through
+    (r - 1) / (r + 1) or -1 / r; the quadrant folded into the reduction (x < 0 or -0:
+    pi - atan(|y| / |x|)).  Between ratios 0.41 and 0.66 (the polynomial used beyond
+    tan(pi / 8)) a few results in 10^5 are 2 ulps from libm's (a reviewer's scan: at most
+    1.62 ulps from the exact value); elsewhere within 1."""
     ax, ay = abs(x), abs(y)
     neg = math.copysign(1.0, x) < 0.0
     high = ay > _TAN_3PI_8 * ax         # pi/2 -+ atan(|x| / |y|)
@@ -213,7 +216,7 @@ def _vatan2(y, x):
                                     else (_PI if neg else 0.0)))
     low = (_PIO2_LO if high else ((_3PIO4_LO if neg else 0.5 * _PIO2_LO) if mid
                                   else (_PI_LO if neg else 0.0)))
-    t = num / den if ay != 0.0 else 0.0
+    t = num / den if ay != 0.0 else (0.0 if ax == ax else ax)    # atan2(0, NaN) is NaN
     z = t * t
     p = (((_ATAN_P[0] * z + _ATAN_P[1]) * z + _ATAN_P[2]) * z + _ATAN_P[3]) * z + _ATAN_P[4]
     q = ((((z + _ATAN_Q[0]) * z + _ATAN_Q[1]) * z + _ATAN_Q[2]) * z + _ATAN_Q[3]) * z + _ATAN_Q[4]
@@ -936,11 +939,13 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
     t_lo = t_hi = 0
     nv = x.shape[0]
     zero = mode == HESSIAN
-    # without ``upper`` the blocks below the diagonal are set by _vcopy_lower, not summed
+    # without ``upper`` the blocks below the diagonal are set by _vcopy_lower, not summed;
+    # the first b rows' whole rows are zeroed: a layout of the full band also stores
+    # blocks (i, i + d) with i + d < 0, which no upper block copies over
     first = 0 if upper else b
     if zero:
         for r in range(min(b, nv)):
-            _vzero_row(vals, base, r, first)
+            _vzero_row(vals, base, r, 0)
     ps = pb = pt = 0
     for vtx in range(nv):
         if zero and vtx + b < nv:

@@ -297,6 +297,38 @@ def test_band_layout_of_a_wisp_full_and_upper():
             assert np.abs(got - want).max() <= RTOL * np.abs(dense).max()
 
 
+@pytest.mark.parametrize("nv", [1, 2, 3, 4, 9])
+def test_mass_in_the_pass_is_added_once_on_the_diagonal(nv):
+    """``diag`` (the mass term) added in the pass equals the pass without it plus diag[i] I
+    on every diagonal block, bit for bit, for wisps of 1 to 9 vertices, in a wisp's
+    layout, full and upper (SBAIJ), with the value arrays reused (a second pass over the
+    first's values must not add it twice)."""
+    rng = np.random.default_rng(nv)
+    x = eh.helix_wisp(nv) + rng.normal(scale=0.05, size=(nv, 3))
+    arrays = {}
+    for term, kv in eh.NVERT.items():
+        start = np.arange(max(nv - kv + 1, 0))
+        rest = rng.uniform(0.3, 1.2, len(start)) if term == "stretch" else rng.uniform(-1, 1, len(start))
+        arrays[term] = compiled.element_arrays(term, start, rest, rng.uniform(0.5, 2.0, len(start)))
+    b = 3
+    offsets = np.arange(-b, b + 1)
+    inside = (np.arange(nv)[:, None] + offsets >= 0) & (np.arange(nv)[:, None] + offsets < nv)
+    diag = rng.uniform(1.0, 5.0, nv)
+    for upper in (False, True):
+        layout = compiled.BlockLayout.block_csr(inside & (offsets >= 0) if upper else inside, b)
+        plain = np.zeros(layout.size())
+        compiled.add_gradient_hessian_into(arrays, x, np.zeros((nv, 3)), plain, layout, upper)
+        with_mass = np.full(layout.size(), np.nan)
+        for _ in range(2):
+            compiled.add_gradient_hessian_into(arrays, x, np.zeros((nv, 3)), with_mass, layout, upper,
+                                               diag=diag)
+        want = plain.copy()
+        for i in range(nv):
+            for r in range(3):
+                want[layout.base[i, b] + 4 * r] += diag[i]
+        np.testing.assert_array_equal(with_mass, want)
+
+
 @pytest.mark.parametrize("term", eh.TERMS)
 def test_hessian_vs_fd_of_gradient_where_the_filter_is_exact(term):
     """Stretch under tension, bend and twist at rest: the analytic filter keeps the exact

@@ -223,3 +223,37 @@ def test_direct_fill_matches_the_numpy_scatter(pmat):
     finally:
         for s_ in sims.values():
             s_.close()
+
+
+@pytest.mark.parametrize("filter", ["analytic", "abs"])
+@pytest.mark.parametrize("options", ["", "-lc_pmat_type aij"])
+def test_mass_in_the_pass_once_in_operator_and_pmat(filter, options):
+    """assemble(x, mass) (the mass added in the element pass) gives assemble(x) +
+    add_mass(mass) to the bit in the operator and in a separate AIJ preconditioning
+    matrix, also with the ``abs`` filter (which the compiled kernels hand to NumPy) and
+    on a second call over the first call's values (the mass must not pile up)."""
+    cfg = SimConfig(scene=SceneConfig(kind="hairball", n_wisps=2, perturbation="jitter", jitter=0.2),
+                    physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity")),
+                    solver=SolverConfig(filter=filter, options=f"-lc_element_kernels compiled {options}"))
+    sim = build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        asm, x = sim.assembler, sim.x
+        mass = sim.scene.mass / cfg.time.dt ** 2
+        assert (asm.pmat is not None) == bool(options)
+
+        def values():
+            A = asm.commit()
+            mats = [A] + ([asm.pmat] if asm.pmat is not None else [])
+            return [M.getValuesCSR()[2].copy() for M in mats]
+
+        asm.assemble(x)
+        asm.add_mass(mass)
+        separate = values()
+        for _ in range(2):
+            asm.assemble(x, mass)
+            fused = values()
+            assert len(fused) == len(separate)
+            for a, b in zip(fused, separate):
+                assert np.array_equal(a, b)
+    finally:
+        sim.close()

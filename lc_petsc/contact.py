@@ -266,7 +266,8 @@ class SumOperator:
             return False
         return self._compiled(A_loc)
 
-    def _read_contact(self):
+    def _read_contact(self, x):
+        """C's compiled product (collective), its ghost scatter made for vectors like x."""
         C = self._C
         if not self._bsr3(C):
             return False
@@ -276,12 +277,10 @@ class SumOperator:
         dofs = (3 * columns.astype(np.int64)[:, None] + np.arange(3)).ravel().astype(PETSc.IntType)
         ghosts = PETSc.Vec().createSeq(len(dofs), comm=PETSc.COMM_SELF)
         where = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
-        x = C.createVecRight()
         try:
             scatter = PETSc.Scatter().create(x, where, ghosts, None)
         finally:
             where.destroy()
-            x.destroy()
         return [self._compiled(diag), self._compiled(off)], scatter, ghosts
 
     def mult(self, mat, x, y):
@@ -289,7 +288,7 @@ class SumOperator:
         if self._band is None:
             self._band = self._read_band()
         if self._C is not None and self._contact is None:
-            self._contact = self._read_contact()
+            self._contact = self._read_contact(x)
         forward = PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD
         scatter, ghosts = self._contact[1:] if self._contact else (None, None)
         if scatter is not None:         # C's off-rank columns, started first as in PETSc

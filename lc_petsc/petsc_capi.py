@@ -143,12 +143,13 @@ def mpibaij_blocks(mat):
     _call("MatMPIBAIJGetSeqBAIJ", [ctypes.c_void_p, ctypes.POINTER(ctypes.c_void_p),
                                    ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(_int_pointer())],
           ctypes.c_void_p(mat.handle), ctypes.byref(diag), ctypes.byref(off), ctypes.byref(colmap))
-    off_block = SeqBAIJHandle(off.value)
-    # the off-diagonal block's columns are compacted: each of 0..k-1 holds a block
-    _, indices = block_pattern(off_block)
-    k = int(indices.max()) + 1 if len(indices) else 0
+    index = ctypes.c_int32 if PETSc.IntType == np.int32 else ctypes.c_int64
+    rows, cols = index(), index()
+    _call("MatGetSize", [ctypes.c_void_p, ctypes.POINTER(index), ctypes.POINTER(index)],
+          off, ctypes.byref(rows), ctypes.byref(cols))
+    k = cols.value // mat.getBlockSize()      # the off-diagonal block's block columns
     columns = np.ctypeslib.as_array(colmap, shape=(k,)).copy() if k else np.zeros(0, PETSc.IntType)
-    return SeqBAIJHandle(diag.value), off_block, columns
+    return SeqBAIJHandle(diag.value), SeqBAIJHandle(off.value), columns
 
 
 def block_pattern(mat):

@@ -167,7 +167,7 @@ def test_sum_operator_product_equals_matmult_to_the_bit():
     An A with entries in another rank's columns, or AIJ matrices, go through PETSc: the
     same numbers."""
     comm = PETSc.COMM_WORLD
-    A, C, _ = global_matrices(np.random.default_rng(3))
+    A, C, off = global_matrices(np.random.default_rng(3))
     scale = 10.0 ** np.random.default_rng(4).integers(-8, 9, A.shape)
     A = A * np.sqrt(scale * scale.T)                   # still symmetric
     C = C * np.sqrt(scale * scale.T)
@@ -183,7 +183,6 @@ def test_sum_operator_product_equals_matmult_to_the_bit():
     np.testing.assert_array_equal(got, want)
     # entries in another rank's columns on rank 0 alone (wisp 1's rows, wisp 4's columns):
     # every rank takes MatMult (a rank left alone in it would wait for the others' ghosts)
-    off = np.concatenate([[0], np.cumsum(SIZES)])
     one_sided = A.copy()
     rows, cols = slice(3 * off[1], 3 * off[2]), slice(3 * off[4], 3 * off[5])
     one_sided[rows, cols] = C[rows, cols]

@@ -205,7 +205,7 @@ class SumOperator:
 
     Both products run through :func:`compiled_mult.bsr3_mult` on the matrices' value
     arrays where they are BAIJ with 3x3 blocks: the same products as PETSc's ``MatMult``
-    and ``MatMultAdd``, bit for bit, in 0.6-0.75x their time (that module).  A must have
+    and ``MatMultAdd``, bit for bit, in 0.6-0.85x their time (that module).  A must have
     no entry outside the rank's diagonal block (the strand matrix: every wisp's band lies
     on one rank); C's entries in other ranks' columns (couplings across the partition)
     come through a scatter of their x values, as in PETSc's ``MatMultAdd_MPIBAIJ``.

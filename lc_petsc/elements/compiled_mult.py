@@ -5,7 +5,8 @@ With strand contact CG multiplies by the Python shell A x + C x every iteration
 most of the bytes read.  Measured on the 2,000-wisp hairball's A on one core (100 MB of
 values, 2026-12-05, ``scripts/bench_product.py``): Debian PETSc 3.18's
 ``MatMult_SeqBAIJ_3`` 20.8-21.0 ms, this loop 12.3-13.6 ms (0.59-0.65x; a NumPy sum of
-the same values: 7.3-8.1 ms); in the 2K and 8K runs on 2 ranks, 9.4 -> ~6 ms and
+the same values: 7.3-8.1 ms), and later that day 17.4-17.9 against 14.4 ms (0.81-0.83x;
+the sum 9.3-9.7 ms); in the 2K and 8K runs on 2 ranks, 9.4 -> ~6 ms and
 33 -> 24 ms per product (docs/contact_solver.md, "The strand product compiled").  It is
 PETSc's loop, term by term and in its order (no fused multiply-adds: strict IEEE,
 :func:`lc_petsc.elements.compiled._jit`), so the product equals ``MatMult``'s to the

@@ -3,7 +3,7 @@ tolerances, bigger steps, a cheaper filter or a line search cost in accuracy.
 
   mpiexec -n P python drivers/tradeoff.py [--scene hairball|smash|jitter|CONFIG.toml]
       [--wisps 10] [--duration 1.0] [--axes newton ksp_rtol dt filter line_search newton_update
-      cutback trust_region corotational]
+      cutback trust_region corotational carry_with_head]
       [--ref-dt 0.008333] [--ref-tol 1e-9] [--ref converged|base]
       [--ref-method exact_or_analytic|unfiltered] [--rtols 1e-2 1e-4 ...]
       [--set NAME] [--cost wall_per_sim_s|cpu_per_sim_s] [--out out/tradeoff]
@@ -84,7 +84,7 @@ def main(argv=None):
     ap.add_argument("--duration", type=float, default=1.0, help="simulated seconds")
     ap.add_argument("--axes", nargs="+", default=None,
                     choices=["newton", "ksp_rtol", "dt", "filter", "line_search", "newton_update", "cutback",
-                             "trust_region", "corotational"])
+                             "trust_region", "corotational", "carry_with_head"])
     ap.add_argument("--ref-dt", type=float, default=1.0 / 120.0)
     ap.add_argument("--ref-tol", type=float, default=1e-9)
     ap.add_argument("--ref", default="converged", choices=["converged", "base"],

@@ -303,7 +303,8 @@ class TimeConfig:
     incremental potential G; ``newton_stop = "quadratic_estimate"`` (with
     ``solver.filter = "exact_or_analytic"`` and ``newton_increment_tol`` alone) also stops
     once two full exact steps in a row predict an error below a tenth of the tolerance.
-    ``newton_update``, ``initial_guess`` and
+    ``newton_update``, ``initial_guess``, ``carry_with_head`` (the first iterate follows
+    the head's change of motion over the step) and
     ``length_projection`` (final positions onto the rest edge lengths) and ``newton``
     (``"filtered"`` steps or ``"trust_region"`` on the exact Hessian): see
     lc_petsc/integrator.py, lc_petsc/trust_region.py and docs/newton.md.
@@ -321,6 +322,7 @@ class TimeConfig:
     newton_increment_tol: Optional[float] = None
     line_search: bool = False
     initial_guess: str = "inertial"
+    carry_with_head: bool = True
     newton_update: str = "edge_retraction"
     newton: str = "filtered"
     newton_stop: str = "increment"
@@ -370,6 +372,9 @@ class TimeConfig:
         if self.newton != "filtered" and self.line_search:
             raise ConfigError("time.line_search = true with time.newton = \"trust_region\": the "
                               "trust region is the globalisation; set time.line_search = false")
+        if not isinstance(self.carry_with_head, bool):
+            raise ConfigError(f"time.carry_with_head must be true or false, "
+                              f"got {self.carry_with_head!r}")
         if not isinstance(self.length_projection, bool):
             raise ConfigError(f"time.length_projection must be true or false, "
                               f"got {self.length_projection!r}")

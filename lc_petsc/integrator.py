@@ -141,6 +141,15 @@ class Integrator:
         self.retract = not ccd and config.time.newton_update in ("edge_retraction", "corotational")
         self.turn_exact = not ccd and config.time.newton_update == "corotational"
         self.wisp_length = vertex_wisp_length(scene.x_rest, scene.offsets)
+        # the free vertices of wisps held by the head (a pinned vertex), which the first
+        # iterate carries with the head's change of motion (time.carry_with_head)
+        self.carried = None
+        if config.time.carry_with_head and head.kind != "static":
+            sizes = np.diff(scene.offsets)
+            wisp = np.repeat(np.arange(len(sizes)), sizes)
+            held = np.bincount(wisp[scene.pinned], minlength=len(sizes)) > 0
+            carried = self.free & held[wisp]
+            self.carried = carried if carried.any() else None
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
@@ -197,6 +206,18 @@ class Integrator:
             g[idx] += cg[0]
         g[~self.free] = 0.0
         return g
+
+    def head_motion_change(self, x, dt, t_next):
+        """The change of the head's rigid motion at positions ``x`` (n, 3) between the
+        last step and this one: u_now(x) - u_last(x), u_now the motion from t to
+        ``t_next`` (= t + ``dt``), u_last the one from t - ``dt`` to t (none before t = 0:
+        the head starts from rest).  About dt^2 times the head's acceleration field at x, and its whole
+        velocity jump times dt at a start.  Added to x_n + dt v_n for the free vertices
+        of the wisps the head holds, it makes Newton's first iterate move them as the
+        roots must move (measured in docs/newton.md, "Tenth round")."""
+        Q, q = self.head.rigid_motion(self.t, t_next)
+        Qp, qp = self.head.rigid_motion(max(self.t - dt, 0.0), self.t)
+        return x @ (Q - Qp).T + (q - qp)
 
     # -------------------------------------------------------------- one frame
     def step(self):
@@ -264,6 +285,8 @@ class Integrator:
         pin = ~self.free
         if pin.any():
             x[pin] = self.head.pinned_positions(sc.x_rest[pin], self.t_next)
+        if self.carried is not None:
+            x[self.carried] += self.head_motion_change(x_old[self.carried], dt, t_next)
         if cfg.time.initial_guess == "follow_the_leader":
             x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
         # the head's rigid motion over the step: the limiter's field on the frame paths

@@ -24,6 +24,7 @@ VARIANT_KEYS: dict[str, tuple[str, str, Callable[[str], Any]]] = {
     "stay": ("solver", "exact_stay", lambda v: v in ("1", "true", "yes", "on")),
     "stop": ("time", "newton_stop", str),
     "guess": ("time", "initial_guess", str),
+    "carry": ("time", "carry_with_head", lambda v: v in ("1", "true", "yes", "on")),
     "update": ("time", "newton_update", str),
     "newton": ("time", "newton", str),
     "ls": ("time", "line_search", lambda v: v in ("1", "true", "yes", "on")),

@@ -45,6 +45,7 @@ class Settings:
     # the config's defaults
     newton_update: str = TimeConfig.newton_update
     initial_guess: str = TimeConfig.initial_guess
+    carry_with_head: bool = TimeConfig.carry_with_head
     newton_increment_tol: Optional[float] = None
     length_projection: bool = TimeConfig.length_projection
     max_substeps: int = TimeConfig.max_substeps     # step cutback (with a tolerance only)
@@ -75,6 +76,8 @@ class Settings:
             parts.append(self.newton_update)
         if self.initial_guess != "inertial":
             parts.append(self.initial_guess)
+        if not self.carry_with_head:
+            parts.append("uncarried")
         if self.newton != "filtered":
             parts.append(self.newton)
         if self.length_projection:
@@ -129,6 +132,17 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
             replace(base, filter="exact_or_analytic", newton_update=u, newton_iterations=30,
                     newton_increment_tol=t))
            for u in ("corotational", "edge_retraction") for t in (1e-3, 1e-6)],
+        # the first iterate carried with the head's change of motion, or not
+        # (docs/newton.md, tenth round), at fixed counts and to a tolerance
+        "carry_with_head": [(f"{'carried' if c else 'uncarried'} N={n}",
+                             replace(base, carry_with_head=c, newton_iterations=n))
+                            for c in (True, False) for n in (2, 3, 4, 6)]
+        + [(f"{'carried' if c else 'uncarried'} ftl N=3",
+            replace(base, carry_with_head=c, initial_guess="follow_the_leader"))
+           for c in (True, False)]
+        + [(f"{'carried' if c else 'uncarried'} exact_or_analytic inc<{t:g}",
+            replace(base, carry_with_head=c, filter="exact_or_analytic", newton_iterations=30,
+                    newton_increment_tol=t)) for c in (True, False) for t in (1e-3, 1e-6)],
     }
     for a in (axes or ax):
         for name, s in ax[a]:
@@ -194,6 +208,7 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.line_search = s.line_search
     cfg.time.newton_update = s.newton_update
     cfg.time.initial_guess = s.initial_guess
+    cfg.time.carry_with_head = s.carry_with_head
     cfg.time.newton_increment_tol = s.newton_increment_tol
     cfg.time.length_projection = s.length_projection
     cfg.time.max_substeps = s.max_substeps

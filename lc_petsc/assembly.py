@@ -368,6 +368,19 @@ class Assembler:
         return A
 
 
+    def local_block_csr(self):
+        """The committed matrix's rank-local block rows: (block row starts (nb + 1,),
+        global block columns (k,), 3x3 blocks row-major (9 k,), a copy); every column
+        lies in this rank's range (a wisp lives on one rank).  For SBAIJ the upper
+        blocks only, as stored.  What a matrix holding A plus other blocks is filled
+        from (lc_petsc/contact.py, the coupled operator)."""
+        if self._in_blocks:
+            with self.block_array() as v:
+                values = v.reshape(-1, 3, 3).transpose(0, 2, 1).ravel()      # column-major blocks
+        else:
+            values = np.ascontiguousarray(self.B).reshape(-1, 9)[self.csr_blocks].ravel()
+        return self.rowptr, self.cols, values
+
     def _fill_pmat(self):
         """The AIJ copy's values from the band or (direct fill) from the BAIJ values."""
         p = self.p_values

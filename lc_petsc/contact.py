@@ -42,8 +42,9 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    with exact per-row preallocation from those counts and filled with
    ``setValuesBlockedRCV(ADD_VALUES)``; PETSc ships off-process rows at assembly.
 6. **System.** :meth:`StrandContact.system`: the Newton operator A + C (a Python shell,
-   or assembled by ``MatAXPY`` when the preconditioner needs the whole matrix,
-   ``-lc_contact_pc coupled``) and the preconditioning matrix.
+   or assembled when the preconditioner needs the whole matrix, ``-lc_contact_pc
+   coupled``: A's rows and C's pair blocks filled directly into one matrix) and the
+   preconditioning matrix.
 
 Pinned vertices get no contact gradient, band or C entries (their rows/columns stay
 identity).
@@ -425,20 +426,27 @@ class StrandContact:
         self.frame_fixes, self.unresolved_pairs = FrameTally(), FrameTally()
         self.limiter_candidates = FrameTally()
 
-    def system(self, A, strand_pmat=None):
+    def system(self, A, strand_pmat=None, strand_blocks=None):
         """(operator, preconditioning matrix) of the Newton system A + C, after
         :meth:`assemble` and the strand matrix A's ``commit``.  Collective.
 
-        * ``coupled_pc``: the sum is assembled into a new matrix (``MatAXPY`` with a
-          different nonzero pattern; A keeps its fixed pattern) that is both operator
-          and preconditioning matrix, so a direct solver or AMG sees the contact
-          couplings.
+        * ``coupled_pc``: the sum is assembled into a new matrix (A keeps its fixed
+          pattern) that is both operator and preconditioning matrix, so a direct solver
+          or AMG sees the contact couplings.  With ``strand_blocks`` (a callable giving
+          A's local rows as block CSR, :meth:`Assembler.local_block_csr`) it is filled
+          directly: A's rows and C's pair blocks added into a matrix preallocated for
+          both (:meth:`_summed_matrix`); without, by ``MatAXPY`` with a different
+          nonzero pattern (entry by entry through ``MatGetRow``; for SBAIJ through a
+          conversion to BAIJ and back).  Measured on the 2K hairball's frame 90, 2
+          ranks, MUMPS Cholesky: ``MatAXPY`` + ``MatConvert`` 0.28 s per Newton
+          iteration, the direct fill 0.15 s, most of it the page faults of the new
+          matrix's memory (docs/contact_solver.md, "MUMPS").
         * otherwise: the operator is a Python-shell matrix applying A x + C x, and the
           preconditioning matrix is the strand matrix (``strand_pmat``, else A): one
           exact block per wisp, blind to the couplings.  Measured on the 2,000-wisp
           hairball, 1 rank: 13 ms per shell matvec against 25 ms for the assembled sum
-          (whose ``MatAXPY`` also costs 0.44 s per Newton iteration, inserting entry by
-          entry), hence the shell wherever the sum need not be assembled."""
+          (whose assembly also costs 0.15-0.44 s per Newton iteration), hence the shell
+          wherever the sum need not be assembled."""
         with self.timers("collision"):
             if self.op is not None:
                 self.op.destroy()
@@ -453,11 +461,42 @@ class StrandContact:
                 self.shell_ctx.refresh()
                 return self.shell, (strand_pmat or A)
             op = A
-            if self.C is not None:
+            if self.C is not None and strand_blocks is not None:
+                op = self.op = self._summed_matrix(A, *strand_blocks())
+            elif self.C is not None:
                 op = self.op = A.duplicate(copy=True)
                 op.axpy(1.0, self.C, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
                 op.setOption(PETSc.Mat.Option.SYMMETRIC, True)      # MatAXPY drops the flag
             return op, op
+
+    def _summed_matrix(self, A, rowptr, cols, values):
+        """A + C in a new matrix of A's type and layout: preallocated for A's local block
+        rows (``rowptr`` (nb + 1,), global block ``cols`` (k,), row-major 3x3 ``values``
+        (9 k,); A has no entry in another rank's columns) plus C's counts, then A's rows
+        and C's pair blocks (those of the last :meth:`assemble`, wherever they were
+        computed) added, one blocked call each.  Collective."""
+        dn, on, ra, rb, cross_ab, cross_ba = self._c_fill
+        nv = self.scene.nv
+        d_nnz = np.minimum(np.diff(rowptr) + dn, nv)
+        o_nnz = np.minimum(on, self.N - nv)
+        if self.mat_type == "aij":
+            nnz = (np.repeat(3 * d_nnz, 3), np.repeat(3 * o_nnz, 3))
+        else:
+            nnz = (d_nnz, o_nnz)
+        S = PETSc.Mat().create(comm=self.pcomm)
+        S.setSizes(A.getSizes(), bsize=3)
+        S.setType(A.getType())
+        S.setPreallocationNNZ(tuple(n.astype(PETSc.IntType) for n in nnz))
+        S.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+        add = PETSc.InsertMode.ADD_VALUES
+        S.setValuesBlockedCSR(rowptr, cols, values, addv=add)
+        if len(ra):
+            S.setValuesBlockedRCV(ra, rb, cross_ab, addv=add)
+            if cross_ba is not None:
+                S.setValuesBlockedRCV(rb, ra, cross_ba, addv=add)
+        S.assemble()
+        S.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        return S
 
     # ------------------------------------------------------------- exchange
     def _gather_segments(self, x, extra=(), inflate=None, boxes=None, masks=None):
@@ -1100,15 +1139,17 @@ class StrandContact:
             C = create(size=size, bsize=3, comm=self.pcomm,
                        nnz=(d_nnz.astype(PETSc.IntType), o_nnz.astype(PETSc.IntType)))
         C.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+        ra = np.stack([gA, gA + 1], axis=1).astype(PETSc.IntType)
+        rb = np.stack([gB, gB + 1], axis=1).astype(PETSc.IntType)
         if len(gA):
-            ra = np.stack([gA, gA + 1], axis=1).astype(PETSc.IntType)
-            rb = np.stack([gB, gB + 1], axis=1).astype(PETSc.IntType)
             add = PETSc.InsertMode.ADD_VALUES
             C.setValuesBlockedRCV(ra, rb, cross_ab, addv=add)
             if not upper:
                 C.setValuesBlockedRCV(rb, ra, cross_ba, addv=add)
         C.assemble()
         self.C = C
+        # what the coupled operator's direct fill adds (_summed_matrix)
+        self._c_fill = (dn, on, ra, rb, cross_ab, None if upper else cross_ba) if self.coupled_pc else None
 
     def destroy(self):
         """Destroy the contact's PETSc objects (collective)."""

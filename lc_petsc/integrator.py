@@ -466,7 +466,7 @@ class Integrator:
                 self.strand.filter = chosen
         asm.commit()
         if self.strand is not None:         # the Newton matrix is A + C (contact.py)
-            self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat))
+            self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat, asm.local_block_csr))
         return g
 
     def _trust_region_step(self, x, it, region):

@@ -150,6 +150,7 @@ class Integrator:
             held = np.bincount(wisp[scene.pinned], minlength=len(sizes)) > 0
             carried = self.free & held[wisp]
             self.carried = carried if carried.any() else None
+            self.start_weight = start_carry_weight(scene.x_rest, scene.offsets, scene.pinned)
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
@@ -217,7 +218,10 @@ class Integrator:
         roots must move (measured in docs/newton.md, "Tenth round")."""
         Q, q = self.head.rigid_motion(self.t, t_next)
         Qp, qp = self.head.rigid_motion(max(self.t - dt, 0.0), self.t)
-        return x @ (Q - Qp).T + (q - qp)
+        D = Q - Qp
+        # row by row in a fixed order (not a BLAS product, whose summation order may
+        # depend on the number of rows): the same bits on any partition
+        return x[:, 0:1] * D[:, 0] + x[:, 1:2] * D[:, 1] + x[:, 2:3] * D[:, 2] + (q - qp)
 
     # -------------------------------------------------------------- one frame
     def step(self):
@@ -286,7 +290,10 @@ class Integrator:
         if pin.any():
             x[pin] = self.head.pinned_positions(sc.x_rest[pin], self.t_next)
         if self.carried is not None:
-            x[self.carried] += self.head_motion_change(x_old[self.carried], dt, t_next)
+            change = self.head_motion_change(x_old[self.carried], dt, t_next)
+            if self.t == 0.0:       # the start from rest: a velocity jump, felt near the roots
+                change *= self.start_weight[self.carried, None]
+            x[self.carried] += change
         if cfg.time.initial_guess == "follow_the_leader":
             x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
         # the head's rigid motion over the step: the limiter's field on the frame paths
@@ -620,6 +627,43 @@ def quadratic_error_estimate(increments):
         return np.inf
     d_prev, d = increments[-2], increments[-1]
     return d / d_prev ** 2 * d ** 2
+
+
+#: The start from rest's carry decays along a wisp as exp(-s / (START_CARRY_LENGTH * S)),
+#: s the rest arclength from the wisp's last pinned vertex, S that of its free part
+#: (docs/newton.md, "Tenth round": 0.3 measured against 0.1 and the whole wisp)
+START_CARRY_LENGTH = 0.3
+
+
+def start_carry_weight(x_rest, offsets, pinned, length=START_CARRY_LENGTH):
+    """Per-vertex weights (nv,) of the head's first step in the first iterate of the
+    start from rest: 1 up to each wisp's last pinned vertex, then exp(-s / (length S))
+    with s the rest arclength from that vertex and S the arclength from it to the tip
+    (1 on a wisp without pinned vertices, which is not carried).  A head starting from
+    rest jumps to its velocity; within one step only the part of a wisp near its roots
+    follows (the tips lag by inertia), while a smooth acceleration later is followed by
+    the whole wisp.  ``x_rest`` (nv, 3), ``offsets`` (n_wisps + 1,), ``pinned`` (nv,)."""
+    off = np.asarray(offsets, np.int64)
+    nv, sizes = len(x_rest), np.diff(off)
+    edge = np.zeros(nv)
+    if nv > 1:
+        edge[1:] = np.linalg.norm(np.diff(x_rest, axis=0), axis=1)
+    arc = np.zeros(nv)
+    for j in range(1, int(sizes.max(initial=0))):      # along each wisp from its root: the
+        v = off[:-1][sizes > j] + j                     # same sums on any partition
+        arc[v] = arc[v - 1] + edge[v]
+    wisp = np.repeat(np.arange(len(sizes)), sizes)
+    last = np.full(len(sizes), -1, np.int64)
+    np.maximum.at(last, wisp[pinned], np.flatnonzero(pinned))
+    anchor = last[wisp]
+    held = anchor >= 0
+    tip = off[1:][wisp] - 1
+    s = np.where(held, arc - arc[np.maximum(anchor, 0)], 0.0)
+    S = np.where(held, arc[tip] - arc[np.maximum(anchor, 0)], 0.0)
+    w = np.ones(nv)
+    decay = held & (s > 0.0) & (S > 0.0)
+    w[decay] = np.exp(-s[decay] / (length * S[decay]))
+    return w
 
 
 def follow_the_leader(x, free, offsets, rest_edge):

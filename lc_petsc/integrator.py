@@ -212,10 +212,16 @@ class Integrator:
         """The change of the head's rigid motion at positions ``x`` (n, 3) between the
         last step and this one: u_now(x) - u_last(x), u_now the motion from t to
         ``t_next`` (= t + ``dt``), u_last the one from t - ``dt`` to t (none before t = 0:
-        the head starts from rest).  About dt^2 times the head's acceleration field at x, and its whole
-        velocity jump times dt at a start.  Added to x_n + dt v_n for the free vertices
-        of the wisps the head holds, it makes Newton's first iterate move them as the
-        roots must move (measured in docs/newton.md, "Tenth round")."""
+        the head starts from rest).  For a smooth motion it is second order in dt: the
+        change of the head's step displacement field (its angular and linear acceleration
+        times dt^2; zero for a steady rotation, whose centripetal term it leaves out, as
+        x_n + dt v_n does); at a start, the head's whole first step.  Both fields are taken
+        at x_n (u_last maps positions at t - dt; the difference is second order in the
+        step's rotation).  With step cutback ``dt`` is the substep's, while v_n spans the
+        last step's: the carry is then only roughly the rigid-consistent one.  Added to
+        x_n + dt v_n for the free vertices of the wisps the head holds, it makes Newton's
+        first iterate move them as the roots must move (measured in docs/newton.md,
+        "Tenth round")."""
         Q, q = self.head.rigid_motion(self.t, t_next)
         Qp, qp = self.head.rigid_motion(max(self.t - dt, 0.0), self.t)
         D = Q - Qp

@@ -205,8 +205,8 @@ class Job:
     def _load_restart(self):
         """The checkpoint to continue from, checked against the config, the scene and
         the folder's frames.h5; restored into the simulator.  Raises Refused."""
-        from lc_petsc.io.checkpoint import (checkpoint_folder, config_differences, find_latest,
-                                            load_checkpoint)
+        from lc_petsc.io.checkpoint import (LEGACY_VALUES, checkpoint_folder, config_differences,
+                                            find_latest, load_checkpoint)
         from lc_petsc.io.frames import resumable_problem
         comm, args, cfg, sim = self.comm, self.args, self.cfg, self.sim
         skipped = []
@@ -225,9 +225,14 @@ class Job:
         ck["skipped"] = skipped
         diff = config_differences(ck["attrs"]["config"], cfg.to_dict(), ignore=RESTART_FREE_KEYS,
                                   defaults=SimConfig().to_dict())
+        saved = ck["attrs"]["config"]
+        legacy = [k for k in diff if k in LEGACY_VALUES
+                  and k.split(".")[1] not in saved.get(k.split(".")[0], {})]
+        hint = "".join(f"; the checkpoint predates {k} and ran as {k} = {str(LEGACY_VALUES[k]).lower()}, "
+                       f"set that to continue it as it ran" for k in legacy)
         if diff and not args.force:
             raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
-                          f"{', '.join(diff)}; restart with the same config or add --force")
+                          f"{', '.join(diff)}{hint}; restart with the same config or add --force")
         if diff:
             warn(comm, f"--force: config differs from the checkpoint's in {', '.join(diff)}")
         if ck["attrs"]["every"] != cfg.output.every:

@@ -104,12 +104,19 @@ def _normal(d):
     return json.loads(json.dumps(d))
 
 
+#: Keys whose default is not what the versions before them did: a checkpoint without
+#: the key ran as this value (time.carry_with_head came on 2026-12-05, default true; the
+#: code before it did not carry).
+LEGACY_VALUES = {"time.carry_with_head": False}
+
+
 def config_differences(saved, current, ignore=(), defaults=None):
     """Dotted keys whose values differ between two config dicts (``ignore``: keys that
     do not change the trajectory or the frames file's layout).  With ``defaults`` (a
     config dict of every key's default), a key the saved config lacks is no difference
     while the current one holds its default: the checkpoint was written by a version
-    without that key, which ran as its default does."""
+    without that key, which ran as its default does, unless :data:`LEGACY_VALUES` says
+    what it ran as instead."""
     def flat(d, pre=""):
         out = {}
         for k, v in d.items():
@@ -122,7 +129,7 @@ def config_differences(saved, current, ignore=(), defaults=None):
     a, b = flat(_normal(saved)), flat(_normal(current))
     if defaults is not None:
         d = flat(_normal(defaults))
-        a.update({k: v for k, v in b.items() if k not in a and k in d and d[k] == v})
+        a.update({k: LEGACY_VALUES.get(k, d[k]) for k in b if k not in a and k in d})
     return [k for k in sorted(set(a) | set(b)) if k not in ignore and a.get(k, "<absent>") != b.get(k, "<absent>")]
 
 

@@ -290,3 +290,41 @@ def test_a_key_newer_than_the_checkpoint_is_no_difference_at_its_default():
     current["solver"]["exact_stay"] = True
     current["time"]["dt"] = 0.01
     assert config_differences(saved, current, defaults=defaults) == ["solver.exact_stay", "time.dt"]
+
+
+def test_a_checkpoint_from_before_the_carry_is_a_difference_with_it_on():
+    """time.carry_with_head (2026-12-05) defaults to true, but the code before it did not
+    carry: a checkpoint without the key ran uncarried, so restarting it carried is a
+    config difference (refused without --force), and with the key set false none."""
+    from lc_petsc.config import SimConfig
+    from lc_petsc.io.checkpoint import config_differences
+    defaults = SimConfig().to_dict()
+    saved = SimConfig().to_dict()
+    del saved["time"]["carry_with_head"]
+    current = SimConfig().to_dict()
+    assert config_differences(saved, current, defaults=defaults) == ["time.carry_with_head"]
+    current["time"]["carry_with_head"] = False
+    assert config_differences(saved, current, defaults=defaults) == []
+
+
+def test_restarting_a_checkpoint_from_before_the_carry_is_refused_with_the_fix(tmp_path, capsys):
+    """A checkpoint whose config lacks time.carry_with_head (written before it existed, by
+    code that did not carry): the restart is refused, naming the key and the value that
+    continues the run as it ran; with that value it restarts."""
+    import json
+    from lc_petsc.io.checkpoint import _meta_digest, config_sha256
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "2"]) == 0
+    ck = out / "checkpoints" / "checkpoint_000002.h5"
+    with h5py.File(ck, "r+") as f:
+        config = json.loads(f.attrs["config"])
+        del config["time"]["carry_with_head"]
+        f.attrs["config"] = json.dumps(config, sort_keys=True)
+        f.attrs["config_sha256"] = config_sha256(config)
+        f.attrs["meta_sha256"] = _meta_digest(dict(f.attrs))      # as its writer had
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", str(ck), "--frames", "3"]) == 2
+    e = capsys.readouterr().err
+    assert "time.carry_with_head" in e and "time.carry_with_head = false" in e, e
+    old = _config(tmp_path, name="old.toml", **{"[time]": "[time]\ncarry_with_head = false"})
+    assert main([old, "--out", str(out), "--quiet", "--restart", str(ck), "--frames", "3"]) == 0

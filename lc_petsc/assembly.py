@@ -370,7 +370,8 @@ class Assembler:
 
     def local_block_csr(self):
         """The committed matrix's rank-local block rows: (block row starts (nb + 1,),
-        global block columns (k,), 3x3 blocks row-major (9 k,), a copy); every column
+        global block columns (k,), both the assembler's own arrays (do not modify),
+        3x3 blocks row-major (9 k,), a new array); every column
         lies in this rank's range (a wisp lives on one rank).  For SBAIJ the upper
         blocks only, as stored.  What a matrix holding A plus other blocks is filled
         from (lc_petsc/contact.py, the coupled operator)."""

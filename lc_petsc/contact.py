@@ -487,14 +487,18 @@ class StrandContact:
         S.setSizes(A.getSizes(), bsize=3)
         S.setType(A.getType())
         S.setPreallocationNNZ(tuple(n.astype(PETSc.IntType) for n in nnz))
-        S.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
-        add = PETSc.InsertMode.ADD_VALUES
-        S.setValuesBlockedCSR(rowptr, cols, values, addv=add)
-        if len(ra):
-            S.setValuesBlockedRCV(ra, rb, cross_ab, addv=add)
-            if cross_ba is not None:
-                S.setValuesBlockedRCV(rb, ra, cross_ba, addv=add)
-        S.assemble()
+        try:
+            S.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+            add = PETSc.InsertMode.ADD_VALUES
+            S.setValuesBlockedCSR(rowptr, cols, values, addv=add)
+            if len(ra):
+                S.setValuesBlockedRCV(ra, rb, cross_ab, addv=add)
+                if cross_ba is not None:
+                    S.setValuesBlockedRCV(rb, ra, cross_ba, addv=add)
+            S.assemble()
+        except BaseException:
+            S.destroy()
+            raise
         S.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         return S
 

@@ -370,16 +370,15 @@ class Assembler:
 
     def local_block_csr(self):
         """The committed matrix's rank-local block rows: (block row starts (nb + 1,),
-        global block columns (k,), both the assembler's own arrays (do not modify),
-        3x3 blocks row-major (9 k,), a new array); every column
-        lies in this rank's range (a wisp lives on one rank).  For SBAIJ the upper
-        blocks only, as stored.  What a matrix holding A plus other blocks is filled
-        from (lc_petsc/contact.py, the coupled operator)."""
-        if self._in_blocks:
-            with self.block_array() as v:
-                values = v.reshape(-1, 3, 3).transpose(0, 2, 1).ravel()      # column-major blocks
-        else:
-            values = np.ascontiguousarray(self.B).reshape(-1, 9)[self.csr_blocks].ravel()
+        global block columns (k,), 3x3 blocks row-major (9 k,); the assembler's own
+        arrays except for a BAIJ filled in place (do not modify); every column lies in
+        this rank's range (a wisp lives on one rank).  For SBAIJ the upper blocks only,
+        as stored.  What a matrix holding A plus other blocks is filled from
+        (lc_petsc/contact.py, the coupled operator)."""
+        if self.mat_block is None:          # commit's CSR call read them from here
+            return self.rowptr, self.cols, self.values.reshape(-1)
+        with value_array(self.mat_block, self.n_values) as v:      # column-major blocks
+            values = v.reshape(-1, 3, 3).transpose(0, 2, 1).ravel()
         return self.rowptr, self.cols, values
 
     def _fill_pmat(self):

@@ -150,8 +150,9 @@ class Integrator:
             held = np.bincount(wisp[scene.pinned], minlength=len(sizes)) > 0
             carried = self.free & held[wisp]
             self.carried = carried if carried.any() else None
-            self.start_weight = start_carry_weight(scene.x_rest, scene.offsets, scene.pinned)
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
+        if self.carried is not None:
+            self.start_weight = start_carry_weight(self.rest_edge, scene.offsets, scene.pinned)
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
         self.history = None             # a list: per-iteration measures are appended
@@ -637,23 +638,23 @@ def quadratic_error_estimate(increments):
 
 #: The start from rest's carry decays along a wisp as exp(-s / (START_CARRY_LENGTH * S)),
 #: s the rest arclength from the wisp's last pinned vertex, S that of its free part
-#: (docs/newton.md, "Tenth round": 0.3 measured against 0.1 and the whole wisp)
+#: (docs/newton.md, "Tenth round": 0.3 measured against 0.03, 0.1 and the whole wisp)
 START_CARRY_LENGTH = 0.3
 
 
-def start_carry_weight(x_rest, offsets, pinned, length=START_CARRY_LENGTH):
+def start_carry_weight(rest_edge, offsets, pinned, length=START_CARRY_LENGTH):
     """Per-vertex weights (nv,) of the head's first step in the first iterate of the
     start from rest: 1 up to each wisp's last pinned vertex, then exp(-s / (length S))
     with s the rest arclength from that vertex and S the arclength from it to the tip
     (1 on a wisp without pinned vertices, which is not carried).  A head starting from
     rest jumps to its velocity; within one step only the part of a wisp near its roots
     follows (the tips lag by inertia), while a smooth acceleration later is followed by
-    the whole wisp.  ``x_rest`` (nv, 3), ``offsets`` (n_wisps + 1,), ``pinned`` (nv,)."""
+    the whole wisp.  ``rest_edge`` (nv - 1,) rest length of edge (v, v + 1) (edges
+    across wisps unused), ``offsets`` (n_wisps + 1,), ``pinned`` (nv,)."""
     off = np.asarray(offsets, np.int64)
-    nv, sizes = len(x_rest), np.diff(off)
-    edge = np.zeros(nv)
-    if nv > 1:
-        edge[1:] = np.linalg.norm(np.diff(x_rest, axis=0), axis=1)
+    nv, sizes = len(pinned), np.diff(off)
+    edge = np.zeros(nv)                 # edge[v]: the rest length of edge (v - 1, v)
+    edge[1:] = rest_edge[:max(nv - 1, 0)]
     arc = np.zeros(nv)
     for j in range(1, int(sizes.max(initial=0))):      # along each wisp from its root: the
         v = off[:-1][sizes > j] + j                     # same sums on any partition

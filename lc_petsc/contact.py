@@ -57,8 +57,8 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from lc_petsc.elements import (compiled, compiled_ccd, compiled_contact, compiled_mult, segment_barrier,
-                               segment_ccd, segment_contact)
+from lc_petsc.elements import (compiled, compiled_band, compiled_ccd, compiled_contact, compiled_mult,
+                               segment_barrier, segment_ccd, segment_contact)
 from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.contact_pc import local_block
 from lc_petsc.parallel import collectively, compile_in_turn, global_min, global_reduce
@@ -199,19 +199,60 @@ class _VertexGather:
             obj.destroy()
 
 
+class _BlockProduct:
+    """y = M x or y + M x for a sequential BAIJ matrix M with 3x3 blocks, compiled.
+
+    A square M whose blocks below the diagonal are exactly the transposes of those above
+    (the strand matrix: the assembly stores them as such; C's rank-local block) is
+    multiplied from a copy of its upper triangle (:func:`compiled_mult.bsr3_sym_mult`):
+    about half the bytes per product (the 2,000-wisp hairball's band: 4 of 7 blocks per
+    row), the same result bit for bit.  The copy (and the symmetry check, one pass over
+    M's values) is made again whenever M's state changes.  Otherwise, or with
+    ``symmetric`` False, :func:`compiled_mult.bsr3_mult` on M's value array."""
+
+    def __init__(self, M, symmetric=True):
+        self.M = M
+        self.indptr, self.indices = block_pattern(M)
+        self.n = 9 * len(self.indices)
+        self.upper = None
+        rows, cols = M.getSize()
+        if symmetric and rows == cols:
+            upper = compiled_mult.bsr3_upper_pattern(self.indptr, self.indices)
+            if upper[5]:                        # the pattern itself is symmetric
+                self.upper = upper[:5]
+                self.upper_values = np.empty(9 * len(upper[1]))
+        self.state = None
+        self.symmetric = False
+
+    def __call__(self, x, y, add):
+        if self.upper is not None and self.M.stateGet() != self.state:
+            upper_indptr, upper_indices, source, lower, mirror = self.upper
+            with value_array(self.M, self.n) as values:
+                self.symmetric = compiled_mult.bsr3_upper_values(values, source, lower, mirror,
+                                                                 self.upper_values)
+            self.state = self.M.stateGet()
+        if self.symmetric:
+            compiled_mult.bsr3_sym_mult(self.upper[0], self.upper[1], self.upper_values, x, y, add)
+        else:
+            with value_array(self.M, self.n) as values:
+                compiled_mult.bsr3_mult(self.indptr, self.indices, values, x, y, add)
+
+
 class SumOperator:
     """Python-shell context of the Newton operator A + C (C may be None): two matvecs,
     measured faster per CG iteration than one matvec with the assembled sum (see
     :meth:`StrandContact.system`).
 
-    Both products run through :func:`compiled_mult.bsr3_mult` on the matrices' value
-    arrays where they are BAIJ with 3x3 blocks: the same products as PETSc's ``MatMult``
-    and ``MatMultAdd``, bit for bit, in 0.6-0.85x their time (that module).  A must have
-    no entry outside the rank's diagonal block (the strand matrix: every wisp's band lies
-    on one rank); C's entries in other ranks' columns (couplings across the partition)
-    come through a scatter of their x values, as in PETSc's ``MatMultAdd_MPIBAIJ``.
-    Anything else goes through PETSc.  Call :meth:`refresh` when A's nonzero pattern
-    may have changed; setting C (a new matrix every Newton iteration) rereads C's."""
+    Both products run compiled (:class:`_BlockProduct`) where the matrices are BAIJ with
+    3x3 blocks: the same products as PETSc's ``MatMult`` and ``MatMultAdd``, bit for bit,
+    in a fraction of their time (:mod:`compiled_mult`).  A must have no entry outside the
+    rank's diagonal block (the strand matrix: every wisp's band lies on one rank); C's
+    entries in other ranks' columns (couplings across the partition) come through a
+    scatter of their x values, as in PETSc's ``MatMultAdd_MPIBAIJ``.  Anything else goes
+    through PETSc.  Call :meth:`refresh` when A's nonzero pattern may have changed;
+    setting C (a new matrix every Newton iteration) rereads C's.  A's values are reread
+    when its state changes (``MatAssemblyEnd`` advances it; a caller that writes A's
+    value array in place assembles A, as the assembler does)."""
 
     def __init__(self, A):
         self.A = A
@@ -246,10 +287,8 @@ class SumOperator:
         self._forget_contact()
 
     @staticmethod
-    def _compiled(M):
-        """(M, block rows, block columns, number of values) of the sequential BAIJ M."""
-        indptr, indices = block_pattern(M)
-        return M, indptr, indices, 9 * len(indices)
+    def _compiled(M, symmetric=True):
+        return _BlockProduct(M, symmetric)
 
     @staticmethod
     def _bsr3(M):
@@ -282,7 +321,7 @@ class SumOperator:
             scatter = PETSc.Scatter().create(x, where, ghosts, None)
         finally:
             where.destroy()
-        return [self._compiled(diag), self._compiled(off)], scatter, ghosts
+        return [self._compiled(diag), self._compiled(off, symmetric=False)], scatter, ghosts
 
     def mult(self, mat, x, y):
         """y = (A + C) x."""
@@ -299,20 +338,14 @@ class SumOperator:
         if self._band or self._contact:
             xa, ya = x.getArray(readonly=True), y.getArray()
             if self._band:
-                self._product(self._band, xa, ya, False)
+                self._band(xa, ya, False)
             if self._contact:
-                self._product(self._contact[0][0], xa, ya, True)
+                self._contact[0][0](xa, ya, True)
                 if scatter is not None:
                     scatter.end(x, ghosts, *forward)
-                    self._product(self._contact[0][1], ghosts.getArray(readonly=True), ya, True)
+                    self._contact[0][1](ghosts.getArray(readonly=True), ya, True)
         if self._C is not None and not self._contact:
             self._C.multAdd(x, y, y)
-
-    @staticmethod
-    def _product(compiled_matrix, x, y, add):
-        M, indptr, indices, n = compiled_matrix
-        with value_array(M, n) as values:
-            compiled_mult.bsr3_mult(indptr, indices, values, x, y, add)
 
     def getDiagonal(self, mat, d):
         """The diagonal of A (C has no diagonal blocks)."""
@@ -412,7 +445,7 @@ class StrandContact:
         #: seconds compiling (or loading from Numba's cache) the compiled broad phase and
         #: limiter kernels, at set-up (not in any frame)
         self.compile_seconds = compile_in_turn(comm, compiled_ccd.warm_up, compiled_contact.warm_up,
-                                               compiled_mult.warm_up)
+                                               compiled_mult.warm_up, compiled_band.warm_up)
         # ccd mode (see limit_step): per-vertex step fractions, in a Vec by global vertex
         self.step_fraction = self.shrink = None
         if mode == "ccd":

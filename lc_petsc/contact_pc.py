@@ -23,7 +23,12 @@ C couples into **clusters** and solves each cluster's block of A + C exactly:
    of it still left CG 75 of its 150 iterations, for a factorisation 50x the per-wisp
    one), and the set-up keeps the per-wisp blocks alone.
 2. **Singletons** (wisps in no cluster): the exact per-wisp factorisation of the
-   default, ILU(0) of the rank's block of A on a full band (= LU; lc_petsc/solver.py).
+   rank's block of A: a compiled block Cholesky of each wisp's band
+   (``-lc_band_factor cholesky``, the default; lc_petsc/elements/compiled_band.py),
+   which reads half the bytes per application of PETSc's ILU(0) of the full band (= LU,
+   ``-lc_band_factor ilu``, the per-wisp blocks' default in lc_petsc/solver.py).  When
+   the band is not positive definite (an exact Hessian's negative curvature) the set-up
+   takes PETSc's LU instead, and says so in ``stats["band_factor"]``.
 3. **Clusters**: each cluster is factored by one rank, the rank holding most of its
    vertices, then moved to balance the ranks' cluster rows (:func:`cluster_owners`:
    the contact of a frame often falls on one side of the head, i.e. one rank).  Every
@@ -61,8 +66,9 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from lc_petsc.elements.compiled_band import BandCholesky
 from lc_petsc.parallel import global_wisp_offsets
-from lc_petsc.petsc_capi import value_array
+from lc_petsc.petsc_capi import block_pattern, value_array
 
 #: ``-lc_cluster_max_wisps`` default
 MAX_WISPS = 64
@@ -78,6 +84,12 @@ ORDERINGS = (ORDERING, "qmd", "nd")
 SPAN = "global"
 #: the values ``-lc_cluster_span`` accepts (the first is the default)
 SPANS = (SPAN, "rank")
+#: ``-lc_band_factor`` default: the singletons' per-wisp solve, a compiled block Cholesky
+#: (lc_petsc/elements/compiled_band.py; half the bytes per apply), or ``ilu``: PETSc's
+#: ILU(0) of the band (= LU), also taken whenever the Cholesky cannot hold
+BAND_FACTOR = "cholesky"
+#: the values ``-lc_band_factor`` accepts (the first is the default)
+BAND_FACTORS = (BAND_FACTOR, "ilu")
 
 
 def block_rows(M, rows=None):
@@ -232,10 +244,14 @@ class ClusterPC:
     across ranks, clusters spanning ranks) and ``history`` keeps them per set-up."""
 
     def __init__(self, wisp_rows, max_wisps=MAX_WISPS, max_blocks=MAX_BLOCKS,
-                 min_captured=MIN_CAPTURED, ordering=ORDERING, span=SPAN):
+                 min_captured=MIN_CAPTURED, ordering=ORDERING, span=SPAN, band_factor=BAND_FACTOR):
         sizes = np.asarray(wisp_rows, np.int64) // 3
         self.vertex_wisp = np.repeat(np.arange(len(sizes)), sizes)
         self.offsets = np.concatenate([[0], np.cumsum(sizes)])
+        if band_factor not in BAND_FACTORS:
+            raise ValueError(f"band factor {band_factor!r}: use one of {', '.join(BAND_FACTORS)}")
+        self.cholesky = BandCholesky(self.offsets) if band_factor == "cholesky" else None
+        self.use_cholesky = False
         self.max_wisps, self.max_blocks = int(max_wisps), int(max_blocks)
         self.min_captured = float(min_captured)
         if ordering not in ORDERINGS:
@@ -258,11 +274,7 @@ class ClusterPC:
         A = P if ctx is None else ctx.A
         C = None if ctx is None else ctx.C
         A_loc = local_block(A)
-        if self.band is None:
-            self.band = PETSc.PC().create(comm=PETSc.COMM_SELF)
-            self.band.setType(PETSc.PC.Type.ILU)       # ILU(0) of a full band = LU
-        self.band.setOperators(A_loc, A_loc)
-        self.band.setUp()
+        band = self._setup_band(A_loc)
         n = A_loc.getSize()[0]
         if self._x is None or self._x.getSize() != n:
             self._x = PETSc.Vec().createWithArray(np.zeros(n), comm=PETSc.COMM_SELF)
@@ -270,7 +282,34 @@ class ClusterPC:
         if self.layout is None:
             self.layout = GlobalLayout(A, np.diff(self.offsets))
         self._setup_clusters(A, A_loc, C)
+        self.stats["band_factor"] = band
         self.history.append(dict(self.stats))
+
+    def _setup_band(self, A_loc):
+        """The singletons' factor of A's rank-local block: the compiled Cholesky, or
+        PETSc's ILU(0) of the band (``-lc_band_factor ilu``, or where the Cholesky
+        cannot hold).  Returns which, with the reason for ILU (``stats["band_factor"]``)."""
+        why = "-lc_band_factor ilu"
+        self.use_cholesky = False
+        if self.cholesky is not None:
+            if A_loc.getType() != PETSc.Mat.Type.SEQBAIJ or A_loc.getBlockSize() != 3:
+                why = f"a {A_loc.getType()} matrix"
+            else:
+                indptr, indices = block_pattern(A_loc)
+                with value_array(A_loc, 9 * len(indices)) as values:
+                    why = self.cholesky.factor(indptr, indices, values)
+                self.use_cholesky = why is None
+        if self.use_cholesky:
+            if self.band is not None:   # a fallback's factor is not kept beside it
+                self.band.destroy()
+                self.band = None
+            return "cholesky"
+        if self.band is None:
+            self.band = PETSc.PC().create(comm=PETSc.COMM_SELF)
+            self.band.setType(PETSc.PC.Type.ILU)       # ILU(0) of a full band = LU
+        self.band.setOperators(A_loc, A_loc)
+        self.band.setUp()
+        return f"ilu ({why})"
 
     def _couplings(self, C):
         """The global coupled wisp pairs, weights and block counts of C (every rank gets
@@ -425,13 +464,16 @@ class ClusterPC:
         (gathered from and scattered back to the ranks owning them)."""
         xa = x.getArray(readonly=True)
         ya = y.getArray()
-        self._x.placeArray(xa)
-        self._y.placeArray(ya)
-        try:
-            self.band.apply(self._x, self._y)
-        finally:
-            self._x.resetArray()
-            self._y.resetArray()
+        if self.use_cholesky:
+            self.cholesky.apply(xa, ya)
+        else:
+            self._x.placeArray(xa)
+            self._y.placeArray(ya)
+            try:
+                self.band.apply(self._x, self._y)
+            finally:
+                self._x.resetArray()
+                self._y.resetArray()
         if self.scatter is not None:
             self.scatter.scatter(x, self._cx, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
             if self.cluster is not None:

@@ -76,9 +76,11 @@ def has_value_array(mat) -> bool:
 @contextmanager
 def value_array(mat, n):
     """The value array (n,) of the sequential matrix ``mat`` (SeqAIJ: row-major CSR
-    order; SeqBAIJ: block CSR order, each block column-major), writable in place.
-    Restoring it (on exit) marks the matrix as changed; the caller checks that ``n``
-    is the matrix's number of stored values."""
+    order; SeqBAIJ: block CSR order, each block column-major), writable in place; the
+    caller checks that ``n`` is the matrix's number of stored values.  Restoring it (on
+    exit) advances a SeqAIJ matrix's state, not a SeqBAIJ one's (PETSc 3.18): after
+    writing, assemble the matrix (``MatAssemblyEnd`` advances it), so that whatever
+    caches its values (:class:`lc_petsc.contact.SumOperator`) sees the change."""
     get = _GET_ARRAY.get(mat.getType())
     if get is None:
         raise TypeError(f"value_array: unsupported matrix type {mat.getType()} "
@@ -128,6 +130,21 @@ class SeqBAIJHandle:
     def getType(self):
         """PETSc's type name, as petsc4py's ``Mat.getType``."""
         return "seqbaij"
+
+    def getSize(self):
+        """(rows, columns), as petsc4py's ``Mat.getSize``."""
+        index = ctypes.c_int32 if PETSc.IntType == np.int32 else ctypes.c_int64
+        rows, cols = index(), index()
+        _call("MatGetSize", [ctypes.c_void_p, ctypes.POINTER(index), ctypes.POINTER(index)],
+              ctypes.c_void_p(self.handle), ctypes.byref(rows), ctypes.byref(cols))
+        return rows.value, cols.value
+
+    def stateGet(self):
+        """The object's state (``PetscObjectStateGet``), as petsc4py's ``Mat.stateGet``."""
+        state = ctypes.c_int64()
+        _call("PetscObjectStateGet", [ctypes.c_void_p, ctypes.POINTER(ctypes.c_int64)],
+              ctypes.c_void_p(self.handle), ctypes.byref(state))
+        return state.value
 
 
 def _int_pointer():

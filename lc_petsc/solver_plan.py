@@ -22,7 +22,8 @@ decides itself, before any PETSc object exists:
   coupled|strands|clusters``; ``clusters``: lc_petsc/contact_pc.py, with its caps
   ``-lc_cluster_max_wisps``, ``-lc_cluster_max_blocks``, its fallback threshold
   ``-lc_cluster_min_captured``, the ordering of its LU ``-lc_cluster_ordering`` and
-  ``-lc_cluster_span global|rank``: clusters across ranks or inside each);
+  ``-lc_cluster_span global|rank``: clusters across ranks or inside each, and the
+  factor of the wisps outside clusters ``-lc_band_factor cholesky|ilu``);
 * the factorisation defaults: MUMPS gets the AMF ordering (``-mat_mumps_icntl_7 2``)
   unless the options say otherwise;
 * lc_petsc's own build choices read from the same database: the element kernels
@@ -52,7 +53,7 @@ from typing import Mapping, Optional
 
 from petsc4py import PETSc
 
-from lc_petsc.contact_pc import MAX_BLOCKS, MAX_WISPS, MIN_CAPTURED, ORDERINGS, SPANS
+from lc_petsc.contact_pc import BAND_FACTORS, MAX_BLOCKS, MAX_WISPS, MIN_CAPTURED, ORDERINGS, SPANS
 from lc_petsc.errors import ConfigError
 from lc_petsc.options import option_pairs
 from lc_petsc.parallel import WISP_ORDERS
@@ -181,7 +182,7 @@ class SolverPlan:
     ``separate`` per-wisp block Jacobi, None for another preconditioner;
     ``contact_pc``: ``coupled`` / ``strands`` / ``clusters`` with strand contact, else
     None; ``cluster_caps``: (max wisps, max cross blocks, min captured share, LU
-    ordering, span) of the clusters with ``clusters``, else None;
+    ordering, span, the singletons' band factor) of the clusters with ``clusters``, else None;
     ``sub_solver``: the per-wisp blocks' default sub-solver options; ``factor``: the
     factorisation defaults (:func:`factor_defaults`);
     ``element_kernels``: ``compiled`` / ``numpy``; ``wisp_order``: ``spatial`` / ``input``;
@@ -196,7 +197,7 @@ class SolverPlan:
     pc_type: str
     wisp_blocks: Optional[str]
     contact_pc: Optional[str]
-    cluster_caps: Optional[tuple[int, int, float, str, str]]
+    cluster_caps: Optional[tuple[int, int, float, str, str, str]]
     sub_solver: Mapping[str, str]
     factor: Mapping[str, str]
     element_kernels: str
@@ -423,8 +424,8 @@ def _positive_int(layers: _Layers, key, default):
 
 
 def _cluster_caps(layers: _Layers, mat_type, wisp_blocks):
-    """(max wisps, max cross blocks, min captured share, LU ordering, span) of the clusters
-    of ``-lc_contact_pc clusters``, after checking that the cluster preconditioner can run
+    """(max wisps, max cross blocks, min captured share, LU ordering, span, band factor) of
+    the clusters of ``-lc_contact_pc clusters``, after checking that the cluster preconditioner can run
     with the other options."""
     if base_type(mat_type) != "baij":
         raise ConfigError(f"-lc_contact_pc clusters reads the block (BAIJ) matrices; drop "
@@ -447,4 +448,7 @@ def _cluster_caps(layers: _Layers, mat_type, wisp_blocks):
                     f"one of {', '.join(ORDERINGS)} (the PETSc ordering of the clusters' LU)"),
             _choice(layers, "lc_cluster_span", SPANS,
                     "global (clusters may hold wisps of several ranks) or rank (only "
-                    "couplings inside one rank)"))
+                    "couplings inside one rank)"),
+            _choice(layers, "lc_band_factor", BAND_FACTORS,
+                    "cholesky (the compiled block Cholesky of each wisp's band) or ilu "
+                    "(PETSc's ILU(0) of the band)"))

@@ -74,7 +74,9 @@ def _penalty_rows(X, d0, stiffness, free, owner_a, owner_b, rows, cross_ab, cros
         for i in range(12):
             g[i] = psi1 * gd[i]
             for j in range(12):
-                H[i, j] = kk * gd[i] * gd[j]
+                # k (gd_i gd_j): H exactly symmetric, so C is (its rank-local block is
+                # multiplied from its upper triangle, lc_petsc/contact.py _BlockProduct)
+                H[i, j] = kk * (gd[i] * gd[j])
         if not (free[p, 0] and free[p, 1] and free[p, 2] and free[p, 3]):
             for i in range(12):
                 fi = 1.0 if free[p, i // 3] else 0.0

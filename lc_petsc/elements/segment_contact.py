@@ -189,7 +189,7 @@ def potential_gradient_hessian(x, d0, derivatives, filter="analytic", hessian=Tr
     if not hessian:
         return g, None
     gdf = gd.reshape(n_pairs, 12)
-    H = psi2[:, None, None] * gdf[:, :, None] * gdf[:, None, :]
+    H = psi2[:, None, None] * (gdf[:, :, None] * gdf[:, None, :])      # exactly symmetric
     if filter == "analytic" or not active.any():
         return g, H
     # exact curvature part, only for active pairs

@@ -229,12 +229,12 @@ def test_plan_refuses_bad_cluster_options(options, match):
 
 def test_plan_cluster_caps_and_mumps_ordering_default():
     plan = SolverPlan.resolve("-lc_contact_pc clusters -lc_cluster_max_wisps 8", strand_contact=True)
-    assert plan.contact_pc == "clusters" and plan.cluster_caps == (8, 1024, 0.9, "rcm", "global")
+    assert plan.contact_pc == "clusters" and plan.cluster_caps == (8, 1024, 0.9, "rcm", "global", "cholesky")
     assert plan.pmat_type is None               # the strand matrix itself, no AIJ copy
     # the default with contact: clusters for block Jacobi on BAIJ with fused blocks, the
     # per-wisp strand blocks where clusters cannot run, none without contact
     default = SolverPlan.resolve("", strand_contact=True)
-    assert default.contact_pc == "clusters" and default.cluster_caps == (64, 1024, 0.9, "rcm", "global")
+    assert default.contact_pc == "clusters" and default.cluster_caps == (64, 1024, 0.9, "rcm", "global", "cholesky")
     for other in ("-lc_wisp_blocks separate", "-mat_type aij", "-lc_contact_pc strands"):
         plan = SolverPlan.resolve(other, strand_contact=True)
         assert plan.contact_pc == "strands" and plan.cluster_caps is None, other

@@ -228,8 +228,8 @@ class _BlockProduct:
         if self.upper is not None and self.M.stateGet() != self.state:
             upper_indptr, upper_indices, source, lower, mirror = self.upper
             with value_array(self.M, self.n) as values:
-                self.symmetric = compiled_mult.bsr3_upper_values(values, source, lower, mirror,
-                                                                 self.upper_values)
+                self.symmetric = compiled_mult.bsr3_upper_values(values, values.view(np.int64), source, lower,
+                                                                 mirror, self.upper_values)
             self.state = self.M.stateGet()
         if self.symmetric:
             compiled_mult.bsr3_sym_mult(self.upper[0], self.upper[1], self.upper_values, x, y, add)
@@ -257,8 +257,8 @@ class SumOperator:
     def __init__(self, A):
         self.A = A
         self._C = None
-        self._band = None          # A's compiled product: (local block, rows, columns, values) or False
-        self._contact = None       # C's: ([(block, rows, columns, values)], scatter, x's ghosts) or False
+        self._band = None          # A's compiled product (a _BlockProduct) or False
+        self._contact = None       # C's: ([diagonal, off-diagonal block's _BlockProduct], scatter, ghosts) or False
 
     @property
     def C(self):

@@ -274,7 +274,7 @@ class ClusterPC:
         A = P if ctx is None else ctx.A
         C = None if ctx is None else ctx.C
         A_loc = local_block(A)
-        band = self._setup_band(A_loc)
+        band = self._setup_band(A, A_loc)
         n = A_loc.getSize()[0]
         if self._x is None or self._x.getSize() != n:
             self._x = PETSc.Vec().createWithArray(np.zeros(n), comm=PETSc.COMM_SELF)
@@ -285,10 +285,12 @@ class ClusterPC:
         self.stats["band_factor"] = band
         self.history.append(dict(self.stats))
 
-    def _setup_band(self, A_loc):
+    def _setup_band(self, A, A_loc):
         """The singletons' factor of A's rank-local block: the compiled Cholesky, or
         PETSc's ILU(0) of the band (``-lc_band_factor ilu``, or where the Cholesky
-        cannot hold).  Returns which, with the reason for ILU (``stats["band_factor"]``)."""
+        cannot hold on some rank: decided for all ranks alike, so the preconditioner does
+        not depend on the partition; collective).  Returns which, with the reason for ILU
+        (``stats["band_factor"]``)."""
         why = "-lc_band_factor ilu"
         self.use_cholesky = False
         if self.cholesky is not None:
@@ -299,6 +301,8 @@ class ClusterPC:
                 with value_array(A_loc, 9 * len(indices)) as values:
                     why = self.cholesky.factor(indptr, indices, values)
                 self.use_cholesky = why is None
+            if not A.getComm().tompi4py().allreduce(self.use_cholesky, op=MPI.LAND) and self.use_cholesky:
+                self.use_cholesky, why = False, "the Cholesky cannot hold on another rank"
         if self.use_cholesky:
             if self.band is not None:   # a fallback's factor is not kept beside it
                 self.band.destroy()

@@ -33,22 +33,22 @@ def band_layout(indptr, indices, offsets):
     (n + 1,), block columns ``indices``) whose rows are grouped into wisps ``offsets``
     (w + 1,): the half bandwidth b (largest |column - row|), ``pos`` (n, 2 b + 1) the
     storage index of block (i, i - b + k), -1 where the pattern has none, and whether
-    every block lies inside its row's wisp."""
+    every block lies inside its row's wisp (if not, b = 0 and ``pos`` is empty: nothing
+    the size of the band is allocated for a matrix that cannot be factored)."""
     n = len(indptr) - 1
     b = 0
-    for i in range(n):
-        for t in range(indptr[i], indptr[i + 1]):
-            b = max(b, abs(indices[t] - i))
-    pos = np.full((n, 2 * b + 1), -1, np.int64)
-    inside = True
     for w in range(len(offsets) - 1):
         for i in range(offsets[w], offsets[w + 1]):
             for t in range(indptr[i], indptr[i + 1]):
                 j = indices[t]
-                pos[i, j - i + b] = t
                 if j < offsets[w] or j >= offsets[w + 1]:
-                    inside = False
-    return b, pos, inside
+                    return 0, np.full((0, 1), -1, np.int64), False
+                b = max(b, abs(j - i))
+    pos = np.full((n, 2 * b + 1), -1, np.int64)
+    for i in range(n):
+        for t in range(indptr[i], indptr[i + 1]):
+            pos[i, indices[t] - i + b] = t
+    return b, pos, True
 
 
 @_jit
@@ -169,7 +169,7 @@ class BandCholesky:
                                         and np.array_equal(self.pattern[1], indices)):
             self.b, self.pos, self.inside = band_layout(indptr, indices, self.offsets)
             self.pattern = (indptr.copy(), indices.copy())
-            self.F = np.empty((len(indptr) - 1, self.b + 1, 3, 3))
+            self.F = np.empty((len(indptr) - 1, self.b + 1, 3, 3)) if self.inside else None
         if not self.inside:
             return "the matrix couples two wisps"
         row = band_cholesky(values, self.pos, self.offsets, self.b, self.F)

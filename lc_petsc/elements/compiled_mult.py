@@ -102,10 +102,11 @@ def bsr3_upper_pattern(indptr, indices):
 
 
 @_jit
-def bsr3_upper_values(values, source, lower, mirror, out):
+def bsr3_upper_values(values, bits, source, lower, mirror, out):
     """Copy the upper blocks ``source`` of the BAIJ value array ``values`` (9 k,) into
     ``out`` (9 u,); returns whether every block ``lower`` equals the transpose of its
-    ``mirror`` block exactly (a NaN is never equal: such a matrix is not symmetric)."""
+    ``mirror`` block bit for bit (``bits``: ``values`` viewed as int64, so -0.0 and 0.0
+    differ) and holds no NaN (a matrix with one takes the full product)."""
     for u in range(len(source)):
         b = 9 * source[u]
         for t in range(9):
@@ -116,7 +117,8 @@ def bsr3_upper_values(values, source, lower, mirror, out):
         c = 9 * mirror[m]
         for r in range(3):
             for s in range(3):          # column-major: block[r, s] = values[b + 3 s + r]
-                same &= values[b + 3 * s + r] == values[c + 3 * r + s]
+                same &= (bits[b + 3 * s + r] == bits[c + 3 * r + s]) & \
+                    (values[b + 3 * s + r] == values[b + 3 * s + r])
     return same
 
 
@@ -166,4 +168,5 @@ def warm_up():
         bsr3_mult(indptr, indices, np.ones(9), np.ones(3), y, add)
         bsr3_sym_mult(indptr, indices, np.ones(9), np.ones(3), y, add)
     upper_indptr, upper_indices, source, lower, mirror, _ = bsr3_upper_pattern(indptr, indices)
-    bsr3_upper_values(np.ones(9), source, lower, mirror, np.empty(9))
+    values = np.ones(9)
+    bsr3_upper_values(values, values.view(np.int64), source, lower, mirror, np.empty(9))

@@ -150,6 +150,48 @@ def test_cluster_pc_singletons_by_cholesky_or_lu():
     np.testing.assert_allclose(got, np.linalg.solve(A, r), rtol=1e-8, atol=1e-12 * np.abs(got).max())
 
 
+def test_cluster_pc_set_up_again_switches_factor_and_cleans_up():
+    """One preconditioner set up three times (as every Newton iteration does): SPD band
+    (Cholesky), indefinite (PETSc's LU, created), SPD again (Cholesky, the LU destroyed);
+    each application exact for its matrix."""
+    rng = np.random.default_rng(6)
+    A, off = banded_spd_wisps(rng, [5, 8])
+    bad = A.copy()
+    bad[3 * 6, 3 * 6] = -2.0
+    pcx = ClusterPC(3 * np.diff(off))
+    pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
+    pc.setType(PETSc.PC.Type.PYTHON)
+    pc.setPythonContext(pcx)
+    r = np.arange(len(A)) % 5 - 2.0
+    try:
+        for D, factor in ((A, "cholesky"), (bad, "ilu"), (2.0 * A, "cholesky")):
+            M = seq_baij(D)
+            x, y = M.createVecs()
+            pc.setOperators(M, M)
+            pc.setUp()
+            x.array[:] = r
+            pc.apply(x, y)
+            assert pcx.stats["band_factor"].startswith(factor)
+            assert (pcx.band is None) == (factor == "cholesky")
+            np.testing.assert_allclose(y.array, np.linalg.solve(D, r), rtol=1e-8,
+                                       atol=1e-12 * np.abs(y.array).max())
+            for obj in (x, y, M):
+                obj.destroy()
+    finally:
+        pc.destroy()
+
+
+def test_far_coupling_is_refused_without_a_band_sized_allocation():
+    """A block coupling the first and the last vertex (two wisps): refused before any
+    array of the band's size (n x (2 b + 1)) is made."""
+    rng = np.random.default_rng(7)
+    A, off = banded_spd_wisps(rng, [200, 200])
+    A[0:3, -3:] = A[-3:, 0:3] = 0.01 * np.eye(3)
+    chol = BandCholesky(off)
+    assert "couples two wisps" in chol.factor(*block_csr(A, len(A) // 3))
+    assert chol.F is None and chol.pos.size == 0
+
+
 def test_band_factor_option_is_checked():
     assert SolverPlan.resolve("", strand_contact=True).cluster_caps[-1] == "cholesky"
     assert SolverPlan.resolve("-lc_band_factor ilu", strand_contact=True).cluster_caps[-1] == "ilu"

@@ -16,18 +16,18 @@ from lc_petsc.elements import compiled_mult
 from sim_helpers import touching_wisps_config, touching_wisps_source
 
 
-def random_baij(rng, nb, density, symmetric=True, diagonal=True):
+def random_baij(rng, nb, density, symmetric=True, diagonal=True, wide=True):
     """A sequential BAIJ (bs 3) matrix: random blocks on a random pattern (symmetric
     pattern and values if ``symmetric``; diagonal blocks if ``diagonal``), entries of
-    magnitudes 1e-8 to 1e8, some rows empty; and its dense copy."""
+    magnitudes 1e-8 to 1e8 (``wide``, else of order 1); and its dense copy."""
     n = 3 * nb
     mask = rng.random((nb, nb)) < density
-    mask[rng.integers(0, nb, 3)] = False                      # empty rows ...
+    mask[rng.integers(0, nb, 3)] = False
     if symmetric:
         mask = np.triu(mask, 1)
         mask = mask | mask.T
     np.fill_diagonal(mask, diagonal)
-    D = rng.standard_normal((n, n)) * 10.0 ** rng.integers(-8, 9, (n, n))
+    D = rng.standard_normal((n, n)) * (10.0 ** rng.integers(-8, 9, (n, n)) if wide else 1.0)
     if symmetric:
         D = np.triu(D) + np.triu(D, 1).T
     D *= np.kron(mask, np.ones((3, 3)))
@@ -64,20 +64,47 @@ def bits(a):
 
 
 @pytest.mark.parametrize("diagonal", [True, False])
-def test_symmetric_product_equals_matmult_to_the_bit(diagonal):
+@pytest.mark.parametrize("wide", [True, False])
+def test_symmetric_product_equals_matmult_to_the_bit(diagonal, wide):
+    """Entries of magnitudes 1e-8 to 1e8 (``wide``), or all of order 1, where every
+    regrouping of a row's sum changes bits (checked: the control below)."""
     rng = np.random.default_rng(1)
-    M, D = random_baij(rng, 40, 0.15, diagonal=diagonal)
-    x = rng.standard_normal(len(D)) * 10.0 ** rng.integers(-8, 9, len(D))
-    y0 = rng.standard_normal(len(D))
+    M, D = random_baij(rng, 40, 0.15 if wide else 0.3, diagonal=diagonal, wide=wide)
     try:
-        got, got_add, want, want_add, prod = products(M, x, y0)
-        assert prod.symmetric, "an exactly symmetric matrix takes the upper-triangle product"
-        assert len(prod.upper_values) < 0.65 * prod.n       # about half the bytes
-        np.testing.assert_array_equal(bits(got), bits(want))
-        np.testing.assert_array_equal(bits(got_add), bits(want_add))
-        np.testing.assert_allclose(want, D @ x, rtol=1e-10, atol=1e-10 * np.abs(D).max() * np.abs(x).max())
+        for _ in range(3):
+            x = rng.standard_normal(len(D)) * (10.0 ** rng.integers(-8, 9, len(D)) if wide else 1.0)
+            y0 = rng.standard_normal(len(D))
+            got, got_add, want, want_add, prod = products(M, x, y0)
+            assert prod.symmetric, "an exactly symmetric matrix takes the upper-triangle product"
+            assert len(prod.upper_values) < 0.65 * prod.n       # about half the bytes
+            np.testing.assert_array_equal(bits(got), bits(want))
+            np.testing.assert_array_equal(bits(got_add), bits(want_add))
+            np.testing.assert_allclose(want, D @ x, rtol=1e-10, atol=1e-10 * np.abs(D).max() * np.abs(x).max())
+        if not wide:    # control: the same sums grouped otherwise differ in many entries
+            other = sum(D[:, 3 * j:3 * j + 3] @ x[3 * j:3 * j + 3] for j in reversed(range(len(D) // 3)))
+            assert np.sum(bits(other) != bits(want)) > 0.2 * len(D)
     finally:
         M.destroy()
+
+
+def test_signed_zeros_and_nan_take_the_full_product():
+    """A block below the diagonal holding -0.0 against its mirror's +0.0, or a NaN: not
+    symmetric bit for bit, so the full product (PETSc's signs of zero, its NaNs)."""
+    rng = np.random.default_rng(5)
+    for bad in (-0.0, np.nan):
+        M, D = random_baij(rng, 20, 0.3, wide=False)
+        i, j = map(int, np.argwhere(np.triu(np.abs(D[::3, ::3]) > 0, 1))[0])
+        M.setValues([3 * i], [3 * j], [0.0 if bad == 0.0 else bad])
+        M.setValues([3 * j], [3 * i], [bad])
+        M.assemble()
+        x = rng.standard_normal(len(D))
+        try:
+            got, got_add, want, want_add, prod = products(M, x, -0.0 * np.ones(len(D)))
+            assert not prod.symmetric, bad
+            np.testing.assert_array_equal(bits(got), bits(want))
+            np.testing.assert_array_equal(bits(got_add), bits(want_add))
+        finally:
+            M.destroy()
 
 
 def test_unsymmetric_values_or_pattern_take_the_full_product():
@@ -150,6 +177,7 @@ def test_simulator_operator_takes_the_symmetric_products(monkeypatch):
         ctx = st.shell_ctx
         assert ctx._band and ctx._band.symmetric, "A (the strand band) is symmetric"
         assert ctx._contact and ctx._contact[0][0].symmetric, "C's local block is symmetric"
+        assert sim.solver.clusters.stats["band_factor"] == "cholesky"
         A = sim.assembler.mat
         A.mult(x, z)
         st.C.multAdd(x, z, z)

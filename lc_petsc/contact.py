@@ -208,15 +208,20 @@ class _BlockProduct:
     about half the bytes per product (the 2,000-wisp hairball's band: 4 of 7 blocks per
     row), the same result bit for bit.  The copy (and the symmetry check, one pass over
     M's values) is made again whenever M's state changes.  Otherwise, or with
-    ``symmetric`` False, :func:`compiled_mult.bsr3_mult` on M's value array."""
+    ``symmetric`` False, :func:`compiled_mult.bsr3_mult` on M's value array.  A
+    ``previous`` product of a matrix with the same pattern lends its upper pattern and
+    copy (the strand matrix is reread every Newton iteration, its pattern unchanged)."""
 
-    def __init__(self, M, symmetric=True):
+    def __init__(self, M, symmetric=True, previous=None):
         self.M = M
         self.indptr, self.indices = block_pattern(M)
         self.n = 9 * len(self.indices)
         self.upper = None
         rows, cols = M.getSize()
-        if symmetric and rows == cols:
+        if previous is not None and previous.upper is not None and symmetric and \
+                np.array_equal(previous.indptr, self.indptr) and np.array_equal(previous.indices, self.indices):
+            self.upper, self.upper_values = previous.upper, previous.upper_values
+        elif symmetric and rows == cols:
             upper = compiled_mult.bsr3_upper_pattern(self.indptr, self.indices)
             if upper[5]:                        # the pattern itself is symmetric
                 self.upper = upper[:5]
@@ -258,6 +263,7 @@ class SumOperator:
         self.A = A
         self._C = None
         self._band = None          # A's compiled product (a _BlockProduct) or False
+        self._band_kept = None     # the last one, lent to the next when A's pattern is the same
         self._contact = None       # C's: ([diagonal, off-diagonal block's _BlockProduct], scatter, ghosts) or False
 
     @property
@@ -271,7 +277,10 @@ class SumOperator:
         self._C = C
 
     def refresh(self):
-        """Forget A's and C's patterns (read again at the next product)."""
+        """Forget A's and C's patterns (read again at the next product; A's upper copy is
+        kept for a pattern that did not change)."""
+        if self._band:
+            self._band_kept = self._band
         self._band = None
         self._forget_contact()
 
@@ -287,10 +296,6 @@ class SumOperator:
         self._forget_contact()
 
     @staticmethod
-    def _compiled(M, symmetric=True):
-        return _BlockProduct(M, symmetric)
-
-    @staticmethod
     def _bsr3(M):
         return compiled.available() and M.getType() in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.MPIBAIJ) \
             and M.getBlockSize() == 3
@@ -304,7 +309,7 @@ class SumOperator:
         local = A.getInfo(PETSc.Mat.InfoType.LOCAL)["nz_used"] == A_loc.getInfo()["nz_used"]
         if not A.getComm().tompi4py().allreduce(local, op=MPI.LAND):
             return False
-        return self._compiled(A_loc)
+        return _BlockProduct(A_loc, previous=self._band_kept)
 
     def _read_contact(self, x):
         """C's compiled product (collective), its ghost scatter made for vectors like x."""
@@ -312,7 +317,7 @@ class SumOperator:
         if not self._bsr3(C):
             return False
         if C.getComm().getSize() == 1:
-            return [self._compiled(C)], None, None
+            return [_BlockProduct(C)], None, None
         diag, off, columns = mpibaij_blocks(C)
         dofs = (3 * columns.astype(np.int64)[:, None] + np.arange(3)).ravel().astype(PETSc.IntType)
         ghosts = PETSc.Vec().createSeq(len(dofs), comm=PETSc.COMM_SELF)
@@ -321,7 +326,7 @@ class SumOperator:
             scatter = PETSc.Scatter().create(x, where, ghosts, None)
         finally:
             where.destroy()
-        return [self._compiled(diag), self._compiled(off, symmetric=False)], scatter, ghosts
+        return [_BlockProduct(diag), _BlockProduct(off, symmetric=False)], scatter, ghosts
 
     def mult(self, mat, x, y):
         """y = (A + C) x."""

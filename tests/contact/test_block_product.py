@@ -178,6 +178,8 @@ def test_simulator_operator_takes_the_symmetric_products(monkeypatch):
         assert ctx._band and ctx._band.symmetric, "A (the strand band) is symmetric"
         assert ctx._contact and ctx._contact[0][0].symmetric, "C's local block is symmetric"
         assert sim.solver.clusters.stats["band_factor"] == "cholesky"
+        # A's pattern is the same every Newton iteration: its upper pattern and copy are reused
+        assert ctx._band_kept is not None and ctx._band.upper_values is ctx._band_kept.upper_values
         A = sim.assembler.mat
         A.mult(x, z)
         st.C.multAdd(x, z, z)

@@ -426,7 +426,7 @@ class StrandContact:
         # received per exchange, active pairs straddling ranks per assemble
         self.ghosts_received = FrameTally()
         self.cross_pairs = FrameTally()
-        self._pairs_cache = None          # (x, active, pairs) of the last _pairs call
+        self._pairs_cache = None          # (x, pairs, far_min) of the last _pairs call
         self._limited = None              # the last limiter call's end and candidates (_reached)
         self._path_cache = None           # the frame path checks' ghosts and candidates (_safe_fractions)
         self._path_ends = None            # the last skin > 0 path check's path ends and held points (_first_round)
@@ -631,34 +631,31 @@ class StrandContact:
         return box_pairs(np.minimum(P[:, 0], P[:, 1]) - 0.5 * d0, np.maximum(P[:, 0], P[:, 1]) + 0.5 * d0,
                          group=wisp, n_local=n_local, **self_pairs)
 
-    def _pairs(self, x, active=True):
+    def _pairs(self, x, far=False):
         """Pairs as (X (n, 4, 3), gvA, gvB, freeA, freeB, ownerA, ownerB, d), the segment
-        with the smaller global index first, the pairs closer than d0 in the order of
-        (gvA, gvB) (the same whatever produced the candidates).  ``active``: only pairs
-        closer than d0 that are not exempt; otherwise also candidates at d >= d0 (for the
-        minimum distance; exemption only concerns pairs closer than d0).  The result of
-        the last call is kept: the line search evaluates the energy at the point just
+        with the smaller global index first: the pairs closer than d0 that are not exempt,
+        in the order of (gvA, gvB) (the same whatever produced the candidates).  With
+        ``far``, (pairs, far_min): also the smallest distance of the other candidates
+        at d0 or more (inf if none; for the minimum distance; exemption only concerns
+        pairs closer than d0), without their X (2.5M of them at 8K).  The result of the
+        last call is kept: the line search evaluates the energy at the point just
         assembled, and the separation works on the pairs the end-of-frame measurement
         just found (each rank compares x with its cached copy bit for bit, and the cache
         is used only if that holds on every rank).  Positions that a limiter call just
         produced (ccd mode) take their candidates from that call (:meth:`_reached`)
         instead of a new ghost exchange and broad phase."""
-        if self._pairs_cache is not None and (active or not self._pairs_cache[1]):
-            same = np.array_equal(self._pairs_cache[0], x)
-            if global_min(self.comm, int(same)):       # the same on all ranks
-                out, was_active = self._pairs_cache[2], self._pairs_cache[1]
-                if active and not was_active:
-                    keep = out[-1] < self.d0
-                    out = tuple(a[keep] for a in out)
-                return out
+        cache = self._pairs_cache
+        if cache is not None and (not far or cache[2] is not None):
+            if global_min(self.comm, int(np.array_equal(cache[0], x))):       # the same on all ranks
+                return (cache[1], cache[2]) if far else cache[1]
         out = None
         reached = self._reached(x)
         if reached is not None:
-            out = self._close_pairs(*reached, active)
+            out, far_min = self._close_pairs(*reached, far)
             # the limiter's candidates hold every pair closer than d0 but not every
             # farther pair whose grown boxes overlap: the minimum over candidates is the
             # broad phase's only while some pair is closer than d0
-            if not active and self.comm.allreduce(int(np.sum(out[-1] < self.d0))) == 0:
+            if far and self.comm.allreduce(len(out[-1])) == 0:
                 out = None
         if out is None:
             (P,), Prest, gv, wisp, free, owner, n_local = self._gather_segments(x)
@@ -666,29 +663,27 @@ class StrandContact:
             i, j = ij[:, 0], ij[:, 1]
             swap = gv[i] > gv[j]
             i, j = np.where(swap, j, i), np.where(swap, i, j)
-            out = self._close_pairs(P, Prest, gv, free, owner, i, j, active)
-        self._pairs_cache = (x.copy(), active, out)
-        return out
+            out, far_min = self._close_pairs(P, Prest, gv, free, owner, i, j, far)
+        self._pairs_cache = (x.copy(), out, far_min)
+        return (out, far_min) if far else out
 
-    def _close_pairs(self, P, Prest, gv, free, owner, i, j, active):
-        """The :meth:`_pairs` tuple of the candidates (i, j) (gv[i] < gv[j]) of the
-        segments P (m, 2, 3) (rest Prest, first global vertex gv, free, owner rank)."""
-        # the pairs' points as rows of P viewed as (2m, 3): no per-pair copies
-        inv = np.stack([2 * i, 2 * i + 1, 2 * j, 2 * j + 1], axis=1)
-        d = compiled_ccd.indexed_distances(P.reshape(-1, 3), inv)
+    def _close_pairs(self, P, Prest, gv, free, owner, i, j, far):
+        """(the :meth:`_pairs` tuple, far_min) of the candidates (i, j) (gv[i] < gv[j]) of
+        the segments P (m, 2, 3) (rest Prest, first global vertex gv, free, owner rank);
+        far_min (``far``, else None): the smallest distance of the candidates at d0 or more."""
+        d = compiled_ccd.pair_distances(P, i, j)
         close = d < self.d0
         # exemption: pairs already within the thickness in the rest pose (docs/contact.md)
         sel = np.flatnonzero(close)
         if len(sel):
-            close[sel] = compiled_ccd.indexed_distances(Prest.reshape(-1, 3), inv[sel]) >= self.d0
+            close[sel] = compiled_ccd.pair_distances(Prest, i[sel], j[sel]) >= self.d0
         sel = np.flatnonzero(close)
         # a canonical order: the assembly's sums do not depend on the candidates' order
         sel = sel[np.argsort(gv[i[sel]] * self.N + gv[j[sel]])]
-        if not active:
-            sel = np.concatenate([sel, np.flatnonzero(d >= self.d0)])
+        far_min = float(np.min(d, where=d >= self.d0, initial=np.inf)) if far else None
         i, j = i[sel], j[sel]
         X = np.concatenate([P[i], P[j]], axis=1)
-        return X, gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[sel]
+        return (X, gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[sel]), far_min
 
     def _reached(self, x):
         """(P, Prest, gv, free, owner, i, j) as :meth:`_pairs` needs them, from the limiter
@@ -869,11 +864,7 @@ class StrandContact:
         sv = sv.reshape(-1, 2)
         i, j, inv = compiled_ccd.kept_pair_points(ci, cj, keep, sv)
         self.limiter_candidates.add(int(self.comm.allreduce(len(i))))
-        SV, TV, HV = np.empty((len(V), 3)), np.empty((len(V), 3)), np.empty((len(V), 3))
-        fV = np.empty(len(V), bool)
-        for e in (0, 1):
-            SV[sv[:, e]], TV[sv[:, e]], HV[sv[:, e]] = PS[:, e], PT[:, e], PH[:, e]
-            fV[sv[:, e]] = free[:, e]
+        SV, TV, HV, fV = compiled_ccd.segment_points(sv, len(V), PS, PT, PH, free)
         exempt = np.zeros(len(inv), np.int8)      # rest-exempt: 0 unknown, 1 no, 2 yes
         first = self._first_round(skin, md, V, SV, HV, TV, inv)
         self.step_fraction.set(1.0)
@@ -993,9 +984,10 @@ class StrandContact:
         segments of different wisps are within the search radius."""
         with self.timers("collision"):
             with collectively(self.comm, "strand contact (measure)"):
-                d = self._pairs(x, active=False)[-1]
-            n, deep = self.comm.allreduce(np.array([np.sum(d < self.d0), np.sum(d < 0.5 * self.d0)]))
-            dmin = global_min(self.comm, float(d.min(initial=np.inf)))
+                pairs, far_min = self._pairs(x, far=True)
+                d = pairs[-1]
+            n, deep = self.comm.allreduce(np.array([len(d), np.sum(d < 0.5 * self.d0)]))
+            dmin = global_min(self.comm, min(float(d.min(initial=np.inf)), far_min))
         return int(n), int(deep), dmin
 
     def separate(self, x, floor=0.5, target=0.6, max_iterations=20, max_step=0.25):

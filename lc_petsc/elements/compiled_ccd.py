@@ -323,6 +323,47 @@ def indexed_distances(Y, inv):
 
 
 @_jit
+def _pair_distances(P, i, j, out):
+    for k in range(len(i)):
+        a, b = i[k], j[k]
+        out[k] = _vdistance((P[a, 0, 0], P[a, 0, 1], P[a, 0, 2]), (P[a, 1, 0], P[a, 1, 1], P[a, 1, 2]),
+                            (P[b, 0, 0], P[b, 0, 1], P[b, 0, 2]), (P[b, 1, 0], P[b, 1, 1], P[b, 1, 2]))
+
+
+def pair_distances(P, i, j):
+    """Distances (k,) of the segment pairs (i[k], j[k]) of P (m, 2, 3): the arithmetic of
+    :func:`indexed_distances` on P's points 2i, 2i + 1, 2j, 2j + 1, without the (k, 4)
+    index array (building it took as long as the distances at 8K)."""
+    out = np.empty(len(i))
+    _pair_distances(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(i, np.int64),
+                    np.ascontiguousarray(j, np.int64), out)
+    return out
+
+
+@_jit
+def _segment_points(sv, PS, PT, PH, free, SV, TV, HV, fV):
+    for s in range(sv.shape[0]):
+        for e in range(2):
+            v = sv[s, e]
+            for c in range(3):
+                SV[v, c], TV[v, c], HV[v, c] = PS[s, e, c], PT[s, e, c], PH[s, e, c]
+            fV[v] = free[s, e]
+
+
+def segment_points(sv, n, PS, PT, PH, free):
+    """(SV, TV, HV, fV): the segments' end points by point, for ``sv`` (m, 2) each
+    segment end's index among n points and PS, PT, PH (m, 2, 3), free (m, 2) per
+    segment end (a point shared by two segments holds the same values in both); one
+    pass (NumPy's three fancy assignments per end took 47 ms a call at 8K)."""
+    SV, TV, HV = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+    fV = np.empty(n, np.bool_)
+    _segment_points(np.ascontiguousarray(sv, np.int64), np.ascontiguousarray(PS, np.float64),
+                    np.ascontiguousarray(PT, np.float64), np.ascontiguousarray(PH, np.float64),
+                    np.ascontiguousarray(free, np.bool_), SV, TV, HV, fV)
+    return SV, TV, HV, fV
+
+
+@_jit
 def _refresh_distances(Y, Yp, inv, d, moved, hit_below, count_below, hits):
     for v in range(len(Yp)):
         if Y[v, 0] != Yp[v, 0] or Y[v, 1] != Yp[v, 1] or Y[v, 2] != Yp[v, 2]:
@@ -476,6 +517,9 @@ def warm_up():
     order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool))
     pairs_overlap(seg[:1], seg[1:], lo, hi, 0.01)
     indexed_distances(S, np.arange(4, dtype=np.int64).reshape(1, 4))
+    P2 = S.reshape(2, 2, 3)
+    pair_distances(P2, seg[:1] // 2, seg[1:] // 2)
+    segment_points(np.arange(4, dtype=np.int64).reshape(2, 2), 4, P2, P2, P2, np.ones((2, 2), bool))
     changed_pairs(np.arange(4, dtype=np.int64).reshape(1, 4), np.ones(4, bool))
     pair_rows(np.zeros((1, 4, 3)), np.zeros((1, 12, 12)), seg[:1], seg[:1])
     corner_cells(S, S + 1.0, np.zeros(3), 0.5, np.array([4, 4, 4]))
@@ -620,7 +664,7 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
             B[a, k], B[3 + a, k], R[a, k] = lo[i, a], hi[i, a], rng[i, a]
         G[k] = group[i]
     lx, ly, lz, hx, hy, hz = B[0], B[1], B[2], B[3], B[4], B[5]
-    flags = np.empty(total, np.bool_)
+    hit = np.empty(total, np.int64)
     skip_runs = min_gap == np.inf   # no pair of one group at all
     found = 0
     start = 0
@@ -642,24 +686,23 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
                     q0 += 1
             plx, ply, plz, phx, phy, phz = lx[p], ly[p], lz[p], hx[p], hy[p], hz[p]
             hits = 0
-            for q in range(q0, stop):   # closed boxes overlap (vectorised, no branch)
-                f = not ((phx < lx[q]) | (hx[q] < plx) | (phy < ly[q]) | (hy[q] < ply) |
-                         (phz < lz[q]) | (hz[q] < plz))
-                flags[q] = f
-                hits += f
-            if hits == 0:
-                continue
+            for q in range(q0, stop):   # closed boxes overlap: the entries listed, no branch
+                hit[hits] = q
+                hits += not ((phx < lx[q]) | (hx[q] < plx) | (phy < ly[q]) | (hy[q] < ply) |
+                             (phz < lz[q]) | (hz[q] < plz))
             r0, r1, r2 = R[0, p], R[1, p], R[2, p]
-            for q in range(q0, stop):
-                if not flags[q]:
-                    continue
+            for h in range(hits):
+                q = hit[h]
                 # report in the cell of the intersection's lower corner only
                 if max(r0, R[0, q]) != cx or max(r1, R[1, q]) != cy or max(r2, R[2, q]) != cz:
                     continue
                 j = ids[q]
                 if G[p] == G[q] and _arc_gap(arc, i, j) < min_gap:
                     continue
-                out = _push_pair(out, found, i, j)
+                if found == out.shape[0]:
+                    out = _push_pair(out, found, i, j)
+                else:   # written here: a call per pair cost 30 ns (the returned array's refcount)
+                    out[found, 0], out[found, 1] = min(i, j), max(i, j)
                 found += 1
         start = stop
     # big boxes (a wild iterate's segment) against all boxes, each pair once

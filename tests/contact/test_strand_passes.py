@@ -224,6 +224,44 @@ def test_kept_pair_points_equals_the_numpy_gathers():
     np.testing.assert_array_equal(inv, np.concatenate([sv[ci[keep]], sv[cj[keep]]], axis=1))
 
 
+def test_pair_distances_equal_the_indexed_distances_bit_for_bit():
+    """The contact's pair search takes segment pairs by index (pair_distances); it must
+    give the separation's indexed distances to the bit (the two decide the same pairs):
+    random, parallel, coincident and zero-length segments, a segment against itself."""
+    rng = np.random.default_rng(3)
+    P = rng.normal(size=(300, 2, 3))
+    P[:20, 1] = P[:20, 0]                                    # zero-length
+    P[20:40] = P[40:60] + 1e-9                               # parallel, almost touching
+    P[60:70] = P[70:80]                                      # coincident
+    i, j = rng.integers(0, 300, 3000), rng.integers(0, 300, 3000)
+    i[:300], j[:300] = np.arange(300), np.arange(300)        # each segment against itself
+    i[300:340], j[300:340] = np.arange(20, 60), np.arange(40, 80)
+    d = compiled_ccd.pair_distances(P, i, j)
+    want = compiled_ccd.indexed_distances(P.reshape(-1, 3), np.stack([2 * i, 2 * i + 1, 2 * j, 2 * j + 1], axis=1))
+    assert np.array_equal(d.view(np.int64), want.view(np.int64))
+    assert np.all(d[:300] == 0.0) and d.max() > 0.5
+    assert len(compiled_ccd.pair_distances(P, i[:0], j[:0])) == 0
+
+
+def test_segment_points_equals_the_numpy_scatter():
+    """The limiter's points by index from its segments' ends (each interior vertex is the
+    end of two segments; ghosts come after the local segments)."""
+    rng = np.random.default_rng(5)
+    nv = 500
+    x, t, h = (rng.normal(size=(nv, 3)) for _ in range(3))
+    pinned = rng.random(nv) < 0.1
+    gv = np.unique(rng.integers(0, nv - 1, 300))             # first vertices of segments
+    gv = np.concatenate([gv, gv[rng.integers(0, len(gv), 40)]])   # ghost copies repeat some
+    V, sv = np.unique(np.stack([gv, gv + 1], axis=1), return_inverse=True)
+    sv = sv.reshape(-1, 2)
+    ends = np.stack([gv, gv + 1], axis=1)
+    SV, TV, HV, fV = compiled_ccd.segment_points(sv, len(V), x[ends], t[ends], h[ends], ~pinned[ends])
+    np.testing.assert_array_equal(SV, x[V])
+    np.testing.assert_array_equal(TV, t[V])
+    np.testing.assert_array_equal(HV, h[V])
+    np.testing.assert_array_equal(fV, ~pinned[V])
+
+
 def test_edge_work_and_pair_distances_refuse_arrays_of_other_sizes():
     """The compiled passes do no bounds checks: work arrays built for other strands, or
     positions with another number of points, are refused with a message, not read out of

@@ -386,7 +386,6 @@ class StrandContact:
         self.seg_offsets = compiled_ccd.strand_edge_offsets(scene.offsets)
         self.seg_wisp = (scene.first_wisp + wid[self.seg]).astype(np.int64)
         self.seg_gv = (scene.first_vertex + self.seg).astype(np.int64)
-        self.seg_ends = np.stack([self.seg, self.seg + 1], axis=1)
         free = ~scene.pinned
         self.seg_free = np.stack([free[self.seg], free[self.seg + 1]], axis=1)
         self.N = int(scene.n_vertices_global)
@@ -552,7 +551,7 @@ class StrandContact:
         segments sent to each rank (None: none), for :meth:`_exchange`."""
         comm = self.comm
         d0 = self.d0 if inflate is None else float(inflate)
-        Ps = [a[self.seg_ends] for a in (x, *extra)]
+        Ps = [compiled_ccd.segment_ends(a, self.seg) for a in (x, *extra)]
         if boxes is None:
             allP = Ps[0] if len(Ps) == 1 else np.concatenate(Ps, axis=1)
             lo, hi = allP.min(axis=1), allP.max(axis=1)
@@ -663,15 +662,17 @@ class StrandContact:
             i, j = ij[:, 0], ij[:, 1]
             swap = gv[i] > gv[j]
             i, j = np.where(swap, j, i), np.where(swap, i, j)
-            out, far_min = self._close_pairs(P, Prest, gv, free, owner, i, j, far)
+            out, far_min = self._close_pairs(P, Prest, gv, free, owner, i, j, None, far)
         self._pairs_cache = (x.copy(), out, far_min)
         return (out, far_min) if far else out
 
-    def _close_pairs(self, P, Prest, gv, free, owner, i, j, far):
+    def _close_pairs(self, P, Prest, gv, free, owner, i, j, d, far):
         """(the :meth:`_pairs` tuple, far_min) of the candidates (i, j) (gv[i] < gv[j]) of
-        the segments P (m, 2, 3) (rest Prest, first global vertex gv, free, owner rank);
-        far_min (``far``, else None): the smallest distance of the candidates at d0 or more."""
-        d = compiled_ccd.pair_distances(P, i, j)
+        the segments P (m, 2, 3) (rest Prest, first global vertex gv, free, owner rank) at
+        distances d (None: computed here); far_min (``far``, else None): the smallest
+        distance of the candidates at d0 or more."""
+        if d is None:
+            d = compiled_ccd.pair_distances(P, i, j)
         close = d < self.d0
         # exemption: pairs already within the thickness in the rest pose (docs/contact.md)
         sel = np.flatnonzero(close)
@@ -686,8 +687,9 @@ class StrandContact:
         return (X, gv[i], gv[j], free[i], free[j], owner[i], owner[j], d[sel]), far_min
 
     def _reached(self, x):
-        """(P, Prest, gv, free, owner, i, j) as :meth:`_pairs` needs them, from the limiter
-        call that produced x (bit for bit on every rank), else None.  The limiter's
+        """(P, Prest, gv, free, owner, i, j, d) as :meth:`_pairs` needs them (d: the pairs'
+        distances), from the limiter call that produced x (bit for bit on every rank),
+        else None.  The limiter's
         candidates are chosen with a reach of at least d0 (:meth:`_safe_fractions`), so
         they hold every pair closer than d0 at the end of its path, and the segments'
         positions there are known on every rank (ghosts included): the candidates whose
@@ -698,9 +700,9 @@ class StrandContact:
         x_end, P, Prest, gv, free, owner, i, j = self._limited
         if not global_min(self.comm, int(np.array_equal(x_end, x))):
             return None
-        ov = compiled_ccd.pairs_overlap(i, j, np.minimum(P[:, 0], P[:, 1]), np.maximum(P[:, 0], P[:, 1]),
-                                        0.5 * self.d0)
-        return P, Prest, gv, free, owner, i[ov], j[ov]
+        i, j, d = compiled_ccd.near_pair_distances(P, np.minimum(P[:, 0], P[:, 1]), np.maximum(P[:, 0], P[:, 1]),
+                                                   i, j, 0.5 * self.d0)
+        return P, Prest, gv, free, owner, i, j, d
 
     # ------------------------------------------------------------- ccd mode
     def limit_step(self, x, target):
@@ -837,7 +839,7 @@ class StrandContact:
         if cache is not None and global_min(self.comm, int(np.all(lo >= cache[0]) and np.all(hi <= cache[1]))):
             # every box inside its skin: the ghosts and box pairs of the call that built it
             # hold every segment and pair these boxes can reach (a superset, filtered below)
-            PS, PT, PH, PB = self._exchange([S[self.seg_ends], T[self.seg_ends], H[self.seg_ends],
+            PS, PT, PH, PB = self._exchange([compiled_ccd.segment_ends(a, self.seg) for a in (S, T, H)] + [
                                              np.stack([lo, hi], axis=1)], cache[2])
             Prest, gv, wisp, free, owner, n_local, ij = cache[3]
             self.path_checks_reused += 1

@@ -307,22 +307,6 @@ def _quad_distance(Y, q):
 
 
 @_jit
-def _indexed_distances(Y, inv, out):
-    for p in range(len(inv)):
-        out[p] = _quad_distance(Y, inv[p])
-
-
-def indexed_distances(Y, inv):
-    """Distances (k,) of the segment pairs whose four points are rows ``inv`` (k, 4) of
-    Y (n, c >= 3; its first three columns are the positions): segment A = points 0, 1,
-    B = points 2, 3; the clamped algorithm and parallel rule of
-    :func:`segment_contact.closest_points`, without per-pair copies."""
-    out = np.empty(len(inv))
-    _indexed_distances(np.ascontiguousarray(Y, np.float64), np.ascontiguousarray(inv, np.int64), out)
-    return out
-
-
-@_jit
 def _pair_distances(P, i, j, out):
     for k in range(len(i)):
         a, b = i[k], j[k]
@@ -332,11 +316,54 @@ def _pair_distances(P, i, j, out):
 
 def pair_distances(P, i, j):
     """Distances (k,) of the segment pairs (i[k], j[k]) of P (m, 2, 3): the arithmetic of
-    :func:`indexed_distances` on P's points 2i, 2i + 1, 2j, 2j + 1, without the (k, 4)
-    index array (building it took as long as the distances at 8K)."""
+    the separation's :class:`PairDistances` on P's points 2i, 2i + 1, 2j, 2j + 1, without
+    a (k, 4) index array (building one took as long as the distances at 8K)."""
     out = np.empty(len(i))
     _pair_distances(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(i, np.int64),
                     np.ascontiguousarray(j, np.int64), out)
+    return out
+
+
+@_jit
+def _near_pair_distances(P, lo, hi, i, j, grow, ki, kj, d):
+    k = 0
+    for q in range(len(i)):
+        a, b = i[q], j[q]
+        if _grown_overlap(lo, hi, a, b, grow):
+            ki[k], kj[k] = a, b
+            d[k] = _vdistance((P[a, 0, 0], P[a, 0, 1], P[a, 0, 2]), (P[a, 1, 0], P[a, 1, 1], P[a, 1, 2]),
+                              (P[b, 0, 0], P[b, 0, 1], P[b, 0, 2]), (P[b, 1, 0], P[b, 1, 1], P[b, 1, 2]))
+            k += 1
+    return k
+
+
+def near_pair_distances(P, lo, hi, i, j, grow):
+    """(i, j, d) of the pairs (i[k], j[k]) whose boxes lo, hi (m, 3) grown by ``grow``
+    overlap (:func:`box_pairs`' arithmetic), in their order, with their segments' distances in P
+    (m, 2, 3) (:func:`pair_distances`): one pass instead of a mask, two gathers and a
+    distance pass."""
+    n = len(i)
+    ki, kj, d = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n)
+    k = _near_pair_distances(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(lo, np.float64),
+                             np.ascontiguousarray(hi, np.float64), np.ascontiguousarray(i, np.int64),
+                             np.ascontiguousarray(j, np.int64), float(grow), ki, kj, d)
+    return ki[:k], kj[:k], d[:k]
+
+
+@_jit
+def _segment_ends(x, seg, out):
+    for s in range(seg.shape[0]):
+        for e in range(2):
+            for c in range(3):
+                out[s, e, c] = x[seg[s] + e, c]
+
+
+def segment_ends(x, seg):
+    """(m, 2, 3): the end points x[seg], x[seg + 1] of the segments starting at vertices
+    ``seg`` (m,) of x (nv, 3); one pass (NumPy's gather by a (m, 2) index took 9 ms per
+    array at 8K)."""
+    out = np.empty((len(seg), 2, 3))
+    _segment_ends(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(seg, np.int64), out)
     return out
 
 
@@ -387,7 +414,7 @@ def _refresh_distances(Y, Yp, inv, d, moved, hit_below, count_below, hits):
 class PairDistances:
     """The separation's pair distances between rounds: per round, the distances of the
     pairs ``inv`` (k, 4) with a point that moved are recomputed
-    (:func:`indexed_distances`' arithmetic, so the same values to the bit), in one
+    (:func:`pair_distances`' arithmetic, so the same values to the bit), in one
     compiled pass that also lists the pairs below one threshold and counts those below
     another."""
 
@@ -477,21 +504,6 @@ def kept_pair_points(ci, cj, keep, sv):
     return i, j, inv
 
 
-@_jit
-def _pairs_overlap(i, j, lo, hi, grow, out):
-    for k in range(i.shape[0]):
-        out[k] = _grown_overlap(lo, hi, i[k], j[k], grow)
-
-
-def pairs_overlap(i, j, lo, hi, grow):
-    """(k,) bool: the closed boxes i[k] and j[k] of lo, hi (m, 3), each grown by
-    ``grow``, overlap (the arithmetic of :func:`box_pairs` on boxes grown beforehand)."""
-    out = np.empty(len(i), np.bool_)
-    _pairs_overlap(np.ascontiguousarray(i, np.int64), np.ascontiguousarray(j, np.int64),
-                   np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64), float(grow), out)
-    return out
-
-
 def order_candidates(ij, n_local, gv, lo, hi, shrink, free):
     """The limiter's candidates from the box pairs ``ij`` (k, 2) of local + ghost segments:
     (ci, cj, near): the pairs with a local segment (index < ``n_local``), the smaller
@@ -515,11 +527,11 @@ def warm_up():
     seg = np.array([0, 2])
     lo, hi = field_boxes(S, S, seg, 0.1, 0.01)
     order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool))
-    pairs_overlap(seg[:1], seg[1:], lo, hi, 0.01)
-    indexed_distances(S, np.arange(4, dtype=np.int64).reshape(1, 4))
     P2 = S.reshape(2, 2, 3)
     pair_distances(P2, seg[:1] // 2, seg[1:] // 2)
     segment_points(np.arange(4, dtype=np.int64).reshape(2, 2), 4, P2, P2, P2, np.ones((2, 2), bool))
+    near_pair_distances(P2, lo, hi, seg[:1] // 2, seg[1:] // 2, 0.01)
+    segment_ends(S, seg[:1])
     changed_pairs(np.arange(4, dtype=np.int64).reshape(1, 4), np.ones(4, bool))
     pair_rows(np.zeros((1, 4, 3)), np.zeros((1, 12, 12)), seg[:1], seg[:1])
     corner_cells(S, S + 1.0, np.zeros(3), 0.5, np.array([4, 4, 4]))

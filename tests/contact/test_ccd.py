@@ -335,31 +335,38 @@ def test_compiled_field_boxes_and_candidate_order_match_numpy():
     want &= free[i].any(axis=1) | free[j].any(axis=1)
     np.testing.assert_array_equal(near, want)
     assert 0 < near.sum() < len(near) and len(ci) < len(ij)       # both filters bite
-    # pairs_overlap: box_pairs' test on the boxes grown by 0.02 (the contact's reuse)
+    # near_pair_distances: box_pairs' test on the boxes grown by 0.02 (the contact's reuse),
+    # in the candidates' order, with the kept pairs' distances
     grown = box_pairs(lo - 0.02, hi + 0.02, seg // 10)
     k = rng.integers(0, len(seg), size=(400, 2))
-    ov = compiled_ccd.pairs_overlap(k[:, 0], k[:, 1], lo, hi, 0.02)
+    P = np.stack([S[seg], S[seg + 1]], axis=1)
+    ki, kj, d = compiled_ccd.near_pair_distances(P, lo, hi, k[:, 0], k[:, 1], 0.02)
     listed = {tuple(p) for p in grown.tolist()}
     same_wisp = seg[k[:, 0]] // 10 == seg[k[:, 1]] // 10
-    want = [(min(a, b), max(a, b)) in listed for a, b in k]
-    np.testing.assert_array_equal(ov[~same_wisp], np.array(want)[~same_wisp])
+    want = np.array([(min(a, b), max(a, b)) in listed for a, b in k])
+    ov = ((lo[k[:, 0]] - 0.02 <= hi[k[:, 1]] + 0.02) & (lo[k[:, 1]] - 0.02 <= hi[k[:, 0]] + 0.02)).all(axis=1)
+    np.testing.assert_array_equal(ov[~same_wisp], want[~same_wisp])
+    np.testing.assert_array_equal(ki, k[ov, 0])
+    np.testing.assert_array_equal(kj, k[ov, 1])
+    assert np.array_equal(d, compiled_ccd.pair_distances(P, ki, kj))
+    assert 0 < len(ki) < len(k)
     assert 0 < ov.sum() < len(ov)
 
 
-def test_indexed_distances_match_the_numpy_distance():
-    """The separation's compiled distance pass against segment_contact.distance: random,
-    parallel, touching, crossing and zero-length segments, pairs sharing points."""
+def test_pair_distances_match_the_numpy_distance():
+    """The contact's compiled distance pass against segment_contact.distance: random,
+    parallel, touching, crossing and zero-length segments, pairs sharing segments."""
     S, E = random_motions(400, 3)
     X = np.concatenate([S, E, S[:, [0, 1, 0, 1]]])            # the last block: A on itself
     X[:50, 3] = X[:50, 2]                                       # zero-length B
     X[50:60, 2:] = X[50:60, :2] + 1e-9                          # parallel, almost touching
-    Y = np.concatenate([X.reshape(-1, 3), np.ones((4 * len(X), 2))], axis=1)   # (n, 5) as separate's
-    inv = np.arange(4 * len(X)).reshape(-1, 4)
+    P = X.reshape(-1, 2, 3)                                     # segment A of pair p is 2p, B 2p + 1
     rng = np.random.default_rng(4)
-    inv = np.concatenate([inv, rng.integers(0, len(Y), size=(300, 4))])       # shared points
-    d = compiled_ccd.indexed_distances(Y, inv)
-    ref = distance(Y[inv, :3])
-    assert d.shape == (len(inv),) and np.all(np.isfinite(d))
+    i = np.concatenate([2 * np.arange(len(X)), rng.integers(0, len(P), 300)])
+    j = np.concatenate([2 * np.arange(len(X)) + 1, rng.integers(0, len(P), 300)])   # shared segments
+    d = compiled_ccd.pair_distances(P, i, j)
+    ref = distance(np.concatenate([P[i], P[j]], axis=1))
+    assert d.shape == (len(i),) and np.all(np.isfinite(d))
     assert np.allclose(d, ref, rtol=1e-12, atol=1e-13)
     assert np.all(d[len(X) - len(S):len(X)] == 0.0)            # a segment against itself
 

@@ -9,6 +9,7 @@ import pytest
 
 from lc_petsc.elements import compiled_ccd
 from lc_petsc.elements.compiled_ccd import bound_edge_lengths, smooth_fractions
+from lc_petsc.elements.segment_contact import distance
 from strand_pass_reference import bound_edge_lengths_reference, smooth_fractions_reference
 
 
@@ -139,8 +140,9 @@ def test_pair_distances_refresh_equals_the_distances_of_every_pair():
     """The separation's per-round pass (PairDistances.refresh): only the pairs with a
     point that moved get a new distance, yet the distances, the pairs listed below one
     threshold and the count below another equal those of all pairs recomputed
-    (indexed_distances), round after round, with points moving, coinciding and NaN."""
-    from lc_petsc.elements.compiled_ccd import PairDistances, indexed_distances
+    (pair_distances on the same points), round after round, with points moving, coinciding
+    and NaN."""
+    from lc_petsc.elements.compiled_ccd import PairDistances
     rng = np.random.default_rng(2)
     n = 60
     Y = rng.normal(size=(n, 5))
@@ -149,7 +151,8 @@ def test_pair_distances_refresh_equals_the_distances_of_every_pair():
     pairs = PairDistances(inv, n)
     for r in range(8):
         hit, below = pairs.refresh(Y, 1.0, 0.6)
-        d = indexed_distances(Y, inv)
+        P = Y[inv, :3].reshape(-1, 2, 3)            # pair p: segments 2p, 2p + 1
+        d = compiled_ccd.pair_distances(P, 2 * np.arange(len(inv)), 2 * np.arange(len(inv)) + 1)
         np.testing.assert_array_equal(pairs.d, d)
         np.testing.assert_array_equal(hit, np.flatnonzero(d < 1.0))
         assert below == int(np.sum(d < 0.6))
@@ -224,23 +227,22 @@ def test_kept_pair_points_equals_the_numpy_gathers():
     np.testing.assert_array_equal(inv, np.concatenate([sv[ci[keep]], sv[cj[keep]]], axis=1))
 
 
-def test_pair_distances_equal_the_indexed_distances_bit_for_bit():
-    """The contact's pair search takes segment pairs by index (pair_distances); it must
-    give the separation's indexed distances to the bit (the two decide the same pairs):
-    random, parallel, coincident and zero-length segments, a segment against itself."""
+def test_segment_ends_and_near_pair_distances_equal_the_numpy_gathers():
+    """The pair search's segment end points (segment_ends) and its reuse of the limiter's
+    candidates (near_pair_distances: box overlap, then distance) against NumPy."""
     rng = np.random.default_rng(3)
-    P = rng.normal(size=(300, 2, 3))
-    P[:20, 1] = P[:20, 0]                                    # zero-length
-    P[20:40] = P[40:60] + 1e-9                               # parallel, almost touching
-    P[60:70] = P[70:80]                                      # coincident
-    i, j = rng.integers(0, 300, 3000), rng.integers(0, 300, 3000)
-    i[:300], j[:300] = np.arange(300), np.arange(300)        # each segment against itself
-    i[300:340], j[300:340] = np.arange(20, 60), np.arange(40, 80)
-    d = compiled_ccd.pair_distances(P, i, j)
-    want = compiled_ccd.indexed_distances(P.reshape(-1, 3), np.stack([2 * i, 2 * i + 1, 2 * j, 2 * j + 1], axis=1))
-    assert np.array_equal(d.view(np.int64), want.view(np.int64))
-    assert np.all(d[:300] == 0.0) and d.max() > 0.5
-    assert len(compiled_ccd.pair_distances(P, i[:0], j[:0])) == 0
+    offsets, seg, colour, free = strands(rng, n_wisps=30)
+    x = rng.normal(size=(offsets[-1], 3))
+    P = compiled_ccd.segment_ends(x, seg)
+    np.testing.assert_array_equal(P, np.stack([x[seg], x[seg + 1]], axis=1))
+    lo, hi = P.min(axis=1), P.max(axis=1)
+    i, j = rng.integers(0, len(seg), 3000), rng.integers(0, len(seg), 3000)
+    ki, kj, d = compiled_ccd.near_pair_distances(P, lo, hi, i, j, 0.1)
+    ov = ((lo[i] - 0.1 <= hi[j] + 0.1) & (lo[j] - 0.1 <= hi[i] + 0.1)).all(axis=1)
+    np.testing.assert_array_equal(ki, i[ov])
+    np.testing.assert_array_equal(kj, j[ov])
+    np.testing.assert_allclose(d, distance(np.concatenate([P[ki], P[kj]], axis=1)), rtol=1e-12, atol=1e-13)
+    assert 0 < ov.sum() < len(ov)
 
 
 def test_segment_points_equals_the_numpy_scatter():

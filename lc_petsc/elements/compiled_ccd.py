@@ -339,7 +339,7 @@ def _near_pair_distances(P, lo, hi, i, j, grow, ki, kj, d):
 
 def near_pair_distances(P, lo, hi, i, j, grow):
     """(i, j, d) of the pairs (i[k], j[k]) whose boxes lo, hi (m, 3) grown by ``grow``
-    overlap (:func:`box_pairs`' arithmetic), in their order, with their segments' distances in P
+    overlap (the grown-box test of :func:`order_candidates`), in their order, with their segments' distances in P
     (m, 2, 3) (:func:`pair_distances`): one pass instead of a mask, two gathers and a
     distance pass."""
     n = len(i)
@@ -362,8 +362,12 @@ def segment_ends(x, seg):
     """(m, 2, 3): the end points x[seg], x[seg + 1] of the segments starting at vertices
     ``seg`` (m,) of x (nv, 3); one pass (NumPy's gather by a (m, 2) index took 9 ms per
     array at 8K)."""
+    seg = np.ascontiguousarray(seg, np.int64)
+    if len(seg) and (seg.min() < 0 or seg.max() >= len(x) - 1):    # the pass reads without bounds checks
+        raise ValueError(f"segment_ends: segment first vertices must lie in [0, {len(x) - 1}), "
+                         f"got [{seg.min()}, {seg.max()}]")
     out = np.empty((len(seg), 2, 3))
-    _segment_ends(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(seg, np.int64), out)
+    _segment_ends(np.ascontiguousarray(x, np.float64), seg, out)
     return out
 
 
@@ -382,9 +386,12 @@ def segment_points(sv, n, PS, PT, PH, free):
     segment end's index among n points and PS, PT, PH (m, 2, 3), free (m, 2) per
     segment end (a point shared by two segments holds the same values in both); one
     pass (NumPy's three fancy assignments per end took 47 ms a call at 8K)."""
+    sv = np.ascontiguousarray(sv, np.int64)
+    if sv.size and (sv.min() < 0 or sv.max() >= n):          # the pass writes without bounds checks
+        raise ValueError(f"segment_points: point indices must lie in [0, {n}), got [{sv.min()}, {sv.max()}]")
     SV, TV, HV = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
     fV = np.empty(n, np.bool_)
-    _segment_points(np.ascontiguousarray(sv, np.int64), np.ascontiguousarray(PS, np.float64),
+    _segment_points(sv, np.ascontiguousarray(PS, np.float64),
                     np.ascontiguousarray(PT, np.float64), np.ascontiguousarray(PH, np.float64),
                     np.ascontiguousarray(free, np.bool_), SV, TV, HV, fV)
     return SV, TV, HV, fV

@@ -312,3 +312,77 @@ def test_frame_end_distance_does_not_decay_over_a_run(monkeypatch):
                f"{c['ccd_unresolved_pairs_per_frame']}, path checks {c['frame_path_checks_per_frame']}")
     ok, msg = comm.bcast((ok, msg))
     assert ok, msg
+
+
+def brute_force_measure(X, X_rest, d0):
+    """measure()'s figures by brute force over all pairs of segments of different wisps
+    of the six wisps (gathered positions X, rest X_rest (180, 3)): (pairs closer than d0
+    that were not closer at rest, those closer than d0 / 2, the smallest distance over
+    those pairs and the farther pairs whose boxes grown by d0 / 2 overlap)."""
+    seg = np.array([v for v in range(6 * 30) if v % 30 != 29])
+    i, j = np.triu_indices(len(seg), 1)
+    other = seg[i] // 30 != seg[j] // 30
+    i, j = seg[i[other]], seg[j[other]]
+
+    def dist(Y):
+        return distance(np.stack([Y[i], Y[i + 1], Y[j], Y[j + 1]], axis=1))
+
+    d, d_rest = dist(X), dist(X_rest)
+    active = (d < d0) & (d_rest >= d0)
+    A, B = np.stack([X[i], X[i + 1]], axis=1), np.stack([X[j], X[j + 1]], axis=1)
+    overlap = ~((A.min(1) - 0.5 * d0 > B.max(1) + 0.5 * d0) | (B.min(1) - 0.5 * d0 > A.max(1) + 0.5 * d0)).any(axis=1)
+    considered = active | ((d >= d0) & overlap)
+    return int(active.sum()), int(np.sum(active & (d < 0.5 * d0))), float(d[considered].min(initial=np.inf))
+
+
+def test_measure_equals_brute_force(monkeypatch):
+    """StrandContact.measure (close pairs, deep pairs, minimum distance over the candidates)
+    against brute force over all segment pairs: at the start (no close pair; a fresh broad
+    phase), after a
+    limited Newton step (the limiter's candidates reused), after a frame path check with a
+    turning head (a field's boxes), and after a path check with no pair close (the minimum
+    then comes from a fresh broad phase, not from the path check's candidates), on 1-3
+    ranks."""
+    sim = six_wisps_ccd(monkeypatch)
+    try:
+        st, sc = sim.integrator.strand, sim.scene
+        d0 = st.d0
+        X_rest = np.concatenate(comm.allgather(sc.x_rest))
+        wisp_of = np.repeat(np.arange(6), 30)[sc.first_vertex:sc.first_vertex + sc.nv]
+        rng = np.random.default_rng(3)
+        x0 = sim.integrator.x.copy()
+        push = np.where(wisp_of % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.3, 0.0, 0.0])
+        x1 = st.limit_step(x0, x0 + push + rng.normal(scale=0.05, size=x0.shape))
+        c, s_ = np.cos(0.3), np.sin(0.3)
+        motion = (np.array([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]]), np.array([0.0, 0.2, 0.0]))
+        x2 = st.collision_free_frame(x1, x1 @ motion[0].T + motion[1] - 0.5 * push, motion)[0]
+        # no close pair: the start turned rigidly, through a path check (the field's boxes
+        # turn with it, so far pairs whose boxes overlap at the end can be missing from its
+        # candidates: the minimum must come from a fresh broad phase)
+        x3 = st.collision_free_frame(x0, x0 @ motion[0].T + motion[1], motion)[0]
+        # no close pair, the closest at 1.2 d0: the even wisps' free vertices pushed towards the odd ones
+        # (bisection on the brute-force distance, the same on every rank), limited
+        X0, w_all = np.concatenate(comm.allgather(x0)), np.repeat(np.arange(6), 30)
+        free_all = ~np.concatenate(comm.allgather(sc.pinned))      # the roots stay (prescribed)
+        sign = (np.where(w_all % 2 == 0, 1.0, -1.0) * free_all)[:, None] * np.array([1.0, 0.0, 0.0])
+        lo_s, hi_s = 0.0, 0.5
+        for _ in range(40):
+            X_s = X0 + 0.5 * (lo_s + hi_s) * sign
+            closest = brute_force_measure(X_s, X_s + 1e10 * w_all[:, None], 1e9)[2]
+            lo_s, hi_s = (0.5 * (lo_s + hi_s), hi_s) if closest > 1.2 * d0 else (lo_s, 0.5 * (lo_s + hi_s))
+        x4 = st.limit_step(x0, x0 + lo_s * sign[sc.first_vertex:sc.first_vertex + sc.nv])
+        got_close = []
+        for x in (x0, x1, x2, x3, x4):
+            got = st.measure(x)
+            want = brute_force_measure(np.concatenate(comm.allgather(x)), X_rest, d0)
+            assert got[:2] == want[:2] and got[2] == pytest.approx(want[2], rel=1e-12, abs=1e-12), (got, want)
+            got_close.append(got[0])
+        assert got_close[1] > 0 and got_close[2] > 0 and got_close[3] == got_close[4] == 0, got_close
+        assert 1.0 * d0 < st.measure(x4)[2] < 1.21 * d0
+        # the limiter's candidates hold every pair closer than d0, not every farther one: with
+        # none close the minimum comes from a fresh broad phase (here: none reused at all)
+        x_end, *rest, ci, cj = st._limited
+        st._limited, st._pairs_cache = (x_end, *rest, ci[:0], cj[:0]), None
+        assert st.measure(x_end)[2] == pytest.approx(want[2], rel=1e-12, abs=0.0)
+    finally:
+        sim.close()

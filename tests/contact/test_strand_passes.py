@@ -262,6 +262,10 @@ def test_segment_points_equals_the_numpy_scatter():
     np.testing.assert_array_equal(TV, t[V])
     np.testing.assert_array_equal(HV, h[V])
     np.testing.assert_array_equal(fV, ~pinned[V])
+    with pytest.raises(ValueError, match="segment_points"):
+        compiled_ccd.segment_points(sv, len(V) - 1, x[ends], t[ends], h[ends], ~pinned[ends])
+    with pytest.raises(ValueError, match="segment_ends"):
+        compiled_ccd.segment_ends(x[:gv.max() + 1], gv)      # the last segment's end is missing
 
 
 def test_edge_work_and_pair_distances_refuse_arrays_of_other_sizes():

@@ -285,11 +285,14 @@ class Assembler:
         its transpose to (v+1, v), h11 to (v+1, v+1); all (m, 3, 3).  Used by strand
         contact (lc_petsc/contact.py); needs a half bandwidth >= 1."""
         b = self.b
-        with self._blocks() as (view, at):
-            view[at(idx, b)] += h00
-            view[at(idx + 1, b)] += h11
-            view[at(idx, b + 1)] += h01
-            view[at(idx + 1, b - 1)] += h01.transpose(0, 2, 1)
+        if self._in_blocks:
+            with self.block_array() as v:
+                compiled.add_segment_blocks(v, self.block_index, idx, b, h00, h01, h11)
+            return
+        self.B[idx, b] += h00
+        self.B[idx + 1, b] += h11
+        self.B[idx, b + 1] += h01
+        self.B[idx + 1, b - 1] += h01.transpose(0, 2, 1)
 
     def add_mass(self, diag):
         """Add diag (nv,) * I on the diagonal (M / dt^2)."""

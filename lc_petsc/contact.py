@@ -716,11 +716,11 @@ class StrandContact:
         if self.mode != "ccd":
             return target
         with self.timers("collision"):
-            beta, n_limited, rounds, fallback = self._safe_fractions(
+            limited, n_limited, rounds = self._safe_fractions(
                 x, target, self.min_separation * self.d0, NEWTON_STEP_MOTION)
             self.limited_vertices.add(n_limited)
             self.limit_rounds.add(rounds)
-        return _held_back(fallback, target, beta)
+        return limited
 
     def collision_free_frame(self, x_old, x, motion=None, reuse=True):
         """(positions, vertices held back over all ranks): positions whose linear path
@@ -746,9 +746,9 @@ class StrandContact:
             return x, 0
         with self.timers("collision"):
             skin = LIMITER_SKIN * self.d0 if reuse else 0.0
-            beta, n_limited, _, fallback = self._safe_fractions(x_old, x, 0.05 * self.d0, motion, skin=skin)
+            limited, n_limited, _ = self._safe_fractions(x_old, x, 0.05 * self.d0, motion, skin=skin)
             self.frame_fixes.add(n_limited)
-        return _held_back(fallback, x, beta), n_limited
+        return limited, n_limited
 
     def _motion_field(self, S, T, motion=None):
         """(A, b, L): the affine field u(x) = A x + b of the limiter's fallback S + u(S)
@@ -773,10 +773,11 @@ class StrandContact:
         return self.comm.bcast(field, root=0)
 
     def _safe_fractions(self, S, T, min_distance, motion=None, skin=0.0):
-        """(beta, vertices limited over all ranks, rounds, H): per-vertex fractions beta
-        (nv,) in [0, 1] and fallback positions H (nv, 3) such that on the linear path
-        from S to E = H + beta (T - H) no pair of segments of different wisps
-        (rest-exempt pairs excepted) comes closer than ``min_distance``, or half its
+        """(E, vertices limited over all ranks, rounds): the positions E = H + beta (T - H)
+        (nv, 3) (exactly T where beta = 1), with per-vertex fractions beta in [0, 1] and
+        fallback positions H such that on the linear path from S to E no pair of
+        segments of different wisps (rest-exempt pairs excepted) comes closer than
+        ``min_distance``, or half its
         distance at S when already closer.  H = S + u(S), u the affine field fitted to
         the whole step (:meth:`_motion_field`): a held-back vertex is carried along with
         the bulk of the hair instead of being left behind, and only its residual motion
@@ -938,9 +939,10 @@ class StrandContact:
             held_points = np.zeros(len(V), bool)
             held_points[inv[tau < 1.0].ravel()] = True
             self._path_ends = (md, V, SV, HV, E, held_points)
-        # E: the path's end on every pair vertex, equal to the caller's _held_back bit for bit
-        self._limited = (_held_back(H, T, beta), E[sv], Prest, gv, free, owner, ci, cj)
-        return beta, int(self.comm.allreduce(int(limited.sum()))), rounds, H
+        # E: the path's end on every pair vertex, equal to the positions bit for bit
+        positions = _held_back(H, T, beta)
+        self._limited = (positions.copy(), E[sv], Prest, gv, free, owner, ci, cj)
+        return positions, int(self.comm.allreduce(int(limited.sum()))), rounds
 
     def _first_round(self, skin, md, V, SV, HV, TV, inv):
         """The pairs of ``inv`` the first round of a path check (``skin`` > 0) tests: all,

@@ -1167,6 +1167,8 @@ def _add_segment_blocks(values, block_index, idx, b, h00, h01, h11):
                 blk = block_index[v, b + 1]
             else:
                 blk = block_index[v + 1, b - 1]
+            if blk < 0:         # not stored (SBAIJ keeps the upper triangle only)
+                continue
             for r in range(3):
                 for c in range(3):
                     if p == 0:
@@ -1184,11 +1186,16 @@ def add_segment_blocks(values, block_index, idx, b, h00, h01, h11):
     """Add the 2x2 blocks of segments (v, v + 1), v = idx (m,) unique local first
     vertices, to the flat BAIJ ``values`` (column-major 3x3 blocks; block (i, i + d - b)
     is block_index[i, d], a band of half width b >= 1): h00 to (v, v), h11 to (v + 1,
-    v + 1), h01 to (v, v + 1) and its transpose to (v + 1, v), all (m, 3, 3); the sums of
-    four NumPy fancy-index adds (the same bits), in one compiled loop (those took 64 ms
-    per Newton iteration at 8K)."""
+    v + 1), h01 to (v, v + 1) and its transpose to (v + 1, v), all (m, 3, 3); blocks not
+    stored (block_index -1: the lower triangle of an SBAIJ matrix) are skipped.  The sums
+    of four NumPy fancy-index adds (the same bits), in one compiled loop (those took 64
+    ms per Newton iteration at 8K)."""
     idx = np.ascontiguousarray(idx, np.int64)
-    if len(idx) and (idx.min() < 0 or idx.max() + 1 >= block_index.shape[0]):   # no bounds checks inside
+    m = len(idx)
+    if any(np.shape(h) != (m, 3, 3) for h in (h00, h01, h11)) or not 1 <= b < block_index.shape[1] - 1:
+        raise ValueError(f"add_segment_blocks: h00, h01, h11 must be ({m}, 3, 3) and 1 <= b < "
+                         f"{block_index.shape[1] - 1}, got {[np.shape(h) for h in (h00, h01, h11)]}, b = {b}")
+    if m and (idx.min() < 0 or idx.max() + 1 >= block_index.shape[0]):   # no bounds checks inside
         raise ValueError(f"add_segment_blocks: first vertices must lie in [0, {block_index.shape[0] - 1}), "
                          f"got [{idx.min()}, {idx.max()}]")
     _add_segment_blocks(values, np.ascontiguousarray(block_index, np.int64), idx, int(b),

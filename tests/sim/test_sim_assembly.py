@@ -285,3 +285,54 @@ def test_segment_blocks_equal_the_numpy_adds_bit_for_bit():
     assert np.sum(got != values) > 30 * len(idx)
     with pytest.raises(ValueError, match="add_segment_blocks"):
         compiled.add_segment_blocks(got, block_index, np.array([nv - 1]), b, h00[:1], h01[:1], h11[:1])
+    with pytest.raises(ValueError, match="add_segment_blocks"):
+        compiled.add_segment_blocks(got, block_index, idx, b, h00[:-1], h01, h11)
+    # SBAIJ stores the upper triangle only: the (v + 1, v) blocks (index -1) are skipped, and
+    # no value outside the stored blocks moves (a -1 read as the last block did)
+    upper = block_index.copy()
+    upper[:, :b] = -1
+    got = values.copy()
+    compiled.add_segment_blocks(got, upper, idx, b, h00, h01, h11)
+    want = values.copy()
+    view = want.reshape(-1, 3, 3).transpose(0, 2, 1)
+    view[upper[idx, b]] += h00
+    view[upper[idx + 1, b]] += h11
+    view[upper[idx, b + 1]] += h01
+    assert np.array_equal(got.view(np.int64), want.view(np.int64))
+
+
+def test_segment_blocks_into_sbaij_match_the_numpy_kernels():
+    """Strand contact's segment blocks added to an SBAIJ Newton matrix (MUMPS Cholesky's
+    default type), whose compiled pass stores the upper triangle only: the compiled and
+    NumPy kernels give the same matrix to round-off, consecutive segments included (an
+    unstored lower block once went into the rank's last diagonal block)."""
+    mats = {}
+    for k in ("compiled", "numpy"):
+        sim = build_simulator(SimConfig(
+            scene=SceneConfig(kind="hairball", n_wisps=2, perturbation="jitter", jitter=0.2),
+            physics=PhysicsConfig(terms=("stretch", "bend", "gravity")),
+            solver=SolverConfig(options=f"-mat_type sbaij -lc_element_kernels {k}")), comm=MPI.COMM_SELF)
+        try:
+            a = sim.assembler
+            a.assemble(sim.x)
+            seg = np.array([1, 2, 5, 40, 41])
+            h = np.arange(9.0).reshape(3, 3) + 1.0
+            blocks = (np.broadcast_to(m, (len(seg), 3, 3)).copy() for m in (1e3 * h, 5e2 * h, 1e3 * h.T))
+            a.add_band_blocks(seg, *blocks)
+            A = a.commit()
+            x, y = A.createVecs()
+            M = np.zeros((A.getSize()[0],) * 2)
+            for i in range(len(M)):
+                x.set(0.0)
+                x.setValue(i, 1.0)
+                x.assemble()
+                A.mult(x, y)
+                M[:, i] = y.array
+            mats[k] = M
+            x.destroy()
+            y.destroy()
+        finally:
+            sim.close()
+    C, R = mats["compiled"], mats["numpy"]
+    assert np.abs(C - R).max() <= 1e-12 * np.abs(R).max()
+    assert np.abs(R[120:123, 123:126]).max() > 1e2 and np.array_equal(R, R.T)     # the blocks are in, symmetric

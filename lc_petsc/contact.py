@@ -689,8 +689,7 @@ class StrandContact:
     def _reached(self, x):
         """(P, Prest, gv, free, owner, i, j, d) as :meth:`_pairs` needs them (d: the pairs'
         distances), from the limiter call that produced x (bit for bit on every rank),
-        else None.  The limiter's
-        candidates are chosen with a reach of at least d0 (:meth:`_safe_fractions`), so
+        else None.  The limiter's candidates are chosen with a reach of at least d0 (:meth:`_safe_fractions`), so
         they hold every pair closer than d0 at the end of its path, and the segments'
         positions there are known on every rank (ghosts included): the candidates whose
         boxes grown by d0 / 2 overlap there are exactly those of :meth:`candidates`
@@ -777,11 +776,10 @@ class StrandContact:
         (nv, 3) (exactly T where beta = 1), with per-vertex fractions beta in [0, 1] and
         fallback positions H such that on the linear path from S to E no pair of
         segments of different wisps (rest-exempt pairs excepted) comes closer than
-        ``min_distance``, or half its
-        distance at S when already closer.  H = S + u(S), u the affine field fitted to
-        the whole step (:meth:`_motion_field`): a held-back vertex is carried along with
-        the bulk of the hair instead of being left behind, and only its residual motion
-        f = T - H is cut.  Pinned vertices keep beta = 1 (their motion is prescribed).
+        ``min_distance``, or half its distance at S when already closer.  H = S + u(S),
+        u the affine field fitted to the whole step (:meth:`_motion_field`): a held-back
+        vertex is carried along with the bulk of the hair instead of being left behind,
+        and only its residual motion f = T - H is cut.  Pinned vertices keep beta = 1 (their motion is prescribed).
         Collective.
 
         1. Broad phase on relative motion: whatever the fractions, every vertex moves by

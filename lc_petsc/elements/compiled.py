@@ -1157,29 +1157,16 @@ def _add_segment_blocks(values, block_index, idx, b, h00, h01, h11):
     # four passes in add_segment_blocks' order: a block that two of them reach (the
     # (v + 1, v + 1) block of consecutive segments) gets its sums in NumPy's order
     for p in range(4):
+        H = h00 if p == 0 else (h11 if p == 1 else h01)
+        row = 1 if p == 1 or p == 3 else 0                  # block row v or v + 1
+        diag = b if p < 2 else (b + 1 if p == 2 else b - 1)
         for k in range(idx.shape[0]):
-            v = idx[k]
-            if p == 0:
-                blk = block_index[v, b]
-            elif p == 1:
-                blk = block_index[v + 1, b]
-            elif p == 2:
-                blk = block_index[v, b + 1]
-            else:
-                blk = block_index[v + 1, b - 1]
+            blk = block_index[idx[k] + row, diag]
             if blk < 0:         # not stored (SBAIJ keeps the upper triangle only)
                 continue
             for r in range(3):
-                for c in range(3):
-                    if p == 0:
-                        h = h00[k, r, c]
-                    elif p == 1:
-                        h = h11[k, r, c]
-                    elif p == 2:
-                        h = h01[k, r, c]
-                    else:
-                        h = h01[k, c, r]
-                    values[9 * blk + 3 * c + r] += h        # blocks stored column-major
+                for c in range(3):                          # blocks stored column-major
+                    values[9 * blk + 3 * c + r] += H[k, c, r] if p == 3 else H[k, r, c]
 
 
 def add_segment_blocks(values, block_index, idx, b, h00, h01, h11):

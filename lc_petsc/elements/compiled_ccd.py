@@ -307,11 +307,16 @@ def _quad_distance(Y, q):
 
 
 @_jit
+def _segment_distance(P, a, b):
+    """Distance of segments a and b of P (m, 2, 3) (:func:`_vdistance`)."""
+    return _vdistance((P[a, 0, 0], P[a, 0, 1], P[a, 0, 2]), (P[a, 1, 0], P[a, 1, 1], P[a, 1, 2]),
+                      (P[b, 0, 0], P[b, 0, 1], P[b, 0, 2]), (P[b, 1, 0], P[b, 1, 1], P[b, 1, 2]))
+
+
+@_jit
 def _pair_distances(P, i, j, out):
     for k in range(len(i)):
-        a, b = i[k], j[k]
-        out[k] = _vdistance((P[a, 0, 0], P[a, 0, 1], P[a, 0, 2]), (P[a, 1, 0], P[a, 1, 1], P[a, 1, 2]),
-                            (P[b, 0, 0], P[b, 0, 1], P[b, 0, 2]), (P[b, 1, 0], P[b, 1, 1], P[b, 1, 2]))
+        out[k] = _segment_distance(P, i[k], j[k])
 
 
 def pair_distances(P, i, j):
@@ -330,18 +335,16 @@ def _near_pair_distances(P, lo, hi, i, j, grow, ki, kj, d):
     for q in range(len(i)):
         a, b = i[q], j[q]
         if _grown_overlap(lo, hi, a, b, grow):
-            ki[k], kj[k] = a, b
-            d[k] = _vdistance((P[a, 0, 0], P[a, 0, 1], P[a, 0, 2]), (P[a, 1, 0], P[a, 1, 1], P[a, 1, 2]),
-                              (P[b, 0, 0], P[b, 0, 1], P[b, 0, 2]), (P[b, 1, 0], P[b, 1, 1], P[b, 1, 2]))
+            ki[k], kj[k], d[k] = a, b, _segment_distance(P, a, b)
             k += 1
     return k
 
 
 def near_pair_distances(P, lo, hi, i, j, grow):
     """(i, j, d) of the pairs (i[k], j[k]) whose boxes lo, hi (m, 3) grown by ``grow``
-    overlap (the grown-box test of :func:`order_candidates`), in their order, with their segments' distances in P
-    (m, 2, 3) (:func:`pair_distances`): one pass instead of a mask, two gathers and a
-    distance pass."""
+    overlap (the grown-box test of :func:`order_candidates`), in their order, with their
+    segments' distances in P (m, 2, 3) (:func:`pair_distances`): one pass instead of a
+    mask, two gathers and a distance pass."""
     n = len(i)
     ki, kj, d = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n)
     k = _near_pair_distances(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(lo, np.float64),

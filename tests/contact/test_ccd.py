@@ -137,6 +137,47 @@ def test_box_pairs_against_all_pairs():
 
 
 
+@pytest.mark.parametrize("min_gap", [np.inf, 0.0, 0.35, 2.0])
+def test_box_pairs_through_strand_runs_against_all_pairs(monkeypatch, min_gap):
+    """Strands (consecutive boxes of one group, runs of up to CHUNK paired as one box
+    first): the same pairs as brute force and as the boxes paired one by one (CHUNK =
+    1), each once, i < j, with ghosts after n_local (no ghost pair), self pairs at an arc
+    gap of at least min_gap (inside one run too: 0 and 0.35 keep pairs 1-4 segments
+    apart; 2 keeps none here), strands of 1-30 segments, a run cut at n_local, and wild segments over more
+    than BIG_CELLS cells inside runs."""
+    from lc_petsc.elements import compiled_ccd
+    rng = np.random.default_rng(7)
+    sizes = rng.integers(1, 31, 60)
+    group = np.repeat(np.arange(len(sizes)), sizes)
+    n = len(group)
+    # coiled strands: segments 0.1 long turning along a helix, a few strands crossing
+    t = np.concatenate([np.arange(k) for k in sizes]) * 0.6
+    base = rng.uniform(0, 3, (len(sizes), 3))[group]
+    a = base + 0.15 * np.stack([np.cos(t), np.sin(t), 0.15 * t], axis=1)
+    b = base + 0.15 * np.stack([np.cos(t + 0.6), np.sin(t + 0.6), 0.15 * (t + 0.6)], axis=1)
+    lo, hi = np.minimum(a, b) - 0.02, np.maximum(a, b) + 0.02
+    lo[[17, 300]] -= 20.0                                  # wild segments inside runs
+    hi[[17, 300]] += 20.0
+    seg_len = np.linalg.norm(b - a, axis=1)
+    arc0 = np.concatenate([np.r_[0.0, np.cumsum(seg_len[group == w])[:-1]] for w in range(len(sizes))])
+    arc = np.stack([arc0, arc0 + seg_len], axis=1)
+    n_local = int(np.cumsum(sizes)[40] - 5)               # a run (and a strand) cut there
+    i, j = np.triu_indices(n, 1)
+    touch = np.all((hi[i] >= lo[j]) & (hi[j] >= lo[i]), axis=1)
+    along = np.maximum(arc[j, 0] - arc[i, 1], arc[i, 0] - arc[j, 1])
+    want = touch & (i < n_local) & ((group[i] != group[j]) | (along >= min_gap))
+    self_pairs = (want & (group[i] == group[j])).sum()
+    assert self_pairs == 0 if min_gap == np.inf else self_pairs > {0.0: 500, 0.35: 20, 2.0: -1}[min_gap], self_pairs
+    args = dict(group=group, arc=None if min_gap == np.inf else arc, min_gap=min_gap, n_local=n_local)
+    got = box_pairs(lo, hi, **args)
+    assert np.all(got[:, 0] < got[:, 1]) and len(got) == len({tuple(p) for p in got.tolist()})
+    np.testing.assert_array_equal(got[np.lexsort((got[:, 1], got[:, 0]))], np.stack([i[want], j[want]], axis=1))
+    np.testing.assert_array_equal(box_pairs(lo, hi, **args), got)              # the same order again
+    monkeypatch.setattr(compiled_ccd, "CHUNK", 1)
+    one = box_pairs(lo, hi, **args)
+    np.testing.assert_array_equal(np.sort(one[:, 0] * n + one[:, 1]), np.sort(got[:, 0] * n + got[:, 1]))
+
+
 def test_box_pairs_with_more_pairs_than_its_first_guess():
     """A dense cluster (every box overlaps every other: n (n - 1) / 2 pairs, past the
     8 n rows box_pairs starts with) and one big box: all pairs, each once, in one pass

@@ -227,6 +227,59 @@ def test_kept_pair_points_equals_the_numpy_gathers():
     np.testing.assert_array_equal(inv, np.concatenate([sv[ci[keep]], sv[cj[keep]]], axis=1))
 
 
+@pytest.mark.parametrize("order", ["ascending", "ghosts", "shuffled"])
+def test_segment_vertices_equal_numpy_unique(order):
+    """The limiter's vertex numbering (segment_vertices) is np.unique's, bit for bit: on a
+    rank's segments (ascending, strands back to back and apart), with ghosts from later
+    ranks appended (still ascending), and in any order (NumPy's sort taken)."""
+    rng = np.random.default_rng(4)
+    offsets, seg, _, _ = strands(rng, n_wisps=50)
+    gv = seg + 7
+    if order == "ghosts":
+        gv = np.r_[gv, offsets[-1] + 20 + seg[rng.random(len(seg)) < 0.2]]
+    elif order == "shuffled":
+        gv = rng.permutation(gv)
+    V, sv = compiled_ccd.segment_vertices(gv)
+    want_V, want_inv = np.unique(np.stack([gv, gv + 1], axis=1), return_inverse=True)
+    np.testing.assert_array_equal(V, want_V)
+    np.testing.assert_array_equal(sv, want_inv.reshape(-1, 2))
+    np.testing.assert_array_equal(V[sv], np.stack([gv, gv + 1], axis=1))
+    assert compiled_ccd.segment_vertices(np.zeros(0, np.int64))[0].shape == (0,)
+
+
+def test_limit_pairs_start_distances_kept_across_rounds():
+    """The limiter's pair test with the start distances kept from an earlier round gives
+    the same bits as computing them again; it fills them where it computes them (pairs
+    past the swept-sphere test), and refuses a wrong-sized array."""
+    rng = np.random.default_rng(5)
+    n = 3000
+    SV = rng.random((4 * n, 3))
+    EV = SV + 0.05 * rng.normal(size=SV.shape)
+    inv = rng.integers(0, 4 * n, (n, 4))
+    redo = np.arange(n)
+    tau0, factor0 = np.ones(n), np.ones(n)
+    compiled_ccd.limit_pairs(SV, EV, inv, redo, 0.03, True, tau0, factor0)
+    kept = np.full(n, np.nan)
+    tau1, factor1 = np.ones(n), np.ones(n)
+    compiled_ccd.limit_pairs(SV, EV, inv, redo, 0.03, True, tau1, factor1, kept)
+    filled = np.isfinite(kept)
+    assert 0 < filled.sum() < n and (tau1 < 1).sum() > 10
+    np.testing.assert_allclose(kept[filled], distance(SV[inv[filled]]), rtol=0, atol=1e-14)
+    # a later round: new path ends for some points, the kept start distances reused
+    EV2 = EV.copy()
+    EV2[rng.random(len(EV)) < 0.3] += 0.05
+    tau2, factor2 = np.ones(n), np.ones(n)
+    compiled_ccd.limit_pairs(SV, EV2, inv, redo, 0.03, False, tau2, factor2)
+    tau3, factor3 = np.ones(n), np.ones(n)
+    compiled_ccd.limit_pairs(SV, EV2, inv, redo, 0.03, False, tau3, factor3, kept)
+    np.testing.assert_array_equal(tau3, tau2)
+    np.testing.assert_array_equal(factor3, factor2)
+    np.testing.assert_array_equal(tau1, tau0)
+    np.testing.assert_array_equal(factor1, factor0)
+    with pytest.raises(ValueError, match="start_distance"):
+        compiled_ccd.limit_pairs(SV, EV, inv, redo, 0.03, True, tau1, factor1, np.zeros(n - 1))
+
+
 def test_segment_ends_and_near_pair_distances_equal_the_numpy_gathers():
     """The pair search's segment end points (segment_ends) and its reuse of the limiter's
     candidates (near_pair_distances: box overlap, then distance) against NumPy."""

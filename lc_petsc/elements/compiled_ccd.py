@@ -900,7 +900,8 @@ def _member_pairs(cp, start, box, run_box, group, arc, min_gap, self_runs, n_loc
                 # closed boxes overlap (and, in one group, far enough along the strand):
                 # written first, kept without a branch
                 found += (not ((h0 < box[j, 0]) | (box[j, 3] < l0) | (h1 < box[j, 1]) | (box[j, 4] < l1)
-                               | (h2 < box[j, 2]) | (box[j, 5] < l2))) and (not one_group or _arc_gap(arc, i, j) >= min_gap)
+                               | (h2 < box[j, 2]) | (box[j, 5] < l2))) \
+                    and (not one_group or _arc_gap(arc, i, j) >= min_gap)
     if self_runs:
         for r in range(start.shape[0] - 1):
             if start[r] >= n_local:         # a run of ghosts: another rank has it

@@ -189,7 +189,7 @@ def safe_fraction(start, end, min_distance, max_steps=MAX_STEPS, rtol=1e-3):
     return out
 
 
-def limit_pairs(S, E, inv, redo, min_distance, scale, tau, factor, start_distance=None, max_steps=MAX_STEPS,
+def limit_pairs(S, E, inv, redo, min_distance, scale, tau, factor, start_distance=None, *, max_steps=MAX_STEPS,
                 rtol=1e-3):
     """The limiter's pair test (:meth:`lc_petsc.contact.StrandContact._safe_fractions`)
     on the pairs ``inv[redo]`` (points into the vertex positions ``S`` at the path's
@@ -581,6 +581,7 @@ def warm_up():
     limit_pairs(S, S + 0.1, np.arange(4, dtype=np.int64).reshape(1, 4), np.zeros(1, np.int64), 0.01,
                 True, np.ones(1), np.ones(1))
     box_pairs(S, S + 1.0, np.arange(4))
+    box_pairs(S, S + 1.0, np.zeros(4, np.int64), np.zeros((4, 2)), 0.0, n_local=2)     # one run, self pairs
     seg = np.array([0, 2])
     lo, hi = field_boxes(S, S, seg, 0.1, 0.01)
     order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool))
@@ -822,23 +823,27 @@ def _chunk_starts(group, n_local, size):
 
 @_jit
 def _chunk_boxes(lo, hi, arc, start):
-    """Per run: its members' bounding box (lo, hi) (c, 3) and (the latest start, the
-    earliest end) of their arcs, so that _arc_gap of two runs is the largest gap of a
-    pair of their members.  NaN propagates."""
+    """Per run: its members' bounding box (lo, hi) (c, 3) (a NaN bound propagates) and
+    (the latest start, the earliest end) of their arcs, so that _arc_gap of two runs is
+    the largest gap of a pair of their members ((inf, -inf) if an arc is NaN: its pairs
+    are kept, as a NaN gap keeps a pair)."""
     c = start.shape[0] - 1
     clo, chi, carc = np.empty((c, 3)), np.empty((c, 3)), np.empty((c, 2))
     for r in range(c):
         f = start[r]
         for a in range(3):
             lo_a, hi_a = lo[f, a], hi[f, a]
-            for i in range(f + 1, start[r + 1]):
-                if not lo[i, a] >= lo_a:
+            for i in range(f + 1, start[r + 1]):     # a NaN, once taken, stays
+                if lo_a == lo_a and not lo[i, a] >= lo_a:
                     lo_a = lo[i, a]
-                if not hi[i, a] <= hi_a:
+                if hi_a == hi_a and not hi[i, a] <= hi_a:
                     hi_a = hi[i, a]
             clo[r, a], chi[r, a] = lo_a, hi_a
-        a0, a1 = arc[f, 0], arc[f, 1]
-        for i in range(f + 1, start[r + 1]):
+        a0, a1 = -np.inf, np.inf
+        for i in range(f, start[r + 1]):
+            if not (arc[i, 0] == arc[i, 0] and arc[i, 1] == arc[i, 1]):
+                a0, a1 = np.inf, -np.inf        # a NaN gap keeps a pair: so does the run's
+                break
             a0, a1 = max(a0, arc[i, 0]), min(a1, arc[i, 1])
         carc[r, 0], carc[r, 1] = a0, a1
     return clo, chi, carc
@@ -899,16 +904,17 @@ def _member_pairs(cp, start, box, run_box, group, arc, min_gap, self_runs, n_loc
                 out[found, 0], out[found, 1] = i, j      # runs ascending: i < j
                 # closed boxes overlap (and, in one group, far enough along the strand):
                 # written first, kept without a branch
+                # (not gap < min_gap, as the grid's loop: a NaN gap keeps the pair)
                 found += (not ((h0 < box[j, 0]) | (box[j, 3] < l0) | (h1 < box[j, 1]) | (box[j, 4] < l1)
                                | (h2 < box[j, 2]) | (box[j, 5] < l2))) \
-                    and (not one_group or _arc_gap(arc, i, j) >= min_gap)
+                    and (not one_group or not _arc_gap(arc, i, j) < min_gap)
     if self_runs:
         for r in range(start.shape[0] - 1):
             if start[r] >= n_local:         # a run of ghosts: another rank has it
                 break
             for i in range(start[r], start[r + 1]):
                 for j in range(i + 1, start[r + 1]):
-                    if _arc_gap(arc, i, j) >= min_gap and not (
+                    if not _arc_gap(arc, i, j) < min_gap and not (
                             (box[i, 3] < box[j, 0]) | (box[j, 3] < box[i, 0]) | (box[i, 4] < box[j, 1])
                             | (box[j, 4] < box[i, 1]) | (box[i, 5] < box[j, 2]) | (box[j, 5] < box[i, 2])):
                         out = _push_pair(out, found, i, j)
@@ -968,7 +974,7 @@ def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None):
     cp, k = _grid_pairs(clo, chi, g[first], carc, min_gap, int(np.searchsorted(first, n_local)))
     cp = _runs_by_first(cp[:k], len(first))
     out, found = _member_pairs(cp, start, np.concatenate([lo, hi], axis=1), np.concatenate([clo, chi], axis=1),
-                               g, arc, float(min_gap), bool(min_gap < np.inf), n_local,
+                               g, arc, float(min_gap), not min_gap == np.inf, n_local,
                                np.empty((2 * len(cp) + 16, 2), np.int64))
     return out[:found]
 

@@ -178,6 +178,64 @@ def test_box_pairs_through_strand_runs_against_all_pairs(monkeypatch, min_gap):
     np.testing.assert_array_equal(np.sort(one[:, 0] * n + one[:, 1]), np.sort(got[:, 0] * n + got[:, 1]))
 
 
+def _brute_box_pairs(lo, hi, group, arc, min_gap, n_local):
+    """All overlapping box pairs (i < j) with a box before n_local, of different groups or
+    at least min_gap apart along the strand (a NaN gap counts as far; none of one group
+    for min_gap = inf, box_pairs without arcs), by brute force."""
+    i, j = np.triu_indices(len(lo), 1)
+    touch = np.all((hi[i] >= lo[j]) & (hi[j] >= lo[i]), axis=1)
+    gap = np.maximum(arc[j, 0] - arc[i, 1], arc[i, 0] - arc[j, 1])
+    far = ~(gap < min_gap) & (min_gap != np.inf)
+    want = touch & (i < n_local) & ((group[i] != group[j]) | far)
+    return np.stack([i[want], j[want]], axis=1)
+
+
+@pytest.mark.parametrize("n_local", [0, 5, 8, 16, 21, 40])
+@pytest.mark.parametrize("min_gap", [np.inf, 0.0, 1.5, -1.0])
+def test_box_pairs_runs_with_overlapping_ghost_runs(n_local, min_gap):
+    """Every box overlaps every other (ghost runs overlap ghost runs): n_local at a run
+    start (8, 16), inside a run (5, 21), 0 and n: exactly the pairs with a local box
+    (a ghost run starting at n_local taken as local fails this; from the review)."""
+    group = np.repeat(np.arange(5), 8)
+    n = len(group)
+    lo, hi = np.zeros((n, 3)), np.ones((n, 3))
+    arc0 = np.tile(np.arange(8.0), 5)
+    arc = np.stack([arc0, arc0 + 1.0], axis=1)
+    got = box_pairs(lo, hi, group=group, arc=None if min_gap == np.inf else arc, min_gap=min_gap,
+                    n_local=n_local)
+    assert np.all(got[:, 0] < got[:, 1]) and len(got) == len({tuple(p) for p in got.tolist()})
+    np.testing.assert_array_equal(got[np.lexsort((got[:, 1], got[:, 0]))],
+                                  _brute_box_pairs(lo, hi, group, arc, min_gap, n_local))
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_box_pairs_random_strands_against_brute_force(seed):
+    """Random walks as strands of 1-19 segments, a wild segment every 4th seed, n_local
+    anywhere, with and without self pairs; NaN arcs (a pair kept, as the grid does)."""
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(1, 20, rng.integers(1, 12))
+    group = np.repeat(np.arange(len(sizes)), sizes)
+    n = len(group)
+    a = np.cumsum(rng.normal(scale=0.1, size=(n, 3)), axis=0)
+    b = a + rng.normal(scale=0.1, size=(n, 3))
+    lo, hi = np.minimum(a, b) - 0.05, np.maximum(a, b) + 0.05
+    if seed % 4 == 0:
+        k = rng.integers(0, n)
+        lo[k] -= 100.0
+        hi[k] += 100.0
+    arc0 = np.concatenate([np.arange(s, dtype=float) for s in sizes])
+    arc = np.stack([arc0, arc0 + 1.0], axis=1)
+    if seed % 3 == 0:
+        arc[rng.random(n) < 0.1] = np.nan
+    n_local = int(rng.integers(0, n + 1))
+    for min_gap in (np.inf, 0.0, 1.0, 2.5):
+        got = box_pairs(lo, hi, group=group, arc=None if min_gap == np.inf else arc, min_gap=min_gap,
+                        n_local=n_local)
+        assert len(got) == len({tuple(p) for p in got.tolist()})
+        want = _brute_box_pairs(lo, hi, group, arc, min_gap, n_local)
+        np.testing.assert_array_equal(got[np.lexsort((got[:, 1], got[:, 0]))], want)
+
+
 def test_box_pairs_with_more_pairs_than_its_first_guess():
     """A dense cluster (every box overlaps every other: n (n - 1) / 2 pairs, past the
     8 n rows box_pairs starts with) and one big box: all pairs, each once, in one pass

@@ -939,7 +939,7 @@ class StrandContact:
         positions = _held_back(H, T, beta)
         self._limited = (positions.copy(), E[sv], Prest, gv, free, owner, ci, cj)
         # the statistics in one reduction at the end: each reduction is a point where
-        # the ranks wait for the slowest (2 fewer per call, 0.8 s of waits per 5 frames at 8K)
+        # the ranks wait for the slowest (2 fewer per call)
         n_candidates, n_stuck, n_limited = (int(v) for v in self.comm.allreduce(
             np.array([len(i), stuck, int(limited.sum())], np.int64)))
         self.limiter_candidates.add(n_candidates)

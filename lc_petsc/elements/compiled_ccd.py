@@ -804,7 +804,7 @@ def _push_pair(out, found, i, j):
 
 
 @_jit
-def _chunk_starts(group, n_local, size):
+def _run_starts(group, n_local, size):
     """Starts (c + 1,) of the runs of up to ``size`` consecutive boxes of one group, none
     across ``n_local``; the last entry is the number of boxes."""
     n = group.shape[0]
@@ -822,7 +822,7 @@ def _chunk_starts(group, n_local, size):
 
 
 @_jit
-def _chunk_boxes(lo, hi, arc, start):
+def _run_boxes(lo, hi, arc, start):
     """Per run: its members' bounding box (lo, hi) (c, 3) (a NaN bound propagates) and
     (the latest start, the earliest end) of their arcs, so that _arc_gap of two runs is
     the largest gap of a pair of their members ((inf, -inf) if an arc is NaN: its pairs
@@ -866,12 +866,25 @@ def _runs_by_first(cp, n_runs):
 
 
 @_jit
+def _vbox_overlap(l0, l1, l2, h0, h1, h2, Q, b):
+    """The closed box lo (l0, l1, l2), hi (h0, h1, h2) and Q[b] (a row lo then hi)
+    overlap; no branch."""
+    return not ((h0 < Q[b, 0]) | (Q[b, 3] < l0) | (h1 < Q[b, 1]) | (Q[b, 4] < l1) | (h2 < Q[b, 2]) | (Q[b, 5] < l2))
+
+
+@_jit
+def _vrows_overlap(P, a, Q, b):
+    """Closed boxes P[a] and Q[b] (rows lo then hi) overlap; no branch."""
+    return _vbox_overlap(P[a, 0], P[a, 1], P[a, 2], P[a, 3], P[a, 4], P[a, 5], Q, b)
+
+
+@_jit
 def _member_pairs(cp, start, box, run_box, group, arc, min_gap, self_runs, n_local, out):
     """The overlapping member pairs (i < j) of the run pairs cp (k, 2) (first run
-    ascending), and with ``self_runs`` those inside each run before ``n_local`` (pairs of
-    one group with an arc gap of at least ``min_gap``): each run's members are first tested against the
-    other run's box.  ``box`` (n, 6) and ``run_box`` (c, 6): lo then hi.  Returns (out,
-    their number), ``out`` grown when full."""
+    ascending), and with ``self_runs`` those inside each run before ``n_local`` (pairs
+    of one group with an arc gap of at least ``min_gap``): each run's members are first
+    tested against the other run's box.  ``box`` (n, 6) and ``run_box`` (c, 6): lo then
+    hi.  Returns (out, their number), ``out`` grown when full."""
     found = 0
     width = 0
     for r in range(start.shape[0] - 1):
@@ -882,15 +895,13 @@ def _member_pairs(cp, start, box, run_box, group, arc, min_gap, self_runs, n_loc
         na = 0
         for i in range(start[A], start[A + 1]):
             ia[na] = i
-            na += not ((box[i, 3] < run_box[B, 0]) | (run_box[B, 3] < box[i, 0]) | (box[i, 4] < run_box[B, 1])
-                       | (run_box[B, 4] < box[i, 1]) | (box[i, 5] < run_box[B, 2]) | (run_box[B, 5] < box[i, 2]))
+            na += _vrows_overlap(box, i, run_box, B)
         if na == 0:
             continue
         nb = 0
         for j in range(start[B], start[B + 1]):
             jb[nb] = j
-            nb += not ((box[j, 3] < run_box[A, 0]) | (run_box[A, 3] < box[j, 0]) | (box[j, 4] < run_box[A, 1])
-                       | (run_box[A, 4] < box[j, 1]) | (box[j, 5] < run_box[A, 2]) | (run_box[A, 5] < box[j, 2]))
+            nb += _vrows_overlap(box, j, run_box, A)
         if found + na * nb > out.shape[0]:     # room for all, checked once per run pair
             grown = np.empty((2 * out.shape[0] + na * nb, 2), np.int64)
             grown[:found] = out[:found]
@@ -902,11 +913,9 @@ def _member_pairs(cp, start, box, run_box, group, arc, min_gap, self_runs, n_loc
             for b in range(nb):
                 j = jb[b]
                 out[found, 0], out[found, 1] = i, j      # runs ascending: i < j
-                # closed boxes overlap (and, in one group, far enough along the strand):
-                # written first, kept without a branch
-                # (not gap < min_gap, as the grid's loop: a NaN gap keeps the pair)
-                found += (not ((h0 < box[j, 0]) | (box[j, 3] < l0) | (h1 < box[j, 1]) | (box[j, 4] < l1)
-                               | (h2 < box[j, 2]) | (box[j, 5] < l2))) \
+                # written first, kept without a branch if the boxes overlap and, in one
+                # group, not gap < min_gap (as the grid's loop: a NaN gap keeps the pair)
+                found += _vbox_overlap(l0, l1, l2, h0, h1, h2, box, j) \
                     and (not one_group or not _arc_gap(arc, i, j) < min_gap)
     if self_runs:
         for r in range(start.shape[0] - 1):
@@ -914,9 +923,7 @@ def _member_pairs(cp, start, box, run_box, group, arc, min_gap, self_runs, n_loc
                 break
             for i in range(start[r], start[r + 1]):
                 for j in range(i + 1, start[r + 1]):
-                    if not _arc_gap(arc, i, j) < min_gap and not (
-                            (box[i, 3] < box[j, 0]) | (box[j, 3] < box[i, 0]) | (box[i, 4] < box[j, 1])
-                            | (box[j, 4] < box[i, 1]) | (box[i, 5] < box[j, 2]) | (box[j, 5] < box[i, 2])):
+                    if not _arc_gap(arc, i, j) < min_gap and _vrows_overlap(box, i, box, j):
                         out = _push_pair(out, found, i, j)
                         found += 1
     return out, found
@@ -937,7 +944,7 @@ def _grid_pairs(lo, hi, group, arc, min_gap, n_local):
 
 def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None):
     """Index pairs (k, 2), i < j, of the axis-aligned boxes lo, hi (n, 3) that overlap
-    (closed boxes), exact, in the grid's order (the same for the same input); with
+    (closed boxes), exact, in an order that is the same for the same input; with
     ``group`` (n,) only pairs of different groups, and with ``arc`` (n, 2) (the rest arc
     length along its wisp at each end of a box's segment) also pairs of one group with
     at least ``min_gap`` of strand between them (self-contact: neighbours along the
@@ -949,8 +956,9 @@ def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None):
     a box over more than :data:`BIG_CELLS` cells (one wild segment, say) is tested
     against all boxes rather than listed in all its cells.  Runs of up to :data:`CHUNK`
     consecutive boxes of one group (a strand's segments) go through the grid as one box,
-    then their members are tested (0.58x the time on the 8K hairball's limiter boxes:
-    a strand's neighbouring segments share most cells)."""
+    then their members are tested (0.60x the time on the 8K hairball's limiter boxes:
+    a strand's neighbouring segments share most cells); the pairs then come run pair by
+    run pair."""
     lo = np.ascontiguousarray(lo, np.float64)
     hi = np.ascontiguousarray(hi, np.float64)
     n = len(lo)
@@ -965,11 +973,11 @@ def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None):
     if arc.shape != (n, 2):
         raise ValueError(f"box_pairs: arc must be (n_boxes, 2) = ({n}, 2), got {arc.shape}")
     n_local = n if n_local is None else int(n_local)
-    start = _chunk_starts(g, n_local, CHUNK) if CHUNK > 1 else None
+    start = _run_starts(g, n_local, CHUNK) if CHUNK > 1 else None
     if start is None or len(start) - 1 > n // 2:        # short runs: the boxes themselves
         out, found = _grid_pairs(lo, hi, g, arc, min_gap, n_local)
         return out[:found]
-    clo, chi, carc = _chunk_boxes(lo, hi, arc, start)
+    clo, chi, carc = _run_boxes(lo, hi, arc, start)
     first = start[:-1]
     cp, k = _grid_pairs(clo, chi, g[first], carc, min_gap, int(np.searchsorted(first, n_local)))
     cp = _runs_by_first(cp[:k], len(first))

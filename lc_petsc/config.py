@@ -284,8 +284,9 @@ NEWTON_UPDATES = ("linear", "edge_retraction", "corotational")
 #: paper's), or a trust region on the exact Hessian (lc_petsc/trust_region.py)
 NEWTON_MODES = ("filtered", "trust_region")
 #: time.newton_stop: Newton stops on the last increment, or also on the error estimated
-#: from two quadratic exact steps in a row (lc_petsc/integrator.py, docs/newton.md)
-NEWTON_STOPS = ("increment", "quadratic_estimate")
+#: from two quadratic exact steps in a row, or on that and the next increment measured by
+#: a chord step (lc_petsc/integrator.py, docs/newton.md)
+NEWTON_STOPS = ("increment", "quadratic_estimate", "chord_estimate")
 #: time.unconverged: a frame whose Newton misses the tolerance at the deepest cutback
 UNCONVERGED = ("accept", "error")
 #: time.max_substeps above this is refused (dt / 1024 is a millisecond at 1/30 s)
@@ -302,7 +303,9 @@ class TimeConfig:
     setting), whichever comes first.  ``line_search`` enables Armijo backtracking on the
     incremental potential G; ``newton_stop = "quadratic_estimate"`` (with
     ``solver.filter = "exact_or_analytic"`` and ``newton_increment_tol`` alone) also stops
-    once two full exact steps in a row predict an error below a tenth of the tolerance.
+    once two full exact steps in a row predict an error below a tenth of the tolerance;
+    ``"chord_estimate"`` (same conditions) stops on that, or once a solve with the last
+    exact matrix from the new iterate (a chord step) moves no vertex by the tolerance.
     ``newton_update``, ``initial_guess``, ``carry_with_head`` (the first iterate follows
     the head's change of motion over the step) and
     ``length_projection`` (final positions onto the rest edge lengths) and ``newton``
@@ -366,7 +369,7 @@ class TimeConfig:
             raise ConfigError(f"time.newton_stop must be one of {NEWTON_STOPS}, got {self.newton_stop!r}")
         if self.newton_stop != "increment" and (self.newton_increment_tol is None
                                                  or self.newton_tol is not None):
-            raise ConfigError("time.newton_stop = \"quadratic_estimate\" estimates the relative "
+            raise ConfigError(f"time.newton_stop = {self.newton_stop!r} estimates the relative "
                               "increment: set time.newton_increment_tol and leave time.newton_tol "
                               "unset, or use time.newton_stop = \"increment\"")
         if self.newton != "filtered" and self.line_search:
@@ -540,6 +543,11 @@ class SimConfig:
                               f"the exact steps of solver.filter = \"exact_or_analytic\" (got "
                               f"solver.filter = {self.solver.filter!r}); set that filter or use "
                               f"time.newton_stop = \"increment\"")
+        if self.time.newton_stop == "chord_estimate" and "strand_collision" in self.physics.terms:
+            raise ConfigError("time.newton_stop = \"chord_estimate\" measures the next increment "
+                              "from a gradient without the strand-contact force; with "
+                              "strand_collision in physics.terms use time.newton_stop = "
+                              "\"quadratic_estimate\" or \"increment\"")
         if self.time.newton != "filtered":
             if self.solver.filter not in ("analytic", "numerical", "abs"):
                 raise ConfigError(f"time.newton = \"trust_region\" preconditions with the filtered "

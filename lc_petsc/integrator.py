@@ -23,6 +23,14 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   ``time.newton_stop = "quadratic_estimate"`` also stops once two full exact steps in a
   row estimate the error below the tolerance / :data:`QUADRATIC_SAFETY`
   (:func:`quadratic_error_estimate`); ``newton_increment`` is then that estimate.
+  ``time.newton_stop = "chord_estimate"`` does that too, and after a full exact step
+  whose increment d predicts the tolerance (:data:`CHORD_TRY_C` d^2 below it) measures
+  the next increment instead of taking the step: the step a solve with the last exact
+  matrix (a chord step, its factorisation reused) would take from the new iterate;
+  when it shows the iteration converging and lies below the tolerance with a margin
+  (:func:`chord_stop`), Newton stops with that iterate (``newton_increment`` is then the
+  chord step's increment; ``newton_chord_checks`` counts these solves per frame,
+  cut-back attempts included).  Not with strand contact (refused by the configuration).
   ``solver.exact_stay``: after a full, unshifted exact step the next one is exact too.
 * Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
   misses it within the cap is redone from its start state as two backward-Euler steps
@@ -82,12 +90,14 @@ from lc_petsc.trust_region import ETA, TRUST_RETRIES, ratio, update_radius
 class _Solve(NamedTuple):
     """One backward-Euler step's Newton: iterations, converged (None without a
     tolerance), the last relative increment, exact Hessians replaced by filtered ones,
-    and with strand contact (pairs, deep pairs, min distance, pairs separated)."""
+    chord checks (``time.newton_stop = "chord_estimate"``), and with strand contact
+    (pairs, deep pairs, min distance, pairs separated)."""
 
     iterations: int
     converged: Optional[bool]
     increment: float
     fallbacks: int
+    chord_checks: int
     contact: Optional[tuple]
 
 
@@ -129,6 +139,7 @@ class Integrator:
         self.newton_substeps = []       # per frame: the backward-Euler steps kept (1: no cutback)
         self.newton_substep_iterations = []   # per frame: the kept steps' iterations
         self._discarded = 0             # the frame's iterations of attempts cut back
+        self._discarded_checks = 0      # and their chord checks
         self.xv, self.bv = assembler.mat.createVecs()
         self.strand = strand
         self.contact_pairs = []
@@ -161,6 +172,7 @@ class Integrator:
         self._region_record = {}        # the last trust-region step's rho, radius (history)
         self._force_scale = 0.0         # the frame's force scale (with a history only)
         self.exact_hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
+        self.chord_checks = []          # per frame: chord steps measured (newton_stop = "chord_estimate")
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian):
@@ -239,7 +251,7 @@ class Integrator:
         cfg = self.cfg
         if self.strand is not None:             # per frame: the statistics' entries
             self.strand.start_frame()
-        self._discarded = 0
+        self._discarded = self._discarded_checks = 0
         solves = self._advance(cfg.time.dt, self.t + cfg.time.dt, cfg.time.max_substeps)
         conv = [s.converged for s in solves]
         converged = None if conv[0] is None else all(conv)
@@ -257,6 +269,7 @@ class Integrator:
         self.newton_increment.append(max(s.increment for s in solves))
         self.newton_converged.append(converged)
         self.exact_hessian_fallbacks.append(sum(s.fallbacks for s in solves))
+        self.chord_checks.append(self._discarded_checks + sum(s.chord_checks for s in solves))
         if self.strand is not None:             # the figures at the frame's end
             pairs, deep, dmin, _ = solves[-1].contact
             self.contact_pairs.append(pairs)
@@ -279,6 +292,7 @@ class Integrator:
         if solve.converged is not False or substeps < 2:
             return [solve]
         self._discarded += solve.iterations
+        self._discarded_checks += solve.chord_checks
         self.x, self.v, self.t = start
         half = substeps // 2
         return self._advance(0.5 * dt, start[2] + 0.5 * dt, half) + self._advance(0.5 * dt, t_next, half)
@@ -312,7 +326,7 @@ class Integrator:
         increment = np.inf
         if self.history is not None:
             self._force_scale = self.frame_force_scale()
-        fallbacks = 0
+        fallbacks = chord_checks = 0
         region = _Region() if self.trust is not None else None
         quadratic = []                          # the increments of the last full exact steps in a row
         for it in range(cfg.time.newton_iterations):
@@ -358,10 +372,16 @@ class Integrator:
             converged = self._newton_converged(increment, absolute)
             full = exact and alpha == 1.0 and self._shift == 0.0
             quadratic = quadratic + [increment] if full else []
-            if not converged and cfg.time.newton_stop == "quadratic_estimate":
+            if not converged and cfg.time.newton_stop != "increment":
                 estimate = quadratic_error_estimate(quadratic)
                 if estimate < cfg.time.newton_increment_tol / QUADRATIC_SAFETY:
                     converged, increment = True, estimate
+            if (not converged and cfg.time.newton_stop == "chord_estimate" and full
+                    and CHORD_TRY_C * increment ** 2 < cfg.time.newton_increment_tol):
+                chord_checks += 1
+                chord = self._chord_increment(x, it)
+                if chord_stop(chord, increment, cfg.time.newton_increment_tol):
+                    converged, increment = True, chord
             if converged:
                 break
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
@@ -386,7 +406,7 @@ class Integrator:
         self.v = (x - x_old) / dt
         self.x = x
         self.t = self.t_next
-        return _Solve(n_it, converged, increment, fallbacks, contact)
+        return _Solve(n_it, converged, increment, fallbacks, chord_checks, contact)
 
     def _collision_free_end(self, x_old, x, motion, deep):
         """ccd mode, the frame's end: the path check (the straight path x_old -> x must
@@ -578,6 +598,16 @@ class Integrator:
         total = global_reduce(self.comm, local, "max")
         return float(total[0]), float(total[1])
 
+    def _chord_increment(self, x, it):
+        """``time.newton_stop = "chord_estimate"``: the relative increment of the step from
+        x on the last Newton matrix (the exact Hessian at the previous iterate; its
+        factorisation reused), i.e. the next Newton increment to first order in the last
+        one, which is the error of x to leading order (collective; inf when CG finds
+        the matrix indefinite for this right-hand side).  Not with strand contact, whose
+        gradient only its assembly computes (the configuration refuses the option)."""
+        dx = self._solve_step(self.gradient(x), it, may_fail=True)
+        return np.inf if dx is None else self.increments(dx)[0]
+
     def _newton_converged(self, increment, absolute):
         """True/False against the tolerances that are set (both when both are), None
         when neither is (a fixed iteration count)."""
@@ -619,6 +649,18 @@ class Integrator:
             ksp_reason=solver.reasons[-1] if solver.reasons else "",
             ksp_iterations=solver.iterations[-1] if solver.iterations else 0,
             exact_rejected=self._fallback, exact_shift=self._shift, **self._region_record))
+
+
+def chord_stop(chord, increment, tol):
+    """``time.newton_stop = "chord_estimate"``: whether the chord step's relative
+    increment ``chord``, measured after a full exact step of ``increment``, certifies the
+    iterate.  It must show the step converging (``chord`` below :data:`CHORD_CONTRACTION`
+    times ``increment``: an iteration crawling at 0.5 per step had chord steps below a
+    loose tolerance while its next Newton increment was 3-8x above it, docs/newton.md
+    "Eleventh round") and lie below ``tol`` with the margin 1 + :data:`CHORD_MARGIN`
+    ``increment`` (the chord and Newton steps differ by the change of the Hessian over
+    the last step: measured at a tolerance of 3e-4 up to 31%, within 2% at 1e-6)."""
+    return chord < CHORD_CONTRACTION * increment and chord * (1.0 + CHORD_MARGIN * increment) < tol
 
 
 def quadratic_error_estimate(increments):
@@ -765,6 +807,17 @@ def project_rest_lengths(x, free, offsets, rest_edge, mass):
 #: EXACT_HALVINGS halvings (measured, docs/newton.md: 3e-3 and 6 reach 1e-6 in the fewest
 #: iterations of 1e-2 / 3e-3 / always and 2 / 6 halvings on the hairball and smash).
 EXACT_BELOW = 3e-3
+#: ``time.newton_stop = "chord_estimate"`` measures the chord step after a full exact step
+#: of increment d when CHORD_TRY_C d^2 < tol: a quadratic step's constant e_{k+1} / e_k^2
+#: had quartiles 7.8 and 18 on the 10-wisp hairball (docs/newton.md, "Seventh round"), so
+#: from there the next increment may be below the tolerance; farther out the check
+#: would fail and cost a solve (measured: 16 checks in 30 frames, 11 stops)
+CHORD_TRY_C = 10.0
+#: :func:`chord_stop`: the chord step must be this much shorter than the step before it
+CHORD_CONTRACTION = 0.1
+#: :func:`chord_stop`: the chord increment times 1 + CHORD_MARGIN d must be below the
+#: tolerance (d the last increment; 2 C with C up to ~50, the quadratic constants measured)
+CHORD_MARGIN = 100.0
 #: ``solver.exact_fallback = "shifted"``: the shifts tau of the exact Hessian + tau M/dt^2
 #: tried, in order, when the exact step fails (measured on the hairball: tau = 0.1 gave
 #: no step, 1 and 10 did; starting at 10 kept accepting steps too short to converge,

@@ -62,6 +62,10 @@ def format_report(s) -> str:
     if conv_frames:
         lines.append(f"  Newton converged (time.newton_increment_tol / newton_tol) in "
                      f"{sum(conv_frames)} of {len(conv_frames)} frames")
+    chords = s.get("newton_chord_checks", [])
+    if sum(chords):
+        lines.append(f"  chord checks (time.newton_stop = \"chord_estimate\"): {sum(chords)} solves "
+                     f"in {sum(n > 0 for n in chords)} frames")
     subs = s.get("newton_substeps", [])
     if any(n > 1 for n in subs):
         lines.append(f"  step cutback (time.max_substeps) in {sum(n > 1 for n in subs)} of {len(subs)} "

@@ -83,7 +83,7 @@ def frame_iterations(cfg, comm, states, tol=1e-6, cap=30, stop="increment"):
 def compare(base_cfg, variants, comm, frames, tol=1e-6, cap=30, reference="filter=exact_or_analytic,"
             "update=corotational,fallback=shifted"):
     """:func:`frame_iterations` for each (name, SPEC) of ``variants`` (SPEC as in
-    scripts/newton_history.py, and ``stop=quadratic_estimate``: ``time.newton_stop``,
+    scripts/newton_history.py, and ``stop=quadratic_estimate`` or ``stop=chord_estimate``: ``time.newton_stop``,
     which needs the tolerance) from the states of the ``reference`` SPEC's converged run.
     Returns {"reference_converged": bool, name: rows}."""
     ref = configure(base_cfg, parse_variant(reference), 1, frames)

@@ -195,3 +195,14 @@ def test_report_after_a_restart_divides_by_this_runs_frames():
     assert "frames: 40, 1.33 s simulated (10 in this run); wall time 126.00 s (12.60 s per frame)" in line
     del s["frames_this_run"]
     assert "(3.15 s per frame)" in format_report(s).splitlines()[2]
+
+
+def test_report_counts_chord_checks_only_when_there_are_some():
+    """The report says how many chord checks (time.newton_stop = "chord_estimate") the run
+    solved and in how many frames; a run without any says nothing about them."""
+    from lc_petsc.io.summary import format_report
+    s = {"frames": 3, "wall_time_s": 3.0, "wisps": 2, "dofs": 6, "ranks": 1,
+         "config": {"time": {"dt": 1.0 / 30.0}}, "newton_chord_checks": [0, 2, 1]}
+    assert "chord checks (time.newton_stop = \"chord_estimate\"): 3 solves in 2 frames" in format_report(s)
+    s["newton_chord_checks"] = [0, 0, 0]
+    assert "chord checks" not in format_report(s)

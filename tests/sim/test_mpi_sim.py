@@ -36,10 +36,13 @@ def test_rank_invariance_hairball_10_frames():
         assert np.abs(ref - summ_rest(cfg)).max() > 0.5
 
 
-@pytest.mark.parametrize("update, fallback, tol, min_converged, min_fallbacks, quadratic", [
-    ("edge_retraction", "analytic", 1e-9, 3, 1, False), ("corotational", "analytic", 1e-8, 3, 1, False),
-    ("corotational", "shifted", 1e-8, 4, 0, False), ("corotational", "shifted", 1e-8, 4, 0, True)])
-def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, min_fallbacks, quadratic):
+@pytest.mark.parametrize("update, fallback, tol, min_converged, min_fallbacks, stop", [
+    ("edge_retraction", "analytic", 1e-9, 3, 1, "increment"),
+    ("corotational", "analytic", 1e-8, 3, 1, "increment"),
+    ("corotational", "shifted", 1e-8, 4, 0, "increment"),
+    ("corotational", "shifted", 1e-8, 4, 0, "quadratic_estimate"),
+    ("corotational", "shifted", 1e-8, 4, 0, "chord_estimate")])
+def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, min_fallbacks, stop):
     """exact_or_analytic to a relative increment of 1e-6, with the edge retraction or the
     corotational update of the exact steps (docs/newton.md, sixth round; both per wisp):
     every decision (exact step kept or not, converged or not) is collective, so the
@@ -49,8 +52,10 @@ def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, 
     the reductions' round-off: the corotational run differs by 1.2e-9 relative on 2
     ranks, hence 1e-8; no cutback: tests/sim/test_step_cutback.py).  With the shifted
     fallback (seventh round) every frame converges: 18 11 11 13, no analytic fallback.
-    ``quadratic``: with ``solver.exact_stay`` and ``time.newton_stop =
-    "quadratic_estimate"`` too (eighth round; the estimate uses the reduced increments)."""
+    ``stop``: ``"quadratic_estimate"`` or ``"chord_estimate"`` with ``solver.exact_stay``
+    (eighth and eleventh rounds; the estimates use the reduced increments, the chord
+    check a collective solve and reduced increments: the same checks, accepted or
+    rejected, on every rank count)."""
     cfg = small_hairball_config(n_wisps=5, frames=4, newton_iterations=30,
                                 newton_increment_tol=1e-6, newton_update=update,
                                 max_substeps=1,
@@ -59,9 +64,13 @@ def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, 
                                 carry_with_head=False)
     cfg.solver.filter = "exact_or_analytic"
     cfg.solver.exact_fallback = fallback
-    if quadratic:
+    if stop != "increment":
         cfg.solver.exact_stay = True
-        cfg.time.newton_stop = "quadratic_estimate"
+        cfg.time.newton_stop = stop
+    if stop == "chord_estimate":
+        # at 1e-5 the 4 frames make 1 1 1 2 chord checks (more checks than frames: one is
+        # rejected) and take 16 9 9 11 iterations
+        cfg.time.newton_increment_tol = 1e-5
     X, summ = run_positions(cfg)
     ref, ref_summ = serial_reference(cfg)
     _check(X, ref, tol)
@@ -69,6 +78,11 @@ def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, 
         assert summ["newton_iterations"] == ref_summ["newton_iterations"]
         assert summ["newton_converged"] == ref_summ["newton_converged"]
         assert summ["newton_exact_fallbacks"] == ref_summ["newton_exact_fallbacks"]
+        assert summ["newton_chord_checks"] == ref_summ["newton_chord_checks"]
+        if stop == "chord_estimate":
+            assert sum(summ["newton_chord_checks"]) > len(summ["newton_chord_checks"])
+        else:
+            assert sum(summ["newton_chord_checks"]) == 0
         assert sum(summ["newton_converged"]) >= min_converged
         assert sum(summ["newton_exact_fallbacks"]) >= min_fallbacks
 

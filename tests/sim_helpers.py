@@ -15,7 +15,10 @@ from lc_petsc.scene.sources import ArraySource
 from lc_petsc.simulator import build_simulator
 
 #: Environment for mpiexec launched by tests: root allowed, more ranks than cores allowed.
-MPI_ENV = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+# the environment of a test's own mpiexec: without the launcher variables of an outer
+# mpiexec (a test tree run under mpiexec -n 2 would otherwise make the child a part of it)
+MPI_ENV = dict({k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_", "PRTE_"))},
+               OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
                OMPI_MCA_rmaps_base_oversubscribe="1")
 
 

@@ -18,6 +18,18 @@ COMM = MPI.COMM_WORLD
 ROOT = Path(__file__).resolve().parents[2]
 
 
+
+def demo_without_strand_contact(n_wisps):
+    """The demo hairball cut to ``n_wisps`` wisps without strand contact, as the studies
+    measured it (scripts/newton_history.py "hairball10"): the inertial first iterate and
+    no length projection (the demo sets both for its ccd contact)."""
+    cfg = load_config(ROOT / "configs" / "hairball_demo.toml")
+    cfg.scene.n_wisps = n_wisps
+    cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
+    cfg.time.initial_guess = "inertial"
+    cfg.time.length_projection = False
+    return cfg
+
 def test_quadratic_error_estimate():
     """C = d_k / d_{k-1}^2 and the error after the last step C d_k^2; none (inf) with
     fewer than two full exact steps in a row, when the earlier started above
@@ -82,12 +94,8 @@ def test_quadratic_stop_saves_the_certifying_step_on_the_demo_hairball():
     ``solver.exact_stay`` and ``time.newton_stop = "quadratic_estimate"``: 16 9 9 8 7 7
     (frames 1-5 within 9), and every stop's iterate within the tolerance of the reference
     solution (measured: at most 1e-8)."""
-    cfg = load_config(ROOT / "configs" / "hairball_demo.toml")
-    cfg.scene.n_wisps = 2
-    cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
-    cfg.time.initial_guess = "inertial"     # as measured (the demo sets FTL for its ccd contact)
-    cfg.time.length_projection = False      # likewise
-    cfg.time.carry_with_head = False        # likewise (carried, frame 0 lands elsewhere)
+    cfg = demo_without_strand_contact(2)
+    cfg.time.carry_with_head = False        # as measured (carried, frame 0 lands elsewhere)
     spec = "filter=exact_or_analytic,update=corotational,fallback=shifted"
     res = compare(cfg, [("main", spec), ("new", spec + ",stay=1,stop=quadratic_estimate")], COMM, 6)
     main, new = res["main"], res["new"]
@@ -110,11 +118,7 @@ def test_chord_stop_stops_at_the_first_iterate_within_the_tolerance():
     measures the next increment by a solve on the last exact matrix instead of taking
     the step, and stops at the first iterate within the tolerance in every frame
     (measured: 19 14 10 9 8 8 7 6; true errors at the stops at most 7.8e-7)."""
-    cfg = load_config(ROOT / "configs" / "hairball_demo.toml")
-    cfg.scene.n_wisps = 10
-    cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
-    cfg.time.initial_guess = "inertial"     # as measured (the demo sets FTL for its ccd contact)
-    cfg.time.length_projection = False      # likewise
+    cfg = demo_without_strand_contact(10)
     spec = "filter=exact_or_analytic,update=corotational,fallback=shifted,stay=1"
     res = compare(cfg, [("quadratic", spec + ",stop=quadratic_estimate"),
                         ("chord", spec + ",stop=chord_estimate")], COMM, 8)

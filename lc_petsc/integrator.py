@@ -19,7 +19,11 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
 * Termination: ``newton_iterations`` steps (default 3, the paper) or, when a tolerance
   is set, as soon as the last step's largest vertex increment relative to its wisp's
   rest length is below ``newton_increment_tol`` (and/or the absolute one below
-  ``newton_tol`` cm); per frame ``newton_converged`` and ``newton_increment`` record it.
+  ``newton_tol`` cm), and so is the error it implies at the iteration's observed
+  contraction (:func:`contraction_factor`: an iteration contracting by q per step is
+  still about d q / (1 - q) from its solution after a step of d; the analytic filter
+  crawling at q ~ 0.97 had stopped 40x the tolerance from it, docs/newton.md "Twelfth
+  round"); per frame ``newton_converged`` and ``newton_increment`` record it.
   ``time.newton_stop = "quadratic_estimate"`` also stops once two full exact steps in a
   row estimate the error below the tolerance / :data:`QUADRATIC_SAFETY`
   (:func:`quadratic_error_estimate`); ``newton_increment`` is then that estimate.
@@ -327,6 +331,7 @@ class Integrator:
         if self.history is not None:
             self._force_scale = self.frame_force_scale()
         fallbacks = chord_checks = 0
+        steps = []                              # this solve's relative increments, in order
         region = _Region() if self.trust is not None else None
         quadratic = []                          # the increments of the last full exact steps in a row
         for it in range(cfg.time.newton_iterations):
@@ -335,9 +340,10 @@ class Integrator:
                 g, dx, exact = self._trust_region_step(x, it, region)
                 x_prev, x = x, self.update(x, dx)
                 increment, absolute = self.increments(x - x_prev)
+                steps.append(increment)
                 if self.history is not None:
                     self._record_iteration(it, x_prev, x, g, increment, 1.0, exact)
-                converged = self._newton_converged(increment, absolute)
+                converged = self._newton_converged(steps, absolute)
                 if converged is not None:       # a short step is not convergence
                     converged = converged and region.interior
                 if converged:
@@ -367,9 +373,10 @@ class Integrator:
             if self.strand is not None:         # ccd mode: per vertex, collision-free path
                 x = self.strand.limit_step(x_prev, x)
             increment, absolute = self.increments(x - x_prev)
+            steps.append(increment)
             if self.history is not None:
                 self._record_iteration(it, x_prev, x, g, increment, alpha, exact)
-            converged = self._newton_converged(increment, absolute)
+            converged = self._newton_converged(steps, absolute)
             full = exact and alpha == 1.0 and self._shift == 0.0
             quadratic = quadratic + [increment] if full else []
             if not converged and cfg.time.newton_stop != "increment":
@@ -608,18 +615,21 @@ class Integrator:
         dx = self._solve_step(self.gradient(x), it, may_fail=True)
         return np.inf if dx is None else self.increments(dx)[0]
 
-    def _newton_converged(self, increment, absolute):
+    def _newton_converged(self, steps, absolute):
         """True/False against the tolerances that are set (both when both are), None
-        when neither is (a fixed iteration count)."""
+        when neither is (a fixed iteration count).  ``steps``: this solve's relative
+        increments so far (the last one's absolute size ``absolute`` cm); the last one,
+        times the :func:`contraction_factor` of the iteration, must be below each."""
         t = self.cfg.time
         if t.newton_increment_tol is None and t.newton_tol is None:
             return None
+        factor = float(contraction_factor(steps))
         ok = True
         if t.newton_increment_tol is not None:
-            ok = increment < t.newton_increment_tol
+            ok = steps[-1] * factor < t.newton_increment_tol
         if t.newton_tol is not None:
-            ok = ok and absolute < t.newton_tol
-        return ok
+            ok = ok and absolute * factor < t.newton_tol
+        return bool(ok)
 
     def frame_force_scale(self):
         """The frame's force scale |f_ext| + |M v_n| / dt + |grad V(x_n)| (2-norms over
@@ -661,6 +671,28 @@ def chord_stop(chord, increment, tol):
     ``increment`` (the chord and Newton steps differ by the change of the Hessian over
     the last step: measured at a tolerance of 3e-4 up to 31%, within 2% at 1e-6)."""
     return chord < CHORD_CONTRACTION * increment and chord * (1.0 + CHORD_MARGIN * increment) < tol
+
+
+def contraction_factor(increments):
+    """What the last of ``increments`` (a Newton solve's relative increments, oldest
+    first) must be multiplied by to bound the iterate's remaining error: max(1, q / (1 -
+    q)), q the contraction per step over the last two steps, sqrt(d_k / d_{k-2}) (d_k /
+    d_{k-1} after two steps): an iteration contracting by q per step has d q / (1 - q)
+    still to go after a step of d.  Over two steps because the filtered iterations
+    alternate, and because an exact step after a filtered one that grew shows its
+    quadratic rate already.  1 after a single step (no rate yet: the increment alone, the
+    rule before) or a zero step (a rejected trust-region step), and whenever q <= 1/2
+    (fast convergence: the increment bounds the error); inf when the increments did not
+    shrink.  The analytic filter crawls at q ~ 0.97 (factor ~ 35: its increment test had
+    stopped frames 35-42x the tolerance from the solution, docs/newton.md "Twelfth
+    round")."""
+    moved = [d for d in increments if d > 0.0]
+    if len(moved) < 2 or increments[-1] == 0.0:
+        return 1.0
+    q = float(np.sqrt(moved[-1] / moved[-3]) if len(moved) >= 3 else moved[-1] / moved[-2])
+    if q >= 1.0:
+        return float("inf")
+    return max(1.0, q / (1.0 - q))
 
 
 def quadratic_error_estimate(increments):

@@ -10,6 +10,11 @@ Markers (declared in pyproject.toml, ``--strict-markers``):
   ``sim_helpers.shared_scene_dir`` for files every rank reads.
 * ``slow``: takes more than a few seconds.
 
+Under ``mpiexec -n N`` (N > 1) only the ``mpi`` tests are collected, whatever ``-m`` says:
+the others are serial by design (per-rank temporary directories, their own ``mpiexec``
+launches, one-wisp scenes) and some would wait forever in a collective file open;
+they run in the serial suite.  The report's last lines say how many were left out.
+
 After every test, :func:`collective_teardown` frees what the test left behind on every
 rank at the same point: Python garbage (PETSc objects without ``destroy``), then PETSc's
 deferred destruction of parallel objects (``PETSc.garbage_cleanup``, collective), then a
@@ -29,6 +34,40 @@ import pytest
 _HELPERS = str(Path(__file__).resolve().parent)
 if _HELPERS not in sys.path:
     sys.path.insert(0, _HELPERS)
+
+
+_SERIAL_LEFT_OUT = pytest.StashKey[int]()
+
+
+def _world_size():
+    from mpi4py import MPI
+    return MPI.COMM_WORLD.size
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under mpiexec, keep only the collective (``mpi``) tests (see the module's note)."""
+    if _world_size() == 1:
+        return
+    serial = [item for item in items if item.get_closest_marker("mpi") is None]
+    if serial:
+        config.hook.pytest_deselected(items=serial)
+        items[:] = [item for item in items if item.get_closest_marker("mpi") is not None]
+        config.stash[_SERIAL_LEFT_OUT] = len(serial)
+
+
+def pytest_report_header(config):
+    if _world_size() > 1:
+        return (f"{_world_size()} MPI ranks: only the collective (mpi) tests run here; "
+                "the serial ones run in the serial suite")
+    return None
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    left_out = config.stash.get(_SERIAL_LEFT_OUT, 0)
+    if left_out:
+        terminalreporter.write_line(
+            f"{left_out} serial tests not run under {_world_size()} MPI ranks "
+            "(run them with `.venv/bin/python -m pytest -q`, without mpiexec)")
 
 
 @pytest.fixture(scope="session", autouse=True)

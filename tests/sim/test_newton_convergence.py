@@ -9,12 +9,14 @@ from mpi4py import MPI
 
 from lc_petsc.config import (ConfigError, MaterialConfig, PhysicsConfig, SceneConfig,
                              SimConfig, SolverConfig, TimeConfig)
-from lc_petsc.integrator import (corotational_update, follow_the_leader, project_rest_lengths,
-                                 retract_edge_lengths)
+from lc_petsc.integrator import (contraction_factor, corotational_update, follow_the_leader,
+                                 project_rest_lengths, retract_edge_lengths)
 from lc_petsc.simulator import build_simulator
-from lc_petsc.studies.newton import iterations_to, run_history
+from lc_petsc.studies.newton import configure, iterations_to, parse_variant, run_history
+from lc_petsc.studies.newton_frames import frame_iterations, reference_states
 from sim_helpers import chains as _chains
 from sim_helpers import rotate as _rotate
+from sim_helpers import small_hairball_config
 
 COMM = MPI.COMM_WORLD
 
@@ -186,6 +188,49 @@ def test_stopping_rule_and_summary():
     assert s["newton_increment"][0] > 1e-7
     # no tolerance: a fixed count, converged is null
     assert _summary(_smash(frames=1, newton_iterations=2))["newton_converged"] == [None]
+
+
+def test_contraction_factor():
+    """The increment is scaled by q / (1 - q) (q per step over the last two steps) once q
+    exceeds 1/2, never below 1, inf when the increments do not shrink."""
+    assert contraction_factor([1e-3]) == 1.0                    # no rate yet
+    assert contraction_factor([1e-3, 1e-4]) == 1.0              # q = 0.1
+    assert contraction_factor([1e-3, 9e-4]) == pytest.approx(9.0)
+    q = 0.97
+    assert contraction_factor([1.0, 5.0, 5.0 * q, 5.0 * q * q]) == pytest.approx(q / (1 - q))
+    # alternating increments: the two-step rate, not the last ratio alone
+    assert contraction_factor([6e-3, 3e-3, 5.7e-3]) == pytest.approx(np.sqrt(0.95) / (1 - np.sqrt(0.95)))
+    # an exact step after a filtered one that grew: its quadratic rate counts
+    assert contraction_factor([2.1e-4, 5.1e-4, 8e-7]) == 1.0
+    assert contraction_factor([1e-3, 2e-3]) == float("inf")
+    assert contraction_factor([1e-3, 1e-3, 1e-3]) == float("inf")
+    # a rejected trust-region step (0) is skipped; a zero step needs no factor
+    assert contraction_factor([1e-3, 0.0]) == 1.0
+    assert contraction_factor([1e-3, 0.0, 1e-4]) == 1.0
+
+
+def test_a_crawling_newton_is_not_claimed_converged():
+    """The analytic filter converges linearly at ~0.97 per iteration on two shaking-head
+    wisps: its increments fall below 1e-6 wisp lengths while the iterate is still 36-137x
+    that from the frame's solution (the rule before, measured).  Each frame solved from
+    the converged reference's start state: a frame claimed converged is within the
+    tolerance of the reference solution (1.1x: the rate is estimated), and the claim is
+    still made where it is true."""
+    tol, cap, frames = 1e-6, 300, 4
+    base = small_hairball_config(n_wisps=2, frames=frames)
+    exact = configure(base, parse_variant("filter=exact_or_analytic,update=corotational,"
+                                          "fallback=shifted"), 1, frames)
+    comm = MPI.COMM_SELF            # frame_iterations runs on one rank
+    states, ok = reference_states(exact, comm, frames)
+    assert ok
+    rows = frame_iterations(configure(base, parse_variant("filter=analytic,update=edge_retraction"),
+                                      cap, frames), comm, states, tol, cap)
+    claimed = [r for r in rows if r["converged"]]
+    assert claimed, "no frame converged: the test would not see a false claim"
+    for r in claimed:
+        assert r["errors"][r["iterations"] - 1] < 1.1 * tol, r
+    # the crawl is real: the unconverged frames end far from the solution after 300 steps
+    assert any(not r["converged"] and r["errors"][-1] > 2 * tol for r in rows)
 
 
 @pytest.mark.parametrize("key,value,match", [

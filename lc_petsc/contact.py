@@ -712,19 +712,27 @@ class StrandContact:
         return P, Prest, gv, free, owner, i, j, d
 
     # ------------------------------------------------------------- ccd mode
-    def limit_step(self, x, target):
+    def limit_step(self, x, target, linear=None):
         """The Newton update from x towards ``target`` (x + alpha dx, or its edge-length
-        retraction).  ``penalty`` mode: ``target``.  ``ccd`` mode: x + beta (target - x)
-        with per-vertex fractions beta of :meth:`_safe_fractions`, so that on the linear
-        path from x no two segments of different wisps come closer than min_separation
-        d0 (or half their distance at x, if already closer).  Per vertex rather than one
-        global minimum: one pair about to touch would otherwise stop the whole scene's
-        step.  Collective."""
+        retraction or corotational update).  ``penalty`` mode: ``target``.  ``ccd`` mode:
+        x + beta (target - x) with per-vertex fractions beta of :meth:`_safe_fractions`,
+        so that on the linear path from x no two segments of different wisps come closer
+        than min_separation d0 (or half their distance at x, if already closer).  Per
+        vertex rather than one global minimum: one pair about to touch would otherwise
+        stop the whole scene's step.  ``linear`` (x + alpha dx, when ``target`` is a
+        nonlinear update of it): if any vertex of ``target``'s path is cut, the linear
+        update is limited instead (fractions of a retracted step stretch the edges they
+        cut more: measured on six touching wisps, docs/contact.md), so the nonlinear
+        update is taken whole or not at all.  Collective (the count is global)."""
         if self.mode != "ccd":
             return target
         with self.timers("collision"):
             limited, n_limited, rounds = self._safe_fractions(
                 x, target, self.min_separation * self.d0, NEWTON_STEP_MOTION)
+            if n_limited and linear is not None:
+                limited, n_limited, more = self._safe_fractions(
+                    x, linear, self.min_separation * self.d0, NEWTON_STEP_MOTION)
+                rounds += more
             self.limited_vertices.add(n_limited)
             self.limit_rounds.add(rounds)
         return limited

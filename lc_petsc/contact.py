@@ -468,6 +468,10 @@ class StrandContact:
         # collision_free_frame call, 2 a frame), pairs left unresolved and candidate pairs
         # over all ranks (per _safe_fractions call)
         self.limited_vertices, self.limit_rounds = FrameTally(), FrameTally()
+        # ccd mode with a Newton tolerance: nonlinear updates replaced by the linear step
+        # (limit_step), and the last call's outcome
+        self.updates_replaced = FrameTally()
+        self.replaced = self.last_cut = False
         self.frame_fixes, self.unresolved_pairs = FrameTally(), FrameTally()
         self.limiter_candidates = FrameTally()
 
@@ -723,16 +727,24 @@ class StrandContact:
         nonlinear update of it): if any vertex of ``target``'s path is cut, the linear
         update is limited instead (fractions of a retracted step stretch the edges they
         cut more: measured on six touching wisps, docs/contact.md), so the nonlinear
-        update is taken whole or not at all.  Collective (the count is global)."""
+        update is taken whole or not at all; ``replaced`` then says so (and
+        ``updates_replaced`` counts it; ``limited_vertices`` counts both calls' cuts),
+        ``last_cut`` whether the positions returned were cut.  Collective (the counts
+        are global)."""
+        self.replaced = self.last_cut = False
         if self.mode != "ccd":
             return target
         with self.timers("collision"):
             limited, n_limited, rounds = self._safe_fractions(
                 x, target, self.min_separation * self.d0, NEWTON_STEP_MOTION)
             if n_limited and linear is not None:
-                limited, n_limited, more = self._safe_fractions(
+                self.replaced = True
+                self.updates_replaced.add(1)
+                self.limited_vertices.add(n_limited)        # the nonlinear target's cut
+                self.limit_rounds.add(rounds)
+                limited, n_limited, rounds = self._safe_fractions(
                     x, linear, self.min_separation * self.d0, NEWTON_STEP_MOTION)
-                rounds += more
+            self.last_cut = bool(n_limited)
             self.limited_vertices.add(n_limited)
             self.limit_rounds.add(rounds)
         return limited
@@ -997,7 +1009,8 @@ class StrandContact:
     def start_frame(self):
         """A new frame: the per-frame statistics start new entries."""
         for tally in (self.ghosts_received, self.cross_pairs, self.limited_vertices, self.limit_rounds,
-                      self.frame_fixes, self.unresolved_pairs, self.limiter_candidates):
+                      self.frame_fixes, self.unresolved_pairs, self.limiter_candidates,
+                      self.updates_replaced):
             tally.start_frame()
 
     def measure(self, x):

@@ -372,15 +372,24 @@ class Integrator:
             if cfg.time.line_search and not exact:
                 alpha = self._line_search(x, g, dx, 20, give_up=False)
             x_prev, x = x, self.update(x, alpha * dx, exact)
+            nonlinear = self.retract or (exact and self.turn_exact)
             if self.strand is not None:         # ccd mode: per vertex, collision-free path
-                linear = x_prev + alpha * dx if self.retract or (exact and self.turn_exact) else None
-                x = self.strand.limit_step(x_prev, x, linear)
+                x = self.strand.limit_step(x_prev, x, x_prev + alpha * dx if nonlinear else None)
             increment, absolute = self.increments(x - x_prev)
-            steps.append(increment)
+            if (alpha < 1.0 or self.strand is not None) and (
+                    cfg.time.newton_increment_tol is not None or cfg.time.newton_tol is not None):
+                # the stopping test measures the full step: a damped or limiter-cut step
+                # is short without the iterate being close (docs/newton.md "Twelfth round")
+                whole, whole_absolute = self.increments(dx)
+                steps.append(max(increment, whole))
+                absolute = max(absolute, whole_absolute)
+            else:
+                steps.append(increment)
             if self.history is not None:
                 self._record_iteration(it, x_prev, x, g, increment, alpha, exact)
             converged = self._newton_converged(steps, absolute)
-            full = exact and alpha == 1.0 and self._shift == 0.0
+            full = exact and alpha == 1.0 and self._shift == 0.0 and not (
+                self.strand is not None and self.strand.last_cut)
             quadratic = quadratic + [increment] if full else []
             if not converged and cfg.time.newton_stop != "increment":
                 estimate = quadratic_error_estimate(quadratic)

@@ -206,6 +206,8 @@ class Simulator:
             # unresolved, most candidate pairs of a limiter call
             "limited_vertices_per_frame": self.strand.limited_vertices.sums[1:],
             "limiter_rounds_per_frame": self.strand.limit_rounds.maxima[1:],
+            # with a Newton tolerance: nonlinear updates the limiter replaced by the linear step
+            "limiter_replaced_updates_per_frame": self.strand.updates_replaced.sums[1:],
             "frame_path_held_vertices_per_frame": self.strand.frame_fixes.sums[1:],
             "frame_path_checks_per_frame": self.strand.frame_fixes.counts[1:],
             "ccd_unresolved_pairs_per_frame": self.strand.unresolved_pairs.sums[1:],

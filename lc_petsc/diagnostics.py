@@ -72,6 +72,23 @@ def shape_measures(comm, x, x_rest, offsets, turn=5):
     return out
 
 
+def newton_warnings(cfg):
+    """Messages for Newton settings that cannot deliver what they ask: a tolerance with a
+    filtered Hessian alone (the analytic, numerical or abs filter, no exact steps), whose
+    iteration converges linearly (docs/newton.md "Twelfth round")."""
+    t, filt = cfg.time, cfg.solver.filter
+    asked = [f"time.{k} = {getattr(t, k):g}" for k in ("newton_increment_tol", "newton_tol")
+             if getattr(t, k) is not None]
+    if asked and filt in ("analytic", "numerical", "abs") and t.newton == "filtered":
+        return [f"{' and '.join(asked)} with solver.filter = {filt!r}: the filtered Newton "
+                "converges linearly (about 0.97 per iteration on the demo hairball), so frames "
+                "often miss the tolerance within time.newton_iterations and are cut back, and at "
+                "loose tolerances (1e-3, 1e-4) a frame can stop several times the tolerance from "
+                "its solution (docs/newton.md, \"Twelfth round\"); set solver.filter = "
+                "\"exact_or_analytic\" (with time.newton_update = \"corotational\") to converge"]
+    return []
+
+
 def term_warnings(sim):
     """Messages for terms (and head settings) that are on but can have no effect, and for
     ccd contact with the inertial first iterate (torn strands)."""

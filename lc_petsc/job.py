@@ -193,8 +193,8 @@ class Job:
 
     def _validate(self):
         """Step 2 (after the build): warnings, restart, frames.h5, disk space; raises Refused."""
-        from lc_petsc.diagnostics import term_warnings
-        for w in self.config_warnings + term_warnings(self.sim):
+        from lc_petsc.diagnostics import newton_warnings, term_warnings
+        for w in self.config_warnings + newton_warnings(self.sim.config) + term_warnings(self.sim):
             self._warn(w)
         rows_kept = 0
         if self.args.restart is not None:

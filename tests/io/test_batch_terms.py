@@ -3,6 +3,7 @@ not allocated (no element arrays, no buffers, a narrower matrix band) and adds n
 time; the summary names the terms that ran; a term that is on but can have no effect is
 warned about."""
 
+import json
 import tracemalloc
 
 import numpy as np
@@ -11,9 +12,11 @@ from mpi4py import MPI
 
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, SolverConfig,
                              TimeConfig)
-from lc_petsc.diagnostics import term_warnings
+from lc_petsc.batch import main
+from lc_petsc.diagnostics import newton_warnings, term_warnings
 from lc_petsc.elements import bend, head_contact, stretch, twist
 from lc_petsc.simulator import build_simulator
+from sim_helpers import hairball_toml
 
 SELF = MPI.COMM_SELF
 KERNEL_FUNCS = ("energy", "gradient", "hessian", "gradient_hessian")
@@ -159,3 +162,28 @@ def test_warn_when_ccd_runs_with_the_inertial_first_iterate(mode, guess, warned)
             assert 'set time.initial_guess = "follow_the_leader"' in w[0]
     finally:
         sim.close()
+
+
+@pytest.mark.parametrize("time, solver, warned", [
+    (dict(newton_increment_tol=1e-6), dict(filter="analytic"), True),
+    (dict(newton_tol=1e-5), dict(filter="abs"), True),
+    (dict(newton_increment_tol=1e-6), dict(filter="exact_or_analytic"), False),
+    (dict(newton_increment_tol=1e-6), dict(filter="none"), False),
+    (dict(), dict(filter="analytic"), False),                 # a fixed count asks for nothing
+])
+def test_warn_when_a_tolerance_meets_a_linearly_converging_newton(time, solver, warned):
+    cfg = SimConfig(time=TimeConfig(**time), solver=SolverConfig(**solver)).validate()
+    w = newton_warnings(cfg)
+    assert bool(w) == warned, w
+    if warned:
+        assert "converges linearly" in w[0] and "exact_or_analytic" in w[0]
+
+
+def test_the_job_reports_the_newton_warning(tmp_path):
+    """The main job puts it in summary.json's warnings."""
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(hairball_toml(n_wisps=2, frames=1).replace(
+        "[time]\n", "[time]\nnewton_increment_tol = 1e-3\nnewton_iterations = 4\nmax_substeps = 1\n"))
+    assert main([str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    warnings = json.loads((tmp_path / "out" / "summary.json").read_text())["warnings"]
+    assert any("converges linearly" in w for w in warnings), warnings

@@ -33,7 +33,9 @@ configs/hairball_2k.toml with strand contact): errors then measure only the Kryl
 tolerance's share (use with ``--axes ksp_rtol``; ``--rtols`` picks its values).
 
 Outputs in --out: tradeoff.csv, tradeoff.json, pareto.png (cost vs RMS error, front
-highlighted, unstable variants listed), recommendations.md.  Unstable variants (NaN,
+highlighted, unstable variants listed), recommendations.md.  Each run (the reference
+too) reports its frames cut back into substeps (``newton_cut_back_frames``): those are
+not solutions of the run's own dt.  Unstable variants (NaN,
 failed solves, blow-up) are rows with status "unstable", the failure kind, frame and
 message: the study never stops for them.
 """

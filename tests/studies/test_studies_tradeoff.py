@@ -12,7 +12,9 @@ from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfi
 from lc_petsc.studies.measures import compare_trajectories, curl_radius, stretch_strain
 from lc_petsc.studies.report import pareto_front
 from lc_petsc.solver_plan import KSP_RTOL_CONVERGING, KSP_RTOL_FIXED_COUNT
-from lc_petsc.studies.tradeoff import BASE, configure, default_variants, reference_settings, run_study
+from lc_petsc.studies.tradeoff import (BASE, configure, default_variants, reference_settings, run_study,
+                                      run_trajectory)
+from sim_helpers import small_hairball_config
 
 comm = MPI.COMM_WORLD
 
@@ -106,6 +108,11 @@ def test_study_outputs_and_unstable_variant(tmp_path):
     assert rec[0.1]["variant"] != "none+pbjacobi"
     md = (tmp_path / "recommendations.md").read_text()
     assert "| target RMS error |" in md and "SolverError at frame 0" in md
+    # the reference says whether it solved its own steps (cutback splits a frame)
+    ref = data["reference"]
+    assert ref["newton_cut_back_frames"] == 0 and ref["newton_unconverged_frames"] == 0
+    assert f"(0 of {ref['frames_run']} frames cut back into substeps, 0 not converged)" in md
+    assert all(r["newton_cut_back_frames"] == 0 for r in rows if r["stable"])
     png = tmp_path / "pareto.png"
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
 
@@ -133,3 +140,15 @@ def test_driver_base_reference_on_the_krylov_axis(tmp_path):
     assert all(r["stable"] and r["n_common_times"] == 5 for r in by.values())
     # looser Krylov solves move the trajectory further from the reference
     assert 0 < by["base"]["rms_rel_error"] < by["rtol 1e-02"]["rms_rel_error"] < 0.1
+
+
+def test_a_run_reports_its_frames_cut_back():
+    """Two shaking-head wisps to 1e-6 with a cap of 8 (tests/sim/test_step_cutback.py: no
+    frame converges at the full step, every one does in 2-5 substeps): the record counts
+    every frame as cut back; without cutback none."""
+    cfg = small_hairball_config(n_wisps=2, frames=4)
+    cut = replace(BASE, newton_iterations=8, newton_increment_tol=1e-6, filter="exact_or_analytic")
+    res, _, _ = run_trajectory(cfg, cut, 4 / 30, 1 / 30, comm)
+    assert res["status"] == "ok" and res["newton_cut_back_frames"] == 4, res
+    res, _, _ = run_trajectory(cfg, replace(cut, max_substeps=1), 4 / 30, 1 / 30, comm)
+    assert res["newton_cut_back_frames"] == 0 and res["newton_unconverged_frames"] == 4, res

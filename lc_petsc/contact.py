@@ -464,7 +464,8 @@ class StrandContact:
             self.step_fraction = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
             self.shrink = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
         # the limiter's statistics by frame (FrameTally): vertices whose step was cut (per
-        # limit_step call), its rounds, vertices held back on the frame paths (per
+        # limiter pass: two in a limit_step call that replaced its update), the rounds of
+        # a pass, vertices held back on the frame paths (per
         # collision_free_frame call, 2 a frame), pairs left unresolved and candidate pairs
         # over all ranks (per _safe_fractions call)
         self.limited_vertices, self.limit_rounds = FrameTally(), FrameTally()

@@ -82,7 +82,8 @@ def newton_warnings(cfg):
     if asked and filt in ("analytic", "numerical", "abs") and t.newton == "filtered":
         return [f"{' and '.join(asked)} with solver.filter = {filt!r}: the filtered Newton "
                 "converges linearly (about 0.97 per iteration on the demo hairball), so frames "
-                "often miss the tolerance within time.newton_iterations and are cut back, and at "
+                "often miss the tolerance within time.newton_iterations (they are then cut back "
+                "into substeps, or reported unconverged), and at "
                 "loose tolerances (1e-3, 1e-4) a frame can stop several times the tolerance from "
                 "its solution (docs/newton.md, \"Twelfth round\"); set solver.filter = "
                 "\"exact_or_analytic\" (with time.newton_update = \"corotational\") to converge"]

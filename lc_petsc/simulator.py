@@ -201,8 +201,8 @@ class Simulator:
             "mode": self.strand.mode,
             "potential": self.strand.potential,
             "barrier_stiffness": self.strand.barrier_stiffness,
-            # the ccd limiter, per frame: vertices limited (summed over the Newton steps),
-            # most rounds of a Newton step, vertices held back on the frame paths, pairs left
+            # the ccd limiter, per frame: vertices limited (summed over the limiter passes
+            # of the Newton steps), most rounds of a pass, vertices held back on the frame paths, pairs left
             # unresolved, most candidate pairs of a limiter call
             "limited_vertices_per_frame": self.strand.limited_vertices.sums[1:],
             "limiter_rounds_per_frame": self.strand.limit_rounds.maxima[1:],

@@ -497,3 +497,34 @@ def test_cut_nonlinear_updates_are_replaced_in_the_run(monkeypatch):
     replaced = comm.bcast(replaced)
     assert linear_given and all(linear_given), linear_given
     assert sum(replaced) > 0, replaced
+
+
+def test_a_cut_step_is_measured_by_its_full_step(monkeypatch):
+    """ccd mode with a tolerance: a limiter that cuts the k-th update of a frame to 10^-k
+    of its length makes the steps shrink 10x per iteration without the iterate moving.
+    The stop measures the full Newton step, so no frame is called converged, and
+    newton_increment reports a step above the tolerance (measured by the cut step, both
+    said converged after a few iterations)."""
+    monkeypatch.setattr(simmod, "source_from_config",
+                        lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
+    cfg = touching_wisps_config(2)
+    cfg.physics.strand_contact_mode = "ccd"
+    cfg.time.newton_update = "linear"
+    cfg.time.newton_iterations = 8
+    cfg.time.newton_increment_tol = 1e-6
+    cfg.time.max_substeps = 1
+    sim = simmod.build_simulator(cfg.validate(), comm=comm)
+    st = sim.integrator.strand
+    calls = []
+
+    def shrinking(x, target, linear=None):
+        calls.append(1)
+        st.replaced, st.last_cut = False, True
+        return x + 10.0 ** -(1 + (len(calls) - 1) % 8) * (target - x)
+
+    monkeypatch.setattr(st, "limit_step", shrinking)
+    summ = frames_run(sim, 2)[1]
+    converged, increments = comm.bcast((summ["newton_converged"], summ["newton_increment"])
+                                       if comm.rank == 0 else None)
+    assert converged == [False, False], (converged, increments)
+    assert all(d > 1e-6 for d in increments), increments

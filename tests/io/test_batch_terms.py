@@ -170,6 +170,8 @@ def test_warn_when_ccd_runs_with_the_inertial_first_iterate(mode, guess, warned)
     (dict(newton_increment_tol=1e-6), dict(filter="exact_or_analytic"), False),
     (dict(newton_increment_tol=1e-6), dict(filter="none"), False),
     (dict(), dict(filter="analytic"), False),                 # a fixed count asks for nothing
+    # the trust region's model is the exact Hessian (the filter only preconditions)
+    (dict(newton_increment_tol=1e-6, newton="trust_region"), dict(filter="analytic"), False),
 ])
 def test_warn_when_a_tolerance_meets_a_linearly_converging_newton(time, solver, warned):
     cfg = SimConfig(time=TimeConfig(**time), solver=SolverConfig(**solver)).validate()

@@ -153,8 +153,9 @@ class Integrator:
         # the update (x, step) -> next iterate (see update); ccd mode at a fixed count:
         # linear (the limiter would cut most nonlinear updates of a large scene, and each
         # cut costs a second limiter call); the mode means nothing without strand contact
-        nonlinear = not (strand is not None and config.physics.strand_contact_mode == "ccd"
-                         and config.time.newton_increment_tol is None and config.time.newton_tol is None)
+        #: a tolerance is set (Newton runs to convergence, not a fixed count)
+        self.converging = config.time.newton_increment_tol is not None or config.time.newton_tol is not None
+        nonlinear = self.converging or not (strand is not None and config.physics.strand_contact_mode == "ccd")
         self.retract = nonlinear and config.time.newton_update in ("edge_retraction", "corotational")
         self.turn_exact = nonlinear and config.time.newton_update == "corotational"
         self.wisp_length = vertex_wisp_length(scene.x_rest, scene.offsets)
@@ -373,13 +374,12 @@ class Integrator:
             if cfg.time.line_search and not exact:
                 alpha = self._line_search(x, g, dx, 20, give_up=False)
             x_prev, x = x, self.update(x, alpha * dx, exact)
-            nonlinear = self.retract or (exact and self.turn_exact)
             if self.strand is not None:         # ccd mode: per vertex, collision-free path
+                nonlinear = self.retract or (exact and self.turn_exact)
                 x = self.strand.limit_step(x_prev, x, x_prev + alpha * dx if nonlinear else None)
             increment, absolute = self.increments(x - x_prev)
             measure = increment
-            if (alpha < 1.0 or (self.strand is not None and self.strand.mode == "ccd")) and (
-                    cfg.time.newton_increment_tol is not None or cfg.time.newton_tol is not None):
+            if self.converging and (alpha < 1.0 or (self.strand is not None and self.strand.mode == "ccd")):
                 # a damped or limiter-cut step is short without the iterate being close:
                 # the full step measures it for the stop and newton_increment (docs/newton.md
                 # "Twelfth round"; the exact switch keeps the step taken: switching on the
@@ -642,7 +642,7 @@ class Integrator:
         t = self.cfg.time
         if t.newton_increment_tol is None and t.newton_tol is None:
             return None
-        factor = float(contraction_factor(steps))
+        factor = contraction_factor(steps)
         ok = True
         if t.newton_increment_tol is not None:
             ok = steps[-1] * factor < t.newton_increment_tol

@@ -136,13 +136,16 @@ def test_ccd_rank_invariance_with_the_carried_first_iterate(monkeypatch):
     ok, msg = comm.bcast((ok, msg))
     assert ok, msg
 
-def six_wisps_ccd(monkeypatch):
-    """A simulator of the six in-phase touching wisps (straight stems pinned) in ccd mode."""
+def six_wisps_ccd(monkeypatch, frames=1, **time):
+    """A simulator of the six in-phase touching wisps (straight stems pinned) in ccd mode;
+    ``time``: TimeConfig fields to set."""
     monkeypatch.setattr(simmod, "source_from_config",
                         lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
-    cfg = touching_wisps_config(1)
+    cfg = touching_wisps_config(frames)
     cfg.physics.strand_contact_mode = "ccd"
-    return simmod.build_simulator(cfg, comm=comm)
+    for key, value in time.items():
+        setattr(cfg.time, key, value)
+    return simmod.build_simulator(cfg.validate(), comm=comm)
 
 
 def test_limiter_candidates_serve_the_next_pair_search(monkeypatch):
@@ -474,15 +477,8 @@ def test_cut_nonlinear_updates_are_replaced_in_the_run(monkeypatch):
     """The six touching wisps in ccd mode with a Newton tolerance and the edge retraction
     (contact active, the limiter cutting): every Newton update reaches the limiter with
     its linear step, and the limiter replaced some (a cut retracted step is never kept)."""
-    monkeypatch.setattr(simmod, "source_from_config",
-                        lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
-    cfg = touching_wisps_config(3)
-    cfg.physics.strand_contact_mode = "ccd"
-    cfg.time.newton_update = "edge_retraction"
-    cfg.time.newton_iterations = 6
-    cfg.time.newton_increment_tol = 1e-6
-    cfg.time.max_substeps = 1
-    sim = simmod.build_simulator(cfg.validate(), comm=comm)
+    sim = six_wisps_ccd(monkeypatch, 3, newton_update="edge_retraction", newton_iterations=6,
+                        newton_increment_tol=1e-6, max_substeps=1)
     st = sim.integrator.strand
     linear_given = []
     limit = st.limit_step
@@ -505,15 +501,8 @@ def test_a_cut_step_is_measured_by_its_full_step(monkeypatch):
     The stop measures the full Newton step, so no frame is called converged, and
     newton_increment reports a step above the tolerance (measured by the cut step, both
     said converged after a few iterations)."""
-    monkeypatch.setattr(simmod, "source_from_config",
-                        lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
-    cfg = touching_wisps_config(2)
-    cfg.physics.strand_contact_mode = "ccd"
-    cfg.time.newton_update = "linear"
-    cfg.time.newton_iterations = 8
-    cfg.time.newton_increment_tol = 1e-6
-    cfg.time.max_substeps = 1
-    sim = simmod.build_simulator(cfg.validate(), comm=comm)
+    sim = six_wisps_ccd(monkeypatch, 2, newton_update="linear", newton_iterations=8,
+                        newton_increment_tol=1e-6, max_substeps=1)
     st = sim.integrator.strand
     calls = []
 

@@ -143,6 +143,9 @@ class MaterialConfig:
     Radii taper linearly from ``root_radius`` to ``tip_radius`` along each wisp.  For the
     hairball, ``radius_scale_with_count`` scales both by sqrt(2000 / n_wisps) (SPEC 6).
     ``shear_modulus = None`` means E / 3 (incompressible isotropic).
+    ``twist_rest_sine``: a twist element whose rest stencil is straight has no rest
+    torsion; its stiffness fades to 0 below this sine of the smaller rest bend angle
+    (``twist.rest_weight``; 0: every element at full stiffness, docs/elements.md).
     """
 
     youngs_modulus: float = 1.0e9
@@ -151,6 +154,7 @@ class MaterialConfig:
     root_radius: float = 0.35
     tip_radius: float = 0.07
     radius_scale_with_count: bool = True
+    twist_rest_sine: float = 0.05
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
@@ -166,6 +170,11 @@ class MaterialConfig:
         _positive("material.density", self.density)
         _positive("material.root_radius", self.root_radius)
         _positive("material.tip_radius", self.tip_radius)
+        sine = self.twist_rest_sine
+        if isinstance(sine, bool) or not isinstance(sine, (int, float)) or not 0.0 <= sine < 1.0:
+            raise ConfigError(f"material.twist_rest_sine must be a number in [0, 1) (the sine of the "
+                              f"rest bend angle below which twist fades out; 0 turns the fading "
+                              f"off), got {sine!r}")
 
     @property
     def G(self) -> float:

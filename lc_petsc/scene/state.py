@@ -8,7 +8,8 @@ partition) and computes, for the enabled terms only:
 * bend elements (i-1, i, i+1): rest angle via ``bend.angle``, k_b = E I_i / l_i with
   the Voronoi length l_i = (Lbar_{i-1} + Lbar_i) / 2;
 * twist elements (i .. i+3): rest angle via ``twist.angle``, k_t = G J / Lbar_mid with
-  the middle edge's mean radius;
+  the middle edge's mean radius, times ``twist.rest_weight`` (0 where the rest stencil
+  is straight: no rest torsion);
 * lumped masses: each edge gives 1/2 rho A_e Lbar_e to both of its vertices.
 
 Element arrays store the *first vertex* (``start``) of each element; an element's
@@ -167,8 +168,9 @@ class LocalScene:
             s = cls.starts(off, 4)
             xe = x[s[:, None] + np.arange(4)]
             mid = edge_of[s + 1]
-            td["twist"] = TermData("twist", 4, s, twist.angle(xe),
-                                   weights.twist_stiffness(G[wid[s]], r_e[mid], Lbar[mid]))
+            k_t = (weights.twist_stiffness(G[wid[s]], r_e[mid], Lbar[mid])
+                   * twist.rest_weight(xe, float(material.twist_rest_sine)))
+            td["twist"] = TermData("twist", 4, s, twist.angle(xe), k_t)
         for t in td.values():
             badk = ~(np.isfinite(t.stiffness) & (t.stiffness >= 0))
             if badk.any():

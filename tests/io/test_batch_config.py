@@ -80,6 +80,8 @@ BAD = [
     ("negative dt", GOOD.replace("frames = 2", "frames = 2\ndt = -0.01"),
      ["time.dt", "-0.01", "positive"]),
     ("zero density", GOOD + "[material]\ndensity = 0\n", ["material.density", "got 0", "positive"]),
+    ("twist rest sine of 1", GOOD + "[material]\ntwist_rest_sine = 1.0\n",
+     ["material.twist_rest_sine", "[0, 1)", "got 1.0"]),
     ("Newton count < 1", GOOD.replace("frames = 2", "frames = 2\nnewton_iterations = 0"),
      ["time.newton_iterations", ">= 1", "got 0"]),
     ("unknown term", GOOD.replace('"gravity"]', '"gravity", "bending"]'),

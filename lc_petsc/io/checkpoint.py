@@ -106,8 +106,9 @@ def _normal(d):
 
 #: Keys whose default is not what the versions before them did: a checkpoint without
 #: the key ran as this value (time.carry_with_head came on 2026-12-05, default true; the
-#: code before it did not carry).
-LEGACY_VALUES = {"time.carry_with_head": False}
+#: code before it did not carry; material.twist_rest_sine on 2026-12-06, default 0.05;
+#: the code before it kept every twist element at full stiffness).
+LEGACY_VALUES = {"time.carry_with_head": False, "material.twist_rest_sine": 0.0}
 
 
 def config_differences(saved, current, ignore=(), defaults=None):

@@ -292,18 +292,24 @@ def test_a_key_newer_than_the_checkpoint_is_no_difference_at_its_default():
     assert config_differences(saved, current, defaults=defaults) == ["solver.exact_stay", "time.dt"]
 
 
-def test_a_checkpoint_from_before_the_carry_is_a_difference_with_it_on():
+@pytest.mark.parametrize("key, legacy", [("time.carry_with_head", False),
+                                         ("material.twist_rest_sine", 0.0)])
+def test_a_checkpoint_from_before_a_key_is_a_difference_with_its_new_default(key, legacy):
     """time.carry_with_head (2026-12-05) defaults to true, but the code before it did not
-    carry: a checkpoint without the key ran uncarried, so restarting it carried is a
-    config difference (refused without --force), and with the key set false none."""
+    carry; material.twist_rest_sine (2026-12-06) defaults to 0.05, the code before it did
+    not fade: a checkpoint without the key ran as the legacy value, so restarting it with
+    the new default is a config difference (refused without --force), and with the key
+    set to the legacy value none."""
     from lc_petsc.config import SimConfig
     from lc_petsc.io.checkpoint import config_differences
+    table, name = key.split(".")
     defaults = SimConfig().to_dict()
     saved = SimConfig().to_dict()
-    del saved["time"]["carry_with_head"]
+    del saved[table][name]
     current = SimConfig().to_dict()
-    assert config_differences(saved, current, defaults=defaults) == ["time.carry_with_head"]
-    current["time"]["carry_with_head"] = False
+    assert current[table][name] != legacy
+    assert config_differences(saved, current, defaults=defaults) == [key]
+    current[table][name] = legacy
     assert config_differences(saved, current, defaults=defaults) == []
 
 

@@ -190,7 +190,9 @@ class PhysicsConfig:
     sphere (radius ``head_radius`` + ``head_margin``); ``head_stiffness`` k in dyn/cm.
     The head (sphere and pinned roots) follows ``head_motion``: ``static``, ``shake``
     (rotate back and forth about z, then y, then x; ``head_amplitude`` rad, each axis for
-    ``head_period`` s) or ``translate`` (constant ``head_velocity`` cm/s).
+    ``head_period`` s; ``head_smooth``: each axis's swing starts and ends at rest, so the
+    head's angular velocity never jumps) or ``translate`` (constant ``head_velocity``
+    cm/s).
     """
 
     terms: Sequence[str] = ("stretch", "bend", "twist", "gravity")
@@ -202,6 +204,7 @@ class PhysicsConfig:
     head_motion: str = "static"
     head_amplitude: float = 0.5
     head_period: float = 6.0
+    head_smooth: bool = False
     head_velocity: Sequence[float] = (0.0, 0.0, 0.0)
     # strand_collision (docs/contact.md): penalty 1/2 k (d0 - d)^2 on the distance d of two
     # segments of different wisps below the thickness d0 (None: twice the smallest vertex
@@ -686,6 +689,8 @@ _CONDITIONAL_KEYS = {
     ("physics", "head_amplitude"): (lambda c: c.physics.head_motion == "shake",
                                     "physics.head_motion = 'shake'"),
     ("physics", "head_period"): (lambda c: c.physics.head_motion == "shake",
+                                 "physics.head_motion = 'shake'"),
+    ("physics", "head_smooth"): (lambda c: c.physics.head_motion == "shake",
                                  "physics.head_motion = 'shake'"),
     ("physics", "head_velocity"): (lambda c: c.physics.head_motion == "translate",
                                    "physics.head_motion = 'translate'"),

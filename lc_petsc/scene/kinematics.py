@@ -3,7 +3,12 @@ roots and the head sphere.
 
 x(t) = c + T(t) + R(t) (x_rest - c) for pinned vertices; sphere centre c + T(t).
 ``static``: R = I, T = 0.  ``shake``: rotation back and forth about z, then y, then x
-(each axis for one ``period``, angle ``amplitude * sin(2 pi t / period)``), repeating.
+(each axis for one ``period``, angle ``amplitude * sin(2 pi tau)``, tau = t / period
+within the axis's period), repeating.  Its angular velocity is largest where the angle
+is 0, so it jumps from 0 at t = 0 and turns by 90 degrees at every change of axis: the
+roots are kicked to full speed in one step.  With ``smooth`` the angle is
+``amplitude * sin(2 pi tau) sin(pi tau) / SMOOTH_PEAK`` (the same extremes, reached
+later): every swing starts and ends at rest, so the angular velocity is continuous.
 ``translate``: R = I, T = ``velocity`` * t.
 """
 
@@ -12,6 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 _AXES = (np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0]))
+
+#: max over tau of sin(2 pi tau) sin(pi tau) = 2 s^2 c at c = cos(pi tau) = 1 / sqrt(3)
+SMOOTH_PEAK = 4.0 / (3.0 * np.sqrt(3.0))
 
 
 def _rotation(axis, angle):
@@ -28,13 +36,19 @@ class HeadMotion:
         self.radius = float(physics.head_radius)
         self.amplitude = float(physics.head_amplitude)
         self.period = float(physics.head_period)
+        self.smooth = bool(physics.head_smooth)
         self.velocity = np.asarray(physics.head_velocity, float)
 
     def transform(self, t):
         """The head's rotation (3, 3) and translation (3,) at time ``t``."""
         if self.kind == "shake":
-            axis = _AXES[int(np.floor(t / self.period)) % 3]
-            ang = self.amplitude * np.sin(2.0 * np.pi * t / self.period)
+            k = np.floor(t / self.period)
+            axis = _AXES[int(k) % 3]
+            if self.smooth:
+                tau = t / self.period - k
+                ang = self.amplitude * np.sin(2.0 * np.pi * tau) * np.sin(np.pi * tau) / SMOOTH_PEAK
+            else:
+                ang = self.amplitude * np.sin(2.0 * np.pi * t / self.period)
             return _rotation(axis, ang), np.zeros(3)
         if self.kind == "translate":
             return np.eye(3), self.velocity * t

@@ -144,8 +144,9 @@ class MaterialConfig:
     hairball, ``radius_scale_with_count`` scales both by sqrt(2000 / n_wisps) (SPEC 6).
     ``shear_modulus = None`` means E / 3 (incompressible isotropic).
     ``twist_rest_sine``: a twist element whose rest stencil is straight has no rest
-    torsion; its stiffness fades to 0 below this sine of the smaller rest bend angle
-    (``twist.rest_weight``; 0: every element at full stiffness, docs/elements.md).
+    torsion; its stiffness is 0 up to half this sine of the smaller rest bend angle and
+    full from it on (``twist.rest_weight``; 0: every element at full stiffness,
+    docs/elements.md).
     """
 
     youngs_modulus: float = 1.0e9

@@ -142,13 +142,13 @@ def rest_weight(x, sine):
     The torsion of a straight stencil is undefined, and near it the angle turns by O(1)
     when a vertex moves by O(s |e|), s = min(|a| / |e0|, |b| / |e2|) (the sine of the
     smaller bend angle): a stencil straight at rest has no rest torsion to return to, and
-    one nearly straight at rest has a rest angle that its noise decides.  The weight is
-    the smooth step w = t^2 (3 - 2 t), t = min(s / ``sine``, 1): 0 for a straight rest
-    stencil (s below ``DEGENERATE_TOL``, the kernels' rule), exactly 1 from s = ``sine``
-    on, and w / s^2 <= 3 / sine^2 below, so the twist element's stiffness in positions,
-    w k_t / (s |e|)^2, stays bounded.
-    ``sine`` = 0: every element weighs 1 (the paper's rule alone: elements degenerate in
-    the current stencil are dropped, see the module doc).  docs/elements.md."""
+    one nearly straight at rest has a rest angle that its noise decides, and passes
+    through straight (where the energy jumps, module doc) whenever it bends by its
+    noise.  The weight is 0 for s <= ``sine`` / 2, the smooth step t^2 (3 - 2 t) of t =
+    2 s / ``sine`` - 1 up to s = ``sine``, and exactly 1 from there on (so curled
+    stencils keep their stiffness bit for bit).  ``sine`` = 0: every element weighs 1
+    (the paper's rule alone: elements degenerate in the current stencil are dropped, see
+    the module doc).  docs/elements.md."""
     x = check_positions(x, 4, TERM)
     if not (np.isfinite(sine) and 0.0 <= sine < 1.0):
         raise ValueError(f"twist rest sine {sine!r} must be in [0, 1): the sine of the bend "
@@ -159,9 +159,8 @@ def rest_weight(x, sine):
     n0, n1, n2 = (np.linalg.norm(e, axis=1) for e in (e0, e1, e2))
     s0 = np.linalg.norm(np.cross(e0, e1), axis=1) / (n0 * n1)
     s1 = np.linalg.norm(np.cross(e2, e1), axis=1) / (n2 * n1)
-    s = np.minimum(s0, s1)
-    t = np.minimum(s / sine, 1.0)
-    return np.where(s < DEGENERATE_TOL, 0.0, t * t * (3.0 - 2.0 * t))
+    t = np.clip(2.0 * np.minimum(s0, s1) / sine - 1.0, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
 
 
 def angle(x):

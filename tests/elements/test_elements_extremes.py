@@ -10,8 +10,9 @@ Documented rules checked:
   P = I - t0 t0^T, c = sign(t0.t1); energy 1/2 k (theta - thetabar)^2 with theta = pi or 0;
 * twist, |a| < DEGENERATE_TOL |e0| or |b| < DEGENERATE_TOL |e2|: energy, gradient and
   Hessian zero;
-* twist, the rest weight (``twist.rest_weight``): 0 for a straight rest stencil, 1 from
-  the configured sine on, a smooth step between;
+* twist, the rest weight (``twist.rest_weight``): 0 for a straight or nearly straight
+  rest stencil (sine below half the configured one), 1 from the configured sine on, a
+  smooth step between;
 * twist with a parallel or antiparallel to b (phi = 0 or pi, a planar stencil, and
   nearly so): phi is smooth there, so gradient and exact Hessian must match finite
   differences of a signed-angle reference, and the filtered Hessians must stay of the size
@@ -210,23 +211,27 @@ def test_twist_nearly_collinear_outer_edge(ratio):
 
 
 def test_twist_rest_weight():
-    """twist.rest_weight: 0 for a straight rest stencil, exactly 1 from the sine on, the
-    smooth step t^2 (3 - 2 t) of t = min(s / sine, 1) between (s the smaller of |a| / |e0|
-    and |b| / |e2|), so w / s^2 <= 3 / sine^2; sine 0: all ones; bad sine: an error."""
+    """twist.rest_weight: 0 up to half the sine (a straight or noisy-straight rest
+    stencil), exactly 1 from the sine on, the smooth step t^2 (3 - 2 t) of t = 2 s / sine - 1
+    between (s the smaller of |a| / |e0| and |b| / |e2|), continuous and monotone; sine 0:
+    all ones; bad sine: an error."""
     rng = np.random.default_rng(350)
     sine = 0.05
-    ratios = np.array([0.0, 1e-9, 1e-4, 1e-2, 0.025, 0.0499, 0.05, 0.3, 0.99])
+    ratios = np.array([0.0, 1e-9, 1e-4, 1e-2, 0.025, 0.03, 0.0375, 0.0499, 0.05, 0.3, 0.99])
     x = np.array([_twist_with_ab_ratio(rng, r if i % 2 else 0.8, 0.8 if i % 2 else r,
                                        L=10 ** rng.uniform(-2, 1, 3))
                   for i, r in enumerate(ratios)])
     with eh.no_numpy_warnings():
         w = twist.rest_weight(x, sine)
-    t = np.where(ratios < twist.DEGENERATE_TOL, 0.0, np.minimum(ratios / sine, 1.0))
-    np.testing.assert_allclose(w, t * t * (3 - 2 * t), rtol=1e-9, atol=0)
-    assert w[0] == w[1] == 0.0 and np.all(w[ratios >= sine] == 1.0)
+    t = np.clip(2 * ratios / sine - 1, 0.0, 1.0)
+    np.testing.assert_allclose(w, t * t * (3 - 2 * t), rtol=1e-9, atol=1e-12)
+    assert np.all(w[ratios <= sine / 2] == 0.0) and np.all(w[ratios >= sine] == 1.0)
+    assert w[6] == pytest.approx(0.5, abs=1e-9)              # the step's middle
     assert np.all(np.diff(w) >= 0)
-    small = (ratios > twist.DEGENERATE_TOL) & (ratios < sine)
-    assert np.all(w[small] / ratios[small] ** 2 <= 3 / sine ** 2)
+    # continuous: a small change of the rest stencil changes the weight a little
+    s = np.linspace(0.0, 2 * sine, 4001)
+    tt = np.clip(2 * s / sine - 1, 0, 1)
+    assert np.abs(np.diff(tt * tt * (3 - 2 * tt))).max() < 4 * (s[1] - s[0]) / sine
     np.testing.assert_array_equal(twist.rest_weight(x, 0.0), 1.0)
     for bad in (-0.1, 1.0, np.nan):
         with pytest.raises(ValueError, match="twist rest sine"):

@@ -261,6 +261,8 @@ class PhysicsConfig:
         if not isinstance(self.strand_separation, bool):
             raise ConfigError(f"physics.strand_separation must be true or false, "
                               f"got {self.strand_separation!r}")
+        if not isinstance(self.head_smooth, bool):
+            raise ConfigError(f"physics.head_smooth must be true or false, got {self.head_smooth!r}")
         if self.strand_contact_mode not in STRAND_CONTACT_MODES:
             raise ConfigError(f"physics.strand_contact_mode must be one of {STRAND_CONTACT_MODES}, "
                               f"got {self.strand_contact_mode!r}")
@@ -691,6 +693,8 @@ _CONDITIONAL_KEYS = {
                                     "physics.head_motion = 'shake'"),
     ("physics", "head_period"): (lambda c: c.physics.head_motion == "shake",
                                  "physics.head_motion = 'shake'"),
+    ("material", "twist_rest_sine"): (lambda c: "twist" in c.physics.terms,
+                                      "'twist' in physics.terms"),
     ("physics", "head_smooth"): (lambda c: c.physics.head_motion == "shake",
                                  "physics.head_motion = 'shake'"),
     ("physics", "head_velocity"): (lambda c: c.physics.head_motion == "translate",

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from lc_petsc.config import PhysicsConfig
-from lc_petsc.scene.kinematics import SMOOTH_PEAK, HeadMotion
+from lc_petsc.scene.kinematics import _AXES, SMOOTH_PEAK, HeadMotion, _rotation
 
 A, T = 0.5, 1.0
 
@@ -22,16 +22,26 @@ def _omega(head, t, h=1e-7):
     return np.array([W[2, 1], W[0, 2], W[1, 0]])
 
 
-def _angle(head, t):
-    R = head.transform(t)[0]
-    return np.arctan2(np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2,
-                      (np.trace(R) - 1) / 2)
+def _expected(t, smooth):
+    """The head's rotation at t from the documented formulas (signed angle, axis z, y, x)."""
+    k = int(np.floor(t / T))
+    tau = t / T - k
+    angle = (A * np.sin(2 * np.pi * tau) * np.sin(np.pi * tau) / SMOOTH_PEAK if smooth
+             else A * np.sin(2 * np.pi * t / T))
+    return _rotation(_AXES[k % 3], angle)
 
 
-def test_sine_shake_is_amplitude_times_sine():
-    head = _head(False)
-    for t in (0.1, 0.37, 1.2, 2.9):
-        assert _angle(head, t) == pytest.approx(abs(A * np.sin(2 * np.pi * t / T)), abs=1e-12)
+TIMES = (0.1, 0.37, 0.9, 1.2, 1.61, 2.25, 2.9, 3.4)
+
+
+@pytest.mark.parametrize("smooth", [False, True])
+def test_shake_rotation_is_the_documented_one(smooth):
+    """Both profiles, signed, on each axis in turn (z, y, x, then z again)."""
+    head = _head(smooth)
+    for t in TIMES:
+        np.testing.assert_allclose(head.transform(t)[0], _expected(t, smooth), rtol=0, atol=1e-13)
+    if smooth:      # a different rotation from the sine's away from the swings' ends
+        assert all(np.abs(head.transform(t)[0] - _expected(t, False)).max() > 1e-3 for t in TIMES)
 
 
 @pytest.mark.parametrize("switch", [0.0, 1.0, 2.0])
@@ -48,10 +58,18 @@ def test_smooth_shake_starts_and_ends_each_swing_at_rest(switch):
 
 
 def test_smooth_shake_reaches_the_amplitude_both_ways():
+    """On every axis the smooth swing reaches +A and -A (the head's rotation there is
+    exactly the rotation by +-A about that axis)."""
     head = _head(True)
-    t = np.linspace(0.0, T, 20001)
-    signed = A * np.sin(2 * np.pi * t / T) * np.sin(np.pi * t / T) / SMOOTH_PEAK
-    assert signed.max() == pytest.approx(A, rel=1e-6) and signed.min() == pytest.approx(-A, rel=1e-6)
-    for ti in (0.2, 0.61, 0.9):
-        assert _angle(head, ti) == pytest.approx(abs(A * np.sin(2 * np.pi * ti) * np.sin(np.pi * ti))
-                                                 / SMOOTH_PEAK, abs=1e-12)
+    c = 1 / np.sqrt(3)                                     # cos(pi tau) at the extremes
+    tau_pos, tau_neg = np.arccos(c) / np.pi, np.arccos(-c) / np.pi
+    for k in range(3):
+        for tau, sign in ((tau_pos, 1.0), (tau_neg, -1.0)):
+            np.testing.assert_allclose(head.transform((k + tau) * T)[0], _rotation(_AXES[k], sign * A),
+                                       rtol=0, atol=1e-12)
+
+
+def test_head_smooth_must_be_a_boolean():
+    from lc_petsc.config import ConfigError
+    with pytest.raises(ConfigError, match="physics.head_smooth must be true or false, got 'false'"):
+        PhysicsConfig(head_motion="shake", head_smooth="false").validate()

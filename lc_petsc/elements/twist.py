@@ -48,6 +48,7 @@ Shapes: x (n, 4, 3); rest_angle, stiffness (n,) or scalars; energy (n,); gradien
 
 import numpy as np
 
+from lc_petsc.elements import bend
 from lc_petsc.elements.angle import (AngleFrame, any_perpendicular, cross3, dot3, norm3,
                                      wrap_angle)
 from lc_petsc.elements.common import (check_filter, check_finite, check_per_element,
@@ -155,11 +156,9 @@ def rest_weight(x, sine):
                          "angle below which a straight rest stencil's torsion is faded out")
     if sine == 0.0:
         return np.ones(x.shape[0])
-    e0, e1, e2 = x[:, 0] - x[:, 1], x[:, 2] - x[:, 1], x[:, 3] - x[:, 2]
-    n0, n1, n2 = (np.linalg.norm(e, axis=1) for e in (e0, e1, e2))
-    s0 = np.linalg.norm(np.cross(e0, e1), axis=1) / (n0 * n1)
-    s1 = np.linalg.norm(np.cross(e2, e1), axis=1) / (n2 * n1)
-    t = np.clip(2.0 * np.minimum(s0, s1) / sine - 1.0, 0.0, 1.0)
+    # |a| / |e0| and |b| / |e2| are the sines of the bend angles at x1 and x2
+    s = np.minimum(np.sin(bend.angle(x[:, 0:3])), np.sin(bend.angle(x[:, 1:4])))
+    t = np.clip(2.0 * s / sine - 1.0, 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
 
 

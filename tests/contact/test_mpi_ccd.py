@@ -136,15 +136,17 @@ def test_ccd_rank_invariance_with_the_carried_first_iterate(monkeypatch):
     ok, msg = comm.bcast((ok, msg))
     assert ok, msg
 
-def six_wisps_ccd(monkeypatch, frames=1, **time):
-    """A simulator of the six in-phase touching wisps (straight stems pinned) in ccd mode;
-    ``time``: TimeConfig fields to set."""
+def six_wisps_ccd(monkeypatch, frames=1, solver=(), **time):
+    """A simulator of the six in-phase touching wisps (3 pinned vertices each) in ccd
+    mode; ``solver``: SolverConfig fields to set, as (key, value) pairs; ``time``:
+    TimeConfig fields to set."""
     monkeypatch.setattr(simmod, "source_from_config",
                         lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
     cfg = touching_wisps_config(frames)
     cfg.physics.strand_contact_mode = "ccd"
-    for key, value in time.items():
-        setattr(cfg.time, key, value)
+    for section, fields in ((cfg.solver, dict(solver)), (cfg.time, time)):
+        for key, value in fields.items():
+            setattr(section, key, value)
     return simmod.build_simulator(cfg.validate(), comm=comm)
 
 
@@ -527,16 +529,13 @@ def test_contact_frames_converge_within_a_cap_of_100(monkeypatch):
     the contact frames amplify the partition's round-off), so a cap of 100 converges
     every frame; at the cap of 30 they did not (docs/newton.md "Thirteenth round"), and
     before the straight stem's twist was faded no frame did."""
-    monkeypatch.setattr(simmod, "source_from_config",
-                        lambda *a: touching_wisps_source(spin_step=0.0, n_pinned=3))
-    cfg = touching_wisps_config(6)
-    cfg.physics.strand_contact_mode = "ccd"
-    t = cfg.time
-    t.newton_iterations, t.newton_increment_tol, t.max_substeps = 100, 1e-6, 1
-    t.newton_update = "corotational"
-    cfg.solver.filter, cfg.solver.exact_fallback, cfg.solver.exact_stay = "exact_or_analytic", "shifted", True
-    summary = frames_run(simmod.build_simulator(cfg.validate(), comm=comm), 6)[1]
-    if comm.rank == 0:
-        assert summary["newton_converged"] == [True] * 6, summary["newton_iterations"]
-        assert max(summary["newton_iterations"][3:]) > 30         # contact frames: beyond the old cap
-        assert sum(summary["contact"]["pairs_per_frame"][3:]) > 0
+    sim = six_wisps_ccd(monkeypatch, 6, solver=(("filter", "exact_or_analytic"), ("exact_fallback", "shifted"),
+                                                 ("exact_stay", True)),
+                        newton_iterations=100, newton_increment_tol=1e-6, max_substeps=1,
+                        newton_update="corotational")
+    summary = frames_run(sim, 6)[1]
+    s = comm.bcast(summary if comm.rank == 0 else None)         # rank 0's: every rank asserts
+    its = s["newton_iterations"]
+    assert s["newton_converged"] == [True] * 6, its
+    assert max(its[3:]) > 30                        # contact frames: beyond the old cap
+    assert sum(s["contact"]["pairs_per_frame"][3:]) > 0

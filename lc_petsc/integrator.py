@@ -174,6 +174,7 @@ class Integrator:
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
         self.history = None             # a list: per-iteration measures are appended
+        self.monitor = None             # a stream: a line per Newton iteration (rank 0)
         self._fallback = ""            # why the last exact step was rejected (history)
         self._shift = 0.0              # the mass shift of the last exact step (history)
         self._region_record = {}        # the last trust-region step's rho, radius (history)
@@ -350,6 +351,7 @@ class Integrator:
                 converged = self._newton_converged(steps, absolute)
                 if converged is not None:       # a short step is not convergence
                     converged = converged and region.interior
+                self._monitor(it, increment, exact, 1.0, cut=False)
                 if converged:
                     break
                 continue
@@ -404,8 +406,13 @@ class Integrator:
                 chord = self._chord_increment(x, it)
                 if chord_stop(chord, increment, cfg.time.newton_increment_tol):
                     converged, reported = True, chord
+            self._monitor(it, measure, exact, alpha,
+                          cut=self.strand is not None and self.strand.last_cut, estimate=reported)
             if converged:
                 break
+        if self.monitor is not None and converged is not None:
+            self._say(f"  frame {self.frame}: {'converged' if converged else 'NOT converged'} "
+                      f"after {n_it} iteration(s), measure {reported:.3e}")
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
         first_bad = sc.first_vertex + int(badv[0]) if len(badv) else -1
         bad_any = self.comm.allgather(first_bad)
@@ -623,6 +630,30 @@ class Integrator:
                           np.abs(dx).max(initial=0.0)])
         total = global_reduce(self.comm, local, "max")
         return float(total[0]), float(total[1])
+
+    def _monitor(self, it, measure, exact, alpha, cut, estimate=None):
+        """``-lc_newton_monitor``: one line for iteration ``it`` (0-based) on rank 0 of
+        what is already known on every rank (no extra collective): the stopping
+        measure (the relative increment, the full step's where the step was damped or
+        cut), the step's kind (filtered, exact, exact with a mass shift), its Armijo
+        factor, the linear solve's iterations, and whether the contact limiter cut it."""
+        if self.monitor is None:
+            return
+        kind = "filtered"
+        if exact:
+            kind = f"exact + {self._shift:g} M/dt^2" if self._shift else "exact"
+        elif self._fallback and self.cfg.solver.filter == "exact_or_analytic":
+            kind = f"filtered (exact rejected: {self._fallback})"
+        solver = self.trust if self.trust is not None else self.solver
+        ksp = solver.iterations[-1] if solver.iterations else 0
+        extra = f", estimate {estimate:.3e}" if estimate is not None and estimate != measure else ""
+        self._say(f"  Newton frame {self.frame} (dt {self.dt:.4g}) iteration {it + 1}: "
+                  f"increment {measure:.3e}{extra}, {kind}, alpha {alpha:g}, KSP {ksp}"
+                  f"{', limiter cut' if cut else ''}")
+
+    def _say(self, line):
+        if self.comm.rank == 0:
+            print(line, file=self.monitor, flush=True)
 
     def _chord_increment(self, x, it):
         """``time.newton_stop = "chord_estimate"``: the relative increment of the step from

@@ -4,6 +4,7 @@ solver plan -> assembly + solver -> integrator)."""
 from __future__ import annotations
 
 import atexit
+import sys
 import time
 import weakref
 
@@ -84,6 +85,8 @@ class Simulator:
         self.head = HeadMotion(cfg.physics)
         self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg,
                                      self.head, x0, strand=self.strand, trust=self.trust)
+        if plan.newton_monitor:                 # -lc_newton_monitor
+            self.integrator.monitor = sys.stdout
         if self.strand is not None:
             # A Python-shell operator still alive when petsc4py finalizes crashes the
             # interpreter at exit: close a simulator that was never closed before that

@@ -187,7 +187,9 @@ class SolverPlan:
     factorisation defaults (:func:`factor_defaults`);
     ``element_kernels``: ``compiled`` / ``numpy``; ``wisp_order``: ``spatial`` / ``input``;
     ``ksp_rtol``: the code default of ``-ksp_rtol`` (the options win), by the Newton's
-    stopping rule (:data:`KSP_RTOL_FIXED_COUNT`, :data:`KSP_RTOL_CONVERGING`).
+    stopping rule (:data:`KSP_RTOL_FIXED_COUNT`, :data:`KSP_RTOL_CONVERGING`);
+    ``newton_monitor``: ``-lc_newton_monitor`` was given (a line per Newton iteration on
+    rank 0's standard output, like ``-snes_monitor``).
     """
 
     prefix: str
@@ -203,6 +205,7 @@ class SolverPlan:
     element_kernels: str
     wisp_order: str
     ksp_rtol: str
+    newton_monitor: bool
     _layers: _Layers = field(repr=False, compare=False)
 
     @classmethod
@@ -232,6 +235,8 @@ class SolverPlan:
                                       "spatial (wisps ordered along a space-filling curve of their "
                                       "roots, the default) or input (the scene's order)"),
                    ksp_rtol=default_ksp_rtol(newton_converges),
+                   newton_monitor=_flag(layers, "lc_newton_monitor",
+                                        "a line per Newton iteration on standard output"),
                    _layers=layers)
 
     @contextmanager
@@ -357,6 +362,21 @@ def _choice(layers: _Layers, key, choices, meaning):
     if value not in choices:
         raise ConfigError(f"-{key} {value!r}: use {meaning}")
     return value
+
+
+def _flag(layers: _Layers, key, meaning):
+    """Whether the flag option ``key`` is on: given without a value, or with true / 1 /
+    yes (false / 0 / no: off; absent: off)."""
+    value = layers.lookup(key)
+    if value is None:
+        return False
+    value = value.strip().lower()
+    if value in ("", "1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise ConfigError(f"-{key} {value!r}: give it without a value to turn it on ({meaning}), "
+                      f"or with true or false")
 
 
 def _wisp_block_mode(layers: _Layers):

@@ -301,6 +301,9 @@ class Integrator:
             return [solve]
         self._discarded += solve.iterations
         self._discarded_checks += solve.chord_checks
+        if self.monitor is not None:
+            self._say(f"  frame {self.frame}: the step of dt {dt:.4g} is discarded and redone as "
+                      f"2 steps of dt {0.5 * dt:.4g} (step cutback)")
         self.x, self.v, self.t = start
         half = substeps // 2
         return self._advance(0.5 * dt, start[2] + 0.5 * dt, half) + self._advance(0.5 * dt, t_next, half)
@@ -351,7 +354,12 @@ class Integrator:
                 converged = self._newton_converged(steps, absolute)
                 if converged is not None:       # a short step is not convergence
                     converged = converged and region.interior
-                self._monitor(it, increment, exact, 1.0, cut=False)
+                if self.monitor is not None:
+                    r = self._region_record
+                    kind = (f"trust region{' (exact)' if exact else ''}, rho {r['rho']:.3g}, "
+                            f"radius {r['radius']:.3g}" + ("" if self._fallback != "rejected"
+                                                          else ", rejected: zero step"))
+                    self._monitor(it, increment, kind, 1.0, self.trust.iterations[-1], cut=False)
                 if converged:
                     break
                 continue
@@ -373,6 +381,7 @@ class Integrator:
                 g = self._assemble_system(x, it)
                 dx = self._solve_step(g, it)
                 alpha = 1.0
+            step_ksp = self.solver.iterations[-1]     # the step taken (before a chord check)
             if cfg.time.line_search and not exact:
                 alpha = self._line_search(x, g, dx, 20, give_up=False)
             x_prev, x = x, self.update(x, alpha * dx, exact)
@@ -406,12 +415,13 @@ class Integrator:
                 chord = self._chord_increment(x, it)
                 if chord_stop(chord, increment, cfg.time.newton_increment_tol):
                     converged, reported = True, chord
-            self._monitor(it, measure, exact, alpha,
-                          cut=self.strand is not None and self.strand.last_cut, estimate=reported)
+            if self.monitor is not None:
+                self._monitor(it, measure, self._step_kind(exact), alpha, step_ksp,
+                              cut=self.strand is not None and self.strand.last_cut, estimate=reported)
             if converged:
                 break
         if self.monitor is not None and converged is not None:
-            self._say(f"  frame {self.frame}: {'converged' if converged else 'NOT converged'} "
+            self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {'converged' if converged else 'NOT converged'} "
                       f"after {n_it} iteration(s), measure {reported:.3e}")
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
         first_bad = sc.first_vertex + int(badv[0]) if len(badv) else -1
@@ -631,27 +641,26 @@ class Integrator:
         total = global_reduce(self.comm, local, "max")
         return float(total[0]), float(total[1])
 
-    def _monitor(self, it, measure, exact, alpha, cut, estimate=None):
+    def _step_kind(self, exact):
+        """The kind of the step taken, for :meth:`_monitor`."""
+        if exact:
+            return f"exact + {self._shift:g} M/dt^2" if self._shift else "exact"
+        return f"filtered (exact rejected: {self._fallback})" if self._fallback else "filtered"
+
+    def _monitor(self, it, measure, kind, alpha, ksp, cut, estimate=None):
         """``-lc_newton_monitor``: one line for iteration ``it`` (0-based) on rank 0 of
         what is already known on every rank (no extra collective): the stopping
-        measure (the relative increment, the full step's where the step was damped or
-        cut), the step's kind (filtered, exact, exact with a mass shift), its Armijo
-        factor, the linear solve's iterations, and whether the contact limiter cut it."""
-        if self.monitor is None:
-            return
-        kind = "filtered"
-        if exact:
-            kind = f"exact + {self._shift:g} M/dt^2" if self._shift else "exact"
-        elif self._fallback and self.cfg.solver.filter == "exact_or_analytic":
-            kind = f"filtered (exact rejected: {self._fallback})"
-        solver = self.trust if self.trust is not None else self.solver
-        ksp = solver.iterations[-1] if solver.iterations else 0
+        measure ``measure`` (with a tolerance, the full step's where the step was damped
+        or, in ccd mode, larger than the step taken), the step's ``kind``, its Armijo
+        factor ``alpha``, the KSP iterations ``ksp`` of the step's solve, whether the
+        contact limiter cut it, and ``estimate`` where that certified the iterate."""
         extra = f", estimate {estimate:.3e}" if estimate is not None and estimate != measure else ""
         self._say(f"  Newton frame {self.frame} (dt {self.dt:.4g}) iteration {it + 1}: "
                   f"increment {measure:.3e}{extra}, {kind}, alpha {alpha:g}, KSP {ksp}"
                   f"{', limiter cut' if cut else ''}")
 
     def _say(self, line):
+        """Print ``line`` to the monitor's stream on rank 0."""
         if self.comm.rank == 0:
             print(line, file=self.monitor, flush=True)
 

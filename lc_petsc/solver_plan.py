@@ -27,8 +27,8 @@ decides itself, before any PETSc object exists:
 * the factorisation defaults: MUMPS gets the AMF ordering (``-mat_mumps_icntl_7 2``)
   unless the options say otherwise;
 * lc_petsc's own build choices read from the same database: the element kernels
-  (``-lc_element_kernels compiled|numpy``) and the wisp order of the partition
-  (``-lc_wisp_order spatial|input``).
+  (``-lc_element_kernels compiled|numpy``), the wisp order of the partition
+  (``-lc_wisp_order spatial|input``) and the Newton monitor (``-lc_newton_monitor``).
 
 The plan is frozen and built once per simulator; the assembler, the linear solver, the
 strand contact and the run summary read it instead of the database.  Its config
@@ -376,7 +376,7 @@ def _flag(layers: _Layers, key, meaning):
     if value in ("0", "false", "no", "off"):
         return False
     raise ConfigError(f"-{key} {value!r}: give it without a value to turn it on ({meaning}), "
-                      f"or with true or false")
+                      f"or with true / false (1 / 0, yes / no, on / off)")
 
 
 def _wisp_block_mode(layers: _Layers):

@@ -154,7 +154,7 @@ class Integrator:
         # linear (the limiter would cut most nonlinear updates of a large scene, and each
         # cut costs a second limiter call); the mode means nothing without strand contact
         #: a tolerance is set (Newton runs to convergence, not a fixed count)
-        self.converging = config.time.newton_increment_tol is not None or config.time.newton_tol is not None
+        self.converging = config.time.newton_converges
         nonlinear = self.converging or not (strand is not None and config.physics.strand_contact_mode == "ccd")
         self.retract = nonlinear and config.time.newton_update in ("edge_retraction", "corotational")
         self.turn_exact = nonlinear and config.time.newton_update == "corotational"
@@ -355,11 +355,8 @@ class Integrator:
                 if converged is not None:       # a short step is not convergence
                     converged = converged and region.interior
                 if self.monitor is not None:
-                    r = self._region_record
-                    kind = (f"trust region{' (exact)' if exact else ''}, rho {r['rho']:.3g}, "
-                            f"radius {r['radius']:.3g}" + ("" if self._fallback != "rejected"
-                                                          else ", rejected: zero step"))
-                    self._monitor(it, increment, kind, 1.0, self.trust.iterations[-1], cut=False)
+                    self._monitor(it, increment, self._step_kind(exact, region=True), 1.0,
+                                  self.trust.iterations[-1], cut=False)
                 if converged:
                     break
                 continue
@@ -641,8 +638,14 @@ class Integrator:
         total = global_reduce(self.comm, local, "max")
         return float(total[0]), float(total[1])
 
-    def _step_kind(self, exact):
-        """The kind of the step taken, for :meth:`_monitor`."""
+    def _step_kind(self, exact, region=False):
+        """The kind of the step taken, for :meth:`_monitor` (``region``: a trust-region
+        step, with its rho and radius)."""
+        if region:
+            r = self._region_record
+            rejected = ", rejected: zero step" if self._fallback == "rejected" else ""
+            return (f"trust region{' (exact)' if exact else ''}, rho {r['rho']:.3g}, "
+                    f"radius {r['radius']:.3g}{rejected}")
         if exact:
             return f"exact + {self._shift:g} M/dt^2" if self._shift else "exact"
         return f"filtered (exact rejected: {self._fallback})" if self._fallback else "filtered"
@@ -680,7 +683,7 @@ class Integrator:
         increments so far (the last one's absolute size ``absolute`` cm); the last one,
         times the :func:`contraction_factor` of the iteration, must be below each."""
         t = self.cfg.time
-        if t.newton_increment_tol is None and t.newton_tol is None:
+        if not t.newton_converges:
             return None
         factor = contraction_factor(steps)
         ok = True

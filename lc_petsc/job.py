@@ -49,6 +49,8 @@ RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.preview
                      "output.usd", "output.render_hairs", "output.render_hair_seed",
                      "output.render_hair_spread"}
 PROG = "simulate.py"
+#: the frames a warning names before it says how many more
+MISSED_FRAMES_SHOWN = 8
 OUR_FILES = ("frames.h5", "frames.xdmf", "frames.usdc", "frames.tmp.usdc", "summary.json",
              "contact_sheet.png")
 
@@ -84,6 +86,22 @@ def petsc_options_used(sim, command_line):
 
 def _options_string(d):
     return " ".join(f"-{k} {v}".rstrip() for k, v in d.items())
+
+
+def missed_tolerance(missed, start, summary, time_config):
+    """The warning for this run's frames ``missed`` (indices into the summary's per-frame
+    lists, whose first entry is frame ``start``) whose Newton missed the tolerance and
+    were kept (``time.unconverged = "accept"``): which, how far, what to do."""
+    frames = [str(start + i) for i in missed[:MISSED_FRAMES_SHOWN]]
+    if len(missed) > MISSED_FRAMES_SHOWN:
+        frames.append(f"... {len(missed) - MISSED_FRAMES_SHOWN} more")
+    worst = max(summary["newton_increment"][i] or 0.0 for i in missed)
+    return (f"Newton missed the tolerance in {len(missed)} of {len(summary['newton_converged'])} "
+            f"frame(s) ({', '.join(frames)}; largest final measure {worst:.3g}, see newton_converged "
+            f"and newton_increment in summary.json); they were kept (time.unconverged = \"accept\"). "
+            f"Raise time.newton_iterations (now {time_config.newton_iterations}) or time.max_substeps "
+            f"(now {time_config.max_substeps}), or watch those frames with -lc_newton_monitor "
+            f"(docs/newton.md)")
 
 
 def output_estimate(cfg, n_wisps, n_vertices, rows_kept=0):
@@ -445,6 +463,9 @@ class Job:
                        f"{sim.solver.rtol:g} (true relative residual up to {worst:.3g}, first at solve "
                        f"{not_reduced[0][0]}): not converged; use a KSP that tests the residual "
                        "(e.g. -ksp_type cg) or an exact preconditioner with -ksp_type preonly")
+        missed = [i for i, c in enumerate(summary["newton_converged"]) if c is False]
+        if missed:
+            self._warn(missed_tolerance(missed, start, summary, cfg.time))
         summary.update({
             "config_file": str(Path(self.args.config).resolve()),
             "description": cfg.scene.description,

@@ -189,3 +189,32 @@ def test_the_job_reports_the_newton_warning(tmp_path):
     assert main([str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     warnings = json.loads((tmp_path / "out" / "summary.json").read_text())["warnings"]
     assert any("converges linearly" in w for w in warnings), warnings
+
+
+@pytest.mark.parametrize("tol, missed", [(1e-12, 3), (1e-1, 0)])
+def test_the_job_names_the_frames_that_missed_the_tolerance(tmp_path, tol, missed):
+    """Frames kept although Newton missed the tolerance (time.unconverged = "accept") are
+    named in a warning with what to change; none when every frame converged."""
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(hairball_toml(n_wisps=2, frames=3).replace(
+        "[time]\n", f"[time]\nnewton_increment_tol = {tol}\nnewton_iterations = 2\nmax_substeps = 1\n"))
+    assert main([str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["newton_converged"].count(False) == missed
+    w = [m for m in summary["warnings"] if "missed the tolerance" in m]
+    assert len(w) == int(missed > 0), summary["warnings"]
+    if missed:
+        assert "in 3 of 3 frame(s) (0, 1, 2;" in w[0], w[0]
+        assert "time.newton_iterations (now 2)" in w[0] and "time.max_substeps (now 1)" in w[0]
+        assert f"{max(summary['newton_increment']):.3g}" in w[0]
+
+
+def test_missed_tolerance_numbers_frames_from_the_restart_and_shortens_long_lists():
+    from lc_petsc.job import MISSED_FRAMES_SHOWN, missed_tolerance
+    from lc_petsc.config import TimeConfig
+    n = MISSED_FRAMES_SHOWN + 3
+    summary = {"newton_converged": [True] + [False] * n, "newton_increment": [1e-9] + [2e-3] * (n - 1) + [None]}
+    text = missed_tolerance(list(range(1, n + 1)), 40, summary, TimeConfig())
+    assert f"in {n} of {n + 1} frame(s) (41, 42, " in text, text
+    assert f"{40 + MISSED_FRAMES_SHOWN}, ... 3 more;" in text, text
+    assert "largest final measure 0.002" in text, text

@@ -220,6 +220,10 @@ class FramesWriter:
         if have != rows:            # later rows are rewritten by this run
             self.positions.resize(rows, axis=0)
             self.time.resize(rows, axis=0)
+            # flushed now: libhdf5 1.10's mpio driver otherwise loses the next writes into
+            # the chunk the cut shortened (/time's rows came back 0.0; one frame per chunk
+            # keeps /positions safe); tests/io/test_mpi_checkpoint.py
+            f.flush()
         self.capacity = rows
         self.n_out = max(self.n_out, rows)
         self.written = rows

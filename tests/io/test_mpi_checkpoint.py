@@ -90,3 +90,27 @@ def test_corrupt_checkpoint_rejected_on_every_rank(shared_dir, capsys):
     err = capsys.readouterr().err
     if comm.rank == 0:
         assert "/positions fails its checksum" in err and ck in err, err
+
+
+def test_restart_from_an_earlier_checkpoint_rewrites_every_time_row(shared_dir):
+    """A restart from a checkpoint before frames.h5's last row cuts /time back and
+    writes it again: every row must hold its frame's time (libhdf5's mpio driver lost
+    the writes into the chunk the cut had just shortened: rows of 0.0, which the USD
+    export and the previews read as the head at t = 0)."""
+    d, _ = shared_dir
+    out = os.path.join(d, "out")
+    over = os.path.join(d, "c.toml")
+    if comm.rank == 0:
+        with open(over, "w") as f:
+            f.write(SCENE.replace("checkpoint_every = 0", "checkpoint_every = 2"))
+    comm.Barrier()
+    assert comm.allgather(main([over, "--out", out, "--quiet", "--frames", "5"], comm=comm)) == [0] * comm.size
+    with h5py.File(os.path.join(out, "frames.h5"), "r", driver="mpio", comm=comm) as f:
+        before = f["positions"][...]
+    ck = os.path.join(out, "checkpoints", "checkpoint_000002.h5")
+    code = main([over, "--out", out, "--quiet", "--restart", ck, "--frames", "6"], comm=comm)
+    assert comm.allgather(code) == [0] * comm.size
+    with h5py.File(os.path.join(out, "frames.h5"), "r", driver="mpio", comm=comm) as f:
+        t, x = f["time"][...], f["positions"][...]
+    _agree(np.allclose(t, np.arange(7) / 30.0, rtol=0, atol=1e-15), f"/time after the restart: {t}")
+    _agree(np.array_equal(x[:6], before), "the rewritten frames 3-5 differ from the first run's")

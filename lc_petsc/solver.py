@@ -147,7 +147,13 @@ class LinearSolver:
     def solve(self, b, x, frame, newton_it):
         """Solve A x = b; records iterations and reason, raises :class:`SolverError` on divergence."""
         with self.plan.active():
-            self.ksp.solve(b, x)
+            try:
+                self.ksp.solve(b, x)
+            except PETSc.Error:
+                # -ksp_error_if_not_converged makes a divergence a PETSc error, on every
+                # rank (the reason is collective): the same divergence as without it
+                if self.ksp.getConvergedReason() >= 0:
+                    raise
         r = self.ksp.getConvergedReason()
         its = self.ksp.getIterationNumber()
         self.iterations.append(int(its))

@@ -170,11 +170,15 @@ def test_frames_identical_on_1_and_2_ranks(tmp_path):
         assert (a.attrs["ranks"], b.attrs["ranks"]) == (1, 2)
 
 
-def test_run_failing_part_way_keeps_frames_and_says_so(tmp_path, capsys):
+@pytest.mark.parametrize("error_flag", [[], ["-ksp_error_if_not_converged"]])
+def test_run_failing_part_way_keeps_frames_and_says_so(tmp_path, capsys, error_flag):
+    """A diverged solve ends the run with exit 3, its message and readable outputs; with
+    -ksp_error_if_not_converged (PETSc raises instead of returning the reason) the same,
+    not an internal error that aborts and leaves frames.h5 unreadable."""
     (tmp_path / "s.toml").write_text(SMALL)
     out = tmp_path / "o"
     code = main([str(tmp_path / "s.toml"), "--out", str(out), "--quiet",
-                 "-pc_type", "none", "-ksp_max_it", "2"], comm=MPI.COMM_SELF)
+                 "-pc_type", "none", "-ksp_max_it", "2"] + error_flag, comm=MPI.COMM_SELF)
     o, err = capsys.readouterr()
     assert code == 3
     assert "DIVERGED_MAX_IT" in err and "Traceback" not in err

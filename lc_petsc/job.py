@@ -463,6 +463,13 @@ class Job:
                        f"{sim.solver.rtol:g} (true relative residual up to {worst:.3g}, first at solve "
                        f"{not_reduced[0][0]}): not converged; use a KSP that tests the residual "
                        "(e.g. -ksp_type cg) or an exact preconditioner with -ksp_type preonly")
+        unresolved = (summary.get("contact") or {}).get("ccd_unresolved_pairs_per_frame") or []
+        if sum(unresolved):
+            frames = [str(start + i) for i, n in enumerate(unresolved) if n][:MISSED_FRAMES_SHOWN]
+            self._warn(f"the ccd limiter left {sum(unresolved)} pair(s) of segments unresolved in "
+                       f"{sum(1 for n in unresolved if n)} frame(s) (first: {', '.join(frames)}): wisps may "
+                       f"pass through each other there (count them with scripts/count_crossings.py); "
+                       f"a smaller time.dt helps (docs/contact.md, \"The head's turn per step\")")
         missed = [i for i, c in enumerate(summary["newton_converged"]) if c is False]
         if missed:
             self._warn(missed_tolerance(missed, start, summary, cfg.time))

@@ -54,6 +54,16 @@ class HeadMotion:
             return np.eye(3), self.velocity * t
         return np.eye(3), np.zeros(3)
 
+    def largest_turn(self, dt, frames):
+        """(degrees, step): the largest rotation of the head over one step of ``dt`` among
+        the first ``frames`` steps from t = 0, and the first step that turns by it."""
+        if self.kind != "shake" or frames <= 0:
+            return 0.0, 0
+        R = [self.transform(k * dt)[0] for k in range(frames + 1)]
+        cos = [(np.trace(R[k + 1] @ R[k].T) - 1.0) / 2.0 for k in range(frames)]
+        k = int(np.argmin(cos))
+        return float(np.degrees(np.arccos(np.clip(cos[k], -1.0, 1.0)))), k
+
     def pinned_positions(self, x_rest, t):
         """Positions (n, 3) of pinned vertices at rest positions ``x_rest`` carried by the head to time ``t``."""
         R, T = self.transform(t)

@@ -714,6 +714,13 @@ _CONDITIONAL_KEYS = {
                                               "'strand_collision' in physics.terms"),
     ("physics", "strand_self_contact"): (lambda c: "strand_collision" in c.physics.terms,
                                          "'strand_collision' in physics.terms"),
+    ("physics", "strand_contact_mode"): (lambda c: "strand_collision" in c.physics.terms,
+                                         "'strand_collision' in physics.terms"),
+    ("physics", "strand_rest_overlap"): (lambda c: "strand_collision" in c.physics.terms,
+                                         "'strand_collision' in physics.terms"),
+    ("physics", "strand_min_separation"): (
+        lambda c: "strand_collision" in c.physics.terms and c.physics.strand_contact_mode == "ccd",
+        "'strand_collision' in physics.terms and physics.strand_contact_mode = 'ccd'"),
     ("physics", "strand_barrier_stiffness"): (
         lambda c: "strand_collision" in c.physics.terms and c.physics.strand_contact_potential == "barrier",
         "'strand_collision' in physics.terms and physics.strand_contact_potential = 'barrier'"),

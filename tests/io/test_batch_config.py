@@ -176,3 +176,18 @@ def test_every_config_key_is_documented_in_the_readme():
             assert f"`{name}.{f.name}`" in table, f"{name}.{f.name} is not in the README's config table"
     for p in CONFIGS:
         assert f"`{p.stem}`" in readme or p.stem.startswith("compression"), p.stem
+
+
+@pytest.mark.parametrize("key, value, physics, warned", [
+    ("strand_contact_mode", "ccd", {}, True),
+    ("strand_rest_overlap", "exempt", {}, True),
+    ("strand_min_separation", 0.3, {}, True),
+    ("strand_min_separation", 0.3, {"terms": ["stretch", "strand_collision"]}, True),     # penalty mode
+    ("strand_min_separation", 0.3, {"terms": ["stretch", "strand_collision"], "strand_contact_mode": "ccd"}, False),
+    ("strand_contact_mode", "ccd", {"terms": ["stretch", "strand_collision"]}, False),
+])
+def test_strand_contact_keys_without_strand_contact_are_warned_about(key, value, physics, warned):
+    from lc_petsc.config import config_from_dict, keys_without_effect
+    data = {"physics": {"terms": ["stretch"], **physics, key: value}}
+    warn = [w for w in keys_without_effect(config_from_dict(data), data) if w.startswith(f"physics.{key} ")]
+    assert len(warn) == int(warned), warn

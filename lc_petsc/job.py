@@ -49,6 +49,8 @@ RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.preview
                      "output.usd", "output.render_hairs", "output.render_hair_seed",
                      "output.render_hair_spread"}
 PROG = "simulate.py"
+#: frames.h5 is flushed at least this often (seconds; a checkpoint flushes it too)
+FRAMES_FLUSH_SECONDS = 30.0
 #: the frames a warning names before it says how many more
 MISSED_FRAMES_SHOWN = 8
 OUR_FILES = ("frames.h5", "frames.xdmf", "frames.usdc", "frames.tmp.usdc", "summary.json",
@@ -141,6 +143,7 @@ class Job:
         self.lock = None
         self.sim = None
         self.writer = None
+        self.flushed = 0.0               # when frames.h5 was last flushed (perf_counter)
         self.restart = None
         self.times = []
         self.error = None
@@ -360,7 +363,7 @@ class Job:
                           f"(t = {self.restart['time']:.6g} s, written on "
                           f"{self.restart['attrs']['ranks']} rank(s), now {comm.size})")
             bar = _progress(comm, self.args, cfg.time.frames - start, self.name)
-            self.t_loop = time.perf_counter()
+            self.t_loop = self.flushed = time.perf_counter()
             every, ck_every = cfg.output.every, cfg.output.checkpoint_every
             for _ in range(cfg.time.frames - start):
                 if self.preemption.agreed():      # a signal during set-up or the frame before
@@ -374,6 +377,9 @@ class Job:
                     self.times.append(it.t)
                 if ck_every and it.frame % ck_every == 0:
                     self._checkpoint()
+                elif it.frame % every == 0 and self._flush_due():
+                    with sim.timers("io"):
+                        self.writer.flush()
                 if bar is not None:
                     bar.set_postfix_str(f"Newton {it.newton_iterations[-1]}, "
                                         f"KSP {sim.solver.iterations[-1] if sim.solver.iterations else 0}",
@@ -394,7 +400,18 @@ class Job:
     def _checkpoint(self):
         with self.sim.timers("io"):
             self.writer.flush()          # the frames a checkpoint vouches for are on disk
+            self.flushed = time.perf_counter()
             self.checkpointer.write(self.sim.integrator)
+
+    def _flush_due(self):
+        """Whether frames.h5 is flushed now (rank 0's clock, one verdict for all): a run
+        killed between flushes keeps a readable file with the frames up to the last one
+        (never flushed, libhdf5 left it unreadable: "file signature not found")."""
+        now = time.perf_counter()
+        due = self.comm.bcast(now - self.flushed >= FRAMES_FLUSH_SECONDS if self.comm.rank == 0 else None)
+        if due:
+            self.flushed = now
+        return due
 
     def _uncollective_failure(self, e):
         """An exception the simulator does not raise collectively (a bug).  Alone: an

@@ -413,3 +413,35 @@ def test_wisp_starting_inside_the_head_is_warned_about(tmp_path, capsys):
     assert main([str(tmp_path / "h.toml"), "--out", str(tmp_path / "o"), "--quiet"]) == 0
     e = capsys.readouterr().err
     assert "start inside the head sphere (physics.head_radius + physics.head_margin = 2 cm" in e, e
+
+
+def test_a_run_killed_without_checkpoints_keeps_a_readable_frames_file(tmp_path):
+    """checkpoint_every = 0 (the default) and SIGKILL: frames.h5 was never flushed and
+    libhdf5 could not open it ("file signature not found"), losing every frame. It is
+    now flushed every FRAMES_FLUSH_SECONDS (0 here: every frame) and keeps the frames
+    up to the last flush, each equal to an uninterrupted run's."""
+    cfg = _smash(tmp_path, frames=100000, ce=0)
+    out, ref = tmp_path / "out", tmp_path / "ref"
+    script = tmp_path / "killed.py"
+    script.write_text(f"""
+import os, signal, sys
+import lc_petsc.job as job
+from lc_petsc.integrator import Integrator
+job.FRAMES_FLUSH_SECONDS = 0.0
+step = Integrator.step
+def step_then_die(self):
+    step(self)
+    if self.frame == 6:
+        os.kill(os.getpid(), signal.SIGKILL)
+Integrator.step = step_then_die
+from lc_petsc.batch import main
+sys.exit(main([{cfg!r}, "--out", {str(out)!r}, "--quiet"]))
+""")
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+    assert main([_smash(tmp_path, name="r.toml", frames=5, ce=0), "--out", str(ref), "--quiet"]) == 0
+    with h5py.File(out / "frames.h5", "r") as f, h5py.File(ref / "frames.h5", "r") as g:
+        assert f["positions"].shape[0] >= 6          # frames 0-5 (frame 6 was not written)
+        n = 6
+        assert np.array_equal(f["positions"][:n], g["positions"][:n])
+        assert np.allclose(f["time"][:n], np.arange(n) / 30.0, rtol=0, atol=1e-15)

@@ -181,6 +181,8 @@ class Integrator:
         self._force_scale = 0.0         # the frame's force scale (with a history only)
         self.exact_hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
         self.chord_checks = []          # per frame: chord steps measured (newton_stop = "chord_estimate")
+        self.length_projection_move = []    # per frame: time.length_projection's largest move / wisp length
+        self._projection_move = 0.0
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian):
@@ -260,6 +262,7 @@ class Integrator:
         if self.strand is not None:             # per frame: the statistics' entries
             self.strand.start_frame()
         self._discarded = self._discarded_checks = 0
+        self._projection_move = 0.0
         solves = self._advance(cfg.time.dt, self.t + cfg.time.dt, cfg.time.max_substeps)
         conv = [s.converged for s in solves]
         converged = None if conv[0] is None else all(conv)
@@ -278,6 +281,7 @@ class Integrator:
         self.newton_converged.append(converged)
         self.exact_hessian_fallbacks.append(sum(s.fallbacks for s in solves))
         self.chord_checks.append(self._discarded_checks + sum(s.chord_checks for s in solves))
+        self.length_projection_move.append(self._projection_move if cfg.time.length_projection else None)
         if self.strand is not None:             # the figures at the frame's end
             pairs, deep, dmin, _ = solves[-1].contact
             self.contact_pairs.append(pairs)
@@ -428,7 +432,11 @@ class Integrator:
                                      f"{min(b for b in bad_any if b >= 0)}")
         if cfg.time.length_projection:
             with self.timers("update"):
-                x = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass)
+                projected = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass)
+            # how far the frame written is from Newton's iterate (reported: with a
+            # tolerance it can exceed it, docs/newton.md "Stopping rule")
+            self._projection_move = max(self._projection_move, self.increments(projected - x)[0])
+            x = projected
         contact = None
         if self.strand is not None:
             pairs, deep, dmin = self.strand.measure(x)

@@ -487,6 +487,14 @@ class Job:
                        f"{sum(1 for n in unresolved if n)} frame(s) (first: {', '.join(frames)}): wisps may "
                        f"pass through each other there (count them with scripts/count_crossings.py); "
                        f"a smaller time.dt helps (docs/contact.md, \"The head's turn per step\")")
+        moves = [m for m in summary["length_projection_move"] if m is not None]
+        tol = cfg.time.newton_increment_tol
+        if tol is not None and moves and max(moves) > tol:
+            self._warn(f"time.length_projection moved the converged positions by up to {max(moves):.3g} "
+                       f"wisp lengths, {max(moves) / tol:.0f}x time.newton_increment_tol = {tol:g}: the "
+                       f"frames written are the projection's, not the Newton solution the tolerance "
+                       f"certifies (length_projection_move in summary.json); set "
+                       f"time.length_projection = false for frames within the tolerance")
         missed = [i for i, c in enumerate(summary["newton_converged"]) if c is False]
         if missed:
             self._warn(missed_tolerance(missed, start, summary, cfg.time))

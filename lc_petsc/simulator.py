@@ -191,6 +191,7 @@ class Simulator:
                                  for v in self.integrator.newton_increment],
             "newton_exact_fallbacks": list(self.integrator.exact_hessian_fallbacks),
             "newton_chord_checks": list(self.integrator.chord_checks),
+            "length_projection_move": list(self.integrator.length_projection_move),
             "newton_substeps": list(self.integrator.newton_substeps),
             "newton_substep_iterations": [list(v) for v in self.integrator.newton_substep_iterations],
             "ksp_iterations": list(self.solver.iterations),

@@ -218,3 +218,23 @@ def test_missed_tolerance_numbers_frames_from_the_restart_and_shortens_long_list
     assert f"in {n} of {n + 1} frame(s) (41, 42, " in text, text
     assert f"{40 + MISSED_FRAMES_SHOWN}, ... 3 more;" in text, text
     assert "largest final measure 0.002" in text, text
+
+
+@pytest.mark.parametrize("projection", [True, False])
+def test_the_job_warns_when_the_length_projection_leaves_the_tolerance(tmp_path, projection):
+    """With a tolerance, the frames written are the projection of the converged iterate;
+    when it moves them by more than the tolerance the report says so and how much."""
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(hairball_toml(n_wisps=2, frames=2).replace(
+        "[time]\n", f"[time]\nnewton_increment_tol = 1e-6\nnewton_iterations = 40\nmax_substeps = 1\n"
+                    f"length_projection = {'true' if projection else 'false'}\n")
+        + '[solver]\nfilter = "exact_or_analytic"\n')
+    assert main([str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    moves = s["length_projection_move"]
+    w = [m for m in s["warnings"] if "length_projection moved" in m]
+    if not projection:
+        assert moves == [None, None] and not w
+        return
+    assert max(moves) > 1e-6, moves
+    assert len(w) == 1 and f"up to {max(moves):.3g} wisp lengths" in w[0], w

@@ -391,6 +391,38 @@ def test_length_projection_in_the_simulation():
         SimConfig(time=TimeConfig(length_projection="yes")).validate()
 
 
+def test_length_projection_move_is_reported_per_frame(monkeypatch):
+    """The frame written is the projection of Newton's iterate: the summary reports how
+    far, as the largest vertex move over the wisp length (what the tolerance measures),
+    and None without the projection (a move beyond the tolerance is warned about:
+    tests/io/test_batch_terms.py)."""
+    import lc_petsc.integrator as integ
+    project = integ.project_rest_lengths
+    moves = []
+
+    def recording(x, free, offsets, rest, mass):
+        y = project(x, free, offsets, rest, mass)
+        moves.append(y - x)
+        return y
+    monkeypatch.setattr(integ, "project_rest_lengths", recording)
+    sim = build_simulator(_smash(frames=3, newton_iterations=30, newton_increment_tol=1e-6,
+                                 length_projection=True, max_substeps=1), COMM)
+    try:
+        sim.run()
+        got = sim.summary()["length_projection_move"]
+        want = [np.linalg.norm(d, axis=1).max() / sim.integrator.wisp_length.max() for d in moves]
+        assert got == pytest.approx(want, rel=1e-12)
+        assert min(got) > 0.0
+    finally:
+        sim.close()
+    sim = build_simulator(_smash(frames=1), COMM)
+    try:
+        sim.run()
+        assert sim.summary()["length_projection_move"] == [None]
+    finally:
+        sim.close()
+
+
 def test_filter_rates_and_degenerate_margins():
     """scripts/newton_rates.py's measures on a small smashed wisp: the exact matrix's
     rate is 0, a filtered one's is in [0, 1) at a converged frame with a positive

@@ -137,12 +137,16 @@ class LocalScene:
 
         es = cls.starts(off, 2)
         Lbar = np.linalg.norm(x[es + 1] - x[es], axis=1)
-        zero = Lbar <= 1e-12 * max(1.0, float(np.abs(x).max(initial=0.0)))
+        # round-off at the edge's own coordinates (a scene-wide scale blamed the normal
+        # edges of every other wisp when one wisp lay far away)
+        scale = np.maximum(1.0, np.maximum(np.abs(x[es]).max(axis=1), np.abs(x[es + 1]).max(axis=1)))
+        zero = Lbar <= 1e-12 * scale
         if zero.any():
             j = int(np.flatnonzero(zero)[0])
             w = int(wid[es[j]])
+            far = f", below round-off at coordinates of {scale[j]:.3g}" if Lbar[j] > 0 else ""
             problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length "
-                            f"{Lbar[j]!r} is zero (coincident vertices)")
+                            f"{Lbar[j]!r} is zero (coincident vertices{far})")
             return None, problems
         r_e = 0.5 * (batch.radius[es] + batch.radius[es + 1])
         A_e = np.pi * r_e ** 2

@@ -106,6 +106,18 @@ def test_bad_input_short_wisp():
         _build_arrays(x[:9], np.array([0, 6, 9]))
 
 
+def test_bad_input_zero_length_edge_names_the_edge_even_beside_a_far_wisp():
+    x, off = _two_wisps()
+    dup = x.copy()
+    dup[9] = dup[8]                                  # wisp 1, edge 2: coincident vertices
+    with pytest.raises(ValueError, match=r"wisp 1, edge 2: rest length 0.0 is zero \(coincident vertices\)"):
+        _build_arrays(dup, off)
+    far = x.copy()
+    far[6:] += 1e12                  # wisp 1 far away: its edges are below round-off (wisp 0 was blamed)
+    with pytest.raises(ValueError, match=r"wisp 1, edge 0: .*below round-off at coordinates of 1e\+12"):
+        _build_arrays(far, off)
+
+
 def test_bad_input_non_finite_position():
     x, off = _two_wisps()
     x[12, 1] = np.nan

@@ -269,7 +269,9 @@ class Job:
                               "from the scene's; restart with the same scene or add --force")
             warn(comm, "--force: rest state differs from the checkpoint's; the scene's is used")
         rows = ck["frame"] // cfg.output.every + 1
-        problem = comm.bcast(resumable_problem(self.out / "frames.h5", sim.n_wisps, sim.n_vertices, rows)
+        problem = comm.bcast(resumable_problem(self.out / "frames.h5", sim.n_wisps, sim.n_vertices, rows,
+                                               **({} if args.force else dict(dt=cfg.time.dt,
+                                                                              every=cfg.output.every)))
                              if comm.rank == 0 else None)
         if problem:
             raise Refused(problem)

@@ -82,9 +82,11 @@ def _h5_error(path, e):
     return OutputError(f"{path}: {why}", hdf5_broken=True)
 
 
-def resumable_problem(path, n_wisps, n_vertices, rows):
+def resumable_problem(path, n_wisps, n_vertices, rows, dt=None, every=None):
     """Why ``path`` cannot be appended to by a restart needing its first ``rows`` frame
-    rows, or None.  Serial and read-only (rank 0, before anything is changed)."""
+    rows, or None; ``dt`` and ``every`` (the run's time.dt and output.every) must be the
+    file's attributes, where it has them (a file of another run with the same counts
+    was taken over).  Serial and read-only (rank 0, before anything is changed)."""
     h5py = h5py_module()
     path = str(path)
     hint = "; restart with --out naming the folder of the checkpointed run"
@@ -106,6 +108,11 @@ def resumable_problem(path, n_wisps, n_vertices, rows):
             if pos.shape[0] < rows or f["time"].shape[0] < rows:
                 return (f"{path}: holds {pos.shape[0]} frame row(s), the checkpoint needs the first "
                         f"{rows}; it does not belong to this checkpoint's run")
+            for key, want in (("dt", dt), ("every", every)):
+                have = f.attrs.get(key)
+                if want is not None and have is not None and float(have) != float(want):
+                    return (f"{path}: written with {key} = {float(have):g}, this run has {float(want):g}; "
+                            f"it does not belong to this checkpoint's run{hint}")
     except OSError as e:
         return f"{path}: unreadable or truncated HDF5 file ({str(e).split(' (')[0]}){hint}"
     return None

@@ -250,6 +250,12 @@ def test_clear_errors(tmp_path, capsys):
     assert main([pins, "--out", str(out), "--quiet", "--restart", str(ck), "--force", "--frames", "3"]) == 0
     e = capsys.readouterr().err
     assert "scene.n_pinned" in e and "rest state differs" in e
+    # a frames.h5 of another run with the same counts (another dt) is not appended to
+    own = (out / "frames.h5").read_bytes()
+    with h5py.File(out / "frames.h5", "r+") as f:
+        f.attrs["dt"] = 0.02
+    assert "written with dt = 0.02, this run has 0.0333333" in err(["--restart", str(ck)])
+    (out / "frames.h5").write_bytes(own)
     # output-only keys may change
     more = _config(tmp_path, name="more.toml", ce=1, kept=5)
     assert main([more, "--out", str(out), "--quiet", "--restart", "latest", "--frames", "4"]) == 0

@@ -256,6 +256,14 @@ class Job:
                           f"{', '.join(diff)}{hint}; restart with the same config or add --force")
         if diff:
             warn(comm, f"--force: config differs from the checkpoint's in {', '.join(diff)}")
+        before, now = ck["attrs"].get("petsc_options") or {}, petsc_options_used(sim, self.command_line)
+        changed = [k for k in sorted(set(before) | set(now)) if str(before.get(k)) != str(now.get(k))]
+        if changed:
+            def shown(d, k):
+                return "unset" if k not in d else (str(d[k]) or "set")
+            self._warn("PETSc options differ from the checkpoint's: " + ", ".join(
+                f"-{k} {shown(now, k)} (was {shown(before, k)})" for k in changed)
+                + "; the run continues with them, so it is not bit for bit the run it continues")
         if ck["attrs"]["every"] != cfg.output.every:
             raise Refused(f"{ck['path']}: output.every = {cfg.output.every} but the run's frames.h5 was "
                           f"written with {ck['attrs']['every']}; it cannot be appended to")

@@ -5,6 +5,7 @@ holding every frame once and in order, SIGKILL while a checkpoint is written, SI
 corruption and truncation, fallback of ``--restart latest``, keeping the last K, and
 the errors a user can meet."""
 
+import json
 import os
 import signal
 import subprocess
@@ -259,6 +260,14 @@ def test_clear_errors(tmp_path, capsys):
     # output-only keys may change
     more = _config(tmp_path, name="more.toml", ce=1, kept=5)
     assert main([more, "--out", str(out), "--quiet", "--restart", "latest", "--frames", "4"]) == 0
+    assert "PETSc options differ" not in capsys.readouterr().err
+    # solver options may change, with a warning naming them (summary.json too)
+    assert main([more, "--out", str(out), "--quiet", "--restart", "latest", "--frames", "5",
+                 "-ksp_rtol", "1e-3", "-ksp_monitor_cancel"]) == 0
+    e = capsys.readouterr().err
+    assert "PETSc options differ from the checkpoint's: -ksp_monitor_cancel set (was unset), " \
+           "-ksp_rtol 1e-3 (was 1e-4)" in e, e
+    assert any("-ksp_rtol 1e-3" in w for w in json.loads((out / "summary.json").read_text())["warnings"])
 
 
 def test_checkpoint_contents_and_config_keys(tmp_path):

@@ -12,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from lc_petsc.errors import SceneError
+from lc_petsc.errors import ConfigError, SceneError
 from lc_petsc.scene import geometry
 
 
@@ -105,8 +105,9 @@ class ArraySource(SceneSource):
 
 
 #: memory a run needs per vertex, a lower estimate (element Hessians and gradients, the
-#: BAIJ matrix and its ILU factor, the state vectors); the check below refuses a file
-#: whose vertex count cannot fit in the memory of the job's nodes even at this rate
+#: BAIJ matrix and its ILU factor, the state vectors); :func:`memory_shortfall` refuses a
+#: strands file or a generated scene whose vertex count cannot fit in the memory of the
+#: job's nodes even at this rate
 BYTES_PER_VERTEX = 4096
 #: rows read at a time when the whole of a dataset is checked (constant memory)
 _CHECK_ROWS = 1 << 20
@@ -143,6 +144,21 @@ def job_nodes(environ=None) -> int:
         return max(1, int(env.get("SLURM_JOB_NUM_NODES", 1)))
     except ValueError:
         return 1
+
+
+def memory_shortfall(n_vertices, n_wisps):
+    """None when a run of ``n_vertices`` vertices in ``n_wisps`` wisps fits in the memory
+    of the job's nodes (:func:`job_nodes` of this machine's size) at
+    :data:`BYTES_PER_VERTEX`, else what it needs against what there is (for the caller's
+    message, which names the key or dataset)."""
+    # the run's memory is spread over every node of the job, not held by one
+    nodes = job_nodes()
+    need, have = BYTES_PER_VERTEX * n_vertices + 8 * (n_wisps + 1), machine_memory() * nodes
+    if need <= have:
+        return None
+    on = "this machine has" if nodes == 1 else f"this job's {nodes} nodes have"
+    return (f"a run needs at least {BYTES_PER_VERTEX} bytes per vertex, {need / 1e9:.3g} GB, "
+            f"and {on} {have / 1e9:.3g} GB of memory")
 
 
 def _chunks(dset, n):
@@ -203,14 +219,10 @@ def check_strands_file(path):
                 raise SceneError(f"{where}: /wisp_offsets must be 1-D with n_wisps + 1 >= 2 entries, "
                                  f"got shape {off.shape}")
             nw = int(off.shape[0]) - 1
-            # the run's memory is spread over every node of the job, not held by one
-            nodes = job_nodes()
-            need, have = BYTES_PER_VERTEX * nv + 8 * (nw + 1), machine_memory() * nodes
-            if need > have:
-                on = "this machine has" if nodes == 1 else f"this job's {nodes} nodes have"
-                raise SceneError(f"{where}: /positions declares {nv:,} vertices; a run needs at least "
-                                 f"{BYTES_PER_VERTEX} bytes per vertex, {need / 1e9:.3g} GB, and {on} "
-                                 f"{have / 1e9:.3g} GB of memory; run on more nodes or use a smaller groom")
+            short = memory_shortfall(nv, nw)
+            if short:
+                raise SceneError(f"{where}: /positions declares {nv:,} vertices; {short}; run on more "
+                                 "nodes or use a smaller groom")
             for name, n in (("radius", nv), ("pinned", nv), ("youngs_modulus", nw), ("density", nw)):
                 if name in dsets and dsets[name].shape != (n,):
                     per = "vertex" if n == nv else "wisp"
@@ -276,7 +288,8 @@ class FileSource(SceneSource):
 
 
 class GeneratedSource(SceneSource):
-    """``wisp4c``, ``straight`` and ``hairball`` scenes, built wisp by wisp."""
+    """``wisp4c``, ``straight`` and ``hairball`` scenes, built wisp by wisp; one whose run
+    cannot fit in memory (:func:`memory_shortfall`) is a ConfigError naming the key."""
 
     def __init__(self, kind, n_wisps=1, n_vertices=101, seed=0, n_pinned=4,
                  segment=0.6, direction=(0.0, -1.0, 0.0), root_radius=0.35, tip_radius=0.07,
@@ -286,6 +299,13 @@ class GeneratedSource(SceneSource):
         self.root_radius, self.tip_radius, self.head_radius = root_radius, tip_radius, head_radius
         self.n_wisps = int(n_wisps) if kind == "hairball" else 1
         nv = 101 if kind == "hairball" else int(n_vertices)
+        # before anything of that size is allocated (an absurd n_wisps built for hours)
+        short = memory_shortfall(self.n_wisps * nv, self.n_wisps)
+        if short:
+            what = (f"scene.n_wisps = {self.n_wisps}: {self.n_wisps:,} wisps of {nv} vertices "
+                    f"({self.n_wisps * nv:,} vertices); {short}; use fewer wisps" if kind == "hairball"
+                    else f"scene.n_vertices = {nv}: {short}; use fewer vertices")
+            raise ConfigError(f"{what} or run on more nodes")
         self.sizes = np.full(self.n_wisps, nv, np.int64)
 
     def wisp(self, w):

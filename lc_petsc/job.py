@@ -10,7 +10,9 @@ What each step leaves behind when it fails:
 2. **build** the simulator and **validate** the run: the scene (strands file), the
    restart checkpoint and the ``frames.h5`` it appends to, the output estimate against
    the free disk space.  Any problem: exit 2, reported once, and the folder is as it
-   was (a folder this run created is removed again).
+   was (a folder this run created is removed again).  A signal (SIGTERM, SIGUSR1,
+   SIGINT) stops the set-up at once (nothing to checkpoint yet): exit 75, the folder as
+   it was (:class:`Preemption`).
 3. **prepare** the folder (the previous run's outputs are removed only now) and write
    frame 0.
 4. the **frame loop**: each frame is stepped, written, then every rank agrees on
@@ -22,7 +24,7 @@ What each step leaves behind when it fails:
 5. **finish**: ``frames.h5`` closed (the frames so far stay readable), ``frames.xdmf``,
    previews, ``summary.json`` (with ``error``) and the report; an output that cannot be
    written is reported (exit 3) and the others are still tried.  Exit 0, 3 (failed), 75
-   (stopped by a signal after a checkpoint).
+   (stopped by a signal after a checkpoint, or during the set-up).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import os
 import sys
 import time
 import traceback
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +45,8 @@ from lc_petsc.parallel import global_max, on_root
 
 EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
 EXIT_PREEMPTED = 75         # EX_TEMPFAIL: stopped by a signal after a checkpoint; restart
+# how the set-up ended on a rank; the job takes the largest over the ranks
+SETUP_DONE, SETUP_REFUSED, SETUP_INTERRUPTED = 0, 1, 2
 # config keys a restart may change: they touch neither the trajectory nor frames.h5's rows
 RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.previews",
                      "output.preview_frames", "output.contact_sheet", "output.view",
@@ -59,6 +64,11 @@ OUR_FILES = ("frames.h5", "frames.xdmf", "frames.usdc", "frames.tmp.usdc", "summ
 
 class Refused(Exception):
     """The run cannot start (exit 2); the message says why, nothing was changed."""
+
+
+class SetupInterrupted(BaseException):
+    """A signal during the set-up, raised where the rank was (a BaseException, like
+    KeyboardInterrupt, so that no ``except Exception`` on the way swallows it)."""
 
 
 def say(comm, text, stream=None):
@@ -141,6 +151,7 @@ class Job:
         self.config_warnings = list(config_warnings)
         self.warnings = []
         self.lock = None
+        self.lock_taken = None      # rank 0's lock, on every rank (OutputLock.taken)
         self.sim = None
         self.writer = None
         self.flushed = 0.0               # when frames.h5 was last flushed (perf_counter)
@@ -152,29 +163,12 @@ class Job:
     # ------------------------------------------------------------------ the steps
     def run(self):
         """Run the job's steps (module doc); returns the exit status, the same on every rank."""
-        from lc_petsc.simulator import build_simulator
-        from petsc4py import PETSc
-        comm = self.comm
-        self.preemption = Preemption(comm)
+        self.preemption = Preemption(self.comm)
         try:
+            status = self._setup()
+            if status is not None:
+                return status
             try:
-                self._lock()
-                t_setup = time.perf_counter()
-                try:
-                    self.sim = build_simulator(self.cfg, comm=comm)
-                except (ValueError, SolverError) as e:
-                    raise Refused(str(e)) from None
-                except PETSc.Error as e:
-                    raise Refused(f"PETSc rejected the solver set-up ({e}); see PETSc's message above") from None
-                self._validate()
-            except Refused as e:
-                say(comm, f"{PROG}: error: {e}", sys.stderr)
-                if self.sim is not None:
-                    self.sim.close()
-                self._unlock(refused=True)
-                return EXIT_USAGE
-            try:
-                self.setup_time = global_max(comm, time.perf_counter() - t_setup)
                 self.checkpointer = Checkpointer(self)
                 self._loop()
                 return self._finish()
@@ -184,6 +178,70 @@ class Job:
         finally:
             self.preemption.restore()
 
+    def _setup(self):
+        """Steps 1 and 2.  None when the run goes on, else the exit status, the folder as
+        it was: 2 refused, 75 stopped by a signal (which stops the build at once)."""
+        from lc_petsc.simulator import build_simulator
+        from petsc4py import PETSc
+        comm, outcome, t_setup = self.comm, SETUP_DONE, time.perf_counter()
+        try:
+            self._lock()
+            with self.preemption.setup():
+                try:
+                    self.sim = build_simulator(self.cfg, comm=comm)
+                except (ValueError, SolverError) as e:
+                    raise Refused(str(e)) from None
+                except PETSc.Error as e:
+                    raise Refused(f"PETSc rejected the solver set-up ({e}); see PETSc's message above") from None
+                self._validate()
+        except Refused as e:
+            say(comm, f"{PROG}: error: {e}", sys.stderr)
+            outcome = SETUP_REFUSED
+        except SetupInterrupted:
+            outcome = SETUP_INTERRUPTED
+        if outcome == SETUP_INTERRUPTED or self.preemption.flag:
+            self._drop_lock()       # now: mpiexec kills the ranks a second after a SIGTERM
+        ends = self.preemption.end_setup(outcome, built=self.sim is not None)
+        if ends is None:
+            self._abort_setup()         # does not return
+        verdict = max(e[0] for e in ends)
+        if verdict == SETUP_DONE:
+            self.setup_time = global_max(comm, time.perf_counter() - t_setup)
+            return None
+        if verdict == SETUP_INTERRUPTED:
+            got = [(r, e[1]) for r, e in enumerate(ends) if e[0] == SETUP_INTERRUPTED]
+            where = "" if len(got) == comm.size else f" on rank {', '.join(str(r) for r, _ in got)}"
+            say(comm, f"{PROG}: {_signal_name(got[0][1])} received{where} during the set-up, before "
+                      f"the first frame: stopped, nothing was written (the output folder is as it "
+                      f"was); run the same command again (exit status {EXIT_PREEMPTED})", sys.stderr)
+        if all(e[2] for e in ends):     # closing is collective
+            self.sim.close()
+        self._unlock(refused=True)
+        return EXIT_USAGE if verdict == SETUP_REFUSED else EXIT_PREEMPTED
+
+    def _drop_lock(self):
+        """Remove the lock and a folder this run created, from any rank (rank 0 may be
+        the one waiting for this rank in a collective call, until it is killed)."""
+        from lc_petsc.io.lock import remove_for_holder
+        if self.lock is not None:
+            self._unlock(refused=True)
+        elif self.lock_taken is not None:
+            remove_for_holder(self.out, self.lock_taken)
+        self.lock_taken = None
+
+    def _abort_setup(self):
+        """This rank was stopped by a signal during the set-up and the others did not
+        answer (not signalled, or waiting for this one in a collective call): abort the
+        job, exit status 75, the lock dropped (already, unless the signal came just after
+        the set-up)."""
+        p = self.preemption
+        self._drop_lock()
+        print(f"{PROG}: rank {self.comm.rank}: {p.signal_name} received during the set-up; the other "
+              f"ranks did not stop within {p.SETUP_WAIT:g} s (not signalled, or waiting for this one): "
+              f"aborting the job (exit status {EXIT_PREEMPTED}); nothing was written, run the same "
+              "command again", file=sys.stderr, flush=True)
+        self.comm.Abort(EXIT_PREEMPTED)
+
     def _lock(self):
         """Step 1: rank 0 locks the output folder (collective verdict)."""
         from lc_petsc.io.lock import FolderBusy, OutputLock
@@ -191,7 +249,7 @@ class Job:
         if str(self.out) == "":
             raise Refused("the output folder is empty ('')")
         self.lock = OutputLock(self.out) if comm.rank == 0 else None
-        stale, problem = on_root(comm, lambda: self.lock.acquire().stale)
+        taken, problem = on_root(comm, lambda: self.lock.acquire().taken())
         if isinstance(problem, FolderBusy):
             self.lock = None
             raise Refused(str(problem))
@@ -199,8 +257,9 @@ class Job:
             self.lock = None
             why = problem.strerror if isinstance(problem, OSError) and problem.strerror else problem
             raise Refused(f"output folder {str(self.out)!r}: {why}")
-        if stale:
-            self._warn(f"{self.out}: found the lock of a run that did not finish ({stale}); it was "
+        self.lock_taken = taken
+        if taken["stale"]:
+            self._warn(f"{self.out}: found the lock of a run that did not finish ({taken['stale']}); it was "
                        "killed or crashed: its outputs are as it left them, this run takes the folder over")
 
     def _unlock(self, refused=False):
@@ -376,7 +435,7 @@ class Job:
             self.t_loop = self.flushed = time.perf_counter()
             every, ck_every = cfg.output.every, cfg.output.checkpoint_every
             for _ in range(cfg.time.frames - start):
-                if self.preemption.agreed():      # a signal during set-up or the frame before
+                if self.preemption.agreed():      # a signal since the set-up or in the frame before
                     self._checkpoint()
                     break
                 sim.step()
@@ -635,15 +694,26 @@ class Preemption:
     allreduces it at a frame end, so a signal that reached some ranks only stops all of
     them together after the same frame, with a checkpoint.  After a first SIGINT the
     default action is back: a second Ctrl-C ends the process at once (no checkpoint;
-    the previous checkpoints and the frames written so far are kept)."""
+    the previous checkpoints and the frames written so far are kept).
+
+    During the set-up (:meth:`setup`; minutes for a big scene) there is nothing to
+    checkpoint: a signal raises :class:`SetupInterrupted` where the rank is.  Then
+    :meth:`end_setup` tells every rank how the set-up ended on every rank, on a
+    communicator of its own (the interrupted rank may have left the others inside a
+    collective call on the job's).  A rank that got no signal (``kill`` of one rank),
+    or that waits for the interrupted one in a collective call, cannot answer: the
+    interrupted rank gives up after :attr:`SETUP_WAIT` seconds and the job is aborted."""
 
     SIGNALS = ("SIGTERM", "SIGUSR1", "SIGINT")
+    SETUP_WAIT = 5.0
 
     def __init__(self, comm):
         import signal
         import threading
         self.comm = comm
         self.flag, self.signal_name, self.previous, self.stopped = 0, None, {}, False
+        self.signum, self.raising, self.setup_over = 0, False, False
+        self.setup_comm = comm.Dup() if comm.size > 1 else None
         if threading.current_thread() is threading.main_thread():
             for name in self.SIGNALS:
                 sig = getattr(signal, name)
@@ -652,12 +722,53 @@ class Preemption:
     def _handler(self, signum, frame):
         import signal
         self.flag = 1
+        self.signum = self.signum or signum
         self.signal_name = self.signal_name or signal.Signals(signum).name
         if signum == signal.SIGINT:
             signal.signal(signal.SIGINT, signal.SIG_DFL)
+        if self.raising:
+            self.raising = False
+            raise SetupInterrupted(self.signal_name)
+        if signum == signal.SIGINT and self.setup_over:
             print(f"\n{PROG}: SIGINT: finishing this frame, then a checkpoint and exit "
                   f"{EXIT_PREEMPTED}; press Ctrl-C again to stop at once (no checkpoint)",
                   file=sys.stderr, flush=True)
+
+    @contextmanager
+    def setup(self):
+        """The set-up: a signal (also one before it) raises SetupInterrupted."""
+        self.raising = True
+        try:
+            if self.flag:
+                self.raising = False
+                raise SetupInterrupted(self.signal_name)
+            yield
+        finally:
+            self.raising = False
+
+    def end_setup(self, outcome, built):
+        """Collective: ``(outcome, signal number, built)`` of every rank, by rank (a signal
+        after the set-up counts as one during it: nothing has changed yet); None on a rank
+        stopped by a signal whose ranks did not all answer within SETUP_WAIT s."""
+        self.raising, self.setup_over = False, True
+        if self.flag:
+            outcome = SETUP_INTERRUPTED
+        mine = np.array([outcome, self.signum, built], np.intc)
+        if self.setup_comm is None:
+            return [tuple(int(v) for v in mine)]
+        every = np.empty((self.comm.size, 3), np.intc)
+        req = self.setup_comm.Iallgather(mine, every)
+        if outcome == SETUP_INTERRUPTED:
+            deadline = time.monotonic() + self.SETUP_WAIT
+            while not req.Test():
+                if time.monotonic() > deadline:
+                    return None
+                time.sleep(0.01)
+        else:
+            req.Wait()
+        self.setup_comm.Free()
+        self.setup_comm = None
+        return [tuple(int(v) for v in row) for row in every]
 
     def agreed(self):
         """Collective: whether any rank received a signal (then ``stopped`` is set)."""
@@ -675,6 +786,11 @@ class Preemption:
         for sig, h in self.previous.items():
             signal.signal(sig, h)
         self.previous = {}
+
+
+def _signal_name(signum):
+    import signal
+    return signal.Signals(signum).name
 
 
 def _previews(cfg, out, h5_path, writer, frames, title):

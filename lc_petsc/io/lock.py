@@ -12,7 +12,9 @@ the next run reports (:attr:`OutputLock.stale`).
 The file is removed only while it is locked, and a lock is only trusted if the locked
 file is still the one at the path (the inode check in :meth:`acquire`): otherwise a run
 that opened the old file just before it was removed could lock a deleted file while a
-third run locks the new one.
+third run locks the new one.  Another process of the same job may remove the file for
+its holder (:func:`remove_for_holder`, a job stopped during its set-up): the holder then
+leaves alone whatever file is at the path when it releases the lock.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ class OutputLock:
         self.folder = Path(folder)
         self.path = self.folder / LOCK_NAME
         self.fd = None
+        self.inode = None           # of the file locked
         self.created_folder = False
         self.stale = None           # holder description of a lock left by a killed run
 
@@ -78,7 +81,7 @@ class OutputLock:
             if not same:                  # removed by its previous holder meanwhile: retry
                 os.close(fd)
                 continue
-            self.fd = fd
+            self.fd, self.inode = fd, os.fstat(fd).st_ino
             break
         else:  # pragma: no cover - would need 100 lost races in a row
             raise OSError(f"{self.path}: could not take the lock (the file keeps changing)")
@@ -94,6 +97,10 @@ class OutputLock:
         os.fsync(self.fd)
         return self
 
+    def taken(self):
+        """What another process of the same job needs for :func:`remove_for_holder`."""
+        return {"stale": self.stale, "inode": self.inode, "created_folder": self.created_folder}
+
     def release(self, remove_created_folder=False):
         """Remove the lock file and unlock.  ``remove_created_folder``: also remove the
         folder if this lock created it and nothing else is in it (a run refused before
@@ -101,7 +108,11 @@ class OutputLock:
         if self.fd is None:
             return
         try:
-            self.path.unlink(missing_ok=True)
+            # not a file that came after another rank removed ours (remove_for_holder)
+            if os.stat(self.path).st_ino == self.inode:
+                self.path.unlink()
+        except FileNotFoundError:
+            pass
         finally:
             os.close(self.fd)       # releases the flock
             self.fd = None
@@ -116,6 +127,23 @@ class OutputLock:
 
     def __exit__(self, *exc):
         self.release()
+
+
+def remove_for_holder(folder, taken):
+    """Remove the lock file of ``folder`` and, when the run created the folder and
+    nothing else is in it, the folder, for the holder (``taken``: its
+    :meth:`OutputLock.taken`), a process of the same job that may not get to do it (a job
+    stopped during its set-up: the holder may wait for the caller in a collective call
+    until it is killed).  It still holds the lock, so the file at the path is the one it
+    locked, unless it is gone: only that inode is removed."""
+    folder = Path(folder)
+    try:
+        if os.stat(folder / LOCK_NAME).st_ino == taken["inode"]:
+            (folder / LOCK_NAME).unlink()
+        if taken["created_folder"]:
+            folder.rmdir()
+    except OSError:
+        pass
 
 
 def _read(fd):

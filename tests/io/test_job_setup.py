@@ -1,6 +1,15 @@
-"""A generated scene too large for the memory of the job's nodes is refused before it is
-built, with the strands files' estimate."""
+"""The main job's set-up (lock, build, validation, before the first frame): a signal
+stops it at once with exit 75 and the folder as it was, also under mpiexec when only
+one rank gets it while the other waits for it in a collective call; a generated scene
+too large for the machine's memory is refused before it is built.
 
+The long set-up of a huge scene is played by a driver whose build computes in Python
+for two minutes (the signal lands there), on every rank or on one while the others
+wait for it in a barrier."""
+
+import hashlib
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -8,12 +17,39 @@ from pathlib import Path
 
 import pytest
 
-from lc_petsc.batch import EXIT_USAGE
+from lc_petsc.batch import EXIT_PREEMPTED, EXIT_USAGE, main
 from lc_petsc.errors import ConfigError
+from lc_petsc.io.lock import LOCK_NAME
 from lc_petsc.scene import sources
+
+from sim_helpers import MPI_ENV  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 DRIVER = str(ROOT / "drivers" / "simulate.py")
+
+SLOW_DRIVER = '''
+import os, sys, time
+import lc_petsc.simulator as simulator
+from lc_petsc.batch import exit_process, main
+
+build = simulator.build_simulator
+
+
+def slow_build(cfg, comm=None):
+    with open(os.environ["SETUP_MARKER"] + f".{comm.rank}", "w") as f:
+        f.write(str(os.getpid()))
+    slow = os.environ.get("SLOW_RANK")
+    if slow is None or int(slow) == comm.rank:
+        t_end = time.monotonic() + 120
+        while time.monotonic() < t_end:
+            sum(range(1000))
+    comm.Barrier()
+    return build(cfg, comm)
+
+
+simulator.build_simulator = slow_build
+exit_process(main())
+'''
 
 HAIRBALL = """
 [scene]
@@ -34,6 +70,117 @@ def _config(tmp_path, n_wisps=4):
     p.write_text(HAIRBALL.format(n_wisps=n_wisps))
     return str(p)
 
+
+def _snapshot(folder):
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(Path(folder).rglob("*")) if p.is_file()}
+
+
+def _start_slow(tmp_path, out, ranks=None, slow_rank=None):
+    """The job with the slow build, serial or under mpiexec; (process, marker prefix)."""
+    driver = tmp_path / "slow_setup.py"
+    driver.write_text(SLOW_DRIVER)
+    marker = str(tmp_path / "building")
+    env = dict(MPI_ENV if ranks else os.environ, SETUP_MARKER=marker)
+    if slow_rank is not None:
+        env["SLOW_RANK"] = str(slow_rank)
+    cmd = [sys.executable, str(driver), _config(tmp_path), "--out", str(out), "--quiet"]
+    if ranks:
+        cmd = ["mpiexec", "--oversubscribe", "-n", str(ranks)] + cmd
+    p = subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    return p, marker
+
+
+def _pids_building(p, marker, ranks=1, timeout=60):
+    """The pids of the ranks, once every rank is in the build."""
+    t0 = time.time()
+    paths = [Path(f"{marker}.{r}") for r in range(ranks)]
+    while not all(q.exists() and q.stat().st_size for q in paths):
+        assert p.poll() is None, f"the run ended early: {p.communicate()[1][-2000:]}"
+        assert time.time() - t0 < timeout, "the build never started"
+        time.sleep(0.02)
+    time.sleep(0.3)
+    return [int(q.read_text()) for q in paths]
+
+
+def _stop(p, sig, pids, target=None, timeout=30):
+    """Send ``sig`` to ``target`` (default the process ``p``), then (stdout, stderr,
+    seconds to exit); kills ``p`` and the ranks ``pids`` if it does not end."""
+    t0 = time.monotonic()
+    os.kill(target or p.pid, sig)
+    try:
+        so, se = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        for pid in [p.pid] + pids:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        so, se = p.communicate()
+        pytest.fail(f"still running {timeout} s after {sig.name}: {se[-2000:]}")
+    return so, se, time.monotonic() - t0
+
+
+# ------------------------------------------------------------------- one process
+def test_sigterm_during_setup_stops_at_once(tmp_path):
+    """SIGTERM used to be ignored until the build ended (minutes for a huge scene):
+    it stops the set-up at once, exit 75, and the folder this run created is gone."""
+    out = tmp_path / "out"
+    p, marker = _start_slow(tmp_path, out)
+    pids = _pids_building(p, marker)
+    assert (out / LOCK_NAME).exists()
+    so, se, seconds = _stop(p, signal.SIGTERM, pids)
+    assert p.returncode == EXIT_PREEMPTED, se[-2000:]
+    assert seconds < 5, seconds
+    assert ("SIGTERM received during the set-up, before the first frame: stopped, nothing was "
+            "written (the output folder is as it was); run the same command again") in se, se
+    assert "Traceback" not in se and "finishing this frame" not in se
+    assert not out.exists()
+
+
+def test_ctrl_c_during_setup_leaves_the_previous_run(tmp_path, capsys):
+    """The first Ctrl-C used to promise 'finishing this frame' with no frame running:
+    it stops the set-up, and the previous run's outputs are untouched."""
+    out = tmp_path / "out"
+    assert main([_config(tmp_path), "--out", str(out), "--quiet"]) == 0
+    before = _snapshot(out)
+    p, marker = _start_slow(tmp_path, out)
+    pids = _pids_building(p, marker)
+    so, se, seconds = _stop(p, signal.SIGINT, pids)
+    assert p.returncode == EXIT_PREEMPTED, se[-2000:]
+    assert seconds < 5 and "SIGINT received during the set-up" in se, (seconds, se)
+    assert "finishing this frame" not in se and "Traceback" not in se
+    assert _snapshot(out) == before and not (out / LOCK_NAME).exists()
+
+
+# ------------------------------------------------------------------- under mpiexec
+def test_sigusr1_to_mpiexec_during_setup_stops_every_rank(tmp_path):
+    """mpiexec forwards SIGUSR1 to every rank: they agree and exit 75, reported once."""
+    out = tmp_path / "out"
+    p, marker = _start_slow(tmp_path, out, ranks=2)
+    pids = _pids_building(p, marker, ranks=2)
+    so, se, seconds = _stop(p, signal.SIGUSR1, pids)
+    assert p.returncode == EXIT_PREEMPTED, se[-2000:]
+    assert seconds < 10, seconds
+    assert se.count("SIGUSR1 received during the set-up, before the first frame") == 1, se
+    assert "Traceback" not in se and "MPI_ABORT" not in se
+    assert not out.exists()
+
+
+def test_signal_to_one_rank_while_the_other_waits_for_it(tmp_path):
+    """``kill`` of rank 1 alone, while rank 0 waits for it in a collective call: rank 1
+    removes rank 0's lock and aborts the job after Preemption.SETUP_WAIT s, exit 75,
+    no rank left waiting; the folder as it was."""
+    out = tmp_path / "out"
+    p, marker = _start_slow(tmp_path, out, ranks=2, slow_rank=1)
+    pids = _pids_building(p, marker, ranks=2)
+    so, se, seconds = _stop(p, signal.SIGTERM, pids, target=pids[1])
+    assert p.returncode == EXIT_PREEMPTED, se[-2000:]
+    assert seconds < 15, seconds
+    assert "rank 1: SIGTERM received during the set-up; the other ranks did not stop within 5 s" in se, se
+    assert "Traceback" not in se
+    assert not out.exists()
 
 
 # ------------------------------------------------------------------- size check

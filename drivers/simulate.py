@@ -1,7 +1,7 @@
 """Main job: run one scene and write its outputs (DESIGN section 3).
 
   mpiexec -n P python drivers/simulate.py CONFIG.toml [--frames N] [--out DIR] [--quiet]
-                                          [--restart CHECKPOINT|latest [--force]]
+                                          [--restart CHECKPOINT|latest] [--force]
                                           [PETSc options ...]
 
 PETSc options on the command line override the config's [solver] options.  Outputs in

@@ -2,7 +2,7 @@
 previews + summary out.
 
 ``mpiexec -n P python drivers/simulate.py CONFIG.toml [--frames N] [--out DIR]
-[--restart CHECKPOINT|latest [--force]] [--quiet] [PETSc options ...]``;
+[--restart CHECKPOINT|latest] [--force] [--quiet] [PETSc options ...]``;
 ``drivers/simulate.py`` only calls :func:`main` and :func:`exit_process`.
 
 Here: the command line and the config are checked on every rank (each rank reads the
@@ -40,7 +40,7 @@ def make_parser():
     p = _Parser(
         prog=PROG, allow_abbrev=False, add_help=False,
         usage="mpiexec -n P python drivers/simulate.py CONFIG.toml [--frames N] [--out DIR] "
-              "[--restart CHECKPOINT|latest [--force]] [--quiet] [PETSc options ...]",
+              "[--restart CHECKPOINT|latest] [--force] [--quiet] [PETSc options ...]",
         description="Run the scene CONFIG.toml and write frames.h5, frames.xdmf, previews and "
                     "summary.json to the output folder.",
         epilog="Every other option (single dash, e.g. -ksp_type cg -pc_type hypre -log_view) "
@@ -55,7 +55,8 @@ def make_parser():
                         "<output folder>/checkpoints ('latest'); --frames / time.frames is the "
                         "total frame count")
     p.add_argument("--force", action="store_true",
-                   help="with --restart: accept a config that differs from the checkpoint's")
+                   help="with --restart: accept a config that differs from the checkpoint's; "
+                        "without: start over in a folder whose run did not finish")
     p.add_argument("-h", "--help", action="store_true", help="show this help and exit")
     return p
 
@@ -74,8 +75,6 @@ def parse_command_line(argv):
         return args, []
     if args.frames is not None and args.frames < 0:
         raise UsageError(f"--frames must be an integer >= 0, got {args.frames}")
-    if args.force and args.restart is None:
-        raise UsageError("--force only applies with --restart")
     if args.out is not None and not args.out.strip():
         raise UsageError(f"--out {args.out!r}: give the output folder (a path), or leave --out "
                          "out to use output.dir / out/<config name>")

@@ -100,6 +100,27 @@ def _options_string(d):
     return " ".join(f"-{k} {v}".rstrip() for k, v in d.items())
 
 
+def unfinished_run(out):
+    """Why the output folder ``out`` holds a run that did not finish and can be
+    continued (its checkpoints, and a summary.json that says it was stopped by a signal,
+    or none: killed), else None.  A new run there would remove them (serial, read-only)."""
+    import json
+    from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints
+    found = list_checkpoints(checkpoint_folder(out))
+    if not found:
+        return None
+    newest = f"newest checkpoint {found[0].name}"
+    try:
+        summary = json.loads((Path(out) / "summary.json").read_text())
+    except FileNotFoundError:
+        return f"no summary.json: it was killed or is still being written; {newest}"
+    except (OSError, ValueError):
+        return f"summary.json unreadable; {newest}"
+    if summary.get("preempted"):
+        return f"stopped by {summary['preempted']} after frame {summary.get('frames')}; {newest}"
+    return None
+
+
 def missed_tolerance(missed, start, summary, time_config):
     """The warning for this run's frames ``missed`` (indices into the summary's per-frame
     lists, whose first entry is frame ``start``) whose Newton missed the tolerance and
@@ -280,6 +301,15 @@ class Job:
         if self.args.restart is not None:
             self.restart = self._load_restart()
             rows_kept = self.restart["frame"] // self.cfg.output.every + 1
+        else:
+            unfinished = self.comm.bcast(unfinished_run(self.out) if self.comm.rank == 0 else None)
+            if unfinished and not self.args.force:
+                raise Refused(f"{self.out} holds a run that did not finish ({unfinished}): continue it "
+                              f"with --restart latest, or start over with --force (removes its "
+                              f"frames.h5 and checkpoints)")
+            if unfinished:
+                self._warn(f"--force: starting over in {self.out}, whose run did not finish "
+                           f"({unfinished}); its frames.h5 and checkpoints are removed")
         self._check_disk(rows_kept)
 
     def _load_restart(self):

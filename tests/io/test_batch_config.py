@@ -125,7 +125,6 @@ def test_bad_config_is_reported_once_without_traceback_or_output(tmp_path, capsy
     (["--frames", "two"], "invalid int value: 'two'"),
     (["stray"], "unexpected argument 'stray'"),
     (["--restart", "latest"], "--restart latest: no valid checkpoint in"),
-    (["--force"], "--force only applies with --restart"),
 ])
 def test_bad_command_line(tmp_path, capsys, argv, part):
     (tmp_path / "c.toml").write_text(GOOD)

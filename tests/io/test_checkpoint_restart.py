@@ -229,7 +229,6 @@ def test_clear_errors(tmp_path, capsys):
     assert "not an lc_petsc checkpoint" in err(["--restart", cfg])
     assert "not an lc_petsc checkpoint" in err(["--restart", str(out / "frames.h5")])
     assert "nothing to do" in err(["--restart", str(ck), "--frames", "2"])
-    assert "--force only applies with --restart" in err(["--force"])
     newer = tmp_path / "newer.h5"
     newer.write_bytes(ck.read_bytes())
     with h5py.File(newer, "r+") as f:

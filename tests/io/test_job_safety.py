@@ -445,3 +445,40 @@ sys.exit(main([{cfg!r}, "--out", {str(out)!r}, "--quiet"]))
         n = 6
         assert np.array_equal(f["positions"][:n], g["positions"][:n])
         assert np.allclose(f["time"][:n], np.arange(n) / 30.0, rtol=0, atol=1e-15)
+
+
+def test_a_new_run_does_not_remove_a_run_that_did_not_finish(tmp_path, capsys, monkeypatch):
+    """A new run (no --restart) into the folder of a preempted or killed run used to remove
+    its frames.h5 and checkpoints silently (forgetting --restart latest lost the run): it
+    is refused, the folder unchanged, unless --force; a finished run's folder is reused."""
+    cfg = _smash(tmp_path, frames=6, ce=2)
+    out = tmp_path / "out"
+    step = Integrator.step
+
+    def step_and_signal(self):
+        step(self)
+        if self.frame == 3:
+            signal.raise_signal(signal.SIGUSR1)
+    monkeypatch.setattr(Integrator, "step", step_and_signal)
+    assert main([cfg, "--out", str(out), "--quiet"]) == EXIT_PREEMPTED
+    monkeypatch.setattr(Integrator, "step", step)
+    capsys.readouterr()
+    before = _snapshot(out)
+    assert main([cfg, "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "holds a run that did not finish (stopped by SIGUSR1 after frame 3; newest checkpoint " \
+           "checkpoint_000003.h5): continue it with --restart latest, or start over with --force" in err, err
+    assert _snapshot(out) == before
+    # killed: no summary.json
+    (out / "summary.json").unlink()
+    assert main([cfg, "--out", str(out), "--quiet"]) == 2
+    assert "(no summary.json: it was killed" in capsys.readouterr().err
+    # --force starts over, saying so
+    assert main([cfg, "--out", str(out), "--quiet", "--force"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert any(w.startswith("--force: starting over") for w in s["warnings"]), s["warnings"]
+    assert s["frames"] == 6 and s["restart"] is None
+    capsys.readouterr()
+    # a finished run (with checkpoints) is replaced as before
+    assert main([cfg, "--out", str(out), "--quiet"]) == 0
+    assert "did not finish" not in capsys.readouterr().err

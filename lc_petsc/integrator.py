@@ -300,9 +300,11 @@ class Integrator:
         in all).  The decision is the same on every rank (the increments are reduced).
         Returns the kept steps' :class:`_Solve` records, in time order."""
         start = self.x, self.v, self.t
+        move = self._projection_move
         solve = self._backward_euler(dt, t_next)
         if solve.converged is not False or substeps < 2:
             return [solve]
+        self._projection_move = move          # a discarded attempt's frame is not written
         self._discarded += solve.iterations
         self._discarded_checks += solve.chord_checks
         if self.monitor is not None:

@@ -30,6 +30,7 @@ What each step leaves behind when it fails:
 from __future__ import annotations
 
 import os
+import re
 import sys
 import time
 import traceback
@@ -94,6 +95,12 @@ def output_dir(args, cfg):
 def petsc_options_used(sim, command_line):
     """Options in effect: code defaults < sub-solver defaults < config < command line."""
     return sim.plan.options_used(command_line, sim.assembler.mat_type)
+
+
+def _diagnostic_option(key):
+    """Whether PETSc option ``key`` (no dash) only reports (monitors, views, logs): it
+    does not change the run's numbers (docs/newton.md: -lc_newton_monitor is bit for bit)."""
+    return bool(re.search(r"(^|_)(monitor|view|log)(_|$)|converged_reason|^log_|^options_left$|^malloc", key))
 
 
 def _options_string(d):
@@ -346,7 +353,8 @@ class Job:
         if diff:
             warn(comm, f"--force: config differs from the checkpoint's in {', '.join(diff)}")
         before, now = ck["attrs"].get("petsc_options") or {}, petsc_options_used(sim, self.command_line)
-        changed = [k for k in sorted(set(before) | set(now)) if str(before.get(k)) != str(now.get(k))]
+        changed = [k for k in sorted(set(before) | set(now))
+                   if str(before.get(k)) != str(now.get(k)) and not _diagnostic_option(k)]
         if changed:
             def shown(d, k):
                 return "unset" if k not in d else (str(d[k]) or "set")
@@ -446,6 +454,7 @@ class Job:
                 resume_rows=None if self.restart is None else start // cfg.output.every + 1)
             if self.restart is None:
                 self.writer.write_frame(0.0, sim.user.to_user(sim.x))
+                self.writer.flush()      # readable from the start, not only after FRAMES_FLUSH_SECONDS
         self.times = [0.0] if self.restart is None else list(self.writer.times_kept)
 
     def _loop(self):
@@ -582,8 +591,9 @@ class Job:
         unresolved = (summary.get("contact") or {}).get("ccd_unresolved_pairs_per_frame") or []
         if sum(unresolved):
             frames = [str(start + i) for i, n in enumerate(unresolved) if n][:MISSED_FRAMES_SHOWN]
-            self._warn(f"the ccd limiter left {sum(unresolved)} pair(s) of segments unresolved in "
-                       f"{sum(1 for n in unresolved if n)} frame(s) (first: {', '.join(frames)}): wisps may "
+            self._warn(f"the ccd limiter could not resolve every pair in {sum(1 for n in unresolved if n)} "
+                       f"frame(s) (first: {', '.join(frames)}; {sum(unresolved)} over its calls, "
+                       f"ccd_unresolved_pairs_per_frame in summary.json): wisps may "
                        f"pass through each other there (count them with scripts/count_crossings.py); "
                        f"a smaller time.dt helps (docs/contact.md, \"The head's turn per step\")")
         moves = [m for m in summary["length_projection_move"] if m is not None]

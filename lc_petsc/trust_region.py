@@ -114,7 +114,12 @@ class TrustRegionSolver:
         positive semi-definite)."""
         cg_set_radius(self.ksp, radius)
         with self.plan.active(self._defaults):
-            self.ksp.solve(b, x)
+            try:
+                self.ksp.solve(b, x)
+            except PETSc.Error:
+                # -tr_ksp_error_if_not_converged: the divergence it reports (as in solver.py)
+                if self.ksp.getConvergedReason() >= 0:
+                    raise
         r = self.ksp.getConvergedReason()
         its = self.ksp.getIterationNumber()
         self.iterations.append(int(its))

@@ -415,11 +415,13 @@ def test_wisp_starting_inside_the_head_is_warned_about(tmp_path, capsys):
     assert "start inside the head sphere (physics.head_radius + physics.head_margin = 2 cm" in e, e
 
 
-def test_a_run_killed_without_checkpoints_keeps_a_readable_frames_file(tmp_path):
+@pytest.mark.parametrize("flush_seconds, kept", [(0.0, 6), (None, 1)])
+def test_a_run_killed_without_checkpoints_keeps_a_readable_frames_file(tmp_path, flush_seconds, kept):
     """checkpoint_every = 0 (the default) and SIGKILL: frames.h5 was never flushed and
     libhdf5 could not open it ("file signature not found"), losing every frame. It is
-    now flushed every FRAMES_FLUSH_SECONDS (0 here: every frame) and keeps the frames
-    up to the last flush, each equal to an uninterrupted run's."""
+    now flushed after frame 0 and every FRAMES_FLUSH_SECONDS (0: every frame; the
+    default 30 s: not again before the kill) and keeps the frames up to the last flush,
+    each equal to an uninterrupted run's."""
     cfg = _smash(tmp_path, frames=100000, ce=0)
     out, ref = tmp_path / "out", tmp_path / "ref"
     script = tmp_path / "killed.py"
@@ -427,7 +429,8 @@ def test_a_run_killed_without_checkpoints_keeps_a_readable_frames_file(tmp_path)
 import os, signal, sys
 import lc_petsc.job as job
 from lc_petsc.integrator import Integrator
-job.FRAMES_FLUSH_SECONDS = 0.0
+if {flush_seconds!r} is not None:
+    job.FRAMES_FLUSH_SECONDS = {flush_seconds!r}
 step = Integrator.step
 def step_then_die(self):
     step(self)
@@ -441,8 +444,8 @@ sys.exit(main([{cfg!r}, "--out", {str(out)!r}, "--quiet"]))
     assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
     assert main([_smash(tmp_path, name="r.toml", frames=5, ce=0), "--out", str(ref), "--quiet"]) == 0
     with h5py.File(out / "frames.h5", "r") as f, h5py.File(ref / "frames.h5", "r") as g:
-        assert f["positions"].shape[0] >= 6          # frames 0-5 (frame 6 was not written)
-        n = 6
+        assert f["positions"].shape[0] >= kept       # frames 0-5 (frame 6 was not written)
+        n = kept
         assert np.array_equal(f["positions"][:n], g["positions"][:n])
         assert np.allclose(f["time"][:n], np.arange(n) / 30.0, rtol=0, atol=1e-15)
 

@@ -423,6 +423,39 @@ def test_length_projection_move_is_reported_per_frame(monkeypatch):
         sim.close()
 
 
+def test_length_projection_move_ignores_a_discarded_cutback_attempt(monkeypatch):
+    """Step cutback throws the first attempt away (forced here): the frame written comes
+    from the two half steps, and so does the reported move (the discarded attempt's
+    projection counted too, and could be the largest)."""
+    import lc_petsc.integrator as integ
+    project, step = integ.project_rest_lengths, integ.Integrator._backward_euler
+    moves, calls = [], []
+
+    def recording(x, free, offsets, rest, mass):
+        y = project(x, free, offsets, rest, mass)
+        if not moves:
+            y = y + 1e-2            # the first attempt's projection moves far (it is discarded)
+        moves.append(np.linalg.norm(y - x, axis=1).max())
+        return y
+
+    def first_attempt_fails(self, dt, t_next):
+        solve = step(self, dt, t_next)
+        calls.append(dt)
+        return solve._replace(converged=False) if len(calls) == 1 else solve
+    monkeypatch.setattr(integ, "project_rest_lengths", recording)
+    monkeypatch.setattr(integ.Integrator, "_backward_euler", first_attempt_fails)
+    sim = build_simulator(_smash(frames=1, newton_iterations=30, newton_increment_tol=1e-6,
+                                 length_projection=True, max_substeps=2), COMM)
+    try:
+        sim.run()
+        got = sim.summary()["length_projection_move"][0]
+        assert len(moves) == 3 and sim.summary()["newton_substeps"] == [2]
+        assert got == pytest.approx(max(moves[1:]) / sim.integrator.wisp_length.max(), rel=1e-12)
+        assert got < moves[0] / sim.integrator.wisp_length.max()
+    finally:
+        sim.close()
+
+
 def test_filter_rates_and_degenerate_margins():
     """scripts/newton_rates.py's measures on a small smashed wisp: the exact matrix's
     rate is 0, a filtered one's is in [0, 1) at a converged frame with a positive

@@ -105,6 +105,21 @@ def test_ksp_type_comes_from_the_options():
         build_simulator(cfg.validate(), comm=MPI.COMM_SELF)
 
 
+@pytest.mark.parametrize("error_flag", ["", " -tr_ksp_error_if_not_converged"])
+def test_a_diverged_trust_region_solve_is_a_solver_error(error_flag):
+    """With or without -tr_ksp_error_if_not_converged (PETSc raises instead of returning
+    the reason): the same SolverError, not a PETSc error that aborted every rank."""
+    from lc_petsc.errors import SolverError
+    cfg = _smash()
+    cfg.solver.options = "-tr_ksp_max_it 1" + error_flag
+    sim = build_simulator(cfg.validate(), comm=MPI.COMM_SELF)
+    try:
+        with pytest.raises(SolverError, match="DIVERGED_MAX_IT"):
+            sim.run()
+    finally:
+        sim.close()
+
+
 @pytest.mark.parametrize("change, match", [
     (dict(newton="trust"), "time.newton must be one of"),
     (dict(newton="trust_region", line_search=True), "trust region is the globalisation"),

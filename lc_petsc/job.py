@@ -100,7 +100,7 @@ def petsc_options_used(sim, command_line):
 def _diagnostic_option(key):
     """Whether PETSc option ``key`` (no dash) only reports (monitors, views, logs): it
     does not change the run's numbers (docs/newton.md: -lc_newton_monitor is bit for bit)."""
-    return bool(re.search(r"(^|_)(monitor|view|log)(_|$)|converged_reason|^log_|^options_left$|^malloc", key))
+    return bool(re.search(r"(^|_)(monitor|view|log)(_|$)|converged_reason|^options_left$|^malloc", key))
 
 
 def _options_string(d):
@@ -128,20 +128,47 @@ def unfinished_run(out):
     return None
 
 
-def missed_tolerance(missed, start, summary, time_config):
-    """The warning for this run's frames ``missed`` (indices into the summary's per-frame
-    lists, whose first entry is frame ``start``) whose Newton missed the tolerance and
-    were kept (``time.unconverged = "accept"``): which, how far, what to do."""
-    frames = [str(start + i) for i in missed[:MISSED_FRAMES_SHOWN]]
-    if len(missed) > MISSED_FRAMES_SHOWN:
-        frames.append(f"... {len(missed) - MISSED_FRAMES_SHOWN} more")
-    worst = max(summary["newton_increment"][i] or 0.0 for i in missed)
-    return (f"Newton missed the tolerance in {len(missed)} of {len(summary['newton_converged'])} "
-            f"frame(s) ({', '.join(frames)}; largest final measure {worst:.3g}, see newton_converged "
-            f"and newton_increment in summary.json); they were kept (time.unconverged = \"accept\"). "
-            f"Raise time.newton_iterations (now {time_config.newton_iterations}) or time.max_substeps "
-            f"(now {time_config.max_substeps}), or watch those frames with -lc_newton_monitor "
-            f"(docs/newton.md)")
+def _frame_list(indices, start):
+    """'3, 7, ... 2 more': the frames of the per-frame list ``indices`` (the list's entry
+    0 is frame ``start``), the first MISSED_FRAMES_SHOWN of them."""
+    shown = [str(start + i) for i in indices[:MISSED_FRAMES_SHOWN]]
+    if len(indices) > MISSED_FRAMES_SHOWN:
+        shown.append(f"... {len(indices) - MISSED_FRAMES_SHOWN} more")
+    return ", ".join(shown)
+
+
+def outcome_warnings(summary, start, time_config):
+    """Warnings about what the run's frames are (``summary``: the simulator's, this run's
+    frames from ``start``): frames where the ccd limiter left pairs unresolved, a length
+    projection that left the tolerance, frames whose Newton missed it."""
+    out = []
+    unresolved = (summary.get("contact") or {}).get("ccd_unresolved_pairs_per_frame") or []
+    hit = [i for i, n in enumerate(unresolved) if n]
+    if hit:
+        out.append(f"the ccd limiter could not resolve every pair in {len(hit)} frame(s) (first: "
+                   f"{_frame_list(hit, start)}; {sum(unresolved)} over its calls, "
+                   f"ccd_unresolved_pairs_per_frame in summary.json): wisps may pass through each "
+                   f"other there (count them with scripts/count_crossings.py); a smaller time.dt "
+                   f"helps (docs/contact.md, \"The head's turn per step\")")
+    moves = [m for m in summary["length_projection_move"] if m is not None]
+    tol = time_config.newton_increment_tol
+    if tol is not None and moves and max(moves) > tol:
+        out.append(f"time.length_projection moved the converged positions by up to {max(moves):.3g} "
+                   f"wisp lengths, {max(moves) / tol:.0f}x time.newton_increment_tol = {tol:g}: the "
+                   f"frames written are the projection's, not the Newton solution the tolerance "
+                   f"certifies (length_projection_move in summary.json); set "
+                   f"time.length_projection = false for frames within the tolerance")
+    missed = [i for i, c in enumerate(summary["newton_converged"]) if c is False]
+    if missed:
+        worst = max(summary["newton_increment"][i] or 0.0 for i in missed)
+        out.append(f"Newton missed the tolerance in {len(missed)} of {len(summary['newton_converged'])} "
+                   f"frame(s) ({_frame_list(missed, start)}; largest final measure {worst:.3g}, see "
+                   f"newton_converged and newton_increment in summary.json); they were kept "
+                   f"(time.unconverged = \"accept\"). Raise time.newton_iterations (now "
+                   f"{time_config.newton_iterations}) or time.max_substeps (now "
+                   f"{time_config.max_substeps}), or watch those frames with -lc_newton_monitor "
+                   f"(docs/newton.md)")
+    return out
 
 
 def output_estimate(cfg, n_wisps, n_vertices, rows_kept=0):
@@ -588,25 +615,8 @@ class Job:
                        f"{sim.solver.rtol:g} (true relative residual up to {worst:.3g}, first at solve "
                        f"{not_reduced[0][0]}): not converged; use a KSP that tests the residual "
                        "(e.g. -ksp_type cg) or an exact preconditioner with -ksp_type preonly")
-        unresolved = (summary.get("contact") or {}).get("ccd_unresolved_pairs_per_frame") or []
-        if sum(unresolved):
-            frames = [str(start + i) for i, n in enumerate(unresolved) if n][:MISSED_FRAMES_SHOWN]
-            self._warn(f"the ccd limiter could not resolve every pair in {sum(1 for n in unresolved if n)} "
-                       f"frame(s) (first: {', '.join(frames)}; {sum(unresolved)} over its calls, "
-                       f"ccd_unresolved_pairs_per_frame in summary.json): wisps may "
-                       f"pass through each other there (count them with scripts/count_crossings.py); "
-                       f"a smaller time.dt helps (docs/contact.md, \"The head's turn per step\")")
-        moves = [m for m in summary["length_projection_move"] if m is not None]
-        tol = cfg.time.newton_increment_tol
-        if tol is not None and moves and max(moves) > tol:
-            self._warn(f"time.length_projection moved the converged positions by up to {max(moves):.3g} "
-                       f"wisp lengths, {max(moves) / tol:.0f}x time.newton_increment_tol = {tol:g}: the "
-                       f"frames written are the projection's, not the Newton solution the tolerance "
-                       f"certifies (length_projection_move in summary.json); set "
-                       f"time.length_projection = false for frames within the tolerance")
-        missed = [i for i, c in enumerate(summary["newton_converged"]) if c is False]
-        if missed:
-            self._warn(missed_tolerance(missed, start, summary, cfg.time))
+        for w in outcome_warnings(summary, start, cfg.time):
+            self._warn(w)
         summary.update({
             "config_file": str(Path(self.args.config).resolve()),
             "description": cfg.scene.description,

@@ -72,6 +72,18 @@ _REASONS = {getattr(PETSc.KSP.ConvergedReason, n): n for n in dir(PETSc.KSP.Conv
             if n.isupper() or n.startswith(("CONVERGED", "DIVERGED", "ITERATING"))}
 
 
+def ksp_solve(ksp, b, x):
+    """``ksp.solve(b, x)``, its divergence left to ``getConvergedReason()`` also under
+    ``-ksp_error_if_not_converged``, which makes it a PETSc error (on every rank: the
+    reason is collective) that aborted the job as an internal error.  Other PETSc
+    errors pass."""
+    try:
+        ksp.solve(b, x)
+    except PETSc.Error:
+        if ksp.getConvergedReason() >= 0:
+            raise
+
+
 def reason_name(r: int) -> str:
     """PETSc's name of the KSP converged reason ``r`` (its number if unknown)."""
     return _REASONS.get(r, str(r))
@@ -147,13 +159,7 @@ class LinearSolver:
     def solve(self, b, x, frame, newton_it):
         """Solve A x = b; records iterations and reason, raises :class:`SolverError` on divergence."""
         with self.plan.active():
-            try:
-                self.ksp.solve(b, x)
-            except PETSc.Error:
-                # -ksp_error_if_not_converged makes a divergence a PETSc error, on every
-                # rank (the reason is collective): the same divergence as without it
-                if self.ksp.getConvergedReason() >= 0:
-                    raise
+            ksp_solve(self.ksp, b, x)
         r = self.ksp.getConvergedReason()
         its = self.ksp.getIterationNumber()
         self.iterations.append(int(its))

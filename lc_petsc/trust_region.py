@@ -41,7 +41,7 @@ from petsc4py import PETSc
 from lc_petsc.errors import ConfigError, SolverError
 from lc_petsc.petsc_capi import (bjacobi_set_local_blocks, cg_get_norm_d, cg_get_obj_fcn,
                                  cg_set_radius)
-from lc_petsc.solver import reason_name
+from lc_petsc.solver import ksp_solve, reason_name
 
 #: KSP types with a trust region (the ``tr_`` prefixed KSP's ``-tr_ksp_type``).  KSPGLTR
 #: is refused: with PETSc 3.18 it aborted the process ("double free or corruption") on
@@ -114,12 +114,7 @@ class TrustRegionSolver:
         positive semi-definite)."""
         cg_set_radius(self.ksp, radius)
         with self.plan.active(self._defaults):
-            try:
-                self.ksp.solve(b, x)
-            except PETSc.Error:
-                # -tr_ksp_error_if_not_converged: the divergence it reports (as in solver.py)
-                if self.ksp.getConvergedReason() >= 0:
-                    raise
+            ksp_solve(self.ksp, b, x)
         r = self.ksp.getConvergedReason()
         its = self.ksp.getIterationNumber()
         self.iterations.append(int(its))

@@ -210,11 +210,12 @@ def test_the_job_names_the_frames_that_missed_the_tolerance(tmp_path, tol, misse
 
 
 def test_missed_tolerance_numbers_frames_from_the_restart_and_shortens_long_lists():
-    from lc_petsc.job import MISSED_FRAMES_SHOWN, missed_tolerance
+    from lc_petsc.job import MISSED_FRAMES_SHOWN, outcome_warnings
     from lc_petsc.config import TimeConfig
     n = MISSED_FRAMES_SHOWN + 3
-    summary = {"newton_converged": [True] + [False] * n, "newton_increment": [1e-9] + [2e-3] * (n - 1) + [None]}
-    text = missed_tolerance(list(range(1, n + 1)), 40, summary, TimeConfig())
+    summary = {"newton_converged": [True] + [False] * n, "newton_increment": [1e-9] + [2e-3] * (n - 1) + [None],
+               "length_projection_move": [None] * (n + 1)}
+    [text] = outcome_warnings(summary, 40, TimeConfig())
     assert f"in {n} of {n + 1} frame(s) (41, 42, " in text, text
     assert f"{40 + MISSED_FRAMES_SHOWN}, ... 3 more;" in text, text
     assert "largest final measure 0.002" in text, text

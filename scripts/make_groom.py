@@ -1,9 +1,13 @@
 """Write the example strands file configs/data/fringe.h5 (DESIGN section 3, "Strands
 from a file") used by configs/from_file.toml.
 
-A fringe of 24 curly wisps hanging from a horizontal bar 8 cm long: lengths 40 to 101
-vertices, coil radius 0.3 to 0.7 cm, 4 to 7 vertices per turn, left- and right-handed,
-each with its own tapering /radius and the first 3 vertices /pinned.  Deterministic
+A fringe of 24 curly wisps hanging from a patch 8 cm wide and 4.8 cm deep (4 rows of 6
+roots, 1.6 cm apart both ways): lengths 40 to 101 vertices, coil radius 0.3 to 0.7 cm,
+4 to 7 vertices per turn, left- and right-handed, each with its own tapering /radius
+and the first 3 vertices /pinned.  The roots are far enough apart that no two wisps come
+closer than 0.2 cm at rest, so the groom runs with strand contact (``ccd`` mode refuses a
+rest pose whose wisps overlap; the first version of this file hung all 24 wisps from one
+bar, 0.35 cm apart, their coils interleaved).  Deterministic
 (seeded), so the committed file can be regenerated: bit for bit on the same CPU, to the
 last ulp of NumPy's SIMD sin/cos (1e-15 cm) on another:
 
@@ -29,6 +33,15 @@ def wisp(n, coil_radius, per_turn, rise, handed, root):
     return x + root
 
 
+def root(w, rng):
+    """Wisp w's root: row w % 4, column w // 4 of the patch.  A coil of radius r spans
+    [x - 2 r, x] and [z - r, z + r] about its root, so with r <= 0.7 the 1.6 cm spacing
+    keeps neighbours at least 0.2 cm apart.  The normal draw is kept (unused) so the
+    wisps' other random figures are those of the first version of the file."""
+    rng.standard_normal()
+    return np.array([-4.0 + 1.6 * (w // 4), 0.0, -2.4 + 1.6 * (w % 4)])
+
+
 def main(out):
     rng = np.random.default_rng(2023)
     xs, radii, pins = [], [], []
@@ -36,7 +49,7 @@ def main(out):
         n = int(rng.integers(40, 102))
         x = wisp(n, coil_radius=rng.uniform(0.3, 0.7), per_turn=int(rng.integers(4, 8)),
                  rise=rng.uniform(0.08, 0.2), handed=1 if w % 2 else -1,
-                 root=np.array([-4.0 + 8.0 * w / 23, 0.0, 0.3 * rng.standard_normal()]))
+                 root=root(w, rng))
         xs.append(x)
         radii.append(np.linspace(rng.uniform(0.06, 0.1), 0.03, n))
         p = np.zeros(n, bool)

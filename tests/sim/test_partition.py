@@ -86,7 +86,8 @@ def _config(path, order, frames=4, contact=True):
     terms = ("stretch", "bend", "twist", "gravity") + (("strand_collision",) if contact else ())
     return SimConfig(scene=SceneConfig(kind="file", path=str(path)),
                      material=MaterialConfig(youngs_modulus=2.5e8),
-                     physics=PhysicsConfig(terms=terms, strand_stiffness=1e5),
+                     # thicker than the fringe's closest wisps at rest (0.22 cm): contact from frame 0
+                     physics=PhysicsConfig(terms=terms, strand_stiffness=1e5, strand_thickness=0.3),
                      time=TimeConfig(frames=frames),
                      solver=SolverConfig(options=f"-lc_wisp_order {order} -ksp_rtol 1e-12"))
 
@@ -134,9 +135,8 @@ def _share_extent(source, mode, n_ranks):
 def test_spatial_order_keeps_rank_shares_compact(tmp_path, n_ranks):
     """With the spatial order the shuffled groom gets exactly the ordered groom's
     shares (the order depends on the roots only), about as compact as the fringe's own
-    left-to-right order (a Hilbert curve is not a perfect line: measured 1.16-1.5x the
-    sum of share diagonals on 2-4 ranks); in the file's order they spread over the whole
-    fringe."""
+    row-by-column order (measured 0.90-1.08x the sum of share diagonals on 2-4 ranks);
+    in the file's order they spread over the whole patch (measured 1.49-1.71x)."""
     perm = np.random.default_rng(5).permutation(24)
     write_shuffled(tmp_path / "shuffled.h5", perm)
     ordered, shuffled = FileSource(FRINGE), FileSource(tmp_path / "shuffled.h5")
@@ -144,9 +144,9 @@ def test_spatial_order_keeps_rank_shares_compact(tmp_path, n_ranks):
            "shuffled": _share_extent(shuffled, "input", n_ranks),
            "ordered_spatial": _share_extent(ordered, "spatial", n_ranks),
            "shuffled_spatial": _share_extent(shuffled, "spatial", n_ranks)}
-    assert ext["shuffled"] > 1.8 * ext["ordered"], ext
+    assert ext["shuffled"] > 1.4 * ext["ordered"], ext
     assert ext["shuffled_spatial"] == ext["ordered_spatial"], ext
-    assert ext["shuffled_spatial"] <= 1.6 * ext["ordered"], ext
+    assert ext["shuffled_spatial"] <= 1.2 * ext["ordered"], ext
 
 
 @pytest.mark.mpi

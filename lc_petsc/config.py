@@ -495,6 +495,9 @@ class OutputConfig:
     from ``frames.h5`` at the end of the run; ``render_hairs``: N interpolated hairs
     per wisp in it (0: none), offsets seeded by ``render_hair_seed`` and spread over
     ``render_hair_spread`` x the wisp radius (:mod:`lc_petsc.io.render_hairs`).
+    ``check_crossings``: at the end, count the crossings along the straight paths
+    between the written frames (:func:`lc_petsc.crossings.check_run`) into the summary,
+    with a warning naming the keys to change when there are any.
     """
 
     dir: str = ""
@@ -510,13 +513,14 @@ class OutputConfig:
     render_hairs: int = 0
     render_hair_seed: int = 0
     render_hair_spread: float = 1.0
+    check_crossings: bool = True
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
         if not isinstance(self.dir, str):
             raise ConfigError(f"output.dir must be a string (a folder), got {self.dir!r}")
         _int_at_least("output.every", self.every, 1)
-        for name in ("xdmf", "previews", "usd"):
+        for name in ("xdmf", "previews", "usd", "check_crossings"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"output.{name} must be true or false, got {getattr(self, name)!r}")
         for f in self.preview_frames:

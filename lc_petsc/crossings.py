@@ -121,3 +121,56 @@ def count_frames(path, self_contact=False, progress=None):
                 progress(out[-1])
             prev = cur
     return out, d0
+
+
+def check_run(path, comm, self_contact=False):
+    """The crossings along the straight paths between consecutive frames of the closed
+    ``frames.h5`` at ``path`` (what a viewer interpolating the frames shows), for the
+    run's end-of-run check.  Collective over the mpi4py communicator ``comm``: each rank
+    reads its own contiguous share of the frame steps (read-only, serial h5py).
+
+    Returns a dict, the same on every rank: ``steps`` checked; ``between_wisps`` and
+    ``steps_between`` (crossings of segments of different wisps, and the steps that
+    have any), ``first_between`` (first such step, step k: frames k -> k + 1, or None);
+    with ``self_contact`` also ``within_wisps``, ``steps_within`` and ``first_within``
+    (segments of one wisp sharing no vertex), else those are None."""
+    rows, problem, n_steps = [], None, 0          # (step, between, within) of this rank's steps
+    try:
+        rows, n_steps = _count_share(path, comm.rank, comm.size, self_contact)
+    except (OSError, KeyError, ValueError) as e:   # never a reason to lose the run's summary
+        problem = f"{path}: {e}"
+    parts = comm.allgather((rows, problem, n_steps))
+    problems = [p for _, p, _ in parts if p]
+    if problems:
+        return {"error": problems[0]}
+    rows = [r for part, _, _ in parts for r in part]
+    n_steps = max(n for _, _, n in parts)
+    between = [r for r in rows if r[1]]
+    within = [r for r in rows if r[2]]
+    return {"steps": n_steps,
+            "between_wisps": sum(r[1] for r in rows), "steps_between": len(between),
+            "first_between": between[0][0] if between else None,
+            "within_wisps": sum(r[2] for r in rows) if self_contact else None,
+            "steps_within": len(within) if self_contact else None,
+            "first_within": (within[0][0] if within else None) if self_contact else None}
+
+
+def _count_share(path, rank, size, self_contact):
+    """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps."""
+    import h5py
+    with h5py.File(path, "r") as f:
+        off = np.asarray(f["wisp_offsets"][...], np.int64)
+        n_steps = max(int(f["positions"].shape[0]) - 1, 0)
+        a, b = n_steps * rank // size, n_steps * (rank + 1) // size
+        seg, wisp = segments(off)
+        wid = np.full(int(off[-1]), -1, np.int64)
+        wid[seg] = wisp
+        rows = []
+        prev = np.asarray(f["positions"][a], float) if a < b else None
+        for k in range(a, b):
+            cur = np.asarray(f["positions"][k + 1], float)
+            r = count_crossings(prev, cur, off, self_contact)
+            same = wid[r["pairs"][:, 0]] == wid[r["pairs"][:, 1]]
+            rows.append((k, int((~same).sum()), int(same.sum())))
+            prev = cur
+    return rows, n_steps

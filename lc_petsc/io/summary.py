@@ -90,6 +90,13 @@ def format_report(s) -> str:
         parts.append(f"wisp length (root to tip) {shape['wisp_length_ratio']:.3f}")
     if parts:
         lines.append("  shape at the end / rest (mean over wisps): " + ", ".join(parts))
+    check = s.get("crossings")
+    if check and "error" in check:
+        lines.append(f"  crossings between the frames written: not checked ({check['error']})")
+    elif check:
+        within = "" if check["within_wisps"] is None else f", within a wisp {check['within_wisps']}"
+        lines.append(f"  crossings between the frames written: between wisps {check['between_wisps']}"
+                     f"{within} over {check['steps']} steps (checked in {_fmt_s(check['seconds'])})")
     for w in s.get("warnings", []):
         lines.append(f"  warning: {w}")
     out = s.get("output", {})

@@ -1,0 +1,160 @@
+"""The main job's end-of-run crossing check (``output.check_crossings``): the crossings
+along the straight paths between the frames written, counted between wisps (and
+within a wisp where the run models self-contact or has one wisp) into summary.json,
+with a warning naming the key that prevents them.  ``check_run`` splits the steps over
+the ranks and gives every rank the same answer (mpi marker: tests/test_mpi_launch.py)."""
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lc_petsc.batch import main
+from lc_petsc.crossings import check_run
+
+comm = MPI.COMM_WORLD
+N = 10                  # vertices per wisp (even: crossings fall inside segments)
+
+
+def write_frames(path, frames, offsets):
+    """A minimal frames.h5 (the datasets the check reads) on rank 0."""
+    if comm.rank == 0:
+        with h5py.File(path, "w") as f:
+            f["positions"] = np.asarray(frames, float)
+            f["wisp_offsets"] = np.asarray(offsets, np.int64)
+    comm.Barrier()
+
+
+def bar(y, along, n=N, z=0.0):
+    """A straight wisp of n vertices from -1 to 1 cm along axis ``along`` at height y."""
+    x = np.zeros((n, 3))
+    x[:, along] = np.linspace(-1.0, 1.0, n)
+    x[:, 1] += y
+    x[:, 2] += z if along != 2 else 0.0
+    return x
+
+
+@pytest.mark.mpi
+def test_check_counts_each_step_once_on_any_rank_count(tmp_path):
+    """Wisp B (along z) falls through wisp A (along x) in step 2 only, and back up in
+    step 4; a folded wisp C crosses itself in step 1.  The same figures on 1-3 ranks."""
+    path = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None)) / "f.h5"
+    ys = [1.0, 0.9, -0.5, -0.6, 0.5, 0.4]                   # B's height per frame
+    c_open = np.column_stack([np.linspace(0, 1, 6), 5.0 + np.zeros(6), np.zeros(6)])
+    c_open[3:, 0] = c_open[2::-1, 0]
+    c_open[3:, 2] = 0.3                                       # folded back 0.3 cm apart in z
+    c_through = c_open.copy()
+    c_through[3:, 2] = -0.3                                   # the fold passed through itself
+    frames = []
+    for k, y in enumerate(ys):
+        c = c_through if k >= 2 else c_open
+        frames.append(np.concatenate([bar(0.0, 0), bar(y, 2), c]))
+    offsets = [0, N, 2 * N, 2 * N + 6]
+    write_frames(path, frames, offsets)
+    r = check_run(path, comm, self_contact=False)
+    assert r == {"steps": 5, "between_wisps": 2, "steps_between": 2, "first_between": 1,
+                 "within_wisps": None, "steps_within": None, "first_within": None}
+    r = check_run(path, comm, self_contact=True)
+    assert (r["between_wisps"], r["first_between"]) == (2, 1)
+    assert r["within_wisps"] >= 1 and r["steps_within"] == 1 and r["first_within"] == 1, r
+    # an unreadable file is an answer on every rank, not an exception on some
+    missing = check_run(path.with_name("none.h5"), comm)
+    assert set(missing) == {"error"} and "none.h5" in missing["error"], missing
+
+
+GROOM_TOML = """
+[scene]
+kind = "file"
+path = "{groom}"
+[material]
+youngs_modulus = 1.0e9
+[physics]
+terms = {terms}
+{contact}
+[time]
+dt = 0.03333333333333333
+frames = 8
+initial_guess = "{guess}"
+[output]
+previews = false
+usd = false
+xdmf = false
+"""
+
+
+def write_groom(path):
+    """Wisp A along x at y = 0, every vertex pinned; wisp B along z 0.5 cm above it,
+    free: it falls onto (or through) A under gravity."""
+    with h5py.File(path, "w") as f:
+        f["positions"] = np.concatenate([bar(0.0, 0), bar(0.5, 2)])
+        f["wisp_offsets"] = np.array([0, N, 2 * N], np.int64)
+        f["pinned"] = np.concatenate([np.ones(N, bool), np.zeros(N, bool)])
+        f["radius"] = np.full(2 * N, 0.02)
+
+
+def run(tmp_path, name, contact):
+    groom = tmp_path / "groom.h5"
+    write_groom(groom)
+    terms = ["stretch", "bend", "gravity"] + (["strand_collision"] if contact else [])
+    cfg = tmp_path / f"{name}.toml"
+    cfg.write_text(GROOM_TOML.format(
+        groom=groom, terms=json.dumps(terms),
+        contact='strand_contact_mode = "ccd"\nstrand_thickness = 0.04' if contact else "",
+        guess="follow_the_leader" if contact else "inertial"))
+    out = tmp_path / name
+    assert main([str(cfg), "--out", str(out), "--quiet"]) == 0
+    return json.loads((out / "summary.json").read_text()), out / "frames.h5"
+
+
+def test_run_without_contact_reports_and_warns(tmp_path):
+    """The wisp falls through the other: the summary counts it, the warning names the
+    key; with ccd contact it lands on it: 0 and no warning."""
+    s, frames = run(tmp_path, "free", contact=False)
+    c = s["crossings"]
+    with h5py.File(frames) as f:
+        y_mid = f["positions"][:, N + N // 2, 1]
+    passed = int(np.argmax(y_mid < 0.0)) - 1                 # the step in which B passed y = 0
+    assert passed >= 0 and c["between_wisps"] >= 1 and c["first_between"] == passed, (c, y_mid)
+    assert c["steps"] == 8 and c["within_wisps"] is None and c["seconds"] > 0
+    w = [m for m in s["warnings"] if "crossing(s) between wisps" in m]
+    assert len(w) == 1 and 'add "strand_collision" to physics.terms' in w[0], s["warnings"]
+    assert f"frame {passed} -> {passed + 1}" in w[0]
+    s, frames = run(tmp_path, "ccd", contact=True)
+    with h5py.File(frames) as f:
+        assert f["positions"][-1, N + N // 2, 1] > 0.0       # it rests on A
+    assert s["crossings"]["between_wisps"] == 0 and s["crossings"]["steps"] == 8
+    assert not [m for m in s["warnings"] if "crossing" in m], s["warnings"]
+
+
+def test_single_wisp_checked_within_and_switch_off(tmp_path):
+    """A smashed curl (one wisp, no contact) crosses itself when it springs back: counted
+    within the wisp, with self-contact as the fix; ``check_crossings = false`` skips it."""
+    toml = """
+[scene]
+kind = "wisp4c"
+n_vertices = 101
+perturbation = "smash"
+[material]
+youngs_modulus = 3.9e9
+[physics]
+terms = ["stretch", "bend", "twist"]
+[time]
+frames = 2
+[output]
+previews = false
+usd = false
+"""
+    p = tmp_path / "s.toml"
+    p.write_text(toml)
+    assert main([str(p), "--out", str(tmp_path / "a"), "--quiet"]) == 0
+    s = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert s["crossings"]["between_wisps"] == 0 and s["crossings"]["within_wisps"] > 0
+    assert s["crossings"]["first_within"] == 0
+    assert any("within a wisp" in w and "strand_self_contact = true" in w for w in s["warnings"])
+    p.write_text(toml + "check_crossings = false\n")
+    assert main([str(p), "--out", str(tmp_path / "b"), "--quiet"]) == 0
+    s = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert s["crossings"] is None and not [w for w in s["warnings"] if "crossing" in w]

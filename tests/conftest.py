@@ -94,3 +94,12 @@ def collective_teardown():
     from petsc4py import PETSc
     PETSc.garbage_cleanup()
     MPI.COMM_WORLD.Barrier()
+
+
+@pytest.fixture(autouse=True)
+def fresh_hdf5_state(monkeypatch):
+    """Each test starts with libhdf5 unmarked: a test that made it fail on an open file
+    (a full disk) marks the process (``lc_petsc.io.hdf5.mark_unclosable``), which would
+    make the later tests of the process skip their XDMF, previews and USD."""
+    from lc_petsc.io import hdf5
+    monkeypatch.setattr(hdf5, "_unclosable", False)

@@ -242,8 +242,13 @@ def checkpoint_bytes(n_wisps, n_vertices) -> int:
 
 
 def _write_file(h5py, tmp, kw, local, digests, n_vertices, v0, offsets, hs, attrs, dxpl, comm, frame):
+    """Create ``tmp`` on every rank, reserve its bytes, write it, close it.  A failure on
+    any rank is an OutputError on every rank (:func:`_together`), and the file is then
+    left open (``_ABANDONED``): closing it after a failed write hung both ranks in
+    libhdf5's close (a disk filled by another program during the write)."""
     from lc_petsc.io.frames import write_rows
-    with h5py.File(str(tmp), "w", **kw) as f:
+    f = h5py.File(str(tmp), "w", **kw)
+    try:
         def dataset(name, shape, dtype):
             dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
             dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
@@ -251,18 +256,73 @@ def _write_file(h5py, tmp, kw, local, digests, n_vertices, v0, offsets, hs, attr
             d = f.create_dataset(name, shape=shape, dtype=dtype, dcpl=dcpl)
             d.attrs["sha256"] = digests[name]
             return d
-        for name in VERTEX_DATASETS:
-            a = local[name]
-            d = dataset(name, (n_vertices,) + a.shape[1:], a.dtype)
-            write_rows(d, (v0,), a, dxpl)
+        # name: (this rank's rows, where they start, the dataset's shape)
+        rows = {name: (local[name], (v0,), (n_vertices,) + local[name].shape[1:])
+                for name in VERTEX_DATASETS}
+        rows.update({name: (a if comm.rank == 0 else a[:0], (0,), a.shape)
+                     for name, a in (("wisp_offsets", offsets), ("head_state", hs))})
+        dsets = _together(comm, "creating the datasets", lambda: {
+            name: dataset(name, shape, a.dtype) for name, (a, _, shape) in rows.items()})
+        nbytes = checkpoint_bytes(len(offsets) - 1, n_vertices)
+        _together(comm, f"reserving its {nbytes:,} bytes on disk",
+                  lambda: _reserve(tmp, nbytes) if comm.rank == 0 else None)
+        for name, (a, start, _) in rows.items():
+            _together(comm, f"writing /{name}", lambda: write_rows(dsets[name], start, a, dxpl))
             if name == "positions":
                 _pause(frame)
-        for name, a in (("wisp_offsets", offsets), ("head_state", hs)):
-            d = dataset(name, a.shape, a.dtype)
-            write_rows(d, (0,), a if comm.rank == 0 else a[:0], dxpl)
-        for k, val in attrs.items():
-            f.attrs[k] = val
-        f.flush()
+
+        def finish():
+            for k, val in attrs.items():
+                f.attrs[k] = val
+            f.flush()
+        _together(comm, "writing its attributes", finish)
+    except _Failed as e:
+        _ABANDONED.append(f)
+        from lc_petsc.io.disk import OutputError
+        _on_root(comm, lambda: tmp.unlink(missing_ok=True), f"checkpoint {str(tmp)!r}")
+        raise OutputError(f"{tmp}: {e} (the partial checkpoint is removed, the previous "
+                          "ones are intact)", hdf5_broken=True) from None
+    f.close()
+
+
+#: checkpoint files libhdf5 failed on: never closed (lc_petsc.io.hdf5), kept referenced
+#: so that the garbage collector does not close them either
+_ABANDONED: list = []
+
+
+class _Failed(Exception):
+    """A step of the checkpoint's write failed on some rank (the message names it)."""
+
+
+def _together(comm, what, action):
+    """``action()`` on every rank, then one verdict for all: its result, or _Failed on
+    every rank if it raised OSError / RuntimeError on any (the first rank's reason).
+    A collective write that fails on one rank (ENOSPC on an aggregator) returns on the
+    others, so the ranks agree before the next collective call instead of parting."""
+    result, problem = None, None
+    try:
+        result = action()
+    except (OSError, RuntimeError) as e:
+        problem = f"{what}: {e.strerror if isinstance(e, OSError) and e.strerror else e}"
+    problems = [p for p in comm.allgather(problem) if p]
+    if problems:
+        raise _Failed(problems[0])
+    return result
+
+
+def _reserve(path, nbytes):
+    """Allocate the file's first ``nbytes`` on disk (rank 0, before any data is written):
+    the writes that follow then cannot run out of space, whatever else fills the volume.
+    A file system that cannot preallocate is written without it."""
+    import errno
+    fd = os.open(str(path), os.O_RDWR)
+    try:
+        os.posix_fallocate(fd, 0, int(nbytes))
+    except OSError as e:
+        if e.errno not in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+            raise
+    finally:
+        os.close(fd)
 
 
 def _attr(v):

@@ -284,6 +284,85 @@ def test_full_disk_while_writing_a_checkpoint(tmp_path, small_volume, monkeypatc
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
 
 
+HAIRBALL_2 = """
+[scene]
+kind = "hairball"
+n_wisps = 8
+[material]
+youngs_modulus = 2.5e8
+[physics]
+terms = ["stretch", "bend", "gravity"]
+[time]
+frames = 8
+[output]
+previews = false
+usd = false
+checkpoint_every = 3
+"""
+
+
+def test_disk_filled_by_another_program_during_a_checkpoint(tmp_path, small_volume):
+    """2 ranks; another program fills the volume while checkpoint 3 is being written (after
+    its positions).  Before, both ranks hung in libhdf5's close of the failed file; now
+    the checkpoint's bytes are reserved before its first write, so it completes and is
+    valid, and the next frame is refused as a full disk: exit 3, frames 0-3 readable."""
+    from sim_helpers import MPI_ENV
+    from lc_petsc.io.checkpoint import PAUSE_ENV
+    cfg, out = tmp_path / "h.toml", small_volume / "out"
+    cfg.write_text(HAIRBALL_2)
+    p = subprocess.Popen(["mpiexec", "-n", "2", sys.executable, DRIVER, str(cfg), "--out", str(out),
+                          "--quiet"], env=dict(MPI_ENV, **{PAUSE_ENV: "3:6"}), stdin=subprocess.DEVNULL,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    tmp = out / "checkpoints" / ".checkpoint_000003.h5.tmp"
+    t0 = time.time()
+    while not tmp.exists():
+        assert p.poll() is None and time.time() - t0 < 120, p.communicate()[1][-2000:]
+        time.sleep(0.05)
+    time.sleep(1.0)                               # inside the pause, after the positions
+    _fill(small_volume, 0)
+    try:
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 3, err[-3000:]
+    assert "frames.h5: disk full" in err and "Traceback" not in err, err[-3000:]
+    assert sorted(q.name for q in (out / "checkpoints").iterdir()) == ["checkpoint_000003.h5"]
+    (small_volume / "filler").unlink()
+    with h5py.File(out / "checkpoints" / "checkpoint_000003.h5", "r") as c, \
+            h5py.File(out / "frames.h5", "r") as f:
+        assert f["positions"].shape[0] == 4 and c.attrs["frame"] == 3
+        assert np.array_equal(c["positions"][...], f["positions"][3])
+    r = subprocess.run([sys.executable, DRIVER, str(cfg), "--out", str(out), "--quiet", "--restart",
+                        "latest"], env=MPI_ENV, stdin=subprocess.DEVNULL, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+
+
+def test_checkpoint_that_cannot_reserve_its_bytes(tmp_path, monkeypatch, capsys):
+    """The reservation fails (the volume filled after the free-space check): the run stops
+    with exit 3 naming the step, the partial file is removed, the previous checkpoint
+    and the frames are kept, and the run continues from it."""
+    import errno
+    from lc_petsc.io import checkpoint
+    cfg = _smash(tmp_path, frames=40, ce=2)
+    out = tmp_path / "out"
+    reserve = checkpoint._reserve
+
+    def reserve_fails_at_4(path, nbytes):
+        if "000004" in str(path):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        reserve(path, nbytes)
+    monkeypatch.setattr(checkpoint, "_reserve", reserve_fails_at_4)
+    assert main([cfg, "--out", str(out), "--quiet"]) == 3
+    err = capsys.readouterr().err
+    assert "checkpoint_000004.h5.tmp: reserving its" in err and "No space left" in err, err
+    assert sorted(q.name for q in (out / "checkpoints").iterdir()) == ["checkpoint_000002.h5"]
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert f["positions"].shape[0] == 5
+    monkeypatch.undo()
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+
+
 def test_outputs_that_cannot_be_written_are_reported(tmp_path, capsys):
     cfg = _smash(tmp_path, frames=3, ce=0, previews="true")
     out = tmp_path / "out"

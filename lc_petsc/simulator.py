@@ -64,6 +64,13 @@ def check_head_turn(cfg):
         f"(docs/contact.md, \"The head's turn per step\")")
 
 
+def named_by(source, message):
+    """``message`` (a problem of the scene's wisps) prefixed with the groom file it comes
+    from (``source.description``), so the user knows which file to fix."""
+    where = getattr(source, "description", "")
+    return f"{where}: {message}" if where else message
+
+
 class Simulator:
     """One simulation on a communicator: scene, solver plan, assembler, linear solver, integrator."""
 
@@ -90,7 +97,7 @@ class Simulator:
         terms = [t for t in cfg.physics.terms if t in ELASTIC_TERMS]
         scene, problems = LocalScene.build(batch, cfg.material, terms, source.n_wisps,
                                            int(voff[w0]), self.n_vertices)
-        parallel.collective_raise(comm, problems)
+        parallel.collective_raise(comm, [named_by(source, p) for p in problems])
         self.scene = scene
         # outputs in the scene's wisp order (parallel.UserLayout)
         self.user = parallel.UserLayout(comm, self.wisp_order, user_sizes, self.ranges, scene)
@@ -103,7 +110,7 @@ class Simulator:
         self.strand = None
         if plan.contact_pc is not None:
             self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, plan,
-                                          self.assembler.mat_type, user=self.user)
+                                          self.assembler.mat_type, user=self.user, source=source)
         self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), plan,
                                    P=self.assembler.pmat)
         self.trust = None
@@ -258,7 +265,7 @@ class Simulator:
             self.strand.destroy()
 
 
-def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user=None):
+def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user=None, source=None):
     """The strand-strand contact of ``cfg`` (docs/contact.md); thickness default: twice
     the smallest vertex radius of the scene; the preconditioner is built from the whole
     Newton matrix or the strand matrix alone as ``plan.contact_pc`` says."""
@@ -279,7 +286,7 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user=None):
             if user is not None:        # name the pair in the scene's numbering
                 report.worst = user.scene_numbers(report.worst)
             strand.destroy()
-            raise RestPoseOverlapError(report.message())
+            raise RestPoseOverlapError(named_by(source, report.message()))
     return strand
 
 

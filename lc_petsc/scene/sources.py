@@ -53,6 +53,9 @@ class SceneSource:
 
     n_wisps: int
     sizes: np.ndarray
+    #: where the wisps come from, for messages ("strands file PATH", "USD file PATH");
+    #: empty for generated and in-memory scenes
+    description: str = ""
 
     def load(self, w0: int, w1: int) -> WispBatch:  # pragma: no cover - interface
         """The wisps ``w0 .. w1 - 1`` (global indices) as a :class:`WispBatch`."""
@@ -263,6 +266,7 @@ class FileSource(SceneSource):
 
     def __init__(self, path, n_pinned=4, root_radius=0.05, tip_radius=0.05):
         self.path = str(path)
+        self.description = f"strands file {self.path}"
         self.n_pinned, self.root_radius, self.tip_radius = n_pinned, root_radius, tip_radius
         self.offsets = check_strands_file(self.path)
         self.sizes = np.diff(self.offsets)
@@ -357,6 +361,7 @@ class ReorderedSource(SceneSource):
 
     def __init__(self, source, order):
         self.source = source
+        self.description = source.description
         self.order = np.asarray(order, np.int64)
         if not np.array_equal(np.sort(self.order), np.arange(source.n_wisps)):
             raise ValueError(f"a wisp order must be a permutation of the {source.n_wisps} wisps")

@@ -107,7 +107,8 @@ class LocalScene:
         for w in range(nw):
             n = int(off[w + 1] - off[w])
             if n < 4:
-                problems.append(f"wisp {ids[w]} has {n} vertices; a wisp needs at least 4")
+                problems.append(f"wisp {ids[w]} has {n} vertices; a wisp needs at least 4 "
+                                "(remove the wisp from the groom or resample it)")
         bad = ~np.isfinite(x).all(axis=1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
@@ -146,7 +147,8 @@ class LocalScene:
             w = int(wid[es[j]])
             far = f", below round-off at coordinates of {scale[j]:.3g}" if Lbar[j] > 0 else ""
             problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length "
-                            f"{Lbar[j]!r} is zero (coincident vertices{far})")
+                            f"{Lbar[j]!r} is zero (coincident vertices{far}); remove the "
+                            "duplicate vertex from the groom")
             return None, problems
         r_e = 0.5 * (batch.radius[es] + batch.radius[es + 1])
         A_e = np.pi * r_e ** 2

@@ -277,7 +277,10 @@ def _stage_curves(path, prim_path):
     try:
         stage = Usd.Stage.Open(str(path))
     except Tf.ErrorException as e:
-        raise SceneError(f"{where}: cannot open it as USD ({str(e).strip().splitlines()[-1]})") from None
+        # USD's text is "Error in '<C++ function>' at line N in file <source> : '<reason>'"
+        reason = str(e).strip().splitlines()[-1].rsplit(" : ", 1)[-1].strip("'")
+        raise SceneError(f"{where}: cannot open it as USD ({reason}); scene.path must be a "
+                         ".usd, .usda or .usdc file") from None
     if stage is None:
         raise SceneError(f"{where}: cannot open it as USD")
     every = [p for p in stage.Traverse() if p.IsA(UsdGeom.BasisCurves)]
@@ -312,8 +315,9 @@ class UsdSource(ArraySource):
 
     def __init__(self, path, prim_path=None, n_pinned=4, root_radius=0.05, tip_radius=0.05):
         self.path, self.prim_path = str(path), prim_path
+        self.description = f"USD file {self.path}"
         stage, prims, scale, up_z = _stage_curves(self.path, prim_path)
-        parts = [UsdCurves(f"USD file {self.path}", p, scale, up_z) for p in prims]
+        parts = [UsdCurves(self.description, p, scale, up_z) for p in prims]
         pos = np.concatenate([c.positions for c in parts])
         offsets = np.concatenate([[0]] + [c.offsets[1:] + s for c, s in
                                           zip(parts, np.cumsum([0] + [c.offsets[-1] for c in parts[:-1]]))])
@@ -322,7 +326,7 @@ class UsdSource(ArraySource):
         if any(have_r):
             if not all(have_r):
                 missing = [str(p.GetPath()) for p, h in zip(prims, have_r) if not h]
-                raise SceneError(f"USD file {self.path}: prims {', '.join(missing)} have no widths while "
+                raise SceneError(f"{self.description}: prims {', '.join(missing)} have no widths while "
                                  "others have; give every prim widths, or none (then material.root_radius "
                                  "-> tip_radius is used)")
             radius = np.concatenate([c.radius for c in parts])

@@ -189,8 +189,11 @@ def test_bad_curves_give_clear_errors(tmp_path, kwargs, message):
 
 def test_bad_files_give_clear_errors(tmp_path):
     (tmp_path / "junk.usda").write_text("not usd at all")
-    with pytest.raises(ValueError, match=r"junk.usda: cannot open it as USD"):
+    with pytest.raises(ValueError, match=r"junk.usda: cannot open it as USD") as e:
         UsdSource(tmp_path / "junk.usda")
+    # USD's reason without its C++ function, line and source file
+    assert "Error in" not in str(e.value) and "stage.cpp" not in str(e.value)
+    assert str(e.value).endswith("scene.path must be a .usd, .usda or .usdc file")
     stage = Usd.Stage.CreateNew(str(tmp_path / "mesh.usda"))
     UsdGeom.Mesh.Define(stage, "/m")
     stage.GetRootLayer().Save()

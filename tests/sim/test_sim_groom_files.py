@@ -164,3 +164,54 @@ def test_main_job_reports_once_with_exit_2(tmp_path, capsys):
     assert "Traceback" not in err and not (tmp_path / "o").exists()
     # the shipped example still loads
     assert FileSource(str(Path(__file__).resolve().parents[2] / "configs" / "data" / "fringe.h5")).n_wisps == 24
+
+
+def _toml(tmp_path, path, kind="file", extra=""):
+    cfg = tmp_path / "g.toml"
+    cfg.write_text(f'[scene]\nkind = "{kind}"\npath = "{path}"\n{extra}[output]\npreviews = false\n'
+                   'usd = false\n')
+    return str(cfg)
+
+
+def _run_err(capsys, cfg, out):
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "Traceback" not in err
+    return err
+
+
+def test_rest_state_errors_name_the_groom_file(tmp_path, capsys):
+    """A problem LocalScene.build finds in a groom (not the file check) names the file:
+    duplicate vertices, a wisp of 3 vertices, and (ccd) wisps that touch at rest."""
+    pos = np.concatenate([geometry.wisp4c(N, root=(2.0 * w, 0.0, 0.0)) for w in range(2)])
+    pos[N + 6] = pos[N + 5]                              # wisp 1, edge 5: zero length
+    dup = _good(tmp_path / "dup.h5", positions=pos)
+    err = _run_err(capsys, _toml(tmp_path, dup), tmp_path / "o")
+    assert f"error: strands file {dup}: wisp 1, edge 5: rest length 0.0 is zero (coincident " \
+           "vertices); remove the duplicate vertex from the groom" in err
+    short = _good(tmp_path / "short.h5", positions=pos[:N + 3], wisp_offsets=np.array([0, N, N + 3]),
+                  radius=None, pinned=None)
+    err = _run_err(capsys, _toml(tmp_path, short), tmp_path / "o")
+    assert f"error: strands file {short}: wisp 1 has 3 vertices; a wisp needs at least 4" in err
+    close = np.concatenate([geometry.wisp4c(N, root=(0.05 * w, 0.0, 0.0)) for w in range(2)])
+    touch = _good(tmp_path / "touch.h5", positions=close)
+    ccd = ('[physics]\nterms = ["stretch", "bend", "twist", "strand_collision"]\n'
+           'strand_contact_mode = "ccd"\n[time]\ninitial_guess = "follow_the_leader"\n')
+    err = _run_err(capsys, _toml(tmp_path, touch, extra=ccd), tmp_path / "o")
+    assert f"error: strands file {touch}: rest pose: " in err and "closer than the contact thickness" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_rest_state_errors_name_the_usd_file(tmp_path, capsys):
+    from pxr import Usd, UsdGeom, Vt
+    p = geometry.wisp4c(N)
+    p[8] = p[7]
+    stage = Usd.Stage.CreateNew(str(tmp_path / "dup.usda"))
+    c = UsdGeom.BasisCurves.Define(stage, "/groom/curves")
+    c.CreateTypeAttr("linear")
+    c.CreateCurveVertexCountsAttr(Vt.IntArray([N]))
+    c.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(p.astype(np.float32)))
+    stage.GetRootLayer().Save()
+    err = _run_err(capsys, _toml(tmp_path, tmp_path / "dup.usda", kind="usd"), tmp_path / "o")
+    assert f"error: USD file {tmp_path / 'dup.usda'}: wisp 0, edge 7: rest length 0.0 is zero" in err

@@ -675,7 +675,7 @@ def config_from_dict(data: dict, base_dir=None) -> SimConfig:
             kwargs[key] = v
         parts[table] = cls(**kwargs)
     cfg = SimConfig(**parts).validate()
-    cfg.key_warnings = keys_without_effect(cfg, data)
+    cfg.key_warnings = keys_without_effect(cfg, data) + implausible_values(cfg, data)
     return cfg
 
 
@@ -738,6 +738,58 @@ def keys_without_effect(cfg: SimConfig, data: dict):
         if key in (data.get(table) or {}) and not applies(cfg):
             out.append(f"{table}.{key} is set but has no effect: it only acts with {when}")
     return out
+
+
+_MODULUS_RANGE = (1.0e6, 1.0e12, "dyn/cm^2",
+                  "it looks like MPa or GPa (hair keratin: about 4 GPa = 4e10 dyn/cm^2; "
+                  "1 Pa = 10 dyn/cm^2)",
+                  "stiffer than any hair (keratin about 4e10 dyn/cm^2, steel 2e12); check that "
+                  "it is in dyn/cm^2 (1 Pa = 10 dyn/cm^2)")
+_RADIUS_RANGE = (5.0e-4, 2.0, "cm",
+                 "thinner than any hair; it looks like metres (a 40 um hair: 4e-5 m = 0.004 cm)",
+                 "it looks like millimetres or micrometres (3.5 mm = 0.35 cm, 40 um = 0.004 cm)")
+#: (table, key) -> (low, high, unit, likely mistake below, above): the range a hair scene's
+#: value lies in; outside it the run goes on with a warning (a wrong unit is the usual cause)
+PLAUSIBLE_RANGES = {
+    ("material", "youngs_modulus"): _MODULUS_RANGE,
+    ("material", "shear_modulus"): _MODULUS_RANGE,
+    ("material", "density"): (0.1, 10.0, "g/cm^3", "it looks like kg/cm^3 or g/mm^3 (hair: 1.3 g/cm^3)",
+                              "it looks like kg/m^3 (hair: 1300 kg/m^3 = 1.3 g/cm^3)"),
+    ("material", "root_radius"): _RADIUS_RANGE,
+    ("material", "tip_radius"): _RADIUS_RANGE,
+    ("time", "dt"): (MIN_DT, 1.0, "s", "",
+                     "it looks like milliseconds (33 ms = 0.033 s; one frame at 30 fps is 1/30 s)"),
+    ("physics", "head_radius"): (1.0, 100.0, "cm", "it looks like metres (0.15 m = 15 cm)",
+                                 "it looks like millimetres (152.5 mm = 15.25 cm)"),
+}
+#: |physics.gravity| of a hair scene (cm/s^2), and the likely mistakes outside
+GRAVITY_RANGE = (100.0, 5000.0, "cm/s^2", "it looks like m/s^2 (9.81 m/s^2 = 981 cm/s^2)",
+                 "it looks like mm/s^2 (9810 mm/s^2 = 981 cm/s^2)")
+
+
+def _outside(name, value, plausible):
+    """The warning for ``value`` of the key ``name`` outside ``plausible`` (a
+    :data:`PLAUSIBLE_RANGES` entry), or None."""
+    lo, hi, unit, below, above = plausible
+    if lo <= value <= hi:
+        return None
+    return (f"{name} = {value:g} {unit} is outside the plausible range for hair, {lo:g} to "
+            f"{hi:g} {unit}: {below if value < lo else above}; lc_petsc's units are cm, g, s")
+
+
+def implausible_values(cfg: SimConfig, data: dict):
+    """Warnings for values set in the TOML ``data`` that are valid but far outside what a
+    hair scene uses (:data:`PLAUSIBLE_RANGES`, :data:`GRAVITY_RANGE` when gravity acts),
+    naming the likely unit mistake; the run still goes ahead."""
+    out = []
+    for (table, key), plausible in PLAUSIBLE_RANGES.items():
+        if key in (data.get(table) or {}) and (key != "head_radius"
+                                               or "head_collision" in cfg.physics.terms):
+            out.append(_outside(f"{table}.{key}", float(getattr(getattr(cfg, table), key)), plausible))
+    g = math.hypot(*cfg.physics.gravity)
+    if "gravity" in (data.get("physics") or {}) and "gravity" in cfg.physics.terms and g > 0:
+        out.append(_outside("|physics.gravity|", g, GRAVITY_RANGE))
+    return [w for w in out if w]
 
 
 def load_config(path) -> SimConfig:

@@ -190,3 +190,50 @@ def test_strand_contact_keys_without_strand_contact_are_warned_about(key, value,
     data = {"physics": {"terms": ["stretch"], **physics, key: value}}
     warn = [w for w in keys_without_effect(config_from_dict(data), data) if w.startswith(f"physics.{key} ")]
     assert len(warn) == int(warned), warn
+
+
+@pytest.mark.parametrize("table, key, value, expect", [
+    ("material", "youngs_modulus", 4.0, "material.youngs_modulus = 4 dyn/cm^2 is outside the plausible "
+     "range for hair, 1e+06 to 1e+12 dyn/cm^2: it looks like MPa or GPa"),
+    ("material", "shear_modulus", 5e13, "material.shear_modulus = 5e+13 dyn/cm^2 is outside the plausible "
+     "range for hair, 1e+06 to 1e+12 dyn/cm^2: stiffer than any hair"),
+    ("material", "density", 1300.0, "material.density = 1300 g/cm^3 is outside the plausible range for "
+     "hair, 0.1 to 10 g/cm^3: it looks like kg/m^3 (hair: 1300 kg/m^3 = 1.3 g/cm^3); lc_petsc's units "
+     "are cm, g, s"),
+    ("material", "root_radius", 3.5, "material.root_radius = 3.5 cm is outside the plausible range for "
+     "hair, 0.0005 to 2 cm: it looks like millimetres or micrometres"),
+    ("material", "tip_radius", 4e-5, "material.tip_radius = 4e-05 cm is outside the plausible range for "
+     "hair, 0.0005 to 2 cm: thinner than any hair; it looks like metres"),
+    ("time", "dt", 33.0, "time.dt = 33 s is outside the plausible range for hair, 1e-06 to 1 s: it "
+     "looks like milliseconds"),
+    ("physics", "gravity", [0.0, -9.81, 0.0], "|physics.gravity| = 9.81 cm/s^2 is outside the plausible "
+     "range for hair, 100 to 5000 cm/s^2: it looks like m/s^2 (9.81 m/s^2 = 981 cm/s^2)"),
+    ("physics", "head_radius", 0.15, "physics.head_radius = 0.15 cm is outside the plausible range for "
+     "hair, 1 to 100 cm: it looks like metres (0.15 m = 15 cm)"),
+])
+def test_implausible_values_are_warned_about_with_the_likely_unit(table, key, value, expect):
+    """Valid but absurd values (a unit mistake) run, with a warning naming key, value,
+    range and the likely mistake; the same table's plausible values do not warn."""
+    from lc_petsc.config import config_from_dict
+    data = {"physics": {"terms": ["stretch", "bend", "gravity", "head_collision"]}}
+    data.setdefault(table, {})[key] = value
+    warn = config_from_dict(data).key_warnings
+    assert len(warn) == 1 and warn[0].startswith(expect), warn
+    plausible = {"youngs_modulus": 4e10, "shear_modulus": 1e10, "density": 1.3, "root_radius": 0.35,
+                 "tip_radius": 0.004, "dt": 1.0, "gravity": [0.0, -981.0, 0.0], "head_radius": 15.25}
+    data[table][key] = plausible[key]
+    assert config_from_dict(data).key_warnings == []
+
+
+def test_implausible_value_is_reported_by_the_main_job(tmp_path, capsys):
+    """The warning reaches stderr and summary.json and the run goes ahead; a head radius
+    in metres without head_collision (nothing uses it) is not warned about."""
+    import json
+    cfg = tmp_path / "w.toml"
+    cfg.write_text(GOOD.replace('"gravity"]', '"gravity"]\nhead_radius = 0.15')
+                   + "[material]\ndensity = 1300.0\n[output]\npreviews = false\nusd = false\n")
+    assert main([str(cfg), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: material.density = 1300 g/cm^3 is outside the plausible range for hair" in err
+    warnings = json.loads((tmp_path / "o" / "summary.json").read_text())["warnings"]
+    assert len(warnings) == 1 and warnings[0].startswith("material.density = 1300 g/cm^3")

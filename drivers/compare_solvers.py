@@ -37,6 +37,8 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,  # noqa: E402
                              TimeConfig, load_config)
+from lc_petsc.studies.command_line import (bad_input, integer_at_least, parse_args,  # noqa: E402
+                                           positive_number)
 from lc_petsc.studies.compare import hairball_config, run_comparison  # noqa: E402
 from lc_petsc.studies.systems import option_sets  # noqa: E402
 
@@ -54,19 +56,19 @@ def base_config(head_contact=True, newton=3, strand_contact=False):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--wisps", type=int, nargs="+", default=[250, 500])
+    ap.add_argument("--wisps", type=integer_at_least(1), nargs="+", default=[250, 500])
     ap.add_argument("--sets", nargs="+", default=None, help="option set names (default: all)")
     ap.add_argument("--sets-dir", default=str(ROOT / "configs" / "solvers"))
-    ap.add_argument("--budget", type=float, default=60.0, help="seconds per set and size")
-    ap.add_argument("--frames", type=int, default=1, help="frames recorded (3 systems each)")
-    ap.add_argument("--skip-frames", type=int, default=0,
+    ap.add_argument("--budget", type=positive_number, default=60.0, help="seconds per set and size")
+    ap.add_argument("--frames", type=integer_at_least(1), default=1, help="frames recorded (3 systems each)")
+    ap.add_argument("--skip-frames", type=integer_at_least(0), default=0,
                     help="frames run before the recorded ones (not recorded)")
-    ap.add_argument("--systems", type=int, default=None,
+    ap.add_argument("--systems", type=integer_at_least(1), default=None,
                     help="record only the first N Newton systems (e.g. 1 to let a slow set "
                          "run to convergence on one system within the budget)")
-    ap.add_argument("--repeats", type=int, default=1,
+    ap.add_argument("--repeats", type=integer_at_least(1), default=1,
                     help="replay each set this many times (sets interleaved); times are medians")
-    ap.add_argument("--newton", type=int, default=3)
+    ap.add_argument("--newton", type=integer_at_least(1), default=3)
     ap.add_argument("--config", default=None, help="scene TOML instead of the hairball")
     ap.add_argument("--no-head-contact", action="store_true")
     ap.add_argument("--strand-contact", action="store_true",
@@ -77,14 +79,17 @@ def main(argv=None):
                          "(reported as over budget)")
     ap.add_argument("--no-reference", action="store_true", help="skip the direct reference solves")
     ap.add_argument("--out", default="out/compare_solvers")
-    args, _ = ap.parse_known_args(argv)
+    args = parse_args(ap, argv)
     comm = MPI.COMM_WORLD
-    sets = option_sets(args.sets_dir, args.sets)
-    if args.config:
-        base = load_config(args.config)
-        base.time.newton_iterations = args.newton
-    else:
-        base = base_config(not args.no_head_contact, args.newton, args.strand_contact)
+    try:
+        sets = option_sets(args.sets_dir, args.sets)
+        if args.config:
+            base = load_config(args.config)
+            base.time.newton_iterations = args.newton
+        else:
+            base = base_config(not args.no_head_contact, args.newton, args.strand_contact)
+    except (ValueError, OSError) as e:          # ConfigError is a ValueError
+        return bad_input(comm, "compare_solvers.py", e)
     log = print if comm.rank == 0 else (lambda *a, **k: None)
     log(f"{comm.size} rank(s); sets: {', '.join(sets)}; budget {args.budget:g} s per set and size")
     cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)

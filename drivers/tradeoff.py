@@ -53,7 +53,9 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,  # noqa: E402
                              load_config)
-from lc_petsc.studies.systems import read_options_file  # noqa: E402
+from lc_petsc.studies.command_line import (bad_input, integer_at_least, parse_args,  # noqa: E402
+                                           positive_number)
+from lc_petsc.studies.systems import option_sets  # noqa: E402
 from lc_petsc.studies.tradeoff import (BASE, KSP_RTOLS, base_reference,  # noqa: E402
                                        default_variants, reference_settings, run_study)
 
@@ -71,6 +73,9 @@ def scene_config(scene, wisps=20):
         return SimConfig(scene=SceneConfig(kind="wisp4c", perturbation=scene, smash_factor=0.4),
                          material=MaterialConfig(youngs_modulus=3.9e9),
                          physics=PhysicsConfig(terms=("stretch", "bend", "twist")))
+    if not Path(scene).exists():
+        raise ValueError(f"--scene {scene!r}: not a built-in scene (hairball, smash, jitter) and "
+                         "no such config file")
     cfg = load_config(scene)
     if wisps is not None and cfg.scene.kind == "hairball":
         cfg.scene.n_wisps = wisps       # e.g. the demo hairball cut to a study size
@@ -80,15 +85,15 @@ def scene_config(scene, wisps=20):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default="hairball")
-    ap.add_argument("--wisps", type=int, default=None,
+    ap.add_argument("--wisps", type=integer_at_least(1), default=None,
                     help="wisps of the built-in hairball (default 10) or of a hairball CONFIG.toml "
                          "(default: its own count)")
-    ap.add_argument("--duration", type=float, default=1.0, help="simulated seconds")
+    ap.add_argument("--duration", type=positive_number, default=1.0, help="simulated seconds")
     ap.add_argument("--axes", nargs="+", default=None,
                     choices=["newton", "ksp_rtol", "dt", "filter", "line_search", "newton_update", "cutback",
                              "trust_region", "corotational", "carry_with_head"])
-    ap.add_argument("--ref-dt", type=float, default=1.0 / 120.0)
-    ap.add_argument("--ref-tol", type=float, default=1e-9)
+    ap.add_argument("--ref-dt", type=positive_number, default=1.0 / 120.0)
+    ap.add_argument("--ref-tol", type=positive_number, default=1e-9)
     ap.add_argument("--ref", default="converged", choices=["converged", "base"],
                     help="converged: Newton to --ref-tol at --ref-dt; base: the base setting "
                          "with Krylov rtol 1e-10")
@@ -97,19 +102,22 @@ def main(argv=None):
                     help="converged reference: the exact-or-analytic Hessian with the edge "
                          "retraction (docs/newton.md), or the unfiltered Hessian with the line "
                          "search and GMRES (the reference before)")
-    ap.add_argument("--rtols", type=float, nargs="+", default=list(KSP_RTOLS),
+    ap.add_argument("--rtols", type=positive_number, nargs="+", default=list(KSP_RTOLS),
                     help="Krylov tolerances of the ksp_rtol axis")
     ap.add_argument("--set", default=None, help="solver set of configs/solvers for every run")
-    ap.add_argument("--blowup", type=float, default=5.0)
+    ap.add_argument("--blowup", type=positive_number, default=5.0)
     ap.add_argument("--cost", default="wall_per_sim_s", choices=["wall_per_sim_s", "cpu_per_sim_s"],
                     help="cost axis of the Pareto plot and the recommendations")
     ap.add_argument("--out", default="out/tradeoff")
-    args, _ = ap.parse_known_args(argv)
+    args = parse_args(ap, argv)
     comm = MPI.COMM_WORLD
     if args.wisps is None and args.scene == "hairball":
         args.wisps = 10
-    cfg = scene_config(args.scene, args.wisps)
-    opts = read_options_file(ROOT / "configs" / "solvers" / f"{args.set}.opts") if args.set else ""
+    try:
+        cfg = scene_config(args.scene, args.wisps)
+        opts = option_sets(ROOT / "configs" / "solvers", [args.set])[args.set] if args.set else ""
+    except (ValueError, OSError) as e:          # ConfigError is a ValueError
+        return bad_input(comm, "tradeoff.py", e)
     base = replace(BASE, options=opts)
     # the default exact solver, whatever --set
     ref = (reference_settings(args.ref_dt, args.ref_tol, method=args.ref_method)

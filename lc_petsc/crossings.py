@@ -108,7 +108,11 @@ def count_frames(path, self_contact=False, progress=None):
     import h5py
     with h5py.File(path, "r") as f:
         off = np.asarray(f["wisp_offsets"][...], np.int64)
-        n = f["positions"].shape[0]
+        shape = f["positions"].shape
+        if len(shape) != 3 or shape[2] != 3 or shape[1] != off[-1]:
+            raise ValueError(f"/positions has shape {shape}, a frames.h5 has (frames, "
+                             f"{int(off[-1])} vertices, 3) (a strands file is a groom, not a run)")
+        n = shape[0]
         cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
         d0 = float((cfg.get("physics") or {}).get("strand_thickness") or 0.0)
         out = []

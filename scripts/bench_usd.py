@@ -20,19 +20,29 @@ from pathlib import Path
 
 import h5py
 
+from lc_petsc.studies.command_line import integer_at_least
+
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("frames")
-    p.add_argument("--hairs", type=int, default=100, help="render hairs per wisp (default 100)")
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--hairs", type=integer_at_least(0), default=100,
+                   help="render hairs per wisp (default 100)")
+    p.add_argument("--repeats", type=integer_at_least(1), default=3)
     p.add_argument("--out", help="folder for the USD files (default: a temporary one)")
     args = p.parse_args(argv)
     from lc_petsc.io.usd import write_usd
 
-    with h5py.File(args.frames) as f:
-        n_frames, n_vertices = f["positions"].shape[:2]
-        n_wisps = f["wisp_offsets"].shape[0] - 1
+    try:
+        with h5py.File(args.frames, "r") as f:
+            n_frames, n_vertices = f["positions"].shape[:2]
+            n_wisps = f["wisp_offsets"].shape[0] - 1
+            if "dt" not in f.attrs:
+                raise KeyError("no 'dt' attribute")
+    except (OSError, KeyError, ValueError) as e:
+        print(f"bench_usd.py: error: {args.frames}: not a readable frames.h5 of lc_petsc ({e})",
+              file=sys.stderr)
+        return 2
     print(f"{args.frames}: {n_frames} frames, {n_wisps:,} wisps, {n_vertices:,} vertices; "
           f"render hairs {args.hairs} per wisp = {args.hairs * n_wisps:,} hairs, "
           f"{args.hairs * n_vertices:,} points per frame", flush=True)

@@ -30,7 +30,7 @@ def main(argv=None):
 
     try:
         steps, d0 = count_frames(a.frames, self_contact=a.self, progress=show)
-    except (OSError, KeyError) as e:
+    except (OSError, KeyError, ValueError) as e:
         print(f"count_crossings.py: error: {a.frames}: not a readable frames.h5 of lc_petsc ({e})",
               file=sys.stderr)
         return 2

@@ -18,6 +18,7 @@ import petsc4py
 petsc4py.init(sys.argv)
 from mpi4py import MPI  # noqa: E402
 
+from lc_petsc.studies.command_line import bad_input, parse_args  # noqa: E402
 from lc_petsc.studies.extremes import catalogue, run_cases  # noqa: E402
 
 
@@ -26,11 +27,16 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="a tenth of the frames")
     ap.add_argument("--only", nargs="+", default=None, help="case names (prefixes)")
     ap.add_argument("--out", default="out/extremes")
-    args, _ = ap.parse_known_args(argv)
+    args = parse_args(ap, argv)
     comm = MPI.COMM_WORLD
     cases = catalogue(quick=args.quick)
     if args.only:
+        names = [c.name for c in cases]
         cases = [c for c in cases if any(c.name.startswith(p) for p in args.only)]
+        if not cases:
+            return bad_input(comm, "extremes.py", ValueError(
+                f"--only {' '.join(args.only)}: no case name starts with that; the cases: "
+                f"{', '.join(names)}"))
     rows = run_cases(cases, comm, args.out,
                      log=(lambda *a: (print(*a), sys.stdout.flush())) if comm.rank == 0 else (lambda *a: None))
     if comm.rank == 0:

@@ -114,6 +114,9 @@ def read_options_file(path) -> str:
 def option_sets(folder, names=None) -> dict:
     """``{name: options string}`` of ``folder/*.opts`` (``names``: a subset, in order)."""
     found = {p.stem: read_options_file(p) for p in sorted(Path(folder).glob("*.opts"))}
+    if not found:
+        raise ValueError(f"no option sets (*.opts files) in {folder}; give a folder of PETSc "
+                         "options files such as configs/solvers")
     if names is None:
         order = ["default"] + [n for n in found if n != "default"]
         return {n: found[n] for n in order if n in found}

@@ -1,0 +1,66 @@
+"""The study drivers and scripts given bad input (drivers/compare_solvers.py,
+drivers/tradeoff.py, scripts/extremes.py, scripts/count_crossings.py,
+scripts/bench_usd.py): a missing or wrong file, an unknown option set, an out-of-range
+or misspelt flag is one error line and exit status 2, no traceback, nothing run."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _strands(path):
+    with h5py.File(path, "w") as f:
+        f["positions"] = np.arange(24.0).reshape(8, 3)
+        f["wisp_offsets"] = np.array([0, 4, 8])
+    return str(path)
+
+
+CASES = [
+    ("drivers/tradeoff.py", ["--scene", "nope.toml"],
+     "tradeoff.py: error: --scene 'nope.toml': not a built-in scene (hairball, smash, jitter) and no "
+     "such config file"),
+    ("drivers/tradeoff.py", ["--set", "nope"], "tradeoff.py: error: no option set(s) ['nope'] in "),
+    ("drivers/tradeoff.py", ["--duration", "-1"],
+     "tradeoff.py: error: argument --duration: must be a positive number, got -1"),
+    ("drivers/tradeoff.py", ["--wispz", "3"],
+     "tradeoff.py: error: unrecognized arguments: --wispz (see --help; PETSc options take one dash)"),
+    ("drivers/compare_solvers.py", ["--config", "nope.toml"],
+     "compare_solvers.py: error: nope.toml: no such config file"),
+    ("drivers/compare_solvers.py", ["--sets-dir", "SCRATCH"],
+     "compare_solvers.py: error: no option sets (*.opts files) in "),
+    ("drivers/compare_solvers.py", ["--repeats", "0"],
+     "compare_solvers.py: error: argument --repeats: must be an integer >= 1, got 0"),
+    ("drivers/compare_solvers.py", ["--wisps", "0"],
+     "compare_solvers.py: error: argument --wisps: must be an integer >= 1, got 0"),
+    ("scripts/extremes.py", ["--only", "nope"],
+     "extremes.py: error: --only nope: no case name starts with that; the cases: smash60, "),
+    ("scripts/count_crossings.py", ["STRANDS"],
+     "/positions has shape (8, 3), a frames.h5 has (frames, 8 vertices, 3) (a strands file is a "
+     "groom, not a run)"),
+    ("scripts/bench_usd.py", ["SCRATCH/nope.h5"],
+     "bench_usd.py: error: SCRATCH/nope.h5: not a readable frames.h5 of lc_petsc"),
+    ("scripts/bench_usd.py", ["STRANDS"], "not a readable frames.h5 of lc_petsc (\"no 'dt' attribute\")"),
+]
+
+
+@pytest.mark.parametrize("script, args, message", CASES, ids=[f"{c[0]} {' '.join(c[1])}" for c in CASES])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, script, args, message):
+    strands = _strands(tmp_path / "groom.h5")
+    args = [a.replace("SCRATCH", str(tmp_path)).replace("STRANDS", strands) for a in args]
+    message = message.replace("SCRATCH", str(tmp_path))
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, str(ROOT / script), *args]
+                          + ([] if script.startswith("scripts/count") or "bench_usd" in script
+                             else ["--out", str(out)]),
+                          cwd=ROOT, capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    error_lines = [line for line in proc.stderr.splitlines() if "error:" in line]
+    assert len(error_lines) == 1 and message in error_lines[0], proc.stderr
+    assert not out.exists()

@@ -160,4 +160,25 @@ def term_warnings(sim):
     if phys.head_motion != "static" and not has_pins and "head_collision" not in terms:
         out.append(f"physics.head_motion = {phys.head_motion!r} has no effect: no vertex is pinned "
                    "and head_collision is off")
-    return out
+    if "gravity" in terms and np.any(phys.gravity) and not has_pins and "head_collision" not in terms:
+        out.append("no vertex is pinned and head_collision is off: gravity makes every wisp fall "
+                   "freely; pin the roots (scene.n_pinned, or /pinned or primvars:pinned in a groom file)")
+    return out + groom_radius_warnings(sim)
+
+
+def groom_radius_warnings(sim):
+    """The radii a strands or USD file gives, outside the plausible range for hair
+    (:data:`lc_petsc.config.PLAUSIBLE_RANGES`, as ``material.root_radius``), naming the
+    file: a groom written in mm or um (or m)."""
+    from lc_petsc.config import PLAUSIBLE_RANGES
+    cfg, comm = sim.config, sim.comm
+    if cfg.scene.kind not in ("file", "usd"):
+        return []
+    lo, hi, _, below, above = PLAUSIBLE_RANGES[("material", "root_radius")]
+    rmin = global_min(comm, float(sim.scene.radius.min(initial=np.inf)))
+    rmax = global_max(comm, float(sim.scene.radius.max(initial=0.0)))
+    if lo <= rmin and rmax <= hi:
+        return []
+    return [f"the radii of {cfg.scene.path} range from {rmin:.3g} to {rmax:.3g} cm, outside the "
+            f"plausible range for hair, {lo:g} to {hi:g} cm: {below if rmin < lo else above}; "
+            "lc_petsc's units are cm (USD: the stage's metersPerUnit converts widths)"]

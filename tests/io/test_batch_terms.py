@@ -127,6 +127,9 @@ def test_gravity_off_has_no_external_force():
      "no wisp can reach the head sphere"),
     (dict(terms=("gravity",)), {}, "no elastic term"),
     (dict(terms=("stretch", "bend"), head_motion="shake"), dict(n_pinned=0), "head_motion = 'shake' has no effect"),
+    (dict(terms=("stretch", "bend", "gravity")), dict(n_pinned=0),
+     "no vertex is pinned and head_collision is off: gravity makes every wisp fall freely; pin the "
+     "roots (scene.n_pinned, or /pinned or primvars:pinned in a groom file)"),
 ])
 def test_warn_when_a_term_can_have_no_effect(physics, scene, expect):
     cfg = SimConfig(scene=SceneConfig(kind="wisp4c", n_vertices=12, **scene), physics=PhysicsConfig(**physics))
@@ -239,3 +242,29 @@ def test_the_job_warns_when_the_length_projection_leaves_the_tolerance(tmp_path,
         return
     assert max(moves) > 1e-6, moves
     assert len(w) == 1 and f"up to {max(moves):.3g} wisp lengths" in w[0], w
+
+
+@pytest.mark.parametrize("radius, expect", [
+    (5.0, "range from 0.05 to 5 cm, outside the plausible range for hair, 0.0005 to 2 cm: it looks "
+          "like millimetres or micrometres"),
+    (4e-5, "range from 4e-05 to 0.05 cm, outside the plausible range for hair, 0.0005 to 2 cm: "
+           "thinner than any hair; it looks like metres"),
+    (0.01, None)])
+def test_groom_file_radii_outside_the_hair_range_are_warned_about(tmp_path, radius, expect):
+    """A strands file's /radius in mm or um (or m): a warning naming the file and range."""
+    import h5py
+    from lc_petsc.scene import geometry
+    r = np.full(24, 0.05)
+    r[7] = radius
+    with h5py.File(tmp_path / "g.h5", "w") as f:
+        f["positions"] = np.concatenate([geometry.wisp4c(12, root=(2.0 * w, 0.0, 0.0)) for w in range(2)])
+        f["wisp_offsets"] = np.array([0, 12, 24])
+        f["radius"] = r
+    cfg = SimConfig(scene=SceneConfig(kind="file", path=str(tmp_path / "g.h5")))
+    sim = build_simulator(cfg, comm=SELF)
+    try:
+        w = [m for m in term_warnings(sim) if "radii" in m]
+        assert len(w) == int(expect is not None), w
+        assert expect is None or w[0].startswith(f"the radii of {tmp_path / 'g.h5'} {expect}"), w
+    finally:
+        sim.close()

@@ -19,7 +19,11 @@ EXIT_BAD_INPUT = 2
 
 def parse_args(parser: argparse.ArgumentParser, argv=None) -> argparse.Namespace:
     """The driver's options from ``argv``; the rest is left for PETSc, except unknown
-    ``--`` options, which are an error (argparse's usage line and exit status 2)."""
+    ``--`` options, which are an error (argparse's usage line and exit status 2).  Under
+    mpiexec only rank 0 prints argparse's usage, errors and help; every rank exits."""
+    from mpi4py import MPI
+    if MPI.COMM_WORLD.rank != 0:
+        parser._print_message = lambda message, file=None: None     # type: ignore[method-assign]
     args, extra = parser.parse_known_args(argv)
     unknown = [a for a in extra if a.startswith("--")]
     if unknown:

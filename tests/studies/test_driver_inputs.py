@@ -64,3 +64,18 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, script, args, message):
     error_lines = [line for line in proc.stderr.splitlines() if "error:" in line]
     assert len(error_lines) == 1 and message in error_lines[0], proc.stderr
     assert not out.exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--wisps", "0"], "tradeoff.py: error: argument --wisps: must be an integer >= 1, got 0"),
+    (["--scene", "nope.toml"], "tradeoff.py: error: --scene 'nope.toml': not a built-in scene")])
+def test_bad_input_under_mpiexec_is_reported_once(tmp_path, args, message):
+    """argparse's error and the driver's own: printed by rank 0 only, on 2 ranks."""
+    from sim_helpers import MPI_ENV
+    proc = subprocess.run(["mpiexec", "-n", "2", sys.executable, str(ROOT / "drivers/tradeoff.py"), *args,
+                           "--out", str(tmp_path / "out")], cwd=ROOT, env=MPI_ENV, capture_output=True,
+                          text=True, timeout=120, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    error_lines = [line for line in proc.stderr.splitlines() if "error:" in line]
+    assert len(error_lines) == 1 and message in error_lines[0], proc.stderr
+    assert proc.stderr.count("usage:") <= 1 and "Traceback" not in proc.stderr

@@ -31,6 +31,7 @@ class RestPoseReport:
     worst: tuple = ()                # (wisp A, vertex A, wisp B, vertex B): first vertices
                                      # (global indices) of the closest pair's segments
     self_contact: bool = False       # pairs of one wisp were checked too
+    thickness_default: bool = False  # the thickness was not set: twice the smallest radius
 
     def message(self) -> str:
         """The report for a person: count, closest pair (wisps, vertices), distance."""
@@ -38,8 +39,10 @@ class RestPoseReport:
         which, fold = ("of different wisps or of one wisp (not neighbours along it)",
                        " or physics.strand_self_contact = false (for a wisp folded onto itself)") \
             if self.self_contact else ("of different wisps", "")
+        why = (" (physics.strand_thickness is not set: twice the scene's smallest vertex "
+               "radius)") if self.thickness_default else ""
         return (f"rest pose: {self.pairs} pair(s) of segments {which} are closer than "
-                f"the contact thickness {self.thickness:g} cm; the closest: wisp {wa} segment "
+                f"the contact thickness {self.thickness:g} cm{why}; the closest: wisp {wa} segment "
                 f"(vertices {va}, {va + 1}) and wisp {wb} segment (vertices {vb}, {vb + 1}), "
                 f"{self.min_distance:.3g} cm apart (global vertex indices).  Untangle the groom "
                 f"(e.g. give neighbouring coils the same phase), lower physics.strand_thickness "

@@ -282,6 +282,7 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user=None, 
                            self_contact=cfg.physics.strand_self_contact)
     if cfg.physics.strand_contact_mode == "ccd":
         report = check_rest_pose(strand)
+        report.thickness_default = cfg.physics.strand_thickness is None
         if report.pairs and cfg.physics.strand_rest_overlap == "error":
             if user is not None:        # name the pair in the scene's numbering
                 report.worst = user.scene_numbers(report.worst)

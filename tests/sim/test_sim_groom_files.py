@@ -200,6 +200,11 @@ def test_rest_state_errors_name_the_groom_file(tmp_path, capsys):
            'strand_contact_mode = "ccd"\n[time]\ninitial_guess = "follow_the_leader"\n')
     err = _run_err(capsys, _toml(tmp_path, touch, extra=ccd), tmp_path / "o")
     assert f"error: strands file {touch}: rest pose: " in err and "closer than the contact thickness" in err
+    # the thickness was not set: the message says where it came from; set, it does not
+    assert "(physics.strand_thickness is not set: twice the scene's smallest vertex radius)" in err
+    err = _run_err(capsys, _toml(tmp_path, touch, extra=ccd.replace('"ccd"\n', '"ccd"\nstrand_thickness = 0.2\n')),
+                   tmp_path / "o")
+    assert "the contact thickness 0.2 cm; the closest" in err
     assert not (tmp_path / "o").exists()
 
 

@@ -8,8 +8,8 @@
       [--skip-after-budget]
       [--out out/compare_solvers] [PETSc options ...]
 
-For each hairball size (or the scene of ``--config``; ``--wisps`` then sets
-``scene.n_wisps``), the simulator runs ``--frames`` frames with its own solver while every
+For each hairball size (or the scene of ``--config``, once; ``--wisps`` then sets its
+``scene.n_wisps``, a hairball's only), the simulator runs ``--frames`` frames with its own solver while every
 Newton system (matrix + right-hand side) is recorded; every option set
 (``configs/solvers/*.opts``: drop a file there to add one) then solves exactly those
 systems (``--skip-frames K``: after K frames run unrecorded, e.g. to reach the
@@ -56,7 +56,8 @@ def base_config(head_contact=True, newton=3, strand_contact=False):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--wisps", type=integer_at_least(1), nargs="+", default=[250, 500])
+    ap.add_argument("--wisps", type=integer_at_least(1), nargs="+", default=None,
+                    help="hairball sizes (default 250 500; with --config, its own scene once)")
     ap.add_argument("--sets", nargs="+", default=None, help="option set names (default: all)")
     ap.add_argument("--sets-dir", default=str(ROOT / "configs" / "solvers"))
     ap.add_argument("--budget", type=positive_number, default=60.0, help="seconds per set and size")
@@ -86,7 +87,13 @@ def main(argv=None):
         if args.config:
             base = load_config(args.config)
             base.time.newton_iterations = args.newton
+            if args.wisps is None:
+                args.wisps = [base.scene.n_wisps]
+            elif base.scene.kind != "hairball":
+                raise ValueError(f"--wisps sets scene.n_wisps, which only a hairball scene has; "
+                                 f"{args.config} is scene.kind = {base.scene.kind!r}: leave out --wisps")
         else:
+            args.wisps = args.wisps or [250, 500]
             base = base_config(not args.no_head_contact, args.newton, args.strand_contact)
     except (ValueError, OSError) as e:          # ConfigError is a ValueError
         return bad_input(comm, "compare_solvers.py", e)

@@ -32,6 +32,9 @@ CASES = [
      "tradeoff.py: error: unrecognized arguments: --wispz (see --help; PETSc options take one dash)"),
     ("drivers/compare_solvers.py", ["--config", "nope.toml"],
      "compare_solvers.py: error: nope.toml: no such config file"),
+    ("drivers/compare_solvers.py", ["--config", "configs/from_file.toml", "--wisps", "3"],
+     "compare_solvers.py: error: --wisps sets scene.n_wisps, which only a hairball scene has; "
+     "configs/from_file.toml is scene.kind = 'file': leave out --wisps"),
     ("drivers/compare_solvers.py", ["--sets-dir", "SCRATCH"],
      "compare_solvers.py: error: no option sets (*.opts files) in "),
     ("drivers/compare_solvers.py", ["--repeats", "0"],

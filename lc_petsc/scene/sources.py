@@ -239,11 +239,14 @@ def check_strands_file(path):
                 for a in _chunks(pos, nv):
                     if not np.isfinite(a).all():
                         raise SceneError(f"{where}: /positions has non-finite values")
-                for name in ("radius", "youngs_modulus", "density"):
+                for name, per in (("radius", "vertex"), ("youngs_modulus", "wisp"), ("density", "wisp")):
                     if name in dsets:
-                        for a in _chunks(dsets[name], dsets[name].shape[0]):
-                            if not (np.isfinite(a).all() and (a > 0).all()):
-                                raise SceneError(f"{where}: /{name} must be finite and positive")
+                        for k, a in enumerate(_chunks(dsets[name], dsets[name].shape[0])):
+                            bad = ~(np.isfinite(a) & (a > 0))
+                            if bad.any():
+                                i = k * _CHECK_ROWS + int(np.flatnonzero(bad)[0])
+                                raise SceneError(f"{where}: /{name} must be finite and positive; "
+                                                 f"{per} {i} has {a[i - k * _CHECK_ROWS]!r}")
                 if "pinned" in dsets and dsets["pinned"].dtype.kind != "b":
                     for a in _chunks(dsets["pinned"], nv):
                         if not np.isin(a, (0, 1)).all():

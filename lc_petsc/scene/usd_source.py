@@ -177,8 +177,11 @@ class UsdCurves:
             if w_interp not in expected:
                 raise SceneError(f"{where}: widths interpolation {w_interp!r} is not supported")
             if len(widths) != expected[w_interp]:
+                fits = [k for k, n in expected.items() if n == len(widths)]
                 raise SceneError(f"{where}: {len(widths)} widths with {w_interp!r} interpolation; "
-                                 f"expected {expected[w_interp]}")
+                                 f"expected {expected[w_interp]}"
+                                 + (f" (that many widths fit {fits[0]!r} interpolation: set the widths' "
+                                    f"interpolation to it)" if fits else ""))
             if not np.all(np.isfinite(widths) & (widths > 0)):
                 i = int(np.flatnonzero(~(np.isfinite(widths) & (widths > 0)))[0])
                 raise SceneError(f"{where}: width {i} is {widths[i]!r}; widths must be finite and positive")

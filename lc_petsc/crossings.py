@@ -19,9 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.elements.compiled_ccd import box_pairs
+from lc_petsc.elements.compiled_ccd import box_pairs, screen_paths
 from lc_petsc.elements.segment_ccd import affine_field, affine_sums, field_boxes, tight_inclusion_toi
-from lc_petsc.elements.segment_contact import distance
 
 
 def segments(offsets):
@@ -75,15 +74,15 @@ def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0):
         raise ValueError(f"count_crossings: positions must both be (n_vertices, 3), got "
                          f"{X0.shape} and {X1.shape}")
     pairs = candidate_pairs(X0, X1, offsets, self_contact, margin=thickness)
-    S, E = pair_positions(X0, pairs), pair_positions(X1, pairs)
-    hit = crossing_pairs(S, E)
+    may_meet, d1 = screen_paths(X0, X1, pairs)
+    near = pairs[may_meet]
+    hit = crossing_pairs(pair_positions(X0, near), pair_positions(X1, near))
     seg, wisp = segments(offsets)
     wid = np.full(len(X0), -1, np.int64)
     wid[seg] = wisp
     other = wid[pairs[:, 0]] != wid[pairs[:, 1]]
-    d1 = distance(E[other]) if other.any() else np.zeros(0)
-    return {"crossings": int(hit.sum()), "pairs": pairs[hit],
-            "min_distance": float(d1.min(initial=np.inf))}
+    return {"crossings": int(hit.sum()), "pairs": near[hit],
+            "min_distance": float(d1[other].min(initial=np.inf))}
 
 
 def edge_strain(x, rest, offsets):

@@ -352,6 +352,29 @@ def test_count_crossings_two_wisps():
         count_crossings(X0, down[:4], off)
 
 
+def test_path_screen_drops_only_pairs_that_cannot_touch():
+    """compiled_ccd.screen_paths (the crossing counter's filter before Tight-Inclusion):
+    on random segment pairs, many of which cross, touch at the start or just graze,
+    the screened count equals Tight-Inclusion on every pair, and its end distances are
+    segment_contact.distance's."""
+    from lc_petsc.crossings import pair_positions
+    rng = np.random.default_rng(11)
+    n = 4000
+    X0 = rng.uniform(-1, 1, (4 * n, 3))
+    X1 = X0 + rng.normal(0, 0.6, X0.shape) * rng.uniform(0, 1, (4 * n, 1))
+    X0[6:8] = X0[4:6]                              # pair 1: its segments coincide at the start
+    pairs = np.stack([np.arange(0, 4 * n, 4), np.arange(2, 4 * n, 4)], axis=1)
+    S, E = pair_positions(X0, pairs), pair_positions(X1, pairs)
+    every = crossing_pairs(S, E)
+    may_meet, d_end = compiled_ccd.screen_paths(X0, X1, pairs)
+    screened = np.zeros(n, bool)
+    screened[may_meet] = crossing_pairs(S[may_meet], E[may_meet])
+    assert np.array_equal(screened, every) and 50 < every.sum() < n - 50, every.sum()
+    assert every[1] and may_meet[1]
+    assert may_meet.sum() < n                      # it does drop pairs
+    np.testing.assert_allclose(d_end, distance(E), rtol=1e-12, atol=1e-15)
+
+
 def test_compiled_advancement_matches_the_numpy_reference():
     """compiled_ccd.safe_fraction is segment_ccd.safe_fraction pair by pair (given as
     many steps), and its limiter test (limit_pairs) gives the NumPy fractions at m / 2

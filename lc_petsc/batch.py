@@ -55,8 +55,10 @@ def make_parser():
                         "<output folder>/checkpoints ('latest'); --frames / time.frames is the "
                         "total frame count")
     p.add_argument("--force", action="store_true",
-                   help="with --restart: accept a config that differs from the checkpoint's; "
-                        "without: start over in a folder whose run did not finish")
+                   help="with --restart: accept a config that differs from the checkpoint's, "
+                        "and continue into a new frames.h5 when the run's cannot be appended "
+                        "to (it is renamed aside, lost frames are NaN); without: start over in "
+                        "a folder whose run did not finish")
     p.add_argument("-h", "--help", action="store_true", help="show this help and exit")
     return p
 

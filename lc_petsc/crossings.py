@@ -102,22 +102,28 @@ def count_frames(path, self_contact=False, progress=None):
     """Per frame step of a ``frames.h5`` (step k: frames k -> k + 1): list of dicts with
     ``step``, ``crossings`` and ``min_distance`` (at the later frame, between different
     wisps within the run's ``physics.strand_thickness`` when the config sets it, else
-    touching boxes only), and that thickness.  ``progress(dict)`` is called per step."""
+    touching boxes only), and that thickness; steps from or to a row that holds no frame
+    (lost in a recovery, ``/frame_valid``) are left out.  ``progress(dict)`` is called
+    per step."""
     import json
     import h5py
+    from lc_petsc.io.frames import valid_rows
     with h5py.File(path, "r") as f:
         off = np.asarray(f["wisp_offsets"][...], np.int64)
         shape = f["positions"].shape
         if len(shape) != 3 or shape[2] != 3 or shape[1] != off[-1]:
             raise ValueError(f"/positions has shape {shape}, a frames.h5 has (frames, "
                              f"{int(off[-1])} vertices, 3) (a strands file is a groom, not a run)")
-        n = shape[0]
+        held = valid_rows(f)
         cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
         d0 = float((cfg.get("physics") or {}).get("strand_thickness") or 0.0)
         out = []
-        prev = np.asarray(f["positions"][0], float)
-        for k in range(1, n):
-            cur = np.asarray(f["positions"][k], float)
+        prev = None
+        for k in range(len(held)):
+            cur = np.asarray(f["positions"][k], float) if held[k] else None
+            if prev is None or cur is None:      # a row lost in a recovery: no step to it
+                prev = cur
+                continue
             r = count_crossings(prev, cur, off, self_contact, thickness=d0)
             out.append({"step": k - 1, "crossings": r["crossings"], "min_distance": r["min_distance"]})
             if progress is not None:
@@ -132,7 +138,8 @@ def check_run(path, comm, self_contact=False):
     run's end-of-run check.  Collective over the mpi4py communicator ``comm``: each rank
     reads its own contiguous share of the frame steps (read-only, serial h5py).
 
-    Returns a dict, the same on every rank: ``steps`` checked; ``between_wisps`` and
+    Returns a dict, the same on every rank: ``steps`` checked (steps from or to a row
+    lost in a recovery are not checked); ``between_wisps`` and
     ``steps_between`` (crossings of segments of different wisps, and the steps that
     have any), ``first_between`` (first such step, step k: frames k -> k + 1, or None);
     with ``self_contact`` also ``within_wisps``, ``steps_within`` and ``first_within``
@@ -159,21 +166,23 @@ def check_run(path, comm, self_contact=False):
 
 
 def _count_share(path, rank, size, self_contact):
-    """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps."""
+    """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps; a
+    step from or to a row lost in a recovery (``/frame_valid``) is not one."""
     import h5py
+    from lc_petsc.io.frames import valid_rows
     with h5py.File(path, "r") as f:
         off = np.asarray(f["wisp_offsets"][...], np.int64)
-        n_steps = max(int(f["positions"].shape[0]) - 1, 0)
-        a, b = n_steps * rank // size, n_steps * (rank + 1) // size
+        held = valid_rows(f)
+        steps = [k for k in range(len(held) - 1) if held[k] and held[k + 1]]
+        mine = steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]
         seg, wisp = segments(off)
         wid = np.full(int(off[-1]), -1, np.int64)
         wid[seg] = wisp
-        rows = []
-        prev = np.asarray(f["positions"][a], float) if a < b else None
-        for k in range(a, b):
-            cur = np.asarray(f["positions"][k + 1], float)
-            r = count_crossings(prev, cur, off, self_contact)
+        rows, prev = [], None
+        for k in mine:
+            a = prev if prev is not None and prev[0] == k else (k, np.asarray(f["positions"][k], float))
+            prev = (k + 1, np.asarray(f["positions"][k + 1], float))
+            r = count_crossings(a[1], prev[1], off, self_contact)
             same = wid[r["pairs"][:, 0]] == wid[r["pairs"][:, 1]]
             rows.append((k, int((~same).sum()), int(same.sum())))
-            prev = cur
-    return rows, n_steps
+    return rows, len(steps)

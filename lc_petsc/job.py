@@ -13,8 +13,10 @@ What each step leaves behind when it fails:
    was (a folder this run created is removed again).  A signal (SIGTERM, SIGUSR1,
    SIGINT) stops the set-up at once (nothing to checkpoint yet): exit 75, the folder as
    it was (:class:`Preemption`).
-3. **prepare** the folder (the previous run's outputs are removed only now) and write
-   frame 0.
+3. **prepare** the folder (the previous run's outputs are removed only now; a
+   ``frames.h5`` a restart cannot append to is renamed aside, never removed, with
+   ``--force``: :mod:`lc_petsc.io.recovery`) and write frame 0 (a recovery: the rows up
+   to the checkpoint's).
 4. the **frame loop**: each frame is stepped, written, then every rank agrees on
    whether to stop (a signal) or to checkpoint.  Every failure on any rank that the
    simulator raises collectively (a diverged solve, a non-finite position, an element
@@ -42,7 +44,7 @@ import numpy as np
 from lc_petsc.config import SimConfig
 from lc_petsc.io import hdf5
 from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
-from lc_petsc.parallel import global_max, on_root
+from lc_petsc.parallel import global_max, global_wisp_offsets, on_root
 
 EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
 EXIT_PREEMPTED = 75         # EX_TEMPFAIL: stopped by a signal after a checkpoint; restart
@@ -243,6 +245,9 @@ class Job:
         self.writer = None
         self.flushed = 0.0               # when frames.h5 was last flushed (perf_counter)
         self.restart = None
+        self.recovery = None        # the RecoveryPlan of a frames.h5 that cannot be appended to
+        self.aside = None           # where that frames.h5 was renamed to
+        self.recovery_report = None     # summary.json's frames_recovery
         self.times = []
         self.error = None
         self.preemption = None
@@ -366,7 +371,8 @@ class Job:
         rows_kept = 0
         if self.args.restart is not None:
             self.restart = self._load_restart()
-            rows_kept = self.restart["frame"] // self.cfg.output.every + 1
+            if self.recovery is None:
+                rows_kept = self.restart["frame"] // self.cfg.output.every + 1
         else:
             unfinished = self.comm.bcast(unfinished_run(self.out) if self.comm.rank == 0 else None)
             if unfinished and not self.args.force:
@@ -383,7 +389,6 @@ class Job:
         the folder's frames.h5; restored into the simulator.  Raises Refused."""
         from lc_petsc.io.checkpoint import (LEGACY_VALUES, checkpoint_folder, config_differences,
                                             find_latest, load_checkpoint)
-        from lc_petsc.io.frames import resumable_problem
         comm, args, cfg, sim = self.comm, self.args, self.cfg, self.sim
         skipped = []
         try:
@@ -432,15 +437,42 @@ class Job:
                 raise Refused(f"{ck['path']}: the checkpoint's rest positions or pinned vertices differ "
                               "from the scene's; restart with the same scene or add --force")
             warn(comm, "--force: rest state differs from the checkpoint's; the scene's is used")
-        rows = ck["frame"] // cfg.output.every + 1
-        problem = comm.bcast(resumable_problem(self.out / "frames.h5", sim.n_wisps, sim.n_vertices, rows,
-                                               **({} if args.force else dict(dt=cfg.time.dt,
-                                                                              every=cfg.output.every)))
-                             if comm.rank == 0 else None)
-        if problem:
-            raise Refused(problem)
+        self.recovery = self._frames_recovery(ck, ck["frame"] // cfg.output.every + 1)
         sim.restore(dict(ck, x=sim.user.from_user(ck["x"]), v=sim.user.from_user(ck["v"])))
         return ck
+
+    def _frames_recovery(self, ck, rows):
+        """None when the folder's frames.h5 can be appended to from the checkpoint ``ck``
+        (its first ``rows`` rows kept), else the RecoveryPlan that --force continues
+        with into a new frames.h5; without --force Refused, saying what --force keeps
+        and loses (rank 0 inspects, read-only; one verdict for all)."""
+        from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints, read_positions
+        from lc_petsc.io.frames import resumable_problem
+        from lc_petsc.io.recovery import aside_path, plan_recovery
+        args, cfg, sim = self.args, self.cfg, self.sim
+        path = self.out / "frames.h5"
+        offsets = global_wisp_offsets(self.comm, sim.user.offsets)
+
+        def inspect():
+            vouched = None
+            if ck["frame"] % cfg.output.every == 0:
+                vouched = (rows - 1, read_positions(ck["path"], offsets)["positions"])
+            problem = resumable_problem(path, sim.n_wisps, sim.n_vertices, rows, checkpoint_row=vouched,
+                                        **({} if args.force else dict(dt=cfg.time.dt, every=cfg.output.every)))
+            if problem is None:
+                return None, None
+            plan = plan_recovery(path, problem, ck, list_checkpoints(checkpoint_folder(self.out)), offsets, rows)
+            return plan, aside_path(path).name if os.path.lexists(path) else None
+        verdict, error = on_root(self.comm, inspect)
+        if error is not None:
+            raise Refused(f"{path}: cannot inspect it before appending to it ({error})")
+        plan, aside = verdict
+        if plan is not None and not args.force:
+            kept = f", renaming this one to {aside} (kept, never removed)" if aside else ""
+            raise Refused(f"{plan.problem}. With --force the run continues from {ck['path']} into a new "
+                          f"frames.h5{kept}: {plan.describe()}; or restart with --out naming the folder "
+                          f"of the checkpointed run")
+        return plan
 
     def _check_disk(self, rows_kept):
         """Refuse a run whose outputs cannot fit on the output folder's volume."""
@@ -476,6 +508,8 @@ class Job:
         belong to).  OutputError on every rank."""
         from lc_petsc.io.checkpoint import checkpoint_folder
         out, restart = self.out, self.restart is not None
+        if self.recovery is not None:
+            self.aside = self._set_aside()
 
         def clean():
             for name in OUR_FILES:
@@ -494,6 +528,46 @@ class Job:
             raise OutputError(f"output folder {str(out)!r}: cannot remove the previous run's outputs "
                               f"({problem.strerror if isinstance(problem, OSError) else problem})")
 
+    def _set_aside(self):
+        """Rank 0 renames the frames.h5 that cannot be appended to aside (no run removes
+        it); its new path, None when there was none.  OutputError on every rank."""
+        from lc_petsc.io.recovery import aside_path
+        path = self.out / "frames.h5"
+
+        def rename():
+            if not os.path.lexists(path):
+                return None
+            target = aside_path(path)
+            os.rename(path, target)
+            return target
+        target, problem = on_root(self.comm, rename)
+        if problem is not None:
+            raise OutputError(f"{path}: cannot rename it aside "
+                              f"({problem.strerror if isinstance(problem, OSError) else problem})")
+        return target
+
+    def _write_recovered(self):
+        """Rows 0 .. the checkpoint's into the new frames.h5 (the recovered ones, the
+        lost ones marked); a warning and summary.json's frames_recovery say which.
+        Returns every row's time (NaN for the lost)."""
+        from lc_petsc.io.recovery import frame_ranges, frames_text, write_recovered
+        plan, every = self.recovery, self.cfg.output.every
+        offsets = global_wisp_offsets(self.comm, self.sim.user.offsets)
+        recovered, times = write_recovered(self.writer, plan, self.aside, offsets, self.comm)
+        self.writer.flush()
+        lost = [k for k in range(plan.rows) if k not in set(recovered)]
+        where = f"it was renamed to {self.aside} (kept)" if self.aside else "there was none to keep"
+        self._warn(f"--force: {plan.problem}; {where}, and the run continues into a new frames.h5: "
+                   f"{plan.describe(recovered)}"
+                   + (f"; {frames_text(lost, every)} hold NaN in /positions and /time and False in "
+                      f"/frame_valid" if lost else ""))
+        self.recovery_report = {
+            "problem": plan.problem, "renamed_to": None if self.aside is None else str(self.aside),
+            "recovered_frames": frame_ranges(recovered, every), "missing_frames": frame_ranges(lost, every),
+            "from_frames_file": frame_ranges([k for k in plan.from_file if k in recovered], every),
+            "from_checkpoints": [k * every for k in sorted(plan.from_checkpoints) if k in recovered]}
+        return times
+
     def _open_frames(self):
         from lc_petsc import __version__
         from lc_petsc.io.frames import FramesWriter
@@ -503,6 +577,7 @@ class Job:
                  "frames": cfg.time.frames, "description": cfg.scene.description,
                  "lc_petsc_version": __version__}
         start = 0 if self.restart is None else self.restart["frame"]
+        resume = self.restart is not None and self.recovery is None
         with sim.timers("io"):
             self.writer = FramesWriter(
                 self.out / "frames.h5", self.comm, n_wisps=sim.n_wisps, n_vertices=sim.n_vertices,
@@ -510,11 +585,16 @@ class Job:
                 local_offsets=sim.user.offsets, rest_positions=sim.user.x_rest,
                 pinned=sim.user.pinned, radius=sim.user.radius,
                 n_out=1 + cfg.time.frames // cfg.output.every, attrs=attrs,
-                resume_rows=None if self.restart is None else start // cfg.output.every + 1)
+                resume_rows=start // cfg.output.every + 1 if resume else None,
+                track_valid=self.recovery is not None)
             if self.restart is None:
                 self.writer.write_frame(0.0, sim.user.to_user(sim.x))
                 self.writer.flush()      # readable from the start, not only after FRAMES_FLUSH_SECONDS
-        self.times = [0.0] if self.restart is None else list(self.writer.times_kept)
+                self.times = [0.0]
+            elif self.recovery is not None:
+                self.times = self._write_recovered()
+            else:
+                self.times = list(self.writer.times_kept)
 
     def _loop(self):
         """Steps 3 and 4: prepare, frame 0, the frames; failures end in self.error."""
@@ -685,6 +765,7 @@ class Job:
                 "checkpoint": str(self.restart["path"]), "frame": start,
                 "ranks_before": self.restart["attrs"]["ranks"], "skipped": self.restart["skipped"]},
             "checkpoints": self.checkpointer.written,
+            "frames_recovery": self.recovery_report,
             "preempted": preempted,
             "solver": summary["petsc_options"],
             "petsc_options": _options_string(used),
@@ -713,7 +794,7 @@ class Job:
         if cfg.output.xdmf and writer is not None and not hdf5.unclosable():
             try:
                 write_xdmf(out / "frames.xdmf", h5_path, self.times, sim.n_vertices, sim.n_wisps,
-                           name=self.name)
+                           name=self.name, valid=writer.rows_valid)
                 files.append("frames.xdmf")
             except OSError as e:
                 problems.append(f"{out / 'frames.xdmf'}: {e.strerror or e}")

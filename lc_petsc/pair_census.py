@@ -78,8 +78,10 @@ def census_frames(path, thickness=None, stiffness=None, every=1, progress=None):
     with every = 1): list of :func:`frame_census` dicts with ``frame``, and (d0, k).
     d0: ``thickness``, else the run's ``physics.strand_thickness``, else the simulator's
     default, twice the smallest vertex radius; k: ``stiffness``, else the run's
-    ``physics.strand_stiffness``.  ``progress(dict)`` is called per frame."""
+    ``physics.strand_stiffness``.  Rows that hold no frame (lost in a recovery,
+    ``/frame_valid``) are left out.  ``progress(dict)`` is called per frame."""
     import h5py
+    from lc_petsc.io.frames import valid_rows
     if every < 1:
         raise ValueError(f"every = {every}: give a frame stride of at least 1")
     with h5py.File(path, "r") as f:
@@ -92,7 +94,11 @@ def census_frames(path, thickness=None, stiffness=None, every=1, progress=None):
         seg, wisp = segments(off)
         wid = np.repeat(np.arange(len(off) - 1), np.diff(off))
         rows, age = [], {}
-        for t in range(0, f["positions"].shape[0], every):
+        held = valid_rows(f)
+        for t in range(0, len(held), every):
+            if not held[t]:            # lost in a recovery: no census, ages start again
+                age = {}
+                continue
             X = np.asarray(f["positions"][t], float)
             r, age = frame_census(X, rest, seg, wisp, wid, d0, k, age if every == 1 else {})
             r["frame"] = t

@@ -17,19 +17,21 @@ from lc_petsc.crossings import edge_strain
 
 
 def frame_rows(path):
-    """Per frame of ``path``: (max, min, median, p99 strain, edges > +10 %, < -10 %, median
-    root-to-tip distance / rest)."""
+    """Per row of ``path`` that holds a frame (rows lost in a recovery are left out): (row,
+    max, min, median, p99 strain, edges > +10 %, < -10 %, median root-to-tip distance /
+    rest)."""
     import h5py
+    from lc_petsc.io.frames import valid_rows
     rows = []
     with h5py.File(path, "r") as f:
         off = np.asarray(f["wisp_offsets"][...], np.int64)
         rest = np.asarray(f["rest_positions"][...], float)
         reach0 = np.linalg.norm(rest[off[1:] - 1] - rest[off[:-1]], axis=1)
-        for k in range(f["positions"].shape[0]):
+        for k in np.flatnonzero(valid_rows(f)):
             x = np.asarray(f["positions"][k], float)
             s = edge_strain(x, rest, off)
             reach = np.linalg.norm(x[off[1:] - 1] - x[off[:-1]], axis=1) / reach0
-            rows.append((s.max(), s.min(), np.median(s), np.percentile(s, 99), int((s > 0.1).sum()),
+            rows.append((int(k), s.max(), s.min(), np.median(s), np.percentile(s, 99), int((s > 0.1).sum()),
                          int((s < -0.1).sum()), float(np.median(reach))))
     return rows
 
@@ -53,9 +55,9 @@ def main(argv=None):
                   file=sys.stderr)
             return 2
         print(f"{label}: frame  max strain  min strain  median  p99  edges>+10%  edges<-10%  root-tip/rest")
-        for k, r in enumerate(rows):
-            print(f"{label}: {k:5d}  {r[0]:+10.4f}  {r[1]:+10.4f}  {r[2]:+.4f}  {r[3]:+.4f}  {r[4]:10d}  "
-                  f"{r[5]:10d}  {r[6]:.3f}")
+        for r in rows:
+            print(f"{label}: {r[0]:5d}  {r[1]:+10.4f}  {r[2]:+10.4f}  {r[3]:+.4f}  {r[4]:+.4f}  {r[5]:10d}  "
+                  f"{r[6]:10d}  {r[7]:.3f}")
         runs.append(rows)
     if a.plot:
         import matplotlib
@@ -64,8 +66,8 @@ def main(argv=None):
         fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 3.6))
         for rows, label in zip(runs, labels):
             r = np.array(rows)
-            ax0.semilogy(np.maximum(r[:, 0], 1e-4), label=label)
-            ax1.plot(r[:, 4], label=label)
+            ax0.semilogy(r[:, 0], np.maximum(r[:, 1], 1e-4), label=label)
+            ax1.plot(r[:, 0], r[:, 5], label=label)
         ax0.set(xlabel="frame", ylabel="largest edge strain")
         ax1.set(xlabel="frame", ylabel="edges stretched > 10 %")
         ax0.legend()

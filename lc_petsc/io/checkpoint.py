@@ -434,6 +434,28 @@ def load_checkpoint(path, comm, scene, n_wisps, n_vertices, head):
             "frame": int(attrs["frame"]), "time": float(attrs["time"]), "attrs": attrs, "path": Path(name)}
 
 
+def read_positions(path, offsets):
+    """Rank 0, serial: a checkpoint's ``frame``, ``time``, ``config_sha256`` and
+    ``positions`` (n_vertices, 3) in global order, checked against their checksums
+    (``offsets``: the global wisp offsets); a CheckpointError naming the file otherwise."""
+    h5py = h5py_module()
+    name = str(path)
+    try:
+        with h5py.File(name, "r") as f:
+            attrs = {k: _attr(v) for k, v in f.attrs.items()}
+            x = f["positions"][...]
+            digest = _attr(f["positions"].attrs.get("sha256"))
+    except (OSError, KeyError) as e:
+        raise CheckpointError(f"{name}: unreadable checkpoint ({e})") from None
+    if attrs.get("format") != FORMAT or attrs.get("meta_sha256") != _meta_digest(attrs):
+        raise CheckpointError(f"{name}: not an lc_petsc checkpoint, or its attributes fail their checksum")
+    if x.shape != (int(offsets[-1]), 3) or \
+            hashlib.sha256(_wisp_digests(x, offsets).tobytes()).hexdigest() != digest:
+        raise CheckpointError(f"{name}: corrupt checkpoint: dataset /positions fails its checksum (sha256)")
+    return {"frame": int(attrs["frame"]), "time": float(attrs["time"]),
+            "config_sha256": attrs.get("config_sha256"), "positions": x}
+
+
 def find_latest(folder, comm, scene, n_wisps, n_vertices, head):
     """The newest valid checkpoint in ``folder``: (loaded dict, [messages of the newer
     ones rejected]).  None valid: CheckpointError listing why."""

@@ -10,6 +10,10 @@ Layout (plain h5py reads it):
 * extension: ``/polylines`` int64 (2 n_wisps + n_vertices,), the XDMF "Mixed" topology
   of the wisps (for every wisp: 2 = polyline, its vertex count, its vertex indices),
   which ``frames.xdmf`` points at;
+* ``/frame_valid`` bool (n_frames,), only in a file that continued a run whose own
+  ``frames.h5`` was lost (``--restart ... --force``, :mod:`lc_petsc.io.recovery`):
+  False marks a row that could not be recovered, its ``/positions`` and ``/time`` are
+  NaN; a file without it has every row valid (:func:`valid_rows`);
 * root attributes: ``config`` (the resolved config as JSON), ``terms``, ``dt``,
   ``every`` (frame ``k`` of the file is simulation frame ``k * every``), ``frames``
   (simulation frames planned), ``ranks``, ``format``.
@@ -82,40 +86,68 @@ def _h5_error(path, e):
     return OutputError(f"{path}: {why}", hdf5_broken=True)
 
 
-def resumable_problem(path, n_wisps, n_vertices, rows, dt=None, every=None):
+def resumable_problem(path, n_wisps, n_vertices, rows, dt=None, every=None, checkpoint_row=None):
     """Why ``path`` cannot be appended to by a restart needing its first ``rows`` frame
     rows, or None; ``dt`` and ``every`` (the run's time.dt and output.every) must be the
     file's attributes, where it has them (a file of another run with the same counts
-    was taken over).  Serial and read-only (rank 0, before anything is changed)."""
+    was taken over); ``checkpoint_row`` (row, positions (n_vertices, 3)): the row the
+    checkpoint vouches for must hold its positions bit for bit.  Serial and read-only
+    (rank 0, before anything is changed)."""
     h5py = h5py_module()
     path = str(path)
-    hint = "; restart with --out naming the folder of the checkpointed run"
     if not os.path.isfile(path):
-        return f"{path}: the run's frames file is missing, --restart appends to it{hint}"
+        return f"{path}: the run's frames file is missing, --restart appends to it"
     if not h5py.is_hdf5(path):
-        return f"{path}: not an HDF5 file, cannot append the restarted frames to it{hint}"
+        return f"{path}: not an HDF5 file, cannot append the restarted frames to it"
     try:
         with h5py.File(path, "r") as f:
-            for k in ("positions", "time", "wisp_offsets"):
-                if not isinstance(f.get(k), h5py.Dataset):
-                    return f"{path}: no dataset /{k}, not an lc_petsc frames file{hint}"
-            pos = f["positions"]
-            if pos.ndim != 3 or pos.shape[1:] != (n_vertices, 3) or f["wisp_offsets"].shape != (n_wisps + 1,):
-                return (f"{path}: has {f['wisp_offsets'].shape[0] - 1} wisps and /positions "
-                        f"{pos.shape}, the scene {n_wisps} wisps and {n_vertices} vertices")
-            if pos.maxshape[0] is not None or f["time"].maxshape[0] is not None:
-                return f"{path}: /positions or /time is not extendable, cannot append to it"
-            if pos.shape[0] < rows or f["time"].shape[0] < rows:
-                return (f"{path}: holds {pos.shape[0]} frame row(s), the checkpoint needs the first "
-                        f"{rows}; it does not belong to this checkpoint's run")
-            for key, want in (("dt", dt), ("every", every)):
-                have = f.attrs.get(key)
-                if want is not None and have is not None and float(have) != float(want):
-                    return (f"{path}: written with {key} = {float(have):g}, this run has {float(want):g}; "
-                            f"it does not belong to this checkpoint's run{hint}")
-    except OSError as e:
-        return f"{path}: unreadable or truncated HDF5 file ({str(e).split(' (')[0]}){hint}"
+            return _layout_problem(f, path, n_wisps, n_vertices, rows, dt, every) or \
+                _row_problem(f, path, checkpoint_row)
+    except (OSError, KeyError) as e:
+        return f"{path}: unreadable or truncated HDF5 file ({str(e).split(' (')[0]})"
+
+
+def _layout_problem(f, path, n_wisps, n_vertices, rows, dt, every):
+    """:func:`resumable_problem`'s datasets, shapes, rows and attributes."""
+    h5py = h5py_module()
+    for k in ("positions", "time", "wisp_offsets"):
+        if not isinstance(f.get(k), h5py.Dataset):
+            return f"{path}: no dataset /{k}, not an lc_petsc frames file"
+    pos = f["positions"]
+    if pos.ndim != 3 or pos.shape[1:] != (n_vertices, 3) or f["wisp_offsets"].shape != (n_wisps + 1,):
+        return (f"{path}: has {f['wisp_offsets'].shape[0] - 1} wisps and /positions "
+                f"{pos.shape}, the scene {n_wisps} wisps and {n_vertices} vertices")
+    if pos.maxshape[0] is not None or f["time"].maxshape[0] is not None:
+        return f"{path}: /positions or /time is not extendable, cannot append to it"
+    if pos.shape[0] < rows or f["time"].shape[0] < rows:
+        return (f"{path}: holds {pos.shape[0]} frame row(s), the checkpoint needs the first "
+                f"{rows}; it does not belong to this checkpoint's run")
+    for key, want in (("dt", dt), ("every", every)):
+        have = f.attrs.get(key)
+        if want is not None and have is not None and float(have) != float(want):
+            return (f"{path}: written with {key} = {float(have):g}, this run has {float(want):g}; "
+                    f"it does not belong to this checkpoint's run")
     return None
+
+
+def _row_problem(f, path, checkpoint_row):
+    """:func:`resumable_problem`'s check of the row the checkpoint vouches for."""
+    if checkpoint_row is None:
+        return None
+    row, x = checkpoint_row
+    if valid_rows(f)[row] and not np.array_equal(f["positions"][row], x):
+        return (f"{path}: row {row} differs from the checkpoint's positions at that frame: "
+                f"corrupt, or it does not belong to this checkpoint's run")
+    return None
+
+
+def valid_rows(f):
+    """Which rows of the open ``frames.h5`` ``f`` hold a frame (bool (n_frames,)):
+    ``/frame_valid`` where the file has it, else every row."""
+    n = f["positions"].shape[0]
+    if "frame_valid" in f:
+        return np.asarray(f["frame_valid"][:n], bool)
+    return np.ones(n, bool)
 
 
 class FramesWriter:
@@ -124,7 +156,8 @@ class FramesWriter:
     ``comm``: the simulator's mpi4py communicator; ``first_vertex``/``positions`` of
     this rank's vertices; ``first_wisp``/``local_offsets`` of this rank's wisps;
     ``n_out``: the planned number of frame rows (sizes the chunks; the datasets grow by one
-    row per frame written, nothing is preallocated).
+    row per frame written, nothing is preallocated); ``track_valid``: a new file gets
+    ``/frame_valid`` (a recovery writes rows that were lost, :meth:`write_row`).
     Every h5py failure is an :class:`lc_petsc.io.disk.OutputError` naming the file;
     after one, :attr:`broken` is set and the file must not be closed (libhdf5 would
     crash): the caller stops the run.
@@ -132,7 +165,7 @@ class FramesWriter:
 
     def __init__(self, path, comm, *, n_wisps, n_vertices, first_wisp, first_vertex,
                  local_offsets, rest_positions, pinned, n_out, attrs, resume_rows=None,
-                 radius=None):
+                 radius=None, track_valid=False):
         self.comm, self.path = comm, str(path)
         self.folder = os.path.dirname(os.path.abspath(self.path))
         self.parallel = is_parallel()
@@ -144,6 +177,8 @@ class FramesWriter:
         self.n_out, self.written, self.capacity = int(n_out), 0, 0
         self.f, self.broken = None, False
         self.times_kept = []           # times of the frames kept from before a restart
+        self.valid = None              # /frame_valid, where the file has one
+        self.rows_valid = []           # whether each row kept or written holds a frame (rank 0)
         # no chunk cache: a frame goes to the file when written, so the space checked
         # before the write is the space it takes
         kw = collective_file_options(comm)
@@ -155,7 +190,7 @@ class FramesWriter:
                 self._resume(kw, n_wisps, int(resume_rows), attrs)
             else:
                 self._create(kw, n_wisps, first_wisp, local_offsets, rest_positions, pinned, attrs,
-                             radius)
+                             radius, track_valid)
         except (OSError, RuntimeError, KeyError) as e:
             self.broken = self.f is not None
             err = _h5_error(self.path, e)
@@ -163,7 +198,7 @@ class FramesWriter:
             raise err from None
 
     def _create(self, kw, n_wisps, first_wisp, local_offsets, rest_positions, pinned, attrs,
-                radius=None):
+                radius=None, track_valid=False):
         h5py = h5py_module()
         comm = self.comm
         self.f = f = h5py.File(self.path, "w", **kw)
@@ -173,6 +208,9 @@ class FramesWriter:
                                        maxshape=(None, nv, 3), chunks=(1, max(1, min(nv, 1 << 16)), 3))
         self.time = self._dataset("time", (0,), np.float64, maxshape=(None,),
                                   chunks=(max(1, min(self.n_out, 4096)),))
+        if track_valid:
+            self.valid = self._dataset("frame_valid", (0,), np.bool_, maxshape=(None,),
+                                       chunks=(max(1, min(self.n_out, 4096)),))
         offs = self._dataset("wisp_offsets", (n_wisps + 1,), np.int64)
         rest = self._dataset("rest_positions", (nv, 3), np.float64)
         pin = self._dataset("pinned", (nv,), np.bool_)
@@ -220,13 +258,15 @@ class FramesWriter:
                 raise ValueError(f"{self.path}: holds {have} frame row(s), the checkpoint needs the "
                                  f"first {rows}; it does not belong to this checkpoint's run")
             self.times_kept = [float(t) for t in f["time"][:rows]]
+            self.valid = f.get("frame_valid")
+            self.rows_valid = valid_rows(f)[:rows].tolist()
         except Exception:
             f.close()
             self.f = None
             raise
         if have != rows:            # later rows are rewritten by this run
-            self.positions.resize(rows, axis=0)
-            self.time.resize(rows, axis=0)
+            for d in self._frame_datasets():
+                d.resize(rows, axis=0)
             # flushed now: libhdf5 1.10's mpio driver otherwise loses the next writes into
             # the chunk the cut shortened (/time's rows came back 0.0; one frame per chunk
             # keeps /positions safe); tests/io/test_mpi_checkpoint.py
@@ -251,11 +291,15 @@ class FramesWriter:
     def _write(self, dset, start, data):
         write_rows(dset, start, data, self._dxpl)
 
+    def _frame_datasets(self):
+        """The datasets with a row per frame."""
+        return [d for d in (self.positions, self.time, self.valid) if d is not None]
+
     def _grow(self):
         """One more row in the frame datasets."""
         self.capacity = self.written + 1
-        self.positions.resize(self.capacity, axis=0)
-        self.time.resize(self.capacity, axis=0)
+        for d in self._frame_datasets():
+            d.resize(self.capacity, axis=0)
 
     def flush(self):
         """Collective: push everything written so far to the file (H5Fflush, which with
@@ -272,18 +316,31 @@ class FramesWriter:
     def write_frame(self, t, x_local):
         """Append one frame: this rank's positions (nv_local, 3) at time ``t``.  The
         free space is checked first (collective); an OutputError if it does not fit."""
+        self._append(t, x_local, self.v0, True)
+
+    def write_row(self, t, x, valid):
+        """Append one row written by rank 0 alone (collective; a recovery): ``x`` the whole
+        row (n_vertices, 3) on rank 0, ignored elsewhere; ``valid`` (rank 0's) goes to
+        ``/frame_valid``."""
+        self._append(t, x if self.comm.rank == 0 else np.zeros((0, 3)), 0, valid)
+
+    def _append(self, t, x, first_vertex, valid):
         from lc_petsc.io.disk import check_space
         k = self.written
         grow = k >= self.capacity
         check_space(self.comm, self.folder, frame_bytes(self.nv), self.path)
+        root = self.comm.rank == 0
 
         def write():
             if grow:
                 self._grow()
-            self._write(self.positions, (k, self.v0, 0), np.asarray(x_local)[None])
-            self._write(self.time, (k,), np.array([t]) if self.comm.rank == 0 else np.zeros(0))
+            self._write(self.positions, (k, first_vertex, 0), np.asarray(x)[None])
+            self._write(self.time, (k,), np.array([t]) if root else np.zeros(0))
+            if self.valid is not None:
+                self._write(self.valid, (k,), np.array([valid], bool) if root else np.zeros(0, bool))
         self._guarded(write)
         self.written += 1
+        self.rows_valid.append(bool(valid))
 
     def close(self):
         """Shrink the frame datasets to the frames written; close the file.  A broken
@@ -293,8 +350,8 @@ class FramesWriter:
 
         def close():
             if self.written < self.positions.shape[0]:
-                self.positions.resize(self.written, axis=0)
-                self.time.resize(self.written, axis=0)
+                for d in self._frame_datasets():
+                    d.resize(self.written, axis=0)
             self.f.close()
         try:
             self._guarded(close)
@@ -311,12 +368,13 @@ class FramesWriter:
 
 def read_frames(path, frames=None):
     """Read ``frames.h5`` (serially) into a dict of arrays; ``frames`` selects rows of
-    ``/positions`` and ``/time`` (default: all)."""
+    ``/positions``, ``/time`` and ``frame_valid`` (:func:`valid_rows`; default: all)."""
     h5py = h5py_module()
     with h5py.File(path, "r") as f:
         sel = slice(None) if frames is None else np.asarray(frames)
         out = {k: f[k][...] for k in ("wisp_offsets", "rest_positions", "pinned")}
         out["time"] = f["time"][...][sel]
+        out["frame_valid"] = valid_rows(f)[sel]
         out["positions"] = f["positions"][sel] if frames is None else \
             np.stack([f["positions"][int(i)] for i in np.atleast_1d(frames)])
         out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}

@@ -175,19 +175,22 @@ def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view=
     """Render ``preview_rows`` (row indices of ``/positions``) to
     ``out_dir/previews/frame_NNNNN.png`` (NNNNN the simulation frame number) and a
     contact sheet of ``contact_panels`` rows evenly spaced over the run to
-    ``out_dir/contact_sheet.png``.  ``head``: callable t -> (centre, radius) or None.
-    Returns the paths written."""
+    ``out_dir/contact_sheet.png``.  Only rows that hold a frame (``/frame_valid``) are
+    drawn: a lost row's preview is the nearest valid row's.  ``head``: callable t ->
+    (centre, radius) or None.  Returns the paths written."""
     import h5py
+    from lc_petsc.io.frames import valid_rows
     plt = _pyplot()
     with h5py.File(frames_path, "r") as f:
         n = f["positions"].shape[0]
-        if n == 0:
+        held = np.flatnonzero(valid_rows(f))
+        if len(held) == 0:
             return []
         offsets = f["wisp_offsets"][...]
         times = f["time"][...]
-        rows = sorted({int(r) % n for r in preview_rows})
-        sheet = sorted(set(np.linspace(0, n - 1, min(contact_panels, n)).round().astype(int).tolist())) \
-            if contact_panels > 0 else []
+        rows = sorted({int(held[np.abs(held - int(r) % n).argmin()]) for r in preview_rows})
+        sheet = sorted(set(held[np.linspace(0, len(held) - 1, min(contact_panels, len(held)))
+                                .round().astype(int)].tolist())) if contact_panels > 0 else []
         needed = sorted(set(rows) | set(sheet))
         X = {r: f["positions"][r] for r in needed}
     discs = [head(times[r]) for r in needed] if head is not None else []

@@ -18,7 +18,9 @@ Stage layout (``metersPerUnit`` 0.01: centimetres; up axis Y; default prim ``/Gr
 
 Time: row k of ``frames.h5`` (simulation frame k * every) is time code k;
 ``timeCodesPerSecond`` = ``framesPerSecond`` = 1 / (dt * every), so a DCC plays the run
-at its real speed; start and end time codes are 0 and n_frames - 1.
+at its real speed; start and end time codes are 0 and n_frames - 1.  A row that holds
+no frame (lost in a recovery, ``/frame_valid`` False) has no time sample: a DCC holds
+the samples around it, nothing is made up for it.
 
 Radii are not in ``frames.h5``: they are rebuilt from the resolved config stored in its
 ``config`` attribute with the scene source the run used (a strands or USD file must
@@ -115,10 +117,12 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     """Write the USD export of ``frames_path`` (a closed ``frames.h5``) to ``usd_path``
     (default ``frames.usdc`` beside it).  ``render_hairs`` (hairs per wisp), the seed and
     the spread default to the run's ``output`` config; ``stride`` k writes every k-th
-    row of frames.h5 (time codes stay row numbers).  ``progress``: callable(done, total)
-    or None.  Returns a dict of what was written and how long it took (seconds)."""
+    row of frames.h5 (time codes stay row numbers; rows lost in a recovery are left
+    out).  ``progress``: callable(done, total) or None.  Returns a dict of what was
+    written and how long it took (seconds)."""
     import h5py
     from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+    from lc_petsc.io.frames import valid_rows
     from lc_petsc.io.render_hairs import RenderHairs, root_normals
     from lc_petsc.scene.kinematics import HeadMotion
 
@@ -148,7 +152,8 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
         pinned = np.asarray(f["pinned"][...], bool)
         times = np.asarray(f["time"][...], float)
         n_rows = len(times)
-        rows = list(range(0, n_rows, int(stride)))
+        held = valid_rows(f)
+        rows = [k for k in range(0, n_rows, int(stride)) if held[k]]
         # the run's radii; frames files written before /radius existed: from its config
         radius = f["radius"][...] if "radius" in f else scene_radius(tables, sizes)
         out_cfg = tables["output"]

@@ -1,9 +1,10 @@
 """``frames.xdmf``: an XDMF 2 temporal collection of polylines over ``frames.h5``.
 
-One uniform grid per written frame, all sharing the wisps' "Mixed" polyline topology
-(``/polylines``) and taking their points from a hyperslab of ``/positions``; no data is
-copied.  ParaView opens it with its XDMF reader ("Xdmf Reader", i.e. XDMF 2); the test
-suite reads it back with VTK's ``vtkXdmfReader``.
+One uniform grid per written frame (a row of ``/frame_valid`` False is no frame, and no
+grid), all sharing the wisps' "Mixed" polyline topology (``/polylines``) and taking
+their points from a hyperslab of ``/positions``; no data is copied.  ParaView opens it
+with its XDMF reader ("Xdmf Reader", i.e. XDMF 2); the test suite reads it back with
+VTK's ``vtkXdmfReader``.
 
 The first child of each frame's hyperslab item is a comment naming the frame: VTK's XDMF
 reader keys its per-block geometry cache on the text of that first child, and without a
@@ -19,8 +20,10 @@ from xml.sax.saxutils import quoteattr
 from lc_petsc.io.disk import written_aside
 
 
-def write_xdmf(xdmf_path, h5_path, times, n_vertices, n_wisps, name="frames"):
-    """Write ``xdmf_path`` describing the frames of ``h5_path`` at ``times``."""
+def write_xdmf(xdmf_path, h5_path, times, n_vertices, n_wisps, name="frames", valid=None):
+    """Write ``xdmf_path`` describing the frames of ``h5_path`` at ``times`` (one per row
+    of ``/positions``); rows whose ``valid`` is False (lost, ``/frame_valid``) are left
+    out."""
     h5 = os.path.relpath(h5_path, os.path.dirname(os.path.abspath(xdmf_path)) or ".")
     nf, nv = len(times), int(n_vertices)
     n_poly = 2 * int(n_wisps) + nv
@@ -30,6 +33,8 @@ def write_xdmf(xdmf_path, h5_path, times, n_vertices, n_wisps, name="frames"):
              ' <Domain>',
              f'  <Grid Name={quoteattr(name)} GridType="Collection" CollectionType="Temporal">']
     for k, t in enumerate(times):
+        if valid is not None and not valid[k]:
+            continue
         lines += [
             f'   <Grid Name="frame_{k}" GridType="Uniform">',
             f'    <Time Value="{float(t):.17g}"/>',

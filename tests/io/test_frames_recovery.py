@@ -1,0 +1,183 @@
+"""A restart whose frames.h5 cannot be appended to (missing, truncated, corrupt):
+refused without --force, saying what --force keeps; with --force the run continues
+from the checkpoint into a new frames.h5, the old file renamed aside byte for byte,
+the rows recovered from it and from the checkpoints equal to the first run's, the
+others NaN and marked in /frame_valid (not made up), the continuation bit for bit the
+straight run's, the exports and summary.json consistent with it, and a later restart
+appending to it."""
+
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from lc_petsc.batch import main
+from lc_petsc.crossings import count_frames
+from lc_petsc.io.frames import read_frames
+
+from sim_helpers import hairball_toml  # noqa: E402
+
+SCENE = hairball_toml(frames="{frames}",
+                      output="checkpoint_every = 2\ncheckpoints_kept = {kept}\ncontact_sheet = 4")
+
+
+def _config(folder, frames=6, kept=5):
+    p = Path(folder) / "s.toml"
+    p.write_text(SCENE.format(frames=frames, kept=kept))
+    return str(p)
+
+
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory):
+    """The reference: 10 frames straight, serial (positions and times of frames.h5)."""
+    d = tmp_path_factory.mktemp("straight")
+    assert main([_config(d, frames=10), "--out", str(d / "out"), "--quiet"]) == 0
+    with h5py.File(d / "out" / "frames.h5", "r") as f:
+        return f["positions"][...], f["time"][...]
+
+
+def _run(cfg, out, *extra):
+    return main([cfg, "--out", str(out), "--quiet", *extra])
+
+
+def _sha(path):
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _snapshot(folder):
+    return {str(p.relative_to(folder)): (_sha(p), p.stat().st_mtime_ns)
+            for p in sorted(Path(folder).rglob("*")) if p.is_file()}
+
+
+def _check_rows(out, ref, recovered, lost, upto):
+    """Rows ``recovered`` and those after the checkpoint up to ``upto`` equal the straight
+    run's bit for bit (times too); rows ``lost`` are NaN and marked invalid."""
+    got = read_frames(Path(out) / "frames.h5")
+    pos, t, valid = got["positions"], got["time"], got["frame_valid"]
+    assert pos.shape == (upto + 1,) + ref[0].shape[1:]
+    kept = sorted(set(range(upto + 1)) - set(lost))
+    assert valid.tolist() == [k not in lost for k in range(upto + 1)]
+    assert np.array_equal(pos[kept], ref[0][kept]) and np.array_equal(t[kept], ref[1][kept])
+    assert np.isnan(pos[lost]).all() and np.isnan(t[lost]).all()
+    assert set(recovered) <= set(kept)
+    return got
+
+
+def test_deleted_frames_file_continues_with_force(tmp_path, straight, capsys):
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out, "--frames", "4") == 0              # checkpoints at 2 and 4
+    os.unlink(out / "frames.h5")
+    before = _snapshot(out)
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "6", "--restart", "latest") == 2
+    err = capsys.readouterr().err
+    assert "frames file is missing" in err and "With --force the run continues from" in err, err
+    assert "frame(s) 2, 4 recovered" in err and "frame(s) 0-1, 3 lost" in err, err
+    assert _snapshot(out) == before, "a refused restart changed the folder"
+
+    assert _run(cfg, out, "--frames", "6", "--restart", "latest", "--force") == 0
+    err = capsys.readouterr().err
+    assert "--force" in err and "frame(s) 2, 4 recovered (frame(s) 2, 4 from checkpoints)" in err, err
+    assert "frame(s) 0-1, 3 lost" in err and "hold NaN" in err, err
+    _check_rows(out, straight, recovered=[2, 4], lost=[0, 1, 3], upto=6)
+    summary = json.loads((out / "summary.json").read_text())
+    rec = summary["frames_recovery"]
+    assert rec["recovered_frames"] == [[2, 2], [4, 4]] and rec["missing_frames"] == [[0, 1], [3, 3]]
+    assert rec["from_checkpoints"] == [2, 4] and rec["from_frames_file"] == [] and rec["renamed_to"] is None
+    assert any("frame(s) 0-1, 3 lost" in w for w in summary["warnings"])
+    # the exports show the rows that hold a frame, and only those
+    xdmf = (out / "frames.xdmf").read_text()
+    assert [f'Name="frame_{k}"' in xdmf for k in range(7)] == [False, False, True, False, True, True, True]
+    from pxr import Usd, UsdGeom
+    stage = Usd.Stage.Open(str(out / "frames.usdc"))
+    samples = UsdGeom.BasisCurves(stage.GetPrimAtPath("/Groom/wisps")).GetPointsAttr().GetTimeSamples()
+    assert samples == [2.0, 4.0, 5.0, 6.0]
+    # preview frame 0 was lost: the nearest frame that holds one is drawn instead
+    assert sorted(p.name for p in (out / "previews").iterdir()) == ["frame_00002.png", "frame_00006.png"]
+    steps, _ = count_frames(out / "frames.h5")
+    assert [s["step"] for s in steps] == [4, 5]          # 4 -> 5 and 5 -> 6 only
+
+    # a later restart of the recovered run appends to it like any other
+    assert _run(cfg, out, "--frames", "9", "--restart", "latest") == 0
+    got = _check_rows(out, straight, recovered=[], lost=[0, 1, 3], upto=9)
+    assert got["frame_valid"][4:].all()
+    assert json.loads((out / "summary.json").read_text())["frames_recovery"] is None
+
+
+def _corrupt_last_row(path):
+    """Random bytes over the last frame row's positions (frames.h5 has no checksums:
+    only the checkpoint of that frame can tell)."""
+    with h5py.File(path, "r") as f:
+        d = f["positions"]
+        at = d.id.get_chunk_info(d.shape[0] - 1).byte_offset
+    with open(path, "r+b") as fh:
+        fh.seek(at + 240)
+        fh.write(np.random.default_rng(3).bytes(2400))
+
+
+def _truncate(path):
+    os.truncate(path, os.path.getsize(path) // 2)
+
+
+def _garbage_in_the_metadata(path):
+    with open(path, "r+b") as fh:
+        fh.seek(800)
+        fh.write(np.random.default_rng(4).bytes(1024))
+
+
+@pytest.mark.parametrize("damage, from_file, lost", [
+    (_corrupt_last_row, [[0, 1], [3, 3], [5, 5]], []),     # row 6 replaced by its checkpoint
+    (_truncate, [], [0, 1, 3, 5]),
+    (_garbage_in_the_metadata, [], [0, 1, 3, 5]),
+])
+def test_damaged_frames_file_is_set_aside_and_the_run_continues(tmp_path, straight, capsys, damage,
+                                                                 from_file, lost):
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0                       # 6 frames, checkpoints 2, 4, 6
+    damage(out / "frames.h5")
+    damaged = _sha(out / "frames.h5")
+    copy = tmp_path / "damaged.h5"
+    shutil.copy(out / "frames.h5", copy)
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
+    err = capsys.readouterr().err
+    assert "--force" in err and "frames.unusable-1.h5 (kept, never removed)" in err, err
+    assert _sha(out / "frames.h5") == damaged
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest", "--force") == 0
+    err = capsys.readouterr().err
+    aside = out / "frames.unusable-1.h5"
+    assert f"renamed to {aside}" in err, err
+    assert _sha(aside) == damaged, "the damaged frames.h5 was not kept byte for byte"
+    _check_rows(out, straight, recovered=[2, 4, 6], lost=lost, upto=8)
+    rec = json.loads((out / "summary.json").read_text())["frames_recovery"]
+    assert rec["renamed_to"] == str(aside) and rec["from_checkpoints"] == [2, 4, 6]
+    assert rec["from_frames_file"] == from_file
+    assert rec["missing_frames"] == [[k, k] for k in lost]
+    # a new run into the folder keeps the file set aside (it removes only its own outputs)
+    assert _run(cfg, out, "--frames", "2") == 0
+    assert _sha(aside) == damaged
+
+
+def test_every_two_recovers_only_the_rows_of_written_frames(tmp_path, capsys):
+    """output.every = 2, checkpoint at frame 3 (not a row): rows 0 and 1 lost, nothing
+    from the checkpoint, whose frame is no row."""
+    cfg = _config(tmp_path, frames=3)
+    text = Path(cfg).read_text().replace("checkpoint_every = 2", "checkpoint_every = 3\nevery = 2")
+    Path(cfg).write_text(text)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0
+    os.unlink(out / "frames.h5")
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "5", "--restart", "latest", "--force") == 0
+    err = capsys.readouterr().err
+    assert "(output.every = 2), no frame recovered (none), frame(s) 0-2 lost" in err, err
+    got = read_frames(out / "frames.h5")
+    assert got["frame_valid"].tolist() == [False, False, True]
+    assert np.isnan(got["positions"][:2]).all() and np.isfinite(got["positions"][2]).all()

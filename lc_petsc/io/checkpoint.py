@@ -228,6 +228,10 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
         from lc_petsc.io.frames import _h5_error
         raise _h5_error(tmp, e) from None
     def publish():
+        # the reservation may have left the file longer than its data: a serial reopen
+        # cuts it to HDF5's end of allocation (the mpio close already does)
+        with h5py.File(str(tmp), "r+"):
+            pass
         replace_atomically(tmp, final, fsync=True)
         for old in list_checkpoints(folder)[max(int(keep), 1):]:
             old.unlink(missing_ok=True)

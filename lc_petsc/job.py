@@ -176,7 +176,9 @@ def outcome_warnings(summary, start, time_config):
 def crossing_warnings(check, cfg):
     """Warnings for the end-of-run crossing check ``check``
     (:func:`lc_petsc.crossings.check_run`): how many, where first, and the key that
-    prevents them in this run's contact set-up."""
+    prevents them in this run's contact set-up.  In ``ccd`` mode with ``output.every``
+    > 1 the simulated steps are collision-free; the straight paths across several of
+    them, which a viewer interpolating the frames written draws, need not be."""
     out = []
     every, phys = cfg.output.every, cfg.physics
     contact = "strand_collision" in phys.terms
@@ -184,24 +186,28 @@ def crossing_warnings(check, cfg):
     apart = (f"; the frames written are output.every = {every} simulation frames apart, so a viewer's "
              f"straight path between them is not the simulated one (output.every = 1 checks the "
              f"simulated paths)") if every > 1 else ""
+    limited = (f"the ccd limiter keeps every simulated step collision-free, but the frames written are "
+               f"output.every = {every} steps apart and the straight paths across them are not: a "
+               f"viewer or renderer interpolating between the frames (motion blur, USD time samples) "
+               f"shows these; output.every = 1 writes collision-free paths") if every > 1 else (
+               "the ccd limiter should have prevented them (see any unresolved-pairs warning); "
+               "please report it with the config")
     for kind, n, steps, first, fix in (
             ("between wisps", check["between_wisps"], check["steps_between"], check["first_between"],
-             "the ccd limiter should have prevented them (see any unresolved-pairs warning); please "
-             "report it with the config" if ccd else
+             limited if ccd else
              "physics.strand_contact_mode = \"ccd\" prevents them (penalty mode lets wisps pass "
-             "through each other)" if contact else
+             "through each other)" + apart if contact else
              "model strand contact: add \"strand_collision\" to physics.terms with "
-             "physics.strand_contact_mode = \"ccd\""),
+             "physics.strand_contact_mode = \"ccd\"" + apart),
             ("within a wisp", check["within_wisps"], check["steps_within"], check["first_within"],
-             "the ccd limiter should have prevented them; please report it with the config"
-             if ccd and phys.strand_self_contact else
+             limited if ccd and phys.strand_self_contact else
              "model self-contact: physics.strand_self_contact = true with \"strand_collision\" in "
-             "physics.terms and physics.strand_contact_mode = \"ccd\"")):
+             "physics.terms and physics.strand_contact_mode = \"ccd\"" + apart)):
         if n:
             out.append(f"{n} crossing(s) {kind} in {steps} of the {check['steps']} steps between the "
                        f"frames written (first: frame {first * every} -> {(first + 1) * every}; "
                        f"scripts/count_crossings.py lists them per step): strands pass through each "
-                       f"other; {fix}{apart}")
+                       f"other; {fix}")
     return out
 
 
@@ -713,20 +719,16 @@ class Job:
         return EXIT_PREEMPTED if preempted else EXIT_OK
 
     def _check_crossings(self):
-        """The end-of-run crossing check of frames.h5 (``output.check_crossings``), with its
-        seconds; None when off or there is nothing to check.  Within a wisp only where
-        the run models self-contact or has a single wisp: on curly hair that check costs
-        about 10x the one between wisps (17.5 s against 1.6 s on the demo's 90 frames)."""
+        """The end-of-run crossing check of frames.h5 (``output.check_crossings``), between
+        wisps and within each wisp, with its seconds; None when off or there is nothing to
+        check."""
         from lc_petsc.crossings import check_run
         cfg, writer = self.cfg, self.writer
         if not cfg.output.check_crossings or writer is None or hdf5.unclosable() or writer.broken:
             return None
-        phys = cfg.physics
-        within = self.sim.n_wisps == 1 or (phys.strand_self_contact and "strand_collision" in phys.terms)
         t0 = time.perf_counter()
-        say(self.comm, f"{PROG}: checking the steps between the frames written for crossings"
-                       + (" (also within each wisp)" if within else ""), sys.stdout)
-        check = check_run(self.out / "frames.h5", self.comm, self_contact=within)
+        say(self.comm, f"{PROG}: checking the steps between the frames written for crossings", sys.stdout)
+        check = check_run(self.out / "frames.h5", self.comm, self_contact=True)
         check["seconds"] = global_max(self.comm, time.perf_counter() - t0)
         return check
 

@@ -94,7 +94,7 @@ def format_report(s) -> str:
     if check and "error" in check:
         lines.append(f"  crossings between the frames written: not checked ({check['error']})")
     elif check:
-        within = "" if check["within_wisps"] is None else f", within a wisp {check['within_wisps']}"
+        within = "" if check["within_wisps"] is None else f", within wisps {check['within_wisps']}"
         lines.append(f"  crossings between the frames written: between wisps {check['between_wisps']}"
                      f"{within} over {check['steps']} steps (checked in {_fmt_s(check['seconds'])})")
     for w in s.get("warnings", []):

@@ -353,7 +353,8 @@ def test_count_crossings_two_wisps():
 
 
 def test_path_screen_drops_only_pairs_that_cannot_touch():
-    """compiled_ccd.screen_paths (the crossing counter's filter before Tight-Inclusion):
+    """compiled_ccd.screen_paths (the crossing counter's conservative advancement before
+    Tight-Inclusion):
     on random segment pairs, many of which cross, touch at the start or just graze,
     the screened count equals Tight-Inclusion on every pair, and its end distances are
     segment_contact.distance's."""
@@ -371,7 +372,9 @@ def test_path_screen_drops_only_pairs_that_cannot_touch():
     screened[may_meet] = crossing_pairs(S[may_meet], E[may_meet])
     assert np.array_equal(screened, every) and 50 < every.sum() < n - 50, every.sum()
     assert every[1] and may_meet[1]
-    assert may_meet.sum() < n                      # it does drop pairs
+    # it leaves Tight-Inclusion little more than the crossings (measured 291 for 288;
+    # the start distance against the motion bound alone left 3,122)
+    assert may_meet.sum() <= every.sum() + 20, (may_meet.sum(), every.sum())
     np.testing.assert_allclose(d_end, distance(E), rtol=1e-12, atol=1e-15)
 
 

@@ -1,6 +1,6 @@
 """The main job's end-of-run crossing check (``output.check_crossings``): the crossings
-along the straight paths between the frames written, counted between wisps (and
-within a wisp where the run models self-contact or has one wisp) into summary.json,
+along the straight paths between the frames written, counted between wisps and within
+each wisp into summary.json,
 with a warning naming the key that prevents them.  ``check_run`` splits the steps over
 the ranks and gives every rank the same answer (mpi marker: tests/test_mpi_launch.py)."""
 
@@ -118,7 +118,7 @@ def test_run_without_contact_reports_and_warns(tmp_path):
         y_mid = f["positions"][:, N + N // 2, 1]
     passed = int(np.argmax(y_mid < 0.0)) - 1                 # the step in which B passed y = 0
     assert passed >= 0 and c["between_wisps"] >= 1 and c["first_between"] == passed, (c, y_mid)
-    assert c["steps"] == 8 and c["within_wisps"] is None and c["seconds"] > 0
+    assert c["steps"] == 8 and c["within_wisps"] == 0 and c["seconds"] > 0
     w = [m for m in s["warnings"] if "crossing(s) between wisps" in m]
     assert len(w) == 1 and 'add "strand_collision" to physics.terms' in w[0], s["warnings"]
     assert f"frame {passed} -> {passed + 1}" in w[0]
@@ -158,3 +158,26 @@ usd = false
     assert main([str(p), "--out", str(tmp_path / "b"), "--quiet"]) == 0
     s = json.loads((tmp_path / "b" / "summary.json").read_text())
     assert s["crossings"] is None and not [w for w in s["warnings"] if "crossing" in w]
+
+
+def test_warning_names_the_cause_for_the_run_setup():
+    """The key that prevents crossings, per contact set-up; in ccd mode with output.every
+    > 1 the cause is the interpolation across the simulated steps, not the limiter."""
+    from lc_petsc.config import load_config
+    from lc_petsc.job import crossing_warnings
+    root = Path(__file__).resolve().parents[2]
+    check = {"steps": 15, "between_wisps": 7, "steps_between": 2, "first_between": 6,
+             "within_wisps": 3, "steps_within": 1, "first_within": 2}
+    cfg = load_config(root / "configs" / "hairball_2k.toml")          # ccd, every 3
+    between, within = crossing_warnings(check, cfg)
+    assert between.startswith("7 crossing(s) between wisps in 2 of the 15 steps") and "frame 18 -> 21" in between
+    assert "keeps every simulated step collision-free" in between and "report" not in between
+    assert "strand_self_contact = true" in within and "frame 6 -> 9" in within
+    cfg.output.every = 1
+    between = crossing_warnings(check, cfg)[0]
+    assert "should have prevented them" in between and "frame 6 -> 7" in between
+    cfg.physics.strand_contact_mode = "penalty"
+    assert 'strand_contact_mode = "ccd" prevents them' in crossing_warnings(check, cfg)[0]
+    cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
+    assert 'add "strand_collision" to physics.terms' in crossing_warnings(check, cfg)[0]
+    assert crossing_warnings(dict(check, between_wisps=0, within_wisps=None), cfg) == []

@@ -132,19 +132,28 @@ def count_frames(path, self_contact=False, progress=None):
     return out, d0
 
 
+#: an edge stretched or compressed by more than this fraction of its rest length is
+#: visibly torn or crushed hair (scripts/edge_strain.py counts them too)
+STRAIN_WARN = 0.10
+
+
 def check_run(path, comm, self_contact=False):
     """The crossings along the straight paths between consecutive frames of the closed
-    ``frames.h5`` at ``path`` (what a viewer interpolating the frames shows), for the
-    run's end-of-run check.  Collective over the mpi4py communicator ``comm``: each rank
-    reads its own contiguous share of the frame steps (read-only, serial h5py).
+    ``frames.h5`` at ``path`` (what a viewer interpolating the frames shows), and the
+    edges' strain in the frames after the first, for the run's end-of-run check.
+    Collective over the mpi4py communicator ``comm``: each rank reads its own contiguous
+    share of the frame steps (read-only, serial h5py).
 
     Returns a dict, the same on every rank: ``steps`` checked (steps from or to a row
-    lost in a recovery are not checked); ``between_wisps`` and
-    ``steps_between`` (crossings of segments of different wisps, and the steps that
-    have any), ``first_between`` (first such step, step k: frames k -> k + 1, or None);
-    with ``self_contact`` also ``within_wisps``, ``steps_within`` and ``first_within``
-    (segments of one wisp sharing no vertex), else those are None."""
-    rows, problem, n_steps = [], None, 0          # (step, between, within) of this rank's steps
+    lost in a recovery are not checked); ``between_wisps`` and ``steps_between``
+    (crossings of segments of different wisps, and the steps that have any),
+    ``first_between`` (first such step, step k: rows k -> k + 1, or None); with
+    ``self_contact`` also ``within_wisps``, ``steps_within`` and ``first_within``
+    (segments of one wisp sharing no vertex), else those are None; ``largest_strain``
+    (the largest |edge length / rest length - 1| over the rows that end a step),
+    ``largest_strain_row`` and ``rows_over_strain`` (rows with an edge beyond
+    :data:`STRAIN_WARN`).  ``{"error": message}`` when the file cannot be read."""
+    rows, problem, n_steps = [], None, 0     # (step, between, within, strain) of this rank's steps
     try:
         rows, n_steps = _count_share(path, comm.rank, comm.size, self_contact)
     except (OSError, KeyError, ValueError) as e:   # never a reason to lose the run's summary
@@ -157,12 +166,16 @@ def check_run(path, comm, self_contact=False):
     n_steps = max(n for _, _, n in parts)
     between = [r for r in rows if r[1]]
     within = [r for r in rows if r[2]]
+    worst = max(rows, key=lambda r: r[3], default=None)
     return {"steps": n_steps,
             "between_wisps": sum(r[1] for r in rows), "steps_between": len(between),
             "first_between": between[0][0] if between else None,
             "within_wisps": sum(r[2] for r in rows) if self_contact else None,
             "steps_within": len(within) if self_contact else None,
-            "first_within": (within[0][0] if within else None) if self_contact else None}
+            "first_within": (within[0][0] if within else None) if self_contact else None,
+            "largest_strain": worst[3] if worst else None,
+            "largest_strain_row": worst[0] + 1 if worst else None,
+            "rows_over_strain": sum(r[3] > STRAIN_WARN for r in rows)}
 
 
 def _count_share(path, rank, size, self_contact):
@@ -172,6 +185,7 @@ def _count_share(path, rank, size, self_contact):
     from lc_petsc.io.frames import valid_rows
     with h5py.File(path, "r") as f:
         off = np.asarray(f["wisp_offsets"][...], np.int64)
+        rest = np.asarray(f["rest_positions"][...], float)
         held = valid_rows(f)
         steps = [k for k in range(len(held) - 1) if held[k] and held[k + 1]]
         mine = steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]
@@ -184,5 +198,6 @@ def _count_share(path, rank, size, self_contact):
             prev = (k + 1, np.asarray(f["positions"][k + 1], float))
             r = count_crossings(a[1], prev[1], off, self_contact)
             same = wid[r["pairs"][:, 0]] == wid[r["pairs"][:, 1]]
-            rows.append((k, int((~same).sum()), int(same.sum())))
+            strain = float(np.abs(edge_strain(prev[1], rest, off)).max(initial=0.0))
+            rows.append((k, int((~same).sum()), int(same.sum()), strain))
     return rows, len(steps)

@@ -176,9 +176,11 @@ def outcome_warnings(summary, start, time_config):
 def crossing_warnings(check, cfg):
     """Warnings for the end-of-run crossing check ``check``
     (:func:`lc_petsc.crossings.check_run`): how many, where first, and the key that
-    prevents them in this run's contact set-up.  In ``ccd`` mode with ``output.every``
-    > 1 the simulated steps are collision-free; the straight paths across several of
-    them, which a viewer interpolating the frames written draws, need not be."""
+    prevents them in this run's contact set-up; edges strained beyond STRAIN_WARN.  In
+    ``ccd`` mode with ``output.every`` > 1 the simulated steps are collision-free; the
+    straight paths across several of them, which a viewer interpolating the frames
+    written draws, need not be."""
+    from lc_petsc.crossings import STRAIN_WARN
     out = []
     every, phys = cfg.output.every, cfg.physics
     contact = "strand_collision" in phys.terms
@@ -208,6 +210,14 @@ def crossing_warnings(check, cfg):
                        f"frames written (first: frame {first * every} -> {(first + 1) * every}; "
                        f"scripts/count_crossings.py lists them per step): strands pass through each "
                        f"other; {fix}")
+    if check.get("rows_over_strain"):
+        fix = ("raise time.newton_iterations or lower time.dt" if cfg.time.length_projection else
+               "set time.length_projection = true (each frame projected onto the rest lengths), or "
+               "raise time.newton_iterations or lower time.dt")
+        out.append(f"edges stretch or compress by up to {100 * check['largest_strain']:.1f}% of their rest "
+                   f"length (frame {check['largest_strain_row'] * every}; beyond "
+                   f"{100 * STRAIN_WARN:.0f}% in {check['rows_over_strain']} of the frames written; "
+                   f"scripts/edge_strain.py lists them per frame): strands look torn or crushed; {fix}")
     return out
 
 

@@ -95,8 +95,10 @@ def format_report(s) -> str:
         lines.append(f"  crossings between the frames written: not checked ({check['error']})")
     elif check:
         within = "" if check["within_wisps"] is None else f", within wisps {check['within_wisps']}"
+        strain = ("" if check.get("largest_strain") is None else
+                  f"; largest edge strain {100 * check['largest_strain']:.2f}%")
         lines.append(f"  crossings between the frames written: between wisps {check['between_wisps']}"
-                     f"{within} over {check['steps']} steps (checked in {_fmt_s(check['seconds'])})")
+                     f"{within} over {check['steps']} steps{strain} (checked in {_fmt_s(check['seconds'])})")
     for w in s.get("warnings", []):
         lines.append(f"  warning: {w}")
     out = s.get("output", {})

@@ -20,11 +20,13 @@ N = 10                  # vertices per wisp (even: crossings fall inside segment
 
 
 def write_frames(path, frames, offsets):
-    """A minimal frames.h5 (the datasets the check reads) on rank 0."""
+    """A minimal frames.h5 (the datasets the check reads, the first frame as the rest
+    positions) on rank 0."""
     if comm.rank == 0:
         with h5py.File(path, "w") as f:
             f["positions"] = np.asarray(frames, float)
             f["wisp_offsets"] = np.asarray(offsets, np.int64)
+            f["rest_positions"] = np.asarray(frames[0], float)
     comm.Barrier()
 
 
@@ -51,12 +53,20 @@ def test_check_counts_each_step_once_on_any_rank_count(tmp_path):
     frames = []
     for k, y in enumerate(ys):
         c = c_through if k >= 2 else c_open
-        frames.append(np.concatenate([bar(0.0, 0), bar(y, 2), c]))
+        a = bar(0.0, 0)
+        if k == 4:
+            a[0, 0] -= 0.25 * (a[1, 0] - a[0, 0])        # its first edge 25% longer
+        frames.append(np.concatenate([a, bar(y, 2), c]))
     offsets = [0, N, 2 * N, 2 * N + 6]
     write_frames(path, frames, offsets)
     r = check_run(path, comm, self_contact=False)
+    strain = {k: r.pop(k) for k in ("largest_strain", "largest_strain_row", "rows_over_strain")}
     assert r == {"steps": 5, "between_wisps": 2, "steps_between": 2, "first_between": 1,
                  "within_wisps": None, "steps_within": None, "first_within": None}
+    # C's fold edge (vertices 2-3) has rest length 0.3; through the fold it is 0.3 as well,
+    # but row 4 stretches A's first edge by 25%
+    assert strain == {"largest_strain": pytest.approx(0.25), "largest_strain_row": 4,
+                      "rows_over_strain": 1}, strain
     r = check_run(path, comm, self_contact=True)
     assert (r["between_wisps"], r["first_between"]) == (2, 1)
     assert r["within_wisps"] >= 1 and r["steps_within"] == 1 and r["first_within"] == 1, r
@@ -181,3 +191,18 @@ def test_warning_names_the_cause_for_the_run_setup():
     cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
     assert 'add "strand_collision" to physics.terms' in crossing_warnings(check, cfg)[0]
     assert crossing_warnings(dict(check, between_wisps=0, within_wisps=None), cfg) == []
+
+
+def test_strained_edges_are_reported(tmp_path):
+    """The jitter scene's scramble leaves edges 19% off their rest length after its first
+    frame: the summary gives the largest strain and its frame, a warning names
+    time.length_projection; the demo-like runs above stay under 10% (no warning)."""
+    p = tmp_path / "j.toml"
+    p.write_text(open(Path(__file__).resolve().parents[2] / "configs" / "jitter.toml").read()
+                 .replace("frames = 200", "frames = 2").replace("[output]", "[output]\nusd = false"))
+    assert main([str(p), "--out", str(tmp_path / "j"), "--quiet"]) == 0
+    s = json.loads((tmp_path / "j" / "summary.json").read_text())
+    c = s["crossings"]
+    assert c["largest_strain"] > 0.15 and c["largest_strain_row"] == 1 and c["rows_over_strain"] >= 1, c
+    w = [m for m in s["warnings"] if m.startswith("edges stretch or compress by up to")]
+    assert len(w) == 1 and "(frame 1;" in w[0] and "time.length_projection = true" in w[0], s["warnings"]

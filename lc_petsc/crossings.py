@@ -7,10 +7,13 @@
   :func:`segment_ccd.field_boxes`).
 * :func:`count_crossings`: edge-edge crossings between segments of different wisps
   (optionally between non-adjacent segments of one wisp) on the linear path between
-  two configurations (two consecutive frames): the relative broad phase, the motion
-  bound of :mod:`lc_petsc.elements.segment_ccd` to discard pairs that cannot meet, and
-  IPC Toolkit's Tight-Inclusion CCD (``ipctk``, min distance 0) on the rest.
-* ``scripts/count_crossings.py`` runs it over a ``frames.h5``.
+  two configurations (two consecutive frames): the relative broad phase, conservative
+  advancement at distance 0 (:func:`compiled_ccd.screen_paths`) to discard pairs that
+  cannot meet, and IPC Toolkit's Tight-Inclusion CCD (``ipctk``, min distance 0) on
+  the rest.
+* ``scripts/count_crossings.py`` runs it over a ``frames.h5``; :func:`check_run` is the
+  main job's end-of-run check (``output.check_crossings``): the crossings and the
+  largest edge strain of a run's frames, the steps shared by the ranks.
 * :func:`edge_strain`: every edge's strain against the rest pose
   (``scripts/edge_strain.py`` per frame of a ``frames.h5``: torn strands, issue 13).
 """

@@ -159,8 +159,10 @@ def check_run(path, comm, self_contact=False):
     rows, problem, n_steps = [], None, 0     # (step, between, within, strain) of this rank's steps
     try:
         rows, n_steps = _count_share(path, comm.rank, comm.size, self_contact)
-    except (OSError, KeyError, ValueError) as e:   # never a reason to lose the run's summary
-        problem = f"{path}: {e}"
+    except Exception as e:  # noqa: BLE001 - never a reason to lose the run's summary, and
+        # one rank's failure must be every rank's answer (the others wait in allgather)
+        problem = f"{path}: {e}" if isinstance(e, (OSError, KeyError, ValueError)) else \
+            f"{path}: {type(e).__name__}: {e}"
     parts = comm.allgather((rows, problem, n_steps))
     problems = [p for _, p, _ in parts if p]
     if problems:

@@ -709,7 +709,7 @@ class Job:
                 hdf5.mark_unclosable()
                 out_errors.append(str(e))
         preempted = self.preemption.signal_name if self.preemption.stopped else None
-        crossings = self._check_crossings()
+        crossings = self._check_crossings(preempted)
         summary = self._summary(preempted)
         summary["crossings"] = crossings
         if crossings and "error" in crossings:
@@ -728,13 +728,18 @@ class Job:
             return EXIT_RUN_FAILED
         return EXIT_PREEMPTED if preempted else EXIT_OK
 
-    def _check_crossings(self):
+    def _check_crossings(self, preempted=None):
         """The end-of-run crossing check of frames.h5 (``output.check_crossings``), between
         wisps and within each wisp, with its seconds; None when off or there is nothing to
-        check."""
+        check, and on a preempted run (its time is the grace period's: the restart checks
+        the whole file).  Whether to check is one verdict for all ranks: libhdf5's failure
+        on the file (unclosable, broken) can be one rank's, and a rank that skipped the
+        collective check would leave the others waiting in it."""
         from lc_petsc.crossings import check_run
         cfg, writer = self.cfg, self.writer
-        if not cfg.output.check_crossings or writer is None or hdf5.unclosable() or writer.broken:
+        if not cfg.output.check_crossings or writer is None or preempted:
+            return None
+        if global_max(self.comm, int(hdf5.unclosable() or writer.broken)):
             return None
         t0 = time.perf_counter()
         say(self.comm, f"{PROG}: checking the steps between the frames written for crossings", sys.stdout)

@@ -206,3 +206,50 @@ def test_strained_edges_are_reported(tmp_path):
     assert c["largest_strain"] > 0.15 and c["largest_strain_row"] == 1 and c["rows_over_strain"] >= 1, c
     w = [m for m in s["warnings"] if m.startswith("edges stretch or compress by up to")]
     assert len(w) == 1 and "(frame 1;" in w[0] and "time.length_projection = true" in w[0], s["warnings"]
+
+
+def _two_bar_file(tmp_path, name="g.h5"):
+    """Wisp B (along z) falls through wisp A (along x) in step 1 of 3."""
+    path = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None)) / name
+    write_frames(path, [np.concatenate([bar(0.0, 0), bar(y, 2)]) for y in (1.0, 0.5, -0.5, -0.6)],
+                 [0, N, 2 * N])
+    return path
+
+
+@pytest.mark.mpi
+def test_a_failure_on_one_rank_is_every_ranks_answer(tmp_path, monkeypatch):
+    """Any exception of the last rank's share (not only a file error) is the check's
+    error on every rank: raised there, the other ranks would wait in its allgather."""
+    from lc_petsc import crossings
+    path = _two_bar_file(tmp_path)
+    if comm.rank == comm.size - 1:
+        def fails(*a, **k):
+            raise RuntimeError("numba kernel failed")
+        monkeypatch.setattr(crossings, "count_crossings", fails)
+    r = check_run(path, comm)
+    assert set(r) == {"error"} and "RuntimeError: numba kernel failed" in r["error"], r
+    assert comm.allgather(r) == [r] * comm.size
+
+
+def _job_stub(path, unclosable_rank=None):
+    """What Job._check_crossings reads of a job whose frames.h5 is ``path``."""
+    from types import SimpleNamespace
+    from lc_petsc.config import SimConfig
+    cfg = SimConfig()
+    return SimpleNamespace(
+        cfg=cfg, comm=comm, out=path.parent, sim=SimpleNamespace(n_wisps=2),
+        writer=SimpleNamespace(broken=comm.rank == unclosable_rank))
+
+
+@pytest.mark.mpi
+def test_whether_to_check_is_one_verdict_for_all_ranks(tmp_path):
+    """libhdf5 failed on frames.h5 on the last rank only (``writer.broken``): no rank
+    checks (a rank that skipped the collective check left the others waiting in it);
+    a preempted run is not checked (its restart checks the whole file)."""
+    from lc_petsc.job import Job
+    path = _two_bar_file(tmp_path, name="frames.h5")
+    r = Job._check_crossings(_job_stub(path, unclosable_rank=comm.size - 1))
+    assert comm.allgather(r) == [None] * comm.size
+    assert Job._check_crossings(_job_stub(path), preempted="SIGTERM") is None
+    r = Job._check_crossings(_job_stub(path))
+    assert (r["steps"], r["between_wisps"], r["first_between"]) == (3, 1, 1), r

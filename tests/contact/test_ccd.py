@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ccd_reference import crossing_reference
-from lc_petsc.crossings import count_crossings, crossing_pairs
+from lc_petsc.crossings import count_crossings, crossing_pairs, pair_positions
 from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.elements import compiled_ccd, segment_ccd
 from lc_petsc.elements.segment_contact import distance
@@ -358,7 +358,6 @@ def test_path_screen_drops_only_pairs_that_cannot_touch():
     on random segment pairs, many of which cross, touch at the start or just graze,
     the screened count equals Tight-Inclusion on every pair, and its end distances are
     segment_contact.distance's."""
-    from lc_petsc.crossings import pair_positions
     rng = np.random.default_rng(11)
     n = 4000
     X0 = rng.uniform(-1, 1, (4 * n, 3))
@@ -376,6 +375,24 @@ def test_path_screen_drops_only_pairs_that_cannot_touch():
     # the start distance against the motion bound alone left 3,122)
     assert may_meet.sum() <= every.sum() + 20, (may_meet.sum(), every.sum())
     np.testing.assert_allclose(d_end, distance(E), rtol=1e-12, atol=1e-15)
+
+
+def test_path_screen_keeps_pairs_that_meet_at_the_end_of_their_bound():
+    """A segment falling through another by just more than its start distance (it meets
+    it at t = 0.999, 0.9999999, its start distance just under the motion bound) is kept
+    by the screen and counted; one stopping just short of it is dropped."""
+    pairs, X0, X1 = [], [], []
+    for k, reach in enumerate((1.001, 1.0000001, 0.99)):
+        a = np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+        b = np.array([[0.0, 0.3, -1.0], [0.0, 0.3, 1.0]])          # 0.3 cm above a, across it
+        X0 += [a, b]
+        X1 += [a, b - [0.0, 0.3 * reach, 0.0]]
+        pairs.append([4 * k, 4 * k + 2])
+    X0, X1, pairs = np.concatenate(X0), np.concatenate(X1), np.array(pairs)
+    may_meet, _ = compiled_ccd.screen_paths(X0, X1, pairs)
+    assert may_meet.tolist() == [True, True, False]
+    S, E = pair_positions(X0, pairs), pair_positions(X1, pairs)
+    assert crossing_pairs(S, E).tolist() == [True, True, False]
 
 
 def test_compiled_advancement_matches_the_numpy_reference():

@@ -183,7 +183,10 @@ def write_recovered(writer, plan, old_path, offsets, comm):
     with contextlib.ExitStack() as stack:
         old = None
         if comm.rank == 0 and plan.from_file:
-            old = stack.enter_context(h5py_module().File(str(old_path), "r"))
+            try:        # gone since the plan: its rows are lost, the collective writes go on
+                old = stack.enter_context(h5py_module().File(str(old_path), "r"))
+            except OSError:
+                old = None
         for k in range(plan.rows):
             t, x = np.nan, nan
             if comm.rank == 0:
@@ -191,9 +194,9 @@ def write_recovered(writer, plan, old_path, offsets, comm):
                     if k in plan.from_checkpoints:
                         c = read_positions(plan.from_checkpoints[k], offsets)
                         t, x = c["time"], c["positions"]
-                    elif k in plan.from_file:
+                    elif k in plan.from_file and old is not None:
                         t, x = float(old["time"][k]), old["positions"][k]
-                except (OSError, CheckpointError):
+                except (OSError, KeyError, CheckpointError):
                     t, x = np.nan, nan
             ok = bool(np.isfinite(t))
             writer.write_row(t, x, ok)

@@ -165,6 +165,26 @@ def test_damaged_frames_file_is_set_aside_and_the_run_continues(tmp_path, straig
     assert _sha(aside) == damaged
 
 
+def test_old_file_gone_between_plan_and_write_loses_its_rows_only(tmp_path, straight, monkeypatch):
+    """The set-aside file disappears after the plan was made (another program): its rows
+    are lost, the checkpoints' rows are still written and the run goes on (the read on
+    rank 0 used to raise there while the other ranks waited in the row writes)."""
+    from lc_petsc.io import recovery
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0
+    _corrupt_last_row(out / "frames.h5")
+    write = recovery.write_recovered
+
+    def old_file_gone(writer, plan, old_path, offsets, comm):
+        assert plan.from_file                      # the plan would take rows from it
+        os.rename(old_path, tmp_path / "elsewhere.h5")
+        return write(writer, plan, old_path, offsets, comm)
+    monkeypatch.setattr(recovery, "write_recovered", old_file_gone)
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest", "--force") == 0
+    _check_rows(out, straight, recovered=[2, 4, 6], lost=[0, 1, 3, 5], upto=8)
+
+
 def test_every_two_recovers_only_the_rows_of_written_frames(tmp_path, capsys):
     """output.every = 2, checkpoint at frame 3 (not a row): rows 0 and 1 lost, nothing
     from the checkpoint, whose frame is no row."""

@@ -338,6 +338,49 @@ def test_disk_filled_by_another_program_during_a_checkpoint(tmp_path, small_volu
     assert r.returncode == 0, r.stderr[-3000:]
 
 
+ONE_RANK_FAILS = '''
+import sys
+import lc_petsc.io.frames as frames
+from mpi4py import MPI
+from lc_petsc.batch import exit_process, main
+
+write = frames.write_rows
+
+
+def velocities_fail_on_the_last_rank(dset, start, data, dxpl):
+    write(dset, start, data, dxpl)              # the collective write itself completes
+    if dset.name == "/velocities" and "checkpoint_000003" in dset.file.filename \\
+            and MPI.COMM_WORLD.rank == MPI.COMM_WORLD.size - 1:
+        raise OSError(28, "No space left on device")
+
+
+frames.write_rows = velocities_fail_on_the_last_rank
+exit_process(main())
+'''
+
+
+def test_checkpoint_write_failing_on_one_rank_is_every_ranks_error(tmp_path):
+    """2 ranks; writing checkpoint 3's /velocities fails on the last rank only: every rank
+    stops with the same error (exit 3, within the timeout: no rank left waiting in a
+    collective), the partial file removed, frames 0-3 kept, and the folder takes a new run."""
+    from sim_helpers import MPI_ENV
+    cfg, out, driver = tmp_path / "h.toml", tmp_path / "out", tmp_path / "fails.py"
+    cfg.write_text(HAIRBALL_2)
+    driver.write_text(ONE_RANK_FAILS)
+    r = subprocess.run(["mpiexec", "-n", "2", sys.executable, str(driver), str(cfg), "--out", str(out),
+                        "--quiet"], env=MPI_ENV, stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 3, r.stderr[-3000:]
+    assert "checkpoint_000003.h5.tmp: writing /velocities: No space left on device" in r.stderr, r.stderr[-3000:]
+    assert "Traceback" not in r.stderr
+    assert not (out / "checkpoints" / ".checkpoint_000003.h5.tmp").exists()
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert f["positions"].shape[0] == 4
+    r = subprocess.run([sys.executable, DRIVER, str(cfg), "--out", str(out), "--quiet"], env=MPI_ENV,
+                       stdin=subprocess.DEVNULL, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+
+
 def test_checkpoint_that_cannot_reserve_its_bytes(tmp_path, monkeypatch, capsys):
     """The reservation fails (the volume filled after the free-space check): the run stops
     with exit 3 naming the step, the partial file is removed, the previous checkpoint

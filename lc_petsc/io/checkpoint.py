@@ -31,7 +31,10 @@ rank 0, which combines them: the same value whatever the rank count of the write
 the reader.  Small global datasets are hashed whole.
 
 **Atomic and durable.** The file is written to ``.checkpoint_FFFFFF.h5.tmp`` in the same
-folder, flushed (``H5Fflush``: ``MPI_File_sync`` under mpio), closed, ``fsync``-ed by
+folder (its bytes reserved on disk after its datasets are created and before any is
+written, so that another program filling the volume cannot make a write fail; the
+ranks agree after every step of the write, and a failure is one OutputError on all),
+flushed (``H5Fflush``: ``MPI_File_sync`` under mpio), closed, ``fsync``-ed by
 rank 0, renamed over the final name (``os.replace``, atomic on POSIX) and the folder is
 ``fsync``-ed.  A kill at any moment leaves either no new checkpoint (a stray ``.tmp``,
 ignored and removed by the next run) or a complete one; older checkpoints are

@@ -102,12 +102,12 @@ def edge_strain(x, rest, offsets):
 
 
 def count_frames(path, self_contact=False, progress=None):
-    """Per frame step of a ``frames.h5`` (step k: frames k -> k + 1): list of dicts with
-    ``step``, ``crossings`` and ``min_distance`` (at the later frame, between different
-    wisps within the run's ``physics.strand_thickness`` when the config sets it, else
-    touching boxes only), and that thickness; steps from or to a row that holds no frame
-    (lost in a recovery, ``/frame_valid``) are left out.  ``progress(dict)`` is called
-    per step."""
+    """Per frame step of a ``frames.h5`` (step k: rows k -> k + 1): list of dicts with
+    ``step``, ``frames`` (the simulation frames of its two rows), ``crossings`` and
+    ``min_distance`` (at the later frame, between different wisps within the run's
+    ``physics.strand_thickness`` when the config sets it, else touching boxes only), and
+    that thickness; steps from or to a row that holds no frame (lost in a recovery,
+    ``/frame_valid``) are left out.  ``progress(dict)`` is called per step."""
     import json
     import h5py
     from lc_petsc.io.frames import valid_rows
@@ -118,6 +118,7 @@ def count_frames(path, self_contact=False, progress=None):
             raise ValueError(f"/positions has shape {shape}, a frames.h5 has (frames, "
                              f"{int(off[-1])} vertices, 3) (a strands file is a groom, not a run)")
         held = valid_rows(f)
+        every = int(f.attrs.get("every", 1))       # row k is simulation frame k * every
         cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
         d0 = float((cfg.get("physics") or {}).get("strand_thickness") or 0.0)
         out = []
@@ -128,7 +129,8 @@ def count_frames(path, self_contact=False, progress=None):
                 prev = cur
                 continue
             r = count_crossings(prev, cur, off, self_contact, thickness=d0)
-            out.append({"step": k - 1, "crossings": r["crossings"], "min_distance": r["min_distance"]})
+            out.append({"step": k - 1, "frames": ((k - 1) * every, k * every), "crossings": r["crossings"],
+                        "min_distance": r["min_distance"]})
             if progress is not None:
                 progress(out[-1])
             prev = cur

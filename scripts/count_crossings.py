@@ -25,8 +25,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
 
     def show(r):
-        print(f"step {r['step']:4d}: {r['crossings']:6d} crossings, min distance {r['min_distance']:.4g} cm",
-              flush=True)
+        print(f"step {r['step']:4d} (frame {r['frames'][0]} -> {r['frames'][1]}): {r['crossings']:6d} crossings, "
+              f"min distance {r['min_distance']:.4g} cm", flush=True)
 
     try:
         steps, d0 = count_frames(a.frames, self_contact=a.self, progress=show)

@@ -253,3 +253,17 @@ def test_whether_to_check_is_one_verdict_for_all_ranks(tmp_path):
     assert Job._check_crossings(_job_stub(path), preempted="SIGTERM") is None
     r = Job._check_crossings(_job_stub(path))
     assert (r["steps"], r["between_wisps"], r["first_between"]) == (3, 1, 1), r
+
+
+def test_count_frames_names_the_simulation_frames(tmp_path):
+    """scripts/count_crossings.py's steps carry the simulation frames of their rows
+    (output.every = 3: step 1 is frames 3 -> 6), as the job's warning names them."""
+    from lc_petsc.crossings import count_frames
+    path = tmp_path / "f.h5"
+    frames = [np.concatenate([bar(0.0, 0), bar(y, 2)]) for y in (1.0, 0.5, -0.5)]
+    with h5py.File(path, "w") as f:
+        f["positions"] = np.asarray(frames)
+        f["wisp_offsets"] = np.array([0, N, 2 * N], np.int64)
+        f.attrs["every"] = 3
+    steps, _ = count_frames(path)
+    assert [(s["step"], s["frames"], s["crossings"]) for s in steps] == [(0, (0, 3), 0), (1, (3, 6), 1)]

@@ -178,10 +178,13 @@ def test_warning_names_the_cause_for_the_run_setup():
     root = Path(__file__).resolve().parents[2]
     check = {"steps": 15, "between_wisps": 7, "steps_between": 2, "first_between": 6,
              "within_wisps": 3, "steps_within": 1, "first_within": 2}
-    cfg = load_config(root / "configs" / "hairball_2k.toml")          # ccd, every 3
+    cfg = load_config(root / "configs" / "hairball_2k.toml")          # ccd + self-contact, every 3
     between, within = crossing_warnings(check, cfg)
     assert between.startswith("7 crossing(s) between wisps in 2 of the 15 steps") and "frame 18 -> 21" in between
     assert "keeps every simulated step collision-free" in between and "report" not in between
+    assert "keeps every simulated step collision-free" in within and "frame 6 -> 9" in within
+    cfg.physics.strand_self_contact = False
+    within = crossing_warnings(check, cfg)[1]
     assert "strand_self_contact = true" in within and "frame 6 -> 9" in within
     cfg.output.every = 1
     between = crossing_warnings(check, cfg)[0]

@@ -70,8 +70,9 @@ def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
 def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0):
     """Crossings on the linear path X0 -> X1 (n_vertices, 3) of wisps ``offsets``:
     dict with ``crossings`` (number of segment pairs that meet), ``pairs`` (k, 2) of
-    their first global vertices, ``min_distance`` at X1 over the pairs of different
-    wisps whose boxes are within ``thickness`` (inf when there is none)."""
+    their first global vertices, ``within`` (how many of them are of one wisp),
+    ``min_distance`` at X1 over the pairs of different wisps whose boxes are within
+    ``thickness`` (inf when there is none)."""
     X0, X1 = np.asarray(X0, float), np.asarray(X1, float)
     if X0.shape != X1.shape or X0.ndim != 2 or X0.shape[1] != 3:
         raise ValueError(f"count_crossings: positions must both be (n_vertices, 3), got "
@@ -84,7 +85,9 @@ def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0):
     wid = np.full(len(X0), -1, np.int64)
     wid[seg] = wisp
     other = wid[pairs[:, 0]] != wid[pairs[:, 1]]
-    return {"crossings": int(hit.sum()), "pairs": near[hit],
+    hits = near[hit]
+    return {"crossings": int(hit.sum()), "pairs": hits,
+            "within": int((wid[hits[:, 0]] == wid[hits[:, 1]]).sum()),
             "min_distance": float(d1[other].min(initial=np.inf))}
 
 
@@ -117,23 +120,16 @@ def count_frames(path, self_contact=False, progress=None):
         if len(shape) != 3 or shape[2] != 3 or shape[1] != off[-1]:
             raise ValueError(f"/positions has shape {shape}, a frames.h5 has (frames, "
                              f"{int(off[-1])} vertices, 3) (a strands file is a groom, not a run)")
-        held = valid_rows(f)
         every = int(f.attrs.get("every", 1))       # row k is simulation frame k * every
         cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
         d0 = float((cfg.get("physics") or {}).get("strand_thickness") or 0.0)
         out = []
-        prev = None
-        for k in range(len(held)):
-            cur = np.asarray(f["positions"][k], float) if held[k] else None
-            if prev is None or cur is None:      # a row lost in a recovery: no step to it
-                prev = cur
-                continue
+        for k, prev, cur in _steps(f, valid_steps(valid_rows(f))):
             r = count_crossings(prev, cur, off, self_contact, thickness=d0)
-            out.append({"step": k - 1, "frames": ((k - 1) * every, k * every), "crossings": r["crossings"],
+            out.append({"step": k, "frames": (k * every, (k + 1) * every), "crossings": r["crossings"],
                         "min_distance": r["min_distance"]})
             if progress is not None:
                 progress(out[-1])
-            prev = cur
     return out, d0
 
 
@@ -185,26 +181,33 @@ def check_run(path, comm, self_contact=False):
             "rows_over_strain": sum(r[3] > STRAIN_WARN for r in rows)}
 
 
+def valid_steps(held):
+    """The steps k (rows k -> k + 1) between two rows that hold a frame (``held``: bool per
+    row, :func:`lc_petsc.io.frames.valid_rows`): a row lost in a recovery has no step."""
+    return [k for k in range(len(held) - 1) if held[k] and held[k + 1]]
+
+
+def _steps(f, steps):
+    """(k, positions of row k, of row k + 1) for each step k of ``steps`` (ascending) of
+    the open frames.h5 ``f``; each row is read once where steps follow each other."""
+    last = None                                  # (row, its positions)
+    for k in steps:
+        prev = last[1] if last is not None and last[0] == k else np.asarray(f["positions"][k], float)
+        last = (k + 1, np.asarray(f["positions"][k + 1], float))
+        yield k, prev, last[1]
+
+
 def _count_share(path, rank, size, self_contact):
-    """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps; a
-    step from or to a row lost in a recovery (``/frame_valid``) is not one."""
+    """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps."""
     import h5py
     from lc_petsc.io.frames import valid_rows
     with h5py.File(path, "r") as f:
         off = np.asarray(f["wisp_offsets"][...], np.int64)
         rest = np.asarray(f["rest_positions"][...], float)
-        held = valid_rows(f)
-        steps = [k for k in range(len(held) - 1) if held[k] and held[k + 1]]
-        mine = steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]
-        seg, wisp = segments(off)
-        wid = np.full(int(off[-1]), -1, np.int64)
-        wid[seg] = wisp
-        rows, prev = [], None
-        for k in mine:
-            a = prev if prev is not None and prev[0] == k else (k, np.asarray(f["positions"][k], float))
-            prev = (k + 1, np.asarray(f["positions"][k + 1], float))
-            r = count_crossings(a[1], prev[1], off, self_contact)
-            same = wid[r["pairs"][:, 0]] == wid[r["pairs"][:, 1]]
-            strain = float(np.abs(edge_strain(prev[1], rest, off)).max(initial=0.0))
-            rows.append((k, int((~same).sum()), int(same.sum()), strain))
+        steps = valid_steps(valid_rows(f))
+        rows = []
+        for k, prev, cur in _steps(f, steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]):
+            r = count_crossings(prev, cur, off, self_contact)
+            strain = float(np.abs(edge_strain(cur, rest, off)).max(initial=0.0))
+            rows.append((k, r["crossings"] - r["within"], r["within"], strain))
     return rows, len(steps)

@@ -188,23 +188,28 @@ def crossing_warnings(check, cfg):
     apart = (f"; the frames written are output.every = {every} simulation frames apart, so a viewer's "
              f"straight path between them is not the simulated one (output.every = 1 checks the "
              f"simulated paths)") if every > 1 else ""
-    limited = (f"the ccd limiter keeps every simulated step collision-free, but the frames written are "
-               f"output.every = {every} steps apart and the straight paths across them are not: a "
-               f"viewer or renderer interpolating between the frames (motion blur, USD time samples) "
-               f"shows these; output.every = 1 writes collision-free paths") if every > 1 else (
-               "the ccd limiter should have prevented them (see any unresolved-pairs warning); "
-               "please report it with the config")
+    if every > 1:       # in ccd mode: the cause is the interpolation, not the limiter
+        limited = (f"the ccd limiter keeps every simulated step collision-free, but the frames written are "
+                   f"output.every = {every} steps apart and the straight paths across them are not: a "
+                   f"viewer or renderer interpolating between the frames (motion blur, USD time samples) "
+                   f"shows these; output.every = 1 writes collision-free paths")
+    else:
+        limited = ("the ccd limiter should have prevented them (see any unresolved-pairs warning); "
+                   "please report it with the config")
+    if ccd:
+        between = limited
+    elif contact:
+        between = ("physics.strand_contact_mode = \"ccd\" prevents them (penalty mode lets wisps pass "
+                   "through each other)" + apart)
+    else:
+        between = ("model strand contact: add \"strand_collision\" to physics.terms with "
+                   "physics.strand_contact_mode = \"ccd\"" + apart)
+    within = limited if ccd and phys.strand_self_contact else (
+        "model self-contact: physics.strand_self_contact = true with \"strand_collision\" in "
+        "physics.terms and physics.strand_contact_mode = \"ccd\"" + apart)
     for kind, n, steps, first, fix in (
-            ("between wisps", check["between_wisps"], check["steps_between"], check["first_between"],
-             limited if ccd else
-             "physics.strand_contact_mode = \"ccd\" prevents them (penalty mode lets wisps pass "
-             "through each other)" + apart if contact else
-             "model strand contact: add \"strand_collision\" to physics.terms with "
-             "physics.strand_contact_mode = \"ccd\"" + apart),
-            ("within a wisp", check["within_wisps"], check["steps_within"], check["first_within"],
-             limited if ccd and phys.strand_self_contact else
-             "model self-contact: physics.strand_self_contact = true with \"strand_collision\" in "
-             "physics.terms and physics.strand_contact_mode = \"ccd\"" + apart)):
+            ("between wisps", check["between_wisps"], check["steps_between"], check["first_between"], between),
+            ("within a wisp", check["within_wisps"], check["steps_within"], check["first_within"], within)):
         if n:
             out.append(f"{n} crossing(s) {kind} in {steps} of the {check['steps']} steps between the "
                        f"frames written (first: frame {first * every} -> {(first + 1) * every}; "

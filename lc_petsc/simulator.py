@@ -67,8 +67,7 @@ def check_head_turn(cfg):
 def named_by(source, message):
     """``message`` (a problem of the scene's wisps) prefixed with the groom file it comes
     from (``source.description``), so the user knows which file to fix."""
-    where = getattr(source, "description", "")
-    return f"{where}: {message}" if where else message
+    return f"{source.description}: {message}" if source.description else message
 
 
 class Simulator:
@@ -265,7 +264,7 @@ class Simulator:
             self.strand.destroy()
 
 
-def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user=None, source=None):
+def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user, source):
     """The strand-strand contact of ``cfg`` (docs/contact.md); thickness default: twice
     the smallest vertex radius of the scene; the preconditioner is built from the whole
     Newton matrix or the strand matrix alone as ``plan.contact_pc`` says."""

@@ -714,9 +714,8 @@ class Job:
                 hdf5.mark_unclosable()
                 out_errors.append(str(e))
         preempted = self.preemption.signal_name if self.preemption.stopped else None
-        crossings = self._check_crossings(preempted)
-        summary = self._summary(preempted)
-        summary["crossings"] = crossings
+        summary = self._summary(preempted)       # first: its wall time is the frame loop's alone
+        crossings = summary["crossings"] = self._check_crossings(preempted)
         if crossings and "error" in crossings:
             self._warn(f"the crossing check could not read the frames ({crossings['error']}); "
                        "count them with scripts/count_crossings.py")

@@ -270,3 +270,19 @@ def test_count_frames_names_the_simulation_frames(tmp_path):
         f.attrs["every"] = 3
     steps, _ = count_frames(path)
     assert [(s["step"], s["frames"], s["crossings"]) for s in steps] == [(0, (0, 3), 0), (1, (3, 6), 1)]
+
+
+def test_check_is_not_counted_in_the_frame_loops_wall_time(tmp_path, monkeypatch):
+    """summary.json's wall_time_s (and time_per_frame_s) is the frame loop's; the check
+    reports its own seconds (it was counted in the loop's time: 1.3 s of the demo's)."""
+    import time
+    from lc_petsc import crossings
+    check = crossings.check_run
+
+    def slow_check(*a, **k):
+        time.sleep(3.0)
+        return check(*a, **k)
+    monkeypatch.setattr(crossings, "check_run", slow_check)
+    s, _ = run(tmp_path, "free", contact=False)
+    assert s["crossings"]["seconds"] >= 3.0
+    assert s["wall_time_s"] < 3.0, (s["wall_time_s"], s["crossings"]["seconds"])

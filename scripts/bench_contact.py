@@ -31,6 +31,7 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import load_config  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
+from lc_petsc.studies.command_line import bad_input, integer_at_least, parse_args, positive_number  # noqa: E402
 from lc_petsc.studies.contact_report import summarize, summary_table  # noqa: E402
 from lc_petsc.timing import timed_frame  # noqa: E402
 
@@ -40,27 +41,31 @@ ROOT = Path(__file__).resolve().parent.parent
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--config", default=str(ROOT / "configs" / "hairball_2k.toml"))
-    ap.add_argument("--frames", type=int, default=100)
-    ap.add_argument("--wisps", type=int, default=None)
-    ap.add_argument("--thickness", type=float, default=None)
-    ap.add_argument("--stiffness", type=float, default=None)
+    ap.add_argument("--frames", type=integer_at_least(1), default=100)
+    ap.add_argument("--wisps", type=integer_at_least(1), default=None)
+    ap.add_argument("--thickness", type=positive_number, default=None)
+    ap.add_argument("--stiffness", type=positive_number, default=None)
     ap.add_argument("--mode", choices=("penalty", "ccd"), default=None,
                     help="strand contact mode (default: the config's)")
     ap.add_argument("--json", default=None)
-    args, _ = ap.parse_known_args()
+    args = parse_args(ap)
     comm = MPI.COMM_WORLD
-    cfg = load_config(args.config)
-    if "strand_collision" not in cfg.physics.terms:
-        cfg.physics.terms = tuple(cfg.physics.terms) + ("strand_collision",)
-    if args.wisps is not None:
-        cfg.scene.n_wisps = args.wisps
-    if args.thickness is not None:
-        cfg.physics.strand_thickness = args.thickness
-    if args.stiffness is not None:
-        cfg.physics.strand_stiffness = args.stiffness
-    if args.mode is not None:
-        cfg.physics.strand_contact_mode = args.mode
-    cfg.time.frames = args.frames
+    try:
+        cfg = load_config(args.config)
+        if "strand_collision" not in cfg.physics.terms:
+            cfg.physics.terms = tuple(cfg.physics.terms) + ("strand_collision",)
+        if args.wisps is not None:
+            cfg.scene.n_wisps = args.wisps
+        if args.thickness is not None:
+            cfg.physics.strand_thickness = args.thickness
+        if args.stiffness is not None:
+            cfg.physics.strand_stiffness = args.stiffness
+        if args.mode is not None:
+            cfg.physics.strand_contact_mode = args.mode
+        cfg.time.frames = args.frames
+        cfg.validate()
+    except (ValueError, OSError) as e:          # ConfigError is a ValueError
+        return bad_input(comm, "bench_contact.py", e)
     t0 = time.perf_counter()
     sim = build_simulator(cfg)
     comm.Barrier()
@@ -104,7 +109,8 @@ def main():
             with open(args.json, "w") as fh:
                 json.dump(run, fh)
     sim.close()
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -32,6 +32,7 @@ import numpy as np  # noqa: E402
 from lc_petsc.config import load_config  # noqa: E402
 from lc_petsc.scene.sources import source_from_config  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
+from lc_petsc.studies.command_line import bad_input, integer_at_least, parse_args  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -77,18 +78,22 @@ def run_case(cfg, frames, comm):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--config", default=str(ROOT / "configs" / "hairball_demo.toml"))
-    ap.add_argument("--wisps", type=int)
-    ap.add_argument("--frames", type=int, default=3)
+    ap.add_argument("--wisps", type=integer_at_least(1))
+    ap.add_argument("--frames", type=integer_at_least(1), default=3)
     ap.add_argument("--out", default="out/bench_partition")
-    args, _ = ap.parse_known_args()
+    args = parse_args(ap)
     comm = MPI.COMM_WORLD
-    cfg = load_config(args.config)
-    if args.wisps:
-        cfg.scene.n_wisps = args.wisps
-    if "strand_collision" not in cfg.physics.terms:
-        cfg.physics.terms = tuple(cfg.physics.terms) + ("strand_collision",)
+    try:
+        cfg = load_config(args.config)
+        if args.wisps:
+            cfg.scene.n_wisps = args.wisps
+        if "strand_collision" not in cfg.physics.terms:
+            cfg.physics.terms = tuple(cfg.physics.terms) + ("strand_collision",)
+        cfg.validate()
+        src = source_from_config(cfg.scene, cfg.material, cfg.physics)
+    except (ValueError, OSError) as e:          # ConfigError, SceneError are ValueErrors
+        return bad_input(comm, "bench_partition.py", e)
     out = Path(args.out)
-    src = source_from_config(cfg.scene, cfg.material, cfg.physics)
     perm = np.random.default_rng(0).permutation(src.n_wisps)
     if comm.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
@@ -110,7 +115,7 @@ def main():
             print(f"{groom:9} {order:8} frame {r['frame_s']:.3f} s, collision {r['collision_s']:.3f} s, "
                   f"ghost fraction {r['ghost_fraction']:.3f}", flush=True)
     if comm.rank != 0:
-        return
+        return 0
     head = ("| groom | -lc_wisp_order | frame s | collision s | ghost fraction | pairs | "
             "cross-rank pairs |\n|---|---|---|---|---|---|---|")
     lines = [head] + [f"| {r['groom']} | {r['order']} | {r['frame_s']:.3f} | {r['collision_s']:.3f} | "
@@ -135,7 +140,8 @@ def main():
     fig.tight_layout()
     fig.savefig(out / "partition.png", dpi=120)
     print(f"wrote {out / 'partition.md'}, {out / 'partition.png'}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

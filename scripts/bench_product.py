@@ -22,6 +22,7 @@ from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfi
 from lc_petsc.elements import compiled_mult  # noqa: E402
 from lc_petsc.petsc_capi import value_array  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
+from lc_petsc.studies.command_line import integer_at_least, parse_args  # noqa: E402
 
 
 def timed(fn, repeats):
@@ -36,9 +37,9 @@ def timed(fn, repeats):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--wisps", type=int, default=2000)
-    ap.add_argument("--repeats", type=int, default=50)
-    args, _ = ap.parse_known_args()
+    ap.add_argument("--wisps", type=integer_at_least(1), default=2000)
+    ap.add_argument("--repeats", type=integer_at_least(1), default=50)
+    args = parse_args(ap)
     cfg = SimConfig(scene=SceneConfig(kind="hairball", n_wisps=args.wisps),
                     material=MaterialConfig(youngs_modulus=1.0e9),
                     physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity"), head_motion="shake"),

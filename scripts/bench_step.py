@@ -32,17 +32,18 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
+from lc_petsc.studies.command_line import integer_at_least, parse_args  # noqa: E402
 from lc_petsc.timing import frame_timing  # noqa: E402
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--wisps", type=int, default=2000)
-    ap.add_argument("--frames", type=int, default=3, help="timed frames after the first")
+    ap.add_argument("--wisps", type=integer_at_least(1), default=2000)
+    ap.add_argument("--frames", type=integer_at_least(0), default=3, help="timed frames after the first")
     ap.add_argument("--contact", choices=("head", "off"), default="head",
                     help="head contact on (default) or off")
     ap.add_argument("--json", help="write the figures to this JSON file")
-    args, _ = ap.parse_known_args()
+    args = parse_args(ap)
     comm = MPI.COMM_WORLD
     terms = ("stretch", "bend", "twist", "gravity") + (("head_collision",) if args.contact == "head" else ())
     cfg = SimConfig(scene=SceneConfig(kind="hairball", n_wisps=args.wisps),

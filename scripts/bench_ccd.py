@@ -24,6 +24,7 @@ Another version's library under this script: ``PYTHONPATH=/path/to/checkout`` (i
 
 import argparse
 import json
+import sys
 
 import numpy as np
 from mpi4py import MPI
@@ -31,13 +32,14 @@ from mpi4py import MPI
 from lc_petsc.config import load_config
 from lc_petsc.crossings import count_crossings
 from lc_petsc.simulator import build_simulator
+from lc_petsc.studies.command_line import bad_input, integer_at_least
 from lc_petsc.timing import frame_timing
 
 
-def run(path, mode, frames):
-    """``mode``: a strand_contact_mode, then optionally ``+barrier`` (the potential) and
-    ``+self`` (self-contact), e.g. ``ccd+barrier+self``."""
-    comm = MPI.COMM_WORLD
+def mode_config(path, mode):
+    """The validated config of ``path`` in ``mode``: a strand_contact_mode, then optionally
+    ``+barrier`` (the potential) and ``+self`` (self-contact), e.g. ``ccd+barrier+self``;
+    a ConfigError names what is wrong."""
     cfg = load_config(path)
     cfg.physics.strand_contact_mode, *extras = mode.split("+")
     cfg.physics.strand_self_contact = "self" in extras
@@ -45,7 +47,16 @@ def run(path, mode, frames):
         cfg.time.initial_guess = guess
     for potential in set(extras) - {"self", "inertial", "follow_the_leader"}:
         cfg.physics.strand_contact_potential = potential
-    sim = build_simulator(cfg, comm=comm)
+    try:
+        return cfg.validate()
+    except ValueError as e:
+        raise type(e)(f"--modes {mode}: {e}") from None
+
+
+def run(path, mode, frames):
+    """Runs ``frames`` frames of ``path`` in ``mode`` (:func:`mode_config`)."""
+    comm = MPI.COMM_WORLD
+    sim = build_simulator(mode_config(path, mode), comm=comm)
     off = sim.wisp_offsets()
     rows = []
     try:
@@ -88,8 +99,13 @@ def compare(paths, labels, plot=None):
     """Table (and with ``plot`` a figure) of several ``--json`` results side by side."""
     runs = []
     for path in paths:
-        with open(path) as f:
-            runs.append(json.load(f))
+        try:
+            with open(path) as f:
+                runs.append(json.load(f))
+            if not isinstance(runs[-1], dict) or not {"config", "ranks", "rows"} <= runs[-1].keys():
+                raise ValueError("no 'config', 'ranks' and 'rows'")
+        except (OSError, ValueError) as e:          # JSONDecodeError is a ValueError
+            raise ValueError(f"{path}: not a --json file of bench_ccd.py ({e})") from None
     labels = labels or paths
     print(f"{runs[0]['config']}, {runs[0]['ranks']} rank(s), medians per frame:")
     print("| version | mode | wall / frame (s) | collision (s) | collision share | CPU / frame, all ranks (s) | "
@@ -131,19 +147,30 @@ def compare(paths, labels, plot=None):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("config", nargs="?")
-    ap.add_argument("--frames", type=int, default=6)
+    ap.add_argument("--frames", type=integer_at_least(1), default=6)
     ap.add_argument("--modes", nargs="+", default=["penalty", "ccd"])
     ap.add_argument("--json")
     ap.add_argument("--compare", nargs="+", metavar="JSON", help="print --json results side by side")
     ap.add_argument("--labels", nargs="+")
     ap.add_argument("--plot", help="with --compare: a figure of wall and collision time per frame")
     a = ap.parse_args()
+    comm = MPI.COMM_WORLD
     if a.compare:
-        if MPI.COMM_WORLD.rank == 0:
-            compare(a.compare, a.labels, a.plot)
-        return
+        if a.labels and len(a.labels) != len(a.compare):
+            ap.error(f"--labels: {len(a.labels)} labels for {len(a.compare)} --compare files")
+        if comm.rank == 0:
+            try:
+                compare(a.compare, a.labels, a.plot)
+            except ValueError as e:
+                return bad_input(comm, "bench_ccd.py", e)
+        return 0
     if not a.config:
         ap.error("a config (or --compare)")
+    try:
+        for mode in dict.fromkeys(a.modes):
+            mode_config(a.config, mode)
+    except (ValueError, OSError) as e:          # ConfigError is a ValueError
+        return bad_input(comm, "bench_ccd.py", e)
     allrows, extra = [], {}
     for mode in a.modes:
         rows, s = run(a.config, mode, a.frames)
@@ -152,7 +179,7 @@ def main():
                                                "limited_vertices_per_frame", "limiter_rounds_per_frame",
                                                "limiter_candidates_per_frame")}
     if MPI.COMM_WORLD.rank:
-        return
+        return 0
     print(f"\n{a.config}, {MPI.COMM_WORLD.size} rank(s), {a.frames} frames per mode and run (medians "
           f"over a mode's runs; crossings: total per run):")
     print("| mode | wall / frame (s) | collision (s) | collision share | CPU / frame, all ranks (s) | "
@@ -186,7 +213,8 @@ def main():
         with open(a.json, "w") as f:
             json.dump({"config": a.config, "ranks": MPI.COMM_WORLD.size, "rows": allrows,
                        "limiter": extra}, f, indent=1)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -28,6 +28,7 @@ from lc_petsc import __version__  # noqa: E402
 from lc_petsc.config import load_config  # noqa: E402
 from lc_petsc.io.checkpoint import load_checkpoint, write_checkpoint  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
+from lc_petsc.studies.command_line import bad_input, integer_at_least  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,11 +36,16 @@ ROOT = Path(__file__).resolve().parents[1]
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--config", default=str(ROOT / "configs" / "hairball_2k.toml"))
-    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--repeat", type=integer_at_least(1), default=3)
     p.add_argument("--dir", default=".")
     a = p.parse_args()
     comm = MPI.COMM_WORLD
-    cfg = load_config(a.config)
+    try:
+        cfg = load_config(a.config)
+        if not Path(a.dir).is_dir():
+            raise ValueError(f"--dir {a.dir}: no such folder (the checkpoints' temporary folder goes there)")
+    except (ValueError, OSError) as e:          # ConfigError is a ValueError
+        return bad_input(comm, "bench_checkpoint.py", e)
     sim = build_simulator(cfg, comm=comm)
     frame_times = []
     for _ in range(2):
@@ -76,7 +82,8 @@ def main():
         print(f"  checkpoint read + verify: median {fr:.3f} s; all: {', '.join(f'{x:.3f}' for x in r)}")
         print(f"  size: {size / 1e6:.1f} MB ({size / sim.n_vertices:.1f} bytes per vertex)")
     sim.close()
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

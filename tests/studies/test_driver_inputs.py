@@ -60,6 +60,14 @@ CASES = [
      "bench_contact.py: error: unrecognized arguments: --framez (see --help; PETSc options take one dash)"),
     ("scripts/bench_partition.py", ["--config", "STRANDS"],
      "bench_partition.py: error: SCRATCH/groom.h5: not a UTF-8 text file"),
+    ("scripts/bench_ccd.py", ["configs/smash.toml", "--modes", "ccd+selff"],
+     "bench_ccd.py: error: --modes ccd+selff: physics.strand_contact_potential must be one of"),
+    ("scripts/bench_ccd.py", ["--compare", "STRANDS"], "bench_ccd.py: error: SCRATCH/groom.h5: not a --json file of "
+     "bench_ccd.py ("),
+    ("scripts/bench_checkpoint.py", ["--config", "nope.toml"],
+     "bench_checkpoint.py: error: nope.toml: no such config file"),
+    ("scripts/bench_checkpoint.py", ["--config", "configs/smash.toml", "--dir", "SCRATCH/nope"],
+     "bench_checkpoint.py: error: --dir SCRATCH/nope: no such folder"),
 ]
 
 #: the scripts that write into an ``--out`` folder (given one in SCRATCH/out, which must stay absent)

@@ -37,14 +37,38 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from newton_history import scene  # noqa: E402
 
 from lc_petsc.simulator import build_simulator  # noqa: E402
+from lc_petsc.studies.command_line import bad_input, integer_at_least, positive_number  # noqa: E402
 
 DEFAULT_SETTINGS = ["cap 30, no cutback=30,1", "cap 6, cutback=6,8", "cap 10, cutback=10,8",
                     "cap 15, cutback=15,8", "dt 1/120, cap 30, no cutback=30,1,0.008333333333333333"]
 
 
-def run(base, cap, substeps, dt, frames, tol, comm, newton=None, update="edge_retraction",
-        fallback=None, stop=None, stay=False):
-    """One setting: the summary figures (dict)."""
+SETTING_FORM = "NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK[,STOP[,STAY]]]]]]"
+
+
+def parse_setting(spec):
+    """``--setting`` text -> (label, keyword arguments of :func:`setting_config`); a
+    ValueError names a malformed one."""
+    label, _, vals = spec.rpartition("=")
+    parts = vals.split(",")
+    try:
+        if not 2 <= len(parts) <= 8:
+            raise ValueError(f"{len(parts)} values")
+        kw = dict(cap=int(parts[0]), substeps=int(parts[1]),
+                  dt=float(parts[2]) if len(parts) >= 3 and parts[2] else None,
+                  newton=parts[3] if len(parts) >= 4 and parts[3] else None,
+                  update=parts[4] if len(parts) >= 5 and parts[4] else "edge_retraction",
+                  fallback=parts[5] if len(parts) >= 6 and parts[5] else None,
+                  stop=parts[6] if len(parts) >= 7 and parts[6] else None,
+                  stay=len(parts) == 8 and parts[7] == "1")
+    except ValueError as e:
+        raise ValueError(f"--setting {spec!r}: use {SETTING_FORM} ({e})") from None
+    return label, kw
+
+
+def setting_config(base, cap, substeps, dt, frames, tol, newton=None, update="edge_retraction",
+                   fallback=None, stop=None, stay=False):
+    """The validated config of one setting."""
     cfg = copy.deepcopy(base)
     cfg.solver.filter = "exact_or_analytic"
     cfg.time.newton_update = update
@@ -65,9 +89,16 @@ def run(base, cap, substeps, dt, frames, tol, comm, newton=None, update="edge_re
         if newton != "filtered":
             cfg.solver.filter = "analytic"
     # the same simulated time at every dt
-    n = int(round(frames * base.time.dt / cfg.time.dt))
-    cfg.time.frames = n
-    sim = build_simulator(cfg.validate(), comm)
+    cfg.time.frames = int(round(frames * base.time.dt / cfg.time.dt))
+    return cfg.validate()
+
+
+def run(base, cap, substeps, dt, frames, tol, comm, newton=None, update="edge_retraction",
+        fallback=None, stop=None, stay=False):
+    """One setting: the summary figures (dict)."""
+    cfg = setting_config(base, cap, substeps, dt, frames, tol, newton, update, fallback, stop, stay)
+    n = cfg.time.frames
+    sim = build_simulator(cfg, comm)
     try:
         c0 = time.process_time()
         for _ in range(n):
@@ -94,31 +125,28 @@ def run(base, cap, substeps, dt, frames, tol, comm, newton=None, update="edge_re
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=["hairball10", "smash"])
-    p.add_argument("--frames", type=int, default=30)
-    p.add_argument("--tol", type=float, default=1e-6)
-    p.add_argument("--wisps", type=int, default=10, help="wisps of hairball10 / demo10 (default 10)")
-    p.add_argument("--setting", action="append",
-                   help="NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK[,STOP[,STAY]]]]]] (repeatable)")
+    p.add_argument("--frames", type=integer_at_least(1), default=30)
+    p.add_argument("--tol", type=positive_number, default=1e-6)
+    p.add_argument("--wisps", type=integer_at_least(1), default=10, help="wisps of hairball10 / demo10 (default 10)")
+    p.add_argument("--setting", action="append", help=f"{SETTING_FORM} (repeatable)")
     p.add_argument("--out", default="out/cutback")
     a = p.parse_args(argv)
     comm = MPI.COMM_WORLD
+    try:                                        # every scene and setting checked before any runs
+        settings = [parse_setting(spec) for spec in a.setting or DEFAULT_SETTINGS]
+        bases = [(name, scene(name, a.wisps)) for name in a.scenes]
+        for name, base in bases:
+            for label, kw in settings:
+                try:
+                    setting_config(base, frames=a.frames, tol=a.tol, **kw)
+                except ValueError as e:
+                    raise type(e)(f"--setting {label} on {name}: {e}") from None
+    except (ValueError, OSError) as e:          # ConfigError is a ValueError
+        return bad_input(comm, "bench_cutback.py", e)
     rows = []
-    for name in a.scenes:
-        base = scene(name, a.wisps)
-        for spec in a.setting or DEFAULT_SETTINGS:
-            label, _, vals = spec.rpartition("=")
-            parts = vals.split(",")
-            if not 2 <= len(parts) <= 8:
-                raise SystemExit(f"--setting {spec!r}: use "
-                                 "NAME=CAP,SUBSTEPS[,DT[,NEWTON[,UPDATE[,FALLBACK[,STOP[,STAY]]]]]]")
-            cap, substeps = int(parts[0]), int(parts[1])
-            dt = float(parts[2]) if len(parts) >= 3 and parts[2] else None
-            newton = parts[3] if len(parts) >= 4 and parts[3] else None
-            update = parts[4] if len(parts) >= 5 and parts[4] else "edge_retraction"
-            fallback = parts[5] if len(parts) >= 6 and parts[5] else None
-            stop = parts[6] if len(parts) >= 7 and parts[6] else None
-            stay = len(parts) == 8 and parts[7] == "1"
-            r = run(base, cap, substeps, dt, a.frames, a.tol, comm, newton, update, fallback, stop, stay)
+    for name, base in bases:
+        for label, kw in settings:
+            r = run(base, frames=a.frames, tol=a.tol, comm=comm, **kw)
             rows.append({"scene": Path(name).stem, "setting": label, **r})
             if comm.rank == 0:
                 print(f"  {rows[-1]}", flush=True)
@@ -136,7 +164,8 @@ def main(argv=None):
         (out / "cutback.md").write_text("\n".join(lines) + "\n")
         (out / "cutback.json").write_text(json.dumps(rows, indent=1))
         print("\n".join(lines))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

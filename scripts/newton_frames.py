@@ -28,9 +28,10 @@ petsc4py.init(sys.argv[:1])
 from mpi4py import MPI  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from newton_history import scene  # noqa: E402
+from newton_history import check_variants, named_variants, scene  # noqa: E402
 
 from lc_petsc.studies import report  # noqa: E402
+from lc_petsc.studies.command_line import bad_input, integer_at_least, positive_number  # noqa: E402
 from lc_petsc.studies.newton_frames import compare  # noqa: E402
 
 DEFAULT_VARIANTS = [
@@ -42,16 +43,21 @@ DEFAULT_VARIANTS = [
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scene", default="hairball10")
-    p.add_argument("--frames", type=int, default=30)
-    p.add_argument("--tol", type=float, default=1e-6)
-    p.add_argument("--iterations", type=int, default=30)
+    p.add_argument("--frames", type=integer_at_least(1), default=30)
+    p.add_argument("--tol", type=positive_number, default=1e-6)
+    p.add_argument("--iterations", type=integer_at_least(1), default=30)
     p.add_argument("--variant", action="append", help="NAME=SPEC (repeatable)")
-    p.add_argument("--wisps", type=int, default=10)
+    p.add_argument("--wisps", type=integer_at_least(1), default=10)
     p.add_argument("--out", default="out/newton_frames.json")
     p.add_argument("--plot", help="figure path (png)")
     a = p.parse_args(argv)
-    variants = [tuple(v.split("=", 1)) for v in (a.variant or DEFAULT_VARIANTS)]
-    res = compare(scene(a.scene, a.wisps), variants, MPI.COMM_WORLD, a.frames, a.tol, a.iterations)
+    try:
+        variants = named_variants(a.variant or DEFAULT_VARIANTS)
+        base = scene(a.scene, a.wisps)
+        check_variants([(a.scene, base)], variants, a.iterations, a.frames)
+    except (ValueError, OSError) as e:          # ConfigError is a ValueError
+        return bad_input(MPI.COMM_WORLD, "newton_frames.py", e)
+    res = compare(base, variants, MPI.COMM_WORLD, a.frames, a.tol, a.iterations)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(res))
     print(f"reference converged in every frame: {res['reference_converged']}")
@@ -71,6 +77,7 @@ def main(argv=None):
         print(f"  first iterate's error: median {statistics.median(r['first_error'] for r in rows):.2e}")
     if a.plot:
         plot(res, [n for n, _ in variants], a.tol, a.iterations, a.plot, a.scene)
+    return 0
 
 
 def plot(res, names, tol, cap, path, title):
@@ -102,4 +109,4 @@ def plot(res, names, tol, cap, path, title):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -28,7 +28,9 @@ petsc4py.init(sys.argv[:1])
 from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import load_config  # noqa: E402
-from lc_petsc.studies.newton import run_study  # noqa: E402
+from lc_petsc.errors import ConfigError  # noqa: E402
+from lc_petsc.studies.command_line import bad_input, integer_at_least, positive_number  # noqa: E402
+from lc_petsc.studies.newton import configure, parse_variant, run_study  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -49,7 +51,13 @@ DEFAULT_VARIANTS = [
 ]
 
 
+#: the scenes :func:`scene` knows by name (anything else is a config file)
+SCENES = ("hairball10", "demo10", "smash")
+
+
 def scene(name, wisps=10):
+    """The base config of ``name``: one of :data:`SCENES` or a config file (a ConfigError
+    names a name that is neither)."""
     if name in ("hairball10", "demo10"):
         cfg = load_config(ROOT / "configs" / "hairball_demo.toml")
         cfg.scene.n_wisps = wisps
@@ -64,31 +72,62 @@ def scene(name, wisps=10):
         return cfg
     if name == "smash":
         return load_config(ROOT / "configs" / "smash.toml")
+    if not Path(name).exists():
+        raise ConfigError(f"{name!r}: not a built-in scene ({', '.join(SCENES)}) and no such config file")
     return load_config(name)
+
+
+def named_variants(texts):
+    """``--variant NAME=SPEC`` arguments as (name, spec) pairs; a ValueError names a
+    malformed one."""
+    out = []
+    for text in texts:
+        name, sep, spec = text.partition("=")
+        if not sep or not name:
+            raise ValueError(f"--variant {text!r}: use NAME=SPEC, e.g. 'mine=filter=analytic,ls=1'")
+        out.append((name, spec))
+    return out
+
+
+def check_variants(scenes, variants, iterations, frames):
+    """Apply every (name, spec) of ``variants`` to every config of ``scenes`` (cheap: no
+    simulator) so that a bad spec is reported before anything runs; a ValueError names
+    the variant and what is wrong."""
+    for name, spec in variants:
+        for _, cfg in scenes:
+            try:
+                configure(cfg, parse_variant(spec), iterations, frames)
+            except ValueError as e:
+                raise type(e)(f"--variant {name}={spec}: {e}") from None
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=["hairball10", "smash"])
-    p.add_argument("--frames", type=int, default=10)
-    p.add_argument("--iterations", type=int, default=30)
-    p.add_argument("--tol", type=float, default=1e-6)
+    p.add_argument("--frames", type=integer_at_least(1), default=10)
+    p.add_argument("--iterations", type=integer_at_least(1), default=30)
+    p.add_argument("--tol", type=positive_number, default=1e-6)
     p.add_argument("--variant", action="append", help="NAME=SPEC (repeatable)")
-    p.add_argument("--wisps", type=int, default=10, help="wisps of hairball10 (default 10)")
-    p.add_argument("--dt", type=float, help="time step (s) instead of the scenes' own")
+    p.add_argument("--wisps", type=integer_at_least(1), default=10, help="wisps of hairball10 (default 10)")
+    p.add_argument("--dt", type=positive_number, help="time step (s) instead of the scenes' own")
     p.add_argument("--out", default="out/newton")
     a = p.parse_args(argv)
-    variants = [tuple(v.split("=", 1)) for v in (a.variant or DEFAULT_VARIANTS)]
     comm = MPI.COMM_WORLD
+    try:
+        variants = named_variants(a.variant or DEFAULT_VARIANTS)
+        scenes = [(Path(s).stem, scene(s, a.wisps)) for s in a.scenes]
+        if a.dt is not None:
+            for _, cfg in scenes:
+                cfg.time.dt = a.dt
+        check_variants(scenes, variants, a.iterations, a.frames)
+    except (ValueError, OSError) as e:          # ConfigError is a ValueError
+        return bad_input(comm, "newton_history.py", e)
     log = print if comm.rank == 0 else (lambda *_: None)
-    scenes = [(Path(s).stem, scene(s, a.wisps)) for s in a.scenes]
-    if a.dt is not None:
-        for _, cfg in scenes:
-            cfg.time.dt = a.dt
     run_study(scenes, variants, comm, a.out, a.iterations, a.frames, a.tol, log)
     if comm.rank == 0:
         print((Path(a.out) / "newton.md").read_text())
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

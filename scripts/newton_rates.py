@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from newton_history import scene  # noqa: E402
 
 from lc_petsc.studies import report  # noqa: E402
+from lc_petsc.studies.command_line import bad_input, integer_at_least  # noqa: E402
 from lc_petsc.studies.newton import degenerate_margins, filter_rates  # noqa: E402
 
 TERMS = ("stretch", "bend", "twist")
@@ -33,14 +34,17 @@ COMBOS = ([("all analytic", {t: "analytic" for t in TERMS}), ("all abs", {t: "ab
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scene", default="hairball10")
-    p.add_argument("--frames", type=int, default=3)
-    p.add_argument("--margin-frames", type=int, default=10)
+    p.add_argument("--frames", type=integer_at_least(1), default=3)
+    p.add_argument("--margin-frames", type=integer_at_least(1), default=10)
     p.add_argument("--out", default="out/newton_rates")
     a = p.parse_args(argv)
     comm = MPI.COMM_WORLD
+    try:
+        cfg = scene(a.scene)
+    except (ValueError, OSError) as e:          # ConfigError is a ValueError
+        return bad_input(comm, "newton_rates.py", e)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = scene(a.scene)
     print(f"{a.scene}: filter rates at {a.frames} converged frames")
     rows = filter_rates(cfg, comm, COMBOS, a.frames)
     print(f"{a.scene}: degenerate-rule margins over {a.margin_frames} frames (exact_or_analytic)")
@@ -74,7 +78,8 @@ def main(argv=None):
     fig.savefig(out / "rates.png", dpi=110)
     plt.close(fig)
     print(text)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

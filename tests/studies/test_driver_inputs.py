@@ -68,11 +68,25 @@ CASES = [
      "bench_checkpoint.py: error: nope.toml: no such config file"),
     ("scripts/bench_checkpoint.py", ["--config", "configs/smash.toml", "--dir", "SCRATCH/nope"],
      "bench_checkpoint.py: error: --dir SCRATCH/nope: no such folder"),
+    ("scripts/newton_history.py", ["--scenes", "hairball10", "smash", "--variant", "x=filter=nah"],
+     "newton_history.py: error: --variant x=filter=nah: solver.filter must be one of"),
+    ("scripts/newton_history.py", ["--variant", "analytic"],
+     "newton_history.py: error: --variant 'analytic': use NAME=SPEC, e.g."),
+    ("scripts/newton_errors.py", ["--scene", "smash", "--variant", "colour=red", "--out", "SCRATCH/out/e.json"],
+     "newton_errors.py: error: --variant colour=red: variant part 'colour=red': use key=value with key one of"),
+    ("scripts/newton_frames.py", ["--scene", "nope", "--out", "SCRATCH/out/f.json"],
+     "newton_frames.py: error: 'nope': not a built-in scene (hairball10, demo10, smash) and no such config file"),
+    ("scripts/newton_rates.py", ["--scene", "STRANDS"], "newton_rates.py: error: SCRATCH/groom.h5: not a UTF-8"),
+    ("scripts/bench_cutback.py", ["--scenes", "smash", "--setting", "x=a,b"],
+     "bench_cutback.py: error: --setting 'x=a,b': use NAME=CAP,SUBSTEPS[,DT"),
+    ("scripts/bench_cutback.py", ["--scenes", "smash", "--setting", "x=6,2,,bogus"],
+     "bench_cutback.py: error: --setting x on smash: time.newton must be one of"),
 ]
 
 #: the scripts that write into an ``--out`` folder (given one in SCRATCH/out, which must stay absent)
 TAKES_OUT = ("drivers/tradeoff.py", "drivers/compare_solvers.py", "scripts/extremes.py",
-             "scripts/bench_partition.py")
+             "scripts/bench_partition.py", "scripts/newton_history.py", "scripts/newton_rates.py",
+             "scripts/bench_cutback.py")
 
 
 @pytest.mark.parametrize("script, args, message", CASES, ids=[f"{c[0]} {' '.join(c[1])}" for c in CASES])

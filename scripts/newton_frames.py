@@ -91,9 +91,10 @@ def plot(res, names, tol, cap, path, title):
         axes[0].plot([r["iterations"] if r["converged"] else cap + 1 for r in rows], c, marker=".", label=name)
         axes[0].plot([r["true"] or cap + 1 for r in rows], c, ls=":", lw=1)
         errs = [[r["first_error"]] + r["errors"] for r in rows[3:]]
-        n = min(len(e) for e in errs)
-        axes[1].semilogy(range(n), np.maximum(np.median([e[:n] for e in errs], axis=0), 1e-17),
-                         c, marker=".", label=name)
+        if errs:                                # none with fewer than 4 frames: the panel stays empty
+            n = min(len(e) for e in errs)
+            axes[1].semilogy(range(n), np.maximum(np.median([e[:n] for e in errs], axis=0), 1e-17),
+                             c, marker=".", label=name)
     axes[0].set_xlabel("frame")
     axes[0].set_ylabel(f"iterations to {tol:g} (dotted: true error)")
     axes[1].axhline(tol, color="k", lw=0.8, ls="--")

@@ -14,11 +14,14 @@ last ulp of NumPy's SIMD sin/cos (1e-15 cm) on another:
   .venv/bin/python scripts/make_groom.py [OUT.h5]
 """
 
+import argparse
 import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
+
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "configs" / "data" / "fringe.h5"
 
 
 def wisp(n, coil_radius, per_turn, rise, handed, root):
@@ -66,5 +69,21 @@ def main(out):
     print(f"wrote {out}: {len(xs)} wisps, {offsets[-1]} vertices")
 
 
+def cli(argv=None):
+    """The command line: an optional output path (``--help`` is help, not a file name)."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("out", nargs="?", default=str(DEFAULT_OUT),
+                    help=f"strands file to write (default {DEFAULT_OUT.relative_to(DEFAULT_OUT.parents[2])})")
+    out = ap.parse_args(argv).out
+    if Path(out).is_dir():
+        ap.error(f"{out} is a folder: give the path of the .h5 file to write")
+    try:
+        main(out)
+    except OSError as e:
+        print(f"make_groom.py: error: {out}: cannot write it ({e})", file=sys.stderr)
+        return 2
+    return 0
+
+
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else str(Path(__file__).resolve().parents[1] / "configs/data/fringe.h5"))
+    sys.exit(cli())

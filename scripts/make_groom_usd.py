@@ -10,6 +10,7 @@ through their control points, the transform and units are undone, to float32 rou
   .venv/bin/python scripts/make_groom_usd.py [OUT.usda]
 """
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -48,5 +49,22 @@ def main(out):
     print(f"wrote {out}: {len(off) - 1} curves, {off[-1]} control points")
 
 
+def cli(argv=None):
+    """The command line: an optional output path (``--help`` is help, not a file name);
+    a USD layer's suffix is checked before anything is removed."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("out", nargs="?", default=str(ROOT / "configs" / "data" / "fringe.usda"),
+                    help="USD file to write, .usda, .usdc or .usd (default configs/data/fringe.usda)")
+    out = ap.parse_args(argv).out
+    if Path(out).suffix not in (".usda", ".usdc", ".usd"):
+        ap.error(f"{out}: give a USD file name ending in .usda, .usdc or .usd")
+    if Path(out).is_dir():
+        ap.error(f"{out} is a folder: give the path of the USD file to write")
+    if not Path(out).resolve().parent.is_dir():
+        ap.error(f"{out}: no such folder {Path(out).parent}")
+    main(out)
+    return 0
+
+
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else str(ROOT / "configs" / "data" / "fringe.usda"))
+    sys.exit(cli())

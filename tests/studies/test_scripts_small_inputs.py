@@ -22,3 +22,29 @@ def test_newton_frames_plots_fewer_than_four_frames(tmp_path):
              "errors": [1e-3, 1e-5, 1e-7]}]
     _script("newton_frames").plot({"a": rows}, ["a"], 1e-6, 5, tmp_path / "f.png", "one frame")
     assert (tmp_path / "f.png").stat().st_size > 0
+
+
+def _run(tmp_path, script, *args):
+    import subprocess
+    import sys
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / script), *args], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+
+
+def test_make_groom_help_is_help_not_a_file_name(tmp_path):
+    """``make_groom.py --help`` used to write a strands file named ``--help``."""
+    proc = _run(tmp_path, "make_groom.py", "--help")
+    assert proc.returncode == 0 and "usage:" in proc.stdout
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_make_groom_usd_refuses_a_non_usd_name_and_keeps_that_file(tmp_path):
+    """The script removes its output before writing it: a name that is not a USD layer (a
+    strands file given by mistake) is refused first, one error line, exit 2, the file kept."""
+    keep = tmp_path / "fringe.h5"
+    keep.write_bytes(b"groom")
+    proc = _run(tmp_path, "make_groom_usd.py", str(keep))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert [line for line in proc.stderr.splitlines() if "error:" in line] == [
+        f"make_groom_usd.py: error: {keep}: give a USD file name ending in .usda, .usdc or .usd"]
+    assert keep.read_bytes() == b"groom"

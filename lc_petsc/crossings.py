@@ -104,6 +104,26 @@ def edge_strain(x, rest, offsets):
     return length / np.linalg.norm(np.diff(rest, axis=0), axis=1)[inner] - 1.0
 
 
+def frames_layout(f, with_rest=False):
+    """``/wisp_offsets`` of the open frames.h5 ``f`` (and with ``with_rest`` its
+    ``/rest_positions``), after checking that ``/positions`` is (frames, n_vertices, 3)
+    and the rest positions (n_vertices, 3), n_vertices the offsets' last: a ValueError
+    names a file that is not a run's frames (a strands file, say); a KeyError a missing
+    dataset."""
+    off = np.asarray(f["wisp_offsets"][...], np.int64)
+    shape = f["positions"].shape
+    if off.ndim != 1 or len(off) < 2 or len(shape) != 3 or shape[2] != 3 or shape[1] != off[-1]:
+        n = f"{int(off[-1])} vertices" if off.ndim == 1 and len(off) else "n_vertices"
+        raise ValueError(f"/positions has shape {shape}, a frames.h5 has (frames, "
+                         f"{n}, 3) (a strands file is a groom, not a run)")
+    if not with_rest:
+        return off
+    rest = np.asarray(f["rest_positions"][...], float)
+    if rest.shape != (off[-1], 3):
+        raise ValueError(f"/rest_positions has shape {rest.shape}, a frames.h5 has ({int(off[-1])}, 3)")
+    return off, rest
+
+
 def count_frames(path, self_contact=False, progress=None):
     """Per frame step of a ``frames.h5`` (step k: rows k -> k + 1): list of dicts with
     ``step``, ``frames`` (the simulation frames of its two rows), ``crossings`` and
@@ -115,11 +135,7 @@ def count_frames(path, self_contact=False, progress=None):
     import h5py
     from lc_petsc.io.frames import valid_rows
     with h5py.File(path, "r") as f:
-        off = np.asarray(f["wisp_offsets"][...], np.int64)
-        shape = f["positions"].shape
-        if len(shape) != 3 or shape[2] != 3 or shape[1] != off[-1]:
-            raise ValueError(f"/positions has shape {shape}, a frames.h5 has (frames, "
-                             f"{int(off[-1])} vertices, 3) (a strands file is a groom, not a run)")
+        off = frames_layout(f)
         every = int(f.attrs.get("every", 1))       # row k is simulation frame k * every
         cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
         d0 = float((cfg.get("physics") or {}).get("strand_thickness") or 0.0)

@@ -14,7 +14,7 @@ import json
 
 import numpy as np
 
-from lc_petsc.crossings import pair_positions, segments
+from lc_petsc.crossings import frames_layout, pair_positions, segments
 from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.elements.segment_contact import distance
 
@@ -89,8 +89,7 @@ def census_frames(path, thickness=None, stiffness=None, every=1, progress=None):
         phys = cfg.get("physics") or {}
         d0 = float(thickness or phys.get("strand_thickness") or 2.0 * float(np.min(f["radius"][...])))
         k = float(stiffness or phys.get("strand_stiffness") or 1.0e5)
-        off = np.asarray(f["wisp_offsets"][...], np.int64)
-        rest = np.asarray(f["rest_positions"][...], float)
+        off, rest = frames_layout(f, with_rest=True)
         seg, wisp = segments(off)
         wid = np.repeat(np.arange(len(off) - 1), np.diff(off))
         rows, age = [], {}

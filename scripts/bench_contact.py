@@ -31,7 +31,8 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import load_config  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
-from lc_petsc.studies.command_line import bad_input, integer_at_least, parse_args, positive_number  # noqa: E402
+from lc_petsc.studies.command_line import (bad_input, integer_at_least, output_file, parse_args,  # noqa: E402
+                                             positive_number)
 from lc_petsc.studies.contact_report import summarize, summary_table  # noqa: E402
 from lc_petsc.timing import timed_frame  # noqa: E402
 
@@ -47,7 +48,7 @@ def main():
     ap.add_argument("--stiffness", type=positive_number, default=None)
     ap.add_argument("--mode", choices=("penalty", "ccd"), default=None,
                     help="strand contact mode (default: the config's)")
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--json", type=output_file, default=None)
     args = parse_args(ap)
     comm = MPI.COMM_WORLD
     try:

@@ -32,7 +32,7 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
-from lc_petsc.studies.command_line import integer_at_least, parse_args  # noqa: E402
+from lc_petsc.studies.command_line import integer_at_least, output_file, parse_args  # noqa: E402
 from lc_petsc.timing import frame_timing  # noqa: E402
 
 
@@ -42,7 +42,7 @@ def main():
     ap.add_argument("--frames", type=integer_at_least(0), default=3, help="timed frames after the first")
     ap.add_argument("--contact", choices=("head", "off"), default="head",
                     help="head contact on (default) or off")
-    ap.add_argument("--json", help="write the figures to this JSON file")
+    ap.add_argument("--json", type=output_file, help="write the figures to this JSON file")
     args = parse_args(ap)
     comm = MPI.COMM_WORLD
     terms = ("stretch", "bend", "twist", "gravity") + (("head_collision",) if args.contact == "head" else ())

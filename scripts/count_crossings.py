@@ -15,13 +15,14 @@ import sys
 import numpy as np
 
 from lc_petsc.crossings import count_frames
+from lc_petsc.studies.command_line import output_file
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("frames", help="frames.h5 of a run")
     ap.add_argument("--self", action="store_true", help="count crossings of a wisp with itself too")
-    ap.add_argument("--json", help="write the per-step figures to this file")
+    ap.add_argument("--json", type=output_file, help="write the per-step figures to this file")
     a = ap.parse_args(argv)
 
     def show(r):

@@ -13,7 +13,8 @@ import sys
 
 import numpy as np
 
-from lc_petsc.crossings import edge_strain
+from lc_petsc.crossings import edge_strain, frames_layout
+from lc_petsc.studies.command_line import output_file
 
 
 def frame_rows(path):
@@ -24,8 +25,7 @@ def frame_rows(path):
     from lc_petsc.io.frames import valid_rows
     rows = []
     with h5py.File(path, "r") as f:
-        off = np.asarray(f["wisp_offsets"][...], np.int64)
-        rest = np.asarray(f["rest_positions"][...], float)
+        off, rest = frames_layout(f, with_rest=True)
         reach0 = np.linalg.norm(rest[off[1:] - 1] - rest[off[:-1]], axis=1)
         for k in np.flatnonzero(valid_rows(f)):
             x = np.asarray(f["positions"][k], float)
@@ -40,7 +40,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("frames", nargs="+", help="frames.h5 of runs")
     ap.add_argument("--labels", nargs="+", help="one label per file (default: the paths)")
-    ap.add_argument("--plot", help="write a figure of the largest strain per frame here")
+    ap.add_argument("--plot", type=output_file, help="write a figure of the largest strain per frame here")
     a = ap.parse_args(argv)
     labels = a.labels or a.frames
     if len(labels) != len(a.frames):
@@ -50,7 +50,7 @@ def main(argv=None):
     for path, label in zip(a.frames, labels):
         try:
             rows = frame_rows(path)
-        except (OSError, KeyError) as e:
+        except (OSError, KeyError, ValueError) as e:
             print(f"edge_strain.py: error: {path}: not a readable frames.h5 of lc_petsc ({e})",
                   file=sys.stderr)
             return 2

@@ -15,15 +15,16 @@ import json
 import sys
 
 from lc_petsc.pair_census import census_frames
+from lc_petsc.studies.command_line import integer_at_least, output_file, positive_number
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("frames", help="frames.h5 of a run")
-    ap.add_argument("--thickness", type=float, help="d0 (cm); default the run's")
-    ap.add_argument("--stiffness", type=float, help="k (dyn/cm); default the run's strand_stiffness")
-    ap.add_argument("--every", type=int, default=1, help="every n-th frame (ages need 1)")
-    ap.add_argument("--json", help="write the per-frame figures to this file")
+    ap.add_argument("--thickness", type=positive_number, help="d0 (cm); default the run's")
+    ap.add_argument("--stiffness", type=positive_number, help="k (dyn/cm); default the run's strand_stiffness")
+    ap.add_argument("--every", type=integer_at_least(1), default=1, help="every n-th frame (ages need 1)")
+    ap.add_argument("--json", type=output_file, help="write the per-frame figures to this file")
     a = ap.parse_args(argv)
 
     def show(r):
@@ -35,7 +36,7 @@ def main(argv=None):
 
     try:
         rows, d0, k = census_frames(a.frames, a.thickness, a.stiffness, a.every, progress=show)
-    except (OSError, KeyError) as e:
+    except (OSError, KeyError, ValueError) as e:
         print(f"pair_census.py: error: {a.frames}: not a readable frames.h5 of lc_petsc ({e})",
               file=sys.stderr)
         return 2

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from pathlib import Path
 
 #: exit status of a driver given bad input (as the main job's)
 EXIT_BAD_INPUT = 2
@@ -52,6 +53,20 @@ def positive_number(text) -> float:
 
 
 positive_number.__name__ = "number"
+
+
+def output_file(text) -> str:
+    """An argparse ``type``: the path of a file to write (``--json``, ``--plot``), whose
+    folder exists, checked before a run rather than after it."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder: give a file name")
+    if not path.resolve().parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: no such folder {path.parent}")
+    return text
+
+
+output_file.__name__ = "file"
 
 
 def bad_input(comm, prog: str, error: Exception) -> int:

@@ -15,10 +15,16 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _strands(path):
+def _strands(path, rest=False):
+    """A strands file (a groom, not a run); with ``rest`` also the datasets a frames.h5
+    has besides (rest positions, radius, pinned)."""
     with h5py.File(path, "w") as f:
         f["positions"] = np.arange(24.0).reshape(8, 3)
         f["wisp_offsets"] = np.array([0, 4, 8])
+        if rest:
+            f["rest_positions"] = np.arange(24.0).reshape(8, 3)
+            f["radius"] = np.ones(8)
+            f["pinned"] = np.zeros(8, bool)
     return str(path)
 
 
@@ -81,6 +87,18 @@ CASES = [
      "bench_cutback.py: error: --setting 'x=a,b': use NAME=CAP,SUBSTEPS[,DT"),
     ("scripts/bench_cutback.py", ["--scenes", "smash", "--setting", "x=6,2,,bogus"],
      "bench_cutback.py: error: --setting x on smash: time.newton must be one of"),
+    # a groom with a frames.h5's other datasets used to end in an IndexError / ValueError
+    ("scripts/edge_strain.py", ["GROOM2"], "edge_strain.py: error: SCRATCH/groom2.h5: not a readable frames.h5 "
+     "of lc_petsc (/positions has shape (8, 3), a frames.h5 has (frames, 8 vertices, 3)"),
+    ("scripts/pair_census.py", ["GROOM2"], "pair_census.py: error: SCRATCH/groom2.h5: not a readable frames.h5 "
+     "of lc_petsc (/positions has shape (8, 3)"),
+    ("scripts/pair_census.py", ["STRANDS", "--every", "0"],
+     "pair_census.py: error: argument --every: must be an integer >= 1, got 0"),
+    ("scripts/pair_census.py", ["STRANDS", "--thickness", "-1"],
+     "pair_census.py: error: argument --thickness: must be a positive number, got -1"),
+    # an output in a missing folder: refused before the count, not a traceback after it
+    ("scripts/count_crossings.py", ["STRANDS", "--json", "SCRATCH/nope/c.json"],
+     "count_crossings.py: error: argument --json: SCRATCH/nope/c.json: no such folder SCRATCH/nope"),
 ]
 
 #: the scripts that write into an ``--out`` folder (given one in SCRATCH/out, which must stay absent)
@@ -91,8 +109,9 @@ TAKES_OUT = ("drivers/tradeoff.py", "drivers/compare_solvers.py", "scripts/extre
 
 @pytest.mark.parametrize("script, args, message", CASES, ids=[f"{c[0]} {' '.join(c[1])}" for c in CASES])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, script, args, message):
-    strands = _strands(tmp_path / "groom.h5")
-    args = [a.replace("SCRATCH", str(tmp_path)).replace("STRANDS", strands) for a in args]
+    strands, groom2 = _strands(tmp_path / "groom.h5"), _strands(tmp_path / "groom2.h5", rest=True)
+    args = [a.replace("SCRATCH", str(tmp_path)).replace("STRANDS", strands).replace("GROOM2", groom2)
+            for a in args]
     message = message.replace("SCRATCH", str(tmp_path))
     out = tmp_path / "out"
     proc = subprocess.run([sys.executable, str(ROOT / script), *args]

@@ -8,11 +8,11 @@ filter and once with the numerical one, alternating in the same run, on one core
 elements per second per term and filter (medians), the numerical/analytic time ratio and
 the peak memory of the process.
 
-    .venv/bin/python scripts/bench_elements.py [--wisps 2000] [--repeats 7]
+    .venv/bin/python scripts/bench_elements.py [--wisps 2000] [--vertices 101] [--repeats 7] [--json F]
 
 Targets: ratio >= 8, analytic total <= 1.0 s, peak memory < 3 GB.
 
-    .venv/bin/python scripts/bench_elements.py --assembly [--wisps 2000] [--repeats 7]
+    .venv/bin/python scripts/bench_elements.py --assembly [--wisps 2000] [--repeats 7] [--json F]
 
 builds the hairball's Assembler twice on one rank (``-lc_element_kernels numpy`` and
 ``compiled``, analytic filter, BAIJ) and times, alternating in the same run, what one
@@ -37,6 +37,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lc_petsc.elements import bend, stretch, twist  # noqa: E402
+from lc_petsc.studies.command_line import integer_at_least, output_file  # noqa: E402
 
 TERMS = (("stretch", stretch, 2), ("bend", bend, 3), ("twist", twist, 4))
 FILTERS = ("analytic", "numerical")
@@ -65,10 +66,10 @@ def element_arrays(wisps, k):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--wisps", type=int, default=2000)
-    parser.add_argument("--vertices", type=int, default=101)
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--json", help="also write the figures to this JSON file")
+    parser.add_argument("--wisps", type=integer_at_least(1), default=2000)
+    parser.add_argument("--vertices", type=integer_at_least(4), default=101)
+    parser.add_argument("--repeats", type=integer_at_least(1), default=7)
+    parser.add_argument("--json", type=output_file, help="also write the figures to this JSON file")
     parser.add_argument("--assembly", action="store_true",
                         help="elements + assembly of one Newton iteration, NumPy vs compiled")
     args = parser.parse_args()

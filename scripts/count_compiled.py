@@ -30,6 +30,7 @@ import argparse  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lc_petsc.elements import compiled  # noqa: E402
+from lc_petsc.studies.command_line import integer_at_least  # noqa: E402
 
 _K = {"stretch": 2, "bend": 3, "twist": 4}
 _PER_WISP = 101
@@ -57,8 +58,8 @@ def synthetic(n_wisps, names, b=3):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("term", choices=(*compiled.TERMS, "all"))
-    ap.add_argument("calls", type=int)
-    ap.add_argument("--wisps", type=int, default=200)
+    ap.add_argument("calls", type=integer_at_least(0))
+    ap.add_argument("--wisps", type=integer_at_least(1), default=200)
     ap.add_argument("--filter", choices=compiled.FILTERS, default="analytic")
     args = ap.parse_args()
     x, terms, layout = synthetic(args.wisps, compiled.TERMS if args.term == "all" else (args.term,))

@@ -31,12 +31,13 @@ from mpi4py import MPI  # noqa: E402
 from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig  # noqa: E402
 from lc_petsc.elements import compiled  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
+from lc_petsc.studies.command_line import integer_at_least  # noqa: E402
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--wisps", type=int, default=2000)
-    ap.add_argument("--repeats", type=int, default=9)
+    ap.add_argument("--wisps", type=integer_at_least(1), default=2000)
+    ap.add_argument("--repeats", type=integer_at_least(1), default=9)
     ap.add_argument("--only", choices=compiled.TERMS, default=None,
                     help="time only this term's gradient + Hessian")
     args = ap.parse_args()

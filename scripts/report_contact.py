@@ -27,13 +27,13 @@ def main(argv=None):
     for path in args.runs:
         try:
             runs.append(json.loads(Path(path).read_text()))
-        except (OSError, json.JSONDecodeError) as e:
-            ap.exit(2, f"report_contact: cannot read {path}: {e}; give the files written by "
+        except (OSError, ValueError) as e:          # JSONDecodeError, UnicodeDecodeError are ValueErrors
+            ap.exit(2, f"report_contact.py: error: cannot read {path}: {e}; give the files written by "
                        f"bench_contact.py --json\n")
         try:
             summaries.append(summarize(runs[-1]))
         except ValueError as e:
-            ap.exit(2, f"report_contact: {path}: {e}\n")
+            ap.exit(2, f"report_contact.py: error: {path}: {e}\n")
     table = summary_table(summaries)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -20,6 +20,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from lc_petsc.studies.command_line import integer_at_least
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -43,10 +45,10 @@ def median(values):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--per-rank", type=int, default=500)
-    ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 3, 4])
-    ap.add_argument("--frames", type=int, default=2)
-    ap.add_argument("--measured", type=int, default=2,
+    ap.add_argument("--per-rank", type=integer_at_least(1), default=500)
+    ap.add_argument("--ranks", type=integer_at_least(1), nargs="+", default=[1, 2, 3, 4])
+    ap.add_argument("--frames", type=integer_at_least(1), default=2)
+    ap.add_argument("--measured", type=integer_at_least(0), default=2,
                     help="rank counts up to this are timed; above, correctness only")
     ap.add_argument("--out", default="out/weak_scaling")
     ap.add_argument("--figure", default="docs/figures/weak_scaling_500.png")

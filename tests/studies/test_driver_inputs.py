@@ -99,12 +99,22 @@ CASES = [
     # an output in a missing folder: refused before the count, not a traceback after it
     ("scripts/count_crossings.py", ["STRANDS", "--json", "SCRATCH/nope/c.json"],
      "count_crossings.py: error: argument --json: SCRATCH/nope/c.json: no such folder SCRATCH/nope"),
+    # counts of 0 used to end in a traceback (median or min of nothing) after the set-up
+    ("scripts/bench_elements.py", ["--repeats", "0"],
+     "bench_elements.py: error: argument --repeats: must be an integer >= 1, got 0"),
+    ("scripts/profile_compiled.py", ["--repeats", "0"],
+     "profile_compiled.py: error: argument --repeats: must be an integer >= 1, got 0"),
+    ("scripts/count_compiled.py", ["twist", "1", "--wisps", "0"],
+     "count_compiled.py: error: argument --wisps: must be an integer >= 1, got 0"),
+    ("scripts/weak_scaling.py", ["--per-rank", "0"],
+     "weak_scaling.py: error: argument --per-rank: must be an integer >= 1, got 0"),
+    ("scripts/report_contact.py", ["STRANDS"], "report_contact.py: error: cannot read SCRATCH/groom.h5: "),
 ]
 
 #: the scripts that write into an ``--out`` folder (given one in SCRATCH/out, which must stay absent)
 TAKES_OUT = ("drivers/tradeoff.py", "drivers/compare_solvers.py", "scripts/extremes.py",
              "scripts/bench_partition.py", "scripts/newton_history.py", "scripts/newton_rates.py",
-             "scripts/bench_cutback.py")
+             "scripts/bench_cutback.py", "scripts/weak_scaling.py", "scripts/report_contact.py")
 
 
 @pytest.mark.parametrize("script, args, message", CASES, ids=[f"{c[0]} {' '.join(c[1])}" for c in CASES])

@@ -398,7 +398,7 @@ def test_path_screen_keeps_pairs_that_meet_at_the_end_of_their_bound():
 def test_compiled_advancement_matches_the_numpy_reference():
     """compiled_ccd.safe_fraction is segment_ccd.safe_fraction pair by pair (given as
     many steps), and its limiter test (limit_pairs) gives the NumPy fractions at m / 2
-    and m of each pair's floor min(m, d(S) / 2), 1 for pairs whose swept spheres stay
+    and m of each pair's floor min(m, max(d(S) / 2, min(d(S), HOLD_FLOOR m))), 1 for pairs whose swept spheres stay
     apart."""
     from lc_petsc.elements import compiled_ccd
     S, E = random_motions(800, 11)
@@ -416,7 +416,8 @@ def test_compiled_advancement_matches_the_numpy_reference():
     for scale in (True, False):
         tau, factor = np.full(n, -1.0), np.full(n, -1.0)
         compiled_ccd.limit_pairs(SV, EV, inv, np.arange(n), m, scale, tau, factor)
-        mp = np.minimum(m, 0.5 * distance(S))
+        d = distance(S)
+        mp = np.minimum(m, np.maximum(0.5 * d, np.minimum(d, compiled_ccd.HOLD_FLOOR * m)))
         half = segment_ccd.safe_fraction(S, E, 0.5 * mp, iterations=100000)[0]
         full = segment_ccd.safe_fraction(S, E, mp, iterations=100000)[0]
         np.testing.assert_allclose(tau, half, atol=1e-12)
@@ -425,6 +426,31 @@ def test_compiled_advancement_matches_the_numpy_reference():
     tau = np.full(n, -1.0)
     compiled_ccd.limit_pairs(SV, EV, inv, np.array([3, 5]), m, True, tau, np.ones(n))
     assert np.flatnonzero(tau != -1.0).tolist() == [3, 5]
+
+
+def test_a_pair_pushed_together_in_every_call_keeps_a_floor():
+    """A pair already closer than the floor m gets half its distance per limiter call, but
+    not below HOLD_FLOOR m: pushed through each other in every call (a tangle the elastic
+    forces pull through itself, configs/jitter.toml with self-contact) it used to be
+    halved each time, to round-off and through (real crossings after 45 frames)."""
+    from lc_petsc.elements import compiled_ccd
+    m = 0.01
+    A = np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    B = np.array([[0.0, -1.0, 0.004], [0.0, 1.0, 0.004]])     # 0.4 m above A, crossing it
+    inv = np.arange(4).reshape(1, 4)
+    dist = []
+    for _ in range(60):
+        S = np.concatenate([A, B])
+        T = S.copy()
+        T[2:, 2] -= 1.0                                         # B pushed down through A
+        tau, factor = np.ones(1), np.ones(1)
+        compiled_ccd.limit_pairs(S, T, inv, np.arange(1), m, True, tau, factor)
+        f = factor[0] if tau[0] < 1.0 else 1.0
+        B = S[2:] + f * (T[2:] - S[2:])
+        dist.append(B[0, 2])
+    assert min(dist) > 0.0                                      # never through A
+    assert min(dist) >= compiled_ccd.HOLD_FLOOR * m * (1.0 - 1e-9), min(dist)
+    assert dist[-1] < 2.0 * compiled_ccd.HOLD_FLOOR * m         # the halving reached the hold
 
 
 def test_compiled_advancement_is_safe_on_sampled_paths():

@@ -61,6 +61,34 @@ def test_tight_inclusion_matches_brute_force_on_random_motions():
     assert not ref[k:2 * k].any() and not ref[2 * k:3 * k].any()   # apart, rigid
 
 
+# a pair of a 60-wisp hairball step (physics.strand_separation = false), 4.45e-6 cm apart
+# on its whole path: Tight-Inclusion with the counter's 1e5 interval splits leaves it
+# undecided, which counts as meeting (t = 0.53; with 1e4 or 1e6 splits it answers no),
+# and the end-of-run check counted a crossing the ccd limiter had not let through
+FAR_PAIR_START = [[-17.78548960252841, 2.54372939470802, -4.403008766842811],
+                  [-17.699275804440088, 2.038000349691919, -4.115022959171849],
+                  [-17.753865553648875, 2.216348754348881, -4.16919377932501],
+                  [-17.471712465758962, 1.7009246481015707, -4.2562807212310245]]
+FAR_PAIR_END = [[-17.929254126044498, 1.1558746120856656, -4.403008766842811],
+                [-17.80405488295513, 0.6583609585206993, -4.115022959171849],
+                [-17.872320150918572, 0.8319352865540846, -4.16919377932501],
+                [-17.551020131162897, 0.3399610274595124, -4.2562807212310245]]
+
+
+def test_undecided_tight_inclusion_hits_proven_clear_are_no_crossings():
+    """The near-touching pair Tight-Inclusion leaves undecided is no crossing (brute-force
+    reference, sampled distance, crossing_pairs' advancement proof), and random motions
+    moved 20 units away give the same answers as at the origin."""
+    S, E = np.array([FAR_PAIR_START]), np.array([FAR_PAIR_END])
+    t = np.linspace(0.0, 1.0, 20001)
+    assert distance(S[0] + t[:, None, None] * (E[0] - S[0])).min() > 4e-6
+    assert not crossing_reference(S, E)[0]
+    assert not crossing_pairs(S, E)[0]
+    S, E = random_motions(160, 3)
+    shift = np.array([-17.0, 12.0, -9.0])
+    np.testing.assert_array_equal(crossing_pairs(S + shift, E + shift), crossing_pairs(S, E))
+
+
 def test_safe_fraction_is_safe_and_tight():
     S, E = random_motions(300, 5)
     m = 0.05

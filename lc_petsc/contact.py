@@ -805,7 +805,9 @@ class StrandContact:
         (nv, 3) (exactly T where beta = 1), with per-vertex fractions beta in [0, 1] and
         fallback positions H such that on the linear path from S to E no pair of
         segments of different wisps (rest-exempt pairs excepted) comes closer than
-        ``min_distance``, or half its distance at S when already closer.  H = S + u(S),
+        ``min_distance``, or half its distance at S when already closer (but not below
+        :data:`compiled_ccd.HOLD_FLOOR` ``min_distance`` unless it starts there: then its
+        distance at S).  H = S + u(S),
         u the affine field fitted to the whole step (:meth:`_motion_field`): a held-back
         vertex is carried along with the bulk of the hair instead of being left behind,
         and only its residual motion f = T - H is cut.  Pinned vertices keep beta = 1 (their motion is prescribed).
@@ -834,7 +836,7 @@ class StrandContact:
            a distance; the others get conservative advancement with up to
            compiled_ccd.MAX_STEPS steps (no Tight-Inclusion: see docs/contact.md).
         3. Rounds: a pair whose current path comes closer than half its floor m
-           (min_distance, or half its distance at S) multiplies the fractions of its
+           (min_distance, or half its distance at S, see above) multiplies the fractions of its
            free vertices by its safe fraction at m (the first SCALE_ROUNDS rounds; its
            path then keeps m, clear of the m / 2 test, so round-off cannot flip its
            fate), later by 0, i.e. they move by u alone.  A pair whose free vertices

@@ -61,6 +61,34 @@ def test_tight_inclusion_matches_brute_force_on_random_motions():
     assert not ref[k:2 * k].any() and not ref[2 * k:3 * k].any()   # apart, rigid
 
 
+# a pair of a 60-wisp hairball step (physics.strand_separation = false), 4.45e-6 cm apart
+# on its whole path: Tight-Inclusion with the counter's 1e5 interval splits leaves it
+# undecided, which counts as meeting (t = 0.53; with 1e4 or 1e6 splits it answers no),
+# and the end-of-run check counted a crossing the ccd limiter had not let through
+FAR_PAIR_START = [[-17.78548960252841, 2.54372939470802, -4.403008766842811],
+                  [-17.699275804440088, 2.038000349691919, -4.115022959171849],
+                  [-17.753865553648875, 2.216348754348881, -4.16919377932501],
+                  [-17.471712465758962, 1.7009246481015707, -4.2562807212310245]]
+FAR_PAIR_END = [[-17.929254126044498, 1.1558746120856656, -4.403008766842811],
+                [-17.80405488295513, 0.6583609585206993, -4.115022959171849],
+                [-17.872320150918572, 0.8319352865540846, -4.16919377932501],
+                [-17.551020131162897, 0.3399610274595124, -4.2562807212310245]]
+
+
+def test_undecided_tight_inclusion_hits_proven_clear_are_no_crossings():
+    """The near-touching pair Tight-Inclusion leaves undecided is no crossing (brute-force
+    reference, sampled distance, crossing_pairs' advancement proof), and random motions
+    moved 20 units away give the same answers as at the origin."""
+    S, E = np.array([FAR_PAIR_START]), np.array([FAR_PAIR_END])
+    t = np.linspace(0.0, 1.0, 20001)
+    assert distance(S[0] + t[:, None, None] * (E[0] - S[0])).min() > 4e-6
+    assert not crossing_reference(S, E)[0]
+    assert not crossing_pairs(S, E)[0]
+    S, E = random_motions(160, 3)
+    shift = np.array([-17.0, 12.0, -9.0])
+    np.testing.assert_array_equal(crossing_pairs(S + shift, E + shift), crossing_pairs(S, E))
+
+
 def test_safe_fraction_is_safe_and_tight():
     S, E = random_motions(300, 5)
     m = 0.05
@@ -398,7 +426,7 @@ def test_path_screen_keeps_pairs_that_meet_at_the_end_of_their_bound():
 def test_compiled_advancement_matches_the_numpy_reference():
     """compiled_ccd.safe_fraction is segment_ccd.safe_fraction pair by pair (given as
     many steps), and its limiter test (limit_pairs) gives the NumPy fractions at m / 2
-    and m of each pair's floor min(m, d(S) / 2), 1 for pairs whose swept spheres stay
+    and m of each pair's floor min(m, max(d(S) / 2, min(d(S), HOLD_FLOOR m))), 1 for pairs whose swept spheres stay
     apart."""
     from lc_petsc.elements import compiled_ccd
     S, E = random_motions(800, 11)
@@ -416,7 +444,8 @@ def test_compiled_advancement_matches_the_numpy_reference():
     for scale in (True, False):
         tau, factor = np.full(n, -1.0), np.full(n, -1.0)
         compiled_ccd.limit_pairs(SV, EV, inv, np.arange(n), m, scale, tau, factor)
-        mp = np.minimum(m, 0.5 * distance(S))
+        d = distance(S)
+        mp = np.minimum(m, np.maximum(0.5 * d, np.minimum(d, compiled_ccd.HOLD_FLOOR * m)))
         half = segment_ccd.safe_fraction(S, E, 0.5 * mp, iterations=100000)[0]
         full = segment_ccd.safe_fraction(S, E, mp, iterations=100000)[0]
         np.testing.assert_allclose(tau, half, atol=1e-12)
@@ -425,6 +454,31 @@ def test_compiled_advancement_matches_the_numpy_reference():
     tau = np.full(n, -1.0)
     compiled_ccd.limit_pairs(SV, EV, inv, np.array([3, 5]), m, True, tau, np.ones(n))
     assert np.flatnonzero(tau != -1.0).tolist() == [3, 5]
+
+
+def test_a_pair_pushed_together_in_every_call_keeps_a_floor():
+    """A pair already closer than the floor m gets half its distance per limiter call, but
+    not below HOLD_FLOOR m: pushed through each other in every call (a tangle the elastic
+    forces pull through itself, configs/jitter.toml with self-contact) it used to be
+    halved each time, to round-off and through (real crossings after 45 frames)."""
+    from lc_petsc.elements import compiled_ccd
+    m = 0.01
+    A = np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    B = np.array([[0.0, -1.0, 0.004], [0.0, 1.0, 0.004]])     # 0.4 m above A, crossing it
+    inv = np.arange(4).reshape(1, 4)
+    dist = []
+    for _ in range(60):
+        S = np.concatenate([A, B])
+        T = S.copy()
+        T[2:, 2] -= 1.0                                         # B pushed down through A
+        tau, factor = np.ones(1), np.ones(1)
+        compiled_ccd.limit_pairs(S, T, inv, np.arange(1), m, True, tau, factor)
+        f = factor[0] if tau[0] < 1.0 else 1.0
+        B = S[2:] + f * (T[2:] - S[2:])
+        dist.append(B[0, 2])
+    assert min(dist) > 0.0                                      # never through A
+    assert min(dist) >= compiled_ccd.HOLD_FLOOR * m * (1.0 - 1e-9), min(dist)
+    assert dist[-1] < 2.0 * compiled_ccd.HOLD_FLOOR * m         # the halving reached the hold
 
 
 def test_compiled_advancement_is_safe_on_sampled_paths():

@@ -263,6 +263,10 @@ class Integrator:
             self.strand.start_frame()
         self._discarded = self._discarded_checks = 0
         self._projection_move = 0.0
+        # the solves' solution vector is CG's first iterate under -ksp_initial_guess_nonzero:
+        # it would carry the last frame's last Newton step, which no checkpoint holds, so a
+        # restart would start its first solve elsewhere; every frame starts from zero
+        self.xv.zeroEntries()
         x_frame, t_frame = self.x.copy(), self.t
         solves = self._advance(cfg.time.dt, self.t + cfg.time.dt, cfg.time.max_substeps)
         if len(solves) > 1 and self.strand is not None and self.strand.mode == "ccd":

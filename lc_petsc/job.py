@@ -527,7 +527,7 @@ class Job:
         """Step 3: remove the previous run's outputs (on a restart frames.h5 and the
         checkpoints stay; a new run removes the old checkpoints with the frames.h5 they
         belong to).  OutputError on every rank."""
-        from lc_petsc.io.checkpoint import checkpoint_folder
+        from lc_petsc.io.checkpoint import checkpoint_folder, set_aside_later
         out, restart = self.out, self.restart is not None
         if self.recovery is not None:
             self.aside = self._set_aside()
@@ -537,17 +537,25 @@ class Job:
                 if not (restart and name == "frames.h5"):
                     (out / name).unlink(missing_ok=True)
             ck = checkpoint_folder(out)
+            moved = []
             if ck.is_dir():
                 for p in ck.iterdir():
                     if p.name.endswith(".h5.tmp") or (not restart and p.name.startswith("checkpoint_")):
                         p.unlink()
+                if restart:
+                    moved = set_aside_later(ck, self.restart["frame"])
             if (out / "previews").is_dir():
                 for p in (out / "previews").glob("frame_*.png"):
                     p.unlink()
-        _, problem = on_root(self.comm, clean)
+            return moved
+        moved, problem = on_root(self.comm, clean)
         if problem is not None:
             raise OutputError(f"output folder {str(out)!r}: cannot remove the previous run's outputs "
                               f"({problem.strerror if isinstance(problem, OSError) else problem})")
+        if moved:
+            self._warn(f"restarting from frame {self.restart['frame']}: the checkpoints of later frames "
+                       f"belong to the run this one replaces; renamed aside (kept, not used by --restart "
+                       f"latest): " + ", ".join(f"{a.name} -> {b.name}" for a, b in moved))
 
     def _set_aside(self):
         """Rank 0 renames the frames.h5 that cannot be appended to aside (no run removes

@@ -98,6 +98,25 @@ def list_checkpoints(folder):
     return [p for _, p in sorted(found, reverse=True)]
 
 
+def set_aside_later(folder, frame):
+    """Rank 0: rename the checkpoints in ``folder`` of frames after ``frame`` (a restart
+    from ``frame`` replaces the run they continued) to ``checkpoint_FFFFFF.superseded-N.h5``
+    (never removed; ``--restart`` can still name them).  Left as they were, the newest of
+    them was ``--restart latest``'s pick although frames.h5 no longer holds its frames,
+    and the rotation kept them in place of the new run's checkpoints.  Returns the
+    [(old, new)] paths."""
+    moved = []
+    for p in list_checkpoints(folder):
+        if int(_NAME.match(p.name).group(1)) <= int(frame):
+            continue
+        n = 1
+        while (target := p.with_name(f"{p.stem}.superseded-{n}.h5")).exists():
+            n += 1
+        os.rename(p, target)
+        moved.append((p, target))
+    return moved
+
+
 def config_sha256(config_dict) -> str:
     """SHA-256 of the resolved config (canonical JSON): a restart compares it with the checkpoint's."""
     return hashlib.sha256(json.dumps(config_dict, sort_keys=True).encode()).hexdigest()

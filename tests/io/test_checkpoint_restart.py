@@ -368,3 +368,33 @@ def test_restart_with_a_nonzero_initial_guess_is_bitwise_equal(tmp_path):
     ck = out / "checkpoints" / "checkpoint_000002.h5"
     assert main([cfg, "--out", str(out), "--quiet", "--frames", "5", "--restart", str(ck)]) == 0
     _check_each_frame_once(out, *_frames(ref))
+
+
+def test_a_restart_sets_the_later_checkpoints_aside(tmp_path, straight, capsys):
+    """A restart from frame 2 of a run that had checkpoints up to frame 6 replaces that
+    run from frame 3 on: its checkpoints 4 and 6 are renamed aside (kept), so a later
+    --restart latest continues the new run (before, it picked the old checkpoint 6,
+    whose frames the new frames.h5 no longer holds, and was refused; and the rotation
+    kept the old ones in place of the new run's)."""
+    cfg = _config(tmp_path, kept=10)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet"]) == 0
+    folder = out / "checkpoints"
+    assert sorted(p.name for p in folder.iterdir()) == [f"checkpoint_00000{k}.h5" for k in (2, 4, 6)]
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "3",
+                 "--restart", str(folder / "checkpoint_000002.h5")]) == 0
+    err = capsys.readouterr().err
+    assert "checkpoint_000004.h5 -> checkpoint_000004.superseded-1.h5" in err
+    assert sorted(p.name for p in folder.iterdir()) == [
+        "checkpoint_000002.h5", "checkpoint_000004.superseded-1.h5", "checkpoint_000006.superseded-1.h5"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert any("renamed aside" in w for w in summary["warnings"])
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    assert "restarting from" in capsys.readouterr().out
+    _check_each_frame_once(out, *straight)
+    # the set-aside files stay, and a second set-aside of the same frame gets the next number
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "3",
+                 "--restart", str(folder / "checkpoint_000002.h5")]) == 0
+    assert (folder / "checkpoint_000004.superseded-2.h5").exists()
+    assert (folder / "checkpoint_000006.superseded-1.h5").exists()

@@ -37,7 +37,7 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,  # noqa: E402
                              TimeConfig, load_config)
-from lc_petsc.studies.command_line import (bad_input, integer_at_least, parse_args,  # noqa: E402
+from lc_petsc.studies.command_line import (bad_input, check_wisps_flag, integer_at_least, parse_args,  # noqa: E402
                                            positive_number)
 from lc_petsc.studies.compare import hairball_config, run_comparison  # noqa: E402
 from lc_petsc.studies.systems import option_sets  # noqa: E402
@@ -89,9 +89,8 @@ def main(argv=None):
             base.time.newton_iterations = args.newton
             if args.wisps is None:
                 args.wisps = [base.scene.n_wisps]
-            elif base.scene.kind != "hairball":
-                raise ValueError(f"--wisps sets scene.n_wisps, which only a hairball scene has; "
-                                 f"{args.config} is scene.kind = {base.scene.kind!r}: leave out --wisps")
+            else:
+                check_wisps_flag(base, args.config)
         else:
             args.wisps = args.wisps or [250, 500]
             base = base_config(not args.no_head_contact, args.newton, args.strand_contact)

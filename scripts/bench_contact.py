@@ -31,8 +31,8 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import load_config  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
-from lc_petsc.studies.command_line import (bad_input, integer_at_least, output_file, parse_args,  # noqa: E402
-                                             positive_number)
+from lc_petsc.studies.command_line import (bad_input, check_wisps_flag, integer_at_least, output_file,  # noqa: E402
+                                             parse_args, positive_number)
 from lc_petsc.studies.contact_report import summarize, summary_table  # noqa: E402
 from lc_petsc.timing import timed_frame  # noqa: E402
 
@@ -56,6 +56,7 @@ def main():
         if "strand_collision" not in cfg.physics.terms:
             cfg.physics.terms = tuple(cfg.physics.terms) + ("strand_collision",)
         if args.wisps is not None:
+            check_wisps_flag(cfg, args.config)
             cfg.scene.n_wisps = args.wisps
         if args.thickness is not None:
             cfg.physics.strand_thickness = args.thickness

@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 from lc_petsc.config import load_config  # noqa: E402
 from lc_petsc.scene.sources import source_from_config  # noqa: E402
 from lc_petsc.simulator import build_simulator  # noqa: E402
-from lc_petsc.studies.command_line import bad_input, integer_at_least, parse_args  # noqa: E402
+from lc_petsc.studies.command_line import bad_input, check_wisps_flag, integer_at_least, parse_args  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -86,6 +86,7 @@ def main():
     try:
         cfg = load_config(args.config)
         if args.wisps:
+            check_wisps_flag(cfg, args.config)
             cfg.scene.n_wisps = args.wisps
         if "strand_collision" not in cfg.physics.terms:
             cfg.physics.terms = tuple(cfg.physics.terms) + ("strand_collision",)

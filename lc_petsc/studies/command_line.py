@@ -69,6 +69,14 @@ def output_file(text) -> str:
 output_file.__name__ = "file"
 
 
+def check_wisps_flag(cfg, path) -> None:
+    """``--wisps`` sets ``scene.n_wisps``, which only a hairball scene has: a ValueError
+    naming the config ``path`` otherwise (the flag was silently ignored)."""
+    if cfg.scene.kind != "hairball":
+        raise ValueError(f"--wisps sets scene.n_wisps, which only a hairball scene has; "
+                         f"{path} is scene.kind = {cfg.scene.kind!r}: leave out --wisps")
+
+
 def bad_input(comm, prog: str, error: Exception) -> int:
     """Report a bad input (a config, scene or option set the driver cannot use) once, by
     rank 0, as one line on stderr; returns :data:`EXIT_BAD_INPUT`."""

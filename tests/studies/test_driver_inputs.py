@@ -42,6 +42,13 @@ CASES = [
     ("drivers/compare_solvers.py", ["--config", "configs/from_file.toml", "--wisps", "3"],
      "compare_solvers.py: error: --wisps sets scene.n_wisps, which only a hairball scene has; "
      "configs/from_file.toml is scene.kind = 'file': leave out --wisps"),
+    # --wisps on a groom file's config used to be ignored silently by these two
+    ("scripts/bench_contact.py", ["--config", "configs/from_file.toml", "--wisps", "3"],
+     "bench_contact.py: error: --wisps sets scene.n_wisps, which only a hairball scene has; "
+     "configs/from_file.toml is scene.kind = 'file': leave out --wisps"),
+    ("scripts/bench_partition.py", ["--config", "configs/from_file.toml", "--wisps", "3"],
+     "bench_partition.py: error: --wisps sets scene.n_wisps, which only a hairball scene has; "
+     "configs/from_file.toml is scene.kind = 'file': leave out --wisps"),
     ("drivers/compare_solvers.py", ["--sets-dir", "SCRATCH"],
      "compare_solvers.py: error: no option sets (*.opts files) in "),
     ("drivers/compare_solvers.py", ["--repeats", "0"],

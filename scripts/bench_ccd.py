@@ -32,7 +32,7 @@ from mpi4py import MPI
 from lc_petsc.config import load_config
 from lc_petsc.crossings import count_crossings
 from lc_petsc.simulator import build_simulator
-from lc_petsc.studies.command_line import bad_input, integer_at_least, output_file
+from lc_petsc.studies.command_line import bad_input, figure_file, integer_at_least, output_file
 from lc_petsc.timing import frame_timing
 
 
@@ -152,7 +152,7 @@ def main():
     ap.add_argument("--json", type=output_file)
     ap.add_argument("--compare", nargs="+", metavar="JSON", help="print --json results side by side")
     ap.add_argument("--labels", nargs="+")
-    ap.add_argument("--plot", type=output_file, help="with --compare: a figure of wall and collision time per frame")
+    ap.add_argument("--plot", type=figure_file, help="with --compare: a figure of wall and collision time per frame")
     a = ap.parse_args()
     comm = MPI.COMM_WORLD
     if a.compare:

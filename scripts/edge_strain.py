@@ -14,7 +14,7 @@ import sys
 import numpy as np
 
 from lc_petsc.crossings import edge_strain, frames_layout
-from lc_petsc.studies.command_line import output_file
+from lc_petsc.studies.command_line import figure_file
 
 
 def frame_rows(path):
@@ -40,7 +40,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("frames", nargs="+", help="frames.h5 of runs")
     ap.add_argument("--labels", nargs="+", help="one label per file (default: the paths)")
-    ap.add_argument("--plot", type=output_file, help="write a figure of the largest strain per frame here")
+    ap.add_argument("--plot", type=figure_file, help="write a figure of the largest strain per frame here")
     a = ap.parse_args(argv)
     labels = a.labels or a.frames
     if len(labels) != len(a.frames):

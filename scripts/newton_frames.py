@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from newton_history import check_variants, named_variants, scene  # noqa: E402
 
 from lc_petsc.studies import report  # noqa: E402
-from lc_petsc.studies.command_line import bad_input, integer_at_least, positive_number  # noqa: E402
+from lc_petsc.studies.command_line import bad_input, figure_file, integer_at_least, positive_number  # noqa: E402
 from lc_petsc.studies.newton_frames import compare  # noqa: E402
 
 DEFAULT_VARIANTS = [
@@ -49,7 +49,7 @@ def main(argv=None):
     p.add_argument("--variant", action="append", help="NAME=SPEC (repeatable)")
     p.add_argument("--wisps", type=integer_at_least(1), default=10)
     p.add_argument("--out", default="out/newton_frames.json")
-    p.add_argument("--plot", help="figure path (png)")
+    p.add_argument("--plot", type=figure_file, help="figure path (png)")
     a = p.parse_args(argv)
     try:
         variants = named_variants(a.variant or DEFAULT_VARIANTS)

@@ -69,6 +69,21 @@ def output_file(text) -> str:
 output_file.__name__ = "file"
 
 
+def figure_file(text) -> str:
+    """An argparse ``type``: :func:`output_file` whose suffix is a format matplotlib
+    writes (png, pdf, svg, ...), checked before a run rather than at the end of it."""
+    text = output_file(text)
+    from matplotlib.backend_bases import FigureCanvasBase
+    kinds = FigureCanvasBase.get_supported_filetypes()
+    if Path(text).suffix.lstrip(".").lower() not in kinds:
+        raise argparse.ArgumentTypeError(f"{text}: not a figure format matplotlib writes; end the name "
+                                         f"in one of {', '.join('.' + k for k in sorted(kinds))}")
+    return text
+
+
+figure_file.__name__ = "figure"
+
+
 def check_wisps_flag(cfg, path) -> None:
     """``--wisps`` sets ``scene.n_wisps``, which only a hairball scene has: a ValueError
     naming the config ``path`` otherwise (the flag was silently ignored)."""

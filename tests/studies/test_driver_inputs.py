@@ -42,6 +42,12 @@ CASES = [
     ("drivers/compare_solvers.py", ["--config", "configs/from_file.toml", "--wisps", "3"],
      "compare_solvers.py: error: --wisps sets scene.n_wisps, which only a hairball scene has; "
      "configs/from_file.toml is scene.kind = 'file': leave out --wisps"),
+    # a figure type matplotlib cannot write used to be a traceback after the whole count
+    ("scripts/edge_strain.py", ["STRANDS", "--plot", "SCRATCH/s.txt"],
+     "edge_strain.py: error: argument --plot: SCRATCH/s.txt: not a figure format matplotlib writes; "
+     "end the name in one of "),
+    ("scripts/newton_frames.py", ["--plot", "SCRATCH/f.nope"],
+     "newton_frames.py: error: argument --plot: SCRATCH/f.nope: not a figure format matplotlib writes"),
     # --wisps on a groom file's config used to be ignored silently by these two
     ("scripts/bench_contact.py", ["--config", "configs/from_file.toml", "--wisps", "3"],
      "bench_contact.py: error: --wisps sets scene.n_wisps, which only a hairball scene has; "

@@ -18,16 +18,26 @@ from lc_petsc.simulator import build_simulator
 from lc_petsc.studies import report
 
 #: Variant keys (``key=value`` pairs joined by commas) and the config fields they set.
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+
+
+def _flag(value):
+    """A variant's on/off value (a word that is neither was read as off)."""
+    if value not in _TRUE + _FALSE:
+        raise ValueError(f"variant value {value!r}: use one of {', '.join(_TRUE + _FALSE)}")
+    return value in _TRUE
+
+
 VARIANT_KEYS: dict[str, tuple[str, str, Callable[[str], Any]]] = {
     "filter": ("solver", "filter", str),
     "fallback": ("solver", "exact_fallback", str),
-    "stay": ("solver", "exact_stay", lambda v: v in ("1", "true", "yes", "on")),
+    "stay": ("solver", "exact_stay", _flag),
     "stop": ("time", "newton_stop", str),
     "guess": ("time", "initial_guess", str),
-    "carry": ("time", "carry_with_head", lambda v: v in ("1", "true", "yes", "on")),
+    "carry": ("time", "carry_with_head", _flag),
     "update": ("time", "newton_update", str),
     "newton": ("time", "newton", str),
-    "ls": ("time", "line_search", lambda v: v in ("1", "true", "yes", "on")),
+    "ls": ("time", "line_search", _flag),
     "terms": ("physics", "terms", lambda v: tuple(v.split("+"))),
     "options": ("solver", "options", str),
 }
@@ -57,7 +67,7 @@ def configure(base_cfg, variant: dict, iterations, frames):
     for key, value in variant.items():
         if key in ("head", "strands"):
             term = "head_collision" if key == "head" else "strand_collision"
-            if value in ("0", "false", "no", "off"):
+            if not _flag(value):
                 cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != term)
             continue
         section, name, conv = VARIANT_KEYS[key]

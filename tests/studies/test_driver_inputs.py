@@ -89,6 +89,12 @@ CASES = [
      "bench_checkpoint.py: error: --dir SCRATCH/nope: no such folder"),
     ("scripts/newton_history.py", ["--scenes", "hairball10", "smash", "--variant", "x=filter=nah"],
      "newton_history.py: error: --variant x=filter=nah: solver.filter must be one of"),
+    # an on/off word that is neither was read as off
+    ("scripts/newton_history.py", ["--scenes", "smash", "--variant", "x=ls=maybe"],
+     "newton_history.py: error: --variant x=ls=maybe: variant value 'maybe': use one of 1, true, yes, on, "
+     "0, false, no, off"),
+    ("scripts/newton_history.py", ["--scenes", "smash", "--variant", "x=head=maybe"],
+     "newton_history.py: error: --variant x=head=maybe: variant value 'maybe': use one of"),
     ("scripts/newton_history.py", ["--variant", "analytic"],
      "newton_history.py: error: --variant 'analytic': use NAME=SPEC, e.g."),
     ("scripts/newton_errors.py", ["--scene", "smash", "--variant", "colour=red", "--out", "SCRATCH/out/e.json"],

@@ -236,8 +236,7 @@ def _count_share(path, rank, size, self_contact):
     import h5py
     from lc_petsc.io.frames import valid_rows
     with h5py.File(path, "r") as f:
-        off = np.asarray(f["wisp_offsets"][...], np.int64)
-        rest = np.asarray(f["rest_positions"][...], float)
+        off, rest = frames_layout(f, with_rest=True)
         steps = valid_steps(valid_rows(f))
         rows = []
         for k, prev, cur in _steps(f, steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]):

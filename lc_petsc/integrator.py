@@ -42,7 +42,9 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   fails, up to ``max_substeps`` steps in the frame (:meth:`Integrator._advance`); every
   frame starts at the full dt again, so frames, checkpoints and restarts stay at frame
   times.  Strand contact's per-step hooks (ccd first iterate and frame path,
-  separation, measures) run per substep, its statistics' entries per frame.  A frame
+  separation, measures) run per substep, its statistics' entries per frame; in ccd
+  mode the frame's own path x_n -> x_{n+1} is then checked too (the chord of the
+  substeps' chain can cross, :meth:`Integrator._collision_free_frame_path`).  A frame
   still short of the tolerance is kept (``time.unconverged = "accept"``) or ends the
   run (``"error"``: :class:`SimulationError`).
 * ``solver.filter = "exact_or_analytic"``: once the relative increment is below
@@ -267,7 +269,7 @@ class Integrator:
         # it would carry the last frame's last Newton step, which no checkpoint holds, so a
         # restart would start its first solve elsewhere; every frame starts from zero
         self.xv.zeroEntries()
-        x_frame, t_frame = self.x.copy(), self.t
+        x_frame, t_frame = self.x, self.t      # replaced by the step, never changed in place
         solves = self._advance(cfg.time.dt, self.t + cfg.time.dt, cfg.time.max_substeps)
         if len(solves) > 1 and self.strand is not None and self.strand.mode == "ccd":
             solves[-1] = self._collision_free_frame_path(x_frame, t_frame, solves[-1])

@@ -89,13 +89,18 @@ def checkpoint_path(out, frame) -> Path:
     return checkpoint_folder(out) / f"checkpoint_{int(frame):06d}.h5"
 
 
-def list_checkpoints(folder):
-    """Checkpoint files in ``folder``, newest (highest frame) first."""
+def _numbered(folder):
+    """(frame, path) of the checkpoint files in ``folder``, newest (highest frame) first."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
-    found = [(int(m.group(1)), folder / p) for p in os.listdir(folder) if (m := _NAME.match(p))]
-    return [p for _, p in sorted(found, reverse=True)]
+    return sorted(((int(m.group(1)), folder / p) for p in os.listdir(folder) if (m := _NAME.match(p))),
+                  reverse=True)
+
+
+def list_checkpoints(folder):
+    """Checkpoint files in ``folder``, newest (highest frame) first."""
+    return [p for _, p in _numbered(folder)]
 
 
 def set_aside_later(folder, frame):
@@ -106,9 +111,9 @@ def set_aside_later(folder, frame):
     and the rotation kept them in place of the new run's checkpoints.  Returns the
     [(old, new)] paths."""
     moved = []
-    for p in list_checkpoints(folder):
-        if int(_NAME.match(p.name).group(1)) <= int(frame):
-            continue
+    for at, p in _numbered(folder):
+        if at <= int(frame):
+            break
         n = 1
         while (target := p.with_name(f"{p.stem}.superseded-{n}.h5")).exists():
             n += 1

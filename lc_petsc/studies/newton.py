@@ -17,7 +17,6 @@ import numpy as np
 from lc_petsc.simulator import build_simulator
 from lc_petsc.studies import report
 
-#: Variant keys (``key=value`` pairs joined by commas) and the config fields they set.
 _TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 
@@ -28,6 +27,7 @@ def _flag(value):
     return value in _TRUE
 
 
+#: Variant keys (``key=value`` pairs joined by commas) and the config fields they set.
 VARIANT_KEYS: dict[str, tuple[str, str, Callable[[str], Any]]] = {
     "filter": ("solver", "filter", str),
     "fallback": ("solver", "exact_fallback", str),

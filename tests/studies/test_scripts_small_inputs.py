@@ -48,3 +48,17 @@ def test_make_groom_usd_refuses_a_non_usd_name_and_keeps_that_file(tmp_path):
     assert [line for line in proc.stderr.splitlines() if "error:" in line] == [
         f"make_groom_usd.py: error: {keep}: give a USD file name ending in .usda, .usdc or .usd"]
     assert keep.read_bytes() == b"groom"
+
+
+def test_bench_bandwidth_prints_a_positive_rate_per_rank(capsys):
+    """One rank: one rate, the total equal to it; bad sizes refused by argparse."""
+    import pytest
+    bench = _script("bench_bandwidth")
+    assert bench.main(["--doubles", "2000", "--passes", "2"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    rates = [float(r) for r in lines[1].split(":")[1].split()]
+    assert len(rates) == 1 and rates[0] > 0
+    assert lines[2].startswith(f"total {rates[0]:.1f} GB/s")
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["--doubles", "10"])
+    assert exit_info.value.code == 2

@@ -184,6 +184,23 @@ def test_warn_when_a_tolerance_meets_a_linearly_converging_newton(time, solver, 
         assert "converges linearly" in w[0] and "exact_or_analytic" in w[0]
 
 
+@pytest.mark.parametrize("dt, tol, warned", [
+    (0.2, 1e-3, True), (0.1, 1e-4, True),
+    (0.2, 1e-6, False),                       # measured within 0.33x of the tolerance
+    (1 / 30, 1e-4, False),                    # the shipped step: stops measured within it
+    (0.2, None, False),                       # a fixed count asks for nothing
+])
+def test_warn_when_a_loose_tolerance_meets_a_large_step(dt, tol, warned):
+    """exact_or_analytic at dt 0.1-0.2 stopped 9-32x a tolerance of 1e-3 / 1e-4 away from
+    the solution (docs/newton.md "Large steps fool a loose tolerance"): warned, naming the key."""
+    time = dict(dt=dt) if tol is None else dict(dt=dt, newton_increment_tol=tol)
+    cfg = SimConfig(time=TimeConfig(**time), solver=SolverConfig(filter="exact_or_analytic")).validate()
+    w = newton_warnings(cfg)
+    assert bool(w) == warned, w
+    if warned:
+        assert f"time.newton_increment_tol = {tol:g}" in w[0] and "1e-6" in w[0]
+
+
 def test_the_job_reports_the_newton_warning(tmp_path):
     """The main job puts it in summary.json's warnings."""
     cfg = tmp_path / "s.toml"

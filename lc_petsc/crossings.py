@@ -14,6 +14,8 @@
 * ``scripts/count_crossings.py`` runs it over a ``frames.h5``; :func:`check_run` is the
   main job's end-of-run check (``output.check_crossings``): the crossings and the
   largest edge strain of a run's frames, the steps shared by the ranks.
+* :func:`rest_exempt_pairs`: which crossing pairs strand contact exempts (closer than
+  its thickness at rest), so that the check does not blame the ccd limiter for them.
 * :func:`edge_strain`: every edge's strain against the rest pose
   (``scripts/edge_strain.py`` per frame of a ``frames.h5``: torn strands, issue 13).
 """
@@ -23,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from lc_petsc.elements.compiled_ccd import box_pairs, safe_fraction, screen_paths
+from lc_petsc.elements.segment_contact import distance as segment_distance
 from lc_petsc.elements.segment_ccd import affine_field, affine_sums, field_boxes, tight_inclusion_toi
 
 
@@ -109,6 +112,16 @@ def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0):
             "min_distance": float(d1[other].min(initial=np.inf))}
 
 
+def rest_exempt_pairs(rest, pairs, thickness):
+    """Boolean (k,): whether each segment pair (first global vertices, (k, 2)) is closer
+    than ``thickness`` in the rest positions ``rest``: strand contact exempts such pairs
+    (penalty mode always, ccd mode with ``physics.strand_rest_overlap = "exempt"``;
+    the test of ``StrandContact``), so they may pass through each other."""
+    if len(pairs) == 0:
+        return np.zeros(0, bool)
+    return segment_distance(pair_positions(np.asarray(rest, float), pairs)) < thickness
+
+
 def edge_strain(x, rest, offsets):
     """Strain |e| / |e_rest| - 1 of every edge of every wisp (n_vertices - n_wisps,), x and
     rest (n_vertices, 3), wisps ``offsets`` (n_wisps + 1,)."""
@@ -172,7 +185,7 @@ def count_frames(path, self_contact=False, progress=None):
 STRAIN_WARN = 0.10
 
 
-def check_run(path, comm, self_contact=False):
+def check_run(path, comm, self_contact=False, rest_exempt=None):
     """The crossings along the straight paths between consecutive frames of the closed
     ``frames.h5`` at ``path`` (what a viewer interpolating the frames shows), and the
     edges' strain in the frames after the first, for the run's end-of-run check.
@@ -184,13 +197,16 @@ def check_run(path, comm, self_contact=False):
     (crossings of segments of different wisps, and the steps that have any),
     ``first_between`` (first such step, step k: rows k -> k + 1, or None); with
     ``self_contact`` also ``within_wisps``, ``steps_within`` and ``first_within``
-    (segments of one wisp sharing no vertex), else those are None; ``largest_strain``
+    (segments of one wisp sharing no vertex), else those are None; with ``rest_exempt``
+    (the run's contact thickness d0) ``between_exempt`` and ``within_exempt``: how many of
+    those crossings are of pairs closer than d0 at rest, which the contact exempts
+    (:func:`rest_exempt_pairs`), else None; ``largest_strain``
     (the largest |edge length / rest length - 1| over the rows that end a step),
     ``largest_strain_row`` and ``rows_over_strain`` (rows with an edge beyond
     :data:`STRAIN_WARN`).  ``{"error": message}`` when the file cannot be read."""
     rows, problem, n_steps = [], None, 0     # (step, between, within, strain) of this rank's steps
     try:
-        rows, n_steps = _count_share(path, comm.rank, comm.size, self_contact)
+        rows, n_steps = _count_share(path, comm.rank, comm.size, self_contact, rest_exempt)
     except Exception as e:  # noqa: BLE001 - never a reason to lose the run's summary, and
         # one rank's failure must be every rank's answer (the others wait in allgather)
         problem = f"{path}: {e}" if isinstance(e, (OSError, KeyError, ValueError)) else \
@@ -210,6 +226,8 @@ def check_run(path, comm, self_contact=False):
             "within_wisps": sum(r[2] for r in rows) if self_contact else None,
             "steps_within": len(within) if self_contact else None,
             "first_within": (within[0][0] if within else None) if self_contact else None,
+            "between_exempt": sum(r[4] for r in rows) if rest_exempt is not None else None,
+            "within_exempt": sum(r[5] for r in rows) if rest_exempt is not None and self_contact else None,
             "largest_strain": worst[3] if worst else None,
             "largest_strain_row": worst[0] + 1 if worst else None,
             "rows_over_strain": sum(r[3] > STRAIN_WARN for r in rows)}
@@ -231,8 +249,9 @@ def _steps(f, steps):
         yield k, prev, last[1]
 
 
-def _count_share(path, rank, size, self_contact):
-    """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps."""
+def _count_share(path, rank, size, self_contact, rest_exempt=None):
+    """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps;
+    a row is (step, between, within, strain, exempt between, exempt within)."""
     import h5py
     from lc_petsc.io.frames import valid_rows
     with h5py.File(path, "r") as f:
@@ -242,5 +261,11 @@ def _count_share(path, rank, size, self_contact):
         for k, prev, cur in _steps(f, steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]):
             r = count_crossings(prev, cur, off, self_contact)
             strain = float(np.abs(edge_strain(cur, rest, off)).max(initial=0.0))
-            rows.append((k, r["crossings"] - r["within"], r["within"], strain))
+            ex_between = ex_within = 0
+            if rest_exempt is not None and r["crossings"]:
+                pairs = r["pairs"]
+                exempt = rest_exempt_pairs(rest, pairs, rest_exempt)
+                same = np.searchsorted(off, pairs[:, 0], "right") == np.searchsorted(off, pairs[:, 1], "right")
+                ex_between, ex_within = int(np.sum(exempt & ~same)), int(np.sum(exempt & same))
+            rows.append((k, r["crossings"] - r["within"], r["within"], strain, ex_between, ex_within))
     return rows, len(steps)

@@ -94,11 +94,16 @@ def format_report(s) -> str:
     if check and "error" in check:
         lines.append(f"  crossings between the frames written: not checked ({check['error']})")
     elif check:
-        within = "" if check["within_wisps"] is None else f", within wisps {check['within_wisps']}"
+        def exempt(kind):       # crossings of pairs the contact exempts at rest
+            n = check.get(f"{kind}_exempt")
+            return f" ({n} of pairs exempt at rest)" if n else ""
+        within = "" if check["within_wisps"] is None else \
+            f", within wisps {check['within_wisps']}{exempt('within')}"
         strain = ("" if check.get("largest_strain") is None else
                   f"; largest edge strain {100 * check['largest_strain']:.2f}%")
         lines.append(f"  crossings between the frames written: between wisps {check['between_wisps']}"
-                     f"{within} over {check['steps']} steps{strain} (checked in {_fmt_s(check['seconds'])})")
+                     f"{exempt('between')}{within} over {check['steps']} steps{strain} "
+                     f"(checked in {_fmt_s(check['seconds'])})")
     for w in s.get("warnings", []):
         lines.append(f"  warning: {w}")
     out = s.get("output", {})

@@ -177,8 +177,8 @@ def crossing_warnings(check, cfg):
     """Warnings for the end-of-run crossing check ``check``
     (:func:`lc_petsc.crossings.check_run`): how many, where first, and the key that
     prevents them in this run's contact set-up; edges strained beyond STRAIN_WARN.  In
-    ``ccd`` mode with ``output.every`` > 1 the simulated steps are collision-free; the
-    straight paths across several of them, which a viewer interpolating the frames
+    ``ccd`` mode with ``output.every`` > 1 the limiter limits the simulated steps, which
+    this check cannot see; the straight paths across several of them, which a viewer interpolating the frames
     written draws, need not be.  Crossings of pairs the contact exempts (closer than its
     thickness at rest: ``between_exempt`` / ``within_exempt``) are put down to the
     exemption, not to the limiter."""
@@ -191,10 +191,11 @@ def crossing_warnings(check, cfg):
              f"straight path between them is not the simulated one (output.every = 1 checks the "
              f"simulated paths)") if every > 1 else ""
     if every > 1:       # in ccd mode: the cause is the interpolation, not the limiter
-        limited = (f"the ccd limiter keeps every simulated step collision-free, but the frames written are "
-                   f"output.every = {every} steps apart and the straight paths across them are not: a "
-                   f"viewer or renderer interpolating between the frames (motion blur, USD time samples) "
-                   f"shows these; output.every = 1 writes collision-free paths")
+        limited = (f"the frames written are output.every = {every} steps apart and the straight paths "
+                   f"across them are not the simulated ones, which the ccd limiter limits (this check "
+                   f"cannot see those steps): a viewer or renderer interpolating between the frames "
+                   f"(motion blur, USD time samples) shows these crossings; output.every = 1 writes "
+                   f"and checks the simulated paths")
     else:
         limited = ("the ccd limiter should have prevented them (see any unresolved-pairs warning); "
                    "please report it with the config")

@@ -356,6 +356,17 @@ def _reserve(path, nbytes):
         os.close(fd)
 
 
+#: what h5py raises on a damaged file: OSError (unreadable bytes), KeyError (an object
+#: header it cannot open: "bad object header version number"), RuntimeError, and
+#: ValueError / TypeError (a dataset of another shape or type)
+_H5_DAMAGE = (OSError, KeyError, RuntimeError, ValueError, TypeError)
+
+
+def _h5_reason(e):
+    """h5py's message without the quotes a KeyError adds."""
+    return e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+
+
 def _attr(v):
     if isinstance(v, bytes):
         return v.decode()
@@ -433,6 +444,9 @@ def load_checkpoint(path, comm, scene, n_wisps, n_vertices, head):
             res = _precheck(path, n_wisps, n_vertices, offsets, head)
         except CheckpointError as e:
             res = e
+        except _H5_DAMAGE as e:     # raised on rank 0 alone, the others would wait in bcast
+            res = CheckpointError(f"{path}: corrupt checkpoint: its HDF5 structure is damaged "
+                                  f"({_h5_reason(e)})")
     res = comm.bcast(res)
     if isinstance(res, CheckpointError):
         raise CheckpointError(str(res))
@@ -476,8 +490,8 @@ def read_positions(path, offsets):
             attrs = {k: _attr(v) for k, v in f.attrs.items()}
             x = f["positions"][...]
             digest = _attr(f["positions"].attrs.get("sha256"))
-    except (OSError, KeyError) as e:
-        raise CheckpointError(f"{name}: unreadable checkpoint ({e})") from None
+    except _H5_DAMAGE as e:
+        raise CheckpointError(f"{name}: unreadable checkpoint ({_h5_reason(e)})") from None
     if attrs.get("format") != FORMAT or attrs.get("meta_sha256") != _meta_digest(attrs):
         raise CheckpointError(f"{name}: not an lc_petsc checkpoint, or its attributes fail their checksum")
     if x.shape != (int(offsets[-1]), 3) or \

@@ -196,6 +196,37 @@ def test_corruption_detected_and_latest_falls_back(tmp_path, straight, capsys):
     _check_each_frame_once(out, *straight)
 
 
+def _damage_header(path, dataset):
+    """Break the object header of ``dataset``: its version byte (h5py then raises
+    KeyError "bad object header version number" on opening it, not OSError)."""
+    with h5py.File(path, "r") as f:
+        addr = h5py.h5o.get_info(f[dataset].id).addr
+    with open(path, "r+b") as fh:
+        fh.seek(addr)
+        fh.write(b"\x07")
+
+
+def test_damaged_object_header_is_an_error_and_latest_falls_back(tmp_path, straight, capsys):
+    """A checkpoint whose HDF5 structure is damaged (not only its data) was a KeyError
+    traceback (exit 1) from --restart FILE and from --restart latest, which never got
+    to the older good checkpoint."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "4"]) == 0
+    ck4 = out / "checkpoints" / "checkpoint_000004.h5"
+    _damage_header(ck4, "wisp_offsets")
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", str(ck4)]) == 2
+    err = capsys.readouterr().err
+    assert f"{ck4}: corrupt checkpoint: its HDF5 structure is damaged (Unable to open object " \
+           "(bad object header version number))" in err, err
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    err = capsys.readouterr().err
+    assert "skipping an invalid checkpoint" in err and "structure is damaged" in err
+    assert "falling back to" in err and "checkpoint_000002.h5" in err
+    _check_each_frame_once(out, *straight)
+
+
 def test_truncated_and_flipped_positions_rejected(tmp_path, capsys):
     cfg = _config(tmp_path, ce=1, kept=3, frames=3)
     out = tmp_path / "out"

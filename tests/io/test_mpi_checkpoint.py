@@ -2,7 +2,7 @@
 mpiexec -n 2 and -n 3): a SIGUSR1 that reaches one rank only stops every rank after
 the same frame with a checkpoint and exit status 75; the restart on the same ranks
 continues to the serial result with each frame once; a corrupt dataset is rejected
-on every rank with the same status."""
+on every rank with the same status, and so is a damaged HDF5 structure."""
 
 import os
 import signal
@@ -90,6 +90,33 @@ def test_corrupt_checkpoint_rejected_on_every_rank(shared_dir, capsys):
     err = capsys.readouterr().err
     if comm.rank == 0:
         assert "/positions fails its checksum" in err and ck in err, err
+
+
+def test_damaged_checkpoint_structure_rejected_on_every_rank(shared_dir, capsys):
+    """h5py's KeyError on a damaged object header was raised on rank 0 alone, in the
+    serial check the other ranks wait for (a traceback, or a hang in the broadcast)."""
+    d, cfg = shared_dir
+    out = os.path.join(d, "out")
+    ck = os.path.join(out, "checkpoints", "checkpoint_000002.h5")
+    over = os.path.join(d, "c.toml")
+    if comm.rank == 0:
+        with open(over, "w") as f:
+            f.write(SCENE.replace("checkpoint_every = 0", "checkpoint_every = 2"))
+    comm.Barrier()
+    assert comm.allgather(main([over, "--out", out, "--quiet", "--frames", "2"], comm=comm)) == [0] * comm.size
+    if comm.rank == 0:
+        with h5py.File(ck, "r") as f:
+            addr = h5py.h5o.get_info(f["head_state"].id).addr
+        with open(ck, "r+b") as fh:       # the object header's version byte
+            fh.seek(addr)
+            fh.write(b"\x07")
+    comm.Barrier()
+    capsys.readouterr()
+    code = main([over, "--out", out, "--quiet", "--restart", ck, "--frames", "3"], comm=comm)
+    assert comm.allgather(code) == [2] * comm.size
+    err = capsys.readouterr().err
+    if comm.rank == 0:
+        assert f"{ck}: corrupt checkpoint: its HDF5 structure is damaged" in err, err
 
 
 def test_restart_from_an_earlier_checkpoint_rewrites_every_time_row(shared_dir):

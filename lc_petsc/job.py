@@ -277,6 +277,7 @@ class Job:
         self.writer = None
         self.flushed = 0.0               # when frames.h5 was last flushed (perf_counter)
         self.restart = None
+        self.outputs_only = False   # a restart at the last frame: the end-of-run outputs only
         self.recovery = None        # the RecoveryPlan of a frames.h5 that cannot be appended to
         self.aside = None           # where that frames.h5 was renamed to
         self.recovery_report = None     # summary.json's frames_recovery
@@ -460,7 +461,11 @@ class Job:
         if ck["attrs"]["every"] != cfg.output.every:
             raise Refused(f"{ck['path']}: output.every = {cfg.output.every} but the run's frames.h5 was "
                           f"written with {ck['attrs']['every']}; it cannot be appended to")
-        if cfg.time.frames <= ck["frame"]:
+        # a checkpoint at the last frame continues a run killed during its end-of-run
+        # outputs (no summary.json): they are written again, no frame is run
+        self.outputs_only = cfg.time.frames == ck["frame"] and self.comm.bcast(
+            unfinished_run(self.out) is not None if self.comm.rank == 0 else None)
+        if cfg.time.frames <= ck["frame"] and not self.outputs_only:
             raise Refused(f"{ck['path']}: the checkpoint is at frame {ck['frame']}, the run ends at frame "
                           f"{cfg.time.frames} (time.frames / --frames is the total): nothing to do")
         same_rest = np.array_equal(ck["rest"], sim.user.x_rest) and np.array_equal(ck["pinned"], sim.user.pinned)
@@ -649,6 +654,10 @@ class Job:
                 say(comm, f"{PROG}: restarting from {self.restart['path']} at frame {start} "
                           f"(t = {self.restart['time']:.6g} s, written on "
                           f"{self.restart['attrs']['ranks']} rank(s), now {comm.size})")
+            if self.outputs_only:
+                say(comm, f"{PROG}: frame {start} is the run's last: no frame to run; writing the "
+                          "end-of-run outputs the interrupted run did not finish (summary.json and "
+                          "the exports from frames.h5)")
             bar = _progress(comm, self.args, cfg.time.frames - start, self.name)
             self.t_loop = self.flushed = time.perf_counter()
             every, ck_every = cfg.output.every, cfg.output.checkpoint_every

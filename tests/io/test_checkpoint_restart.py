@@ -245,6 +245,33 @@ def test_truncated_and_flipped_positions_rejected(tmp_path, capsys):
     assert "/positions fails its checksum" in err and "checkpoint_000001.h5" in err
 
 
+def test_a_run_killed_in_its_end_of_run_outputs_restarts_from_its_last_frame(tmp_path, straight, capsys):
+    """Killed (SIGKILL; or mpiexec's SIGKILL a second after its SIGTERM) while writing the
+    exports after its last frame's checkpoint, a run leaves frames.h5 whole, that
+    checkpoint and no summary.json: a new run is refused ("continue it with --restart
+    latest"), and --restart latest was refused too ("nothing to do"), so only --force
+    (start over) was left.  Now the restart writes the outputs, running no frame."""
+    cfg = _config(tmp_path, frames=4)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet"]) == 0
+    (out / "summary.json").unlink()          # what the kill during the exports leaves
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet"]) == 2
+    assert "continue it with --restart latest" in capsys.readouterr().err
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    text = capsys.readouterr().out
+    assert "frame 4 is the run's last: no frame to run; writing the end-of-run outputs" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["frames"], summary["frames_this_run"], summary["error"]) == (4, 0, None)
+    assert summary["restart"]["frame"] == 4
+    pos, t = _frames(out)
+    ref_pos, ref_t = straight
+    assert np.array_equal(pos, ref_pos[:5]) and np.array_equal(t, ref_t[:5])
+    # the outputs are done: the same restart again has nothing to do
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 2
+    assert "nothing to do" in capsys.readouterr().err
+
+
 def test_clear_errors(tmp_path, capsys):
     cfg = _config(tmp_path)
     out = tmp_path / "out"

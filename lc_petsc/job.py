@@ -111,8 +111,9 @@ def _options_string(d):
 
 def unfinished_run(out):
     """Why the output folder ``out`` holds a run that did not finish and can be
-    continued (its checkpoints, and a summary.json that says it was stopped by a signal,
-    or none: killed), else None.  A new run there would remove them (serial, read-only)."""
+    continued (its checkpoints, and a summary.json that says it was stopped by a signal
+    or failed (a full disk), or none: killed), else None.  A new run there would remove
+    them (serial, read-only)."""
     import json
     from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints
     found = list_checkpoints(checkpoint_folder(out))
@@ -127,6 +128,8 @@ def unfinished_run(out):
         return f"summary.json unreadable; {newest}"
     if summary.get("preempted"):
         return f"stopped by {summary['preempted']} after frame {summary.get('frames')}; {newest}"
+    if summary.get("error"):      # a full disk: free space and continue, not start over
+        return f"failed: {summary['error']}; {newest}"
     return None
 
 
@@ -890,11 +893,23 @@ class Job:
         print(format_report(summary), flush=True)
         if self.error:
             print(f"{PROG}: error: {self.error}", file=sys.stderr, flush=True)
+            self._say_how_to_continue()
         if summary["preempted"]:
             last = self.checkpointer.written[-1]["path"] if self.checkpointer.written else "?"
             print(f"{PROG}: {summary['preempted']} received: stopped after frame {sim.integrator.frame}, "
                   f"checkpoint {last} written; continue with --restart latest "
                   f"(exit status {EXIT_PREEMPTED})", file=sys.stderr, flush=True)
+
+
+    def _say_how_to_continue(self):
+        """Rank 0, after a failure: the folder's newest checkpoint and --restart latest
+        (a new run into the folder is refused while they are there, unfinished_run)."""
+        from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints
+        found = list_checkpoints(checkpoint_folder(self.out))
+        if found:
+            print(f"{PROG}: the checkpoints are kept (newest {found[0]}): once the cause is fixed "
+                  "(e.g. space freed), continue with --restart latest; or start over with --force",
+                  file=sys.stderr, flush=True)
 
 
 class Checkpointer:

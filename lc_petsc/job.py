@@ -869,7 +869,8 @@ class Job:
                 usd_files, t_usd = export_run(cfg.output, h5_path, out)
                 files += usd_files
             except Exception as e:  # noqa: BLE001 - like a preview, never worth the summary
-                text = f"USD export failed, frames.h5 is intact: {type(e).__name__}: {e}"
+                text = (f"USD export failed, frames.h5 is intact (write it later with drivers/to_usd.py "
+                        f"{h5_path}): {type(e).__name__}: {e}")
                 print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
                 summary["warnings"] = list(summary.get("warnings") or []) + [text]
         files.append("summary.json")

@@ -416,6 +416,27 @@ def test_checkpoint_that_cannot_reserve_its_bytes(tmp_path, monkeypatch, capsys)
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
 
 
+def test_usd_export_on_a_full_disk_leaves_no_temporary_file(tmp_path, small_volume, capsys):
+    """On a full disk USD's CreateNew fails after creating frames.tmp.usdc (empty); it
+    was created before the block that removes the temporary file on failure, so the
+    file stayed.  The warning names the converter that writes the export later."""
+    from lc_petsc.config import OutputConfig
+    from lc_petsc.io.usd import export_run
+    cfg = _smash(tmp_path, frames=2, ce=0)
+    out = small_volume / "out"
+    assert main([cfg, "--out", str(out), "--quiet"]) == 0
+    (out / "frames.usdc").unlink()
+    before = sorted(p.name for p in out.iterdir())
+    _fill(small_volume, 0)
+    capsys.readouterr()
+    files, _ = export_run(OutputConfig(), out / "frames.h5", out)
+    assert files == []
+    err = capsys.readouterr().err
+    assert "USD export failed, frames.h5 is intact" in err, err
+    assert f"write it later with drivers/to_usd.py {out / 'frames.h5'}" in err, err
+    assert sorted(p.name for p in out.iterdir()) == before
+
+
 def test_outputs_that_cannot_be_written_are_reported(tmp_path, capsys):
     cfg = _smash(tmp_path, frames=3, ce=0, previews="true")
     out = tmp_path / "out"

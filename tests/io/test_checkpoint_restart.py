@@ -179,23 +179,6 @@ def _flip(path, dataset, at=100):
         fh.write(bytes([b[0] ^ 0x5A]))
 
 
-def test_corruption_detected_and_latest_falls_back(tmp_path, straight, capsys):
-    cfg = _config(tmp_path)
-    out = tmp_path / "out"
-    assert main([cfg, "--out", str(out), "--quiet", "--frames", "4"]) == 0
-    ck4 = out / "checkpoints" / "checkpoint_000004.h5"
-    _flip(ck4, "velocities")
-    capsys.readouterr()
-    assert main([cfg, "--out", str(out), "--quiet", "--restart", str(ck4)]) == 2
-    err = capsys.readouterr().err
-    assert str(ck4) in err and "/velocities fails its checksum" in err
-    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
-    err = capsys.readouterr().err
-    assert "skipping an invalid checkpoint" in err and "/velocities" in err
-    assert "falling back to" in err and "checkpoint_000002.h5" in err
-    _check_each_frame_once(out, *straight)
-
-
 def _damage_header(path, dataset):
     """Break the object header of ``dataset``: its version byte (h5py then raises
     KeyError "bad object header version number" on opening it, not OSError)."""
@@ -206,23 +189,26 @@ def _damage_header(path, dataset):
         fh.write(b"\x07")
 
 
-def test_damaged_object_header_is_an_error_and_latest_falls_back(tmp_path, straight, capsys):
-    """A checkpoint whose HDF5 structure is damaged (not only its data) was a KeyError
-    traceback (exit 1) from --restart FILE and from --restart latest, which never got
-    to the older good checkpoint."""
+@pytest.mark.parametrize("damage, message", [
+    (lambda p: _flip(p, "velocities"), "corrupt checkpoint: dataset /velocities fails its checksum"),
+    # the HDF5 structure, not only the data: a KeyError traceback (exit 1) from --restart
+    # FILE and from --restart latest, which never got to the older good checkpoint
+    (lambda p: _damage_header(p, "wisp_offsets"), "corrupt checkpoint: its HDF5 structure is damaged "
+     "(Unable to open object (bad object header version number))"),
+])
+def test_corruption_detected_and_latest_falls_back(tmp_path, straight, capsys, damage, message):
     cfg = _config(tmp_path)
     out = tmp_path / "out"
     assert main([cfg, "--out", str(out), "--quiet", "--frames", "4"]) == 0
     ck4 = out / "checkpoints" / "checkpoint_000004.h5"
-    _damage_header(ck4, "wisp_offsets")
+    damage(ck4)
     capsys.readouterr()
     assert main([cfg, "--out", str(out), "--quiet", "--restart", str(ck4)]) == 2
     err = capsys.readouterr().err
-    assert f"{ck4}: corrupt checkpoint: its HDF5 structure is damaged (Unable to open object " \
-           "(bad object header version number))" in err, err
+    assert f"{ck4}: {message}" in err, err
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
     err = capsys.readouterr().err
-    assert "skipping an invalid checkpoint" in err and "structure is damaged" in err
+    assert "skipping an invalid checkpoint" in err and message in err
     assert "falling back to" in err and "checkpoint_000002.h5" in err
     _check_each_frame_once(out, *straight)
 

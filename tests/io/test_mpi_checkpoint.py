@@ -67,7 +67,29 @@ def test_signal_on_one_rank_stops_all(shared_dir, monkeypatch):
     _agree(ok, msg)
 
 
-def test_corrupt_checkpoint_rejected_on_every_rank(shared_dir, capsys):
+def _byte_in_the_last_ranks_rows(ck):
+    with h5py.File(ck, "r") as f:
+        off = f["positions"].id.get_offset()
+    with open(ck, "r+b") as fh:
+        fh.seek(off + 350 * 24 + 8)
+        fh.write(b"\xff")
+
+
+def _object_header(ck):
+    """h5py's KeyError on it was raised on rank 0 alone, in the serial check the other
+    ranks wait for (a traceback, or a hang in the broadcast)."""
+    with h5py.File(ck, "r") as f:
+        addr = h5py.h5o.get_info(f["head_state"].id).addr
+    with open(ck, "r+b") as fh:       # its version byte
+        fh.seek(addr)
+        fh.write(b"\x07")
+
+
+@pytest.mark.parametrize("damage, message", [
+    (_byte_in_the_last_ranks_rows, "/positions fails its checksum"),
+    (_object_header, "corrupt checkpoint: its HDF5 structure is damaged"),
+])
+def test_corrupt_checkpoint_rejected_on_every_rank(shared_dir, capsys, damage, message):
     d, cfg = shared_dir
     out = os.path.join(d, "out")
     ck = os.path.join(out, "checkpoints", "checkpoint_000002.h5")
@@ -78,45 +100,14 @@ def test_corrupt_checkpoint_rejected_on_every_rank(shared_dir, capsys):
     comm.Barrier()
     assert comm.allgather(main([over, "--out", out, "--quiet", "--frames", "2"], comm=comm)) == [0] * comm.size
     if comm.rank == 0:
-        with h5py.File(ck, "r") as f:
-            off = f["positions"].id.get_offset()
-        with open(ck, "r+b") as fh:      # a byte in the last rank's rows
-            fh.seek(off + 350 * 24 + 8)
-            fh.write(b"\xff")
+        damage(ck)
     comm.Barrier()
     capsys.readouterr()
     code = main([over, "--out", out, "--quiet", "--restart", ck, "--frames", "3"], comm=comm)
     assert comm.allgather(code) == [2] * comm.size
     err = capsys.readouterr().err
     if comm.rank == 0:
-        assert "/positions fails its checksum" in err and ck in err, err
-
-
-def test_damaged_checkpoint_structure_rejected_on_every_rank(shared_dir, capsys):
-    """h5py's KeyError on a damaged object header was raised on rank 0 alone, in the
-    serial check the other ranks wait for (a traceback, or a hang in the broadcast)."""
-    d, cfg = shared_dir
-    out = os.path.join(d, "out")
-    ck = os.path.join(out, "checkpoints", "checkpoint_000002.h5")
-    over = os.path.join(d, "c.toml")
-    if comm.rank == 0:
-        with open(over, "w") as f:
-            f.write(SCENE.replace("checkpoint_every = 0", "checkpoint_every = 2"))
-    comm.Barrier()
-    assert comm.allgather(main([over, "--out", out, "--quiet", "--frames", "2"], comm=comm)) == [0] * comm.size
-    if comm.rank == 0:
-        with h5py.File(ck, "r") as f:
-            addr = h5py.h5o.get_info(f["head_state"].id).addr
-        with open(ck, "r+b") as fh:       # the object header's version byte
-            fh.seek(addr)
-            fh.write(b"\x07")
-    comm.Barrier()
-    capsys.readouterr()
-    code = main([over, "--out", out, "--quiet", "--restart", ck, "--frames", "3"], comm=comm)
-    assert comm.allgather(code) == [2] * comm.size
-    err = capsys.readouterr().err
-    if comm.rank == 0:
-        assert f"{ck}: corrupt checkpoint: its HDF5 structure is damaged" in err, err
+        assert message in err and ck in err, err
 
 
 def test_restart_from_an_earlier_checkpoint_rewrites_every_time_row(shared_dir):

@@ -8,6 +8,7 @@ the errors a user can meet."""
 import json
 import os
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -19,6 +20,8 @@ import pytest
 
 from lc_petsc.batch import EXIT_PREEMPTED, main
 from lc_petsc.config import ConfigError, config_from_dict
+from lc_petsc.io.checkpoint import GLOBAL_DATASETS, VERTEX_DATASETS
+from lc_petsc.io.checkpoint_seal import seal
 
 ROOT = Path(__file__).resolve().parents[2]
 DRIVER = str(ROOT / "drivers" / "simulate.py")
@@ -183,18 +186,26 @@ def _damage_header(path, dataset):
     """Break the object header of ``dataset``: its version byte (h5py then raises
     KeyError "bad object header version number" on opening it, not OSError)."""
     with h5py.File(path, "r") as f:
-        addr = h5py.h5o.get_info(f[dataset].id).addr
+        addr = f.userblock_size + h5py.h5o.get_info(f[dataset].id).addr
     with open(path, "r+b") as fh:
         fh.seek(addr)
         fh.write(b"\x07")
 
 
+def _unseal(path):
+    """Zero the seal in the user block: a checkpoint written before it (opened as before)."""
+    with open(path, "r+b") as fh:
+        fh.write(bytes(512))
+
+
 @pytest.mark.parametrize("damage, message", [
     (lambda p: _flip(p, "velocities"), "corrupt checkpoint: dataset /velocities fails its checksum"),
-    # the HDF5 structure, not only the data: a KeyError traceback (exit 1) from --restart
-    # FILE and from --restart latest, which never got to the older good checkpoint
-    (lambda p: _damage_header(p, "wisp_offsets"), "corrupt checkpoint: its HDF5 structure is damaged "
-     "(Unable to open object (bad object header version number))"),
+    (lambda p: _damage_header(p, "wisp_offsets"), "corrupt checkpoint: its HDF5 metadata (all but the "
+     "datasets' values) fails its checksum (sha256 in the user block); not opened"),
+    # without the seal libhdf5 meets the damage: h5py's KeyError was a traceback (exit 1)
+    # from --restart FILE and from --restart latest, which never got to the older one
+    (lambda p: (_unseal(p), _damage_header(p, "wisp_offsets")), "corrupt checkpoint: its HDF5 structure "
+     "is damaged (Unable to open object (bad object header version number))"),
 ])
 def test_corruption_detected_and_latest_falls_back(tmp_path, straight, capsys, damage, message):
     cfg = _config(tmp_path)
@@ -210,6 +221,32 @@ def test_corruption_detected_and_latest_falls_back(tmp_path, straight, capsys, d
     err = capsys.readouterr().err
     assert "skipping an invalid checkpoint" in err and message in err
     assert "falling back to" in err and "checkpoint_000002.h5" in err
+    _check_each_frame_once(out, *straight)
+
+
+def _damage_format_heap_index(path):
+    """The top byte of the global-heap index of the ``format`` attribute's string
+    (length 19, heap address, index): libhdf5 1.10 segfaults opening the file."""
+    data = bytearray(Path(path).read_bytes())
+    at = data.index(struct.pack("<I", len("lc_petsc checkpoint")), data.index(b"format\x00\x00"))
+    data[at + 15] = 100
+    Path(path).write_bytes(bytes(data))
+
+
+def test_damaged_metadata_is_refused_before_libhdf5_opens_it(tmp_path, straight):
+    """A checkpoint whose metadata libhdf5 cannot survive (a segfault, exit 59 through
+    PETSc's handler, in a subprocess here) is refused by its seal, and --restart
+    latest falls back to the older checkpoint."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "4"]) == 0
+    ck4 = out / "checkpoints" / "checkpoint_000004.h5"
+    _damage_format_heap_index(ck4)
+    p = subprocess.run([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet", "--restart", "latest"],
+                       capture_output=True, text=True, timeout=300, env=MPI_ENV)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert f"skipping an invalid checkpoint: {ck4}: corrupt checkpoint: its HDF5 metadata" in p.stderr, p.stderr
+    assert "falling back to" in p.stderr and "checkpoint_000002.h5" in p.stderr
     _check_each_frame_once(out, *straight)
 
 
@@ -277,6 +314,7 @@ def test_clear_errors(tmp_path, capsys):
     newer.write_bytes(ck.read_bytes())
     with h5py.File(newer, "r+") as f:
         f.attrs["format_version"] = 99
+    seal(newer, h5py, VERTEX_DATASETS + GLOBAL_DATASETS)        # as a newer lc_petsc would
     assert "format version 99 is newer" in err(["--restart", str(newer)])
     # a different scene: wisp / vertex counts
     other = _config(tmp_path, name="other.toml", **{"n_wisps = 5": "n_wisps = 6"})
@@ -390,6 +428,7 @@ def test_restarting_a_checkpoint_from_before_the_carry_is_refused_with_the_fix(t
         f.attrs["config"] = json.dumps(config, sort_keys=True)
         f.attrs["config_sha256"] = config_sha256(config)
         f.attrs["meta_sha256"] = _meta_digest(dict(f.attrs))      # as its writer had
+    _unseal(ck)                       # that code wrote no seal either
     assert main([cfg, "--out", str(out), "--quiet", "--restart", str(ck), "--frames", "3"]) == 2
     e = capsys.readouterr().err
     assert "time.carry_with_head" in e and "time.carry_with_head = false" in e, e

@@ -75,19 +75,23 @@ def _byte_in_the_last_ranks_rows(ck):
         fh.write(b"\xff")
 
 
-def _object_header(ck):
-    """h5py's KeyError on it was raised on rank 0 alone, in the serial check the other
-    ranks wait for (a traceback, or a hang in the broadcast)."""
+def _object_header(ck, seal=True):
+    """Its version byte; without the seal (a checkpoint written before it) h5py's
+    KeyError on it was raised on rank 0 alone, in the serial check the other ranks wait
+    for (a traceback, or a hang in the broadcast)."""
     with h5py.File(ck, "r") as f:
-        addr = h5py.h5o.get_info(f["head_state"].id).addr
-    with open(ck, "r+b") as fh:       # its version byte
+        addr = f.userblock_size + h5py.h5o.get_info(f["head_state"].id).addr
+    with open(ck, "r+b") as fh:
+        if not seal:
+            fh.write(bytes(512))
         fh.seek(addr)
         fh.write(b"\x07")
 
 
 @pytest.mark.parametrize("damage, message", [
     (_byte_in_the_last_ranks_rows, "/positions fails its checksum"),
-    (_object_header, "corrupt checkpoint: its HDF5 structure is damaged"),
+    (_object_header, "corrupt checkpoint: its HDF5 metadata (all but the datasets' values) fails its checksum"),
+    (lambda ck: _object_header(ck, seal=False), "corrupt checkpoint: its HDF5 structure is damaged"),
 ])
 def test_corrupt_checkpoint_rejected_on_every_rank(shared_dir, capsys, damage, message):
     d, cfg = shared_dir

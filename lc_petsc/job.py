@@ -111,8 +111,9 @@ def _options_string(d):
 
 def unfinished_run(out):
     """Why the output folder ``out`` holds a run that did not finish and can be
-    continued (its checkpoints, and a summary.json that says it was stopped by a signal,
-    or none: killed), else None.  A new run there would remove them (serial, read-only)."""
+    continued (its checkpoints, and a summary.json that says it was stopped by a signal
+    or failed (a full disk), or none: killed), else None.  A new run there would remove
+    them (serial, read-only)."""
     import json
     from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints
     found = list_checkpoints(checkpoint_folder(out))
@@ -127,6 +128,8 @@ def unfinished_run(out):
         return f"summary.json unreadable; {newest}"
     if summary.get("preempted"):
         return f"stopped by {summary['preempted']} after frame {summary.get('frames')}; {newest}"
+    if summary.get("error"):      # a full disk: free space and continue, not start over
+        return f"failed: {summary['error']}; {newest}"
     return None
 
 
@@ -277,6 +280,7 @@ class Job:
         self.writer = None
         self.flushed = 0.0               # when frames.h5 was last flushed (perf_counter)
         self.restart = None
+        self.outputs_only = False   # a restart at the last frame: the end-of-run outputs only
         self.recovery = None        # the RecoveryPlan of a frames.h5 that cannot be appended to
         self.aside = None           # where that frames.h5 was renamed to
         self.recovery_report = None     # summary.json's frames_recovery
@@ -460,7 +464,11 @@ class Job:
         if ck["attrs"]["every"] != cfg.output.every:
             raise Refused(f"{ck['path']}: output.every = {cfg.output.every} but the run's frames.h5 was "
                           f"written with {ck['attrs']['every']}; it cannot be appended to")
-        if cfg.time.frames <= ck["frame"]:
+        # a checkpoint at the last frame continues a run killed during its end-of-run
+        # outputs (no summary.json): they are written again, no frame is run
+        self.outputs_only = cfg.time.frames == ck["frame"] and self.comm.bcast(
+            unfinished_run(self.out) is not None if self.comm.rank == 0 else None)
+        if cfg.time.frames <= ck["frame"] and not self.outputs_only:
             raise Refused(f"{ck['path']}: the checkpoint is at frame {ck['frame']}, the run ends at frame "
                           f"{cfg.time.frames} (time.frames / --frames is the total): nothing to do")
         same_rest = np.array_equal(ck["rest"], sim.user.x_rest) and np.array_equal(ck["pinned"], sim.user.pinned)
@@ -649,6 +657,10 @@ class Job:
                 say(comm, f"{PROG}: restarting from {self.restart['path']} at frame {start} "
                           f"(t = {self.restart['time']:.6g} s, written on "
                           f"{self.restart['attrs']['ranks']} rank(s), now {comm.size})")
+            if self.outputs_only:
+                say(comm, f"{PROG}: frame {start} is the run's last: no frame to run; writing the "
+                          "end-of-run outputs the interrupted run did not finish (summary.json and "
+                          "the exports from frames.h5)")
             bar = _progress(comm, self.args, cfg.time.frames - start, self.name)
             self.t_loop = self.flushed = time.perf_counter()
             every, ck_every = cfg.output.every, cfg.output.checkpoint_every
@@ -857,7 +869,8 @@ class Job:
                 usd_files, t_usd = export_run(cfg.output, h5_path, out)
                 files += usd_files
             except Exception as e:  # noqa: BLE001 - like a preview, never worth the summary
-                text = f"USD export failed, frames.h5 is intact: {type(e).__name__}: {e}"
+                text = (f"USD export failed, frames.h5 is intact (write it later with drivers/to_usd.py "
+                        f"{h5_path}): {type(e).__name__}: {e}")
                 print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
                 summary["warnings"] = list(summary.get("warnings") or []) + [text]
         files.append("summary.json")
@@ -881,11 +894,23 @@ class Job:
         print(format_report(summary), flush=True)
         if self.error:
             print(f"{PROG}: error: {self.error}", file=sys.stderr, flush=True)
+            self._say_how_to_continue()
         if summary["preempted"]:
             last = self.checkpointer.written[-1]["path"] if self.checkpointer.written else "?"
             print(f"{PROG}: {summary['preempted']} received: stopped after frame {sim.integrator.frame}, "
                   f"checkpoint {last} written; continue with --restart latest "
                   f"(exit status {EXIT_PREEMPTED})", file=sys.stderr, flush=True)
+
+
+    def _say_how_to_continue(self):
+        """Rank 0, after a failure: the folder's newest checkpoint and --restart latest
+        (a new run into the folder is refused while they are there, unfinished_run)."""
+        from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints
+        found = list_checkpoints(checkpoint_folder(self.out))
+        if found:
+            print(f"{PROG}: the checkpoints are kept (newest {found[0]}): once the cause is fixed "
+                  "(e.g. space freed), continue with --restart latest; or start over with --force",
+                  file=sys.stderr, flush=True)
 
 
 class Checkpointer:

@@ -8,6 +8,9 @@ Layout (format ``lc_petsc checkpoint``, ``format_version`` 1; plain h5py reads i
 * ``/head_state`` float64 (16,): t, the head's rotation R (row-major 3x3), translation
   T and centre c at t (the head kinematics are a function of t, so this is a record and
   a consistency check, not extra state);
+* a 512-byte HDF5 user block before the HDF5 file: the *seal*, a SHA-256 of the
+  metadata checked with plain reads before libhdf5 opens the file
+  (:mod:`lc_petsc.io.checkpoint_seal`; files without it load as before);
 * root attributes: ``format``, ``format_version``, ``frame``, ``time``, ``dt``,
   ``every`` (output.every), ``frames_rows`` (rows of ``frames.h5`` that belong to frames
   <= ``frame``), ``n_wisps``, ``n_vertices``, ``ranks``, ``config`` (resolved config,
@@ -61,6 +64,7 @@ from pathlib import Path
 import numpy as np
 
 from lc_petsc.errors import CheckpointError
+from lc_petsc.io.checkpoint_seal import USERBLOCK, check_seal, seal
 from lc_petsc.io.disk import replace_atomically
 from lc_petsc.io.hdf5 import collective_file_options, collective_transfer, h5py_module
 from lc_petsc.parallel import global_wisp_offsets, on_root
@@ -259,6 +263,7 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
         # cuts it to HDF5's end of allocation (the mpio close already does)
         with h5py.File(str(tmp), "r+"):
             pass
+        seal(tmp, h5py, VERTEX_DATASETS + GLOBAL_DATASETS)
         replace_atomically(tmp, final, fsync=True)
         for old in list_checkpoints(folder)[max(int(keep), 1):]:
             old.unlink(missing_ok=True)
@@ -278,7 +283,7 @@ def _write_file(h5py, tmp, kw, local, digests, n_vertices, v0, offsets, hs, attr
     left open (``_ABANDONED``): closing it after a failed write hung both ranks in
     libhdf5's close (a disk filled by another program during the write)."""
     from lc_petsc.io.frames import write_rows
-    f = h5py.File(str(tmp), "w", **kw)
+    f = h5py.File(str(tmp), "w", userblock_size=USERBLOCK, **kw)
     try:
         def dataset(name, shape, dtype):
             dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
@@ -356,6 +361,17 @@ def _reserve(path, nbytes):
         os.close(fd)
 
 
+#: what h5py raises on a damaged file: OSError (unreadable bytes), KeyError (an object
+#: header it cannot open: "bad object header version number"), RuntimeError, and
+#: ValueError / TypeError (a dataset of another shape or type)
+_H5_DAMAGE = (OSError, KeyError, RuntimeError, ValueError, TypeError)
+
+
+def _h5_reason(e):
+    """h5py's message without the quotes a KeyError adds."""
+    return e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+
+
 def _attr(v):
     if isinstance(v, bytes):
         return v.decode()
@@ -373,6 +389,7 @@ def _precheck(path, n_wisps, n_vertices, offsets, head):
         raise CheckpointError(f"{name}: no such checkpoint file")
     if not os.path.isfile(name):
         raise CheckpointError(f"{name}: not an lc_petsc checkpoint (not a regular file)")
+    check_seal(name)                # before libhdf5 parses a byte of it
     if not h5py.is_hdf5(name):
         raise CheckpointError(f"{name}: not an lc_petsc checkpoint (not an HDF5 file)")
     try:
@@ -433,6 +450,9 @@ def load_checkpoint(path, comm, scene, n_wisps, n_vertices, head):
             res = _precheck(path, n_wisps, n_vertices, offsets, head)
         except CheckpointError as e:
             res = e
+        except _H5_DAMAGE as e:     # raised on rank 0 alone, the others would wait in bcast
+            res = CheckpointError(f"{path}: corrupt checkpoint: its HDF5 structure is damaged "
+                                  f"({_h5_reason(e)})")
     res = comm.bcast(res)
     if isinstance(res, CheckpointError):
         raise CheckpointError(str(res))
@@ -472,12 +492,13 @@ def read_positions(path, offsets):
     h5py = h5py_module()
     name = str(path)
     try:
+        check_seal(name)
         with h5py.File(name, "r") as f:
             attrs = {k: _attr(v) for k, v in f.attrs.items()}
             x = f["positions"][...]
             digest = _attr(f["positions"].attrs.get("sha256"))
-    except (OSError, KeyError) as e:
-        raise CheckpointError(f"{name}: unreadable checkpoint ({e})") from None
+    except _H5_DAMAGE as e:
+        raise CheckpointError(f"{name}: unreadable checkpoint ({_h5_reason(e)})") from None
     if attrs.get("format") != FORMAT or attrs.get("meta_sha256") != _meta_digest(attrs):
         raise CheckpointError(f"{name}: not an lc_petsc checkpoint, or its attributes fail their checksum")
     if x.shape != (int(offsets[-1]), 3) or \

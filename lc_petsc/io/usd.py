@@ -170,8 +170,9 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
         incremental = usd_path.suffix != ".usda"
         tmp = usd_path.with_name(usd_path.stem + ".tmp" + usd_path.suffix)
         tmp.unlink(missing_ok=True)
-        stage = Usd.Stage.CreateNew(str(tmp))
         with written_aside(usd_path, tmp):
+            # inside: on a full disk CreateNew fails after creating the file (empty)
+            stage = Usd.Stage.CreateNew(str(tmp))
             UsdGeom.SetStageMetersPerUnit(stage, 0.01)
             UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
             tcps = 1.0 / (dt * every)
@@ -261,7 +262,7 @@ def export_run(output, frames_path, out_dir):
     try:
         write_usd(frames_path, target)
     except failures as e:
-        print(f"simulate.py: warning: USD export failed, frames.h5 is intact: {e}", file=sys.stderr,
-              flush=True)
+        print(f"simulate.py: warning: USD export failed, frames.h5 is intact (write it later with "
+              f"drivers/to_usd.py {frames_path}): {e}", file=sys.stderr, flush=True)
         return [], time.perf_counter() - t0
     return [USD_NAME], time.perf_counter() - t0

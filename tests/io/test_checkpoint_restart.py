@@ -8,6 +8,7 @@ the errors a user can meet."""
 import json
 import os
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -19,6 +20,8 @@ import pytest
 
 from lc_petsc.batch import EXIT_PREEMPTED, main
 from lc_petsc.config import ConfigError, config_from_dict
+from lc_petsc.io.checkpoint import GLOBAL_DATASETS, VERTEX_DATASETS
+from lc_petsc.io.checkpoint_seal import seal
 
 ROOT = Path(__file__).resolve().parents[2]
 DRIVER = str(ROOT / "drivers" / "simulate.py")
@@ -179,20 +182,71 @@ def _flip(path, dataset, at=100):
         fh.write(bytes([b[0] ^ 0x5A]))
 
 
-def test_corruption_detected_and_latest_falls_back(tmp_path, straight, capsys):
+def _damage_header(path, dataset):
+    """Break the object header of ``dataset``: its version byte (h5py then raises
+    KeyError "bad object header version number" on opening it, not OSError)."""
+    with h5py.File(path, "r") as f:
+        addr = f.userblock_size + h5py.h5o.get_info(f[dataset].id).addr
+    with open(path, "r+b") as fh:
+        fh.seek(addr)
+        fh.write(b"\x07")
+
+
+def _unseal(path):
+    """Zero the seal in the user block: a checkpoint written before it (opened as before)."""
+    with open(path, "r+b") as fh:
+        fh.write(bytes(512))
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda p: _flip(p, "velocities"), "corrupt checkpoint: dataset /velocities fails its checksum"),
+    (lambda p: _damage_header(p, "wisp_offsets"), "corrupt checkpoint: its HDF5 metadata (all but the "
+     "datasets' values) fails its checksum (sha256 in the user block); not opened"),
+    # without the seal libhdf5 meets the damage: h5py's KeyError was a traceback (exit 1)
+    # from --restart FILE and from --restart latest, which never got to the older one
+    (lambda p: (_unseal(p), _damage_header(p, "wisp_offsets")), "corrupt checkpoint: its HDF5 structure "
+     "is damaged (Unable to open object (bad object header version number))"),
+])
+def test_corruption_detected_and_latest_falls_back(tmp_path, straight, capsys, damage, message):
     cfg = _config(tmp_path)
     out = tmp_path / "out"
     assert main([cfg, "--out", str(out), "--quiet", "--frames", "4"]) == 0
     ck4 = out / "checkpoints" / "checkpoint_000004.h5"
-    _flip(ck4, "velocities")
+    damage(ck4)
     capsys.readouterr()
     assert main([cfg, "--out", str(out), "--quiet", "--restart", str(ck4)]) == 2
     err = capsys.readouterr().err
-    assert str(ck4) in err and "/velocities fails its checksum" in err
+    assert f"{ck4}: {message}" in err, err
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
     err = capsys.readouterr().err
-    assert "skipping an invalid checkpoint" in err and "/velocities" in err
+    assert "skipping an invalid checkpoint" in err and message in err
     assert "falling back to" in err and "checkpoint_000002.h5" in err
+    _check_each_frame_once(out, *straight)
+
+
+def _damage_format_heap_index(path):
+    """The top byte of the global-heap index of the ``format`` attribute's string
+    (length 19, heap address, index): libhdf5 1.10 segfaults opening the file."""
+    data = bytearray(Path(path).read_bytes())
+    at = data.index(struct.pack("<I", len("lc_petsc checkpoint")), data.index(b"format\x00\x00"))
+    data[at + 15] = 100
+    Path(path).write_bytes(bytes(data))
+
+
+def test_damaged_metadata_is_refused_before_libhdf5_opens_it(tmp_path, straight):
+    """A checkpoint whose metadata libhdf5 cannot survive (a segfault, exit 59 through
+    PETSc's handler, in a subprocess here) is refused by its seal, and --restart
+    latest falls back to the older checkpoint."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "4"]) == 0
+    ck4 = out / "checkpoints" / "checkpoint_000004.h5"
+    _damage_format_heap_index(ck4)
+    p = subprocess.run([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet", "--restart", "latest"],
+                       capture_output=True, text=True, timeout=300, env=MPI_ENV)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert f"skipping an invalid checkpoint: {ck4}: corrupt checkpoint: its HDF5 metadata" in p.stderr, p.stderr
+    assert "falling back to" in p.stderr and "checkpoint_000002.h5" in p.stderr
     _check_each_frame_once(out, *straight)
 
 
@@ -214,6 +268,33 @@ def test_truncated_and_flipped_positions_rejected(tmp_path, capsys):
     assert "/positions fails its checksum" in err and "checkpoint_000001.h5" in err
 
 
+def test_a_run_killed_in_its_end_of_run_outputs_restarts_from_its_last_frame(tmp_path, straight, capsys):
+    """Killed (SIGKILL; or mpiexec's SIGKILL a second after its SIGTERM) while writing the
+    exports after its last frame's checkpoint, a run leaves frames.h5 whole, that
+    checkpoint and no summary.json: a new run is refused ("continue it with --restart
+    latest"), and --restart latest was refused too ("nothing to do"), so only --force
+    (start over) was left.  Now the restart writes the outputs, running no frame."""
+    cfg = _config(tmp_path, frames=4)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet"]) == 0
+    (out / "summary.json").unlink()          # what the kill during the exports leaves
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet"]) == 2
+    assert "continue it with --restart latest" in capsys.readouterr().err
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    text = capsys.readouterr().out
+    assert "frame 4 is the run's last: no frame to run; writing the end-of-run outputs" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["frames"], summary["frames_this_run"], summary["error"]) == (4, 0, None)
+    assert summary["restart"]["frame"] == 4
+    pos, t = _frames(out)
+    ref_pos, ref_t = straight
+    assert np.array_equal(pos, ref_pos[:5]) and np.array_equal(t, ref_t[:5])
+    # the outputs are done: the same restart again has nothing to do
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 2
+    assert "nothing to do" in capsys.readouterr().err
+
+
 def test_clear_errors(tmp_path, capsys):
     cfg = _config(tmp_path)
     out = tmp_path / "out"
@@ -233,6 +314,7 @@ def test_clear_errors(tmp_path, capsys):
     newer.write_bytes(ck.read_bytes())
     with h5py.File(newer, "r+") as f:
         f.attrs["format_version"] = 99
+    seal(newer, h5py, VERTEX_DATASETS + GLOBAL_DATASETS)        # as a newer lc_petsc would
     assert "format version 99 is newer" in err(["--restart", str(newer)])
     # a different scene: wisp / vertex counts
     other = _config(tmp_path, name="other.toml", **{"n_wisps = 5": "n_wisps = 6"})
@@ -346,6 +428,7 @@ def test_restarting_a_checkpoint_from_before_the_carry_is_refused_with_the_fix(t
         f.attrs["config"] = json.dumps(config, sort_keys=True)
         f.attrs["config_sha256"] = config_sha256(config)
         f.attrs["meta_sha256"] = _meta_digest(dict(f.attrs))      # as its writer had
+    _unseal(ck)                       # that code wrote no seal either
     assert main([cfg, "--out", str(out), "--quiet", "--restart", str(ck), "--frames", "3"]) == 2
     e = capsys.readouterr().err
     assert "time.carry_with_head" in e and "time.carry_with_head = false" in e, e

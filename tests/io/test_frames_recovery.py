@@ -9,6 +9,7 @@ appending to it."""
 import hashlib
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -131,10 +132,30 @@ def _garbage_in_the_metadata(path):
         fh.write(np.random.default_rng(4).bytes(1024))
 
 
+def _damaged_time_index(path):
+    """The chunk index (a version-1 B-tree node, "TREE") of /time claims more children
+    than a node holds: /time cannot be read ("Can't read data"), /positions can.  The
+    check before the restart looked at the shapes only; the restart then failed in its
+    frame loop (exit 3) after removing the outputs, and again on every try."""
+    data = Path(path).read_bytes()
+    for at in [m.start() for m in re.finditer(b"TREE", data)]:
+        Path(path).write_bytes(data[:at + 6] + b"\xff\xff" + data[at + 8:])
+        with h5py.File(path, "r") as f:
+            try:
+                f["time"][...]
+            except KeyError:        # the root group's index: nothing opens
+                continue
+            except OSError:
+                f["positions"][...]
+                return
+    raise AssertionError("no chunk index of /time found")
+
+
 @pytest.mark.parametrize("damage, from_file, lost", [
     (_corrupt_last_row, [[0, 1], [3, 3], [5, 5]], []),     # row 6 replaced by its checkpoint
     (_truncate, [], [0, 1, 3, 5]),
     (_garbage_in_the_metadata, [], [0, 1, 3, 5]),
+    (_damaged_time_index, [], [0, 1, 3, 5]),
 ])
 def test_damaged_frames_file_is_set_aside_and_the_run_continues(tmp_path, straight, capsys, damage,
                                                                  from_file, lost):

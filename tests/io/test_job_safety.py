@@ -254,12 +254,22 @@ def test_full_disk_while_writing_frames(tmp_path, small_volume, monkeypatch, cap
         assert np.allclose(f["time"][...], np.arange(5) / 30)
     names = sorted(p.name for p in (out / "checkpoints").iterdir())
     assert names == ["checkpoint_000002.h5", "checkpoint_000004.h5"]
+    assert f"checkpoints are kept (newest {out / 'checkpoints' / 'checkpoint_000004.h5'}): once the " \
+           "cause is fixed (e.g. space freed), continue with --restart latest" in cap.err, cap.err
     monkeypatch.undo()
     (small_volume / "filler").unlink()
+    # the same command again, space freed: it used to start over, removing the checkpoints
+    before = _snapshot(out)
+    assert main([cfg, "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "holds a run that did not finish (failed: output error: " in err, err
+    assert _snapshot(out) == before
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
-    with h5py.File(out / "frames.h5", "r") as f:
+    assert main([cfg, "--out", str(tmp_path / "straight"), "--quiet"]) == 0
+    with h5py.File(out / "frames.h5", "r") as f, h5py.File(tmp_path / "straight" / "frames.h5", "r") as g:
         assert f["positions"].shape[0] == 41
         assert np.allclose(f["time"][...], np.arange(41) / 30)
+        assert np.array_equal(f["positions"][...], g["positions"][...])
 
 
 def test_full_disk_while_writing_a_checkpoint(tmp_path, small_volume, monkeypatch, capsys):
@@ -404,6 +414,27 @@ def test_checkpoint_that_cannot_reserve_its_bytes(tmp_path, monkeypatch, capsys)
         assert f["positions"].shape[0] == 5
     monkeypatch.undo()
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+
+
+def test_usd_export_on_a_full_disk_leaves_no_temporary_file(tmp_path, small_volume, capsys):
+    """On a full disk USD's CreateNew fails after creating frames.tmp.usdc (empty); it
+    was created before the block that removes the temporary file on failure, so the
+    file stayed.  The warning names the converter that writes the export later."""
+    from lc_petsc.config import OutputConfig
+    from lc_petsc.io.usd import export_run
+    cfg = _smash(tmp_path, frames=2, ce=0)
+    out = small_volume / "out"
+    assert main([cfg, "--out", str(out), "--quiet"]) == 0
+    (out / "frames.usdc").unlink()
+    before = sorted(p.name for p in out.iterdir())
+    _fill(small_volume, 0)
+    capsys.readouterr()
+    files, _ = export_run(OutputConfig(), out / "frames.h5", out)
+    assert files == []
+    err = capsys.readouterr().err
+    assert "USD export failed, frames.h5 is intact" in err, err
+    assert f"write it later with drivers/to_usd.py {out / 'frames.h5'}" in err, err
+    assert sorted(p.name for p in out.iterdir()) == before
 
 
 def test_outputs_that_cannot_be_written_are_reported(tmp_path, capsys):

@@ -50,8 +50,11 @@ def format_report(s) -> str:
     lines.append(f"  frames: {frames}{sim_t}{this_run}; wall time {_fmt_s(wall)} "
                  f"({_fmt_s(per)} per frame); setup {_fmt_s(s.get('setup_time_s', 0.0))}")
     tim = s.get("timings_s", {})
-    lines.append("  phases (max over ranks): " + ", ".join(
-        f"{k} {_fmt_s(v)} ({100 * v / max(wall, 1e-300):.0f}%)" for k, v in tim.items() if v > 0))
+    if run_frames:
+        lines.append("  phases (max over ranks): " + ", ".join(
+            f"{k} {_fmt_s(v)} ({100 * v / max(wall, 1e-300):.0f}%)" for k, v in tim.items() if v > 0))
+    else:       # a restart that only wrote the outputs: the set-up's work over no frame time
+        lines.append("  phases: no frame ran in this run (the outputs only)")
     newton = s.get("newton_iterations", [])
     ksp = s.get("ksp_iterations", [])
     if newton:

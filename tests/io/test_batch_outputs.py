@@ -201,6 +201,18 @@ def test_report_after_a_restart_divides_by_this_runs_frames():
     assert "(3.15 s per frame)" in format_report(s).splitlines()[2]
 
 
+def test_report_of_a_restart_that_only_wrote_the_outputs_has_no_phase_shares():
+    """A restart after the last frame's checkpoint runs no frame: the set-up's assembly
+    over a 0.2 ms wall time read as 517%; the phases line says no frame ran."""
+    from lc_petsc.io.summary import format_report
+    s = {"frames": 6, "frames_this_run": 0, "wall_time_s": 2e-4, "wisps": 2, "dofs": 6, "ranks": 1,
+         "config": {"time": {"dt": 1.0 / 30.0}}, "timings_s": {"assembly": 8e-4}}
+    report = format_report(s)
+    assert "phases: no frame ran in this run (the outputs only)" in report and "%)" not in report
+    s["frames_this_run"] = 1
+    assert "assembly 0.8 ms (400%)" in format_report(s)
+
+
 def test_report_counts_chord_checks_only_when_there_are_some():
     """The report says how many chord checks (time.newton_stop = "chord_estimate") the run
     solved and in how many frames; a run without any says nothing about them."""

@@ -909,7 +909,9 @@ class Job:
         found = list_checkpoints(checkpoint_folder(self.out))
         if found:
             print(f"{PROG}: the checkpoints are kept (newest {found[0]}): once the cause is fixed "
-                  "(e.g. space freed), continue with --restart latest; or start over with --force",
+                  "(e.g. space freed), continue with --restart latest; to continue on another disk, "
+                  "copy the whole folder there (cp -a: frames.h5 with its checkpoints) and run "
+                  "--restart latest in the copy; or start over with --force",
                   file=sys.stderr, flush=True)
 
 

@@ -7,6 +7,7 @@ linear solves, physical ranges and config paths."""
 import hashlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -255,7 +256,8 @@ def test_full_disk_while_writing_frames(tmp_path, small_volume, monkeypatch, cap
     names = sorted(p.name for p in (out / "checkpoints").iterdir())
     assert names == ["checkpoint_000002.h5", "checkpoint_000004.h5"]
     assert f"checkpoints are kept (newest {out / 'checkpoints' / 'checkpoint_000004.h5'}): once the " \
-           "cause is fixed (e.g. space freed), continue with --restart latest" in cap.err, cap.err
+           "cause is fixed (e.g. space freed), continue with --restart latest; to continue on another disk, copy " \
+           "the whole folder there" in cap.err, cap.err
     monkeypatch.undo()
     (small_volume / "filler").unlink()
     # the same command again, space freed: it used to start over, removing the checkpoints
@@ -264,12 +266,18 @@ def test_full_disk_while_writing_frames(tmp_path, small_volume, monkeypatch, cap
     err = capsys.readouterr().err
     assert "holds a run that did not finish (failed: output error: " in err, err
     assert _snapshot(out) == before
+    # continued on another disk as the message says: the whole folder copied
+    moved = tmp_path / "moved"
+    shutil.copytree(out, moved)
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    assert main([cfg, "--out", str(moved), "--quiet", "--restart", "latest"]) == 0
     assert main([cfg, "--out", str(tmp_path / "straight"), "--quiet"]) == 0
-    with h5py.File(out / "frames.h5", "r") as f, h5py.File(tmp_path / "straight" / "frames.h5", "r") as g:
-        assert f["positions"].shape[0] == 41
-        assert np.allclose(f["time"][...], np.arange(41) / 30)
-        assert np.array_equal(f["positions"][...], g["positions"][...])
+    with h5py.File(tmp_path / "straight" / "frames.h5", "r") as g:
+        for folder in (out, moved):
+            with h5py.File(folder / "frames.h5", "r") as f:
+                assert f["positions"].shape[0] == 41
+                assert np.allclose(f["time"][...], np.arange(41) / 30)
+                assert np.array_equal(f["positions"][...], g["positions"][...])
 
 
 def test_full_disk_while_writing_a_checkpoint(tmp_path, small_volume, monkeypatch, capsys):

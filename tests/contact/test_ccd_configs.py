@@ -116,3 +116,25 @@ def test_big_hairballs_are_clear_of_their_thickness(name, closest):
     # the default thickness (twice the tip radius) would need exemptions: the control
     default = 2.0 * cfg.material.tip_radius * min(1.0, np.sqrt(2000.0 / n))
     assert (d < default).sum() > 100
+
+
+@pytest.mark.slow
+def test_pairs_held_at_the_floor_under_the_head_turn_are_not_unresolved():
+    """60 soft wisps (E 1e6) with self-contact and strand_separation = false pile pairs up
+    at the hold floor (7e-6 cm) that then turn with the head: conservative advancement
+    ran out of steps on them (main: 66 unresolved pairs in frames 14-19 and 25-29, 0
+    crossings), which warned that wisps may pass through each other.  Their motion is the
+    head's rigid field, which keeps them apart (contact.kept_apart_by_field): none left."""
+    from lc_petsc.simulator import build_simulator
+    data = tomllib.loads((CONFIGS / "hairball_demo.toml").read_text())
+    data["scene"]["n_wisps"] = 60
+    data["material"]["youngs_modulus"] = 1e6
+    data["physics"].update(strand_self_contact=True, strand_separation=False)
+    sim = build_simulator(config_from_dict(data, base_dir=CONFIGS), comm=MPI.COMM_SELF)
+    try:
+        for _ in range(20):
+            sim.step()
+        assert max(sim.strand.limited_vertices.sums) > 0        # the limiter held pairs back
+        assert sum(sim.strand.unresolved_pairs.sums) == 0, sim.strand.unresolved_pairs.sums
+    finally:
+        sim.close()

@@ -65,7 +65,7 @@ def summarise(rows, budget_s):
         ok = [r for r in rs if r["status"] == "ok"]
         statuses = {r["status"] for r in rs}
         status = "ok" if statuses == {"ok"} else next(
-            s for s in ("error", "diverged", "budget") if s in statuses)
+            s for s in ("error", "diverged", "inaccurate", "budget") if s in statuses)
         its = [r["iterations"] for r in ok]
         s = {"wisps": wisps, "dofs": rs[0].get("dofs"), "ranks": rs[0].get("ranks"),
              "set": name, "status": status, "n_systems": len(rs), "n_ok": len(ok),

@@ -126,9 +126,10 @@ def pareto_front(points):
 
 
 def plot_pareto(rows, path, cost="wall_per_sim_s", error="rms_rel_error", title="",
-                cost_label="wall time per simulated second (s)"):
+                cost_label="wall time per simulated second (s)", floor=None):
     """Cost against error, log-log, one marker per stable variant, the front joined and
-    highlighted; unstable variants listed in the caption."""
+    highlighted; unstable variants listed in the caption; ``floor``: the reference's own
+    error, a dashed line (errors below it are not resolved)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7.5, 5.5))
     stable = [r for r in rows if r.get("stable") and r.get(error) is not None and r.get(cost)]
@@ -147,6 +148,8 @@ def plot_pareto(rows, path, cost="wall_per_sim_s", error="rms_rel_error", title=
         ax.plot(*zip(*fp), "o", mfc="none", mec="red", ms=12)
         ax.set_xscale("log")
         ax.set_yscale("log")
+    if floor:
+        ax.axhline(floor, ls="--", color="grey", label="reference's own error")
     bad = [r["variant"] for r in rows if not r.get("stable")]
     ax.set_xlabel(cost_label)
     ax.set_ylabel(error.replace("_", " ") + " vs reference")

@@ -300,14 +300,25 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
             s.A.mult(x, r)
             r.aypx(-1.0, s.b)
             bn = s.b.norm()
-            row.update(status="ok" if reason > 0 else "diverged",
+            true_res = r.norm() / bn if bn > 0 else 0.0
+            rtol = ls.rtol
+            status = "ok" if reason > 0 else "diverged"
+            # CONVERGED_ITS (preonly, or no convergence test) certifies nothing: as in the
+            # simulator (LinearSolver.not_reduced) only the true residual says whether it
+            # solved the system (an inexact preconditioner applied once did not, however fast)
+            if reason == PETSc.KSP.ConvergedReason.CONVERGED_ITS and not true_res <= rtol:
+                status = "inaccurate"
+            row.update(status=status,
                        setup_s=t_setup, solve_s=t_solve, total_s=t_setup + t_solve,
                        create_s=t_create if i == 0 else 0.0,
                        iterations=int(ksp.getIterationNumber()), reason=reason_name(reason),
-                       true_rel_residual=r.norm() / bn if bn > 0 else 0.0)
+                       true_rel_residual=true_res)
             r.destroy()
             if reason <= 0:
                 row["message"] = f"{reason_name(reason)} in system {i}"
+            elif status == "inaccurate":
+                row["message"] = (f"{reason_name(reason)} (no convergence test) in system {i} with "
+                                  f"true relative residual {true_res:.3g} > rtol {rtol:g}")
             if references is not None:
                 d = x.duplicate()
                 d.waxpy(-1.0, references[i], x)

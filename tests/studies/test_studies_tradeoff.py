@@ -12,8 +12,8 @@ from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfi
 from lc_petsc.studies.measures import compare_trajectories, curl_radius, stretch_strain
 from lc_petsc.studies.report import pareto_front
 from lc_petsc.solver_plan import KSP_RTOL_CONVERGING, KSP_RTOL_FIXED_COUNT
-from lc_petsc.studies.tradeoff import (BASE, configure, default_variants, reference_settings, run_study,
-                                      run_trajectory)
+from lc_petsc.studies.tradeoff import (BASE, configure, default_variants, markdown, recommend,
+                                      reference_settings, run_study, run_trajectory, tighter_reference)
 from sim_helpers import small_hairball_config
 
 comm = MPI.COMM_WORLD
@@ -115,6 +115,33 @@ def test_study_outputs_and_unstable_variant(tmp_path):
     assert all(r["newton_cut_back_frames"] == 0 for r in rows if r["stable"])
     png = tmp_path / "pareto.png"
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    # the reference's own error: its distance to the same reference at half its dt
+    own = ref["own_error"]
+    assert own["status"] == "ok" and "dt=1/120" in own["against"] and own["n_common_times"] == 5
+    assert 0 < own["rms_rel_error"] < by["dt 1/60"]["rms_rel_error"]
+    floor = own["rms_rel_error"]
+    assert [r["below_reference"] for r in data["recommendations"]] == \
+        [t <= floor for t in (0.1, 0.03, 0.01, 0.003, 0.001)]
+    assert f"Reference's own error (its distance to {own['against']}): RMS" in md
+
+
+def test_targets_below_the_reference_own_error_are_not_judged():
+    """A variant 1e-4 from a reference that is itself 3e-3 from a tighter one (dt/2: the
+    10-wisp shaking hairball at dt 1/120 is that far from dt 1/240) does not reach a
+    1e-3 target; on main it was recommended for it."""
+    rows = [{"variant": "a", "label": "a", "status": "ok", "stable": True, "rms_rel_error": 1e-4,
+             "wall_per_sim_s": 2.0},
+            {"variant": "b", "label": "b", "status": "ok", "stable": True, "rms_rel_error": 8e-3,
+             "wall_per_sim_s": 1.0}]
+    recs = recommend(rows, (0.01, 0.003, 0.001), floor=3e-3)
+    assert [r["variant"] for r in recs] == ["b", None, None]
+    assert [r["below_reference"] for r in recs] == [False, True, True]
+    md = markdown(rows, recs, BASE, own={"against": "x", "status": "ok", "rms_rel_error": 3e-3,
+                                         "max_rel_error": 1e-2, "energy_rel_error": 0.1})
+    assert md.count("below the reference's own error") == 2 and "RMS 0.003" in md
+    assert [r["variant"] for r in recommend(rows, (0.01, 0.003, 0.001))] == ["b", "a", "a"]
+    assert tighter_reference(reference_settings(dt=1 / 120)).dt == 1 / 240
+    assert tighter_reference(replace(BASE, ksp_rtol=1e-10)).ksp_rtol == 1e-12
 
 
 def test_driver_base_reference_on_the_krylov_axis(tmp_path):

@@ -111,14 +111,17 @@ def compare_trajectories(var, ref, rest, offsets, pinned):
     """Errors of a variant trajectory against the reference at their common times.
 
     ``var``/``ref``: dicts with ``times``, ``positions`` (list of arrays), ``energies``.
-    Returns a dict: rms_rel_error (RMS over common times and vertices of |x - x_ref|
+    Returns a dict: rms_rel_error (RMS over the common times after the first (the shared
+    initial state) and vertices of |x - x_ref|
     divided by the mean wisp length), max_rel_error (max of |x - x_ref| / the vertex's
     wisp length), final_rms_rel_error, energy_rel_error (max over times of
     |E - E_ref| / max_t E_ref, E = elastic + kinetic), n_common_times.
     """
     rt = np.round(np.asarray(ref["times"]), 9)
     vt = np.round(np.asarray(var["times"]), 9)
-    common = [t for t in vt if t in set(rt)]
+    # the shared initial state is equal by construction: counting it diluted the RMS by
+    # sqrt(n / (n + 1)) (13% on a study of 3 outputs)
+    common = [t for t in vt if t in set(rt) and t > min(rt[0], vt[0])]
     if not common:
         return {"n_common_times": 0}
     ri = {t: i for i, t in enumerate(rt)}

@@ -177,10 +177,17 @@ def _convert(A, mat_type):
     return A.copy() if base == cur else A.convert(mat_type, PETSc.Mat())
 
 
+#: a direct reference whose true relative residual is above this is no reference
+DIRECT_RESIDUAL_TOL = 1e-8
+
+
 def direct_solutions(systems, comm):
-    """Reference solutions x* = A^-1 b (MUMPS LU on AIJ) of every recorded system."""
+    """Reference solutions x* = A^-1 b (MUMPS LU on AIJ) of every recorded system.  Each
+    is checked (its converged reason and true relative residual ||b - A x|| / ||b|| below
+    :data:`DIRECT_RESIDUAL_TOL`): a failed factorisation would make every "error vs
+    direct" of the study meaningless, so it raises RuntimeError naming the system."""
     out = []
-    for s in systems:
+    for i, s in enumerate(systems):
         A = _convert(s.A, "aij")
         ksp = PETSc.KSP().create(comm=A.getComm())
         ksp.setOperators(A)
@@ -189,10 +196,24 @@ def direct_solutions(systems, comm):
         pc.setType("lu")
         pc.setFactorSolverType("mumps")
         x = s.b.duplicate()
-        ksp.solve(s.b, x)
+        try:
+            ksp.solve(s.b, x)
+            reason = ksp.getConvergedReason()
+            r = s.b.duplicate()
+            A.mult(x, r)
+            r.aypx(-1.0, s.b)
+            residual = r.norm() / max(s.b.norm(), 1e-300)
+            r.destroy()
+        finally:
+            ksp.destroy()
+            A.destroy()
+        if reason <= 0 or not residual <= DIRECT_RESIDUAL_TOL:
+            x.destroy()
+            raise RuntimeError(f"the direct reference solve (MUMPS LU) of recorded system {i} failed: "
+                               f"{reason_name(reason)}, true relative residual {residual:.2e} (above "
+                               f"{DIRECT_RESIDUAL_TOL:g}); its errors vs direct would be meaningless: "
+                               "run without it (compare_solvers.py --no-reference) or check the system")
         out.append(x)
-        ksp.destroy()
-        A.destroy()
     return out
 
 

@@ -248,3 +248,26 @@ def test_a_solve_without_convergence_test_is_judged_by_its_true_residual():
     assert summary["mumps_cholesky"]["status"] == "ok" and summary["mumps_cholesky"]["ratio_vs_default"] > 0
     line = next(x for x in table3(list(summary.values())).splitlines() if "preonly_pbjacobi" in x)
     assert "inaccurate: CONVERGED_ITS" in line and "x," not in line
+
+
+def test_a_failed_direct_reference_is_an_error_not_a_reference():
+    """A singular recorded system (a zero pivot): MUMPS's LU fails or leaves a residual of
+    order one; the study says so instead of measuring every set's error against it."""
+    from petsc4py import PETSc
+    from lc_petsc.studies.systems import RecordedSystem, direct_solutions
+    n = 6
+    A = PETSc.Mat().createAIJ([n, n], nnz=1, comm=MPI.COMM_SELF)
+    for i in range(n):                      # the last pivot 0: singular
+        A.setValue(i, i, 2.0 if i < n - 1 else 0.0)
+    A.assemble()
+    b = PETSc.Vec().createSeq(n)
+    b.set(1.0)
+    good = RecordedSystem(A=A, b=b, coords=np.zeros((2, 3)), frame=0, newton_it=0)
+    with pytest.raises(RuntimeError, match="direct reference solve .* of recorded system 0 failed"):
+        direct_solutions([good], MPI.COMM_SELF)
+    A.setValue(n - 1, n - 1, 4.0)
+    A.assemble()
+    refs = direct_solutions([good], MPI.COMM_SELF)
+    assert np.allclose(refs[0].getArray(), [0.5] * (n - 1) + [0.25])
+    for v in (A, b, *refs):
+        v.destroy()

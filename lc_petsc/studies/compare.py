@@ -53,17 +53,19 @@ def record(config, comm, frames=1, max_systems=None, skip_frames=0):
 def summarise(rows, budget_s):
     """One summary row per (wisps, set) from the per-system rows; ratios vs ``default``.
 
-    With several repeats (``repeat`` column) the times are the medians over the repeats
-    in which every system was solved (``total_s_repeats`` lists them; a set stopped in
-    its first repeat: the systems it solved); status, iterations, residuals and errors
-    come from the first repeat."""
+    With several repeats (``repeat`` column) the times are those of the median repeat
+    by total time among the repeats in which every system was solved (the mean of the two
+    middle ones for an even count, so setup + solve = total; ``total_s_repeats`` lists
+    them; a set stopped in its first repeat: the systems it solved); the status is the
+    worst over all repeats (a set over the budget in a later repeat is not ``ok`` on
+    its fast repeats alone); iterations, residuals and errors come from the first repeat."""
     out = []
     keys = list(dict.fromkeys((r["wisps"], r["set"]) for r in rows))
     for wisps, name in keys:
         every = [r for r in rows if r["wisps"] == wisps and r["set"] == name]
         rs = [r for r in every if r.get("repeat", 0) == 0]
         ok = [r for r in rs if r["status"] == "ok"]
-        statuses = {r["status"] for r in rs}
+        statuses = {r["status"] for r in every}
         status = "ok" if statuses == {"ok"} else next(
             s for s in ("error", "diverged", "inaccurate", "budget") if s in statuses)
         its = [r["iterations"] for r in ok]
@@ -77,8 +79,10 @@ def summarise(rows, budget_s):
                 per_repeat.setdefault(r.get("repeat", 0), []).append(r)
             complete = [g for g in per_repeat.values()
                         if len(g) == len(rs) and all(r["status"] == "ok" for r in g)] or [ok]
-            med = {k: float(np.median([sum(r[k] for r in g) for g in complete]))
-                   for k in ("setup_s", "solve_s", "total_s")}
+            sums = sorted(({k: sum(r[k] for r in g) for k in ("setup_s", "solve_s", "total_s")}
+                           for g in complete), key=lambda t: t["total_s"])
+            middle = sums[(len(sums) - 1) // 2: len(sums) // 2 + 1]
+            med = {k: float(np.mean([t[k] for t in middle])) for k in ("setup_s", "solve_s", "total_s")}
             s.update(med, repeats=len(complete),
                      total_s_repeats=[sum(r["total_s"] for r in g) for g in complete],
                      iterations_first=its[0], iterations_mean=float(np.mean(its)),

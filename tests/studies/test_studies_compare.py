@@ -271,3 +271,23 @@ def test_a_failed_direct_reference_is_an_error_not_a_reference():
     assert np.allclose(refs[0].getArray(), [0.5] * (n - 1) + [0.25])
     for v in (A, b, *refs):
         v.destroy()
+
+
+def test_summary_repeats_keep_setup_plus_solve_and_a_later_budget_stop():
+    """The times are those of the median repeat (setup + solve = total: separate medians
+    of 1+9, 5+2, 3+3 gave 3 + 3 against a total of 7); a set over the budget in a later repeat is
+    reported as such, not ok on its fast repeats."""
+    from lc_petsc.studies.compare import summarise
+
+    def row(name, rep, setup, solve, status="ok"):
+        return dict(wisps=2, dofs=6, ranks=1, set=name, repeat=rep, status=status, iterations=3,
+                    setup_s=setup, solve_s=solve, total_s=setup + solve, true_rel_residual=1e-6,
+                    rel_error_vs_direct=1e-6, rss_delta_mib=1.0, set_peak_mib=1.0)
+    rows = [row("default", 0, 1.0, 9.0), row("default", 1, 5.0, 2.0), row("default", 2, 3.0, 3.0),
+            row("slow", 0, 1.0, 1.0), row("slow", 1, 0.0, 30.0, status="budget")]
+    s = {x["set"]: x for x in summarise(rows, 30.0)}
+    d = s["default"]
+    assert (d["setup_s"], d["solve_s"], d["total_s"]) == (5.0, 2.0, 7.0) and d["repeats"] == 3
+    even = summarise(rows[:2], 30.0)[0]
+    assert (even["setup_s"], even["solve_s"], even["total_s"]) == (3.0, 5.5, 8.5)
+    assert s["slow"]["status"] == "budget" and s["slow"]["total_s"] == 2.0

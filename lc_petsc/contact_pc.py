@@ -22,6 +22,13 @@ C couples into **clusters** and solves each cluster's block of A + C exactly:
    dense for exact clusters to pay (measured on the 4K hairball: clusters holding 89%
    of it still left CG 75 of its 150 iterations, for a factorisation 50x the per-wisp
    one), and the set-up keeps the per-wisp blocks alone.
+   **Self-contact** (``physics.strand_self_contact``): C also holds cross blocks
+   between segments of one wisp.  A wisp with such blocks is factored as a cluster
+   even when no other wisp joins it (a one-wisp cluster: its band plus its own cross
+   blocks, also under the fallback): the per-wisp band factor cannot hold them, and
+   without them CG is left with the whole self-contact stiffness (measured: a 60-wisp
+   barrier scene with self-contact, 1,000 CG iterations without converging against 7
+   with them; docs/contact.md, "Self-contact").
 2. **Singletons** (wisps in no cluster): the exact per-wisp factorisation of the
    rank's block of A: a compiled block Cholesky of each wisp's band
    (``-lc_band_factor cholesky``, the default; lc_petsc/elements/compiled_band.py),
@@ -129,6 +136,14 @@ def wisp_couplings(row_wisp, col_wisp, blocks, n_wisps):
     weight = np.bincount(inverse, weights=np.linalg.norm(blocks[keep], axis=(1, 2)),
                          minlength=len(key))
     return np.stack([key // n, key % n], axis=1), weight, count
+
+
+def self_coupled(row_wisp, col_wisp, blocks, n_wisps):
+    """Wisps (n_wisps,) bool with a nonzero block of C between two of their own vertices
+    (self-contact), from the blocks of a cross-block matrix as in :func:`wisp_couplings`."""
+    a, b = np.asarray(row_wisp, np.int64), np.asarray(col_wisp, np.int64)
+    hit = (a == b) & (np.abs(np.reshape(blocks, (len(a), 9))).max(axis=1, initial=0.0) > 0.0)
+    return np.bincount(a[hit], minlength=int(n_wisps)) > 0
 
 
 def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blocks=MAX_BLOCKS):
@@ -318,8 +333,9 @@ class ClusterPC:
     def _couplings(self, C):
         """The global coupled wisp pairs, weights and block counts of C (every rank gets
         all of them, in (a, b) order: each pair comes from the rows of its smaller wisp),
-        and this rank's blocks of C: (global row vertex (k,), global column vertex (k,),
-        blocks (k, 3, 3))."""
+        this rank's blocks of C: (global row vertex (k,), global column vertex (k,),
+        blocks (k, 3, 3)), and the wisps with self-contact blocks (n_wisps,) bool (a
+        wisp's blocks are all on its rank: or-ed over the ranks)."""
         lay = self.layout
         rows = local_rows(C)
         try:
@@ -327,13 +343,15 @@ class ClusterPC:
         finally:
             if rows is not C:
                 rows.destroy()
-        found = wisp_couplings(lay.first_wisp + self.vertex_wisp[rc], lay.vertex_wisp[cc], vc,
-                               lay.n_wisps)
+        row_wisp = lay.first_wisp + self.vertex_wisp[rc]
+        found = wisp_couplings(row_wisp, lay.vertex_wisp[cc], vc, lay.n_wisps)
+        alone = self_coupled(row_wisp, lay.vertex_wisp[cc], vc, lay.n_wisps)
         mine = (lay.offsets[lay.first_wisp] + rc, cc, vc)
         if lay.comm.size == 1:
-            return found, mine
+            return found, mine, alone
         parts = lay.comm.allgather(found)
-        return tuple(np.concatenate([p[k] for p in parts]) for k in range(3)), mine
+        alone = np.any(lay.comm.allgather(alone), axis=0)
+        return tuple(np.concatenate([p[k] for p in parts]) for k in range(3)), mine, alone
 
     def _to_owners(self, rows, cols, vals, dest):
         """The blocks (global rows, columns, values) sent to this rank by every rank,
@@ -353,16 +371,16 @@ class ClusterPC:
             out.append(got)
         return tuple(out)
 
-    def _cluster_blocks(self, A_loc, c_blocks, label, owner):
+    def _cluster_blocks(self, A_loc, c_blocks, label, owner, factored):
         """The blocks of A + C inside the clusters this rank factors (global rows,
         columns, values; A's first), from every rank's rows: its band blocks of clustered
         wisps (``A_loc``) and its blocks of C (``c_blocks``) inside a cluster, by cluster
-        ``label`` and cluster ``owner`` (collective)."""
+        ``label``, cluster ``owner`` and ``factored`` (by label: a cluster, not a
+        singleton) (collective)."""
         lay = self.layout
-        count = np.bincount(label, minlength=lay.n_wisps)
         v0 = lay.offsets[lay.first_wisp]
         local = lay.first_wisp + np.arange(len(self.offsets) - 1)
-        local = local[count[label[local]] > 1]                      # clustered wisps here
+        local = local[factored[label[local]]]                       # clustered wisps here
         sizes = lay.sizes[local]
         verts = np.repeat(lay.offsets[local] - v0 - np.concatenate([[0], np.cumsum(sizes)[:-1]]),
                           sizes) + np.arange(int(sizes.sum()))     # their local vertices
@@ -370,7 +388,7 @@ class ClusterPC:
         a = self._to_owners(v0 + verts[ra], v0 + ca, va, owner[label[lay.vertex_wisp[v0 + verts[ra]]]])
         rows, cols, vals = c_blocks
         cluster = label[lay.vertex_wisp[rows]]
-        inside = (cluster == label[lay.vertex_wisp[cols]]) & (count[cluster] > 1)
+        inside = (cluster == label[lay.vertex_wisp[cols]]) & factored[cluster]
         c = self._to_owners(rows[inside], cols[inside], vals[inside], owner[cluster[inside]])
         return tuple(np.concatenate([a[k], c[k]]) for k in range(3))
 
@@ -380,11 +398,12 @@ class ClusterPC:
         stats = {"clusters": 0, "wisps": 0, "largest": 0, "rows": 0, "fill": 0.0,
                  "couplings": 0, "couplings_left_out": 0, "captured": 1.0, "fallback": False,
                  "cross_rank_couplings": 0, "cross_rank_weight": 0.0, "cross_rank_clusters": 0,
-                 "moved_rows": 0}
+                 "moved_rows": 0, "self_contact_wisps": 0}
         self.stats = stats
-        if C is None or lay.n_wisps < 2:
+        if C is None:
             return
-        (pairs, weights, counts), c_blocks = self._couplings(C)
+        (pairs, weights, counts), c_blocks, alone = self._couplings(C)
+        stats["self_contact_wisps"] = int(alone.sum())
         cross = lay.wisp_rank[pairs[:, 0]] != lay.wisp_rank[pairs[:, 1]]
         total = float(weights.sum())
         stats.update(cross_rank_couplings=int(cross.sum()),
@@ -392,18 +411,21 @@ class ClusterPC:
         if self.span == "rank":
             pairs, weights, counts = pairs[~cross], weights[~cross], counts[~cross]
         stats["couplings"] = len(pairs)
-        if not len(pairs):
-            return
-        label = cluster_labels(lay.n_wisps, pairs, weights, counts, self.max_wisps, self.max_blocks)
-        out = label[pairs[:, 0]] != label[pairs[:, 1]]
-        total = float(weights.sum())
-        stats.update(couplings_left_out=int(out.sum()),
-                     captured=1.0 - float(weights[out].sum()) / total if total > 0 else 1.0)
-        if stats["captured"] < self.min_captured:
-            stats["fallback"] = True
-            return
+        label = np.arange(lay.n_wisps)          # every wisp alone unless merged below
+        if len(pairs):
+            merged = cluster_labels(lay.n_wisps, pairs, weights, counts, self.max_wisps, self.max_blocks)
+            out = merged[pairs[:, 0]] != merged[pairs[:, 1]]
+            total = float(weights.sum())
+            stats.update(couplings_left_out=int(out.sum()),
+                         captured=1.0 - float(weights[out].sum()) / total if total > 0 else 1.0)
+            if stats["captured"] < self.min_captured:
+                stats["fallback"] = True        # the wisps with self-contact still factored alone
+            else:
+                label = merged
         count = np.bincount(label, minlength=lay.n_wisps)
-        clustered = np.flatnonzero(count[label] > 1)
+        # a cluster: several wisps, or one with self-contact blocks (module doc)
+        factored = (count > 1) | (np.bincount(label, weights=alone, minlength=lay.n_wisps) > 0)
+        clustered = np.flatnonzero(factored[label])
         if not len(clustered):
             return
         held = np.zeros((lay.n_wisps, lay.comm.size))     # vertices per (cluster, rank)
@@ -414,7 +436,7 @@ class ClusterPC:
         # this rank's clusters, their wisps grouped by cluster, in wisp order inside one
         wisps = clustered[owner[label[clustered]] == lay.comm.rank]
         wisps = wisps[np.argsort(label[wisps], kind="stable")]
-        self._factor_clusters(A, self._cluster_blocks(A_loc, c_blocks, label, owner), wisps)
+        self._factor_clusters(A, self._cluster_blocks(A_loc, c_blocks, label, owner, factored), wisps)
         if len(wisps):
             stats.update(clusters=len(np.unique(label[wisps])), wisps=len(wisps),
                          largest=int(count[label[wisps]].max()), rows=len(self.dofs))

@@ -9,7 +9,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 import lc_petsc.simulator as simmod
-from lc_petsc.contact_pc import cluster_labels, wisp_couplings
+from lc_petsc.contact_pc import cluster_labels, self_coupled, wisp_couplings
 from lc_petsc.errors import ConfigError
 from lc_petsc.solver_plan import SolverPlan
 from sim_helpers import touching_wisps_config, touching_wisps_source
@@ -69,6 +69,17 @@ def test_wisp_couplings_sums_blocks_per_wisp_pair():
     np.testing.assert_array_equal(pairs, [[0, 1], [0, 2]])
     np.testing.assert_allclose(w, [np.sqrt(3) * (0 + 1), np.sqrt(3) * 2])
     np.testing.assert_array_equal(counts, [2, 1])
+
+
+def test_self_coupled_finds_the_wisps_with_blocks_inside():
+    # blocks (0,1) inside wisp 0, (1,2) between wisps 0 and 1, (3,3) inside wisp 2 but
+    # zero (a pinned vertex's block): only wisp 0 has self-contact
+    vertex_wisp = np.array([0, 0, 1, 2])
+    rows, cols = np.array([0, 1, 1, 3]), np.array([1, 0, 2, 3])
+    blocks = np.array([1.0, 1.0, 5.0, 0.0])[:, None, None] * np.eye(3)
+    got = self_coupled(vertex_wisp[rows], vertex_wisp[cols], blocks, 3)
+    np.testing.assert_array_equal(got, [True, False, False])
+    assert not self_coupled([], [], np.zeros((0, 3, 3)), 2).any()
 
 
 def dense(M):

@@ -21,6 +21,7 @@ from lc_petsc.elements.segment_contact import distance
 from lc_petsc.errors import RestPoseOverlapError
 from lc_petsc.scene import geometry
 from lc_petsc.scene.sources import ArraySource
+from test_contact_pc import dense
 from test_mpi_ccd import frames_run
 
 comm = MPI.COMM_WORLD
@@ -40,27 +41,34 @@ def smash_source(n_wisps=1, spacing=3.0):
                        root_radius=0.08, tip_radius=0.05)
 
 
-def smash_config(frames, self_contact):
+def smash_config(frames, self_contact, potential="penalty", options=""):
     return SimConfig(scene=SceneConfig(kind="straight"), material=MaterialConfig(youngs_modulus=2e6),
                      physics=PhysicsConfig(terms=("stretch", "bend", "twist", "strand_collision"),
                                            strand_thickness=D0, strand_stiffness=1e4,
-                                           strand_contact_mode="ccd", strand_self_contact=self_contact),
+                                           strand_contact_mode="ccd", strand_self_contact=self_contact,
+                                           strand_contact_potential=potential),
                      time=TimeConfig(frames=frames),
-                     solver=SolverConfig(options="-ksp_rtol 1e-12 -ksp_max_it 5000"))
+                     solver=SolverConfig(options="-ksp_rtol 1e-12 -ksp_max_it 5000 " + options))
 
 
-def run_smash(c, frames, self_contact, n_wisps=1):
-    """Positions at the start and after each frame (gathered on rank 0) and the summary:
-    the vertices start moving along the axis towards the wisp's middle at SQUEEZE times
-    their distance from it, so the coil is crushed within 1-2 frames."""
-    sim = simmod.build_simulator(smash_config(frames, self_contact), comm=c)
+def smash_simulator(c, frames, self_contact, potential="penalty", options=""):
+    """The simulator whose vertices start moving along the axis towards their wisp's
+    middle at SQUEEZE times their distance from it: each coil is crushed within 1-2
+    frames (``options``: more solver options)."""
+    sim = simmod.build_simulator(smash_config(frames, self_contact, potential, options), comm=c)
     sc = sim.scene
     v = np.zeros_like(sim.x)
     for w in range(sc.n_wisps):
         a, b = sc.offsets[w], sc.offsets[w + 1]
         v[a:b, 1] = SQUEEZE * (sim.x[a:b, 1].mean() - sim.x[a:b, 1])
     sim.integrator.v = v
-    return frames_run(sim, frames)
+    return sim
+
+
+def run_smash(c, frames, self_contact, n_wisps=1):
+    """Positions at the start and after each frame (gathered on rank 0) and the summary
+    of :func:`smash_simulator`."""
+    return frames_run(smash_simulator(c, frames, self_contact), frames)
 
 
 def self_crossings(X, n_wisps=1):
@@ -93,6 +101,42 @@ def test_smashed_curl_never_crosses_itself(smash):
     assert sum(summ0["contact"]["pairs_per_frame"]) == 0
 
 
+@pytest.mark.parametrize("potential", ["penalty", "barrier"])
+def test_cluster_pc_holds_a_lone_wisps_self_contact(smash, potential):
+    """A curl crushed into itself, touching no other wisp: the cluster preconditioner
+    (the default) factors the wisp's band together with its own self-contact cross
+    blocks (a one-wisp cluster), so it is the exact inverse of A + C and CG at rtol
+    1e-12 takes 1-2 iterations.  Before, a wisp in no cluster kept only its band (the
+    self-contact blocks dropped): 26-74 (penalty) and 37-133 (barrier) iterations per solve here, and a 60-wisp
+    barrier scene with self-contact hit CG's 1,000-iteration cap (docs/contact.md,
+    "Self-contact")."""
+    sim = smash_simulator(MPI.COMM_SELF, 4, True, potential)
+    try:
+        pairs = []
+        for _ in range(4):
+            sim.step()
+            pairs.append(sim.strand.last_pairs)
+        its = sim.solver.iterations
+        print(f"\n{potential}: CG iterations {its}, pairs per frame {pairs}")
+        assert min(pairs[1:]) > 5                    # the turns are pressed together
+        assert max(its) <= 2, its
+        ctx = sim.solver.clusters
+        assert ctx.stats["self_contact_wisps"] == 1 and ctx.stats["clusters"] == 1, ctx.stats
+        # the last set-up's P^-1 against the dense solve of A + C
+        op, _ = sim.solver.ksp.getOperators()
+        K = dense(op.getPythonContext().A) + dense(op.getPythonContext().C)
+        r = np.random.default_rng(1).standard_normal(len(K))
+        x, y = op.createVecs()
+        x.array[:] = r
+        sim.solver.ksp.getPC().apply(x, y)
+        sol = np.linalg.solve(K, r)
+        assert np.abs(y.array - sol).max() <= 1e-8 * np.abs(sol).max()
+        x.destroy()
+        y.destroy()
+    finally:
+        sim.close()
+
+
 def test_touching_curls_crushed_together(monkeypatch):
     """Two interleaved curls crushed at once: the contact clusters (the default
     preconditioner) hold self-contact cross blocks that fall on a wisp's band (segments
@@ -106,6 +150,24 @@ def test_touching_curls_crushed_together(monkeypatch):
     assert sum(count_crossings(X[k], X[k + 1], off)["crossings"] for k in range(5)) == 0
     assert max(summ["contact"]["pairs_per_frame"]) > 20
     assert summ["converged"]
+
+
+def test_fallback_keeps_each_wisps_self_contact(monkeypatch):
+    """Clusters refused (at most 1 wisp each, all of the coupling weight required): the
+    set-up falls back to single wisps, but each of the two interleaved curls keeps its
+    own self-contact blocks (a one-wisp cluster; before, the fallback dropped them)."""
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: smash_source(2, 0.9))
+    sim = smash_simulator(MPI.COMM_SELF, 2, True,
+                          options="-lc_cluster_max_wisps 1 -lc_cluster_min_captured 1")
+    try:
+        sim.run(2)
+        fell = [h for h in sim.solver.clusters.history if h["fallback"]]
+        assert fell and all(h["captured"] < 1.0 for h in fell)
+        for h in fell:
+            assert h["clusters"] == 2 and h["largest"] == 1, h         # main: 0 clusters
+            assert h["self_contact_wisps"] == 2, h
+    finally:
+        sim.close()
 
 
 def random_strands(rng, n_wisps=3, n_vertices=150, step=0.05):
@@ -229,7 +291,8 @@ def test_self_contact_config_is_checked():
 @pytest.mark.mpi
 def test_self_contact_rank_invariance(monkeypatch):
     """Three curls crushed at once, ccd + self-contact: 2 / 3 ranks follow 1 rank (one
-    wisp per rank on 3) to 1e-8, and none crosses itself."""
+    wisp per rank on 3) to 1e-8, none crosses itself, and CG takes 1-2 iterations (each
+    curl's self-contact in its own one-wisp cluster)."""
     monkeypatch.setattr(simmod, "source_from_config", lambda *a: smash_source(3))
     X, summ = run_smash(comm, 6, True, n_wisps=3)
     ok, msg = True, ""
@@ -238,9 +301,11 @@ def test_self_contact_rank_invariance(monkeypatch):
         err = float(np.abs(X[-1] - ref[-1]).max() / np.abs(ref[-1]).max())
         crossings = self_crossings(X, 3)
         c = summ["contact"]
-        ok = sum(crossings) == 0 and max(c["pairs_per_frame"]) > 10 and err <= 1e-8
+        # each lone curl is a one-wisp cluster on any rank count: exact, 1-2 CG iterations
+        its = summ["ksp_iterations"]
+        ok = sum(crossings) == 0 and max(c["pairs_per_frame"]) > 10 and err <= 1e-8 and max(its) <= 2
         msg = (f"{comm.size} rank(s): crossings {crossings}, relative difference to 1 rank {err:.3e}, "
-               f"pairs per frame {c['pairs_per_frame']}")
+               f"pairs per frame {c['pairs_per_frame']}, CG iterations {its}")
         print("\n" + msg)
     ok, msg = comm.bcast((ok, msg))
     assert ok, msg

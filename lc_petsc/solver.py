@@ -89,6 +89,14 @@ def reason_name(r: int) -> str:
     return _REASONS.get(r, str(r))
 
 
+#: what to try when an iterative solve fails (a direct solve ran the scenes whose CG
+#: stalled: a barrier scene's stiff pairs, docs/contact.md "Barrier")
+ITERATIVE_WAY_OUT = ("; to go on: a direct solve (the options of configs/solvers/mumps_cholesky.opts: "
+                     "-ksp_type preonly -pc_type cholesky -pc_factor_mat_solver_type mumps -mat_type "
+                     "sbaij, in [solver] options or after the config on the command line), a larger "
+                     "-ksp_max_it, or a smaller time.dt (docs/contact_solver.md)")
+
+
 class LinearSolver:
     """The KSP of the Newton systems.  ``P`` (default: ``A``) must not couple two wisps
     when the per-wisp block Jacobi is ``fused`` (see the module doc); with strand
@@ -172,6 +180,7 @@ class LinearSolver:
         if r < 0:
             raise SolverError(
                 f"linear solve failed at frame {frame}, Newton iteration {newton_it}: "
-                f"{reason_name(r)} ({r}) after {its} iterations; solver {self.describe()}",
+                f"{reason_name(r)} ({r}) after {its} iterations; solver {self.describe()}"
+                + (ITERATIVE_WAY_OUT if self.ksp.getType() != "preonly" else ""),
                 reason=int(r))
         return its

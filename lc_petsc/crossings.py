@@ -91,7 +91,8 @@ def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
 def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0):
     """Crossings on the linear path X0 -> X1 (n_vertices, 3) of wisps ``offsets``:
     dict with ``crossings`` (number of segment pairs that meet), ``pairs`` (k, 2) of
-    their first global vertices, ``within`` (how many of them are of one wisp),
+    their first global vertices, ``same_wisp`` (k,) whether each is of one wisp,
+    ``within`` (how many are),
     ``min_distance`` at X1 over the pairs of different wisps whose boxes are within
     ``thickness`` (inf when there is none)."""
     X0, X1 = np.asarray(X0, float), np.asarray(X1, float)
@@ -107,8 +108,8 @@ def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0):
     wid[seg] = wisp
     other = wid[pairs[:, 0]] != wid[pairs[:, 1]]
     hits = near[hit]
-    return {"crossings": int(hit.sum()), "pairs": hits,
-            "within": int((wid[hits[:, 0]] == wid[hits[:, 1]]).sum()),
+    same = wid[hits[:, 0]] == wid[hits[:, 1]]
+    return {"crossings": int(hit.sum()), "pairs": hits, "same_wisp": same, "within": int(same.sum()),
             "min_distance": float(d1[other].min(initial=np.inf))}
 
 
@@ -263,9 +264,7 @@ def _count_share(path, rank, size, self_contact, rest_exempt=None):
             strain = float(np.abs(edge_strain(cur, rest, off)).max(initial=0.0))
             ex_between = ex_within = 0
             if rest_exempt is not None and r["crossings"]:
-                pairs = r["pairs"]
-                exempt = rest_exempt_pairs(rest, pairs, rest_exempt)
-                same = np.searchsorted(off, pairs[:, 0], "right") == np.searchsorted(off, pairs[:, 1], "right")
+                exempt, same = rest_exempt_pairs(rest, r["pairs"], rest_exempt), r["same_wisp"]
                 ex_between, ex_within = int(np.sum(exempt & ~same)), int(np.sum(exempt & same))
             rows.append((k, r["crossings"] - r["within"], r["within"], strain, ex_between, ex_within))
     return rows, len(steps)

@@ -428,14 +428,13 @@ class Integrator:
                 chord = self._chord_increment(x, it)
                 if chord_stop(chord, increment, cfg.time.newton_increment_tol):
                     converged, reported = True, chord
-            if converged and len(self.solver.not_reduced) > unreduced:
-                # a step (or chord check) whose solve ran no residual test and missed
-                # -ksp_rtol is not a Newton step: its small increment certifies nothing
-                # (Jacobi's steps left the cantilever 39x the tolerance away, docs/newton.md
-                # "Stopping rule")
-                converged = False
+            # a step (or chord check) whose solve ran no residual test and missed -ksp_rtol
+            # is not a Newton step: its small increment certifies nothing (Jacobi's steps
+            # left the cantilever 39x the tolerance away, docs/newton.md "Stopping rule")
+            short_of_rtol = len(self.solver.not_reduced) > unreduced
+            converged = converged and not short_of_rtol
             if self.monitor is not None:
-                short = ", solve short of -ksp_rtol" if len(self.solver.not_reduced) > unreduced else ""
+                short = ", solve short of -ksp_rtol" if short_of_rtol else ""
                 self._monitor(it, measure, self._step_kind(exact) + short, alpha, step_ksp,
                               cut=self.strand is not None and self.strand.last_cut, estimate=reported)
             if converged:

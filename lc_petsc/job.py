@@ -181,10 +181,10 @@ def crossing_warnings(check, cfg):
     (:func:`lc_petsc.crossings.check_run`): how many, where first, and the key that
     prevents them in this run's contact set-up; edges strained beyond STRAIN_WARN.  In
     ``ccd`` mode with ``output.every`` > 1 the limiter limits the simulated steps, which
-    this check cannot see; the straight paths across several of them, which a viewer interpolating the frames
-    written draws, need not be.  Crossings of pairs the contact exempts (closer than its
-    thickness at rest: ``between_exempt`` / ``within_exempt``) are put down to the
-    exemption, not to the limiter."""
+    this check cannot see; the straight paths across several of them, which a viewer
+    interpolating the frames written draws, need not be collision-free.  Crossings of
+    pairs the contact exempts (closer than its thickness at rest: ``between_exempt`` /
+    ``within_exempt``) are put down to the exemption, not to the limiter."""
     from lc_petsc.crossings import STRAIN_WARN
     out = []
     every, phys = cfg.output.every, cfg.physics
@@ -864,13 +864,12 @@ class Job:
         t_usd = 0.0
         if writer is not None and writer.written and not hdf5.unclosable():
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
-            from lc_petsc.io.usd import export_run
+            from lc_petsc.io.usd import export_failed, export_run
             try:
                 usd_files, t_usd = export_run(cfg.output, h5_path, out)
                 files += usd_files
             except Exception as e:  # noqa: BLE001 - like a preview, never worth the summary
-                text = (f"USD export failed, frames.h5 is intact (write it later with drivers/to_usd.py "
-                        f"{h5_path}): {type(e).__name__}: {e}")
+                text = export_failed(h5_path, f"{type(e).__name__}: {e}")
                 print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
                 summary["warnings"] = list(summary.get("warnings") or []) + [text]
         files.append("summary.json")
@@ -900,7 +899,6 @@ class Job:
             print(f"{PROG}: {summary['preempted']} received: stopped after frame {sim.integrator.frame}, "
                   f"checkpoint {last} written; continue with --restart latest "
                   f"(exit status {EXIT_PREEMPTED})", file=sys.stderr, flush=True)
-
 
     def _say_how_to_continue(self):
         """Rank 0, after a failure: the folder's newest checkpoint and --restart latest

@@ -242,6 +242,12 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
             "seconds": time.perf_counter() - t_start, "render_hair_seconds": t_hairs}
 
 
+def export_failed(frames_path, error):
+    """The warning of a failed export: frames.h5 is intact, and the command that writes
+    the export later."""
+    return f"USD export failed, frames.h5 is intact (write it later with drivers/to_usd.py {frames_path}): {error}"
+
+
 def export_run(output, frames_path, out_dir):
     """The main job's USD export (rank 0, after ``frames.h5`` is closed): writes
     ``out_dir/frames.usdc`` when ``output.usd`` is on, else removes a stale one.  A
@@ -262,7 +268,6 @@ def export_run(output, frames_path, out_dir):
     try:
         write_usd(frames_path, target)
     except failures as e:
-        print(f"simulate.py: warning: USD export failed, frames.h5 is intact (write it later with "
-              f"drivers/to_usd.py {frames_path}): {e}", file=sys.stderr, flush=True)
+        print(f"simulate.py: warning: {export_failed(frames_path, e)}", file=sys.stderr, flush=True)
         return [], time.perf_counter() - t0
     return [USD_NAME], time.perf_counter() - t0

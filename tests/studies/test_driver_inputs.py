@@ -28,6 +28,12 @@ def _strands(path, rest=False):
     return str(path)
 
 
+def _wisps_refused(prog):
+    """The error of ``--wisps`` on a groom file's config (one helper behind every script)."""
+    return (f"{prog}.py: error: --wisps sets scene.n_wisps, which only a hairball scene has; "
+            "configs/from_file.toml is scene.kind = 'file': leave out --wisps")
+
+
 CASES = [
     ("drivers/tradeoff.py", ["--scene", "nope.toml"],
      "tradeoff.py: error: --scene 'nope.toml': not a built-in scene (hairball, smash, jitter) and no "
@@ -40,8 +46,7 @@ CASES = [
     ("drivers/compare_solvers.py", ["--config", "nope.toml"],
      "compare_solvers.py: error: nope.toml: no such config file"),
     ("drivers/compare_solvers.py", ["--config", "configs/from_file.toml", "--wisps", "3"],
-     "compare_solvers.py: error: --wisps sets scene.n_wisps, which only a hairball scene has; "
-     "configs/from_file.toml is scene.kind = 'file': leave out --wisps"),
+     _wisps_refused("compare_solvers")),
     # a figure type matplotlib cannot write used to be a traceback after the whole count
     ("scripts/edge_strain.py", ["STRANDS", "--plot", "SCRATCH/s.txt"],
      "edge_strain.py: error: argument --plot: SCRATCH/s.txt: not a figure format matplotlib writes; "
@@ -50,11 +55,9 @@ CASES = [
      "newton_frames.py: error: argument --plot: SCRATCH/f.nope: not a figure format matplotlib writes"),
     # --wisps on a groom file's config used to be ignored silently by these two
     ("scripts/bench_contact.py", ["--config", "configs/from_file.toml", "--wisps", "3"],
-     "bench_contact.py: error: --wisps sets scene.n_wisps, which only a hairball scene has; "
-     "configs/from_file.toml is scene.kind = 'file': leave out --wisps"),
+     _wisps_refused("bench_contact")),
     ("scripts/bench_partition.py", ["--config", "configs/from_file.toml", "--wisps", "3"],
-     "bench_partition.py: error: --wisps sets scene.n_wisps, which only a hairball scene has; "
-     "configs/from_file.toml is scene.kind = 'file': leave out --wisps"),
+     _wisps_refused("bench_partition")),
     ("drivers/compare_solvers.py", ["--sets-dir", "SCRATCH"],
      "compare_solvers.py: error: no option sets (*.opts files) in "),
     ("drivers/compare_solvers.py", ["--repeats", "0"],

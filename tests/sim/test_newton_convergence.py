@@ -3,14 +3,17 @@ follow-the-leader guess, the relative stopping rule and its summary figures, and
 convergence-rate bounds on small scenes that the paper's setting (analytic filter,
 linear update) fails."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lc_petsc.config import (ConfigError, MaterialConfig, PhysicsConfig, SceneConfig,
+from lc_petsc.config import (ConfigError, load_config, MaterialConfig, PhysicsConfig, SceneConfig,
                              SimConfig, SolverConfig, TimeConfig)
-from lc_petsc.integrator import (Integrator, contraction_factor, corotational_update,
-                                 follow_the_leader, project_rest_lengths, retract_edge_lengths)
+from lc_petsc.integrator import (LOOSE_TOLERANCE, Integrator, confirms_stop, contraction_factor,
+                                 corotational_update, follow_the_leader, project_rest_lengths,
+                                 retract_edge_lengths)
 from lc_petsc.simulator import build_simulator
 from lc_petsc.studies.newton import configure, iterations_to, parse_variant, run_history
 from lc_petsc.studies.newton_frames import frame_iterations, reference_states
@@ -19,6 +22,7 @@ from sim_helpers import rotate as _rotate
 from sim_helpers import small_hairball_config
 
 COMM = MPI.COMM_WORLD
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 def _sequential_retraction(x, dx, free, off):
@@ -360,6 +364,49 @@ def test_a_step_whose_solve_missed_the_ksp_rtol_certifies_nothing():
     Z, lu = run_positions(_sagging_strand("-ksp_type preonly -pc_type lu -mat_type aij", 30), comm)
     assert lu["newton_converged"] == [True] and lu["newton_iterations"] == ref["newton_iterations"]
     assert np.abs(Z - Y).max() / wisp_length < 1e-3
+
+
+def _crushed_coil(tol, cap=60, fallback="analytic"):
+    """configs/compression_40.toml cut to 31 vertices: one 4C wisp crushed to 0.6 of its
+    length, recovering; one frame of dt 0.2 with exact_or_analytic steps, no cutback."""
+    cfg = load_config(CONFIGS / "compression_40.toml")
+    cfg.scene.n_vertices = 31
+    cfg.time.frames, cfg.time.dt, cfg.time.max_substeps = 1, 0.2, 1
+    cfg.time.newton_increment_tol, cfg.time.newton_iterations = tol, cap
+    cfg.solver.filter, cfg.solver.exact_fallback = "exact_or_analytic", fallback
+    return cfg.validate()
+
+
+def _run_coil(cfg):
+    """(positions, summary, per-vertex rest wisp length) of one frame on this rank alone."""
+    sim = build_simulator(cfg, MPI.COMM_SELF)
+    try:
+        sim.run()
+        return sim.integrator.x.copy(), sim.summary(), sim.integrator.wisp_length
+    finally:
+        sim.close()
+
+
+def test_a_loose_tolerance_stop_is_confirmed_by_the_next_step():
+    """At 1e-4 the crushed coil's increments fell below the tolerance while the iterate
+    was still 2.0x the tolerance from the step's solution (main: claimed converged after
+    44 iterations; 16x on the 101-vertex config).  A stop above LOOSE_TOLERANCE must now
+    be confirmed by the next step: 46 iterations, 0.23x.  At 1e-6 nothing changes (48
+    iterations on main and here)."""
+    X, s, wisp_length = _run_coil(_crushed_coil(1e-4))
+    Y, ref, _ = _run_coil(_crushed_coil(1e-10, cap=300, fallback="shifted"))
+    assert s["newton_converged"] == [True] and ref["newton_converged"] == [True]
+    distance = (np.linalg.norm(X - Y, axis=1) / wisp_length).max()
+    assert distance < 0.5 * 1e-4, distance                   # measured 0.23x (main: 2.0x)
+    assert s["newton_iterations"] == [46]
+    _, tight, _ = _run_coil(_crushed_coil(1e-6))
+    assert tight["newton_converged"] == [True] and tight["newton_iterations"] == [48]
+
+
+def test_which_tolerances_confirm_a_stop():
+    assert confirms_stop(1e-3) and confirms_stop(1.1e-5)
+    assert not confirms_stop(LOOSE_TOLERANCE) and not confirms_stop(1e-6)
+    assert not confirms_stop(None)                           # newton_tol alone, or a fixed count
 
 
 @pytest.mark.parametrize("key,value,match", [

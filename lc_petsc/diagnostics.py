@@ -19,7 +19,6 @@ from __future__ import annotations
 import numpy as np
 
 from lc_petsc.integrator import confirms_stop
-
 from lc_petsc.parallel import global_max, global_min, global_reduce
 
 

@@ -188,7 +188,9 @@ class PhysicsConfig:
     """``[physics]``: modelled terms, gravity, head sphere.
 
     head_collision is a penalty 1/2 k d^2 on the depth d of a free vertex inside the
-    sphere (radius ``head_radius`` + ``head_margin``); ``head_stiffness`` k in dyn/cm.
+    sphere (radius ``head_radius`` + ``head_margin``); ``head_stiffness`` k in dyn/cm;
+    ``head_push_out``: a vertex a step leaves deeper than its strand radius is put back
+    on the sphere.
     The head (sphere and pinned roots) follows ``head_motion``: ``static``, ``shake``
     (rotate back and forth about z, then y, then x; ``head_amplitude`` rad, each axis for
     ``head_period`` s; ``head_smooth``: each axis's swing starts and ends at rest, so the
@@ -207,6 +209,10 @@ class PhysicsConfig:
     head_period: float = 6.0
     head_smooth: bool = False
     head_velocity: Sequence[float] = (0.0, 0.0, 0.0)
+    # after each step's Newton iterations, free vertices deeper in the sphere than their
+    # strand radius are put back on it: a fixed Newton count can end with a vertex the
+    # last step moved in before the penalty saw it (docs/contact.md, "Hair and the head")
+    head_push_out: bool = True
     # strand_collision (docs/contact.md): penalty 1/2 k (d0 - d)^2 on the distance d of two
     # segments of different wisps below the thickness d0 (None: twice the smallest vertex
     # radius of the scene, i.e. twice the tip radius); k in dyn/cm
@@ -261,6 +267,8 @@ class PhysicsConfig:
         if not isinstance(self.strand_separation, bool):
             raise ConfigError(f"physics.strand_separation must be true or false, "
                               f"got {self.strand_separation!r}")
+        if not isinstance(self.head_push_out, bool):
+            raise ConfigError(f"physics.head_push_out must be true or false, got {self.head_push_out!r}")
         if not isinstance(self.head_smooth, bool):
             raise ConfigError(f"physics.head_smooth must be true or false, got {self.head_smooth!r}")
         if self.strand_contact_mode not in STRAND_CONTACT_MODES:
@@ -707,6 +715,8 @@ _CONDITIONAL_KEYS = {
                                     "'head_collision' in physics.terms"),
     ("physics", "head_margin"): (lambda c: "head_collision" in c.physics.terms,
                                  "'head_collision' in physics.terms"),
+    ("physics", "head_push_out"): (lambda c: "head_collision" in c.physics.terms,
+                                   "'head_collision' in physics.terms"),
     ("physics", "gravity"): (lambda c: "gravity" in c.physics.terms, "'gravity' in physics.terms"),
     ("physics", "strand_thickness"): (lambda c: "strand_collision" in c.physics.terms,
                                       "'strand_collision' in physics.terms"),

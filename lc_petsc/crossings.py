@@ -172,7 +172,7 @@ def count_frames(path, self_contact=False, progress=None):
         cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
         d0 = float((cfg.get("physics") or {}).get("strand_thickness") or 0.0)
         out = []
-        for k, prev, cur in _steps(f, valid_steps(valid_rows(f))):
+        for k, prev, cur in step_rows(f, valid_steps(valid_rows(f))):
             r = count_crossings(prev, cur, off, self_contact, thickness=d0)
             out.append({"step": k, "frames": (k * every, (k + 1) * every), "crossings": r["crossings"],
                         "min_distance": r["min_distance"]})
@@ -204,8 +204,11 @@ def check_run(path, comm, self_contact=False, rest_exempt=None):
     (:func:`rest_exempt_pairs`), else None; ``largest_strain``
     (the largest |edge length / rest length - 1| over the rows that end a step),
     ``largest_strain_row`` and ``rows_over_strain`` (rows with an edge beyond
-    :data:`STRAIN_WARN`).  ``{"error": message}`` when the file cannot be read."""
-    rows, problem, n_steps = [], None, 0     # (step, between, within, strain) of this rank's steps
+    :data:`STRAIN_WARN`); ``head``: how deep the hair sinks into the head sphere
+    (:func:`lc_petsc.head_check.summarize`; None when the scene has no head sphere).
+    ``{"error": message}`` when the file cannot be read."""
+    from lc_petsc.head_check import summarize
+    rows, problem, n_steps = [], None, 0     # (step, between, within, strain, ...) of this rank's steps
     try:
         rows, n_steps = _count_share(path, comm.rank, comm.size, self_contact, rest_exempt)
     except Exception as e:  # noqa: BLE001 - never a reason to lose the run's summary, and
@@ -231,7 +234,8 @@ def check_run(path, comm, self_contact=False, rest_exempt=None):
             "within_exempt": sum(r[5] for r in rows) if rest_exempt is not None and self_contact else None,
             "largest_strain": worst[3] if worst else None,
             "largest_strain_row": worst[0] + 1 if worst else None,
-            "rows_over_strain": sum(r[3] > STRAIN_WARN for r in rows)}
+            "rows_over_strain": sum(r[3] > STRAIN_WARN for r in rows),
+            "head": summarize([(r[0], r[6]) for r in rows if r[6] is not None])}
 
 
 def valid_steps(held):
@@ -240,7 +244,7 @@ def valid_steps(held):
     return [k for k in range(len(held) - 1) if held[k] and held[k + 1]]
 
 
-def _steps(f, steps):
+def step_rows(f, steps):
     """(k, positions of row k, of row k + 1) for each step k of ``steps`` (ascending) of
     the open frames.h5 ``f``; each row is read once where steps follow each other."""
     last = None                                  # (row, its positions)
@@ -252,19 +256,25 @@ def _steps(f, steps):
 
 def _count_share(path, rank, size, self_contact, rest_exempt=None):
     """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps;
-    a row is (step, between, within, strain, exempt between, exempt within)."""
+    a row is (step, between, within, strain, exempt between, exempt within, head figures
+    (:func:`lc_petsc.head_check.step_depths`, None without a head sphere))."""
     import h5py
+    from lc_petsc.head_check import file_head, step_depths
     from lc_petsc.io.frames import valid_rows
     with h5py.File(path, "r") as f:
         off, rest = frames_layout(f, with_rest=True)
         steps = valid_steps(valid_rows(f))
+        head = file_head(f)
+        times = np.asarray(f["time"][...], float) if head is not None else None
         rows = []
-        for k, prev, cur in _steps(f, steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]):
+        for k, prev, cur in step_rows(f, steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]):
             r = count_crossings(prev, cur, off, self_contact)
+            sunk = None if head is None else step_depths(head[0], prev, cur, times[k], times[k + 1], off,
+                                                         head[1], head[2])
             strain = float(np.abs(edge_strain(cur, rest, off)).max(initial=0.0))
             ex_between = ex_within = 0
             if rest_exempt is not None and r["crossings"]:
                 exempt, same = rest_exempt_pairs(rest, r["pairs"], rest_exempt), r["same_wisp"]
                 ex_between, ex_within = int(np.sum(exempt & ~same)), int(np.sum(exempt & same))
-            rows.append((k, r["crossings"] - r["within"], r["within"], strain, ex_between, ex_within))
+            rows.append((k, r["crossings"] - r["within"], r["within"], strain, ex_between, ex_within, sunk))
     return rows, len(steps)

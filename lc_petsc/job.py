@@ -237,6 +237,41 @@ def crossing_warnings(check, cfg):
                    f"length (frame {check['largest_strain_row'] * every}; beyond "
                    f"{100 * STRAIN_WARN:.0f}% in {check['rows_over_strain']} of the frames written; "
                    f"scripts/edge_strain.py lists them per frame): strands look torn or crushed; {fix}")
+    return out + head_warnings(check.get("head"), cfg)
+
+
+def head_warnings(head, cfg):
+    """Warnings for the end-of-run check's ``head`` figures
+    (:func:`lc_petsc.head_check.summarize`): strands entirely inside the head sphere in a
+    frame written, and vertex paths through it between frames, with the knobs that keep
+    hair out."""
+    if not head or not (head["rows_sunk"] or head["paths_through"]):
+        return []
+    every, phys = cfg.output.every, cfg.physics
+    if "head_collision" not in phys.terms:
+        fix = "add \"head_collision\" to physics.terms (the head sphere is drawn, not modelled)"
+    else:
+        fix = ("" if phys.head_push_out else "set physics.head_push_out = true (vertices deeper than their "
+               "radius put back on the sphere after each step), or ")
+        fix += (f"raise time.newton_iterations or lower time.dt (the last Newton step of a frame can carry "
+                f"hair into the head before the penalty acts), or raise physics.head_stiffness (now "
+                f"{phys.head_stiffness:g} dyn/cm: a resting vertex sinks by its load over it); "
+                f"physics.head_margin keeps hair that far outside the sphere drawn")
+    out = []
+    if head["rows_sunk"]:
+        out.append(f"hair sinks into the head: strands lie entirely inside the head sphere (deeper than their "
+                   f"radius) in {head['rows_sunk']} of the frames written (first: frame "
+                   f"{head['first_sunk_row'] * every}; deepest free vertex {head['vertex_depth']:.3g} cm, edge "
+                   f"point {head['edge_depth']:.3g} cm, {head['ratio']:.3g} strand radii; scripts/head_depth.py "
+                   f"lists them per frame); {fix}")
+    if head["paths_through"]:
+        out.append(f"{head['paths_through']} hair vertex path(s) between frames written pass deeper into the head "
+                   f"than their strand radius while neither frame shows them that deep, in {head['steps_through']} "
+                   f"steps (first: frame {head['first_through'] * every} -> {(head['first_through'] + 1) * every}; "
+                   f"up to {head['path_depth']:.3g} cm deep): a viewer interpolating the frames (motion blur, USD "
+                   f"time samples) draws that hair under the scalp, the straight path cutting under the curved "
+                   f"head or through the moving one; frames written closer together (time.dt, output.every) "
+                   f"shorten those paths")
     return out
 
 

@@ -107,6 +107,11 @@ def format_report(s) -> str:
         lines.append(f"  crossings between the frames written: between wisps {check['between_wisps']}"
                      f"{exempt('between')}{within} over {check['steps']} steps{strain} "
                      f"(checked in {_fmt_s(check['seconds'])})")
+    head = (check or {}).get("head")
+    if head:
+        lines.append(f"  hair inside the head: deepest free vertex {head['vertex_depth']:.3g} cm, edge point "
+                     f"{head['edge_depth']:.3g} cm ({head['ratio']:.3g} strand radii); frames with a strand "
+                     f"entirely inside {head['rows_sunk']}; vertex paths through it {head['paths_through']}")
     for w in s.get("warnings", []):
         lines.append(f"  warning: {w}")
     out = s.get("output", {})

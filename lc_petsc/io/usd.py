@@ -46,7 +46,7 @@ from lc_petsc.io.disk import written_aside
 USD_NAME = "frames.usdc"
 
 
-def _config_tables(config_dict):
+def config_tables(config_dict):
     """Scene, material, physics and output dataclasses from a resolved config dict
     (keys unknown to this version are dropped, missing ones take their defaults)."""
     from lc_petsc import config as C
@@ -144,7 +144,7 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
         if "config" not in f.attrs or "dt" not in f.attrs:
             raise ValueError(f"{frames_path}: has no 'config'/'dt' attributes (not written by the main job)")
         config_dict = json.loads(f.attrs["config"])
-        tables = _config_tables(config_dict)
+        tables = config_tables(config_dict)
         dt, every = float(f.attrs["dt"]), int(f.attrs.get("every", 1))
         offsets = np.asarray(f["wisp_offsets"][...], np.int64)
         sizes = np.diff(offsets)

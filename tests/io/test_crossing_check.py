@@ -61,6 +61,7 @@ def test_check_counts_each_step_once_on_any_rank_count(tmp_path):
     write_frames(path, frames, offsets)
     r = check_run(path, comm, self_contact=False)
     strain = {k: r.pop(k) for k in ("largest_strain", "largest_strain_row", "rows_over_strain")}
+    assert r.pop("head") is None            # no config: no head sphere (tests/io/test_head_check.py)
     assert r == {"steps": 5, "between_wisps": 2, "steps_between": 2, "first_between": 1,
                  "within_wisps": None, "steps_within": None, "first_within": None,
                  "between_exempt": None, "within_exempt": None}

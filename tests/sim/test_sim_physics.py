@@ -170,6 +170,35 @@ def test_head_contact_penalty_holds_strand():
         sim.close()
 
 
+@pytest.mark.parametrize("push_out", [True, False])
+def test_head_push_out_at_a_fixed_newton_count(push_out):
+    """The strand of the test above falls onto the head at the paper's fixed 3 Newton
+    iterations: the last step carries vertices into the sphere before the penalty sees
+    them (with ``head_push_out = false``, as on main: 0.588 cm deep in frame 1, 12 strand
+    radii, and deeper than the 0.05 cm radius in 15 of the 30 frames).  Pushed out, no
+    free vertex ends a frame deeper than its radius (0.0499 cm at worst)."""
+    c = np.array([8.0, -5.05, 0.0])
+    cfg = SimConfig(scene=SceneConfig(kind="straight", n_vertices=30, n_pinned=2, direction=(1, 0, 0),
+                                      segment_length=0.5),
+                    material=MaterialConfig(youngs_modulus=1e7, root_radius=0.05, tip_radius=0.05),
+                    physics=PhysicsConfig(terms=("stretch", "bend", "gravity", "head_collision"),
+                                          head_radius=5.0, head_center=tuple(c), head_stiffness=1e5,
+                                          head_push_out=push_out),
+                    time=TimeConfig(frames=30, newton_iterations=3))
+    sim = _sim(cfg)
+    try:
+        depth = []
+        sim.run(callback=lambda s: depth.append(5.0 - np.linalg.norm(s.x[~s.scene.pinned] - c, axis=1).min()))
+        d = np.array(depth)
+        assert np.all(np.isfinite(sim.x))
+        if push_out:
+            assert d.max() <= 0.05 + 1e-12 and d.max() > 0.01, d.max()     # it does rest on the head
+        else:
+            assert d.max() > 0.5, d.max()
+    finally:
+        sim.close()
+
+
 def test_line_search_and_newton_tolerance():
     cfg = SimConfig(scene=SceneConfig(kind="wisp4c", perturbation="smash"),
                     material=MaterialConfig(youngs_modulus=3.9e9),

@@ -520,6 +520,25 @@ class ClusterPC:
         self.stats["fill"] = float(self.cluster.getFactorMatrix().getInfo()["nz_used"]
                                    / M.getInfo()["nz_used"])
 
+    def left_out(self):
+        """For a failed solve's message: the contact couplings between wisps the last
+        set-up left out of P (all of them under the fallback) and what to change, or ''
+        when the clusters held every one (docs/contact_solver.md, "When CG fails")."""
+        st = self.stats
+        if st.get("fallback"):
+            what = (f"could put only {st['captured']:.0%} of the contact coupling weight into clusters "
+                    f"(below -lc_cluster_min_captured {self.min_captured:g}), so it kept per-wisp blocks "
+                    f"and left all {st['couplings']} coupled wisp pairs out")
+        elif st.get("couplings_left_out"):
+            what = (f"left {st['couplings_left_out']} of {st['couplings']} coupled wisp pairs out "
+                    f"({1.0 - st['captured']:.0%} of the coupling weight)")
+        else:
+            return ""
+        return (f"; the contact preconditioner {what} at the caps -lc_cluster_max_wisps {self.max_wisps} "
+                f"-lc_cluster_max_blocks {self.max_blocks}: CG alone must resolve the contact between "
+                f"those wisps; larger caps put it into the clusters' exact solves (their memory and set-up "
+                f"time grow with the caps)")
+
     def apply(self, pc, x, y):
         """y = P^-1 x: the per-wisp LUs, then the cluster rows by the clusters' LU
         (gathered from and scattered back to the ranks owning them)."""

@@ -3,6 +3,8 @@ MUMPS's ordering default: clustering against a brute-force reference, the precon
 against dense solves of its cluster blocks, SPD, the fallback, plan errors, both contact
 preconditioners on a run, and rank invariance of the solve (mpi)."""
 
+import re
+
 import numpy as np
 import pytest
 from mpi4py import MPI
@@ -10,7 +12,7 @@ from petsc4py import PETSc
 
 import lc_petsc.simulator as simmod
 from lc_petsc.contact_pc import cluster_labels, self_blocks, self_coupled, wisp_couplings
-from lc_petsc.errors import ConfigError
+from lc_petsc.errors import ConfigError, SolverError
 from lc_petsc.solver_plan import SolverPlan
 from sim_helpers import touching_wisps_config, touching_wisps_source
 
@@ -112,14 +114,16 @@ def dense(M):
         D.destroy()
 
 
-def one_frame(monkeypatch, options, comm=MPI.COMM_SELF):
+def one_frame(monkeypatch, options, comm=MPI.COMM_SELF, run=True):
+    """The touching wisps' simulator after one frame (``run=False``: before it)."""
     monkeypatch.setattr(simmod, "source_from_config", lambda *a: touching_wisps_source())
     cfg = touching_wisps_config(1, options=options)
     # the contact graphs measured: uncarried first iterate (time.carry_with_head); carried,
     # the first frame's pairs fit in 2-wisp clusters and nothing falls back
     cfg.time.carry_with_head = False
     sim = simmod.build_simulator(cfg, comm=comm)
-    sim.run()
+    if run:
+        sim.run()
     return sim
 
 
@@ -239,6 +243,36 @@ def test_fallback_keeps_the_per_wisp_blocks(monkeypatch):
     try:
         st = sim.solver.clusters.stats
         assert not st["fallback"] and st["clusters"] >= 1 and st["largest"] <= 2, st
+    finally:
+        sim.close()
+
+
+def test_failed_solve_says_which_couplings_the_clusters_left_out(monkeypatch):
+    """A CG that fails with the cluster preconditioner names the contact couplings
+    between wisps its last set-up left out (all of them under the fallback) and the
+    caps to raise; with the default caps the same frame converges within the same
+    iteration limit (the clusters hold every coupling: exact)."""
+    limit = "-ksp_rtol 1e-12 -ksp_max_it 3 -lc_contact_pc clusters"
+    for extra, said in (("-lc_cluster_max_wisps 2 -lc_cluster_min_captured 1",
+                         r"could put only \d+% of the contact coupling weight into clusters \(below "
+                         r"-lc_cluster_min_captured 1\), so it kept per-wisp blocks and left all \d+ coupled "
+                         r"wisp pairs out at the caps -lc_cluster_max_wisps 2 -lc_cluster_max_blocks 1024"),
+                        ("-lc_cluster_max_wisps 2 -lc_cluster_min_captured 0",
+                         r"left \d+ of \d+ coupled wisp pairs out \(\d+% of the coupling weight\) at the "
+                         r"caps -lc_cluster_max_wisps 2")):
+        sim = one_frame(monkeypatch, f"{limit} {extra}", run=False)
+        try:
+            with pytest.raises(SolverError, match="DIVERGED_MAX_IT") as e:
+                sim.run()
+        finally:
+            sim.close()
+        print("\n" + str(e.value))
+        assert re.search(said, str(e.value)), str(e.value)
+        assert "larger caps put it into the clusters' exact solves" in str(e.value)
+        assert "smaller physics.strand_barrier_stiffness" in str(e.value)
+    sim = one_frame(monkeypatch, limit)         # the default caps: no failure
+    try:
+        assert max(sim.solver.iterations) <= 2 and sim.solver.clusters.left_out() == ""
     finally:
         sim.close()
 

@@ -15,7 +15,8 @@ C couples into **clusters** and solves each cluster's block of A + C exactly:
    index), a merge being refused when the cluster would hold more than
    ``max_wisps`` wisps (``-lc_cluster_max_wisps``) or more than ``max_blocks`` cross
    blocks (``-lc_cluster_max_blocks``; the cost cap: the fill of a cluster's LU comes
-   from its cross blocks, docs/contact_solver.md).  The couplings left out (refused
+   from its cross blocks, docs/contact_solver.md; a wisp's self-contact blocks count
+   too, so a wisp whose own blocks alone exceed the cap joins no other).  The couplings left out (refused
    merges) are dropped from the preconditioner (and with ``rank`` the cross-rank ones).
    **Fallback**: when the clusters hold less than ``min_captured``
    (``-lc_cluster_min_captured``) of the coupling weight, the contact is too
@@ -146,17 +147,37 @@ def self_coupled(row_wisp, col_wisp, blocks, n_wisps):
     return np.bincount(a[hit], minlength=int(n_wisps)) > 0
 
 
-def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blocks=MAX_BLOCKS):
+def self_blocks(row_wisp, col_wisp, row_vertex, col_vertex, n_wisps):
+    """Self-contact cross blocks per wisp (n_wisps,): the blocks of C between two vertices
+    of one wisp, each vertex pair once (``row_vertex < col_vertex``; C is symmetric), as
+    :func:`wisp_couplings` counts a pair of wisps' blocks.  They take part in the cap on
+    a cluster's cross blocks (their LU fill is the same as a pair's)."""
+    a, b = np.asarray(row_wisp, np.int64), np.asarray(col_wisp, np.int64)
+    inside = (a == b) & (np.asarray(row_vertex) < np.asarray(col_vertex))
+    return np.bincount(a[inside], minlength=int(n_wisps))
+
+
+def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blocks=MAX_BLOCKS,
+                   own_blocks=None):
     """Cluster of every wisp (n_wisps,): the smallest wisp index of its cluster.
 
-    Union-find over ``pairs`` (m, 2) in order of decreasing ``weights`` (ties: the
-    order of ``pairs``); a merge is refused if the cluster would exceed ``max_wisps``
-    wisps or ``max_blocks`` cross blocks inside it (``counts`` per pair: those of the
-    pairs merged so far and of the pairs found inside on the way; a refused pair stays
-    outside)."""
+    Union-find over ``pairs`` (m, 2, each pair once) in order of decreasing ``weights``
+    (ties: the order of ``pairs``); a merge is refused if the cluster would exceed
+    ``max_wisps`` wisps or ``max_blocks`` cross blocks inside it: the two clusters'
+    blocks (``own_blocks`` (n_wisps,), each wisp's self-contact blocks,
+    :func:`self_blocks`, default none, and ``counts`` of the pairs inside) plus those of
+    *every* pair between them, which the merge brings inside (not only the pair being
+    merged: a later pair closing a triangle would otherwise add its blocks past the
+    cap).  A refused pair stays outside; a wisp whose own blocks alone exceed
+    ``max_blocks`` joins no other wisp (it is still factored alone: the caller's
+    one-wisp cluster)."""
     parent = np.arange(n_wisps)
     size = np.ones(n_wisps, np.int64)
-    inner = np.zeros(n_wisps, np.int64)          # cross blocks inside, at the root
+    # cross blocks inside, at the root: each wisp starts with its self-contact blocks
+    inner = np.zeros(n_wisps, np.int64) if own_blocks is None else np.array(own_blocks, np.int64)
+    between: list[dict] = [{} for _ in range(n_wisps)]    # root -> {root: blocks between them}
+    for (a, b), k in zip(np.asarray(pairs).tolist(), np.asarray(counts).tolist()):
+        between[a][b] = between[b][a] = k
 
     def find(w):
         while parent[w] != w:
@@ -167,15 +188,20 @@ def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blo
     for e in np.argsort(-np.asarray(weights), kind="stable"):
         ra, rb = find(pairs[e, 0]), find(pairs[e, 1])
         if ra == rb:
-            inner[ra] += counts[e]
             continue
-        if size[ra] + size[rb] > max_wisps or inner[ra] + inner[rb] + counts[e] > max_blocks:
+        joined = inner[ra] + inner[rb] + between[ra][rb]
+        if size[ra] + size[rb] > max_wisps or joined > max_blocks:
             continue
         if rb < ra:
             ra, rb = rb, ra
         parent[rb] = ra
         size[ra] += size[rb]
-        inner[ra] += inner[rb] + counts[e]
+        inner[ra] = joined
+        del between[ra][rb], between[rb][ra]
+        for r, k in between[rb].items():        # rb's neighbours now border ra
+            del between[r][rb]
+            between[ra][r] = between[r][ra] = between[ra].get(r, 0) + k
+        between[rb] = {}
     roots = np.array([find(w) for w in range(n_wisps)], np.int64)
     smallest = np.full(n_wisps, n_wisps, np.int64)
     np.minimum.at(smallest, roots, np.arange(n_wisps))
@@ -256,7 +282,8 @@ class ClusterPC:
     ``stats`` holds the clusters' figures (this rank's: clusters it factors, their wisps,
     largest, cluster rows, factor over matrix entries; global: coupled wisp pairs, those
     left out, share of the coupling weight held, fallback taken, pairs and weight share
-    across ranks, clusters spanning ranks) and ``history`` keeps them per set-up."""
+    across ranks, clusters spanning ranks, the most cross blocks inside one cluster,
+    self-contact blocks included) and ``history`` keeps them per set-up."""
 
     def __init__(self, wisp_rows, max_wisps=MAX_WISPS, max_blocks=MAX_BLOCKS,
                  min_captured=MIN_CAPTURED, ordering=ORDERING, span=SPAN, band_factor=BAND_FACTOR):
@@ -334,8 +361,9 @@ class ClusterPC:
         """The global coupled wisp pairs, weights and block counts of C (every rank gets
         all of them, in (a, b) order: each pair comes from the rows of its smaller wisp),
         this rank's blocks of C: (global row vertex (k,), global column vertex (k,),
-        blocks (k, 3, 3)), and the wisps with self-contact blocks (n_wisps,) bool (a
-        wisp's blocks are all on its rank: or-ed over the ranks)."""
+        blocks (k, 3, 3)), the wisps with self-contact blocks (n_wisps,) bool and their
+        self-contact blocks (n_wisps,) (:func:`self_blocks`; a wisp's blocks are all on
+        its rank: or-ed and summed over the ranks)."""
         lay = self.layout
         rows = local_rows(C)
         try:
@@ -343,15 +371,17 @@ class ClusterPC:
         finally:
             if rows is not C:
                 rows.destroy()
-        row_wisp = lay.first_wisp + self.vertex_wisp[rc]
-        found = wisp_couplings(row_wisp, lay.vertex_wisp[cc], vc, lay.n_wisps)
-        alone = self_coupled(row_wisp, lay.vertex_wisp[cc], vc, lay.n_wisps)
+        row_wisp, col_wisp = lay.first_wisp + self.vertex_wisp[rc], lay.vertex_wisp[cc]
+        found = wisp_couplings(row_wisp, col_wisp, vc, lay.n_wisps)
+        alone = self_coupled(row_wisp, col_wisp, vc, lay.n_wisps)
         mine = (lay.offsets[lay.first_wisp] + rc, cc, vc)
+        own = self_blocks(row_wisp, col_wisp, mine[0], cc, lay.n_wisps)
         if lay.comm.size == 1:
-            return found, mine, alone
-        parts = lay.comm.allgather(found)
-        alone = np.any(lay.comm.allgather(alone), axis=0)
-        return tuple(np.concatenate([p[k] for p in parts]) for k in range(3)), mine, alone
+            return found, mine, alone, own
+        parts = lay.comm.allgather((found, alone, own))
+        alone = np.any([p[1] for p in parts], axis=0)
+        own = np.sum([p[2] for p in parts], axis=0)
+        return tuple(np.concatenate([p[0][k] for p in parts]) for k in range(3)), mine, alone, own
 
     def _to_owners(self, rows, cols, vals, dest):
         """The blocks (global rows, columns, values) sent to this rank by every rank,
@@ -398,11 +428,11 @@ class ClusterPC:
         stats = {"clusters": 0, "wisps": 0, "largest": 0, "rows": 0, "fill": 0.0,
                  "couplings": 0, "couplings_left_out": 0, "captured": 1.0, "fallback": False,
                  "cross_rank_couplings": 0, "cross_rank_weight": 0.0, "cross_rank_clusters": 0,
-                 "moved_rows": 0, "self_contact_wisps": 0}
+                 "moved_rows": 0, "self_contact_wisps": 0, "most_blocks": 0}
         self.stats = stats
         if C is None:
             return
-        (pairs, weights, counts), c_blocks, alone = self._couplings(C)
+        (pairs, weights, counts), c_blocks, alone, own = self._couplings(C)
         stats["self_contact_wisps"] = int(alone.sum())
         cross = lay.wisp_rank[pairs[:, 0]] != lay.wisp_rank[pairs[:, 1]]
         total = float(weights.sum())
@@ -413,7 +443,8 @@ class ClusterPC:
         stats["couplings"] = len(pairs)
         label = np.arange(lay.n_wisps)          # every wisp alone unless merged below
         if len(pairs):
-            merged = cluster_labels(lay.n_wisps, pairs, weights, counts, self.max_wisps, self.max_blocks)
+            merged = cluster_labels(lay.n_wisps, pairs, weights, counts, self.max_wisps, self.max_blocks,
+                                    own)
             out = merged[pairs[:, 0]] != merged[pairs[:, 1]]
             total = float(weights.sum())
             stats.update(couplings_left_out=int(out.sum()),
@@ -428,6 +459,10 @@ class ClusterPC:
         clustered = np.flatnonzero(factored[label])
         if not len(clustered):
             return
+        inside = label[pairs[:, 0]] == label[pairs[:, 1]]
+        blocks = (np.bincount(label[pairs[inside, 0]], weights=counts[inside], minlength=lay.n_wisps)
+                  + np.bincount(label, weights=own, minlength=lay.n_wisps))
+        stats["most_blocks"] = int(blocks[factored].max())
         held = np.zeros((lay.n_wisps, lay.comm.size))     # vertices per (cluster, rank)
         np.add.at(held, (label[clustered], lay.wisp_rank[clustered]), lay.sizes[clustered])
         stats["cross_rank_clusters"] = int(((held > 0).sum(axis=1) > 1).sum())
@@ -484,6 +519,25 @@ class ClusterPC:
         self.cluster.setUp()
         self.stats["fill"] = float(self.cluster.getFactorMatrix().getInfo()["nz_used"]
                                    / M.getInfo()["nz_used"])
+
+    def left_out(self):
+        """For a failed solve's message: the contact couplings between wisps the last
+        set-up left out of P (all of them under the fallback) and what to change, or ''
+        when the clusters held every one (docs/contact_solver.md, "When CG fails")."""
+        st = self.stats
+        if st.get("fallback"):
+            what = (f"could put only {st['captured']:.0%} of the contact coupling weight into clusters "
+                    f"(below -lc_cluster_min_captured {self.min_captured:g}), so it kept per-wisp blocks "
+                    f"and left all {st['couplings']} coupled wisp pairs out")
+        elif st.get("couplings_left_out"):
+            what = (f"left {st['couplings_left_out']} of {st['couplings']} coupled wisp pairs out "
+                    f"({1.0 - st['captured']:.0%} of the coupling weight)")
+        else:
+            return ""
+        return (f"; the contact preconditioner {what} at the caps -lc_cluster_max_wisps {self.max_wisps} "
+                f"-lc_cluster_max_blocks {self.max_blocks}: CG alone must resolve the contact between "
+                f"those wisps; larger caps put it into the clusters' exact solves (their memory and set-up "
+                f"time grow with the caps)")
 
     def apply(self, pc, x, y):
         """y = P^-1 x: the per-wisp LUs, then the cluster rows by the clusters' LU

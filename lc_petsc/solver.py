@@ -89,12 +89,14 @@ def reason_name(r: int) -> str:
     return _REASONS.get(r, str(r))
 
 
-#: what to try when an iterative solve fails (a direct solve ran the scenes whose CG
-#: stalled: a barrier scene's stiff pairs, docs/contact.md "Barrier")
+#: what to try when an iterative solve fails, each checked on a barrier scene whose CG
+#: stalled (docs/contact_solver.md, "When CG fails"; not -ksp_norm_type unpreconditioned:
+#: it stops at the same -ksp_rtol with a 10-100x larger error in the Newton step)
 ITERATIVE_WAY_OUT = ("; to go on: a direct solve (the options of configs/solvers/mumps_cholesky.opts: "
                      "-ksp_type preonly -pc_type cholesky -pc_factor_mat_solver_type mumps -mat_type "
                      "sbaij, in [solver] options or after the config on the command line), a larger "
-                     "-ksp_max_it, or a smaller time.dt (docs/contact_solver.md)")
+                     "-ksp_max_it, a smaller time.dt, or with strand_contact_potential = \"barrier\" a "
+                     "smaller physics.strand_barrier_stiffness (docs/contact_solver.md, \"When CG fails\")")
 
 
 class LinearSolver:
@@ -181,6 +183,7 @@ class LinearSolver:
             raise SolverError(
                 f"linear solve failed at frame {frame}, Newton iteration {newton_it}: "
                 f"{reason_name(r)} ({r}) after {its} iterations; solver {self.describe()}"
+                + (self.clusters.left_out() if self.clusters is not None else "")
                 + (ITERATIVE_WAY_OUT if self.ksp.getType() != "preonly" else ""),
                 reason=int(r))
         return its

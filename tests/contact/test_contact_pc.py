@@ -3,48 +3,63 @@ MUMPS's ordering default: clustering against a brute-force reference, the precon
 against dense solves of its cluster blocks, SPD, the fallback, plan errors, both contact
 preconditioners on a run, and rank invariance of the solve (mpi)."""
 
+import re
+
 import numpy as np
 import pytest
 from mpi4py import MPI
 from petsc4py import PETSc
 
 import lc_petsc.simulator as simmod
-from lc_petsc.contact_pc import cluster_labels, self_coupled, wisp_couplings
-from lc_petsc.errors import ConfigError
+from lc_petsc.contact_pc import cluster_labels, self_blocks, self_coupled, wisp_couplings
+from lc_petsc.errors import ConfigError, SolverError
 from lc_petsc.solver_plan import SolverPlan
 from sim_helpers import touching_wisps_config, touching_wisps_source
 
 
-def brute_force_clusters(n, pairs, weights, counts, max_wisps, max_blocks):
-    """The greedy merge with explicit sets (the reference of cluster_labels)."""
+def brute_force_clusters(n, pairs, weights, counts, max_wisps, max_blocks, own=None):
+    """The greedy merge with explicit sets (the reference of cluster_labels; ``own``:
+    each wisp's self-contact blocks, counted in its cluster's blocks)."""
     member = {w: {w} for w in range(n)}
-    blocks = {w: 0 for w in range(n)}
+    blocks = {w: 0 if own is None else int(own[w]) for w in range(n)}
     for e in sorted(range(len(pairs)), key=lambda e: (-weights[e], e)):
         a, b = (min(member[w]) for w in pairs[e])
         if a == b:
-            blocks[a] += counts[e]
             continue
-        if len(member[a]) + len(member[b]) > max_wisps or blocks[a] + blocks[b] + counts[e] > max_blocks:
+        # every pair between the two sets comes inside with the merge
+        total = blocks[a] + blocks[b] + sum(counts[f] for f in range(len(pairs))
+                                            if {min(member[w]) for w in pairs[f]} == {a, b})
+        if len(member[a]) + len(member[b]) > max_wisps or total > max_blocks:
             continue
         merged = member[a] | member[b]
-        total = blocks[a] + blocks[b] + counts[e]
         for w in merged:
             member[w] = merged
         blocks[min(merged)] = total
     return np.array([min(member[w]) for w in range(n)])
 
 
-@pytest.mark.parametrize("max_wisps, max_blocks", [(10 ** 6, 10 ** 9), (4, 10 ** 9), (64, 40), (3, 25)])
-def test_clusters_equal_brute_force(max_wisps, max_blocks):
+@pytest.mark.parametrize("max_wisps, max_blocks, own", [
+    (10 ** 6, 10 ** 9, False), (4, 10 ** 9, False), (64, 40, False), (3, 25, False), (64, 40, True)])
+def test_clusters_equal_brute_force(max_wisps, max_blocks, own):
     rng = np.random.default_rng(3)
     n = 60
     pairs = np.unique(np.sort(rng.integers(0, n, (150, 2)), axis=1), axis=0)
     pairs = pairs[pairs[:, 0] < pairs[:, 1]]
     weights = rng.choice([1.0, 2.0, 3.0], len(pairs))          # ties on purpose
     counts = rng.integers(1, 12, len(pairs))
-    got = cluster_labels(n, pairs, weights, counts, max_wisps, max_blocks)
-    ref = brute_force_clusters(n, pairs, weights, counts, max_wisps, max_blocks)
+    own = rng.integers(0, 30, n) * (rng.random(n) < 0.5) if own else None   # self-contact blocks
+    got = cluster_labels(n, pairs, weights, counts, max_wisps, max_blocks, own)
+    ref = brute_force_clusters(n, pairs, weights, counts, max_wisps, max_blocks, own)
     np.testing.assert_array_equal(got, ref)
+    # a cluster of several wisps holds at most max_blocks cross blocks, its pairs' and its
+    # wisps' own (self-contact) ones; before, neither the own blocks nor a pair closing a
+    # triangle inside counted (main: 58 blocks, 150 with the own ones, against the cap 40)
+    inside = got[pairs[:, 0]] == got[pairs[:, 1]]
+    held = np.bincount(got[pairs[inside, 0]], counts[inside], n)
+    if own is not None:
+        held += np.bincount(got, own, n)
+    several = np.bincount(got, minlength=n) > 1
+    assert held[several].max() <= max_blocks, held[several].max()
     sizes = np.bincount(got, minlength=n)
     assert sizes.max() <= max_wisps
     if max_wisps > n and max_blocks > counts.sum():     # no cap: the connected components
@@ -71,6 +86,15 @@ def test_wisp_couplings_sums_blocks_per_wisp_pair():
     np.testing.assert_array_equal(counts, [2, 1])
 
 
+def test_self_blocks_counts_each_vertex_pair_of_a_wisp_once():
+    # wisps 0 (v0-v2), 1 (v3): blocks (0,2) (2,0) (1,2) (2,1) inside wisp 0, (2,3) (3,2) between
+    vertex_wisp = np.array([0, 0, 0, 1])
+    rows, cols = np.array([0, 2, 1, 2, 2, 3]), np.array([2, 0, 2, 1, 3, 2])
+    got = self_blocks(vertex_wisp[rows], vertex_wisp[cols], rows, cols, 3)
+    np.testing.assert_array_equal(got, [2, 0, 0])
+    assert not self_blocks([], [], [], [], 2).any()
+
+
 def test_self_coupled_finds_the_wisps_with_blocks_inside():
     # blocks (0,1) inside wisp 0, (1,2) between wisps 0 and 1, (3,3) inside wisp 2 but
     # zero (a pinned vertex's block): only wisp 0 has self-contact
@@ -90,14 +114,16 @@ def dense(M):
         D.destroy()
 
 
-def one_frame(monkeypatch, options, comm=MPI.COMM_SELF):
+def one_frame(monkeypatch, options, comm=MPI.COMM_SELF, run=True):
+    """The touching wisps' simulator after one frame (``run=False``: before it)."""
     monkeypatch.setattr(simmod, "source_from_config", lambda *a: touching_wisps_source())
     cfg = touching_wisps_config(1, options=options)
     # the contact graphs measured: uncarried first iterate (time.carry_with_head); carried,
     # the first frame's pairs fit in 2-wisp clusters and nothing falls back
     cfg.time.carry_with_head = False
     sim = simmod.build_simulator(cfg, comm=comm)
-    sim.run()
+    if run:
+        sim.run()
     return sim
 
 
@@ -217,6 +243,36 @@ def test_fallback_keeps_the_per_wisp_blocks(monkeypatch):
     try:
         st = sim.solver.clusters.stats
         assert not st["fallback"] and st["clusters"] >= 1 and st["largest"] <= 2, st
+    finally:
+        sim.close()
+
+
+def test_failed_solve_says_which_couplings_the_clusters_left_out(monkeypatch):
+    """A CG that fails with the cluster preconditioner names the contact couplings
+    between wisps its last set-up left out (all of them under the fallback) and the
+    caps to raise; with the default caps the same frame converges within the same
+    iteration limit (the clusters hold every coupling: exact)."""
+    limit = "-ksp_rtol 1e-12 -ksp_max_it 3 -lc_contact_pc clusters"
+    for extra, said in (("-lc_cluster_max_wisps 2 -lc_cluster_min_captured 1",
+                         r"could put only \d+% of the contact coupling weight into clusters \(below "
+                         r"-lc_cluster_min_captured 1\), so it kept per-wisp blocks and left all \d+ coupled "
+                         r"wisp pairs out at the caps -lc_cluster_max_wisps 2 -lc_cluster_max_blocks 1024"),
+                        ("-lc_cluster_max_wisps 2 -lc_cluster_min_captured 0",
+                         r"left \d+ of \d+ coupled wisp pairs out \(\d+% of the coupling weight\) at the "
+                         r"caps -lc_cluster_max_wisps 2")):
+        sim = one_frame(monkeypatch, f"{limit} {extra}", run=False)
+        try:
+            with pytest.raises(SolverError, match="DIVERGED_MAX_IT") as e:
+                sim.run()
+        finally:
+            sim.close()
+        print("\n" + str(e.value))
+        assert re.search(said, str(e.value)), str(e.value)
+        assert "larger caps put it into the clusters' exact solves" in str(e.value)
+        assert "smaller physics.strand_barrier_stiffness" in str(e.value)
+    sim = one_frame(monkeypatch, limit)         # the default caps: no failure
+    try:
+        assert max(sim.solver.iterations) <= 2 and sim.solver.clusters.left_out() == ""
     finally:
         sim.close()
 

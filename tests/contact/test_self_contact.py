@@ -15,6 +15,7 @@ import lc_petsc.simulator as simmod
 from lc_petsc.config import (ConfigError, MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,
                              SolverConfig, TimeConfig)
 from lc_petsc.contact import NEIGHBOUR_GAP, StrandContact
+from lc_petsc.contact_pc import ClusterPC, block_rows
 from lc_petsc.crossings import count_crossings
 from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.elements.segment_contact import distance
@@ -168,6 +169,42 @@ def test_fallback_keeps_each_wisps_self_contact(monkeypatch):
             assert h["self_contact_wisps"] == 2, h
     finally:
         sim.close()
+
+
+def test_block_cap_counts_self_contact_blocks(monkeypatch):
+    """-lc_cluster_max_blocks caps a cluster's cross blocks, self-contact blocks
+    included: two interleaved curls crushed together, cap 200, are one cluster only
+    while their pair blocks and both wisps' own blocks fit (then ``most_blocks`` is that
+    sum), else two one-wisp clusters.  Before, the own blocks did not count: one
+    cluster of 732 blocks (158 between the curls, 307 + 267 their own) at the first
+    set-up here."""
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: smash_source(2, 0.9))
+    cap = 200
+    seen = []
+    setup = ClusterPC._setup_clusters
+
+    def counted(self, A, A_loc, C):         # the blocks of C, counted apart from the PC
+        setup(self, A, A_loc, C)
+        rows, cols, _ = block_rows(C)
+        a, b = rows // NV, cols // NV              # wisps of NV vertices each
+        seen.append((int((a < b).sum()), np.bincount(a[(a == b) & (rows < cols)], minlength=2),
+                     dict(self.stats)))
+
+    monkeypatch.setattr(ClusterPC, "_setup_clusters", counted)
+    sim = smash_simulator(MPI.COMM_SELF, 3, True,
+                          options=f"-lc_cluster_max_blocks {cap} -lc_cluster_min_captured 0")
+    try:
+        sim.run(3)
+        assert sim.summary()["converged"]
+    finally:
+        sim.close()
+    refused = 0
+    for between, own, st in seen:
+        joined = between > 0 and between + own.sum() <= cap
+        refused += between > 0 and between <= cap < between + own.sum()
+        assert st["largest"] == (2 if joined else 1), (between, own, st)
+        assert st["most_blocks"] == (between + own.sum() if joined else own.max()), (between, own, st)
+    assert refused >= 2, seen        # the case: the pair blocks alone fit, with the own ones not
 
 
 def random_strands(rng, n_wisps=3, n_vertices=150, step=0.05):

@@ -181,3 +181,27 @@ def test_a_run_reports_its_frames_cut_back():
     assert res["status"] == "ok" and res["newton_cut_back_frames"] == 4, res
     res, _, _ = run_trajectory(cfg, replace(cut, max_substeps=1), 4 / 30, 1 / 30, comm)
     assert res["newton_cut_back_frames"] == 0 and res["newton_unconverged_frames"] == 4, res
+
+
+def test_pareto_plot_tells_every_axis_apart_and_covers_no_point(tmp_path, monkeypatch):
+    """The full study has 11 axes (base + 10): with 10 markers and 10 colours the 11th
+    (carry_with_head) was drawn exactly like the first (base), two identical legend
+    entries; and the legend sat inside the axes, over points (Smash: dt 1/120)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_hex
+    from lc_petsc.studies import report
+    figs = []
+    monkeypatch.setattr(plt, "close", figs.append)      # keep the figure to look at it
+    rows = [{"variant": f"v{k}", "axis": f"axis{k}", "stable": True, "rms_rel_error": 0.01 * (k + 1),
+             "wall_per_sim_s": 1.0 + k} for k in range(11)]
+    report.plot_pareto(rows, tmp_path / "pareto.png", floor=0.005)
+    (fig,) = figs
+    ax = fig.axes[0]
+    styles = [(line.get_marker(), to_hex(line.get_color())) for line in ax.get_lines()
+              if line.get_label().startswith("axis")]
+    assert len(styles) == 11 and len(set(styles)) == 11, styles
+    fig.canvas.draw()
+    legend = ax.get_legend().get_window_extent()
+    assert legend.x0 >= ax.get_window_extent().x1       # right of the axes, over nothing

@@ -143,7 +143,9 @@ def plot_pareto(rows, path, cost="wall_per_sim_s", error="rms_rel_error", title=
     the axes, where it covers no point."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(9.5, 5.5))
-    stable = [r for r in rows if r.get("stable") and r.get(error) is not None and r.get(cost)]
+    # a setting repeated on another axis ("same_as") is drawn once, under its first name
+    stable = [r for r in rows if r.get("stable") and r.get(error) is not None and r.get(cost)
+              and not r.get("same_as")]
     pts = [(float(r[cost]), max(float(r[error]), 1e-16)) for r in stable]
     axes = list(dict.fromkeys(r.get("axis", "") for r in stable))
     for a, (marker, colour) in zip(axes, axis_styles(len(axes))):

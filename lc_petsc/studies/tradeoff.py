@@ -314,12 +314,21 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
     if own is not None:
         log(f"reference's own error (against {own['against']}): RMS {own.get('rms_rel_error', float('nan')):.2e}, "
             f"max {own.get('max_rel_error', float('nan')):.2e}, energy {own.get('energy_rel_error', float('nan')):.2e}")
+    # a setting on several axes (the full study: 14 of 59 variants) runs once; its
+    # other rows copy the first's figures and name it in "same_as"
+    first: dict[Settings, dict] = {}
     for axis, name, s in variants:
+        if s in first:
+            if comm.rank == 0:
+                rows.append(dict(first[s], variant=name, axis=axis, same_as=first[s]["variant"]))
+                log(f"  {name:16s} same settings as {first[s]['variant']}")
+            continue
         res, traj, _ = run_trajectory(base_cfg, s, duration, out_dt, comm, blowup)
+        first[s] = {"variant": name}
         if comm.rank != 0:
             continue
         row = {"variant": name, "axis": axis, "label": s.label(), **asdict(s), "ksp_rtol": s.effective_rtol(),
-               **res}
+               **res, "same_as": None}
         row.pop("timings_s", None)
         row["stable"] = res["status"] == "ok"
         n_out = max(len(traj["times"]) - 1, 1) if traj else 1
@@ -338,6 +347,7 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
             for k in ("rms_rel_error", "max_rel_error", "final_rms_rel_error", "energy_rel_error"):
                 row[k + "_until_failure"] = row.pop(k, None)
         rows.append(row)
+        first[s] = row
         log(f"  {name:16s} {res['status']:8s} {row.get('wall_per_sim_s') or float('nan'):8.3f} s/sim-s  "
             f"rms err {row.get('rms_rel_error', float('nan')):.2e}  "
             f"{res['failure']} {res['message'][:80]}")
@@ -347,7 +357,7 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
             "cpu_per_sim_s", "cpu_per_frame_s", "newton_total", "newton_cut_back_frames",
             "rms_rel_error", "max_rel_error", "final_rms_rel_error", "energy_rel_error",
             "max_stretch_strain", "curl_retention", "ref_max_stretch_strain",
-            "ref_curl_retention", "failure", "failed_frame", "failed_time", "message"]
+            "ref_curl_retention", "failure", "failed_frame", "failed_time", "message", "same_as"]
     report.write_csv(rows, out / "tradeoff.csv", cols)
     floor = (own or {}).get("rms_rel_error")
     recs = recommend(rows, targets, cost=cost, floor=floor)
@@ -423,7 +433,8 @@ def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None,
         ["variant", "status", "wall s/sim-s", "wall s/frame", "CPU s/sim-s", "Newton its",
          "frames cut back", "RMS err", "max err", "energy err",
          "max strain", "curl retention", "failure"],
-        [[r["variant"], r["status"], report.fmt(r.get("wall_per_sim_s")),
+        [[r["variant"] + (f" (= {r['same_as']})" if r.get("same_as") else ""), r["status"],
+          report.fmt(r.get("wall_per_sim_s")),
           report.fmt(r.get("wall_per_frame_s")), report.fmt(r.get("cpu_per_sim_s")),
           report.fmt(r.get("newton_total")), report.fmt(r.get("newton_cut_back_frames")),
           report.fmt(r.get("rms_rel_error")),

@@ -205,3 +205,30 @@ def test_pareto_plot_tells_every_axis_apart_and_covers_no_point(tmp_path, monkey
     fig.canvas.draw()
     legend = ax.get_legend().get_window_extent()
     assert legend.x0 >= ax.get_window_extent().x1       # right of the axes, over nothing
+
+
+def test_a_setting_on_two_axes_runs_once(tmp_path, monkeypatch):
+    """The full study lists 59 variants of 45 distinct settings (newton 2 = edge_retraction
+    N=2 = carried N=2, ...): each ran again, and the copies showed different costs for
+    one setting (0.75-0.85 CPU s/sim-s on the 10-wisp hairball).  Now a repeated
+    setting copies the first run's figures and names it."""
+    from lc_petsc.studies import tradeoff
+    calls = []
+    real = tradeoff.run_trajectory
+    monkeypatch.setattr(tradeoff, "run_trajectory", lambda cfg, s, *a: calls.append(s) or real(cfg, s, *a))
+    two = replace(BASE, newton_iterations=2)
+    variants = [("base", "base", BASE), ("newton", "newton 2", two),
+                ("carry_with_head", "carried N=2", replace(two, carry_with_head=True))]
+    rows = run_study(smash(0.6), variants, comm, tmp_path, duration=2 / 30,
+                     ref=reference_settings(dt=1 / 60), log=lambda *a: None)
+    assert len(calls) == 4                      # reference, its check, base, newton 2
+    by = {r["variant"]: r for r in rows}
+    copy, orig = by["carried N=2"], by["newton 2"]
+    assert copy["same_as"] == "newton 2" and copy["axis"] == "carry_with_head"
+    assert orig["same_as"] is None and by["base"]["same_as"] is None
+    for k in ("rms_rel_error", "cpu_per_sim_s", "newton_total", "status"):
+        assert copy[k] == orig[k]
+    assert 0 < orig["rms_rel_error"] < 1 and orig["newton_total"] == 2 * 2
+    assert "| carried N=2 (= newton 2) | ok |" in (tmp_path / "recommendations.md").read_text()
+    assert [r["same_as"] for r in csv.DictReader(open(tmp_path / "tradeoff.csv"))] == ["", "", "newton 2"]
+

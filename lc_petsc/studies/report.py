@@ -163,10 +163,11 @@ def plot_pareto(rows, path, cost="wall_per_sim_s", error="rms_rel_error", title=
         _label_log_ticks(ax)
     if floor:
         ax.axhline(floor, ls="--", color="grey", label="reference's own error")
-    bad = [r["variant"] for r in rows if not r.get("stable")]
+    caption = [f"{status}: " + ", ".join(r["variant"] for r in rows if r.get("status") == status)
+               for status in ("unstable", "unsupported") if any(r.get("status") == status for r in rows)]
     ax.set_xlabel(cost_label)
     ax.set_ylabel(error.replace("_", " ") + " vs reference")
-    ax.set_title(title + ("\nunstable: " + ", ".join(bad) if bad else ""), fontsize=9)
+    ax.set_title("\n".join([title, *caption]), fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)

@@ -232,3 +232,21 @@ def test_a_setting_on_two_axes_runs_once(tmp_path, monkeypatch):
     assert "| carried N=2 (= newton 2) | ok |" in (tmp_path / "recommendations.md").read_text()
     assert [r["same_as"] for r in csv.DictReader(open(tmp_path / "tradeoff.csv"))] == ["", "", "newton 2"]
 
+
+def test_a_variant_the_scene_refuses_is_a_row_not_a_crash(tmp_path):
+    """The default axes on a scene with strand contact (configs/hairball_demo.toml
+    --wisps 10): the trust region refuses strand contact (ConfigError), and on main the
+    study stopped there, after its first 34 variants, with nothing written.  Now the
+    variant is a row of status "unsupported" carrying the refusal; the others run."""
+    terms = ("stretch", "bend", "twist", "gravity", "head_collision", "strand_collision")
+    variants = [("base", "base", BASE), ("trust_region", "trust_region N=3", replace(BASE, newton="trust_region"))]
+    rows = run_study(small_hairball_config(n_wisps=2, terms=terms), variants, comm, tmp_path,
+                     duration=2 / 30, ref=reference_settings(dt=1 / 60), log=lambda *a: None)
+    by = {r["variant"]: r for r in rows}
+    assert by["base"]["status"] == "ok" and 0 < by["base"]["rms_rel_error"] < 1
+    tr = by["trust_region N=3"]
+    assert tr["status"] == "unsupported" and not tr["stable"] and tr["failure"] == "ConfigError"
+    assert "does not support strand contact" in tr["message"] and "rms_rel_error" not in tr
+    md = (tmp_path / "recommendations.md").read_text()
+    assert "| trust_region N=3 | unsupported |" in md and "not run: time.newton" in md
+    assert [r["status"] for r in csv.DictReader(open(tmp_path / "tradeoff.csv"))] == ["ok", "unsupported"]

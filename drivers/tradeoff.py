@@ -41,7 +41,9 @@ highlighted, unstable variants listed), recommendations.md.  Each run (the refer
 too) reports its frames cut back into substeps (``newton_cut_back_frames``): those are
 not solutions of the run's own dt.  Unstable variants (NaN,
 failed solves, blow-up) are rows with status "unstable", the failure kind, frame and
-message: the study never stops for them.
+message: the study never stops for them.  A variant the scene refuses (its config's
+ConfigError, e.g. the trust region with strand contact) is a row of status
+"unsupported", never run; a setting listed on several axes runs once (``same_as``).
 """
 
 import argparse

@@ -125,20 +125,32 @@ def pareto_front(points):
     return front
 
 
+# 12 markers against matplotlib's 10 colours: the (marker, colour) pairs repeat only
+# after 60 axes (with 10 markers the study's 11th axis looked exactly like its first)
+MARKERS = "os^vD<>ph*XP"
+
+
+def axis_styles(n):
+    """``n`` distinct (marker, colour) pairs, one per axis of a Pareto plot."""
+    return [(MARKERS[k % len(MARKERS)], f"C{k % 10}") for k in range(n)]
+
+
 def plot_pareto(rows, path, cost="wall_per_sim_s", error="rms_rel_error", title="",
                 cost_label="wall time per simulated second (s)", floor=None):
     """Cost against error, log-log, one marker per stable variant, the front joined and
     highlighted; unstable variants listed in the caption; ``floor``: the reference's own
-    error, a dashed line (errors below it are not resolved)."""
+    error, a dashed line (errors below it are not resolved).  The legend sits right of
+    the axes, where it covers no point."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(7.5, 5.5))
-    stable = [r for r in rows if r.get("stable") and r.get(error) is not None and r.get(cost)]
+    fig, ax = plt.subplots(figsize=(9.5, 5.5))
+    # a setting repeated on another axis ("same_as") is drawn once, under its first name
+    stable = [r for r in rows if r.get("stable") and r.get(error) is not None and r.get(cost)
+              and not r.get("same_as")]
     pts = [(float(r[cost]), max(float(r[error]), 1e-16)) for r in stable]
     axes = list(dict.fromkeys(r.get("axis", "") for r in stable))
-    markers = "os^vD<>ph*"
-    for k, a in enumerate(axes):
+    for a, (marker, colour) in zip(axes, axis_styles(len(axes))):
         sel = [p for p, r in zip(pts, stable) if r.get("axis", "") == a]
-        ax.plot(*zip(*sel), markers[k % len(markers)], label=a, alpha=0.8)
+        ax.plot(*zip(*sel), marker, color=colour, label=a, alpha=0.8)
     for p, r in zip(pts, stable):
         ax.annotate(r["variant"], p, fontsize=6, xytext=(3, 3), textcoords="offset points")
     if pts:
@@ -148,15 +160,27 @@ def plot_pareto(rows, path, cost="wall_per_sim_s", error="rms_rel_error", title=
         ax.plot(*zip(*fp), "o", mfc="none", mec="red", ms=12)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        _label_log_ticks(ax)
     if floor:
         ax.axhline(floor, ls="--", color="grey", label="reference's own error")
-    bad = [r["variant"] for r in rows if not r.get("stable")]
+    caption = [f"{status}: " + ", ".join(r["variant"] for r in rows if r.get("status") == status)
+               for status in ("unstable", "unsupported") if any(r.get("status") == status for r in rows)]
     ax.set_xlabel(cost_label)
     ax.set_ylabel(error.replace("_", " ") + " vs reference")
-    ax.set_title(title + ("\nunstable: " + ", ".join(bad) if bad else ""), fontsize=9)
+    ax.set_title("\n".join([title, *caption]), fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
+
+
+def _label_log_ticks(ax):
+    """Ticks labelled at 1, 2 and 5 per decade: a study's cost often spans about one
+    decade, where matplotlib labels a single power of ten."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_minor_formatter(NullFormatter())

@@ -16,7 +16,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from lc_petsc.config import TimeConfig
-from lc_petsc.errors import SimulationError, SolverError
+from lc_petsc.errors import ConfigError, SimulationError, SolverError
 from lc_petsc.parallel import global_max
 from lc_petsc.simulator import build_simulator
 from lc_petsc.solver_plan import default_ksp_rtol
@@ -293,6 +293,9 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
     if comm.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
     ref = ref or reference_settings()
+    unsupported = unsupported_variants(base_cfg, variants, duration)
+    for name, why in unsupported.items():
+        log(f"  {name}: not run, the scene does not support it ({why})")
     rres, rtraj, geo = run_trajectory(base_cfg, ref, duration, out_dt, comm, blowup)
     if rres["status"] != "ok":
         log(f"reference ({ref.label()}) failed ({rres['failure']}: {rres['message'][:100]}); "
@@ -314,12 +317,27 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
     if own is not None:
         log(f"reference's own error (against {own['against']}): RMS {own.get('rms_rel_error', float('nan')):.2e}, "
             f"max {own.get('max_rel_error', float('nan')):.2e}, energy {own.get('energy_rel_error', float('nan')):.2e}")
+    # a setting on several axes (the full study: 14 of 59 variants) runs once; its
+    # other rows copy the first's figures and name it in "same_as"
+    first: dict[Settings, dict] = {}
     for axis, name, s in variants:
+        if name in unsupported:
+            if comm.rank == 0:
+                rows.append({"variant": name, "axis": axis, "label": s.label(), **asdict(s),
+                             "ksp_rtol": s.effective_rtol(), "status": "unsupported", "stable": False,
+                             "failure": "ConfigError", "message": unsupported[name], "same_as": None})
+            continue
+        if s in first:
+            if comm.rank == 0:
+                rows.append(dict(first[s], variant=name, axis=axis, same_as=first[s]["variant"]))
+                log(f"  {name:16s} same settings as {first[s]['variant']}")
+            continue
         res, traj, _ = run_trajectory(base_cfg, s, duration, out_dt, comm, blowup)
+        first[s] = {"variant": name}
         if comm.rank != 0:
             continue
         row = {"variant": name, "axis": axis, "label": s.label(), **asdict(s), "ksp_rtol": s.effective_rtol(),
-               **res}
+               **res, "same_as": None}
         row.pop("timings_s", None)
         row["stable"] = res["status"] == "ok"
         n_out = max(len(traj["times"]) - 1, 1) if traj else 1
@@ -338,6 +356,7 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
             for k in ("rms_rel_error", "max_rel_error", "final_rms_rel_error", "energy_rel_error"):
                 row[k + "_until_failure"] = row.pop(k, None)
         rows.append(row)
+        first[s] = row
         log(f"  {name:16s} {res['status']:8s} {row.get('wall_per_sim_s') or float('nan'):8.3f} s/sim-s  "
             f"rms err {row.get('rms_rel_error', float('nan')):.2e}  "
             f"{res['failure']} {res['message'][:80]}")
@@ -347,7 +366,7 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
             "cpu_per_sim_s", "cpu_per_frame_s", "newton_total", "newton_cut_back_frames",
             "rms_rel_error", "max_rel_error", "final_rms_rel_error", "energy_rel_error",
             "max_stretch_strain", "curl_retention", "ref_max_stretch_strain",
-            "ref_curl_retention", "failure", "failed_frame", "failed_time", "message"]
+            "ref_curl_retention", "failure", "failed_frame", "failed_time", "message", "same_as"]
     report.write_csv(rows, out / "tradeoff.csv", cols)
     floor = (own or {}).get("rms_rel_error")
     recs = recommend(rows, targets, cost=cost, floor=floor)
@@ -360,6 +379,19 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
                        title=f"speed vs accuracy: {(meta or {}).get('scene', '')}, {duration:g} s simulated")
     (out / "recommendations.md").write_text(markdown(rows, recs, ref, meta, cost, rres, own))
     return rows
+
+
+def unsupported_variants(base_cfg, variants, duration):
+    """{name: the config's refusal} of the variants the scene does not support (e.g. the
+    trust region with strand contact): reported as rows of status ``unsupported``
+    instead of stopping the study at them, after hours of runs, with nothing written."""
+    out = {}
+    for _, name, s in variants:
+        try:
+            configure(base_cfg, s, duration).validate()
+        except ConfigError as e:
+            out[name] = str(e)
+    return out
 
 
 def reference_error(base_cfg, ref, rtraj, geo, duration, out_dt, comm, blowup):
@@ -423,12 +455,14 @@ def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None,
         ["variant", "status", "wall s/sim-s", "wall s/frame", "CPU s/sim-s", "Newton its",
          "frames cut back", "RMS err", "max err", "energy err",
          "max strain", "curl retention", "failure"],
-        [[r["variant"], r["status"], report.fmt(r.get("wall_per_sim_s")),
+        [[r["variant"] + (f" (= {r['same_as']})" if r.get("same_as") else ""), r["status"],
+          report.fmt(r.get("wall_per_sim_s")),
           report.fmt(r.get("wall_per_frame_s")), report.fmt(r.get("cpu_per_sim_s")),
           report.fmt(r.get("newton_total")), report.fmt(r.get("newton_cut_back_frames")),
           report.fmt(r.get("rms_rel_error")),
           report.fmt(r.get("max_rel_error")), report.fmt(r.get("energy_rel_error")),
           report.fmt(r.get("max_stretch_strain")), report.fmt(r.get("curl_retention")),
-          (f"{r['failure']} at frame {r['failed_frame']}" if not r["stable"] else "")]
+          (f"not run: {r['message']}" if r["status"] == "unsupported"
+           else f"{r['failure']} at frame {r['failed_frame']}" if not r["stable"] else "")]
          for r in rows]))
     return "\n".join(lines)

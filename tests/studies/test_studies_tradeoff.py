@@ -181,3 +181,72 @@ def test_a_run_reports_its_frames_cut_back():
     assert res["status"] == "ok" and res["newton_cut_back_frames"] == 4, res
     res, _, _ = run_trajectory(cfg, replace(cut, max_substeps=1), 4 / 30, 1 / 30, comm)
     assert res["newton_cut_back_frames"] == 0 and res["newton_unconverged_frames"] == 4, res
+
+
+def test_pareto_plot_tells_every_axis_apart_and_covers_no_point(tmp_path, monkeypatch):
+    """The full study has 11 axes (base + 10): with 10 markers and 10 colours the 11th
+    (carry_with_head) was drawn exactly like the first (base), two identical legend
+    entries; and the legend sat inside the axes, over points (Smash: dt 1/120)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_hex
+    from lc_petsc.studies import report
+    figs = []
+    monkeypatch.setattr(plt, "close", figs.append)      # keep the figure to look at it
+    rows = [{"variant": f"v{k}", "axis": f"axis{k}", "stable": True, "rms_rel_error": 0.01 * (k + 1),
+             "wall_per_sim_s": 1.0 + k} for k in range(11)]
+    report.plot_pareto(rows, tmp_path / "pareto.png", floor=0.005)
+    (fig,) = figs
+    ax = fig.axes[0]
+    styles = [(line.get_marker(), to_hex(line.get_color())) for line in ax.get_lines()
+              if line.get_label().startswith("axis")]
+    assert len(styles) == 11 and len(set(styles)) == 11, styles
+    fig.canvas.draw()
+    legend = ax.get_legend().get_window_extent()
+    assert legend.x0 >= ax.get_window_extent().x1       # right of the axes, over nothing
+
+
+def test_a_setting_on_two_axes_runs_once(tmp_path, monkeypatch):
+    """The full study lists 59 variants of 45 distinct settings (newton 2 = edge_retraction
+    N=2 = carried N=2, ...): each ran again, and the copies showed different costs for
+    one setting (0.75-0.85 CPU s/sim-s on the 10-wisp hairball).  Now a repeated
+    setting copies the first run's figures and names it."""
+    from lc_petsc.studies import tradeoff
+    calls = []
+    real = tradeoff.run_trajectory
+    monkeypatch.setattr(tradeoff, "run_trajectory", lambda cfg, s, *a: calls.append(s) or real(cfg, s, *a))
+    two = replace(BASE, newton_iterations=2)
+    variants = [("base", "base", BASE), ("newton", "newton 2", two),
+                ("carry_with_head", "carried N=2", replace(two, carry_with_head=True))]
+    rows = run_study(smash(0.6), variants, comm, tmp_path, duration=2 / 30,
+                     ref=reference_settings(dt=1 / 60), log=lambda *a: None)
+    assert len(calls) == 4                      # reference, its check, base, newton 2
+    by = {r["variant"]: r for r in rows}
+    copy, orig = by["carried N=2"], by["newton 2"]
+    assert copy["same_as"] == "newton 2" and copy["axis"] == "carry_with_head"
+    assert orig["same_as"] is None and by["base"]["same_as"] is None
+    for k in ("rms_rel_error", "cpu_per_sim_s", "newton_total", "status"):
+        assert copy[k] == orig[k]
+    assert 0 < orig["rms_rel_error"] < 1 and orig["newton_total"] == 2 * 2
+    assert "| carried N=2 (= newton 2) | ok |" in (tmp_path / "recommendations.md").read_text()
+    assert [r["same_as"] for r in csv.DictReader(open(tmp_path / "tradeoff.csv"))] == ["", "", "newton 2"]
+
+
+def test_a_variant_the_scene_refuses_is_a_row_not_a_crash(tmp_path):
+    """The default axes on a scene with strand contact (configs/hairball_demo.toml
+    --wisps 10): the trust region refuses strand contact (ConfigError), and on main the
+    study stopped there, after its first 34 variants, with nothing written.  Now the
+    variant is a row of status "unsupported" carrying the refusal; the others run."""
+    terms = ("stretch", "bend", "twist", "gravity", "head_collision", "strand_collision")
+    variants = [("base", "base", BASE), ("trust_region", "trust_region N=3", replace(BASE, newton="trust_region"))]
+    rows = run_study(small_hairball_config(n_wisps=2, terms=terms), variants, comm, tmp_path,
+                     duration=2 / 30, ref=reference_settings(dt=1 / 60), log=lambda *a: None)
+    by = {r["variant"]: r for r in rows}
+    assert by["base"]["status"] == "ok" and 0 < by["base"]["rms_rel_error"] < 1
+    tr = by["trust_region N=3"]
+    assert tr["status"] == "unsupported" and not tr["stable"] and tr["failure"] == "ConfigError"
+    assert "does not support strand contact" in tr["message"] and "rms_rel_error" not in tr
+    md = (tmp_path / "recommendations.md").read_text()
+    assert "| trust_region N=3 | unsupported |" in md and "not run: time.newton" in md
+    assert [r["status"] for r in csv.DictReader(open(tmp_path / "tradeoff.csv"))] == ["ok", "unsupported"]

@@ -44,6 +44,8 @@ failed solves, blow-up) are rows with status "unstable", the failure kind, frame
 message: the study never stops for them.  A variant the scene refuses (its config's
 ConfigError, e.g. the trust region with strand contact) is a row of status
 "unsupported", never run; a setting listed on several axes runs once (``same_as``).
+A variant whose edges stretch by more than ``--max-strain`` (10%) is listed but not
+recommended, whatever its error: drawn-out curls, a wrong stretch energy.
 """
 
 import argparse
@@ -62,7 +64,7 @@ from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConf
 from lc_petsc.studies.command_line import (bad_input, integer_at_least, parse_args,  # noqa: E402
                                            positive_number)
 from lc_petsc.studies.systems import option_sets  # noqa: E402
-from lc_petsc.studies.tradeoff import (BASE, KSP_RTOLS, base_reference,  # noqa: E402
+from lc_petsc.studies.tradeoff import (BASE, KSP_RTOLS, MAX_STRAIN, base_reference,  # noqa: E402
                                        default_variants, reference_settings, run_study)
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -118,6 +120,9 @@ def main(argv=None):
     ap.add_argument("--blowup", type=positive_number, default=5.0)
     ap.add_argument("--cost", default="wall_per_sim_s", choices=["wall_per_sim_s", "cpu_per_sim_s"],
                     help="cost axis of the Pareto plot and the recommendations")
+    ap.add_argument("--max-strain", type=positive_number, default=MAX_STRAIN,
+                    help="largest edge strain of a recommended variant (default %(default)g: 10%%; "
+                         "a variant stretched more is listed, not recommended)")
     ap.add_argument("--out", default="out/tradeoff")
     args = parse_args(ap, argv)
     comm = MPI.COMM_WORLD
@@ -136,6 +141,7 @@ def main(argv=None):
     cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)
     run_study(cfg, default_variants(base, args.axes, args.rtols), comm, args.out, duration=args.duration,
               ref=ref, blowup=args.blowup, cost=args.cost, ref_check=not args.no_ref_check,
+              max_strain=args.max_strain,
               log=lambda *a: (log(*a), sys.stdout.flush()),
               meta={"command": cmd, "scene": args.scene if args.scene != "hairball"
                     else f"hairball {args.wisps} wisps", "solver_set": args.set})

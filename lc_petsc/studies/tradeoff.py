@@ -89,6 +89,11 @@ BASE = Settings()
 
 
 KSP_RTOLS = (1e-2, 1e-4, 1e-6, 1e-8, 1e-10)
+#: a variant whose edges stretch by more than this (10%) is not recommended whatever its
+#: RMS error: its curls are visibly drawn out, its stored stretch energy wrong (the
+#: uncarried 2-iteration hairball: 6% strain, energy error 172x the reference's largest
+#: energy; smash unfiltered 101x its length), drivers/tradeoff.py --max-strain
+MAX_STRAIN = 0.1
 
 
 def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
@@ -282,13 +287,14 @@ COSTS = {"wall_per_sim_s": "wall time per simulated second (s)",
 
 def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0,
               ref: Optional[Settings] = None, targets=(0.1, 0.03, 0.01, 0.003, 0.001), log=print,
-              meta=None, blowup=5.0, cost="wall_per_sim_s", ref_check=True):
+              meta=None, blowup=5.0, cost="wall_per_sim_s", ref_check=True, max_strain=MAX_STRAIN):
     """Reference + variants; writes tradeoff.csv, tradeoff.json, pareto.png and
     recommendations.md to ``out_dir`` (rank 0).  Returns the rows (rank 0; None elsewhere).
 
     ``ref_check``: also run :func:`tighter_reference` and report the reference's distance
     to it (its own error); a target below it is not judged (a variant's error against
-    the reference says nothing there)."""
+    the reference says nothing there).  ``max_strain``: a variant whose edges stretch
+    beyond it is not recommended (:func:`recommend`)."""
     out = Path(out_dir)
     if comm.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
@@ -369,15 +375,16 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
             "ref_curl_retention", "failure", "failed_frame", "failed_time", "message", "same_as"]
     report.write_csv(rows, out / "tradeoff.csv", cols)
     floor = (own or {}).get("rms_rel_error")
-    recs = recommend(rows, targets, cost=cost, floor=floor)
+    recs = recommend(rows, targets, cost=cost, floor=floor, max_strain=max_strain)
     report.write_json({"meta": dict(meta or {}, duration=duration, out_dt=out_dt),
                        "reference": dict(asdict(ref), ksp_rtol=ref.effective_rtol(),
                                          **{k: v for k, v in rres.items() if k != "timings_s"},
                                          **rq, own_error=own),
-                       "variants": rows, "recommendations": recs}, out / "tradeoff.json")
+                       "max_strain": max_strain, "variants": rows, "recommendations": recs},
+                      out / "tradeoff.json")
     report.plot_pareto(rows, out / "pareto.png", cost=cost, cost_label=COSTS[cost], floor=floor,
                        title=f"speed vs accuracy: {(meta or {}).get('scene', '')}, {duration:g} s simulated")
-    (out / "recommendations.md").write_text(markdown(rows, recs, ref, meta, cost, rres, own))
+    (out / "recommendations.md").write_text(markdown(rows, recs, ref, meta, cost, rres, own, max_strain))
     return rows
 
 
@@ -408,25 +415,43 @@ def reference_error(base_cfg, ref, rtraj, geo, duration, out_dt, comm, blowup):
     return out
 
 
-def recommend(rows, targets, error="rms_rel_error", cost="wall_per_sim_s", floor=None):
+def recommend(rows, targets, error="rms_rel_error", cost="wall_per_sim_s", floor=None,
+              max_strain=MAX_STRAIN):
     """For each target error, the cheapest stable variant reaching it (or None).  A target
-    at or below ``floor`` (the reference's own error) is not judged: ``below_reference``."""
+    at or below ``floor`` (the reference's own error) is not judged: ``below_reference``.
+    A variant whose edges stretch beyond ``max_strain`` (None: no limit) is not
+    recommended whatever its error; the cheaper ones so passed over are listed under
+    ``stretched``."""
     out = []
     for t in targets:
         below = floor is not None and t <= floor
         ok = [r for r in rows if r.get("stable") and r.get(error) is not None
               and r[error] <= t and r.get(cost)] if not below else []
-        best = min(ok, key=lambda r: r[cost]) if ok else None
+        kept = [r for r in ok if not stretched(r, max_strain)]
+        best = min(kept, key=lambda r: r[cost]) if kept else None
+        passed_over = [r["variant"] for r in sorted(ok, key=lambda r: r[cost])
+                       if stretched(r, max_strain) and (best is None or r[cost] < best[cost])]
         out.append({"target": t, "variant": best["variant"] if best else None,
                     "label": best["label"] if best else None, "below_reference": below,
-                    "cost": best[cost] if best else None, "error": best[error] if best else None})
+                    "cost": best[cost] if best else None, "error": best[error] if best else None,
+                    "max_stretch_strain": best.get("max_stretch_strain") if best else None,
+                    "energy_rel_error": best.get("energy_rel_error") if best else None,
+                    "stretched": passed_over})
     return out
 
 
-def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None, own=None):
+def stretched(row, max_strain):
+    """Whether ``row``'s largest edge strain exceeds ``max_strain`` (None: no limit)."""
+    strain = row.get("max_stretch_strain")
+    return max_strain is not None and strain is not None and strain > max_strain
+
+
+def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None, own=None,
+             max_strain=MAX_STRAIN):
     """The study's markdown report: recommendations, then every variant's errors and cost.
     ``ref_result``: the reference run's record (its cut-back and unconverged frames);
-    ``own``: the reference's own error (:func:`reference_error`)."""
+    ``own``: the reference's own error (:func:`reference_error`); ``max_strain``: the
+    edge strain above which a variant is not recommended (None: no limit)."""
     lines = ["# Speed versus accuracy\n"]
     if meta and meta.get("command"):
         lines.append(f"Command: `{meta['command']}`\n")
@@ -443,13 +468,17 @@ def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None,
                         f"energy {report.fmt(own.get('energy_rel_error'))}; errors below it are not "
                         "resolved, targets below it are not judged.\n"
                         if own["status"] == "ok" else f"unknown (the check was {own['status']}).\n"))
-    lines.append("## Recommendations (cheapest stable setting reaching the target RMS error)\n")
+    limit = "" if max_strain is None else f", edges within {100 * max_strain:g}% of their length"
+    lines.append(f"## Recommendations (cheapest stable setting reaching the target RMS error{limit})\n")
     lines.append(report.markdown_table(
-        ["target RMS error", "variant", "settings", f"cost ({cost})", "RMS error"],
+        ["target RMS error", "variant", "settings", f"cost ({cost})", "RMS error", "max strain",
+         "energy err", "cheaper, passed over (edges stretched)"],
         [[report.fmt(r["target"]),
           r["variant"] or ("below the reference's own error" if r.get("below_reference")
                            else "none reaches it"), r["label"] or "-",
-          report.fmt(r["cost"]), report.fmt(r["error"])] for r in recs]))
+          report.fmt(r["cost"]), report.fmt(r["error"]), report.fmt(r.get("max_stretch_strain")),
+          report.fmt(r.get("energy_rel_error")), ", ".join(r.get("stretched") or ()) or "-"]
+         for r in recs]))
     lines.append("\n## All variants\n")
     lines.append(report.markdown_table(
         ["variant", "status", "wall s/sim-s", "wall s/frame", "CPU s/sim-s", "Newton its",
@@ -463,6 +492,7 @@ def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None,
           report.fmt(r.get("max_rel_error")), report.fmt(r.get("energy_rel_error")),
           report.fmt(r.get("max_stretch_strain")), report.fmt(r.get("curl_retention")),
           (f"not run: {r['message']}" if r["status"] == "unsupported"
-           else f"{r['failure']} at frame {r['failed_frame']}" if not r["stable"] else "")]
+           else f"{r['failure']} at frame {r['failed_frame']}" if not r["stable"]
+           else "edges stretched beyond the limit: not recommended" if stretched(r, max_strain) else "")]
          for r in rows]))
     return "\n".join(lines)

@@ -146,6 +146,32 @@ def test_targets_below_the_reference_own_error_are_not_judged():
     assert tighter_reference(replace(BASE, ksp_rtol=1e-10)).ksp_rtol == 1e-12
 
 
+def test_stretched_variants_are_not_recommended():
+    """A variant whose edges stretch beyond the limit (smash unfiltered: RMS 0.23 with edges
+    101x long; the uncarried 2-iteration hairball: 6%, energy error 172x) is listed, not
+    recommended, whatever its error; the cheaper ones passed over are named.  On main
+    the cheapest variant under the target was recommended, stretched or not."""
+    rows = [{"variant": "stretched", "label": "s", "status": "ok", "stable": True,
+             "rms_rel_error": 0.02, "max_stretch_strain": 0.06, "energy_rel_error": 172.0,
+             "wall_per_sim_s": 1.0},
+            {"variant": "sound", "label": "t", "status": "ok", "stable": True,
+             "rms_rel_error": 0.025, "max_stretch_strain": 7e-5, "energy_rel_error": 0.2,
+             "wall_per_sim_s": 1.5},
+            {"variant": "torn", "label": "u", "status": "ok", "stable": True,
+             "rms_rel_error": 0.005, "max_stretch_strain": 101.0, "energy_rel_error": 2771.0,
+             "wall_per_sim_s": 0.5}]
+    recs = recommend(rows, (0.03, 0.01), max_strain=0.05)
+    assert [r["variant"] for r in recs] == ["sound", None]
+    assert recs[0]["stretched"] == ["torn", "stretched"] and recs[1]["stretched"] == ["torn"]
+    assert recs[0]["max_stretch_strain"] == 7e-5 and recs[0]["energy_rel_error"] == 0.2
+    assert [r["variant"] for r in recommend(rows, (0.03, 0.01), max_strain=None)] == ["torn", "torn"]
+    # under the default limit (10%) the 6% variant is recommended, the torn one passed over
+    assert [r["variant"] for r in recommend(rows, (0.03,))] == ["stretched"]
+    md = markdown(rows, recs, BASE, max_strain=0.05)
+    assert "edges within 5% of their length" in md and "| torn, stretched |" in md
+    assert md.count("edges stretched beyond the limit: not recommended") == 2
+
+
 def test_driver_base_reference_on_the_krylov_axis(tmp_path):
     """--ref base (for scenes too large for a converged reference): the reference is the
     base setting with Krylov rtol 1e-10, and --rtols picks the axis's values.  (The

@@ -487,7 +487,7 @@ class Job:
         with into a new frames.h5; without --force Refused, saying what --force keeps
         and loses (rank 0 inspects, read-only; one verdict for all)."""
         from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints, read_positions
-        from lc_petsc.io.frames import resumable_problem
+        from lc_petsc.io.frames import has_checksums, resumable_problem
         from lc_petsc.io.recovery import aside_path, plan_recovery
         args, cfg, sim = self.args, self.cfg, self.sim
         path = self.out / "frames.h5"
@@ -499,14 +499,19 @@ class Job:
                 vouched = (rows - 1, read_positions(ck["path"], offsets)["positions"])
             problem = resumable_problem(path, sim.n_wisps, sim.n_vertices, rows, checkpoint_row=vouched,
                                         **({} if args.force else dict(dt=cfg.time.dt, every=cfg.output.every)))
+                                        offsets=offsets,
             if problem is None:
-                return None, None
+                return None, None, not has_checksums(path)
             plan = plan_recovery(path, problem, ck, list_checkpoints(checkpoint_folder(self.out)), offsets, rows)
-            return plan, aside_path(path).name if os.path.lexists(path) else None
+            return plan, aside_path(path).name if os.path.lexists(path) else None, False
         verdict, error = on_root(self.comm, inspect)
         if error is not None:
             raise Refused(f"{path}: cannot inspect it before appending to it ({error})")
-        plan, aside = verdict
+        plan, aside, unchecked = verdict
+        if unchecked:
+            self._warn(f"{path} was written before frames.h5 had checksums: its kept rows could be read but "
+                       "not verified (a damaged value reads as a wrong number); the rows this run appends "
+                       "have none either (a new run, without --restart, writes them)")
         if plan is not None and not args.force:
             kept = f", renaming this one to {aside} (kept, never removed)" if aside else ""
             raise Refused(f"{plan.problem}. With --force the run continues from {ck['path']} into a new "

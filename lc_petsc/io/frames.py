@@ -166,23 +166,50 @@ def _why(e):
     return inner.group(1) if inner else text or type(e).__name__
 
 
+def _fill(dtype):
+    """The fill value of a dataset of ``dtype``: what a read of a chunk missing from the
+    index returns (NaN, -1; a bool has none), never a value the writer writes."""
+    dtype = np.dtype(dtype)
+    return np.array(np.nan if dtype.kind == "f" else -1 if dtype.kind == "i" else False, dtype)
+
+
+def _holds_fill(a, valid=None):
+    """Whether ``a`` (a read of a frames.h5 dataset; ``valid``: of its rows, or of its one
+    row, those that hold a frame, default all) holds its fill value (a file written
+    before the fill values: zeros, not found)."""
+    a = np.asarray(a)
+    if valid is not None:
+        a = a[np.asarray(valid, bool)] if np.ndim(valid) else a if valid else a[:0]
+    return bool(np.isnan(a).any()) if a.dtype.kind == "f" else bool((a < 0).any()) if a.dtype.kind == "i" \
+        else False
+
+
 def _kept_problem(f, path, rows, offsets):
     """:func:`resumable_problem`'s read-back of every value the restart keeps: the static
     datasets and the first ``rows`` rows of the frame datasets.  A read error (a value
     failing its checksum, a damaged chunk index) names the dataset and the row, before
     the restart changes anything (it failed in the frame loop, after the outputs were
     removed, on every try; or it kept a damaged row and appended to it)."""
+    try:        # the restart rewrites the attributes: damaged storage failed it there (exit 3)
+        for obj in [f] + [f[k] for k in f]:
+            dict(obj.attrs)
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+        return f"{path}: its attributes cannot be read ({_why(e)}): the file is damaged"
     frame_dsets = [k for k in ("positions", "time", "frame_valid") if k in f]
     static = [k for k in ("wisp_offsets", "rest_positions", "pinned", "polylines", "radius") if k in f]
     every = int(f.attrs.get("every", 1))
+    valid = valid_rows(f)
     for name, sel in [(k, Ellipsis) for k in static] + [(k, np.s_[:rows]) for k in frame_dsets[1:]] + \
             [("positions", k) for k in range(rows)]:
+        where = f" row {sel} (frame {sel * every})" if isinstance(sel, int) else \
+            f" rows 0-{rows - 1}" if sel is not Ellipsis else ""
         try:
             a = f[name][sel]
         except (OSError, ValueError) as e:
-            where = f" row {sel} (frame {sel * every})" if isinstance(sel, int) else \
-                f" rows 0-{rows - 1}" if sel is not Ellipsis else ""
             return f"{path}: /{name}{where} cannot be read ({_why(e)}): the file is damaged"
+        if _holds_fill(a, valid[sel] if name in frame_dsets else None):
+            return (f"{path}: /{name}{where} holds the fill value (NaN or -1): its chunk is missing "
+                    "from the chunk index, which has no checksum: the file is damaged")
         if name == "wisp_offsets":
             problem = offsets_problem(a, f["positions"].shape[1])
             if problem is None and offsets is not None and not np.array_equal(a, offsets):
@@ -351,6 +378,9 @@ class FramesWriter:
         h5py = h5py_module()
         dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
         dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
+        # never written, but what a read of a chunk the (unchecksummed) index lost
+        # returns: NaN, not the zeros a damaged index gave as a row of positions
+        dcpl.set_fill_value(_fill(dtype))
         # chunks allocated when the dataset grows, not at the first write
         dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
         if chunks is None:

@@ -312,3 +312,37 @@ def test_a_frames_file_from_before_the_checksums_still_restarts(tmp_path, straig
     _check_rows(out, straight, recovered=[], lost=[], upto=8)
     with h5py.File(out / "frames.h5", "r") as f:
         assert not f["positions"].fletcher32
+
+
+def _lose_a_chunk(path, row):
+    """The key of /positions row ``row`` in its chunk index (a version-1 B-tree node,
+    which has no checksum) given a huge row coordinate, as one flipped bit does (found
+    by a random-corruption sweep): libhdf5 no longer finds the chunk and reads the fill
+    value without an error."""
+    with h5py.File(path, "r") as f:
+        addr = f["positions"].id.get_chunk_info(row).byte_offset
+    data = bytearray(Path(path).read_bytes())
+    node = data.find(b"TREE")
+    while node >= 0 and data.find(addr.to_bytes(8, "little"), node, node + 4096) < 0:
+        node = data.find(b"TREE", node + 4)
+    child = data.find(addr.to_bytes(8, "little"), node)
+    key = child - 40           # chunk size, filter mask, 4 offsets (row first) of 8 bytes
+    data[key + 15] ^= 0x80
+    Path(path).write_bytes(bytes(data))
+
+
+def test_a_chunk_lost_from_the_index_reads_as_nan_and_is_refused(tmp_path, straight, capsys):
+    """One flipped bit in the chunk index made row 4 read as zeros (the fill value), no
+    error: the restart kept it, the crossing check then ran out of memory on 2,020
+    vertices at the origin.  Now the fill value is NaN, which no frame holds."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0
+    _lose_a_chunk(out / "frames.h5", 4)
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert np.isnan(f["positions"][4]).all() and np.array_equal(f["positions"][3], straight[0][3])
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
+    err = capsys.readouterr().err
+    assert (f"{out / 'frames.h5'}: /positions row 4 (frame 4) holds the fill value (NaN or -1): its chunk is "
+            "missing from the chunk index, which has no checksum: the file is damaged. With --force") in err, err

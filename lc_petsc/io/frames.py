@@ -208,8 +208,8 @@ def _kept_problem(f, path, rows, offsets):
         except (OSError, ValueError) as e:
             return f"{path}: /{name}{where} cannot be read ({_why(e)}): the file is damaged"
         if _holds_fill(a, valid[sel] if name in frame_dsets else None):
-            return (f"{path}: /{name}{where} holds the fill value (NaN or -1): its chunk is missing "
-                    "from the chunk index, which has no checksum: the file is damaged")
+            return (f"{path}: /{name}{where}: read as the fill value (NaN or -1), its chunk missing "
+                    "from the chunk index (which has no checksum): the file is damaged")
         if name == "wisp_offsets":
             problem = offsets_problem(a, f["positions"].shape[1])
             if problem is None and offsets is not None and not np.array_equal(a, offsets):

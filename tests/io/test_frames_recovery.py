@@ -344,5 +344,5 @@ def test_a_chunk_lost_from_the_index_reads_as_nan_and_is_refused(tmp_path, strai
     capsys.readouterr()
     assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
     err = capsys.readouterr().err
-    assert (f"{out / 'frames.h5'}: /positions row 4 (frame 4) holds the fill value (NaN or -1): its chunk is "
-            "missing from the chunk index, which has no checksum: the file is damaged. With --force") in err, err
+    assert (f"{out / 'frames.h5'}: /positions row 4 (frame 4): read as the fill value (NaN or -1), its chunk "
+            "missing from the chunk index (which has no checksum): the file is damaged. With --force") in err, err

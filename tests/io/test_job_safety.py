@@ -711,3 +711,19 @@ def test_a_signal_during_the_last_frame_checkpoints_it(tmp_path, monkeypatch, ca
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
     assert "frame 5 is the run's last: no frame to run" in capsys.readouterr().out
     assert (out / "frames.usdc").exists()
+
+
+def test_a_signal_while_a_finished_run_ends_keeps_exit_0(tmp_path):
+    """SIGTERM while the process ends after a finished run (here from an atexit hook: the
+    interpreter's teardown, PETSc's and MPI's finalize, after the job restored its
+    handlers) killed it, exit 143, although every output was written."""
+    cfg = _smash(tmp_path, frames=2, ce=0)
+    out = tmp_path / "out"
+    code = ("import atexit, os, signal, sys, time\n"
+            "from lc_petsc.batch import exit_process, main\n"
+            "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGTERM), time.sleep(0.3)))\n"
+            f"exit_process(main([{cfg!r}, '--out', {str(out)!r}, '--quiet']))\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
+    assert json.loads((out / "summary.json").read_text())["preempted"] is None
+    assert not (out / LOCK_NAME).exists()

@@ -719,7 +719,7 @@ def test_a_signal_while_a_finished_run_ends_keeps_exit_0(tmp_path):
     handlers) killed it, exit 143, although every output was written."""
     cfg = _smash(tmp_path, frames=2, ce=0)
     out = tmp_path / "out"
-    code = ("import atexit, os, signal, sys, time\n"
+    code = ("import atexit, os, signal, sys, time\nsys.argv[0] = 'simulate.py'\n"
             "from lc_petsc.batch import exit_process, main\n"
             "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGTERM), time.sleep(0.3)))\n"
             f"exit_process(main([{cfg!r}, '--out', {str(out)!r}, '--quiet']))\n")

@@ -169,10 +169,17 @@ def check_options_file(key, path):
 
 
 def exit_process(code):
-    """End the process with ``code`` (drivers/simulate.py).  When libhdf5 failed on an
+    """End the process with ``code`` (drivers/simulate.py), ignoring SIGTERM, SIGUSR1 and
+    SIGINT from now on.  When libhdf5 failed on an
     open file (:func:`lc_petsc.io.hdf5.unclosable`) the interpreter's normal exit would
     crash in libhdf5 closing it: MPI is finalised and the process ends without that."""
+    import signal
     from lc_petsc.io import hdf5
+    # the job is over (outputs written, lock removed, its handlers restored): a signal
+    # while the process ends (PETSc's and MPI's finalize) made a finished run exit 143,
+    # which a scheduler reads as killed
+    for name in ("SIGTERM", "SIGUSR1", "SIGINT"):
+        signal.signal(getattr(signal, name), signal.SIG_IGN)
     if hdf5.unclosable():
         sys.stdout.flush()
         sys.stderr.flush()

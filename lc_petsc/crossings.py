@@ -142,12 +142,16 @@ def frames_layout(f, with_rest=False):
     and the rest positions (n_vertices, 3), n_vertices the offsets' last: a ValueError
     names a file that is not a run's frames (a strands file, say); a KeyError a missing
     dataset."""
+    from lc_petsc.io.frames import offsets_problem
     off = np.asarray(f["wisp_offsets"][...], np.int64)
     shape = f["positions"].shape
-    if off.ndim != 1 or len(off) < 2 or len(shape) != 3 or shape[2] != 3 or shape[1] != off[-1]:
+    if len(shape) != 3 or shape[2] != 3:
         n = f"{int(off[-1])} vertices" if off.ndim == 1 and len(off) else "n_vertices"
         raise ValueError(f"/positions has shape {shape}, a frames.h5 has (frames, "
                          f"{n}, 3) (a strands file is a groom, not a run)")
+    problem = offsets_problem(off, shape[1])
+    if problem:             # a damaged one made the check allocate wisps of 2**60 vertices
+        raise ValueError(problem)
     if not with_rest:
         return off
     rest = np.asarray(f["rest_positions"][...], float)

@@ -322,6 +322,7 @@ class Job:
         self.times = []
         self.error = None
         self.preemption = None
+        self.skipped_outputs = []   # rank 0: outputs a signal during the end-of-run ones skipped
 
     # ------------------------------------------------------------------ the steps
     def run(self):
@@ -522,7 +523,7 @@ class Job:
         with into a new frames.h5; without --force Refused, saying what --force keeps
         and loses (rank 0 inspects, read-only; one verdict for all)."""
         from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints, read_positions
-        from lc_petsc.io.frames import resumable_problem
+        from lc_petsc.io.frames import has_checksums, resumable_problem
         from lc_petsc.io.recovery import aside_path, plan_recovery
         args, cfg, sim = self.args, self.cfg, self.sim
         path = self.out / "frames.h5"
@@ -533,15 +534,20 @@ class Job:
             if ck["frame"] % cfg.output.every == 0:
                 vouched = (rows - 1, read_positions(ck["path"], offsets)["positions"])
             problem = resumable_problem(path, sim.n_wisps, sim.n_vertices, rows, checkpoint_row=vouched,
+                                        offsets=offsets,
                                         **({} if args.force else dict(dt=cfg.time.dt, every=cfg.output.every)))
             if problem is None:
-                return None, None
+                return None, None, not has_checksums(path)
             plan = plan_recovery(path, problem, ck, list_checkpoints(checkpoint_folder(self.out)), offsets, rows)
-            return plan, aside_path(path).name if os.path.lexists(path) else None
+            return plan, aside_path(path).name if os.path.lexists(path) else None, False
         verdict, error = on_root(self.comm, inspect)
         if error is not None:
             raise Refused(f"{path}: cannot inspect it before appending to it ({error})")
-        plan, aside = verdict
+        plan, aside, unchecked = verdict
+        if unchecked:
+            self._warn(f"{path} was written before frames.h5 had checksums: its kept rows could be read but "
+                       "not verified (a damaged value reads as a wrong number); the rows this run appends "
+                       "have none either (a new run, without --restart, writes them)")
         if plan is not None and not args.force:
             kept = f", renaming this one to {aside} (kept, never removed)" if aside else ""
             raise Refused(f"{plan.problem}. With --force the run continues from {ck['path']} into a new "
@@ -779,6 +785,7 @@ class Job:
             except OutputError as e:
                 hdf5.mark_unclosable()
                 out_errors.append(str(e))
+        self._stop_after_last_frame()
         preempted = self.preemption.signal_name if self.preemption.stopped else None
         summary = self._summary(preempted)       # first: its wall time is the frame loop's alone
         crossings = summary["crossings"] = self._check_crossings(preempted)
@@ -793,10 +800,26 @@ class Job:
             summary["converged"] = False
         if comm.rank == 0:
             self._write_outputs(summary)
-        self.error = comm.bcast(self.error)
+        self.error, late = comm.bcast((self.error, self.skipped_outputs))
         if self.error:
             return EXIT_RUN_FAILED
-        return EXIT_PREEMPTED if preempted else EXIT_OK
+        return EXIT_PREEMPTED if preempted or late else EXIT_OK
+
+    def _stop_after_last_frame(self):
+        """Collective, after the frame loop: a signal during the last frame or the close of
+        frames.h5 (the loop only looks before a frame) stops the run as one during the
+        loop does: a checkpoint of the last frame (a --restart latest then only writes the
+        outputs), no crossing check, exit 75.  One on rank 0 during its outputs skips the
+        outputs not begun yet (:meth:`_write_outputs`)."""
+        p, it = self.preemption, self.sim.integrator
+        p.in_outputs = True
+        if p.stopped or not p.agreed() or self.error or self.writer is None:
+            return
+        try:
+            with self.sim.timers("io"):
+                self.checkpointer.write(it)
+        except OutputError as e:
+            self.error = f"output error: {e}"
 
     def _check_crossings(self, preempted=None):
         """The end-of-run crossing check of frames.h5 (``output.check_crossings``), between
@@ -889,7 +912,8 @@ class Job:
                 problems.append(f"{out / 'frames.xdmf'}: {e.strerror or e}")
         t_xdmf = time.perf_counter() - t0
         t0 = time.perf_counter()
-        if cfg.output.previews and writer is not None and writer.written and not hdf5.unclosable():
+        if cfg.output.previews and self._late_signal("previews") and writer is not None and writer.written \
+                and not hdf5.unclosable():
             try:
                 files += [os.path.relpath(p, out) for p in _previews(cfg, out, h5_path, writer,
                                                                      cfg.time.frames, self.name)]
@@ -897,7 +921,8 @@ class Job:
                 problems.append(f"previews in {out}: {getattr(e, 'strerror', None) or e}")
         t_prev = time.perf_counter() - t0
         t_usd = 0.0
-        if writer is not None and writer.written and not hdf5.unclosable():
+        if (not cfg.output.usd or self._late_signal("frames.usdc")) and writer is not None \
+                and writer.written and not hdf5.unclosable():
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_failed, export_run
             try:
@@ -908,13 +933,15 @@ class Job:
                 print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
                 summary["warnings"] = list(summary.get("warnings") or []) + [text]
         files.append("summary.json")
+        if self.skipped_outputs:
+            summary["preempted"] = self.preemption.signal_name
         if problems and not self.error:
             self.error = summary["error"] = f"output error: {problems[0]}"
             summary["converged"] = False
         summary["output"] = {"dir": str(out), "every": cfg.output.every,
                              "frames_written": writer.written if writer is not None else 0,
                              "files": files, "xdmf_s": t_xdmf, "previews_s": t_prev,
-                             "usd_s": t_usd, "not_written": problems}
+                             "usd_s": t_usd, "not_written": problems, "skipped": self.skipped_outputs}
         try:
             write_summary(out / "summary.json", summary)
         except OSError as e:
@@ -929,11 +956,41 @@ class Job:
         if self.error:
             print(f"{PROG}: error: {self.error}", file=sys.stderr, flush=True)
             self._say_how_to_continue()
-        if summary["preempted"]:
+        if self.skipped_outputs:
+            self._say_outputs_skipped()
+        elif summary["preempted"]:
             last = self.checkpointer.written[-1]["path"] if self.checkpointer.written else "?"
             print(f"{PROG}: {summary['preempted']} received: stopped after frame {sim.integrator.frame}, "
                   f"checkpoint {last} written; continue with --restart latest "
                   f"(exit status {EXIT_PREEMPTED})", file=sys.stderr, flush=True)
+
+    def _late_signal(self, output):
+        """Rank 0, before a slow end-of-run output: False (and ``output`` recorded as skipped)
+        once a signal came after the frame loop's last look, else True; the run stops
+        promptly, a --restart latest writes what was skipped."""
+        p = self.preemption
+        if p.flag and not p.stopped:
+            self.skipped_outputs.append(output)
+            return False
+        return True
+
+    def _say_outputs_skipped(self):
+        """Rank 0: what a signal during the end-of-run outputs left unwritten, how to finish."""
+        written = self.checkpointer.written
+        last = written[-1]["frame"] if written else self.restart["frame"] if self.restart else None
+        frame = self.sim.integrator.frame
+        how = "continue with --restart latest (it writes them"
+        if last is not None and last < frame:
+            again = f"frame {frame}" if last + 1 == frame else f"frames {last + 1}-{frame}"
+            how += f", after running {again} again from the checkpoint of frame {last})"
+        elif last is not None:
+            how += ", running no frame)"
+        else:
+            how = (f"no checkpoint to restart from (output.checkpoint_every = 0): drivers/to_usd.py "
+                   f"{self.out / 'frames.h5'} writes frames.usdc")
+        print(f"{PROG}: {self.preemption.signal_name} received during the end-of-run outputs: frames.h5 "
+              f"holds every frame (0-{frame}); not written: {', '.join(self.skipped_outputs)}; {how} "
+              f"(exit status {EXIT_PREEMPTED})", file=sys.stderr, flush=True)
 
     def _say_how_to_continue(self):
         """Rank 0, after a failure: the folder's newest checkpoint and --restart latest
@@ -1003,6 +1060,7 @@ class Preemption:
         self.comm = comm
         self.flag, self.signal_name, self.previous, self.stopped = 0, None, {}, False
         self.signum, self.raising, self.setup_over = 0, False, False
+        self.in_outputs = False     # after the frame loop (the handler's SIGINT note)
         self.setup_comm = comm.Dup() if comm.size > 1 else None
         if threading.current_thread() is threading.main_thread():
             for name in self.SIGNALS:
@@ -1020,9 +1078,10 @@ class Preemption:
             self.raising = False
             raise SetupInterrupted(self.signal_name)
         if signum == signal.SIGINT and self.setup_over:
-            print(f"\n{PROG}: SIGINT: finishing this frame, then a checkpoint and exit "
-                  f"{EXIT_PREEMPTED}; press Ctrl-C again to stop at once (no checkpoint)",
-                  file=sys.stderr, flush=True)
+            now = "the end-of-run output being written, the others skipped" if self.in_outputs else \
+                "this frame, then a checkpoint"
+            print(f"\n{PROG}: SIGINT: finishing {now} and exit {EXIT_PREEMPTED}; press Ctrl-C again "
+                  "to stop at once (no checkpoint)", file=sys.stderr, flush=True)
 
     @contextmanager
     def setup(self):

@@ -18,6 +18,13 @@ Layout (plain h5py reads it):
   ``every`` (frame ``k`` of the file is simulation frame ``k * every``), ``frames``
   (simulation frames planned), ``ranks``, ``format``.
 
+Every dataset is chunked with a Fletcher-32 checksum per chunk, and the file is in the
+HDF5 1.8 format (``libver`` v108: checksums on the superblock and object headers), so
+a damaged value is a read error ("data error detected by Fletcher32 checksum") for
+every reader, never a wrong number; a restart reads back every value it keeps
+(:func:`resumable_problem`).  Files written before that have no checksums
+(:func:`has_checksums`) and still restart, unverified.
+
 Frame 0 of the file is the initial state (t = 0, after the scene's perturbation).
 With an MPI-enabled h5py (Debian's, under mpiexec) the file is opened with the ``mpio``
 driver on the simulator's communicator and every write is collective (ranks without
@@ -86,12 +93,16 @@ def _h5_error(path, e):
     return OutputError(f"{path}: {why}", hdf5_broken=True)
 
 
-def resumable_problem(path, n_wisps, n_vertices, rows, dt=None, every=None, checkpoint_row=None):
+def resumable_problem(path, n_wisps, n_vertices, rows, dt=None, every=None, checkpoint_row=None,
+                      offsets=None):
     """Why ``path`` cannot be appended to by a restart needing its first ``rows`` frame
     rows, or None; ``dt`` and ``every`` (the run's time.dt and output.every) must be the
     file's attributes, where it has them (a file of another run with the same counts
     was taken over); ``checkpoint_row`` (row, positions (n_vertices, 3)): the row the
-    checkpoint vouches for must hold its positions bit for bit.  Serial and read-only
+    checkpoint vouches for must hold its positions bit for bit; ``offsets``: the scene's
+    global wisp offsets, which ``/wisp_offsets`` must equal.  Every value the restart
+    keeps is read back (:func:`_kept_problem`), so a file with checksums whose kept rows
+    are damaged is refused here, before anything is changed.  Serial and read-only
     (rank 0, before anything is changed)."""
     h5py = h5py_module()
     path = str(path)
@@ -102,9 +113,10 @@ def resumable_problem(path, n_wisps, n_vertices, rows, dt=None, every=None, chec
     try:
         with h5py.File(path, "r") as f:
             return _layout_problem(f, path, n_wisps, n_vertices, rows, dt, every) or \
-                _row_problem(f, path, checkpoint_row)
-    except (OSError, KeyError) as e:
-        return f"{path}: unreadable or truncated HDF5 file ({str(e).split(' (')[0]})"
+                _kept_problem(f, path, rows, offsets) or _row_problem(f, path, checkpoint_row)
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+        # whatever h5py raises on a damaged file (a damaged datatype: ValueError)
+        return f"{path}: unreadable, truncated or damaged HDF5 file ({_why(e)})"
 
 
 def _layout_problem(f, path, n_wisps, n_vertices, rows, dt, every):
@@ -122,14 +134,89 @@ def _layout_problem(f, path, n_wisps, n_vertices, rows, dt, every):
     if pos.shape[0] < rows or f["time"].shape[0] < rows:
         return (f"{path}: holds {pos.shape[0]} frame row(s), the checkpoint needs the first "
                 f"{rows}; it does not belong to this checkpoint's run")
-    # the restart reads the kept rows' times (a few bytes): a damaged /time failed the
-    # restart in its frame loop, after the outputs were removed (exit 3), on every try
-    f["time"][:rows]
     for key, want in (("dt", dt), ("every", every)):
         have = f.attrs.get(key)
         if want is not None and have is not None and float(have) != float(want):
             return (f"{path}: written with {key} = {float(have):g}, this run has {float(want):g}; "
                     f"it does not belong to this checkpoint's run")
+    return None
+
+
+def has_checksums(path) -> bool:
+    """Whether ``frames.h5`` at ``path`` (readable) was written with Fletcher-32 checksums
+    (files written before them have none: a damaged value there reads as a wrong number)."""
+    with h5py_module().File(str(path), "r") as f:
+        return bool(f["positions"].fletcher32)
+
+
+def offsets_problem(off, n_vertices):
+    """Why ``off`` is not a valid ``/wisp_offsets`` for ``n_vertices`` vertices (0 first,
+    increasing, ``n_vertices`` last), or None."""
+    off = np.asarray(off)
+    if off.ndim != 1 or len(off) < 2 or off[0] != 0 or off[-1] != n_vertices or np.any(np.diff(off) <= 0):
+        return (f"/wisp_offsets is not 0, increasing, ..., {n_vertices} (the vertex count of "
+                f"/positions): the file is damaged")
+    return None
+
+
+def _why(e):
+    """libhdf5's reason in an h5py error: 'data error detected by Fletcher32 checksum'."""
+    text = str(e)
+    inner = re.search(r"\(([^()]*)\)\s*$", text)
+    return inner.group(1) if inner else text or type(e).__name__
+
+
+def _fill(dtype):
+    """The fill value of a dataset of ``dtype``: what a read of a chunk missing from the
+    index returns (NaN, -1; a bool has none), never a value the writer writes."""
+    dtype = np.dtype(dtype)
+    return np.array(np.nan if dtype.kind == "f" else -1 if dtype.kind == "i" else False, dtype)
+
+
+def _holds_fill(a, valid=None):
+    """Whether ``a`` (a read of a frames.h5 dataset; ``valid``: of its rows, or of its one
+    row, those that hold a frame, default all) holds its fill value (a file written
+    before the fill values: zeros, not found)."""
+    a = np.asarray(a)
+    if valid is not None:
+        a = a[np.asarray(valid, bool)] if np.ndim(valid) else a if valid else a[:0]
+    return bool(np.isnan(a).any()) if a.dtype.kind == "f" else bool((a < 0).any()) if a.dtype.kind == "i" \
+        else False
+
+
+def _kept_problem(f, path, rows, offsets):
+    """:func:`resumable_problem`'s read-back of every value the restart keeps: the static
+    datasets and the first ``rows`` rows of the frame datasets.  A read error (a value
+    failing its checksum, a damaged chunk index) names the dataset and the row, before
+    the restart changes anything (it failed in the frame loop, after the outputs were
+    removed, on every try; or it kept a damaged row and appended to it)."""
+    try:        # the restart rewrites the attributes: damaged storage failed it there (exit 3)
+        for obj in [f] + [f[k] for k in f]:
+            dict(obj.attrs)
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+        return f"{path}: its attributes cannot be read ({_why(e)}): the file is damaged"
+    frame_dsets = [k for k in ("positions", "time", "frame_valid") if k in f]
+    static = [k for k in ("wisp_offsets", "rest_positions", "pinned", "polylines", "radius") if k in f]
+    every = int(f.attrs.get("every", 1))
+    valid = valid_rows(f)
+    for name, sel in [(k, Ellipsis) for k in static] + [(k, np.s_[:rows]) for k in frame_dsets[1:]] + \
+            [("positions", k) for k in range(rows)]:
+        where = f" row {sel} (frame {sel * every})" if isinstance(sel, int) else \
+            f" rows 0-{rows - 1}" if sel is not Ellipsis else ""
+        try:
+            a = f[name][sel]
+        except (OSError, ValueError) as e:
+            return f"{path}: /{name}{where} cannot be read ({_why(e)}): the file is damaged"
+        if _holds_fill(a, valid[sel] if name in frame_dsets else None):
+            return (f"{path}: /{name}{where}: read as the fill value (NaN or -1), its chunk missing "
+                    "from the chunk index (which has no checksum): the file is damaged")
+        if name == "wisp_offsets":
+            problem = offsets_problem(a, f["positions"].shape[1])
+            if problem is None and offsets is not None and not np.array_equal(a, offsets):
+                problem = ("/wisp_offsets differs from the scene's wisp sizes: the file is damaged, "
+                           "or another scene's with the same counts")
+            if problem:
+                return f"{path}: {problem}"
     return None
 
 
@@ -204,7 +291,10 @@ class FramesWriter:
                 radius=None, track_valid=False):
         h5py = h5py_module()
         comm = self.comm
-        self.f = f = h5py.File(self.path, "w", **kw)
+        # the HDF5 1.8 format: checksums on the superblock and object headers (1.10's, v3
+        # superblock, also on the chunk indexes, but a killed writer leaves its file
+        # unopenable without h5clear: "file is already open for write")
+        self.f = f = h5py.File(self.path, "w", libver=("v108", "latest"), **kw)
         nv = self.nv
         # frame datasets: one frame per chunk (at most 2**16 vertices), empty, extendable
         self.positions = self._dataset("positions", (0, nv, 3), np.float64,
@@ -282,14 +372,21 @@ class FramesWriter:
         f.attrs["ranks"] = self.comm.size
 
     def _dataset(self, name, shape, dtype, maxshape=None, chunks=None):
+        """A chunked dataset with a Fletcher-32 checksum per chunk (libhdf5 checks it on
+        every read: a damaged value is a read error, never a wrong number); ``chunks``
+        default: the whole dataset, at most 2**16 rows a chunk."""
         h5py = h5py_module()
         dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
         dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
-        if chunks is not None:
-            # chunks allocated when the dataset grows, not at the first write
-            dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+        # never written, but what a read of a chunk the (unchecksummed) index lost
+        # returns: NaN, not the zeros a damaged index gave as a row of positions
+        dcpl.set_fill_value(_fill(dtype))
+        # chunks allocated when the dataset grows, not at the first write
+        dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+        if chunks is None:
+            chunks = (max(1, min(shape[0], 1 << 16)),) + tuple(shape[1:])
         return self.f.create_dataset(name, shape=shape, dtype=dtype, maxshape=maxshape,
-                                     chunks=chunks, dcpl=dcpl)
+                                     chunks=chunks, dcpl=dcpl, fletcher32=True)
 
     def _write(self, dset, start, data):
         write_rows(dset, start, data, self._dxpl)

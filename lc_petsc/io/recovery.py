@@ -143,7 +143,7 @@ def _file_rows(path, offsets, rows, dt, every, vouched):
     try:
         with h5py.File(str(path), "r") as f:
             return _readable_rows(f, offsets, rows, dt, every, vouched)
-    except (OSError, KeyError) as e:
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:   # whatever a damaged file raises
         return [], f"unreadable ({str(e).split(' (')[0]})"
 
 

@@ -222,3 +222,127 @@ def test_every_two_recovers_only_the_rows_of_written_frames(tmp_path, capsys):
     got = read_frames(out / "frames.h5")
     assert got["frame_valid"].tolist() == [False, False, True]
     assert np.isnan(got["positions"][:2]).all() and np.isfinite(got["positions"][2]).all()
+
+
+def _flip_a_bit(path, row, at=240):
+    """One bit of /positions row ``row`` flipped (a bit error of a disk or a copy)."""
+    with h5py.File(path, "r") as f:
+        start = f["positions"].id.get_chunk_info(row).byte_offset
+    with open(path, "r+b") as fh:
+        fh.seek(start + at)
+        b = fh.read(1)[0]
+        fh.seek(start + at)
+        fh.write(bytes([b ^ 0x10]))
+
+
+def test_a_bit_flipped_in_a_kept_row_is_refused_before_the_restart_changes_anything(tmp_path, straight, capsys):
+    """frames.h5 had no checksums: a bit flipped in row 3 was kept by the restart, which
+    appended to the file (exit 0), and a reader got a wrong number.  Now every dataset
+    has Fletcher-32 checksums: the reader gets an error, the restart is refused before
+    it changes anything, and --force recovers every other row."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0                       # 6 frames, checkpoints 2, 4, 6
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert all(d.fletcher32 for d in f.values()), {k: d.fletcher32 for k, d in f.items()}
+    _flip_a_bit(out / "frames.h5", 3)
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert np.array_equal(f["positions"][2], straight[0][2])
+        with pytest.raises(OSError, match="Fletcher32 checksum"):
+            f["positions"][3]
+    before = _snapshot(out)
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
+    err = capsys.readouterr().err
+    assert (f"{out / 'frames.h5'}: /positions row 3 (frame 3) cannot be read (data error detected by "
+            f"Fletcher32 checksum): the file is damaged. With --force") in err, err
+    assert "frames.unusable-1.h5 (kept, never removed)" in err, err
+    assert _snapshot(out) == before, "a refused restart changed the folder"
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest", "--force") == 0
+    _check_rows(out, straight, recovered=[0, 1, 2, 4, 5, 6], lost=[3], upto=8)
+    rec = json.loads((out / "summary.json").read_text())["frames_recovery"]
+    assert rec["from_frames_file"] == [[0, 1], [5, 5]] and rec["from_checkpoints"] == [2, 4, 6]
+    assert rec["missing_frames"] == [[3, 3]]
+
+
+def test_damaged_wisp_offsets_are_named(tmp_path, capsys):
+    """A damaged /wisp_offsets (here with a valid checksum, as in a file from before
+    them) passed the restart's check and showed up only as a MemoryError in the
+    crossing check's warning."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0
+    with h5py.File(out / "frames.h5", "r+") as f:
+        f["wisp_offsets"][1] = 1 << 60
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
+    err = capsys.readouterr().err
+    assert (f"{out / 'frames.h5'}: /wisp_offsets is not 0, increasing, ..., 505 (the vertex count of "
+            "/positions): the file is damaged. With --force") in err, err
+    with pytest.raises(ValueError, match=r"/wisp_offsets is not 0, increasing, \.\.\., 505"):
+        count_frames(out / "frames.h5")
+    with h5py.File(out / "frames.h5", "r+") as f:     # valid, but not the scene's wisps
+        f["wisp_offsets"][1] = 100
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
+    assert "/wisp_offsets differs from the scene's wisp sizes" in capsys.readouterr().err
+
+
+def _without_checksums(path):
+    """``path`` rewritten as frames.h5 was before the checksums: the same datasets,
+    chunks and attributes, no Fletcher-32."""
+    old = Path(path).with_suffix(".old.h5")
+    with h5py.File(path, "r") as f, h5py.File(old, "w") as g:
+        g.attrs.update(dict(f.attrs))
+        for k, d in f.items():
+            grows = d.maxshape[0] is None
+            g.create_dataset(k, data=d[...], chunks=d.chunks if grows else None, maxshape=d.maxshape)
+            g[k].attrs.update(dict(d.attrs))
+    os.replace(old, path)
+
+
+def test_a_frames_file_from_before_the_checksums_still_restarts(tmp_path, straight, capsys):
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0
+    _without_checksums(out / "frames.h5")
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 0
+    err = capsys.readouterr().err
+    assert "was written before frames.h5 had checksums: its kept rows could be read but not verified" in err
+    _check_rows(out, straight, recovered=[], lost=[], upto=8)
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert not f["positions"].fletcher32
+
+
+def _lose_a_chunk(path, row):
+    """The key of /positions row ``row`` in its chunk index (a version-1 B-tree node,
+    which has no checksum) given a huge row coordinate, as one flipped bit does (found
+    by a random-corruption sweep): libhdf5 no longer finds the chunk and reads the fill
+    value without an error."""
+    with h5py.File(path, "r") as f:
+        addr = f["positions"].id.get_chunk_info(row).byte_offset
+    data = bytearray(Path(path).read_bytes())
+    node = data.find(b"TREE")
+    while node >= 0 and data.find(addr.to_bytes(8, "little"), node, node + 4096) < 0:
+        node = data.find(b"TREE", node + 4)
+    child = data.find(addr.to_bytes(8, "little"), node)
+    key = child - 40           # chunk size, filter mask, 4 offsets (row first) of 8 bytes
+    data[key + 15] ^= 0x80
+    Path(path).write_bytes(bytes(data))
+
+
+def test_a_chunk_lost_from_the_index_reads_as_nan_and_is_refused(tmp_path, straight, capsys):
+    """One flipped bit in the chunk index made row 4 read as zeros (the fill value), no
+    error: the restart kept it, the crossing check then ran out of memory on 2,020
+    vertices at the origin.  Now the fill value is NaN, which no frame holds."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0
+    _lose_a_chunk(out / "frames.h5", 4)
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert np.isnan(f["positions"][4]).all() and np.array_equal(f["positions"][3], straight[0][3])
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
+    err = capsys.readouterr().err
+    assert (f"{out / 'frames.h5'}: /positions row 4 (frame 4): read as the fill value (NaN or -1), its chunk "
+            "missing from the chunk index (which has no checksum): the file is damaged. With --force") in err, err

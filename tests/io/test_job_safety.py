@@ -648,3 +648,82 @@ def test_a_new_run_does_not_remove_a_run_that_did_not_finish(tmp_path, capsys, m
     # a finished run (with checkpoints) is replaced as before
     assert main([cfg, "--out", str(out), "--quiet"]) == 0
     assert "did not finish" not in capsys.readouterr().err
+
+
+# ------------------------------------------------------- signals after the last frame
+def _signal_inside(monkeypatch, target, name, signum=signal.SIGTERM):
+    """``target.name`` sends ``signum`` to this process first (a signal that arrives
+    while it runs), then does its work."""
+    work = getattr(target, name)
+
+    def signalled(*args, **kwargs):
+        os.kill(os.getpid(), signum)
+        return work(*args, **kwargs)
+    monkeypatch.setattr(target, name, signalled)
+
+
+def test_a_signal_during_the_end_of_run_outputs_stops_them_and_a_restart_writes_them(
+        tmp_path, monkeypatch, capsys):
+    """SIGTERM while the previews are drawn: they were finished, then the USD export
+    and the rest were written and the run ended with exit 0 and summary.json's
+    preempted null: the signal was ignored.  Now the outputs not begun are skipped,
+    exit 75, and --restart latest writes them (frames.h5 unchanged; it runs frame 5
+    again from the checkpoint of frame 4)."""
+    import lc_petsc.job as job
+    cfg = _smash(tmp_path, frames=5, ce=2, previews="true")
+    out, ref = tmp_path / "out", tmp_path / "ref"
+    assert main([cfg, "--out", str(ref), "--quiet"]) == 0
+    with monkeypatch.context() as m:
+        _signal_inside(m, job, "_previews")
+        assert main([cfg, "--out", str(out), "--quiet"]) == EXIT_PREEMPTED
+    err = capsys.readouterr().err
+    assert (f"SIGTERM received during the end-of-run outputs: frames.h5 holds every frame (0-5); not "
+            f"written: frames.usdc; continue with --restart latest (it writes them, after running frame 5 "
+            f"again from the checkpoint of frame 4) (exit status {EXIT_PREEMPTED})") in err, err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["preempted"] == "SIGTERM" and s["output"]["skipped"] == ["frames.usdc"] and s["error"] is None
+    assert (out / "contact_sheet.png").exists() and not (out / "frames.usdc").exists()
+    assert not (out / LOCK_NAME).exists()
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    assert (out / "frames.usdc").exists()
+    with h5py.File(out / "frames.h5", "r") as f, h5py.File(ref / "frames.h5", "r") as g:
+        assert np.array_equal(f["positions"][...], g["positions"][...])
+    s = json.loads((out / "summary.json").read_text())
+    assert s["preempted"] is None and s["output"]["skipped"] == [] and s["frames_this_run"] == 1
+
+
+def test_a_signal_during_the_last_frame_checkpoints_it(tmp_path, monkeypatch, capsys):
+    """SIGTERM during the last frame (here: while frames.h5 is closed after it): the frame
+    loop only looks before a frame, so the run went on with the crossing check and every
+    output, exit 0.  Now it stops as during the loop: a checkpoint of the last frame,
+    exit 75; --restart latest runs no frame and writes the outputs."""
+    from lc_petsc.io.frames import FramesWriter
+    cfg = _smash(tmp_path, frames=5, ce=4, previews="true")
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        _signal_inside(m, FramesWriter, "close")
+        assert main([cfg, "--out", str(out), "--quiet"]) == EXIT_PREEMPTED
+    err = capsys.readouterr().err
+    assert "SIGTERM received: stopped after frame 5, checkpoint" in err, err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["preempted"] == "SIGTERM" and [c["frame"] for c in s["checkpoints"]] == [4, 5]
+    assert s["crossings"] is None
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    assert "frame 5 is the run's last: no frame to run" in capsys.readouterr().out
+    assert (out / "frames.usdc").exists()
+
+
+def test_a_signal_while_a_finished_run_ends_keeps_exit_0(tmp_path):
+    """SIGTERM while the process ends after a finished run (here from an atexit hook: the
+    interpreter's teardown, PETSc's and MPI's finalize, after the job restored its
+    handlers) killed it, exit 143, although every output was written."""
+    cfg = _smash(tmp_path, frames=2, ce=0)
+    out = tmp_path / "out"
+    code = ("import atexit, os, signal, sys, time\nsys.argv[0] = 'simulate.py'\n"
+            "from lc_petsc.batch import exit_process, main\n"
+            "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGTERM), time.sleep(0.3)))\n"
+            f"exit_process(main([{cfg!r}, '--out', {str(out)!r}, '--quiet']))\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
+    assert json.loads((out / "summary.json").read_text())["preempted"] is None
+    assert not (out / LOCK_NAME).exists()

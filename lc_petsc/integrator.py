@@ -96,8 +96,10 @@ from lc_petsc.trust_region import ETA, TRUST_RETRIES, ratio, update_radius
 class _Solve(NamedTuple):
     """One backward-Euler step's Newton: iterations, converged (None without a
     tolerance), the last relative increment, exact Hessians replaced by filtered ones,
-    chord checks (``time.newton_stop = "chord_estimate"``), and with strand contact
-    (pairs, deep pairs, min distance, pairs separated)."""
+    chord checks (``time.newton_stop = "chord_estimate"``), with strand contact (pairs,
+    deep pairs, min distance, pairs separated), and whether the cap ended it on a stop
+    awaiting its confirmation (:func:`confirms_stop`: an increment below the tolerance,
+    yet not converged)."""
 
     iterations: int
     converged: Optional[bool]
@@ -105,6 +107,7 @@ class _Solve(NamedTuple):
     fallbacks: int
     chord_checks: int
     contact: Optional[tuple]
+    unconfirmed: bool = False
 
 
 class _Region:
@@ -175,6 +178,7 @@ class Integrator:
             self.start_weight = start_carry_weight(self.rest_edge, scene.offsets, scene.pinned)
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
+        self.newton_unconfirmed = []    # per frame: kept steps the cap ended on an unconfirmed stop
         self.history = None             # a list: per-iteration measures are appended
         self.monitor = None             # a stream: a line per Newton iteration (rank 0)
         self._fallback = ""            # why the last exact step was rejected (history)
@@ -275,12 +279,13 @@ class Integrator:
             solves[-1] = self._collision_free_frame_path(x_frame, t_frame, solves[-1])
         conv = [s.converged for s in solves]
         converged = None if conv[0] is None else all(conv)
+        unconfirmed = sum(s.unconfirmed for s in solves)
         if converged is False and cfg.time.unconverged == "error":
             raise SimulationError(
                 f"frame {self.frame}: Newton did not reach the tolerance within time.newton_iterations = "
                 f"{cfg.time.newton_iterations} in {len(solves)} substep(s) (time.max_substeps = "
                 f"{cfg.time.max_substeps}; largest final relative increment "
-                f"{max(s.increment for s in solves):.3g}); raise "
+                f"{max(s.increment for s in solves):.3g}{unconfirmed_note(unconfirmed)}); raise "
                 f"time.newton_iterations or time.max_substeps, loosen the tolerance, or set "
                 f"time.unconverged = \"accept\"")
         self.newton_iterations.append(self._discarded + sum(s.iterations for s in solves))
@@ -288,6 +293,7 @@ class Integrator:
         self.newton_substep_iterations.append([s.iterations for s in solves])
         self.newton_increment.append(max(s.increment for s in solves))
         self.newton_converged.append(converged)
+        self.newton_unconfirmed.append(unconfirmed)
         self.exact_hessian_fallbacks.append(sum(s.fallbacks for s in solves))
         self.chord_checks.append(self._discarded_checks + sum(s.chord_checks for s in solves))
         self.length_projection_move.append(self._projection_move if cfg.time.length_projection else None)
@@ -358,8 +364,10 @@ class Integrator:
         quadratic = []                          # the increments of the last full exact steps in a row
         claimed_before = False                  # the last iteration's stop (to be confirmed)
         loose = confirms_stop(cfg.time.newton_increment_tol)
+        unconfirmed = False                     # this iteration's stop awaits the next
         for it in range(cfg.time.newton_iterations):
             n_it += 1
+            unconfirmed = False
             if region is not None and it > 0:   # after a filtered first step: lc_petsc/trust_region.py
                 g, dx, exact = self._trust_region_step(x, it, region)
                 x_prev, x = x, self.update(x, dx)
@@ -442,16 +450,18 @@ class Integrator:
             converged = converged and (not loose or claimed_before
                                        or measure * contraction_factor(steps) < LOOSE_TOLERANCE)
             claimed_before = claim
+            unconfirmed = claim and not converged
             if self.monitor is not None:
                 short = ", solve short of -ksp_rtol" if short_of_rtol else ""
-                short += ", stop to be confirmed" if claim and not converged else ""
+                short += ", stop to be confirmed" if unconfirmed else ""
                 self._monitor(it, measure, self._step_kind(exact) + short, alpha, step_ksp,
                               cut=self.strand is not None and self.strand.last_cut, estimate=reported)
             if converged:
                 break
         if self.monitor is not None and converged is not None:
             self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {'converged' if converged else 'NOT converged'} "
-                      f"after {n_it} iteration(s), measure {reported:.3e}")
+                      f"after {n_it} iteration(s), measure {reported:.3e}"
+                      + (" (a stop the cap left unconfirmed)" if unconfirmed else ""))
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
         first_bad = sc.first_vertex + int(badv[0]) if len(badv) else -1
         bad_any = self.comm.allgather(first_bad)
@@ -482,7 +492,7 @@ class Integrator:
         self.v = (x - x_old) / dt
         self.x = x
         self.t = self.t_next
-        return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact)
+        return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed)
 
     def _push_out_of_head(self, x):
         """``x`` with every free vertex deeper in the head sphere (radius + margin) than its
@@ -819,6 +829,17 @@ def confirms_stop(tol):
     dt 0.1-0.2 up to 16x the tolerance from their solution (docs/newton.md "Stopping
     rule"); at 1e-6 every stop measured was within 0.33x of it."""
     return tol is not None and tol > LOOSE_TOLERANCE
+
+
+def unconfirmed_note(steps):
+    """For a missed tolerance's message: why ``steps`` (kept steps the cap ended on an
+    unconfirmed stop, :func:`confirms_stop`) missed it although their last increment may
+    be below the tolerance; '' for none."""
+    if not steps:
+        return ""
+    return (f"; {steps} step(s) ended on an increment below time.newton_increment_tol at the cap: "
+            f"above {LOOSE_TOLERANCE:g} a stop must be confirmed by the next iteration, which "
+            f"time.newton_iterations left out (docs/newton.md, \"Stopping rule\")")
 
 
 def contraction_factor(increments):

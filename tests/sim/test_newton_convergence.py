@@ -403,6 +403,27 @@ def test_a_loose_tolerance_stop_is_confirmed_by_the_next_step():
     assert tight["newton_converged"] == [True] and tight["newton_iterations"] == [48]
 
 
+def test_a_stop_the_cap_leaves_unconfirmed_is_named():
+    """The crushed coil claims a stop at iteration 44 (increment 4.5e-5 < 1e-4) that the
+    45th step refutes (1.7e-4).  With the cap at 44 the frame is rightly not converged,
+    but the summary's newton_increment is below the tolerance: the summary counts the
+    unconfirmed stop and the error and the job's warning say why (main said only "did
+    not reach the tolerance ... largest final relative increment 4.48e-05")."""
+    from lc_petsc.errors import SimulationError
+    from lc_petsc.job import outcome_warnings
+    cfg = _crushed_coil(1e-4, cap=44)
+    _, s, _ = _run_coil(cfg)
+    assert s["newton_converged"] == [False] and s["newton_increment"][0] < 1e-4
+    assert s["newton_unconfirmed"] == [1]
+    missed = [w for w in outcome_warnings(s, 0, cfg.time) if w.startswith("Newton missed")]
+    assert len(missed) == 1 and "must be confirmed by the next iteration" in missed[0], missed
+    cfg.time.unconverged = "error"
+    with pytest.raises(SimulationError, match="1 step.s. ended on an increment below .* must be confirmed"):
+        _run_coil(cfg)
+    _, ok, _ = _run_coil(_crushed_coil(1e-4, cap=46))            # confirmed at 46: nothing to name
+    assert ok["newton_converged"] == [True] and ok["newton_unconfirmed"] == [0]
+
+
 def test_which_tolerances_confirm_a_stop():
     assert confirms_stop(1e-3) and confirms_stop(1.1e-5)
     assert not confirms_stop(LOOSE_TOLERANCE) and not confirms_stop(1e-6)

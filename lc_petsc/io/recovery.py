@@ -148,9 +148,11 @@ def _file_rows(path, offsets, rows, dt, every, vouched):
 
 
 def _readable_rows(f, offsets, rows, dt, every, vouched):
-    from lc_petsc.io.frames import valid_rows
+    from lc_petsc.io.frames import offsets_problem, valid_rows
     if not np.array_equal(f["wisp_offsets"][...], offsets) or f["positions"].shape[1:] != (offsets[-1], 3):
-        return [], "it has other wisps than the scene"
+        # a damaged /wisp_offsets is not another scene's: say which it is
+        return [], (offsets_problem(f["wisp_offsets"][...], f["positions"].shape[1])
+                    or "it has other wisps than the scene")
     for key, want in (("dt", dt), ("every", every)):
         have = f.attrs.get(key)
         if have is None or float(have) != want:

@@ -346,3 +346,25 @@ def test_a_chunk_lost_from_the_index_reads_as_nan_and_is_refused(tmp_path, strai
     err = capsys.readouterr().err
     assert (f"{out / 'frames.h5'}: /positions row 4 (frame 4): read as the fill value (NaN or -1), its chunk "
             "missing from the chunk index (which has no checksum): the file is damaged. With --force") in err, err
+
+
+def test_recovery_names_damaged_wisp_offsets(tmp_path):
+    """What --force can recover from a file whose /wisp_offsets is damaged (not 0,
+    increasing, ..., the vertex count) says so, where one of another scene says that; on
+    main both read "it has other wisps than the scene"."""
+    from lc_petsc.io.recovery import _file_rows
+    offsets = np.array([0, 2, 5])
+    p = tmp_path / "frames.h5"
+
+    def write(stored):
+        with h5py.File(p, "w") as f:
+            f.create_dataset("positions", data=np.zeros((3, 5, 3)))
+            f.create_dataset("time", data=np.arange(3) / 30.0)
+            f.create_dataset("wisp_offsets", data=np.asarray(stored, np.int64))
+            f.attrs["dt"], f.attrs["every"] = 1 / 30.0, 1
+        return _file_rows(p, offsets, 3, 1 / 30.0, 1, {})
+
+    assert write([0, 2, 5]) == ([0, 1, 2], "")
+    rows, why = write([0, 2 + 2 ** 40, 5])             # a flipped bit
+    assert rows == [] and "/wisp_offsets is not 0, increasing" in why and "damaged" in why
+    assert write([0, 3, 5]) == ([], "it has other wisps than the scene")

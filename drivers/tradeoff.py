@@ -44,6 +44,8 @@ failed solves, blow-up) are rows with status "unstable", the failure kind, frame
 message: the study never stops for them.  A variant the scene refuses (its config's
 ConfigError, e.g. the trust region with strand contact) is a row of status
 "unsupported", never run; a setting listed on several axes runs once (``same_as``).
+With ``--scene CONFIG.toml`` the file's own [time] and [solver] choices are a row of their
+own ("as configured"; the base runs the code's defaults).
 A variant whose edges stretch by more than ``--max-strain`` (10%) is listed but not
 recommended, whatever its error: drawn-out curls, a wrong stretch energy.
 """
@@ -65,7 +67,7 @@ from lc_petsc.studies.command_line import (bad_input, integer_at_least, parse_ar
                                            positive_number)
 from lc_petsc.studies.systems import option_sets  # noqa: E402
 from lc_petsc.studies.tradeoff import (BASE, KSP_RTOLS, MAX_STRAIN, base_reference,  # noqa: E402
-                                       default_variants, reference_settings, run_study)
+                                       configured_settings, default_variants, reference_settings, run_study)
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -139,7 +141,10 @@ def main(argv=None):
            if args.ref == "converged" else base_reference())
     log = print if comm.rank == 0 else (lambda *a, **k: None)
     cmd = f"mpiexec -n {comm.size} python " + " ".join(shlex.quote(a) for a in sys.argv)
-    run_study(cfg, default_variants(base, args.axes, args.rtols), comm, args.out, duration=args.duration,
+    # a config file's own settings are a row ("as configured"); the built-in scenes run the defaults
+    configured = configured_settings(cfg, opts) if Path(args.scene).exists() else None
+    run_study(cfg, default_variants(base, args.axes, args.rtols, configured), comm, args.out,
+              duration=args.duration,
               ref=ref, blowup=args.blowup, cost=args.cost, ref_check=not args.no_ref_check,
               max_strain=args.max_strain,
               log=lambda *a: (log(*a), sys.stdout.flush()),

@@ -96,9 +96,13 @@ KSP_RTOLS = (1e-2, 1e-4, 1e-6, 1e-8, 1e-10)
 MAX_STRAIN = 0.1
 
 
-def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
-    """[(axis, name, Settings)] along each axis of the study; the base appears once."""
+def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS, configured=None):
+    """[(axis, name, Settings)] along each axis of the study; the base appears once.
+    ``configured``: the scene file's own settings (:func:`configured_settings`), a row
+    of its own ("as configured") where they differ from the base."""
     out = [("base", "base", base)]
+    if configured is not None and configured != base:
+        out.append(("configured", "as configured", configured))
     ax = {
         "newton": [(f"newton {n}", replace(base, newton_iterations=n)) for n in (1, 2, 3, 6, 12)],
         "ksp_rtol": [(f"rtol {r:.0e}", replace(base, ksp_rtol=r)) for r in ksp_rtols],
@@ -154,6 +158,20 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS):
             if s != base:
                 out.append((a, name, s))
     return out
+
+
+def configured_settings(cfg, options=""):
+    """The study's :class:`Settings` of what ``cfg`` (a scene's config file) runs: its
+    own [time] and [solver] choices, which the study's base replaces with the code's
+    defaults (the demo's follow-the-leader first iterate and length projection were in
+    no row of a study of it).  Its solver options stay in ``cfg`` (:func:`configure`
+    appends); ``options``: the study's extra ones (``--set``)."""
+    t = cfg.time
+    return Settings(dt=t.dt, newton_iterations=t.newton_iterations, newton_tol=t.newton_tol,
+                    filter=cfg.solver.filter, line_search=t.line_search, options=options,
+                    newton_update=t.newton_update, initial_guess=t.initial_guess,
+                    carry_with_head=t.carry_with_head, newton_increment_tol=t.newton_increment_tol,
+                    length_projection=t.length_projection, max_substeps=t.max_substeps, newton=t.newton)
 
 
 def reference_settings(dt=1.0 / 120.0, newton_tol=1e-9, max_newton=100, filter="none",

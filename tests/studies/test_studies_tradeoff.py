@@ -71,6 +71,36 @@ def test_variants_cover_the_axes():
     assert sum(s == BASE for _, _, s in v) == 1
 
 
+def test_a_config_file_runs_as_configured(tmp_path):
+    """A study of a scene's config file has a row of that file's own settings: the
+    shipped demo's follow-the-leader first iterate and length projection, which the
+    study's base replaces with the code's defaults, were in no row (on main the driver's
+    rows were the base's axes only).  A file that sets the defaults adds no row."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    from lc_petsc.config import load_config
+    from lc_petsc.studies.tradeoff import configured_settings
+    root = Path(__file__).resolve().parents[2]
+    demo = configured_settings(load_config(str(root / "configs" / "hairball_demo.toml")))
+    assert (demo.initial_guess, demo.length_projection, demo.newton_iterations) == \
+        ("follow_the_leader", True, 3)
+    v = default_variants(BASE, ["newton"], configured=demo)
+    assert v[1] == ("configured", "as configured", demo)
+    assert [n for _, n, _ in default_variants(BASE, ["newton"], configured=BASE)] == \
+        [n for _, n, _ in default_variants(BASE, ["newton"])]
+    cmd = [sys.executable, str(root / "drivers" / "tradeoff.py"), "--scene",
+           str(root / "configs" / "hairball_demo.toml"), "--wisps", "2", "--duration", str(2 / 30),
+           "--axes", "newton", "--ref", "base", "--no-ref-check", "--out", str(tmp_path)]
+    proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    by = {r["variant"]: r for r in json.loads((tmp_path / "tradeoff.json").read_text())["variants"]}
+    row = by["as configured"]
+    assert row["status"] == "ok" and row["initial_guess"] == "follow_the_leader" and row["length_projection"]
+    assert "follow_the_leader" in row["label"] and "projected" in row["label"]
+    assert "| as configured | ok |" in (tmp_path / "recommendations.md").read_text()
+
+
 def test_study_outputs_and_unstable_variant(tmp_path):
     # filter none on a 40% compression: the unfiltered Hessian is indefinite, CG with a
     # point-block Jacobi preconditioner detects it (DIVERGED_INDEFINITE_MAT): unstable

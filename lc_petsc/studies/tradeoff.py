@@ -458,6 +458,11 @@ def recommend(rows, targets, error="rms_rel_error", cost="wall_per_sim_s", floor
     return out
 
 
+def converging(row):
+    """Whether ``row``'s variant runs Newton to a tolerance (else a fixed count)."""
+    return row.get("newton_increment_tol") is not None or row.get("newton_tol") is not None
+
+
 def stretched(row, max_strain):
     """Whether ``row``'s largest edge strain exceeds ``max_strain`` (None: no limit)."""
     strain = row.get("max_stretch_strain")
@@ -500,12 +505,14 @@ def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None,
     lines.append("\n## All variants\n")
     lines.append(report.markdown_table(
         ["variant", "status", "wall s/sim-s", "wall s/frame", "CPU s/sim-s", "Newton its",
-         "frames cut back", "RMS err", "max err", "energy err",
+         "frames cut back", "frames not converged", "RMS err", "max err", "energy err",
          "max strain", "curl retention", "failure"],
         [[r["variant"] + (f" (= {r['same_as']})" if r.get("same_as") else ""), r["status"],
           report.fmt(r.get("wall_per_sim_s")),
           report.fmt(r.get("wall_per_frame_s")), report.fmt(r.get("cpu_per_sim_s")),
           report.fmt(r.get("newton_total")), report.fmt(r.get("newton_cut_back_frames")),
+          # a fixed Newton count has no tolerance to miss: "-"
+          report.fmt(r.get("newton_unconverged_frames") if converging(r) else None),
           report.fmt(r.get("rms_rel_error")),
           report.fmt(r.get("max_rel_error")), report.fmt(r.get("energy_rel_error")),
           report.fmt(r.get("max_stretch_strain")), report.fmt(r.get("curl_retention")),

@@ -306,3 +306,21 @@ def test_a_variant_the_scene_refuses_is_a_row_not_a_crash(tmp_path):
     md = (tmp_path / "recommendations.md").read_text()
     assert "| trust_region N=3 | unsupported |" in md and "not run: time.newton" in md
     assert [r["status"] for r in csv.DictReader(open(tmp_path / "tradeoff.csv"))] == ["ok", "unsupported"]
+
+
+def test_the_table_counts_frames_that_missed_their_tolerance():
+    """recommendations.md's variant table says how many frames a variant run to a
+    tolerance left unconverged ("-" for a fixed Newton count, which has none to miss);
+    on main the count was only in tradeoff.csv."""
+    rows = [{"variant": "to 1e-6", "label": "a", "status": "ok", "stable": True, "rms_rel_error": 1e-3,
+             "wall_per_sim_s": 2.0, "newton_increment_tol": 1e-6, "newton_unconverged_frames": 2,
+             "newton_cut_back_frames": 0},
+            {"variant": "fixed 3", "label": "b", "status": "ok", "stable": True, "rms_rel_error": 1e-2,
+             "wall_per_sim_s": 1.0, "newton_increment_tol": None, "newton_unconverged_frames": 0,
+             "newton_cut_back_frames": 0}]
+    md = markdown(rows, recommend(rows, (0.1,)), BASE)
+    header = next(line for line in md.splitlines() if line.startswith("| variant | status"))
+    col = [c.strip() for c in header.split("|")].index("frames not converged")
+    cells = {line.split("|")[1].strip(): line.split("|")[col].strip()
+             for line in md.splitlines() if line.startswith(("| to 1e-6", "| fixed 3"))}
+    assert cells == {"to 1e-6": "2", "fixed 3": "-"}

@@ -97,15 +97,14 @@ def frame_depths(x, center, radius, offsets, pinned, strand_radius):
     p = x - np.asarray(center, float)
     free = ~np.asarray(pinned, bool)
     rad = np.asarray(strand_radius, float)
-    vd = radius - np.sqrt(np.einsum("ij,ij->i", p, p))
-    vd = np.where(free, vd, -np.inf)
+    depth = radius - np.sqrt(np.einsum("ij,ij->i", p, p))      # every vertex's
+    vd = np.where(free, depth, -np.inf)
     inner = np.ones(max(len(x) - 1, 0), bool)
     inner[np.asarray(offsets, np.int64)[1:-1] - 1] = False      # no edge between two wisps
     a = np.flatnonzero(inner & (free[:-1] | free[1:]))
-    ed, t = segment_depth(p[a], p[a + 1], radius)
-    held = np.maximum(np.where(free[a], 0.0, radius - np.linalg.norm(p[a], axis=1)),
-                      np.where(free[a + 1], 0.0, radius - np.linalg.norm(p[a + 1], axis=1)))
-    held = np.maximum(held, 0.0)
+    ed = segment_depth(p[a], p[a + 1], radius)[0]
+    pinned_depth = np.where(free, 0.0, np.maximum(depth, 0.0))
+    held = np.maximum(pinned_depth[a], pinned_depth[a + 1])
     ed = ed - held
     # an edge from a pinned vertex: its depth below that vertex's, over the radius
     er = depth_ratio(p[a], p[a + 1], rad[a], rad[a + 1], radius - held)

@@ -184,21 +184,16 @@ def test_warn_when_a_tolerance_meets_a_linearly_converging_newton(time, solver, 
         assert "converges linearly" in w[0] and "exact_or_analytic" in w[0]
 
 
-@pytest.mark.parametrize("dt, tol, warned", [
-    (0.2, 1e-3, True), (0.1, 1e-4, True),
-    (0.2, 1e-6, False),                       # measured within 0.33x of the tolerance
-    (1 / 30, 1e-4, False),                    # the shipped step: stops measured within it
-    (0.2, None, False),                       # a fixed count asks for nothing
-])
-def test_warn_when_a_loose_tolerance_meets_a_large_step(dt, tol, warned):
-    """exact_or_analytic at dt 0.1-0.2 stopped 9-32x a tolerance of 1e-3 / 1e-4 away from
-    the solution (docs/newton.md "Large steps fool a loose tolerance"): warned, naming the key."""
+@pytest.mark.parametrize("dt, tol", [(0.2, 1e-3), (0.1, 1e-4), (0.2, 1e-6), (1 / 30, 1e-4), (0.2, None)])
+def test_a_loose_tolerance_at_a_large_step_is_not_warned(dt, tol):
+    """exact_or_analytic at dt 0.15-0.2 had stopped 2.4-32x a tolerance of 1e-3 / 1e-4
+    away from the solution, which the job warned about; a loose-tolerance stop now needs
+    its steps to decrease G as their quadratic model predicts, and every claimed stop
+    measured there is within 0.06x of the tolerance (docs/newton.md "Stopping rule"):
+    nothing to warn (main warned for the first two)."""
     time = dict(dt=dt) if tol is None else dict(dt=dt, newton_increment_tol=tol)
     cfg = SimConfig(time=TimeConfig(**time), solver=SolverConfig(filter="exact_or_analytic")).validate()
-    w = newton_warnings(cfg)
-    assert bool(w) == warned, w
-    if warned:
-        assert f"time.newton_increment_tol = {tol:g}" in w[0] and "1e-6" in w[0]
+    assert newton_warnings(cfg) == []
 
 
 def test_the_job_reports_the_newton_warning(tmp_path):
@@ -211,14 +206,18 @@ def test_the_job_reports_the_newton_warning(tmp_path):
     assert any("converges linearly" in w for w in warnings), warnings
 
 
-# a cap of 8 for 1e-1: a stop above 1e-5 waits for the next step to confirm it
-@pytest.mark.parametrize("tol, cap, missed", [(1e-12, 2, 3), (1e-1, 8, 0)])
+# the "all converged" case: a stop above 1e-5 waits for the next step to confirm it and
+# needs steps that decrease G as their quadratic model predicts; the analytic filter's
+# crawl never shows that (frames 1, 2 missed within 40), exact_or_analytic does once its
+# steps are exact (2, 13, 14 iterations; main stopped on filtered steps in 2, 4, 5)
+@pytest.mark.parametrize("tol, cap, missed", [(1e-12, 2, 3), (1e-1, 30, 0)])
 def test_the_job_names_the_frames_that_missed_the_tolerance(tmp_path, tol, cap, missed):
     """Frames kept although Newton missed the tolerance (time.unconverged = "accept") are
     named in a warning with what to change; none when every frame converged."""
     cfg = tmp_path / "s.toml"
     cfg.write_text(hairball_toml(n_wisps=2, frames=3).replace(
-        "[time]\n", f"[time]\nnewton_increment_tol = {tol}\nnewton_iterations = {cap}\nmax_substeps = 1\n"))
+        "[time]\n", f"[time]\nnewton_increment_tol = {tol}\nnewton_iterations = {cap}\nmax_substeps = 1\n")
+        + '\n[solver]\nfilter = "exact_or_analytic"\n')
     assert main([str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["newton_converged"].count(False) == missed

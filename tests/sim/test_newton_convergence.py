@@ -11,9 +11,9 @@ from mpi4py import MPI
 
 from lc_petsc.config import (ConfigError, load_config, MaterialConfig, PhysicsConfig, SceneConfig,
                              SimConfig, SolverConfig, TimeConfig)
-from lc_petsc.integrator import (LOOSE_TOLERANCE, Integrator, confirms_stop, contraction_factor,
-                                 corotational_update, follow_the_leader, project_rest_lengths,
-                                 retract_edge_lengths)
+from lc_petsc.integrator import (ENERGY_FLOOR, LOOSE_TOLERANCE, Integrator, confirms_stop,
+                                 contraction_factor, corotational_update, follow_the_leader,
+                                 model_agrees, project_rest_lengths, retract_edge_lengths)
 from lc_petsc.simulator import build_simulator
 from lc_petsc.studies.newton import configure, iterations_to, parse_variant, run_history
 from lc_petsc.studies.newton_frames import frame_iterations, reference_states
@@ -391,14 +391,17 @@ def test_a_loose_tolerance_stop_is_confirmed_by_the_next_step():
     """At 1e-4 the crushed coil's increments fell below the tolerance while the iterate
     was still 2.0x the tolerance from the step's solution (main: claimed converged after
     44 iterations; 16x on the 101-vertex config).  A stop above LOOSE_TOLERANCE must now
-    be confirmed by the next step: 46 iterations, 0.23x.  At 1e-6 nothing changes (48
+    be confirmed by the next step (46 iterations, 0.23x), and its steps must decrease G
+    as their model predicts (47 iterations, 0.0015x).  At 1e-6 nothing changes (48
     iterations on main and here)."""
     X, s, wisp_length = _run_coil(_crushed_coil(1e-4))
     Y, ref, _ = _run_coil(_crushed_coil(1e-10, cap=300, fallback="shifted"))
     assert s["newton_converged"] == [True] and ref["newton_converged"] == [True]
     distance = (np.linalg.norm(X - Y, axis=1) / wisp_length).max()
-    assert distance < 0.5 * 1e-4, distance                   # measured 0.23x (main: 2.0x)
-    assert s["newton_iterations"] == [46]
+    assert distance < 0.5 * 1e-4, distance                   # measured 0.0015x (main: 2.0x)
+    # 47: the shortcut stop at 46 (8.6e-6) is refused, the step before it (45, the one
+    # that refuted the claim at 44) having decreased G off its quadratic model
+    assert s["newton_iterations"] == [47]
     _, tight, _ = _run_coil(_crushed_coil(1e-6))
     assert tight["newton_converged"] == [True] and tight["newton_iterations"] == [48]
 
@@ -420,8 +423,44 @@ def test_a_stop_the_cap_leaves_unconfirmed_is_named():
     cfg.time.unconverged = "error"
     with pytest.raises(SimulationError, match="1 step.s. ended on an increment below .* must be confirmed"):
         _run_coil(cfg)
-    _, ok, _ = _run_coil(_crushed_coil(1e-4, cap=46))            # confirmed at 46: nothing to name
+    _, ok, _ = _run_coil(_crushed_coil(1e-4, cap=47))            # converged at 47: nothing to name
     assert ok["newton_converged"] == [True] and ok["newton_unconfirmed"] == [0]
+
+
+def _stiff_smash(tol, cap=30, fallback="analytic"):
+    """configs/smash.toml cut to 31 vertices with E = 1e12: a stiff coil crushed to 40%
+    of its length; one frame of dt 0.2 with exact_or_analytic steps, no cutback."""
+    cfg = load_config(CONFIGS / "smash.toml")
+    cfg.scene.n_vertices, cfg.material.youngs_modulus = 31, 1e12
+    cfg.time.frames, cfg.time.dt, cfg.time.max_substeps = 1, 0.2, 1
+    cfg.time.newton_increment_tol, cfg.time.newton_iterations = tol, cap
+    cfg.solver.filter, cfg.solver.exact_fallback = "exact_or_analytic", fallback
+    return cfg.validate()
+
+
+def test_a_wandering_newton_is_not_claimed_converged():
+    """The stiff coil's Newton wanders: after 8 iterations its steps stay at 3e-5 to 4e-4
+    wisp lengths, half of them Armijo-damped, while the iterate is still ~2e-2 from the
+    step's solution (380 iterations to 1e-10).  Main claimed the frame converged at 1e-3
+    after 9 iterations (a tiny filtered step after a rejected exact attempt confirming
+    an exact one), 20.6x the tolerance from the solution.  A loose-tolerance stop now
+    needs both steps whole and decreasing G as their quadratic model predicts: every
+    later claim is refused, and the frame is reported not converged (16.5x away)."""
+    X, s, wisp_length = _run_coil(_stiff_smash(1e-3))
+    Y, ref, _ = _run_coil(_stiff_smash(1e-10, cap=400, fallback="shifted"))
+    assert ref["newton_converged"] == [True]
+    distance = (np.linalg.norm(X - Y, axis=1) / wisp_length).max()
+    assert distance > 10 * 1e-3, distance                     # measured 16.5x: not converged
+    assert s["newton_converged"] == [False]                   # main: [True] after 9, 20.6x away
+    assert s["newton_unconfirmed"] == [0]                     # refused, not left unconfirmed
+
+
+def test_which_steps_agree_with_their_model():
+    assert model_agrees(1.05, 1.0, 1e3) and model_agrees(0.95, 1.0, 1e3)
+    assert not model_agrees(1.2, 1.0, 1e3) and not model_agrees(0.8, 1.0, 1e3)
+    assert not model_agrees(1.0, -1.0, 1e3)                   # an ascent direction
+    below = 0.5 * ENERGY_FLOOR * 1e3                          # the prediction at round-off
+    assert model_agrees(5.0 * below, below, 1e3) and model_agrees(-below, below, -1e3)
 
 
 def test_which_tolerances_confirm_a_stop():

@@ -946,9 +946,12 @@ class StrandContact:
                 act = act[_any_column((bV[iv] != 0.0) & fV[iv])]
                 if self.comm.allreduce(len(act)) == 0:
                     break
+                fmin = np.ones(len(V))
                 f_ = factor[act] if rounds < SCALE_ROUNDS else np.zeros(len(act))
-                self.shrink.zeroEntries()       # pinned vertices (not fV) keep their prescribed motion
-                vg.reverse(compiled_ccd.point_shrink(inv, act, f_, fV), self.shrink, PETSc.InsertMode.MAX_VALUES)
+                np.minimum.at(fmin, inv[act].ravel(), np.repeat(f_, 4))
+                fmin[~fV] = 1.0                 # pinned vertices keep their prescribed motion
+                self.shrink.zeroEntries()
+                vg.reverse(1.0 - fmin, self.shrink, PETSc.InsertMode.MAX_VALUES)
                 # beta *= 1 - shrink, then along each strand: a vertex held back holds its
                 # neighbours back too, so no edge stretches by more than FRACTION_STRAIN
                 # (the changed vertices' pairs are tested again next round)

@@ -241,32 +241,6 @@ def changed_pairs(inv, changed):
 
 
 @_jit
-def _point_shrink(inv, act, f, free, fmin, out):
-    for q in range(act.shape[0]):
-        p = inv[act[q]]
-        for c in range(4):
-            if f[q] < fmin[p[c]]:
-                fmin[p[c]] = f[q]
-    for v in range(fmin.shape[0]):
-        out[v] = 1.0 - fmin[v] if free[v] else 0.0
-
-
-def point_shrink(inv, act, f, free):
-    """(n,) per point of ``free`` (n,) bool: 1 - the smallest factor ``f`` (k,) of the
-    pairs ``inv[act]`` (act (k,) rows of ``inv`` (p, 4)) at that point, 0 at points of no
-    such pair and at the points not ``free``: the limiter round's shrink.  One pass;
-    ``np.minimum.at`` (NumPy < 1.25) took 3 ms for 3,000 pairs, every round."""
-    act = np.ascontiguousarray(act, np.int64)
-    f = np.ascontiguousarray(f, np.float64)
-    if f.shape != act.shape:
-        raise ValueError(f"point_shrink: f {f.shape} must be one factor per pair of act {act.shape}")
-    free = np.ascontiguousarray(free, np.bool_)
-    out = np.empty(len(free))
-    _point_shrink(np.ascontiguousarray(inv, np.int64), act, f, free, np.ones(len(free)), out)
-    return out
-
-
-@_jit
 def _point_pairs(inv, start, pairs):
     for k in range(inv.shape[0]):
         for c in range(4):
@@ -673,7 +647,6 @@ def warm_up():
     near_pair_distances(P2, lo, hi, seg[:1] // 2, seg[1:] // 2, 0.01)
     segment_ends(S, seg[:1])
     changed_pairs(np.arange(4, dtype=np.int64).reshape(1, 4), np.ones(4, bool))
-    point_shrink(np.arange(4, dtype=np.int64).reshape(1, 4), np.zeros(1, np.int64), np.ones(1), np.ones(4, bool))
     pair_rows(np.zeros((1, 4, 3)), np.zeros((1, 12, 12)), seg[:1], seg[:1])
     corner_cells(S, S + 1.0, np.zeros(3), 0.5, np.array([4, 4, 4]))
     state = np.zeros((4, 5))

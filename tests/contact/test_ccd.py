@@ -576,28 +576,6 @@ def test_changed_pairs_match_numpy():
     assert compiled_ccd.changed_pairs(inv[:0], changed).shape == (0,)
 
 
-def test_point_shrink_is_one_minus_the_smallest_factor_at_each_free_point():
-    """The limiter round's shrink: equal to the bit to NumPy's scatter-min (np.minimum.at),
-    with 0 at pinned points and at points of no acted-on pair."""
-    inv = np.array([[0, 1, 2, 3], [1, 2, 4, 5], [3, 4, 5, 6]])
-    free = np.array([True, True, True, True, True, True, False, True])
-    got = compiled_ccd.point_shrink(inv, np.array([0, 2]), np.array([0.75, 0.3]), free)
-    # point 3 is in both pairs (smallest 0.3), 6 is pinned, 7 in no pair, pair 1 not acted on
-    np.testing.assert_array_equal(got, [0.25, 0.25, 0.25, 0.7, 0.7, 0.7, 0.0, 0.0])
-    rng = np.random.default_rng(5)
-    inv = rng.integers(0, 300, size=(5000, 4))
-    free = rng.random(300) > 0.1
-    for n_act in (0, 7, 2000):
-        act = rng.choice(5000, n_act, replace=False)
-        f = rng.random(n_act) * (rng.random(n_act) > 0.3)          # zeros too (the stopping rounds)
-        fmin = np.ones(300)
-        np.minimum.at(fmin, inv[act].ravel(), np.repeat(f, 4))
-        fmin[~free] = 1.0
-        assert compiled_ccd.point_shrink(inv, act, f, free).tobytes() == (1.0 - fmin).tobytes()
-    with pytest.raises(ValueError, match="one factor per pair"):
-        compiled_ccd.point_shrink(inv, np.arange(3), np.ones(2), free)
-
-
 def test_pair_rows_match_the_numpy_slices():
     """The contact assembly's rows: gradient, own Hessian blocks and counts per segment."""
     rng = np.random.default_rng(6)

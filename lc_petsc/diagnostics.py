@@ -116,7 +116,12 @@ def term_warnings(sim):
     out = []
     n_free = int(comm.allreduce(int((~sc.pinned).sum())))
     if n_free == 0:
-        out.append("every vertex is pinned: no term has an effect (nothing moves but the head)")
+        # name the setting that pins them: the bare message left the user to guess
+        longest = int(global_max(comm, int(np.diff(sc.offsets).max(initial=0))))
+        out.append(f"every vertex is pinned: no term has an effect (nothing moves but the head); "
+                   f"scene.n_pinned = {cfg.scene.n_pinned} pins the first vertices of each wisp (the "
+                   f"longest has {longest}), unless a groom file's /pinned or primvars:pinned does: "
+                   f"pin only the roots, e.g. scene.n_pinned below {longest}")
     if "gravity" in terms and not np.any(np.asarray(phys.gravity, float)):
         out.append("physics.terms has 'gravity' but physics.gravity is [0, 0, 0]: it has no effect")
     if not terms & {"stretch", "bend", "twist"}:

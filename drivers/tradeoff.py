@@ -63,8 +63,8 @@ from mpi4py import MPI  # noqa: E402
 
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,  # noqa: E402
                              load_config)
-from lc_petsc.studies.command_line import (bad_input, integer_at_least, parse_args,  # noqa: E402
-                                           positive_number)
+from lc_petsc.studies.command_line import (bad_input, check_wisps_flag, integer_at_least,  # noqa: E402
+                                           parse_args, positive_number)
 from lc_petsc.studies.systems import option_sets  # noqa: E402
 from lc_petsc.studies.tradeoff import (BASE, KSP_RTOLS, MAX_STRAIN, base_reference,  # noqa: E402
                                        configured_settings, default_variants, reference_settings, run_study)
@@ -80,6 +80,9 @@ def scene_config(scene, wisps=20):
                          physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity", "head_collision"),
                                                head_motion="shake", head_amplitude=0.5, head_period=1.0))
     if scene in ("smash", "jitter"):
+        if wisps is not None:           # one wisp: --wisps used to be ignored silently
+            raise ValueError(f"--wisps sets the hairball's wisp count; --scene {scene} is one wisp: "
+                             "leave out --wisps")
         return SimConfig(scene=SceneConfig(kind="wisp4c", perturbation=scene, smash_factor=0.4),
                          material=MaterialConfig(youngs_modulus=3.9e9),
                          physics=PhysicsConfig(terms=("stretch", "bend", "twist")))
@@ -87,7 +90,8 @@ def scene_config(scene, wisps=20):
         raise ValueError(f"--scene {scene!r}: not a built-in scene (hairball, smash, jitter) and "
                          "no such config file")
     cfg = load_config(scene)
-    if wisps is not None and cfg.scene.kind == "hairball":
+    if wisps is not None:
+        check_wisps_flag(cfg, scene)    # a groom or single-wisp config: it was ignored silently
         cfg.scene.n_wisps = wisps       # e.g. the demo hairball cut to a study size
     return cfg
 

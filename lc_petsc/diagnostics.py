@@ -102,7 +102,12 @@ def term_warnings(sim):
     out = []
     n_free = int(comm.allreduce(int((~sc.pinned).sum())))
     if n_free == 0:
-        out.append("every vertex is pinned: no term has an effect (nothing moves but the head)")
+        # name the setting that pins them: the bare message left the user to guess
+        longest = int(global_max(comm, int(np.diff(sc.offsets).max(initial=0))))
+        out.append(f"every vertex is pinned: no term has an effect (nothing moves but the head); "
+                   f"scene.n_pinned = {cfg.scene.n_pinned} pins the first vertices of each wisp (the "
+                   f"longest has {longest}), unless a groom file's /pinned or primvars:pinned does: "
+                   f"pin only the roots, e.g. scene.n_pinned below {longest}")
     if "gravity" in terms and not np.any(np.asarray(phys.gravity, float)):
         out.append("physics.terms has 'gravity' but physics.gravity is [0, 0, 0]: it has no effect")
     if not terms & {"stretch", "bend", "twist"}:
@@ -192,3 +197,22 @@ def groom_radius_warnings(sim):
     return [f"the radii of {cfg.scene.path} range from {rmin:.3g} to {rmax:.3g} cm, outside the "
             f"plausible range for hair, {lo:g} to {hi:g} cm: {below if rmin < lo else above}; "
             "lc_petsc's units are cm (USD: the stage's metersPerUnit converts widths)"]
+
+
+def preview_warnings(cfg):
+    """``output.preview_frames`` outside the run's frames (a scene's list kept when the run
+    is cut with ``--frames``): such a frame is drawn as the nearest end, which used to
+    happen without a word (the demo's [0, 30, 60, -1] at 20 frames drew frame 20 for 30
+    and 60)."""
+    n, out = cfg.time.frames, cfg.output
+    if not out.previews:
+        return []
+    late = [f for f in out.preview_frames if f > n]
+    early = [f for f in out.preview_frames if f < -(n + 1)]
+    if not late and not early:
+        return []
+    what = ([f"{late} lie after its last frame ({n}), drawn as frame {n}"] if late else []) + \
+           ([f"{early} lie before frame 0, drawn as frame 0"] if early else [])
+    return [f"output.preview_frames = {list(out.preview_frames)}: the run has frames 0 to {n} "
+            f"(time.frames / --frames), and {'; '.join(what)}; ask for frames in 0..{n} "
+            f"(or -1 .. -{n + 1} from the end)"]

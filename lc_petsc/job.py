@@ -443,8 +443,9 @@ class Job:
 
     def _validate(self):
         """Step 2 (after the build): warnings, restart, frames.h5, disk space; raises Refused."""
-        from lc_petsc.diagnostics import newton_warnings, term_warnings
-        for w in self.config_warnings + newton_warnings(self.sim.config) + term_warnings(self.sim):
+        from lc_petsc.diagnostics import newton_warnings, preview_warnings, term_warnings
+        for w in (self.config_warnings + newton_warnings(self.sim.config) + term_warnings(self.sim)
+                  + preview_warnings(self.cfg)):
             self._warn(w)
         rows_kept = 0
         if self.args.restart is not None:

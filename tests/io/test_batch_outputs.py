@@ -222,3 +222,20 @@ def test_report_counts_chord_checks_only_when_there_are_some():
     assert "chord checks (time.newton_stop = \"chord_estimate\"): 3 solves in 2 frames" in format_report(s)
     s["newton_chord_checks"] = [0, 0, 0]
     assert "chord checks" not in format_report(s)
+
+
+def test_preview_frames_outside_the_run_are_named(tmp_path):
+    """A scene's preview_frames kept when the run is cut (--frames 3): frames 5 and 20 and
+    -9 were drawn as the last and the first frame without a word."""
+    (tmp_path / "w.toml").write_text('[scene]\nkind = "wisp4c"\nn_vertices = 12\n[time]\nframes = 30\n'
+                                     '[output]\npreview_frames = [0, 2, 5, 20, -1, -9]\ncontact_sheet = 0\n'
+                                     'usd = false\n')
+    assert main([str(tmp_path / "w.toml"), "--frames", "3", "--out", str(tmp_path / "o"), "--quiet"],
+                comm=MPI.COMM_SELF) == 0
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["warnings"] == [
+        "output.preview_frames = [0, 2, 5, 20, -1, -9]: the run has frames 0 to 3 (time.frames / "
+        "--frames), and [5, 20] lie after its last frame (3), drawn as frame 3; [-9] lie before "
+        "frame 0, drawn as frame 0; ask for frames in 0..3 (or -1 .. -4 from the end)"]
+    assert sorted(q.name for q in (tmp_path / "o" / "previews").glob("*.png")) == \
+        ["frame_00000.png", "frame_00002.png", "frame_00003.png"]

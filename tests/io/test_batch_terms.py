@@ -127,6 +127,11 @@ def test_gravity_off_has_no_external_force():
      "no wisp can reach the head sphere"),
     (dict(terms=("gravity",)), {}, "no elastic term"),
     (dict(terms=("stretch", "bend"), head_motion="shake"), dict(n_pinned=0), "head_motion = 'shake' has no effect"),
+    # the warning named no setting; n_pinned = 12 pins all 12 vertices of the wisp
+    (dict(terms=("stretch", "bend", "gravity")), dict(n_pinned=12),
+     "every vertex is pinned: no term has an effect (nothing moves but the head); scene.n_pinned = 12 "
+     "pins the first vertices of each wisp (the longest has 12), unless a groom file's /pinned or "
+     "primvars:pinned does: pin only the roots, e.g. scene.n_pinned below 12"),
     (dict(terms=("stretch", "bend", "gravity")), dict(n_pinned=0),
      "no vertex is pinned and head_collision is off: gravity makes every wisp fall freely; pin the "
      "roots (scene.n_pinned, or /pinned or primvars:pinned in a groom file)"),

@@ -43,6 +43,11 @@ CASES = [
      "tradeoff.py: error: argument --duration: must be a positive number, got -1"),
     ("drivers/tradeoff.py", ["--wispz", "3"],
      "tradeoff.py: error: unrecognized arguments: --wispz (see --help; PETSc options take one dash)"),
+    # --wisps on a config without a hairball, or on the one-wisp built-ins, was ignored
+    # silently by tradeoff.py: the study ran the one-wisp scene
+    ("drivers/tradeoff.py", ["--scene", "configs/from_file.toml", "--wisps", "3"], _wisps_refused("tradeoff")),
+    ("drivers/tradeoff.py", ["--scene", "smash", "--wisps", "3"],
+     "tradeoff.py: error: --wisps sets the hairball's wisp count; --scene smash is one wisp: leave out --wisps"),
     ("drivers/compare_solvers.py", ["--config", "nope.toml"],
      "compare_solvers.py: error: nope.toml: no such config file"),
     ("drivers/compare_solvers.py", ["--config", "configs/from_file.toml", "--wisps", "3"],

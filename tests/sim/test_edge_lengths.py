@@ -170,7 +170,7 @@ def test_rest_lengths_set_around_the_head(seed):
     dist = np.linalg.norm(got - center, axis=1)
     moved = free & held & (R - np.linalg.norm(project_rest_lengths(x, free, off, length, mass) - center,
                                               axis=1) > allow)
-    assert moved.sum() > 10                     # the sphere does act
+    assert moved.sum() >= 5                     # the sphere does act
     short = np.concatenate([[False], dist[:-1] + length <= R])   # the predecessor cannot reach it
     ok = free & held & ~short & ~np.isin(np.arange(len(x)), off)   # a wisp's first vertex stays
     assert np.all(R - dist[ok] <= allow[ok] + 1e-12 * R), (R - dist[ok] - allow[ok]).max()

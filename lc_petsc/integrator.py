@@ -541,6 +541,8 @@ class Integrator:
         chords 0.09-0.12 cm deep, 11 paths past their 0.07 cm radius)."""
         c0 = self.head.sphere_center(t_old)
         c1, R, allow = self._head_sphere()
+        # at most a strand radius (2 radii: the soft hairball's edges 3.0% long, its
+        # gravity-5000 variant 2 rows sunk instead of 1)
         p1, moved = head_contact.lift_paths(x_old - c0, x - c1, R, allow, self.scene.radius, self.free)
         if not len(moved):
             return x

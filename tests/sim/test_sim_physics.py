@@ -170,6 +170,17 @@ def test_head_contact_penalty_holds_strand():
         sim.close()
 
 
+def _falling_strand(physics, time):
+    """A 30-vertex strand falling onto a 5 cm head below it, at 3 Newton iterations."""
+    return SimConfig(scene=SceneConfig(kind="straight", n_vertices=30, n_pinned=2, direction=(1, 0, 0),
+                                       segment_length=0.5),
+                     material=MaterialConfig(youngs_modulus=1e7, root_radius=0.05, tip_radius=0.05),
+                     physics=PhysicsConfig(terms=("stretch", "bend", "gravity", "head_collision"),
+                                           head_radius=5.0, head_center=(8.0, -5.05, 0.0), head_stiffness=1e5,
+                                           **physics),
+                     time=TimeConfig(frames=30, newton_iterations=3, **time))
+
+
 @pytest.mark.parametrize("push_out", [True, False])
 def test_head_push_out_at_a_fixed_newton_count(push_out):
     """The strand of the test above falls onto the head at the paper's fixed 3 Newton
@@ -178,13 +189,7 @@ def test_head_push_out_at_a_fixed_newton_count(push_out):
     radii, and deeper than the 0.05 cm radius in 15 of the 30 frames).  Pushed out, no
     free vertex ends a frame deeper than its radius (0.0499 cm at worst)."""
     c = np.array([8.0, -5.05, 0.0])
-    cfg = SimConfig(scene=SceneConfig(kind="straight", n_vertices=30, n_pinned=2, direction=(1, 0, 0),
-                                      segment_length=0.5),
-                    material=MaterialConfig(youngs_modulus=1e7, root_radius=0.05, tip_radius=0.05),
-                    physics=PhysicsConfig(terms=("stretch", "bend", "gravity", "head_collision"),
-                                          head_radius=5.0, head_center=tuple(c), head_stiffness=1e5,
-                                          head_push_out=push_out),
-                    time=TimeConfig(frames=30, newton_iterations=3))
+    cfg = _falling_strand(dict(head_push_out=push_out), {})
     sim = _sim(cfg)
     try:
         depth = []
@@ -210,14 +215,8 @@ def test_head_push_out_kept_through_the_length_projection(motion, dt):
     deep, without an outward kick (largest kinetic energy 46.7 and 73.5; 46.7 and 129.8
     on main)."""
     from lc_petsc.head_check import frame_depths, path_depths
-    c = np.array([8.0, -5.05, 0.0])
-    cfg = SimConfig(scene=SceneConfig(kind="straight", n_vertices=30, n_pinned=2, direction=(1, 0, 0),
-                                      segment_length=0.5),
-                    material=MaterialConfig(youngs_modulus=1e7, root_radius=0.05, tip_radius=0.05),
-                    physics=PhysicsConfig(terms=("stretch", "bend", "gravity", "head_collision"),
-                                          head_radius=5.0, head_center=tuple(c), head_stiffness=1e5,
-                                          head_motion=motion, head_velocity=(0.0, 30.0, 0.0)),
-                    time=TimeConfig(frames=30, dt=dt, newton_iterations=3, length_projection=True))
+    cfg = _falling_strand(dict(head_motion=motion, head_velocity=(0.0, 30.0, 0.0)),
+                          dict(dt=dt, length_projection=True))
     sim = _sim(cfg)
     try:
         X, T = [sim.x.copy()], [0.0]

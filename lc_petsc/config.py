@@ -189,8 +189,10 @@ class PhysicsConfig:
 
     head_collision is a penalty 1/2 k d^2 on the depth d of a free vertex inside the
     sphere (radius ``head_radius`` + ``head_margin``); ``head_stiffness`` k in dyn/cm;
-    ``head_push_out``: a vertex a step leaves deeper than its strand radius is put back
-    on the sphere.
+    ``head_push_out``: a vertex a step leaves deeper than its strand radius (less its
+    edges' sagitta) is put back on the sphere, the length projection keeps it there, and a
+    vertex's straight path between frames that cuts under the curved head is lifted out
+    (its end moved out by at most its strand radius).
     The head (sphere and pinned roots) follows ``head_motion``: ``static``, ``shake``
     (rotate back and forth about z, then y, then x; ``head_amplitude`` rad, each axis for
     ``head_period`` s; ``head_smooth``: each axis's swing starts and ends at rest, so the

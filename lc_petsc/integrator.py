@@ -180,6 +180,10 @@ class Integrator:
             carried = self.free & held[wisp]
             self.carried = carried if carried.any() else None
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
+        #: per vertex: how deep the head's push-out lets it rest (physics.head_push_out)
+        self.allowed_depth = head_contact.allowed_depth(
+            scene.radius, self.rest_edge, scene.offsets, head.radius + config.physics.head_margin
+        ) if self.contact else None
         if self.carried is not None:
             self.start_weight = start_carry_weight(self.rest_edge, scene.offsets, scene.pinned)
         self.newton_increment = []      # per frame: the last step's relative increment
@@ -282,6 +286,8 @@ class Integrator:
         self.xv.zeroEntries()
         x_frame, t_frame = self.x, self.t      # replaced by the step, never changed in place
         solves = self._advance(cfg.time.dt, self.t + cfg.time.dt, cfg.time.max_substeps)
+        if len(solves) > 1 and self.contact and cfg.physics.head_push_out:
+            self._lift_frame_path(x_frame, t_frame)
         if len(solves) > 1 and self.strand is not None and self.strand.mode == "ccd":
             solves[-1] = self._collision_free_frame_path(x_frame, t_frame, solves[-1])
         conv = [s.converged for s in solves]
@@ -493,17 +499,23 @@ class Integrator:
         if max(bad_any) >= 0:
             raise FloatingPointError(f"frame {self.frame}: non-finite position at global vertex "
                                      f"{min(b for b in bad_any if b >= 0)}")
-        if self.contact and cfg.physics.head_push_out:
+        push = self.contact and cfg.physics.head_push_out
+        if push:
             # before the length projection, which takes back the edge strain it makes
             # (after it: edges 22% long on a soft hairball)
             x = self._push_out_of_head(x)
         if cfg.time.length_projection:
             with self.timers("update"):
-                projected = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass)
+                # around the head: without, it pulled pushed vertices back in (the soft
+                # hairball 0.11 cm deep, 1.63 strand radii)
+                projected = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass,
+                                                 self._head_sphere() if push else None)
             # how far the frame written is from Newton's iterate (reported: with a
             # tolerance it can exceed it, docs/newton.md "Stopping rule")
             self._projection_move = max(self._projection_move, self.increments(projected - x)[0])
             x = projected
+        if push:        # last: the strand path check below keeps to the path it leaves
+            x = self._lift_head_paths(x_old, x, self.t)
         contact = None
         if self.strand is not None:
             pairs, deep, dmin = self.strand.measure(x)
@@ -519,23 +531,57 @@ class Integrator:
         self.t = self.t_next
         return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed)
 
+    def _head_sphere(self):
+        """(centre, radius, allowed depth (n,)) of the head sphere at the step's end: its
+        radius + margin, and per vertex how deep the push-out lets it rest
+        (:func:`head_contact.allowed_depth`)."""
+        return (self.head.sphere_center(self.t_next), self.head.radius + self.cfg.physics.head_margin,
+                self.allowed_depth)
+
     def _push_out_of_head(self, x):
-        """``x`` with every free vertex deeper in the head sphere (radius + margin) than its
-        strand radius moved radially onto it.  The penalty sees a vertex only once an
+        """``x`` with every free vertex deeper in the head sphere (radius + margin) than
+        allowed (its strand radius less its edges' sagitta on the sphere,
+        :func:`head_contact.allowed_depth`) moved radially onto it.  The penalty sees a vertex only once an
         iterate is inside: at a fixed Newton count the last step can carry one in
         unopposed (a soft hairball's tips 1.06 cm deep; 0.048 with 10 iterations,
         docs/contact.md "Hair and the head").  A vertex resting on the head sinks by its
         push over the stiffness, far less than its radius, and is left alone, so a run
         whose hair never sinks that deep keeps its bits."""
-        c = self.head.sphere_center(self.t_next)
-        R = self.head.radius + self.cfg.physics.head_margin
+        c, R, allow = self._head_sphere()
         y = x - c
         dist = np.sqrt(np.einsum("ij,ij->i", y, y))
-        deep = np.flatnonzero(self.free & (R - dist > self.scene.radius) & (dist > 0))
+        deep = np.flatnonzero(self.free & (R - dist > allow) & (dist > 0))
         if len(deep):
             x = x.copy()
             x[deep] = c + y[deep] * (R / dist[deep])[:, None]
         return x
+
+    def _lift_head_paths(self, x_old, x, t_old):
+        """``x`` (the step's end, at t_next) with each free vertex whose straight path from
+        ``x_old`` (at ``t_old``), relative to the moving centre, goes deeper in the head
+        sphere than allowed lifted straight out just enough for the path to stay that
+        shallow, if that takes at most its strand radius
+        (:func:`head_contact.lift_paths`): both ends on the scalp, the chord of a vertex
+        sliding along it cuts under it (soft hairball: tips sliding 3.3 cm a frame,
+        chords 0.09-0.12 cm deep, 11 paths past their 0.07 cm radius)."""
+        c0 = self.head.sphere_center(t_old)
+        c1, R, allow = self._head_sphere()
+        # at most a strand radius (2 radii: the soft hairball's edges 3.0% long, its
+        # gravity-5000 variant 2 rows sunk instead of 1)
+        p1, moved = head_contact.lift_paths(x_old - c0, x - c1, R, allow, self.scene.radius, self.free)
+        if not len(moved):
+            return x
+        x = x.copy()
+        x[moved] = c1 + p1[moved]
+        return x
+
+    def _lift_frame_path(self, x_frame, t_frame):
+        """After step cutback: the frame's path x_n -> x_{n+1} (what a viewer interpolates)
+        is the chord of the substeps' chain and gets the head's path lift too
+        (:meth:`_lift_head_paths`); the velocity takes the move over the frame's dt."""
+        x = self._lift_head_paths(x_frame, self.x, t_frame)
+        self.v = self.v + (x - self.x) / self.cfg.time.dt
+        self.x = x
 
     def _collision_free_frame_path(self, x_frame, t_frame, last):
         """ccd mode after step cutback: each substep's straight path is collision-free,
@@ -1070,7 +1116,7 @@ def corotational_update(x, dx, free, offsets, mass=None):
     return compiled.corotate(x, dx, free, offsets, mass)
 
 
-def _set_edge_lengths(x, length, free, offsets, mass=None):
+def _set_edge_lengths(x, length, free, offsets, mass=None, head=None):
     """x with every edge (v - 1, v) that ends at a free vertex v of the same wisp given
     the length ``length[v - 1]`` (> 0; its direction kept), the corrections accumulated
     from the root (or the last pinned vertex) outwards; edges of zero length or with a
@@ -1079,18 +1125,21 @@ def _set_edge_lengths(x, length, free, offsets, mass=None):
     (x - x_n) / dt) is then unchanged.  One compiled pass
     (:func:`lc_petsc.elements.compiled.edge_lengths`).  x (nv, 3), length (nv - 1,),
     free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.  Returns (nv, 3)."""
-    return compiled.edge_lengths(x, None, length, free, offsets, mass)
+    return compiled.edge_lengths(x, None, length, free, offsets, mass, head)
 
 
-def project_rest_lengths(x, free, offsets, rest_edge, mass):
+def project_rest_lengths(x, free, offsets, rest_edge, mass, head=None):
     """``time.length_projection``: the frame's final positions with every edge that ends
     at a free vertex set to its rest length, its direction kept, from each wisp's root
     (or last pinned vertex) outwards (:func:`_set_edge_lengths`, one compiled pass);
     on a wisp with no pinned vertex the mass-weighted mean of the corrections is
-    removed, so its momentum is kept (its lengths too: a uniform shift).  x (nv, 3),
-    free (nv,) bool, offsets (n_wisps + 1,), rest_edge (nv - 1,), mass (nv,).
-    Returns (nv, 3)."""
-    return _set_edge_lengths(x, rest_edge, free, offsets, mass)
+    removed, so its momentum is kept (its lengths too: a uniform shift).  ``head``:
+    None or (centre (3,), radius, allowed depth (nv,)): on a wisp with a pinned vertex,
+    a vertex the walk would leave deeper in that sphere than allowed is put on it
+    instead, at its edge's rest length from its predecessor (the vertices after it
+    follow).  x (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), rest_edge (nv - 1,),
+    mass (nv,).  Returns (nv, 3)."""
+    return _set_edge_lengths(x, rest_edge, free, offsets, mass, head)
 
 
 #: time.newton_increment_tol above this: a stop needs two iterations in a row that pass

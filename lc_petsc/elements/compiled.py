@@ -1191,7 +1191,36 @@ def add_segment_blocks(values, block_index, idx, b, h00, h01, h11):
 
 # ------------------------------------------------ edge lengths (the Newton update)
 @_jit
-def _edge_lengths(x, dx, length, free, offsets, mass, retract, out):
+def _onto_head(q0, q1, q2, y0, y1, y2, L, R):
+    """The point z at distance L from q (|z - q| = L) on the sphere |z| = R closest to y
+    (positions relative to the sphere's centre; y at distance L from q, inside it): on
+    the circle where the two spheres meet, in the direction of y's part across q's axis;
+    q + L q / |q| when that circle does not exist (q too deep to reach the surface)."""
+    a = _sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+    if not a > 0.0:
+        return y0, y1, y2
+    u0, u1, u2 = q0 / a, q1 / a, q2 / a
+    if a + L <= R:
+        return q0 + L * u0, q1 + L * u1, q2 + L * u2
+    h = (a * a + R * R - L * L) / (2.0 * a)
+    rho = _sqrt(max(R * R - h * h, 0.0))
+    yu = y0 * u0 + y1 * u1 + y2 * u2
+    w0, w1, w2 = y0 - yu * u0, y1 - yu * u1, y2 - yu * u2
+    nw = _sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    if not nw > 1e-12 * L:
+        # y on q's axis (the edge points straight into the head): any side will do; the
+        # axis of q's smallest component, made perpendicular to q
+        k0 = 1.0 if abs(u0) <= abs(u1) and abs(u0) <= abs(u2) else 0.0
+        k1 = 1.0 if k0 == 0.0 and abs(u1) <= abs(u2) else 0.0
+        k2 = 1.0 - k0 - k1
+        ku = k0 * u0 + k1 * u1 + k2 * u2
+        w0, w1, w2 = k0 - ku * u0, k1 - ku * u1, k2 - ku * u2
+        nw = _sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    return h * u0 + rho * w0 / nw, h * u1 + rho * w1 / nw, h * u2 + rho * w2 / nw
+
+
+@_jit
+def _edge_lengths(x, dx, length, free, offsets, mass, retract, out, center, surface, allow):
     """out = the positions of lc_petsc.integrator._set_edge_lengths, wisp by wisp.
 
     ``retract``: the positions are x + dx and the lengths |e| + eh . de of the edges e
@@ -1200,11 +1229,20 @@ def _edge_lengths(x, dx, length, free, offsets, mass, retract, out):
     the correction of vertex v is the sum of (length / |edge| - 1) edge over the edges
     (u - 1, u) since the last pinned vertex (edges of zero length or with a length <= 0
     add nothing); on a wisp without a pinned vertex, with ``mass`` (nv,) non-empty, the
-    mass-weighted mean correction is removed."""
+    mass-weighted mean correction is removed.
+
+    ``surface`` > 0 (with ``center`` (3,) and ``allow`` (nv,)): on a wisp with a pinned
+    vertex, a vertex whose new position lies deeper in the sphere of radius ``surface``
+    about ``center`` than ``allow`` is put on the sphere instead, at its edge's length
+    from its (new) predecessor (:func:`_onto_head`); the vertices after it follow."""
     for w in range(offsets.shape[0] - 1):
         lo, hi = offsets[w], offsets[w + 1]
         c0 = c1 = c2 = 0.0
         pinned = False
+        head = False
+        if surface > 0.0:
+            for v in range(lo, hi):
+                head = head or not free[v]
         for v in range(lo, hi):
             p0 = x[v, 0]
             p1 = x[v, 1]
@@ -1231,9 +1269,16 @@ def _edge_lengths(x, dx, length, free, offsets, mass, retract, out):
                     target = length[v - 1]
                 if n > 0.0 and target > 0.0:
                     f = target / n - 1.0
+                    # relative to the centre: q the predecessor's new position, y this one's
+                    q0, q1, q2 = e0 + c0 - center[0], e1 + c1 - center[1], e2 + c2 - center[2]
                     c0 += d0 * f
                     c1 += d1 * f
                     c2 += d2 * f
+                    if head:
+                        y0, y1, y2 = p0 + c0 - center[0], p1 + c1 - center[1], p2 + c2 - center[2]
+                        if _sqrt(y0 * y0 + y1 * y1 + y2 * y2) < surface - allow[v]:
+                            z0, z1, z2 = _onto_head(q0, q1, q2, y0, y1, y2, target, surface)
+                            c0, c1, c2 = z0 + center[0] - p0, z1 + center[1] - p1, z2 + center[2] - p2
             out[v, 0], out[v, 1], out[v, 2] = c0, c1, c2
             out[v, 3], out[v, 4], out[v, 5] = p0, p1, p2
         if not pinned and mass.shape[0] > 0:
@@ -1270,12 +1315,14 @@ def _chain_arrays(name, x, dx, offsets):
     return x, dx, offsets
 
 
-def edge_lengths(x, dx, length, free, offsets, mass):
+def edge_lengths(x, dx, length, free, offsets, mass, head=None):
     """The positions of :func:`lc_petsc.integrator._set_edge_lengths` (``dx`` None: x
     with edge lengths ``length`` (nv - 1,)) or of
     :func:`lc_petsc.integrator.retract_edge_lengths` (``length`` None: x + dx with the
     linearised lengths), in one compiled pass over each wisp.  x, dx (nv, 3), free (nv,)
-    bool, offsets (n_wisps + 1,) covering 0..nv, mass (nv,) or None.  Returns (nv, 3)."""
+    bool, offsets (n_wisps + 1,) covering 0..nv, mass (nv,) or None; ``head``: None or
+    (centre (3,), radius > 0, allowed depth (nv,)), a sphere the lengths are set
+    around (:func:`_edge_lengths`).  Returns (nv, 3)."""
     retract = dx is not None
     x, dx, offsets = _chain_arrays("edge lengths", x, dx if retract else x, offsets)
     nv = len(x)
@@ -1283,8 +1330,16 @@ def edge_lengths(x, dx, length, free, offsets, mass):
     if not retract and len(length) != max(nv - 1, 0):
         raise ValueError(f"edge lengths: {len(length)} lengths for {nv} vertices, need {nv - 1}")
     mass = np.zeros(0) if mass is None else np.ascontiguousarray(mass, np.float64)
+    center, surface, allow = np.zeros(3), 0.0, np.zeros(0)
+    if head is not None:
+        center, surface, allow = (np.ascontiguousarray(head[0], np.float64), float(head[1]),
+                                  np.ascontiguousarray(head[2], np.float64))
+        if center.shape != (3,) or not surface > 0.0 or allow.shape != (nv,):
+            raise ValueError(f"edge lengths: the head must be (centre (3,), radius > 0, allowed depth "
+                             f"({nv},)), got {center.shape}, {surface!r}, {allow.shape}")
     out = np.empty((nv, 6))     # (correction, x (+ dx)) per vertex, then the result
-    _edge_lengths(x, dx, length, np.ascontiguousarray(free, np.bool_), offsets, mass, retract, out)
+    _edge_lengths(x, dx, length, np.ascontiguousarray(free, np.bool_), offsets, mass, retract, out,
+                  center, surface, allow)
     return out[:, :3].copy()
 
 
@@ -1395,7 +1450,7 @@ def corotate(x, dx, free, offsets, mass):
     length = np.zeros(max(nv - 1, 0))
     _corotate(x, dx, free, offsets, mass, y, length)
     out = np.empty((nv, 6))
-    _edge_lengths(y, y, length, free, offsets, mass, False, out)
+    _edge_lengths(y, y, length, free, offsets, mass, False, out, np.zeros(3), 0.0, np.zeros(0))
     return out[:, :3].copy()
 
 

@@ -62,3 +62,67 @@ def hessian(x, center, radius, stiffness, filter="analytic"):
         c = np.divide(stiffness * depth, dist, out=np.zeros_like(depth), where=dist > 0)
         H -= c[:, None, None] * (np.eye(3)[None] - nn)
     return H
+
+
+def allowed_depth(strand_radius, rest_edge, offsets, radius):
+    """Per vertex (n,): how deep in the sphere of ``radius`` a vertex may rest before the
+    head's push-out moves it (``physics.head_push_out``): its strand radius less the
+    sagitta L^2 / (8 R) of the longer of its edges (L their rest lengths), at least 0:
+    two neighbours that deep on the sphere leave their edge's chord no deeper than the
+    strand radius (at the radius itself, chords of the falling strand's 0.5 cm edges on
+    a 5 cm head reached 1.12 radii).  ``rest_edge`` (n - 1,) rest length of edge
+    (v, v + 1) (edges across wisps unused), ``offsets`` (n_wisps + 1,)."""
+    rad = np.asarray(strand_radius, float)
+    n = len(rad)
+    edge = np.zeros(n + 1)                  # edge[v]: the rest length of edge (v - 1, v)
+    edge[1:n] = np.asarray(rest_edge, float)[:max(n - 1, 0)]
+    cut = np.asarray(offsets, np.int64)     # no edge between two wisps
+    edge[cut] = 0.0
+    longer = np.maximum(edge[:-1], edge[1:])
+    return np.maximum(rad - longer ** 2 / (8.0 * radius), 0.0)
+
+
+#: lift_paths: the lifted end's relative overshoot, so that the path's depth is below the
+#: allowed depth after round-off (not exactly at it)
+LIFT_ROUND_OFF = 1e-12
+
+
+def lift_paths(p0, p1, radius, allow, strand_radius, free):
+    """The ends ``p1`` (n, 3) of straight paths from ``p0`` (both relative to the sphere's
+    centre) lifted where a path goes deeper in the sphere of ``radius`` than ``allow``
+    (n,) while neither end does: the end is moved straight out from the centre until the
+    path's line stays at ``radius - allow`` from it (the distance |p0 x p1| / |p1 - p0|
+    of the line, solved for |p1|), when that moves it by at most its ``strand_radius``
+    (a path the move cannot mend, one turning around the sphere, is left alone; no kick
+    beyond r / dt).  Only ``free`` vertices.  Returns (p1 with the lifted ends, their
+    indices)."""
+    from lc_petsc.head_check import segment_depth
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    allow = np.asarray(allow, float)
+    depth, _ = segment_depth(p0, p1, radius)
+    a = np.sqrt(np.einsum("ij,ij->i", p0, p0))
+    b = np.sqrt(np.einsum("ij,ij->i", p1, p1))
+    i = np.flatnonzero(free & (depth > allow) & (radius - a <= allow) & (radius - b <= allow) & (b > 0))
+    if not len(i):
+        return p1, i
+    a, b, m = a[i], b[i], radius - allow[i]
+    cos = np.einsum("ij,ij->i", p0[i], p1[i]) / (a * b)
+    # the line's distance from the centre is m where g(rho) = rho^2 (a^2 sin^2 - m^2)
+    # + 2 m^2 a cos rho - m^2 a^2 = 0 (|p1| = rho); it is below m at rho = b, so the
+    # lift is to the smallest root above b (the distance rises to a maximum and falls
+    # back to a sin as rho grows: two roots, or none when it never reaches m)
+    A = a * a * np.maximum(1.0 - cos * cos, 0.0) - m * m
+    B, C = 2.0 * m * m * a * cos, -m * m * a * a
+    disc = B * B - 4.0 * A * C
+    real = disc >= 0.0
+    q = -0.5 * (B + np.copysign(np.sqrt(np.where(real, disc, 0.0)), B))     # stable roots q / A, C / q
+    roots = np.stack([np.divide(q, A, out=np.full_like(q, np.inf), where=A != 0.0),
+                      np.divide(C, q, out=np.full_like(q, np.inf), where=q != 0.0)])
+    roots[:, ~real] = np.inf
+    roots[roots <= b] = np.inf
+    rho = roots.min(axis=0)
+    ok = rho - b <= np.asarray(strand_radius, float)[i]
+    i, rho, b = i[ok], rho[ok], b[ok]
+    p1 = p1.copy()
+    p1[i] *= (rho * (1.0 + LIFT_ROUND_OFF) / b)[:, None]
+    return p1, i

@@ -108,3 +108,93 @@ def test_edge_lengths_rejects_bad_offsets_and_lengths():
         compiled.edge_lengths(x, x, None, free, np.array([0, 3]), None)
     with pytest.raises(ValueError, match="lengths"):
         compiled.edge_lengths(x, None, np.ones(2), free, np.array([0, 4]), None)
+
+
+# ---------------------------------------------------------------- around the head
+def _ref_onto_head(q, y, L, R):
+    a = np.linalg.norm(q)
+    u = q / a
+    if a + L <= R:
+        return q + L * u
+    h = (a * a + R * R - L * L) / (2 * a)
+    w = y - (y @ u) * u
+    if np.linalg.norm(w) <= 1e-12 * L:
+        k = np.zeros(3)
+        k[np.argmin(np.abs(u))] = 1.0
+        w = k - (k @ u) * u
+    return h * u + np.sqrt(max(R * R - h * h, 0.0)) * w / np.linalg.norm(w)
+
+
+def _ref_set_around_head(x, length, free, offsets, center, R, allow):
+    """Vertex by vertex from each root: the edge's direction kept, its length set; on a
+    wisp with a pinned vertex, a vertex that lands deeper than ``allow`` in the sphere
+    goes on the sphere at its edge's length from its predecessor, closest to where it
+    landed."""
+    y = x.copy()
+    for lo, hi in zip(offsets[:-1], offsets[1:]):
+        held = not free[lo:hi].all()
+        for v in range(lo + 1, hi):
+            if not free[v]:
+                continue
+            d = x[v] - x[v - 1]
+            n = np.linalg.norm(d)
+            ok = n > 0 and length[v - 1] > 0
+            y[v] = y[v - 1] + (d * (length[v - 1] / n) if ok else d)
+            if ok and held and np.linalg.norm(y[v] - center) < R - allow[v]:
+                y[v] = center + _ref_onto_head(y[v - 1] - center, y[v] - center, length[v - 1], R)
+    return y
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rest_lengths_set_around_the_head(seed):
+    """time.length_projection with the head (physics.head_push_out): against the
+    vertex-by-vertex reference; the rest lengths hold and every free vertex of a held
+    wisp ends no deeper than allowed, except where its predecessor is too deep for the
+    sphere to be reached (then straight out from the centre)."""
+    rng = np.random.default_rng(seed)
+    x, dx, free, off, mass, length = _scene(rng)
+    x = 0.3 * (x + dx)
+    center = x.mean(axis=0) + rng.normal(size=3)
+    R = float(np.median(np.linalg.norm(x - center, axis=1)))     # half the vertices inside
+    allow = rng.uniform(0.0, 0.2, size=len(x))
+    got = project_rest_lengths(x, free, off, length, mass, head=(center, R, allow))
+    ref = _ref_set_around_head(x, length, free, off, center, R, allow)
+    held = np.repeat(np.bincount(np.repeat(np.arange(len(off) - 1), np.diff(off)),
+                                 weights=~free, minlength=len(off) - 1) > 0, np.diff(off))
+    assert np.abs(got[held] - ref[held]).max() <= 1e-12 * np.abs(x).max()
+    # wisps without a pinned vertex: as without the head (the momentum's mean removal)
+    assert np.array_equal(got[~held], project_rest_lengths(x, free, off, length, mass)[~held])
+    edge = np.linalg.norm(np.diff(got, axis=0), axis=1)
+    inner = free[1:] & ~np.isin(np.arange(1, len(x)), off)
+    assert np.abs(edge[inner] - length[inner]).max() <= 1e-12 * length.max()
+    dist = np.linalg.norm(got - center, axis=1)
+    moved = free & held & (R - np.linalg.norm(project_rest_lengths(x, free, off, length, mass) - center,
+                                              axis=1) > allow)
+    assert moved.sum() >= 5                     # the sphere does act
+    short = np.concatenate([[False], dist[:-1] + length <= R])   # the predecessor cannot reach it
+    ok = free & held & ~short & ~np.isin(np.arange(len(x)), off)   # a wisp's first vertex stays
+    assert np.all(R - dist[ok] <= allow[ok] + 1e-12 * R), (R - dist[ok] - allow[ok]).max()
+
+
+def test_rest_lengths_around_the_head_edge_into_the_centre():
+    """An edge pointing straight at the centre (no side to turn to): it is turned to a
+    fixed side and its vertex lands on the sphere at its length."""
+    x = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 9.0], [0.0, 0.0, 8.0]])
+    free = np.array([False, True, True])
+    y = project_rest_lengths(x, free, np.array([0, 3]), np.ones(2), np.ones(3),
+                             head=(np.zeros(3), 9.5, np.zeros(3)))
+    assert np.allclose(np.linalg.norm(y, axis=1), [10.0, 9.5, 9.5], atol=1e-12)
+    assert np.allclose(np.linalg.norm(np.diff(y, axis=0), axis=1), 1.0, atol=1e-12)
+    assert np.allclose(y, _ref_set_around_head(x, np.ones(2), free, np.array([0, 3]), np.zeros(3), 9.5,
+                                               np.zeros(3)), atol=1e-12)
+
+
+def test_edge_lengths_rejects_a_bad_head():
+    x = np.zeros((4, 3))
+    free = np.ones(4, bool)
+    with pytest.raises(ValueError, match="head must be"):
+        compiled.edge_lengths(x, None, np.ones(3), free, np.array([0, 4]), None,
+                              head=(np.zeros(3), -1.0, np.zeros(4)))
+    with pytest.raises(ValueError, match="head must be"):
+        compiled.edge_lengths(x, None, np.ones(3), free, np.array([0, 4]), None,
+                              head=(np.zeros(3), 1.0, np.zeros(3)))

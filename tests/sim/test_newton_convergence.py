@@ -542,8 +542,8 @@ def test_length_projection_move_is_reported_per_frame(monkeypatch):
     project = integ.project_rest_lengths
     moves = []
 
-    def recording(x, free, offsets, rest, mass):
-        y = project(x, free, offsets, rest, mass)
+    def recording(x, free, offsets, rest, mass, head=None):
+        y = project(x, free, offsets, rest, mass, head)
         moves.append(y - x)
         return y
     monkeypatch.setattr(integ, "project_rest_lengths", recording)
@@ -573,8 +573,8 @@ def test_length_projection_move_ignores_a_discarded_cutback_attempt(monkeypatch)
     project, step = integ.project_rest_lengths, integ.Integrator._backward_euler
     moves, calls = [], []
 
-    def recording(x, free, offsets, rest, mass):
-        y = project(x, free, offsets, rest, mass)
+    def recording(x, free, offsets, rest, mass, head=None):
+        y = project(x, free, offsets, rest, mass, head)
         if not moves:
             y = y + 1e-2            # the first attempt's projection moves far (it is discarded)
         moves.append(np.linalg.norm(y - x, axis=1).max())

@@ -482,7 +482,7 @@ class Job:
             else:
                 ck = load_checkpoint(args.restart, comm, sim.user, sim.n_wisps, sim.n_vertices, sim.head)
         except CheckpointError as e:
-            raise Refused(str(e)) from None
+            raise Refused(str(e) + self._scene_hint()) from None
         ck["skipped"] = skipped
         diff = config_differences(ck["attrs"]["config"], cfg.to_dict(), ignore=RESTART_FREE_KEYS,
                                   defaults=SimConfig().to_dict())
@@ -493,9 +493,12 @@ class Job:
                        f"set that to continue it as it ran" for k in legacy)
         if diff and not args.force:
             raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
-                          f"{', '.join(diff)}{hint}; restart with the same config or add --force")
+                          f"{_differences_text(diff, saved, cfg.to_dict())}{hint}; restart with the config "
+                          f"the checkpoint ran with (its attribute config_toml) or add --force (continues "
+                          f"with this config)")
         if diff:
-            warn(comm, f"--force: config differs from the checkpoint's in {', '.join(diff)}")
+            warn(comm, f"--force: config differs from the checkpoint's in "
+                       f"{_differences_text(diff, saved, cfg.to_dict())}")
         before, now = ck["attrs"].get("petsc_options") or {}, petsc_options_used(sim, self.command_line)
         changed = [k for k in sorted(set(before) | set(now))
                    if str(before.get(k)) != str(now.get(k)) and not _diagnostic_option(k)]
@@ -524,6 +527,27 @@ class Job:
         self.recovery = self._frames_recovery(ck, ck["frame"] // cfg.output.every + 1)
         sim.restore(dict(ck, x=sim.user.from_user(ck["x"]), v=sim.user.from_user(ck["v"])))
         return ck
+
+    def _scene_hint(self):
+        """For a refused restart: the config keys in which the newest checkpoint in the
+        folder (or --restart's file) was written with another value (a checkpoint of
+        another scene fails its wisp counts before the configs are compared), else ''."""
+        from lc_petsc.io.checkpoint import checkpoint_folder, config_differences, list_checkpoints
+
+        def read():
+            import json
+            import h5py
+            found = list_checkpoints(checkpoint_folder(self.out)) if self.args.restart == "latest" \
+                else [Path(self.args.restart)]
+            with h5py.File(found[0], "r") as f:
+                saved = json.loads(f.attrs["config"])
+            now = self.cfg.to_dict()
+            diff = config_differences(saved, now, ignore=RESTART_FREE_KEYS, defaults=SimConfig().to_dict())
+            return f"; {found[0]} was written with another config, which differs in " \
+                   f"{_differences_text(diff, saved, now)}: restart with that config (its attribute " \
+                   f"config_toml)" if diff else ""
+        hint, problem = on_root(self.comm, read)
+        return "" if problem is not None else hint
 
     def _frames_recovery(self, ck, rows):
         """None when the folder's frames.h5 can be appended to from the checkpoint ``ck``
@@ -1194,6 +1218,18 @@ class Preemption:
         for sig, h in self.previous.items():
             signal.signal(sig, h)
         self.previous = {}
+
+
+def _differences_text(keys, saved, now):
+    """'time.dt (checkpoint: 0.0333, config: 0.02), ...' for the dotted config ``keys``
+    of the checkpoint's config dict ``saved`` and the run's ``now``."""
+    def value(d, key):
+        for part in key.split("."):
+            if not isinstance(d, dict) or part not in d:
+                return "unset"
+            d = d[part]
+        return repr(d)
+    return ", ".join(f"{k} (checkpoint: {value(saved, k)}, config: {value(now, k)})" for k in keys)
 
 
 def _signal_name(signum):

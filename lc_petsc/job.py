@@ -25,8 +25,10 @@ What each step leaves behind when it fails:
    permission error) ends the loop on every rank with exit status 3.
 5. **finish**: ``frames.h5`` closed (the frames so far stay readable), ``frames.xdmf``,
    previews, ``summary.json`` (with ``error``) and the report; an output that cannot be
-   written is reported (exit 3) and the others are still tried.  Exit 0, 3 (failed), 75
-   (stopped by a signal after a checkpoint, or during the set-up).
+   written is reported (exit 3) and the others are still tried.  A signal (any rank)
+   during the end-of-run check or exports stops them between two pieces, writes a
+   checkpoint of the last frame and summary.json (``output.skipped``).  Exit 0, 3
+   (failed), 75 (stopped by a signal after a checkpoint, or during the set-up).
 """
 
 from __future__ import annotations

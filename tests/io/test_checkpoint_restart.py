@@ -307,6 +307,11 @@ def test_clear_errors(tmp_path, capsys):
         return capsys.readouterr().err
 
     assert "no such checkpoint file" in err(["--restart", str(tmp_path / "nope.h5")])
+    # a run killed before its first checkpoint: say so, and how to go on (main: "there are none")
+    assert main([cfg, "--out", str(tmp_path / "early"), "--quiet", "--restart", "latest"]) == 2
+    assert ("no valid checkpoint in '" + str(tmp_path / "early" / "checkpoints") + "' (there are none: the run "
+            "there stopped before its first checkpoint (output.checkpoint_every); run the same command without "
+            "--restart to start it over)") in capsys.readouterr().err
     assert "not an lc_petsc checkpoint" in err(["--restart", cfg])
     assert "not an lc_petsc checkpoint" in err(["--restart", str(out / "frames.h5")])
     assert "nothing to do" in err(["--restart", str(ck), "--frames", "2"])

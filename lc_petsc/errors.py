@@ -18,9 +18,6 @@ modules that raise them import them from here too.  Two families:
   not be written), :class:`PetscCallError` (a PETSc C function called through ctypes
   failed).
 
-:class:`Interrupted` is neither: a signal stopped a long end-of-run step of the main
-job (the crossing check, an export), which it then skips (exit 75).
-
 The studies' own control-flow signals (a time budget used up, a trajectory blowing up)
 stay private to lc_petsc/studies.  This module imports nothing, so the element kernels
 (no PETSc, no MPI) can use it.
@@ -30,7 +27,7 @@ from __future__ import annotations
 
 __all__ = ["ConfigError", "SceneError", "ElementError", "RestPoseOverlapError",
            "CheckpointError", "UsageError", "FolderBusy", "SolverError", "SimulationError",
-           "OutputError", "PetscCallError", "Interrupted"]
+           "OutputError", "PetscCallError"]
 
 
 class ConfigError(ValueError):
@@ -90,9 +87,3 @@ class OutputError(RuntimeError):
 
 class PetscCallError(RuntimeError):
     """A PETSc C function called through ctypes returned an error code."""
-
-
-class Interrupted(Exception):
-    """A signal (SIGTERM, SIGUSR1, SIGINT) stopped a long end-of-run step of the main job
-    (an export): the step is skipped, what it wrote so far removed; a ``--restart
-    latest`` writes it."""

@@ -965,7 +965,7 @@ class Job:
         returned dict's ``not_written``, the others are still written.  A signal (on any
         rank) skips those not begun and stops the previews and the export between two
         frames (``output.skipped``)."""
-        from lc_petsc.errors import Interrupted
+        from lc_petsc.stop_notice import Stopped
         from lc_petsc.io.xdmf import write_xdmf
         cfg, sim, out, writer = self.cfg, self.sim, self.out, self.writer
         h5_path = out / "frames.h5"
@@ -986,7 +986,7 @@ class Job:
             try:
                 files += [os.path.relpath(p, out) for p in _previews(cfg, out, h5_path, writer,
                                                                      cfg.time.frames, self.name, self._stop)]
-            except Interrupted:
+            except Stopped:
                 self.skipped_outputs.append("previews")
             except Exception as e:  # noqa: BLE001 - a preview is never worth the run's summary
                 problems.append(f"previews in {out}: {getattr(e, 'strerror', None) or e}")
@@ -999,7 +999,7 @@ class Job:
             try:
                 usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop)
                 files += usd_files
-            except Interrupted:
+            except Stopped:
                 self.skipped_outputs.append("frames.usdc")
             except Exception as e:  # noqa: BLE001 - like a preview, never worth the summary
                 text = export_failed(h5_path, f"{type(e).__name__}: {e}")
@@ -1054,10 +1054,10 @@ class Job:
         return True
 
     def _stop(self):
-        """Rank 0, between two frames of a slow export: raise Interrupted on a signal."""
-        from lc_petsc.errors import Interrupted
+        """Rank 0, between two frames of a slow export: raise Stopped on a signal."""
+        from lc_petsc.stop_notice import Stopped
         if self.stop.requested():
-            raise Interrupted("a signal during the end-of-run outputs")
+            raise Stopped("a signal during the end-of-run outputs")
 
     def _say_outputs_skipped(self):
         """Rank 0: what a signal during the end-of-run check and outputs left undone, how to finish."""

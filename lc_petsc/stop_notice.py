@@ -17,6 +17,12 @@ import time
 
 import numpy as np
 
+class Stopped(Exception):
+    """Raised by the main job's ``stop`` callback inside a long end-of-run export (the
+    previews, the USD export) on a signal: the export is skipped (control flow of the
+    job, like the studies' private signals: not an error of lc_petsc.errors)."""
+
+
 #: the message tag of a notice (on a communicator of its own)
 TAG = 75
 #: how often a waiting rank looks (seconds)

@@ -178,7 +178,7 @@ def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view=
     ``out_dir/contact_sheet.png``.  Only rows that hold a frame (``/frame_valid``) are
     drawn: a lost row's preview is the nearest valid row's.  ``head``: callable t ->
     (centre, radius) or None.  ``stop``: called before each image (the main job's raises
-    :class:`lc_petsc.errors.Interrupted` on a signal), or None.  Returns the paths written."""
+    :class:`lc_petsc.stop_notice.Stopped` on a signal), or None.  Returns the paths written."""
     import h5py
     from lc_petsc.io.frames import valid_rows
     plt = _pyplot()

@@ -253,7 +253,7 @@ def export_run(output, frames_path, out_dir, stop=None):
     ``out_dir/frames.usdc`` when ``output.usd`` is on, else removes a stale one.  A
     failure is reported on stderr as a warning; the run's other outputs are unaffected.
     Returns (files written relative to ``out_dir``, seconds).  ``stop``: called after
-    each frame (the main job's raises :class:`lc_petsc.errors.Interrupted` on a signal:
+    each frame (the main job's raises :class:`lc_petsc.stop_notice.Stopped` on a signal:
     the temporary file is removed, no frames.usdc written), or None."""
     t0 = time.perf_counter()
     target = Path(out_dir) / USD_NAME

@@ -25,8 +25,10 @@ What each step leaves behind when it fails:
    permission error) ends the loop on every rank with exit status 3.
 5. **finish**: ``frames.h5`` closed (the frames so far stay readable), ``frames.xdmf``,
    previews, ``summary.json`` (with ``error``) and the report; an output that cannot be
-   written is reported (exit 3) and the others are still tried.  Exit 0, 3 (failed), 75
-   (stopped by a signal after a checkpoint, or during the set-up).
+   written is reported (exit 3) and the others are still tried.  A signal (any rank)
+   during the end-of-run check or exports stops them between two pieces, writes a
+   checkpoint of the last frame and summary.json (``output.skipped``).  Exit 0, 3
+   (failed), 75 (stopped by a signal after a checkpoint, or during the set-up).
 """
 
 from __future__ import annotations
@@ -328,7 +330,9 @@ class Job:
         self.times = []
         self.error = None
         self.preemption = None
-        self.skipped_outputs = []   # rank 0: outputs a signal during the end-of-run ones skipped
+        self.skipped_outputs = []   # the end-of-run check and outputs a signal skipped
+        self.stop = None            # the StopNotice of the end-of-run work
+        self.stopped_in_loop = False    # a signal stopped the frame loop (or its last frame)
 
     # ------------------------------------------------------------------ the steps
     def run(self):
@@ -481,7 +485,7 @@ class Job:
             else:
                 ck = load_checkpoint(args.restart, comm, sim.user, sim.n_wisps, sim.n_vertices, sim.head)
         except CheckpointError as e:
-            raise Refused(str(e)) from None
+            raise Refused(str(e) + self._scene_hint()) from None
         ck["skipped"] = skipped
         diff = config_differences(ck["attrs"]["config"], cfg.to_dict(), ignore=RESTART_FREE_KEYS,
                                   defaults=SimConfig().to_dict())
@@ -492,9 +496,12 @@ class Job:
                        f"set that to continue it as it ran" for k in legacy)
         if diff and not args.force:
             raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
-                          f"{', '.join(diff)}{hint}; restart with the same config or add --force")
+                          f"{_differences_text(diff, saved, cfg.to_dict())}{hint}; restart with the config "
+                          f"the checkpoint ran with (its attribute config_toml) or add --force (continues "
+                          f"with this config)")
         if diff:
-            warn(comm, f"--force: config differs from the checkpoint's in {', '.join(diff)}")
+            warn(comm, f"--force: config differs from the checkpoint's in "
+                       f"{_differences_text(diff, saved, cfg.to_dict())}")
         before, now = ck["attrs"].get("petsc_options") or {}, petsc_options_used(sim, self.command_line)
         changed = [k for k in sorted(set(before) | set(now))
                    if str(before.get(k)) != str(now.get(k)) and not _diagnostic_option(k)]
@@ -523,6 +530,27 @@ class Job:
         self.recovery = self._frames_recovery(ck, ck["frame"] // cfg.output.every + 1)
         sim.restore(dict(ck, x=sim.user.from_user(ck["x"]), v=sim.user.from_user(ck["v"])))
         return ck
+
+    def _scene_hint(self):
+        """For a refused restart: the config keys in which the newest checkpoint in the
+        folder (or --restart's file) was written with another value (a checkpoint of
+        another scene fails its wisp counts before the configs are compared), else ''."""
+        from lc_petsc.io.checkpoint import checkpoint_folder, config_differences, list_checkpoints
+
+        def read():
+            import json
+            import h5py
+            found = list_checkpoints(checkpoint_folder(self.out)) if self.args.restart == "latest" \
+                else [Path(self.args.restart)]
+            with h5py.File(found[0], "r") as f:
+                saved = json.loads(f.attrs["config"])
+            now = self.cfg.to_dict()
+            diff = config_differences(saved, now, ignore=RESTART_FREE_KEYS, defaults=SimConfig().to_dict())
+            return f"; {found[0]} was written with another config, which differs in " \
+                   f"{_differences_text(diff, saved, now)}: restart with that config (its attribute " \
+                   f"config_toml)" if diff else ""
+        hint, problem = on_root(self.comm, read)
+        return "" if problem is not None else hint
 
     def _frames_recovery(self, ck, rows):
         """None when the folder's frames.h5 can be appended to from the checkpoint ``ck``
@@ -782,7 +810,10 @@ class Job:
         self.comm.Abort(EXIT_RUN_FAILED)
 
     def _finish(self):
-        """Step 5: close frames.h5, write XDMF, previews, summary, report; exit status."""
+        """Step 5: close frames.h5, the end-of-run check, XDMF, previews, USD, summary,
+        report; exit status.  A signal on any rank during the check or the exports stops
+        them (:class:`~lc_petsc.stop_notice.StopNotice`): :meth:`_stopped_late`."""
+        from lc_petsc.stop_notice import StopNotice
         comm, sim = self.comm, self.sim
         out_errors = []
         if self.writer is not None:
@@ -793,31 +824,61 @@ class Job:
                 hdf5.mark_unclosable()
                 out_errors.append(str(e))
         self._stop_after_last_frame()
-        preempted = self.preemption.signal_name if self.preemption.stopped else None
-        summary = self._summary(preempted)       # first: its wall time is the frame loop's alone
-        crossings = summary["crossings"] = self._check_crossings(preempted)
-        if crossings and "error" in crossings:
-            self._warn(f"the crossing check could not read the frames ({crossings['error']}); "
-                       "count them with scripts/count_crossings.py")
-        for w in crossing_warnings(crossings, self.cfg) if crossings and "error" not in crossings else []:
-            self._warn(w)
-        if out_errors and not self.error:
-            self.error = f"output error: {out_errors[0]}"
-            summary["error"] = self.error
-            summary["converged"] = False
-        if comm.rank == 0:
-            self._write_outputs(summary)
-        self.error, late = comm.bcast((self.error, self.skipped_outputs))
+        self.stopped_in_loop = self.preemption.stopped
+        self.stop = StopNotice(comm, lambda: bool(self.preemption.flag))
+        try:
+            preempted = self.preemption.signal_name if self.preemption.stopped else None
+            summary = self._summary(preempted)       # first: its wall time is the frame loop's alone
+            crossings = summary["crossings"] = self._check_crossings(preempted)
+            if crossings and "interrupted" in crossings:
+                self.skipped_outputs.append("crossing check")
+                crossings = summary["crossings"] = None
+            if crossings and "error" in crossings:
+                self._warn(f"the crossing check could not read the frames ({crossings['error']}); "
+                           "count them with scripts/count_crossings.py")
+            for w in crossing_warnings(crossings, self.cfg) if crossings and "error" not in crossings else []:
+                self._warn(w)
+            if out_errors and not self.error:
+                self.error = f"output error: {out_errors[0]}"
+                summary["error"] = self.error
+                summary["converged"] = False
+            exports = self._write_exports(summary) if comm.rank == 0 else None
+            self.stop.barrier()         # the others wait for rank 0's exports, passing on signals
+            self.skipped_outputs = comm.bcast(self.skipped_outputs)
+            if self.skipped_outputs:
+                self._stopped_late(summary)
+            if comm.rank == 0:
+                self._write_summary(summary, exports)
+        finally:
+            self.stop.close()
+        self.error = comm.bcast(self.error)
         if self.error:
             return EXIT_RUN_FAILED
-        return EXIT_PREEMPTED if preempted or late else EXIT_OK
+        return EXIT_PREEMPTED if summary["preempted"] else EXIT_OK
+
+    def _stopped_late(self, summary):
+        """Collective, after a signal stopped the end-of-run check or exports: the signal's
+        name in ``summary["preempted"]`` and a checkpoint of the last frame, unless there is
+        one (a --restart latest then runs no frame and writes what was skipped)."""
+        p = self.preemption
+        p.agreed()
+        summary["preempted"] = p.signal_name
+        if self.error or self.writer is None or self.outputs_only:
+            return
+        try:
+            with self.sim.timers("io"):
+                self.checkpointer.write(self.sim.integrator)
+        except OutputError as e:
+            self.error = summary["error"] = f"output error: {e}"
+            summary["converged"] = False
+        summary["checkpoints"] = self.checkpointer.written
 
     def _stop_after_last_frame(self):
         """Collective, after the frame loop: a signal during the last frame or the close of
         frames.h5 (the loop only looks before a frame) stops the run as one during the
         loop does: a checkpoint of the last frame (a --restart latest then only writes the
-        outputs), no crossing check, exit 75.  One on rank 0 during its outputs skips the
-        outputs not begun yet (:meth:`_write_outputs`)."""
+        outputs), no crossing check, exit 75.  One later, during the check or the
+        exports, is :meth:`_stopped_late`'s."""
         p, it = self.preemption, self.sim.integrator
         p.in_outputs = True
         if p.stopped or not p.agreed() or self.error or self.writer is None:
@@ -845,7 +906,7 @@ class Job:
         say(self.comm, f"{PROG}: checking the steps between the frames written for crossings", sys.stdout)
         # crossings of rest-exempt pairs are the exemption's, not a limiter failure
         d0 = self.sim.strand.d0 if self.sim.strand is not None else None
-        check = check_run(self.out / "frames.h5", self.comm, self_contact=True, rest_exempt=d0)
+        check = check_run(self.out / "frames.h5", self.comm, self_contact=True, rest_exempt=d0, stop=self.stop)
         check["seconds"] = global_max(self.comm, time.perf_counter() - t0)
         return check
 
@@ -900,10 +961,12 @@ class Job:
             summary["converged"] = False
         return summary
 
-    def _write_outputs(self, summary):
-        """Rank 0: frames.xdmf, previews, summary.json and the report; each output that
-        fails is named, the others are still written."""
-        from lc_petsc.io.summary import format_report, write_summary
+    def _write_exports(self, summary):
+        """Rank 0: frames.xdmf, previews, frames.usdc; each that fails is named in the
+        returned dict's ``not_written``, the others are still written.  A signal (on any
+        rank) skips those not begun and stops the previews and the export between two
+        frames (``output.skipped``)."""
+        from lc_petsc.stop_notice import Stopped
         from lc_petsc.io.xdmf import write_xdmf
         cfg, sim, out, writer = self.cfg, self.sim, self.out, self.writer
         h5_path = out / "frames.h5"
@@ -923,7 +986,9 @@ class Job:
                 and not hdf5.unclosable():
             try:
                 files += [os.path.relpath(p, out) for p in _previews(cfg, out, h5_path, writer,
-                                                                     cfg.time.frames, self.name)]
+                                                                     cfg.time.frames, self.name, self._stop)]
+            except Stopped:
+                self.skipped_outputs.append("previews")
             except Exception as e:  # noqa: BLE001 - a preview is never worth the run's summary
                 problems.append(f"previews in {out}: {getattr(e, 'strerror', None) or e}")
         t_prev = time.perf_counter() - t0
@@ -933,22 +998,30 @@ class Job:
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_failed, export_run
             try:
-                usd_files, t_usd = export_run(cfg.output, h5_path, out)
+                usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop)
                 files += usd_files
+            except Stopped:
+                self.skipped_outputs.append("frames.usdc")
             except Exception as e:  # noqa: BLE001 - like a preview, never worth the summary
                 text = export_failed(h5_path, f"{type(e).__name__}: {e}")
                 print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
                 summary["warnings"] = list(summary.get("warnings") or []) + [text]
-        files.append("summary.json")
-        if self.skipped_outputs:
-            summary["preempted"] = self.preemption.signal_name
+        return {"files": files, "not_written": problems, "xdmf_s": t_xdmf, "previews_s": t_prev,
+                "usd_s": t_usd}
+
+    def _write_summary(self, summary, exports):
+        """Rank 0: summary.json (with the exports' ``output`` figures) and the report."""
+        from lc_petsc.io.summary import format_report, write_summary
+        cfg, sim, out, writer = self.cfg, self.sim, self.out, self.writer
+        problems = exports["not_written"]
         if problems and not self.error:
             self.error = summary["error"] = f"output error: {problems[0]}"
             summary["converged"] = False
         summary["output"] = {"dir": str(out), "every": cfg.output.every,
                              "frames_written": writer.written if writer is not None else 0,
-                             "files": files, "xdmf_s": t_xdmf, "previews_s": t_prev,
-                             "usd_s": t_usd, "not_written": problems, "skipped": self.skipped_outputs}
+                             "files": exports["files"] + ["summary.json"], "xdmf_s": exports["xdmf_s"],
+                             "previews_s": exports["previews_s"], "usd_s": exports["usd_s"],
+                             "not_written": problems, "skipped": self.skipped_outputs}
         try:
             write_summary(out / "summary.json", summary)
         except OSError as e:
@@ -963,7 +1036,7 @@ class Job:
         if self.error:
             print(f"{PROG}: error: {self.error}", file=sys.stderr, flush=True)
             self._say_how_to_continue()
-        if self.skipped_outputs:
+        if self.skipped_outputs and not self.stopped_in_loop:
             self._say_outputs_skipped()
         elif summary["preempted"]:
             last = self.checkpointer.written[-1]["path"] if self.checkpointer.written else "?"
@@ -973,20 +1046,26 @@ class Job:
 
     def _late_signal(self, output):
         """Rank 0, before a slow end-of-run output: False (and ``output`` recorded as skipped)
-        once a signal came after the frame loop's last look, else True; the run stops
-        promptly, a --restart latest writes what was skipped."""
-        p = self.preemption
-        if p.flag and not p.stopped:
+        once a signal came on any rank, also one that stopped the frame loop; else True.
+        The run stops promptly (a scheduler's grace period is running), a --restart latest
+        writes what was skipped."""
+        if self.preemption.stopped or self.stop.requested():
             self.skipped_outputs.append(output)
             return False
         return True
 
+    def _stop(self):
+        """Rank 0, between two frames of a slow export: raise Stopped on a signal."""
+        from lc_petsc.stop_notice import Stopped
+        if self.stop.requested():
+            raise Stopped("a signal during the end-of-run outputs")
+
     def _say_outputs_skipped(self):
-        """Rank 0: what a signal during the end-of-run outputs left unwritten, how to finish."""
+        """Rank 0: what a signal during the end-of-run check and outputs left undone, how to finish."""
         written = self.checkpointer.written
         last = written[-1]["frame"] if written else self.restart["frame"] if self.restart else None
         frame = self.sim.integrator.frame
-        how = "continue with --restart latest (it writes them"
+        how = "continue with --restart latest (it does them"
         if last is not None and last < frame:
             again = f"frame {frame}" if last + 1 == frame else f"frames {last + 1}-{frame}"
             how += f", after running {again} again from the checkpoint of frame {last})"
@@ -995,8 +1074,8 @@ class Job:
         else:
             how = (f"no checkpoint to restart from (output.checkpoint_every = 0): drivers/to_usd.py "
                    f"{self.out / 'frames.h5'} writes frames.usdc")
-        print(f"{PROG}: {self.preemption.signal_name} received during the end-of-run outputs: frames.h5 "
-              f"holds every frame (0-{frame}); not written: {', '.join(self.skipped_outputs)}; {how} "
+        print(f"{PROG}: {self.preemption.signal_name} received during the end-of-run check and outputs: "
+              f"frames.h5 holds every frame (0-{frame}); skipped: {', '.join(self.skipped_outputs)}; {how} "
               f"(exit status {EXIT_PREEMPTED})", file=sys.stderr, flush=True)
 
     def _say_how_to_continue(self):
@@ -1085,9 +1164,9 @@ class Preemption:
             self.raising = False
             raise SetupInterrupted(self.signal_name)
         if signum == signal.SIGINT and self.setup_over:
-            now = "the end-of-run output being written, the others skipped" if self.in_outputs else \
-                "this frame, then a checkpoint"
-            print(f"\n{PROG}: SIGINT: finishing {now} and exit {EXIT_PREEMPTED}; press Ctrl-C again "
+            now = "stopping the end-of-run check and outputs, a checkpoint of the last frame" \
+                if self.in_outputs else "finishing this frame, then a checkpoint"
+            print(f"\n{PROG}: SIGINT: {now} and exit {EXIT_PREEMPTED}; press Ctrl-C again "
                   "to stop at once (no checkpoint)", file=sys.stderr, flush=True)
 
     @contextmanager
@@ -1144,12 +1223,24 @@ class Preemption:
         self.previous = {}
 
 
+def _differences_text(keys, saved, now):
+    """'time.dt (checkpoint: 0.0333, config: 0.02), ...' for the dotted config ``keys``
+    of the checkpoint's config dict ``saved`` and the run's ``now``."""
+    def value(d, key):
+        for part in key.split("."):
+            if not isinstance(d, dict) or part not in d:
+                return "unset"
+            d = d[part]
+        return repr(d)
+    return ", ".join(f"{k} (checkpoint: {value(saved, k)}, config: {value(now, k)})" for k in keys)
+
+
 def _signal_name(signum):
     import signal
     return signal.Signals(signum).name
 
 
-def _previews(cfg, out, h5_path, writer, frames, title):
+def _previews(cfg, out, h5_path, writer, frames, title, stop=None):
     from lc_petsc.io.previews import render_previews
     from lc_petsc.scene.kinematics import HeadMotion
     every, n = cfg.output.every, writer.written
@@ -1163,7 +1254,7 @@ def _previews(cfg, out, h5_path, writer, frames, title):
         hm = HeadMotion(cfg.physics)
         head = lambda t: (hm.sphere_center(t), hm.radius)   # noqa: E731
     return render_previews(h5_path, out, rows, contact_panels=cfg.output.contact_sheet,
-                           view=cfg.output.view, title=title, head=head, every=every)
+                           view=cfg.output.view, title=title, head=head, every=every, stop=stop)
 
 
 def _progress(comm, args, frames, name):

@@ -517,5 +517,8 @@ def find_latest(folder, comm, scene, n_wisps, n_vertices, head):
             return load_checkpoint(p, comm, scene, n_wisps, n_vertices, head), rejected
         except CheckpointError as e:
             rejected.append(str(e))
-    why = ("; ".join(rejected)) if rejected else "there are none"
+    # none at all: the run stopped (killed) before its first checkpoint; nothing to continue
+    why = ("; ".join(rejected)) if rejected else ("there are none: the run there stopped before its first "
+                                                  "checkpoint (output.checkpoint_every); run the same command "
+                                                  "without --restart to start it over")
     raise CheckpointError(f"--restart latest: no valid checkpoint in {str(folder)!r} ({why})")

@@ -171,13 +171,14 @@ def _limits(arrays, view, head_discs):
 
 
 def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view="front",
-                    title="", head=None, every=1):
+                    title="", head=None, every=1, stop=None):
     """Render ``preview_rows`` (row indices of ``/positions``) to
     ``out_dir/previews/frame_NNNNN.png`` (NNNNN the simulation frame number) and a
     contact sheet of ``contact_panels`` rows evenly spaced over the run to
     ``out_dir/contact_sheet.png``.  Only rows that hold a frame (``/frame_valid``) are
     drawn: a lost row's preview is the nearest valid row's.  ``head``: callable t ->
-    (centre, radius) or None.  Returns the paths written."""
+    (centre, radius) or None.  ``stop``: called before each image (the main job's raises
+    :class:`lc_petsc.stop_notice.Stopped` on a signal), or None.  Returns the paths written."""
     import h5py
     from lc_petsc.io.frames import valid_rows
     plt = _pyplot()
@@ -199,6 +200,8 @@ def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view=
     written = []
     os.makedirs(os.path.join(out_dir, "previews"), exist_ok=True)
     for r in rows:
+        if stop is not None:
+            stop()
         fig, ax = plt.subplots(figsize=(7, 7), dpi=100)
         _draw(ax, X[r], offsets, view, limits, head(times[r]) if head else None)
         ax.set_title(f"{title}  frame {r * every}, t = {times[r]:.3f} s".strip())
@@ -208,6 +211,8 @@ def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view=
         fig.savefig(path, bbox_inches="tight")
         plt.close(fig)
         written.append(path)
+    if sheet and stop is not None:
+        stop()
     if sheet:
         cols = min(len(sheet), 4)
         nrows = math.ceil(len(sheet) / cols)

@@ -248,11 +248,13 @@ def export_failed(frames_path, error):
     return f"USD export failed, frames.h5 is intact (write it later with drivers/to_usd.py {frames_path}): {error}"
 
 
-def export_run(output, frames_path, out_dir):
+def export_run(output, frames_path, out_dir, stop=None):
     """The main job's USD export (rank 0, after ``frames.h5`` is closed): writes
     ``out_dir/frames.usdc`` when ``output.usd`` is on, else removes a stale one.  A
     failure is reported on stderr as a warning; the run's other outputs are unaffected.
-    Returns (files written relative to ``out_dir``, seconds)."""
+    Returns (files written relative to ``out_dir``, seconds).  ``stop``: called after
+    each frame (the main job's raises :class:`lc_petsc.stop_notice.Stopped` on a signal:
+    the temporary file is removed, no frames.usdc written), or None."""
     t0 = time.perf_counter()
     target = Path(out_dir) / USD_NAME
     if not output.usd:
@@ -266,7 +268,7 @@ def export_run(output, frames_path, out_dir):
               file=sys.stderr, flush=True)
         return [], time.perf_counter() - t0
     try:
-        write_usd(frames_path, target)
+        write_usd(frames_path, target, progress=None if stop is None else lambda done, total: stop())
     except failures as e:
         print(f"simulate.py: warning: {export_failed(frames_path, e)}", file=sys.stderr, flush=True)
         return [], time.perf_counter() - t0

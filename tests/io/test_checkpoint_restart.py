@@ -307,6 +307,11 @@ def test_clear_errors(tmp_path, capsys):
         return capsys.readouterr().err
 
     assert "no such checkpoint file" in err(["--restart", str(tmp_path / "nope.h5")])
+    # a run killed before its first checkpoint: say so, and how to go on (main: "there are none")
+    assert main([cfg, "--out", str(tmp_path / "early"), "--quiet", "--restart", "latest"]) == 2
+    assert ("no valid checkpoint in '" + str(tmp_path / "early" / "checkpoints") + "' (there are none: the run "
+            "there stopped before its first checkpoint (output.checkpoint_every); run the same command without "
+            "--restart to start it over)") in capsys.readouterr().err
     assert "not an lc_petsc checkpoint" in err(["--restart", cfg])
     assert "not an lc_petsc checkpoint" in err(["--restart", str(out / "frames.h5")])
     assert "nothing to do" in err(["--restart", str(ck), "--frames", "2"])
@@ -319,13 +324,20 @@ def test_clear_errors(tmp_path, capsys):
     # a different scene: wisp / vertex counts
     other = _config(tmp_path, name="other.toml", **{"n_wisps = 5": "n_wisps = 6"})
     assert main([other, "--out", str(out), "--quiet", "--restart", str(ck)]) == 2
-    assert "5 wisps and 505 vertices, the scene 6 wisps and 606 vertices" in capsys.readouterr().err
-    # a different config: named keys; --force accepts it
+    e = capsys.readouterr().err
+    assert "5 wisps and 505 vertices, the scene 6 wisps and 606 vertices" in e
+    # ... and which setting made it another scene, with what to do (main: the counts only)
+    assert (f"; {ck} was written with another config, which differs in scene.n_wisps (checkpoint: 5, "
+            f"config: 6): restart with that config (its attribute config_toml)") in e, e
+    # a different config: named keys with both values; --force accepts it
     diff = _config(tmp_path, name="diff.toml", **{"youngs_modulus = 2.5e8": "youngs_modulus = 3e8",
                                                   "head_period = 0.4": "head_period = 0.4\nhead_stiffness = 2e5"})
     assert main([diff, "--out", str(out), "--quiet", "--restart", str(ck)]) == 2
     e = capsys.readouterr().err
-    assert "material.youngs_modulus, physics.head_stiffness" in e and "--force" in e
+    assert ("the config differs from the checkpoint's in material.youngs_modulus (checkpoint: 250000000.0, "
+            "config: 300000000.0), physics.head_stiffness (checkpoint: 100000.0, config: 200000.0); restart "
+            "with the config the checkpoint ran with (its attribute config_toml) or add --force (continues "
+            "with this config)") in e, e
     assert main([diff, "--out", str(out), "--quiet", "--restart", str(ck), "--force", "--frames", "3"]) == 0
     # a different rest state (pinned vertices) with --force: warned about, the scene's is used
     pins = _config(tmp_path, name="pins.toml", **{"seed = 3": "seed = 3\nn_pinned = 5"})

@@ -666,9 +666,10 @@ def test_a_signal_during_the_end_of_run_outputs_stops_them_and_a_restart_writes_
         tmp_path, monkeypatch, capsys):
     """SIGTERM while the previews are drawn: they were finished, then the USD export
     and the rest were written and the run ended with exit 0 and summary.json's
-    preempted null: the signal was ignored.  Now the outputs not begun are skipped,
-    exit 75, and --restart latest writes them (frames.h5 unchanged; it runs frame 5
-    again from the checkpoint of frame 4)."""
+    preempted null: the signal was ignored.  Now the previews stop before their next
+    image, the outputs not begun are skipped, a checkpoint of the last frame is
+    written, exit 75, and --restart latest writes them (frames.h5 unchanged; it runs
+    no frame)."""
     import lc_petsc.job as job
     cfg = _smash(tmp_path, frames=5, ce=2, previews="true")
     out, ref = tmp_path / "out", tmp_path / "ref"
@@ -677,19 +678,20 @@ def test_a_signal_during_the_end_of_run_outputs_stops_them_and_a_restart_writes_
         _signal_inside(m, job, "_previews")
         assert main([cfg, "--out", str(out), "--quiet"]) == EXIT_PREEMPTED
     err = capsys.readouterr().err
-    assert (f"SIGTERM received during the end-of-run outputs: frames.h5 holds every frame (0-5); not "
-            f"written: frames.usdc; continue with --restart latest (it writes them, after running frame 5 "
-            f"again from the checkpoint of frame 4) (exit status {EXIT_PREEMPTED})") in err, err
+    assert (f"SIGTERM received during the end-of-run check and outputs: frames.h5 holds every frame (0-5); "
+            f"skipped: previews, frames.usdc; continue with --restart latest (it does them, running no "
+            f"frame) (exit status {EXIT_PREEMPTED})") in err, err
     s = json.loads((out / "summary.json").read_text())
-    assert s["preempted"] == "SIGTERM" and s["output"]["skipped"] == ["frames.usdc"] and s["error"] is None
-    assert (out / "contact_sheet.png").exists() and not (out / "frames.usdc").exists()
+    assert s["preempted"] == "SIGTERM" and s["output"]["skipped"] == ["previews", "frames.usdc"]
+    assert s["error"] is None and [c["frame"] for c in s["checkpoints"]] == [2, 4, 5]
+    assert not (out / "contact_sheet.png").exists() and not (out / "frames.usdc").exists()
     assert not (out / LOCK_NAME).exists()
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
     assert (out / "frames.usdc").exists()
     with h5py.File(out / "frames.h5", "r") as f, h5py.File(ref / "frames.h5", "r") as g:
         assert np.array_equal(f["positions"][...], g["positions"][...])
     s = json.loads((out / "summary.json").read_text())
-    assert s["preempted"] is None and s["output"]["skipped"] == [] and s["frames_this_run"] == 1
+    assert s["preempted"] is None and s["output"]["skipped"] == [] and s["frames_this_run"] == 0
 
 
 def test_a_signal_during_the_last_frame_checkpoints_it(tmp_path, monkeypatch, capsys):
@@ -727,3 +729,72 @@ def test_a_signal_while_a_finished_run_ends_keeps_exit_0(tmp_path):
     assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
     assert json.loads((out / "summary.json").read_text())["preempted"] is None
     assert not (out / LOCK_NAME).exists()
+
+
+def test_a_signal_during_the_crossing_check_stops_it_and_a_restart_completes_it(
+        tmp_path, monkeypatch, capsys):
+    """SIGTERM during the end-of-run crossing check (at its step 2 of 6): the check ran
+    every step to the end (minutes on the 8K, 221 s on a 200-wisp file) with the signal
+    pending, then skipped the exports.  Now it stops at its next step, the exports are
+    skipped, a checkpoint of the last frame is written (frame 6; the newest was frame 4),
+    summary.json says what was skipped, exit 75; --restart latest runs no frame and does
+    the whole check and the exports, frames.h5 unchanged."""
+    import lc_petsc.crossings as crossings
+    cfg = _smash(tmp_path, frames=6, ce=4, previews="true")
+    out, ref = tmp_path / "out", tmp_path / "ref"
+    assert main([cfg, "--out", str(ref), "--quiet"]) == 0
+    count, steps = crossings.count_crossings, []
+
+    def signalled(*args, **kwargs):
+        steps.append(1)
+        if len(steps) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return count(*args, **kwargs)
+    with monkeypatch.context() as m:
+        m.setattr(crossings, "count_crossings", signalled)
+        assert main([cfg, "--out", str(out), "--quiet"]) == EXIT_PREEMPTED
+    assert len(steps) == 3                   # main: 6, every step after the signal too
+    err = capsys.readouterr().err
+    assert (f"SIGTERM received during the end-of-run check and outputs: frames.h5 holds every frame (0-6); "
+            f"skipped: crossing check, previews, frames.usdc; continue with --restart latest (it does them, "
+            f"running no frame) (exit status {EXIT_PREEMPTED})") in err, err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["preempted"] == "SIGTERM" and s["crossings"] is None and s["error"] is None
+    assert s["output"]["skipped"] == ["crossing check", "previews", "frames.usdc"]
+    assert [c["frame"] for c in s["checkpoints"]] == [4, 6]
+    assert not (out / "frames.usdc").exists() and not (out / "contact_sheet.png").exists()
+    assert not (out / LOCK_NAME).exists()
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    assert "frame 6 is the run's last: no frame to run" in capsys.readouterr().out
+    s = json.loads((out / "summary.json").read_text())
+    assert s["preempted"] is None and s["output"]["skipped"] == [] and s["frames_this_run"] == 0
+    assert s["crossings"]["steps"] == 6 and s["crossings"]["between_wisps"] == 0
+    assert (out / "frames.usdc").exists() and (out / "contact_sheet.png").exists()
+    with h5py.File(out / "frames.h5", "r") as f, h5py.File(ref / "frames.h5", "r") as g:
+        assert np.array_equal(f["positions"][...], g["positions"][...])
+
+
+def test_a_signal_during_the_usd_export_stops_it_between_frames(tmp_path, monkeypatch, capsys):
+    """SIGTERM while frames.usdc is written (after its frame 1 of 7): the export ran to the
+    end and the run exited 0 with the signal ignored.  Now it stops after that frame, its
+    temporary file removed, frames.usdc skipped, exit 75; a checkpoint of frame 6."""
+    import lc_petsc.io.usd as usd
+    cfg = _smash(tmp_path, frames=6, ce=4)
+    out = tmp_path / "out"
+    write, done = usd.write_usd, []
+
+    def counted(*args, progress=None, **kwargs):
+        def tick(k, n):
+            done.append(k)
+            if k == 2:
+                os.kill(os.getpid(), signal.SIGTERM)
+            if progress is not None:
+                progress(k, n)
+        return write(*args, progress=tick, **kwargs)
+    monkeypatch.setattr(usd, "write_usd", counted)
+    assert main([cfg, "--out", str(out), "--quiet"]) == EXIT_PREEMPTED
+    assert done == [1, 2]                     # main: 1 .. 7
+    s = json.loads((out / "summary.json").read_text())
+    assert s["preempted"] == "SIGTERM" and s["output"]["skipped"] == ["frames.usdc"]
+    assert s["crossings"]["steps"] == 6 and [c["frame"] for c in s["checkpoints"]] == [4, 6]
+    assert sorted(p.name for p in out.iterdir() if "usd" in p.name) == []

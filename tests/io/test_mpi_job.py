@@ -153,3 +153,47 @@ def test_bad_strands_file_reported_once(shared_dir, capsys):
     n_reports = comm.allgather(err.count("is empty (0 bytes)"))
     assert n_reports == [1] + [0] * (comm.size - 1), n_reports
     assert "Traceback" not in err
+
+
+def test_a_signal_on_one_rank_during_the_crossing_check_stops_every_rank(shared_dir, monkeypatch):
+    """SIGTERM to the last rank alone at its first step of the end-of-run crossing check
+    (8 steps, shared by the ranks): every rank checked its whole share, the others
+    never learnt of the signal.  Now each rank stops at its next step (the others hear
+    of it between two steps, or while they wait), every rank exits 75, the check and
+    the exports are skipped, a checkpoint of frame 8 is written (the newest was frame
+    6), and --restart latest completes the check over all 8 steps without running a
+    frame."""
+    import time
+    import lc_petsc.crossings as crossings
+    d, cfg = shared_dir
+    out = os.path.join(d, "out")
+    count, calls = crossings.count_crossings, []
+
+    def signalled(*args, **kwargs):
+        calls.append(1)
+        if comm.rank == LAST and len(calls) == 1:
+            os.kill(os.getpid(), signal.SIGTERM)
+        elif comm.rank != LAST:
+            time.sleep(0.5)             # so that the notice arrives before the share is done
+        return count(*args, **kwargs)
+    with monkeypatch.context() as m:
+        m.setattr(crossings, "count_crossings", signalled)
+        code = main([cfg, "--out", out, "--quiet"], comm=comm)
+    assert comm.allgather(code) == [EXIT_PREEMPTED] * comm.size
+    done = comm.allgather(len(calls))
+    assert done[LAST] == 1 and max(done) <= 2, done          # main: 8 // size each
+
+    def check():
+        s = json.load(open(os.path.join(out, "summary.json")))
+        assert s["preempted"] == "SIGTERM" and s["crossings"] is None
+        assert s["output"]["skipped"] == ["crossing check", "frames.usdc"]
+        assert [c["frame"] for c in s["checkpoints"]] == [2, 4, 6, 8]
+    _on_root(check)
+    code = main([cfg, "--out", out, "--quiet", "--restart", "latest"], comm=comm)
+    assert comm.allgather(code) == [0] * comm.size
+
+    def complete():
+        s = json.load(open(os.path.join(out, "summary.json")))
+        assert s["frames_this_run"] == 0 and s["crossings"]["steps"] == 8 and s["output"]["skipped"] == []
+        assert os.path.exists(os.path.join(out, "frames.usdc"))
+    _on_root(complete)

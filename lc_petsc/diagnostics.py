@@ -86,9 +86,11 @@ def newton_warnings(cfg):
         return [f"{' and '.join(asked)} with solver.filter = {filt!r}: the filtered Newton "
                 "converges linearly (about 0.97 per iteration on the demo hairball), so frames "
                 "often miss the tolerance within time.newton_iterations (they are then cut back "
-                "into substeps, or reported unconverged), and at "
-                "loose tolerances (1e-3, 1e-4) a frame can stop several times the tolerance from "
-                "its solution (docs/newton.md, \"Twelfth round\"); set solver.filter = "
+                "into substeps, or reported unconverged), and with time.newton_increment_tol above "
+                "1e-5 its stops are refused "
+                "(its steps do not decrease G as their quadratic model predicts: such stops had "
+                "been 4-31x the tolerance from the solution), so its frames end unconverged "
+                "(docs/newton.md, \"Twelfth round\" and \"Stopping rule\"); set solver.filter = "
                 "\"exact_or_analytic\" (with time.newton_update = \"corotational\") to converge"]
     return []
 

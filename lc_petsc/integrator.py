@@ -103,7 +103,8 @@ class _Solve(NamedTuple):
     chord checks (``time.newton_stop = "chord_estimate"``), with strand contact (pairs,
     deep pairs, min distance, pairs separated), and whether the cap ended it on a stop
     awaiting its confirmation (:func:`confirms_stop`: an increment below the tolerance,
-    yet not converged)."""
+    yet not converged) or on one refused for steps off their quadratic model
+    (:meth:`Integrator._loose_verdict`; the same)."""
 
     iterations: int
     converged: Optional[bool]
@@ -112,6 +113,7 @@ class _Solve(NamedTuple):
     chord_checks: int
     contact: Optional[tuple]
     unconfirmed: bool = False
+    refused: bool = False
 
 
 class _Region:
@@ -189,6 +191,7 @@ class Integrator:
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
         self.newton_unconfirmed = []    # per frame: kept steps the cap ended on an unconfirmed stop
+        self.newton_refused = []        # per frame: kept steps the cap ended on a refused stop
         self.history = None             # a list: per-iteration measures are appended
         self.monitor = None             # a stream: a line per Newton iteration (rank 0)
         self._fallback = ""            # why the last exact step was rejected (history)
@@ -293,12 +296,13 @@ class Integrator:
         conv = [s.converged for s in solves]
         converged = None if conv[0] is None else all(conv)
         unconfirmed = sum(s.unconfirmed for s in solves)
+        refused = sum(s.refused for s in solves)
         if converged is False and cfg.time.unconverged == "error":
             raise SimulationError(
                 f"frame {self.frame}: Newton did not reach the tolerance within time.newton_iterations = "
                 f"{cfg.time.newton_iterations} in {len(solves)} substep(s) (time.max_substeps = "
                 f"{cfg.time.max_substeps}; largest final relative increment "
-                f"{max(s.increment for s in solves):.3g}{unconfirmed_note(unconfirmed)}); raise "
+                f"{max(s.increment for s in solves):.3g}{unconfirmed_note(unconfirmed, refused)}); raise "
                 f"time.newton_iterations or time.max_substeps, loosen the tolerance, or set "
                 f"time.unconverged = \"accept\"")
         self.newton_iterations.append(self._discarded + sum(s.iterations for s in solves))
@@ -307,6 +311,7 @@ class Integrator:
         self.newton_increment.append(max(s.increment for s in solves))
         self.newton_converged.append(converged)
         self.newton_unconfirmed.append(unconfirmed)
+        self.newton_refused.append(refused)
         self.exact_hessian_fallbacks.append(sum(s.fallbacks for s in solves))
         self.chord_checks.append(self._discarded_checks + sum(s.chord_checks for s in solves))
         self.length_projection_move.append(self._projection_move if cfg.time.length_projection else None)
@@ -379,9 +384,10 @@ class Integrator:
         loose = confirms_stop(cfg.time.newton_increment_tol)
         last_step = None                        # the last iteration's step (_model_agrees)
         unconfirmed = False                     # this iteration's stop awaits the next
+        off_model = False                       # this iteration's stop was refused (_loose_verdict)
         for it in range(cfg.time.newton_iterations):
             n_it += 1
-            unconfirmed = False
+            unconfirmed = off_model = False
             if region is not None and it > 0:   # after a filtered first step: lc_petsc/trust_region.py
                 g, dx, exact = self._trust_region_step(x, it, region)
                 x_prev, x = x, self.update(x, dx)
@@ -401,7 +407,7 @@ class Integrator:
                                                          step, last_step)
                 converged = converged and confirmed and not refused
                 claimed_before, last_step = claim, step
-                unconfirmed = claim and not confirmed
+                unconfirmed, off_model = claim and not confirmed, refused
                 if self.monitor is not None:
                     self._monitor(it, increment, self._step_kind(exact, region=True)
                                   + _stop_note(unconfirmed, refused), 1.0, self.trust.iterations[-1], cut=False)
@@ -481,7 +487,7 @@ class Integrator:
                                                      step, last_step)
             converged = converged and confirmed and not refused
             claimed_before, last_step = claim, step
-            unconfirmed = claim and not confirmed
+            unconfirmed, off_model = claim and not confirmed, refused
             if self.monitor is not None:
                 short = ", solve short of -ksp_rtol" if short_of_rtol else ""
                 short += _stop_note(unconfirmed, refused)
@@ -492,7 +498,8 @@ class Integrator:
         if self.monitor is not None and converged is not None:
             self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {'converged' if converged else 'NOT converged'} "
                       f"after {n_it} iteration(s), measure {reported:.3e}"
-                      + (" (a stop the cap left unconfirmed)" if unconfirmed else ""))
+                      + (" (a stop the cap left unconfirmed)" if unconfirmed else "")
+                      + (" (a stop refused: G's decrease off its quadratic model)" if off_model else ""))
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
         first_bad = sc.first_vertex + int(badv[0]) if len(badv) else -1
         bad_any = self.comm.allgather(first_bad)
@@ -529,7 +536,7 @@ class Integrator:
         self.v = (x - x_old) / dt
         self.x = x
         self.t = self.t_next
-        return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed)
+        return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed, off_model)
 
     def _head_sphere(self):
         """(centre, radius, allowed depth (n,)) of the head sphere at the step's end: its
@@ -967,15 +974,23 @@ def _stop_note(unconfirmed, refused):
     return ", stop refused: G's decrease off its quadratic model" if refused else ""
 
 
-def unconfirmed_note(steps):
+def unconfirmed_note(steps, refused=0):
     """For a missed tolerance's message: why ``steps`` (kept steps the cap ended on an
-    unconfirmed stop, :func:`confirms_stop`) missed it although their last increment may
-    be below the tolerance; '' for none."""
-    if not steps:
-        return ""
-    return (f"; {steps} step(s) ended on an increment below time.newton_increment_tol at the cap: "
-            f"above {LOOSE_TOLERANCE:g} a stop must be confirmed by the next iteration, which "
-            f"time.newton_iterations left out (docs/newton.md, \"Stopping rule\")")
+    unconfirmed stop, :func:`confirms_stop`) and ``refused`` (kept steps it ended on a
+    stop refused by :meth:`Integrator._loose_verdict`) missed it although their last
+    increment is below the tolerance; '' for none."""
+    note = ""
+    if steps:
+        note += (f"; {steps} step(s) ended on an increment below time.newton_increment_tol at the cap: "
+                 f"above {LOOSE_TOLERANCE:g} a stop must be confirmed by the next iteration, which "
+                 f"time.newton_iterations left out (docs/newton.md, \"Stopping rule\")")
+    if refused:
+        note += (f"; {refused} step(s) ended on an increment below time.newton_increment_tol whose "
+                 f"stop was refused: above {LOOSE_TOLERANCE:g} the last two steps must decrease G as "
+                 f"their quadratic model predicts, and where they do not their size says nothing of "
+                 f"the distance to the solution (filtered steps rarely do: use solver.filter = "
+                 f"\"exact_or_analytic\"; docs/newton.md, \"Stopping rule\")")
+    return note
 
 
 def contraction_factor(increments):

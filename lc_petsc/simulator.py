@@ -196,6 +196,7 @@ class Simulator:
             "newton_increment": [None if not np.isfinite(v) else float(v)
                                  for v in self.integrator.newton_increment],
             "newton_unconfirmed": list(self.integrator.newton_unconfirmed),
+            "newton_refused": list(self.integrator.newton_refused),
             "newton_exact_fallbacks": list(self.integrator.exact_hessian_fallbacks),
             "newton_chord_checks": list(self.integrator.chord_checks),
             "length_projection_move": list(self.integrator.length_projection_move),

@@ -13,7 +13,8 @@ from lc_petsc.config import (ConfigError, load_config, MaterialConfig, PhysicsCo
                              SimConfig, SolverConfig, TimeConfig)
 from lc_petsc.integrator import (ENERGY_FLOOR, LOOSE_TOLERANCE, Integrator, confirms_stop,
                                  contraction_factor, corotational_update, follow_the_leader,
-                                 model_agrees, project_rest_lengths, retract_edge_lengths)
+                                 model_agrees, project_rest_lengths, retract_edge_lengths,
+                                 unconfirmed_note)
 from lc_petsc.simulator import build_simulator
 from lc_petsc.studies.newton import configure, iterations_to, parse_variant, run_history
 from lc_petsc.studies.newton_frames import frame_iterations, reference_states
@@ -453,6 +454,7 @@ def test_a_wandering_newton_is_not_claimed_converged():
     assert distance > 10 * 1e-3, distance                     # measured 16.5x: not converged
     assert s["newton_converged"] == [False]                   # main: [True] after 9, 20.6x away
     assert s["newton_unconfirmed"] == [0]                     # refused, not left unconfirmed
+    assert s["newton_refused"] == [1]                         # named as such (main: no key)
 
 
 def test_which_steps_agree_with_their_model():
@@ -461,6 +463,19 @@ def test_which_steps_agree_with_their_model():
     assert not model_agrees(1.0, -1.0, 1e3)                   # an ascent direction
     below = 0.5 * ENERGY_FLOOR * 1e3                          # the prediction at round-off
     assert model_agrees(5.0 * below, below, 1e3) and model_agrees(-below, below, -1e3)
+
+
+def test_a_missed_tolerance_says_which_stops_were_refused():
+    """The missed-tolerance messages (the job's warning, time.unconverged = "error") say
+    why a step whose last increment is below the tolerance missed it: the cap left its
+    stop unconfirmed, or its stop was refused for steps off their quadratic model."""
+    assert unconfirmed_note(0) == unconfirmed_note(0, 0) == ""
+    assert "must be confirmed" in unconfirmed_note(2) and "refused" not in unconfirmed_note(2)
+    note = unconfirmed_note(0, 3)
+    assert note.startswith("; 3 step(s) ended on an increment below time.newton_increment_tol whose stop was refused")
+    assert "quadratic model" in note and "exact_or_analytic" in note and "confirmed" not in note
+    both = unconfirmed_note(1, 2)
+    assert both == unconfirmed_note(1) + unconfirmed_note(0, 2)
 
 
 def test_which_tolerances_confirm_a_stop():

@@ -481,8 +481,9 @@ class Integrator:
             # (a rejected exact attempt shows the quadratic model failing here: smash at
             # E = 1e12 stopped 2.4x away on the tiny filtered step that followed one)
             whole = whole and not self._fallback
+            # the step's arrays are kept one more iteration only where the rule reads them
             step = dict(before=x_prev, after=x, g=g, dx=dx, whole=whole,
-                        searched=self._searched if whole else None)
+                        searched=self._searched if whole else None) if loose else None
             confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure, steps,
                                                      step, last_step)
             converged = converged and confirmed and not refused

@@ -325,6 +325,14 @@ def test_frame_end_distance_does_not_decay_over_a_run(monkeypatch):
     assert ok, msg
 
 
+def six_wisps_parts(sim):
+    """(strand contact, scene, gathered rest positions, wisp of each local vertex) of a
+    :func:`six_wisps_ccd` simulator."""
+    sc = sim.scene
+    return (sim.integrator.strand, sc, np.concatenate(comm.allgather(sc.x_rest)),
+            np.repeat(np.arange(6), 30)[sc.first_vertex:sc.first_vertex + sc.nv])
+
+
 def brute_force_measure(X, X_rest, d0):
     """measure()'s figures by brute force over all pairs of segments of different wisps
     of the six wisps (gathered positions X, rest X_rest (180, 3)): (pairs closer than d0
@@ -356,10 +364,8 @@ def test_measure_equals_brute_force(monkeypatch):
     ranks."""
     sim = six_wisps_ccd(monkeypatch)
     try:
-        st, sc = sim.integrator.strand, sim.scene
+        st, sc, X_rest, wisp_of = six_wisps_parts(sim)
         d0 = st.d0
-        X_rest = np.concatenate(comm.allgather(sc.x_rest))
-        wisp_of = np.repeat(np.arange(6), 30)[sc.first_vertex:sc.first_vertex + sc.nv]
         rng = np.random.default_rng(3)
         x0 = sim.integrator.x.copy()
         push = np.where(wisp_of % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.3, 0.0, 0.0])
@@ -415,15 +421,14 @@ def brute_force_min(X, X_rest, d0):
 def test_min_distance_is_the_true_minimum(monkeypatch):
     """StrandContact.min_distance against brute force over all pairs of segments of
     different wisps, on 1-3 ranks: with pairs closer than d0 (measure's minimum), at rest
-    and with the wisps spread 1.2x and 3x apart, every other one turned (measure's minimum is then
-    the closest candidate of its d0 broad phase, or inf: main reported those, 0.2527 cm
-    for a true 0.1379 in from_file), from no hint and from hints too small and too large."""
+    and with the wisps spread 1.2x and 3x apart, every other one turned (measure's
+    minimum is then the closest candidate of its d0 broad phase, or inf: main reported
+    those, 0.2527 cm for a true 0.1379 in from_file), from no hint and from hints too
+    small and too large."""
     sim = six_wisps_ccd(monkeypatch)
     try:
-        st, sc = sim.integrator.strand, sim.scene
+        st, sc, X_rest, wisp_of = six_wisps_parts(sim)
         d0 = st.d0
-        X_rest = np.concatenate(comm.allgather(sc.x_rest))
-        wisp_of = np.repeat(np.arange(6), 30)[sc.first_vertex:sc.first_vertex + sc.nv]
         free = ~sc.pinned[:, None]
         x0 = sim.integrator.x.copy()
         push = np.where(wisp_of % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.3, 0.0, 0.0]) * free

@@ -3,11 +3,12 @@
   python drivers/to_usd.py FRAMES.h5 [--out FILE.usdc] [--render-hairs N] [--seed S]
                            [--spread F] [--stride K] [--quiet]
 
---out: default frames.usdc beside FRAMES.h5 (.usd, .usda or .usdc).  --render-hairs N:
-N interpolated hairs per wisp in a second prim (default: the run's output.render_hairs);
---seed / --spread: their offsets (default: the run's output.render_hair_seed /
-render_hair_spread).  --stride K: every K-th frame of the file only (time codes stay the
-file's frame rows).  Exit status 0 done, 2 bad arguments or input (nothing written).
+--out: default frames.usdc beside FRAMES.h5 (.usd, .usda or .usdc; a missing folder is
+created).  --render-hairs N: N interpolated hairs per wisp in a second prim (default:
+the run's output.render_hairs); --seed / --spread: their offsets (default: the run's
+output.render_hair_seed / render_hair_spread).  --stride K: every K-th frame of the file
+only (time codes stay the file's frame rows; the stage ends at the last row written).
+Exit status 0 done, 2 bad arguments or input (nothing written).
 """
 
 import argparse
@@ -18,7 +19,8 @@ import time
 def main(argv=None):
     p = argparse.ArgumentParser(prog="to_usd.py", description=__doc__.split("\n\n")[0])
     p.add_argument("frames", metavar="FRAMES.h5", help="frames.h5 of a run (drivers/simulate.py)")
-    p.add_argument("--out", metavar="FILE", help="USD file to write (default: frames.usdc beside FRAMES.h5)")
+    p.add_argument("--out", metavar="FILE", help="USD file to write (default: frames.usdc beside FRAMES.h5; a missing "
+                   "folder is created)")
     p.add_argument("--render-hairs", type=int, metavar="N", help="render hairs per wisp (0: none)")
     p.add_argument("--seed", type=int, metavar="S", help="seed of the render hairs' offsets")
     p.add_argument("--spread", type=float, metavar="F", help="render hairs' clump radius / wisp radius")

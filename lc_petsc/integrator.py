@@ -76,7 +76,9 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   :data:`SEPARATION_ROUNDS` Jacobi rounds over at most 3 calls, each followed by a
   measure; the pairs found are counted in ``contact_separated``), and the
   figures at the final positions are recorded (``contact_pairs``,
-  ``contact_deep_pairs`` closer than half the thickness, ``contact_min_distance``).
+  ``contact_deep_pairs`` closer than half the thickness, ``contact_min_distance``: the
+  smallest distance of any two segments that may be in contact, not only of the
+  candidates, :meth:`StrandContact.min_distance`).
 * ``physics.strand_contact_mode = "ccd"``: the first iterate, every Newton update
   (``StrandContact.limit_step``: per-vertex fractions of the path to the update) and the frame's end
   (``StrandContact.collision_free_frame``) are limited so that no two segments of
@@ -319,7 +321,9 @@ class Integrator:
             pairs, deep, dmin, _ = solves[-1].contact
             self.contact_pairs.append(pairs)
             self.contact_deep_pairs.append(deep)
-            self.contact_min_distance.append(dmin)
+            # the frame's true minimum, not only its contact candidates' (measure's)
+            last = self.contact_min_distance[-1] if self.contact_min_distance else np.inf
+            self.contact_min_distance.append(self.strand.min_distance(self.x, dmin, hint=last))
             if cfg.physics.strand_separation:
                 self.contact_separated.append(max(s.contact[3] for s in solves))
         self.frame += 1

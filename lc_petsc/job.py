@@ -945,7 +945,7 @@ class Job:
             "restart": None if self.restart is None else {
                 "checkpoint": str(self.restart["path"]), "frame": start,
                 "ranks_before": self.restart["attrs"]["ranks"], "skipped": self.restart["skipped"]},
-            "checkpoints": self.checkpointer.written,
+            **dict(zip(("checkpoints", "checkpoints_removed"), self.checkpointer.report())),
             "frames_recovery": self.recovery_report,
             "preempted": preempted,
             "solver": summary["petsc_options"],
@@ -1102,6 +1102,28 @@ class Checkpointer:
         self.version = __version__
         self.config_dict = job.cfg.to_dict()
         self.written, self.last_frame = [], None
+        self.before = self._in_folder()           # an earlier run's, after a restart
+
+    def _in_folder(self):
+        """{path: (frame, bytes)} of the checkpoint files in the folder now, rank 0's view
+        on every rank (collective)."""
+        from lc_petsc.io.checkpoint import checkpoint_files, checkpoint_folder
+        found, problem = on_root(self.job.comm, lambda: checkpoint_files(checkpoint_folder(self.job.out)))
+        return {} if problem is not None else {p: (f, size) for f, p, size in found}
+
+    def report(self):
+        """(kept, removed) for summary.json (collective): the checkpoint files in the folder
+        now, oldest first (frame, path, this run's seconds to write it, None for an
+        earlier run's, bytes), and those this run saw that are gone, oldest first (frame,
+        path: the rotation keeps the newest ``output.checkpoints_kept``).  Listing what
+        was written named files the rotation had deleted."""
+        now = self._in_folder()
+        secs = {c["path"]: c["seconds"] for c in self.written}
+        kept = [{"frame": f, "path": p, "seconds": secs.get(p), "bytes": size}
+                for p, (f, size) in sorted(now.items(), key=lambda i: i[1][0])]
+        seen = {**{p: f for p, (f, _) in self.before.items()}, **{c["path"]: c["frame"] for c in self.written}}
+        removed = [{"frame": f, "path": p} for p, f in sorted(seen.items(), key=lambda i: i[1]) if p not in now]
+        return kept, removed
 
     def write(self, it):
         """Write the checkpoint of the integrator ``it``'s frame (once per frame), timed under ``io``."""

@@ -107,6 +107,18 @@ def list_checkpoints(folder):
     return [p for _, p in _numbered(folder)]
 
 
+def checkpoint_files(folder):
+    """[(frame, path as str, bytes)] of the checkpoint files in ``folder``, oldest first
+    (a file removed while listed is left out)."""
+    out = []
+    for frame, p in reversed(_numbered(folder)):
+        try:
+            out.append((frame, str(p), p.stat().st_size))
+        except FileNotFoundError:
+            continue
+    return out
+
+
 def set_aside_later(folder, frame):
     """Rank 0: rename the checkpoints in ``folder`` of frames after ``frame`` (a restart
     from ``frame`` replaces the run they continued) to ``checkpoint_FFFFFF.superseded-N.h5``

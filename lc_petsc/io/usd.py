@@ -115,11 +115,12 @@ def _extent(p32, half_width):
 def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed=None,
               render_hair_spread=None, stride=1, progress=None):
     """Write the USD export of ``frames_path`` (a closed ``frames.h5``) to ``usd_path``
-    (default ``frames.usdc`` beside it).  ``render_hairs`` (hairs per wisp), the seed and
-    the spread default to the run's ``output`` config; ``stride`` k writes every k-th
-    row of frames.h5 (time codes stay row numbers; rows lost in a recovery are left
-    out).  ``progress``: callable(done, total) or None.  Returns a dict of what was
-    written and how long it took (seconds)."""
+    (default ``frames.usdc`` beside it; a missing folder is created).  ``render_hairs``
+    (hairs per wisp), the seed and the spread default to the run's ``output`` config;
+    ``stride`` k writes every k-th row of frames.h5 (time codes stay row numbers; rows
+    lost in a recovery are left out; the stage's start and end time codes are the first
+    and last row written).  ``progress``: callable(done, total) or None.  Returns a dict
+    of what was written and how long it took (seconds)."""
     import h5py
     from pxr import Gf, Sdf, Usd, UsdGeom, Vt
     from lc_petsc.io.frames import valid_rows
@@ -168,6 +169,8 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
         # a crate file (.usdc, .usd) takes the frames one by one; a text .usda is written
         # whole, so it is saved once at the end
         incremental = usd_path.suffix != ".usda"
+        # a missing folder is created, as the main job's --out does (said in to_usd.py --help)
+        usd_path.parent.mkdir(parents=True, exist_ok=True)
         tmp = usd_path.with_name(usd_path.stem + ".tmp" + usd_path.suffix)
         tmp.unlink(missing_ok=True)
         with written_aside(usd_path, tmp):
@@ -178,8 +181,10 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
             tcps = 1.0 / (dt * every)
             stage.SetTimeCodesPerSecond(tcps)
             stage.SetFramesPerSecond(tcps)
-            stage.SetStartTimeCode(0.0)
-            stage.SetEndTimeCode(float(max(n_rows - 1, 0)))
+            # the range of the samples written (with --stride the last row may be skipped:
+            # an end past the last sample made players hold it over frames that are none)
+            stage.SetStartTimeCode(float(rows[0] if rows else 0))
+            stage.SetEndTimeCode(float(rows[-1] if rows else 0))
             root = UsdGeom.Xform.Define(stage, "/Groom")
             stage.SetDefaultPrim(root.GetPrim())
             stage.GetRootLayer().customLayerData = {

@@ -13,6 +13,8 @@ import lc_petsc.simulator as simmod
 from lc_petsc.config import load_config
 from lc_petsc.crossings import count_crossings
 from lc_petsc.elements.segment_contact import distance
+from lc_petsc.scene import geometry
+from lc_petsc.scene.sources import ArraySource
 from sim_helpers import touching_wisps_config, touching_wisps_source
 from test_contact_sim import D0, N, crossing_config, crossing_source
 
@@ -323,6 +325,14 @@ def test_frame_end_distance_does_not_decay_over_a_run(monkeypatch):
     assert ok, msg
 
 
+def six_wisps_parts(sim):
+    """(strand contact, scene, gathered rest positions, wisp of each local vertex) of a
+    :func:`six_wisps_ccd` simulator."""
+    sc = sim.scene
+    return (sim.integrator.strand, sc, np.concatenate(comm.allgather(sc.x_rest)),
+            np.repeat(np.arange(6), 30)[sc.first_vertex:sc.first_vertex + sc.nv])
+
+
 def brute_force_measure(X, X_rest, d0):
     """measure()'s figures by brute force over all pairs of segments of different wisps
     of the six wisps (gathered positions X, rest X_rest (180, 3)): (pairs closer than d0
@@ -354,10 +364,8 @@ def test_measure_equals_brute_force(monkeypatch):
     ranks."""
     sim = six_wisps_ccd(monkeypatch)
     try:
-        st, sc = sim.integrator.strand, sim.scene
+        st, sc, X_rest, wisp_of = six_wisps_parts(sim)
         d0 = st.d0
-        X_rest = np.concatenate(comm.allgather(sc.x_rest))
-        wisp_of = np.repeat(np.arange(6), 30)[sc.first_vertex:sc.first_vertex + sc.nv]
         rng = np.random.default_rng(3)
         x0 = sim.integrator.x.copy()
         push = np.where(wisp_of % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.3, 0.0, 0.0])
@@ -395,6 +403,94 @@ def test_measure_equals_brute_force(monkeypatch):
         assert st.measure(x_end)[2] == pytest.approx(want[2], rel=1e-12, abs=0.0)
     finally:
         sim.close()
+
+
+def brute_force_min(X, X_rest, d0):
+    """The smallest distance between segments of different wisps of the six wisps at X,
+    pairs closer than d0 at rest and now (exempt) left out: what summary.json's
+    contact.min_distance_per_frame means."""
+    seg = np.array([v for v in range(6 * 30) if v % 30 != 29])
+    i, j = np.triu_indices(len(seg), 1)
+    other = seg[i] // 30 != seg[j] // 30
+    i, j = seg[i[other]], seg[j[other]]
+    d = distance(np.stack([X[i], X[i + 1], X[j], X[j + 1]], axis=1))
+    d_rest = distance(np.stack([X_rest[i], X_rest[i + 1], X_rest[j], X_rest[j + 1]], axis=1))
+    return float(d[(d >= d0) | (d_rest >= d0)].min())
+
+
+def test_min_distance_is_the_true_minimum(monkeypatch):
+    """StrandContact.min_distance against brute force over all pairs of segments of
+    different wisps, on 1-3 ranks: with pairs closer than d0 (measure's minimum), at rest
+    and with the wisps spread 1.2x and 3x apart, every other one turned (measure's
+    minimum is then the closest candidate of its d0 broad phase, or inf: main reported
+    those, 0.2527 cm for a true 0.1379 in from_file), from no hint and from hints too
+    small and too large."""
+    sim = six_wisps_ccd(monkeypatch)
+    try:
+        st, sc, X_rest, wisp_of = six_wisps_parts(sim)
+        d0 = st.d0
+        free = ~sc.pinned[:, None]
+        x0 = sim.integrator.x.copy()
+        push = np.where(wisp_of % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.3, 0.0, 0.0]) * free
+        states = {"pushed together": st.limit_step(x0, x0 + push), "rest": x0}
+        c, s_ = np.cos(0.9), np.sin(0.9)
+        for k in (1.2, 3.0):          # each wisp moved along the row of roots
+            x = x0 + (k - 1.0) * 0.9 * wisp_of[:, None] * np.array([1.0, 0.0, 0.0])
+            for w in range(1, 6, 2):  # the odd wisps turned 0.9 rad about their vertical axis
+                m = wisp_of == w      # (whole wisps per rank)
+                if m.any():
+                    x[m] = (x[m] - x[m].mean(axis=0)) @ np.array([[c, 0.0, -s_], [0.0, 1.0, 0.0], [s_, 0.0, c]]) \
+                        + x[m].mean(axis=0)
+            states[f"spread {k}x, turned"] = x
+        seen = []
+        for name, x in states.items():
+            want = brute_force_min(np.concatenate(comm.allgather(x)), X_rest, d0)
+            dmin = st.measure(x)[2]
+            for hint in (np.inf, 0.5 * want, 3.0 * want):
+                got = st.min_distance(x, dmin, hint=hint)
+                assert got == pytest.approx(want, rel=1e-12), (name, hint, got, want, dmin)
+            seen.append((name, dmin, want))
+        # the cases: measure exact, measure a wrong candidate, measure inf
+        assert seen[0][1] == pytest.approx(seen[0][2]) and seen[0][2] < d0, seen
+        assert any(np.isfinite(d) and d > 1.01 * w for _, d, w in seen[1:]), seen
+        assert seen[-1][1] == np.inf and seen[-1][2] > d0, seen
+    finally:
+        sim.close()
+
+
+def turned_wisps_source():
+    """The six wisps 1.2 cm apart, every other one turned 0.9 rad about its axis: out of
+    contact at first, the closest pair's boxes grown by d0 / 2 apart while farther pairs'
+    overlap (the d0 broad phase's closest candidate is not the closest pair)."""
+    pos = np.concatenate([geometry.wisp4c(30, root=(1.2 * w, 16.0, 0.0), spin=0.9 * (w % 2))
+                          for w in range(6)])
+    pin = (np.arange(len(pos)) % 30) < 3
+    return ArraySource(pos, np.arange(7) * 30, pinned=pin, root_radius=0.08, tip_radius=0.05)
+
+
+def test_summary_min_distance_per_frame_is_each_frames_minimum(monkeypatch):
+    """summary.json's contact.min_distance_per_frame and min_distance against brute force
+    over each frame's positions (12 frames of the shaken ``turned_wisps_source``, out of
+    contact for 4 frames, then in it), on 1-3 ranks.  Main reported the closest candidate
+    of the contact's broad phase: frames 1-3 wrong (or null)."""
+    frames = 12
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: turned_wisps_source())
+    cfg = touching_wisps_config(frames)
+    cfg.physics.strand_contact_mode = "ccd"
+    sim = simmod.build_simulator(cfg.validate(), comm=comm)
+    X_rest = np.concatenate(comm.allgather(sim.scene.x_rest))
+    d0 = sim.integrator.strand.d0
+    X, summ = frames_run(sim, frames)
+    ok, msg = True, ""
+    if comm.rank == 0:
+        want = [brute_force_min(x, X_rest, d0) for x in X[1:]]
+        got = summ["contact"]["min_distance_per_frame"]
+        ok = all(g is not None and abs(g - w) <= 1e-12 * w for g, w in zip(got, want)) \
+            and summ["contact"]["min_distance"] == pytest.approx(min(want), rel=1e-12) \
+            and min(want[:3]) > d0 > min(want)        # out of contact, then in it
+        msg = f"reported {got}, brute force {want}"
+    ok, msg = comm.bcast((ok, msg))
+    assert ok, msg
 
 
 def test_limiter_takes_a_nonlinear_update_whole_or_the_linear_one(monkeypatch):

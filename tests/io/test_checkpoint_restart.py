@@ -122,6 +122,36 @@ def test_two_to_three_and_three_to_one_ranks(tmp_path, straight):
     _check_each_frame_once(b, *straight, rtol=3e-11)
 
 
+def _listed(out):
+    """summary.json's (checkpoints, checkpoints_removed) frames, after checking that the
+    checkpoints it lists are the folder's files with their sizes."""
+    s = json.loads((Path(out) / "summary.json").read_text())
+    folder = sorted((Path(out) / "checkpoints").glob("checkpoint_*.h5"))
+    assert [c["path"] for c in s["checkpoints"]] == [str(p) for p in folder], s["checkpoints"]
+    assert [c["bytes"] for c in s["checkpoints"]] == [p.stat().st_size for p in folder]
+    assert not any(Path(c["path"]).exists() for c in s["checkpoints_removed"])
+    return ([(c["frame"], c["seconds"] is not None) for c in s["checkpoints"]],
+            [c["frame"] for c in s["checkpoints_removed"]])
+
+
+def test_summary_lists_the_checkpoints_in_the_folder(tmp_path):
+    """summary.json's ``checkpoints`` are the files in the folder at the end (main listed
+    every one written, those the rotation had deleted too), with ``seconds`` for this
+    run's; ``checkpoints_removed`` the ones gone: 1 rank, a restart on 3 ranks (the
+    earlier run's checkpoint kept and those removed named), a run on 2 ranks."""
+    cfg = _config(tmp_path, ce=1, kept=3)
+    a = tmp_path / "a"
+    assert main([cfg, "--out", str(a), "--quiet", "--frames", "4"]) == 0
+    assert _listed(a) == ([(2, True), (3, True), (4, True)], [1])
+    p = _mpiexec(3, [cfg, "--out", str(a), "--quiet", "--restart", "latest"], tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert _listed(a) == ([(4, False), (5, True), (6, True)], [2, 3])
+    b = tmp_path / "b"
+    p = _mpiexec(2, [cfg, "--out", str(b), "--quiet"], tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert _listed(b) == ([(4, True), (5, True), (6, True)], [1, 2, 3])
+
+
 def _wait_for(path, proc, timeout=60):
     t0 = time.time()
     while not Path(path).exists():

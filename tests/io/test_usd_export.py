@@ -128,7 +128,9 @@ def test_export_render_hairs(run):
 
 
 def test_converter_matches_job_and_stride(run, tmp_path):
-    out = tmp_path / "conv.usda"
+    """--stride 2 of 4 rows: samples 0 and 2, the stage ends at 2 (main: 3, past the last
+    sample); --out into a missing folder creates it."""
+    out = tmp_path / "new" / "conv.usda"
     p = subprocess.run([sys.executable, str(ROOT / "drivers" / "to_usd.py"), str(run / "frames.h5"),
                         "--out", str(out), "--render-hairs", "2", "--stride", "2", "--quiet"],
                        capture_output=True, text=True, timeout=120)
@@ -139,6 +141,7 @@ def test_converter_matches_job_and_stride(run, tmp_path):
     pa = UsdGeom.BasisCurves(a.GetPrimAtPath("/Groom/wisps")).GetPointsAttr()
     pb = UsdGeom.BasisCurves(b.GetPrimAtPath("/Groom/wisps")).GetPointsAttr()
     assert pa.GetTimeSamples() == [0.0, 2.0]
+    assert (a.GetStartTimeCode(), a.GetEndTimeCode()) == (0.0, 2.0)
     assert np.array_equal(np.asarray(pa.Get(2)), np.asarray(pb.Get(2)))
     ha = UsdGeom.BasisCurves(a.GetPrimAtPath("/Groom/render_hairs"))
     assert len(ha.GetCurveVertexCountsAttr().Get()) == 10

@@ -249,7 +249,11 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
 
 def export_failed(frames_path, error):
     """The warning of a failed export: frames.h5 is intact, and the command that writes
-    the export later."""
+    the export later; or, where frames.h5 itself is gone (the output folder removed
+    mid-run), that there is nothing to export from."""
+    if not Path(frames_path).is_file():
+        return (f"USD export failed: {frames_path} is missing (the output folder was changed during "
+                f"the run?), so there is nothing to write it from: {error}")
     return f"USD export failed, frames.h5 is intact (write it later with drivers/to_usd.py {frames_path}): {error}"
 
 

@@ -16,7 +16,7 @@ from pxr import Usd, UsdGeom
 
 from lc_petsc.batch import main
 from lc_petsc.config import PhysicsConfig
-from lc_petsc.io.usd import head_matrix, write_usd
+from lc_petsc.io.usd import export_failed, head_matrix, write_usd
 from lc_petsc.scene import geometry
 from lc_petsc.scene.kinematics import HeadMotion
 
@@ -222,3 +222,14 @@ def test_job_on_two_ranks_writes_the_same_export(run, tmp_path):
         assert ca.GetPointsAttr().GetTimeSamples() == cb.GetPointsAttr().GetTimeSamples() == [0, 1, 2, 3]
         for k in range(4):
             assert np.abs(np.asarray(ca.GetPointsAttr().Get(k)) - np.asarray(cb.GetPointsAttr().Get(k))).max() < 1e-5
+
+
+def test_a_failed_export_says_whether_frames_h5_is_there(tmp_path):
+    # the output folder removed mid-run: the warning said "frames.h5 is intact (write it
+    # later with drivers/to_usd.py ...)" about a file that was gone
+    frames = tmp_path / "frames.h5"
+    gone = export_failed(frames, "OSError: no such file")
+    assert "is missing" in gone and "intact" not in gone and "to_usd.py" not in gone, gone
+    frames.write_bytes(b"")
+    kept = export_failed(frames, "OSError: disk full")
+    assert "frames.h5 is intact" in kept and f"drivers/to_usd.py {frames}" in kept, kept

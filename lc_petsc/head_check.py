@@ -26,22 +26,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from lc_petsc.elements.head_contact import segment_depth
+
 #: a strand whose centreline is deeper than this many of its radii is entirely inside
 #: the head: the hair is seen to vanish into the scalp (the end-of-run warning's limit)
 SUNK = 1.0
-
-
-def segment_depth(p0, p1, radius):
-    """(depth (k,), t (k,)): the deepest point of each segment p0 -> p1 (k, 3), positions
-    relative to the sphere's centre, inside the sphere of ``radius`` (radius - the
-    segment's distance to the centre: negative outside), at the segment's parameter t."""
-    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
-    d = p1 - p0
-    dd = np.einsum("ij,ij->i", d, d)
-    t = np.clip(np.divide(-np.einsum("ij,ij->i", p0, d), dd, out=np.zeros_like(dd), where=dd > 0),
-                0.0, 1.0)
-    q = p0 + t[:, None] * d
-    return radius - np.sqrt(np.einsum("ij,ij->i", q, q)), t
 
 
 def _best_point(p0, d, r0, dr, radius, lam):

@@ -82,6 +82,19 @@ def allowed_depth(strand_radius, rest_edge, offsets, radius):
     return np.maximum(rad - longer ** 2 / (8.0 * radius), 0.0)
 
 
+def segment_depth(p0, p1, radius):
+    """(depth (k,), t (k,)): the deepest point of each segment p0 -> p1 (k, 3), positions
+    relative to the sphere's centre, inside the sphere of ``radius`` (radius - the
+    segment's distance to the centre: negative outside), at the segment's parameter t."""
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    d = p1 - p0
+    dd = np.einsum("ij,ij->i", d, d)
+    t = np.clip(np.divide(-np.einsum("ij,ij->i", p0, d), dd, out=np.zeros_like(dd), where=dd > 0),
+                0.0, 1.0)
+    q = p0 + t[:, None] * d
+    return radius - np.sqrt(np.einsum("ij,ij->i", q, q)), t
+
+
 #: lift_paths: the lifted end's relative overshoot, so that the path's depth is below the
 #: allowed depth after round-off (not exactly at it)
 LIFT_ROUND_OFF = 1e-12
@@ -96,7 +109,6 @@ def lift_paths(p0, p1, radius, allow, strand_radius, free):
     (a path the move cannot mend, one turning around the sphere, is left alone; no kick
     beyond r / dt).  Only ``free`` vertices.  Returns (p1 with the lifted ends, their
     indices)."""
-    from lc_petsc.head_check import segment_depth
     p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
     allow = np.asarray(allow, float)
     depth, _ = segment_depth(p0, p1, radius)

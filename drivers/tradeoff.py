@@ -47,7 +47,10 @@ ConfigError, e.g. the trust region with strand contact) is a row of status
 With ``--scene CONFIG.toml`` the file's own [time] and [solver] choices are a row of their
 own ("as configured"; the base runs the code's defaults).
 A variant whose edges stretch by more than ``--max-strain`` (10%) is listed but not
-recommended, whatever its error: drawn-out curls, a wrong stretch energy.
+recommended, whatever its error: drawn-out curls, a wrong stretch energy.  A Newton
+tolerance that saves less than 10% of the Newton iterations of the same setting at a
+tighter tolerance reaching the same target is not recommended either: the tighter one is
+(since loose stops must agree with their model, 1e-3 can cost what 1e-6 costs).
 """
 
 import argparse

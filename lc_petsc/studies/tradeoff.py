@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Optional
 
@@ -94,6 +94,13 @@ KSP_RTOLS = (1e-2, 1e-4, 1e-6, 1e-8, 1e-10)
 #: uncarried 2-iteration hairball: 6% strain, energy error 172x the reference's largest
 #: energy; smash unfiltered 101x its length), drivers/tradeoff.py --max-strain
 MAX_STRAIN = 0.1
+#: a tolerance variant is not recommended when the same setting at a tighter tolerance
+#: reaches the target with at most this fraction more Newton iterations (deterministic,
+#: unlike the cost): since a loose stop must agree with its model (docs/newton.md,
+#: twelfth round) 1e-3 takes 0.97x the iterations of 1e-6 on the 10-wisp demo and
+#: hairball with the corotational update, so "inc<0.001" bought nothing and was picked
+#: on the cost's noise
+MIN_TOLERANCE_SAVING = 0.1
 
 
 def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS, configured=None):
@@ -305,14 +312,16 @@ COSTS = {"wall_per_sim_s": "wall time per simulated second (s)",
 
 def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0,
               ref: Optional[Settings] = None, targets=(0.1, 0.03, 0.01, 0.003, 0.001), log=print,
-              meta=None, blowup=5.0, cost="wall_per_sim_s", ref_check=True, max_strain=MAX_STRAIN):
+              meta=None, blowup=5.0, cost="wall_per_sim_s", ref_check=True, max_strain=MAX_STRAIN,
+              min_saving=MIN_TOLERANCE_SAVING):
     """Reference + variants; writes tradeoff.csv, tradeoff.json, pareto.png and
     recommendations.md to ``out_dir`` (rank 0).  Returns the rows (rank 0; None elsewhere).
 
     ``ref_check``: also run :func:`tighter_reference` and report the reference's distance
     to it (its own error); a target below it is not judged (a variant's error against
     the reference says nothing there).  ``max_strain``: a variant whose edges stretch
-    beyond it is not recommended (:func:`recommend`)."""
+    beyond it is not recommended; ``min_saving``: a looser tolerance must save more Newton
+    iterations than this fraction (:func:`recommend`)."""
     out = Path(out_dir)
     if comm.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
@@ -393,7 +402,7 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
             "ref_curl_retention", "failure", "failed_frame", "failed_time", "message", "same_as"]
     report.write_csv(rows, out / "tradeoff.csv", cols)
     floor = (own or {}).get("rms_rel_error")
-    recs = recommend(rows, targets, cost=cost, floor=floor, max_strain=max_strain)
+    recs = recommend(rows, targets, cost=cost, floor=floor, max_strain=max_strain, min_saving=min_saving)
     report.write_json({"meta": dict(meta or {}, duration=duration, out_dt=out_dt),
                        "reference": dict(asdict(ref), ksp_rtol=ref.effective_rtol(),
                                          **{k: v for k, v in rres.items() if k != "timings_s"},
@@ -402,7 +411,8 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
                       out / "tradeoff.json")
     report.plot_pareto(rows, out / "pareto.png", cost=cost, cost_label=COSTS[cost], floor=floor,
                        title=f"speed vs accuracy: {(meta or {}).get('scene', '')}, {duration:g} s simulated")
-    (out / "recommendations.md").write_text(markdown(rows, recs, ref, meta, cost, rres, own, max_strain))
+    (out / "recommendations.md").write_text(markdown(rows, recs, ref, meta, cost, rres, own, max_strain,
+                                                     min_saving))
     return rows
 
 
@@ -434,12 +444,14 @@ def reference_error(base_cfg, ref, rtraj, geo, duration, out_dt, comm, blowup):
 
 
 def recommend(rows, targets, error="rms_rel_error", cost="wall_per_sim_s", floor=None,
-              max_strain=MAX_STRAIN):
+              max_strain=MAX_STRAIN, min_saving=MIN_TOLERANCE_SAVING):
     """For each target error, the cheapest stable variant reaching it (or None).  A target
     at or below ``floor`` (the reference's own error) is not judged: ``below_reference``.
     A variant whose edges stretch beyond ``max_strain`` (None: no limit) is not
     recommended whatever its error; the cheaper ones so passed over are listed under
-    ``stretched``."""
+    ``stretched``.  A Newton tolerance that saves less than ``min_saving`` of the Newton
+    iterations of the same setting at a tighter tolerance that also reaches the target is
+    replaced by the tightest such (it buys nothing; listed under ``looser``)."""
     out = []
     for t in targets:
         below = floor is not None and t <= floor
@@ -449,13 +461,43 @@ def recommend(rows, targets, error="rms_rel_error", cost="wall_per_sim_s", floor
         best = min(kept, key=lambda r: r[cost]) if kept else None
         passed_over = [r["variant"] for r in sorted(ok, key=lambda r: r[cost])
                        if stretched(r, max_strain) and (best is None or r[cost] < best[cost])]
+        looser = []
+        if best is not None:
+            tighter = [r for r in kept if saves_little(best, r, min_saving)]
+            if tighter:
+                looser = [best["variant"]]
+                best = min(tighter, key=_tolerances)
         out.append({"target": t, "variant": best["variant"] if best else None,
                     "label": best["label"] if best else None, "below_reference": below,
                     "cost": best[cost] if best else None, "error": best[error] if best else None,
                     "max_stretch_strain": best.get("max_stretch_strain") if best else None,
                     "energy_rel_error": best.get("energy_rel_error") if best else None,
-                    "stretched": passed_over})
+                    "stretched": passed_over, "looser": looser})
     return out
+
+
+_TOLERANCES = ("newton_increment_tol", "newton_tol")
+
+
+def _tolerances(row):
+    """``row``'s Newton tolerances, a missing one as infinite (no test)."""
+    return tuple(float("inf") if row.get(k) is None else row[k] for k in _TOLERANCES)
+
+
+def saves_little(loose, tight, min_saving=MIN_TOLERANCE_SAVING):
+    """Whether ``tight`` is ``loose``'s setting at a tighter Newton tolerance (every other
+    setting equal) reached with at most ``min_saving`` more Newton iterations: the looser
+    tolerance then buys nothing worth its weaker stop (None: never)."""
+    if min_saving is None or not converging(loose) or not converging(tight):
+        return False
+    others = [f.name for f in fields(Settings) if f.name not in _TOLERANCES]
+    if any(loose.get(k) != tight.get(k) for k in others):
+        return False
+    lt, tt = _tolerances(loose), _tolerances(tight)
+    if not (all(b <= a for a, b in zip(lt, tt)) and tt != lt):
+        return False
+    its_loose, its_tight = loose.get("newton_total"), tight.get("newton_total")
+    return bool(its_loose) and its_tight is not None and its_tight <= (1 + min_saving) * its_loose
 
 
 def converging(row):
@@ -470,11 +512,12 @@ def stretched(row, max_strain):
 
 
 def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None, own=None,
-             max_strain=MAX_STRAIN):
+             max_strain=MAX_STRAIN, min_saving=MIN_TOLERANCE_SAVING):
     """The study's markdown report: recommendations, then every variant's errors and cost.
     ``ref_result``: the reference run's record (its cut-back and unconverged frames);
     ``own``: the reference's own error (:func:`reference_error`); ``max_strain``: the
-    edge strain above which a variant is not recommended (None: no limit)."""
+    edge strain above which a variant is not recommended (None: no limit); ``min_saving``:
+    the share of Newton iterations a looser tolerance must save (:func:`recommend`)."""
     lines = ["# Speed versus accuracy\n"]
     if meta and meta.get("command"):
         lines.append(f"Command: `{meta['command']}`\n")
@@ -492,15 +535,19 @@ def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None,
                         "resolved, targets below it are not judged.\n"
                         if own["status"] == "ok" else f"unknown (the check was {own['status']}).\n"))
     limit = "" if max_strain is None else f", edges within {100 * max_strain:g}% of their length"
+    if min_saving is not None:
+        limit += (f"; a looser Newton tolerance only where it saves more than {100 * min_saving:g}% "
+                  "of the Newton iterations of a tighter one")
     lines.append(f"## Recommendations (cheapest stable setting reaching the target RMS error{limit})\n")
     lines.append(report.markdown_table(
         ["target RMS error", "variant", "settings", f"cost ({cost})", "RMS error", "max strain",
-         "energy err", "cheaper, passed over (edges stretched)"],
+         "energy err", "cheaper, passed over (edges stretched)", "looser tolerance, passed over (saves too little)"],
         [[report.fmt(r["target"]),
           r["variant"] or ("below the reference's own error" if r.get("below_reference")
                            else "none reaches it"), r["label"] or "-",
           report.fmt(r["cost"]), report.fmt(r["error"]), report.fmt(r.get("max_stretch_strain")),
-          report.fmt(r.get("energy_rel_error")), ", ".join(r.get("stretched") or ()) or "-"]
+          report.fmt(r.get("energy_rel_error")), ", ".join(r.get("stretched") or ()) or "-",
+          ", ".join(r.get("looser") or ()) or "-"]
          for r in recs]))
     lines.append("\n## All variants\n")
     lines.append(report.markdown_table(

@@ -184,6 +184,7 @@ class Simulator:
     def summary(self):
         """The run's figures for summary.json (DESIGN section 3), on every rank."""
         tim = {k: parallel.global_max(self.comm, v) for k, v in self.timers.as_dict().items()}
+        cpu = {k: parallel.global_max(self.comm, v) for k, v in self.timers.cpu_dict().items()}
         return {
             "dofs": 3 * self.n_vertices,
             "wisps": self.n_wisps,
@@ -191,6 +192,7 @@ class Simulator:
             "frames": self.integrator.frame,
             "wall_time_s": parallel.global_max(self.comm, self.wall),
             "timings_s": tim,
+            "cpu_timings_s": cpu,
             "newton_iterations": list(self.integrator.newton_iterations),
             "newton_converged": list(self.integrator.newton_converged),
             "newton_increment": [None if not np.isfinite(v) else float(v)

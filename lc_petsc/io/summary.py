@@ -47,8 +47,10 @@ def format_report(s) -> str:
     dt = cfg.get("time", {}).get("dt")
     sim_t = f", {frames * dt:.3g} s simulated" if dt else ""
     this_run = f" ({run_frames} in this run)" if run_frames != frames else ""
+    cpu = s.get("cpu_time_s")
+    cpu_t = f", CPU {_fmt_s(cpu)} over {s['ranks']} rank(s)" if cpu is not None else ""
     lines.append(f"  frames: {frames}{sim_t}{this_run}; wall time {_fmt_s(wall)} "
-                 f"({_fmt_s(per)} per frame); setup {_fmt_s(s.get('setup_time_s', 0.0))}")
+                 f"({_fmt_s(per)} per frame{cpu_t}); setup {_fmt_s(s.get('setup_time_s', 0.0))}")
     tim = s.get("timings_s", {})
     if run_frames:
         lines.append("  phases (max over ranks): " + ", ".join(

@@ -60,6 +60,10 @@ def test_demo_end_to_end(demo):
     assert "-ksp_rtol 1e-8" in s["petsc_options"]
     assert s["config"]["scene"]["n_wisps"] == 300 and s["config"]["time"]["frames"] == DEMO_FRAMES
     assert s["timings_s"]["io"] > 0 and s["timings_s"]["collision"] > 0
+    # the CPU time of the frame loop, summed over ranks, holds each rank's phases' CPU time
+    assert set(s["cpu_timings_s"]) == set(s["timings_s"]) and s["cpu_timings_s"]["solve"] > 0
+    assert s["cpu_time_s"] >= max(s["cpu_timings_s"].values()) > 0
+    assert f" over {s['ranks']} rank(s))" in p.stdout
     # report on stdout, once
     assert p.stdout.count("lc_petsc: ") == 1 and "converged: yes" in p.stdout
     assert "per frame" in p.stdout and "phases" in p.stdout

@@ -382,6 +382,7 @@ class Integrator:
             self._force_scale = self.frame_force_scale()
         fallbacks = chord_checks = 0
         steps = []                              # this solve's relative increments, in order
+        whole_steps, exact_steps = [], []       # per step: taken whole; of the exact Hessian
         region = _Region() if self.trust is not None else None
         quadratic = []                          # the increments of the last full exact steps in a row
         claimed_before = False                  # the last iteration's stop (to be confirmed)
@@ -397,18 +398,20 @@ class Integrator:
                 x_prev, x = x, self.update(x, dx)
                 increment, absolute = self.increments(x - x_prev)
                 steps.append(increment)
+                whole_steps.append(region.interior)     # a boundary step is a damped one
+                exact_steps.append(False)
                 reported = increment
                 if self.history is not None:
                     self._record_iteration(it, x_prev, x, g, increment, 1.0, exact)
-                converged = self._newton_converged(steps, absolute)
+                converged = self._newton_converged(steps, absolute, whole_steps, exact_steps)
                 if converged is not None:       # a short step is not convergence
                     converged = converged and region.interior
                 # the loose-tolerance rule below, with the trust region's own rho (smash at
                 # E = 1e12, dt 0.2, 1e-3: a stop 2.5x the tolerance away)
                 claim = bool(converged)
                 step = dict(agrees=region.agrees)
-                confirmed, refused = self._loose_verdict(loose, claim, claimed_before, increment, steps,
-                                                         step, last_step)
+                confirmed, refused = self._loose_verdict(loose, claim, claimed_before, increment,
+                                                         (steps, whole_steps, exact_steps), step, last_step)
                 converged = converged and confirmed and not refused
                 claimed_before, last_step = claim, step
                 unconfirmed, off_model = claim and not confirmed, refused
@@ -458,9 +461,14 @@ class Integrator:
             reported = measure
             if self.history is not None:
                 self._record_iteration(it, x_prev, x, g, increment, alpha, exact)
-            converged = self._newton_converged(steps, absolute)
             whole = alpha == 1.0 and self._shift == 0.0 and not (
                 self.strand is not None and self.strand.last_cut)
+            # the contraction is measured over whole steps only: a damped step's full
+            # measure taken as the rate's base let the stiff smash (E = 1e12, dt 0.2)
+            # stop 155x the tolerance away at 1e-5 (docs/newton.md "Stopping rule")
+            whole_steps.append(whole or self._at_round_off())
+            exact_steps.append(exact or cfg.solver.filter == "none")
+            converged = self._newton_converged(steps, absolute, whole_steps, exact_steps)
             full = exact and whole
             quadratic = quadratic + [increment] if full else []
             if not converged and cfg.time.newton_stop != "increment":
@@ -488,8 +496,8 @@ class Integrator:
             # the step's arrays are kept one more iteration only where the rule reads them
             step = dict(before=x_prev, after=x, g=g, dx=dx, whole=whole,
                         searched=self._searched if whole else None) if loose else None
-            confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure, steps,
-                                                     step, last_step)
+            confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure,
+                                                     (steps, whole_steps, exact_steps), step, last_step)
             converged = converged and confirmed and not refused
             claimed_before, last_step = claim, step
             unconfirmed, off_model = claim and not confirmed, refused
@@ -857,13 +865,14 @@ class Integrator:
         """(confirmed, refused) for this iteration's stop ``claim`` at a ``loose``
         tolerance (:func:`confirms_stop`; else (True, False)).  Confirmed: the last
         iteration claimed a stop too (``claimed_before``), or ``measure`` times the
-        :func:`contraction_factor` of ``steps`` is below :data:`LOOSE_TOLERANCE` (one
+        :func:`contraction_factor` of ``steps`` (its arguments: the increments, whether
+        each step was whole, whether exact) is below :data:`LOOSE_TOLERANCE` (one
         small increment can be a lull: compression_40 at dt 0.2 stopped 16x the tolerance
         away).  Refused: a confirmed stop whose ``step`` or ``last_step`` (None on the
         first iteration) fails :meth:`_model_agrees`: where the quadratic model is off,
         the steps' size says nothing of the distance left (smash at E = 1e12: 200 steps
         of 1e-5 drifting 2.4e-3; docs/newton.md "Stopping rule").  Collective."""
-        confirmed = not loose or claimed_before or measure * contraction_factor(steps) < LOOSE_TOLERANCE
+        confirmed = not loose or claimed_before or measure * contraction_factor(*steps) < LOOSE_TOLERANCE
         refused = loose and claim and confirmed and not (
             self._model_agrees(step) and (last_step is None or self._model_agrees(last_step)))
         return confirmed, refused
@@ -890,21 +899,32 @@ class Integrator:
                 step["agrees"] = model_agrees(G0 - G1, -0.5 * slope, max(abs(G0), abs(G1)))
         return step["agrees"]
 
-    def _newton_converged(self, steps, absolute):
+    def _newton_converged(self, steps, absolute, whole=None, exact=None):
         """True/False against the tolerances that are set (both when both are), None
         when neither is (a fixed iteration count).  ``steps``: this solve's relative
         increments so far (the last one's absolute size ``absolute`` cm); the last one,
-        times the :func:`contraction_factor` of the iteration, must be below each."""
+        times the :func:`contraction_factor` of the iteration (``whole``, ``exact``: its
+        per-step flags), must be below each."""
         t = self.cfg.time
         if not t.newton_converges:
             return None
-        factor = contraction_factor(steps)
+        factor = contraction_factor(steps, whole, exact)
         ok = True
         if t.newton_increment_tol is not None:
             ok = steps[-1] * factor < t.newton_increment_tol
         if t.newton_tol is not None:
             ok = ok and absolute * factor < t.newton_tol
         return bool(ok)
+
+    def _at_round_off(self):
+        """Whether this iteration's line-searched step predicted a decrease of G below
+        round-off (-g . dx / 2 under :data:`ENERGY_FLOOR` |G|): Armijo's verdict is noise
+        there (the hairball's 1e-10 steps were halved), so a damped or shifted step that
+        small still counts as whole for :func:`contraction_factor`."""
+        if self._searched is None:
+            return False
+        G0, _, slope = self._searched
+        return abs(0.5 * slope) <= ENERGY_FLOOR * abs(G0)
 
     def frame_force_scale(self):
         """The frame's force scale |f_ext| + |M v_n| / dt + |grad V(x_n)| (2-norms over
@@ -998,7 +1018,7 @@ def unconfirmed_note(steps, refused=0):
     return note
 
 
-def contraction_factor(increments):
+def contraction_factor(increments, whole=None, exact=None):
     """What the last of ``increments`` (a Newton solve's relative increments, oldest
     first) must be multiplied by to bound the iterate's remaining error: max(1, q / (1 -
     q)), q the contraction per step over the last two steps, sqrt(d_k / d_{k-2}) (d_k /
@@ -1010,11 +1030,28 @@ def contraction_factor(increments):
     (fast convergence: the increment bounds the error); inf when the increments did not
     shrink.  The analytic filter crawls at q ~ 0.97 (factor ~ 35: its increment test had
     stopped frames 35-42x the tolerance from the solution, docs/newton.md "Twelfth
-    round")."""
-    moved = [d for d in increments if d > 0.0]
+    round").
+
+    ``whole`` (per step: taken whole, i.e. alpha 1, unshifted, not cut; None: all) and
+    ``exact`` (per step: of the exact Hessian; None: none): a rate measured over a step
+    that was not whole measures nothing (a damped step's full measure as its base let a
+    wandering iteration stop 155x the tolerance away), so it is inf; over three exact
+    steps q is the larger of the two ratios (a Newton iteration in its quadratic basin
+    shrinks at every step: 3.2e-6 after 1.5e-6 then 5.5e-7 had stopped the stiff smash
+    1.7x away at 1e-6; docs/newton.md "Stopping rule")."""
+    moved = [k for k, d in enumerate(increments) if d > 0.0]
     if len(moved) < 2 or increments[-1] == 0.0:
         return 1.0
-    q = float(np.sqrt(moved[-1] / moved[-3]) if len(moved) >= 3 else moved[-1] / moved[-2])
+    window = moved[-3:]
+    if whole is not None and not all(whole[k] for k in window):
+        return float("inf")
+    d = [increments[k] for k in window]
+    if len(d) == 2:
+        q = d[1] / d[0]
+    elif exact is not None and all(exact[k] for k in window):
+        q = max(d[1] / d[0], d[2] / d[1])
+    else:
+        q = float(np.sqrt(d[2] / d[0]))
     if q >= 1.0:
         return float("inf")
     return max(1.0, q / (1.0 - q))

@@ -283,6 +283,16 @@ def test_contraction_factor():
     # a rejected trust-region step (0) is skipped; a zero step needs no factor
     assert contraction_factor([1e-3, 0.0]) == 1.0
     assert contraction_factor([1e-3, 0.0, 1e-4]) == 1.0
+    # a step not taken whole (damped, shifted, cut) in the window measures no rate
+    assert contraction_factor([1.1e-4, 2.3e-5, 9.9e-6], [False, True, True]) == float("inf")
+    assert contraction_factor([1.1e-4, 2.3e-5, 9.9e-6], [True, True, True]) == 1.0
+    assert contraction_factor([1.1e-4, 2.3e-5, 9.9e-6, 1e-6], [False, True, True, True]) == 1.0
+    # three exact steps: the larger ratio, not the two-step mean (the middle step grew)
+    steps, exact = [1.54e-6, 3.23e-6, 5.53e-7], [True] * 3
+    assert contraction_factor(steps) == pytest.approx(np.sqrt(0.553 / 1.54) / (1 - np.sqrt(0.553 / 1.54)))
+    assert contraction_factor(steps, None, exact) == float("inf")
+    assert contraction_factor([5e-3, 3e-4, 2e-6], None, exact) == 1.0
+    assert contraction_factor([2.1e-4, 5.1e-4, 8e-7], None, [False, True, True]) == 1.0
 
 
 @pytest.mark.parametrize("variant,cap", [
@@ -428,11 +438,11 @@ def test_a_stop_the_cap_leaves_unconfirmed_is_named():
     assert ok["newton_converged"] == [True] and ok["newton_unconfirmed"] == [0]
 
 
-def _stiff_smash(tol, cap=30, fallback="analytic"):
+def _stiff_smash(tol, cap=30, fallback="analytic", n_vertices=31):
     """configs/smash.toml cut to 31 vertices with E = 1e12: a stiff coil crushed to 40%
     of its length; one frame of dt 0.2 with exact_or_analytic steps, no cutback."""
     cfg = load_config(CONFIGS / "smash.toml")
-    cfg.scene.n_vertices, cfg.material.youngs_modulus = 31, 1e12
+    cfg.scene.n_vertices, cfg.material.youngs_modulus = n_vertices, 1e12
     cfg.time.frames, cfg.time.dt, cfg.time.max_substeps = 1, 0.2, 1
     cfg.time.newton_increment_tol, cfg.time.newton_iterations = tol, cap
     cfg.solver.filter, cfg.solver.exact_fallback = "exact_or_analytic", fallback
@@ -455,6 +465,27 @@ def test_a_wandering_newton_is_not_claimed_converged():
     assert s["newton_converged"] == [False]                   # main: [True] after 9, 20.6x away
     assert s["newton_unconfirmed"] == [0]                     # refused, not left unconfirmed
     assert s["newton_refused"] == [1]                         # named as such (main: no key)
+
+
+def test_a_wandering_newton_is_not_claimed_converged_at_a_tight_tolerance():
+    """The stiff coil at full length (101 vertices, 209 iterations to 1e-10) wanders for
+    200 exact steps of 1e-5 wisp lengths, a third of them Armijo-damped, 1e-3 from the
+    solution.  At 1e-5 main stopped it after 61 iterations 155x the tolerance away: the
+    contraction was measured from a damped step's full measure (1.1e-4 two steps back:
+    q 0.3).  At 1e-6 it stopped after 204, 1.7x away, on increments 1.5e-6, 3.2e-6,
+    5.5e-7 (q 0.6 over two steps; the middle step grew).  The rate is now measured over
+    whole steps only, over exact steps as the larger of the two ratios: at 1e-5 the frame
+    is not converged within 80 iterations, at 1e-6 it converges after 207, 1.1e-4x."""
+    Y, ref, wisp_length = _run_coil(_stiff_smash(1e-10, cap=400, fallback="shifted", n_vertices=101))
+    assert ref["newton_converged"] == [True]
+    X, s, _ = _run_coil(_stiff_smash(1e-5, cap=80, n_vertices=101))
+    distance = (np.linalg.norm(X - Y, axis=1) / wisp_length).max()
+    assert s["newton_converged"] == [False], (s["newton_iterations"], distance / 1e-5)  # main: 61, 155x
+    assert distance > 10 * 1e-5                               # rightly: still far
+    X, s, _ = _run_coil(_stiff_smash(1e-6, cap=230, n_vertices=101))
+    distance = (np.linalg.norm(X - Y, axis=1) / wisp_length).max()
+    assert s["newton_converged"] == [True]
+    assert distance < 0.1 * 1e-6, (s["newton_iterations"], distance / 1e-6)   # main: 1.7x at 204
 
 
 def test_which_steps_agree_with_their_model():

@@ -174,6 +174,8 @@ class Integrator:
         self.retract = nonlinear and config.time.newton_update in ("edge_retraction", "corotational")
         self.turn_exact = nonlinear and config.time.newton_update == "corotational"
         self.wisp_length = vertex_wisp_length(scene.x_rest, scene.offsets)
+        # the shortest wisp (all ranks): time.newton_tol (cm) alone is loose relative to it
+        self.shortest_wisp = float(global_reduce(comm, [self.wisp_length.min(initial=np.inf)], "min")[0])
         # the free vertices of wisps held by the head (a pinned vertex), which the first
         # iterate carries with the head's change of motion (time.carry_with_head)
         self.carried = None
@@ -388,7 +390,7 @@ class Integrator:
         region = _Region() if self.trust is not None else None
         quadratic = []                          # the increments of the last full exact steps in a row
         claimed_before = False                  # the last iteration's stop (to be confirmed)
-        loose = confirms_stop(cfg.time.newton_increment_tol)
+        loose = confirms_stop(cfg.time.newton_increment_tol, cfg.time.newton_tol, self.shortest_wisp)
         last_step = None                        # the last iteration's step (_model_agrees)
         unconfirmed = False                     # this iteration's stop awaits the next
         off_model = False                       # this iteration's stop was refused (_loose_verdict)
@@ -987,12 +989,17 @@ def chord_stop(chord, increment, tol):
     return chord < CHORD_CONTRACTION * increment and chord * (1.0 + CHORD_MARGIN * increment) < tol
 
 
-def confirms_stop(tol):
+def confirms_stop(tol, absolute=None, length=None):
     """Whether a stop at the relative increment tolerance ``tol`` (None: unset) must be
-    confirmed by the next step: above :data:`LOOSE_TOLERANCE`.  There an increment below
+    confirmed by the next step: above :data:`LOOSE_TOLERANCE`.  Without ``tol``, the
+    absolute tolerance ``absolute`` (``time.newton_tol``, cm; None: unset) is taken
+    relative to ``length``, the shortest wisp's rest length (alone it had been outside the
+    rule: the stiff smash stopped 14x and 138x its 1e-2 and 1e-3 cm away).  There an increment below
     the tolerance, after a sequence that looks quadratic, left frames of crushed curls at
     dt 0.1-0.2 up to 16x the tolerance from their solution (docs/newton.md "Stopping
     rule"); at 1e-6 every stop measured was within 0.33x of it."""
+    if tol is None and absolute is not None and length:
+        tol = absolute / length
     return tol is not None and tol > LOOSE_TOLERANCE
 
 

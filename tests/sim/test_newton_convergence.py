@@ -533,7 +533,25 @@ def test_a_missed_tolerance_says_which_stops_were_refused():
 def test_which_tolerances_confirm_a_stop():
     assert confirms_stop(1e-3) and confirms_stop(1.1e-5)
     assert not confirms_stop(LOOSE_TOLERANCE) and not confirms_stop(1e-6)
-    assert not confirms_stop(None)                           # newton_tol alone, or a fixed count
+    assert not confirms_stop(None)                           # a fixed count
+    # time.newton_tol (cm) alone: loose relative to the shortest wisp (58 cm)
+    assert confirms_stop(None, 1e-2, 58.0) and not confirms_stop(None, 1e-4, 58.0)
+    assert not confirms_stop(1e-6, 1e-2, 58.0)               # the relative one governs
+
+
+def test_an_absolute_tolerance_alone_is_under_the_loose_rule():
+    """time.newton_tol = 1e-2 cm alone on the stiff coil (58 cm long: 1.7e-4 of it): main
+    left it outside the loose-tolerance rule and claimed the frame converged after 10
+    iterations on an Armijo-damped step, 13.9x the tolerance from the solution.  It now
+    needs the confirming step and steps that agree with their model: not converged in 30
+    (1e-10 wisp lengths is reached after 207)."""
+    Y, ref, _ = _run_coil(_stiff_smash(1e-10, cap=400, fallback="shifted", n_vertices=101))
+    cfg = _stiff_smash(None, cap=30, n_vertices=101)
+    cfg.time.newton_tol = 1e-2
+    X, s, _ = _run_coil(cfg.validate())
+    assert ref["newton_converged"] == [True]
+    assert s["newton_converged"] == [False], s["newton_iterations"]    # main: [True] at 10
+    assert np.abs(X - Y).max() > 1e-2                                   # rightly: 12x away
 
 
 @pytest.mark.parametrize("key,value,match", [

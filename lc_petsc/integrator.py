@@ -174,6 +174,8 @@ class Integrator:
         self.retract = nonlinear and config.time.newton_update in ("edge_retraction", "corotational")
         self.turn_exact = nonlinear and config.time.newton_update == "corotational"
         self.wisp_length = vertex_wisp_length(scene.x_rest, scene.offsets)
+        # the shortest wisp (all ranks): time.newton_tol (cm) alone is loose relative to it
+        self.shortest_wisp = float(global_reduce(comm, [self.wisp_length.min(initial=np.inf)], "min")[0])
         # the free vertices of wisps held by the head (a pinned vertex), which the first
         # iterate carries with the head's change of motion (time.carry_with_head)
         self.carried = None
@@ -199,6 +201,7 @@ class Integrator:
         self._fallback = ""            # why the last exact step was rejected (history)
         self._shift = 0.0              # the mass shift of the last exact step (history)
         self._searched = None          # the last accepted line search's (G0, G, g . dx)
+        self._probe = None             # the last line search's (G0, g . dx), found or not
         self._region_record = {}        # the last trust-region step's rho, radius (history)
         self._force_scale = 0.0         # the frame's force scale (with a history only)
         self.exact_hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
@@ -382,10 +385,12 @@ class Integrator:
             self._force_scale = self.frame_force_scale()
         fallbacks = chord_checks = 0
         steps = []                              # this solve's relative increments, in order
+        # per step (contraction_factor): taken whole; of the exact Hessian; a Newton step
+        whole_steps, exact_steps, newton_steps = [], [], []
         region = _Region() if self.trust is not None else None
         quadratic = []                          # the increments of the last full exact steps in a row
         claimed_before = False                  # the last iteration's stop (to be confirmed)
-        loose = confirms_stop(cfg.time.newton_increment_tol)
+        loose = confirms_stop(cfg.time.newton_increment_tol, cfg.time.newton_tol, self.shortest_wisp)
         last_step = None                        # the last iteration's step (_model_agrees)
         unconfirmed = False                     # this iteration's stop awaits the next
         off_model = False                       # this iteration's stop was refused (_loose_verdict)
@@ -397,18 +402,22 @@ class Integrator:
                 x_prev, x = x, self.update(x, dx)
                 increment, absolute = self.increments(x - x_prev)
                 steps.append(increment)
+                whole_steps.append(region.interior)     # a boundary step is a cut one
+                exact_steps.append(False)
+                newton_steps.append(True)
                 reported = increment
                 if self.history is not None:
                     self._record_iteration(it, x_prev, x, g, increment, 1.0, exact)
-                converged = self._newton_converged(steps, absolute)
+                converged = self._newton_converged(steps, absolute, whole_steps, exact_steps, newton_steps)
                 if converged is not None:       # a short step is not convergence
                     converged = converged and region.interior
                 # the loose-tolerance rule below, with the trust region's own rho (smash at
                 # E = 1e12, dt 0.2, 1e-3: a stop 2.5x the tolerance away)
                 claim = bool(converged)
                 step = dict(agrees=region.agrees)
-                confirmed, refused = self._loose_verdict(loose, claim, claimed_before, increment, steps,
-                                                         step, last_step)
+                confirmed, refused = self._loose_verdict(
+                    loose, claim, claimed_before, increment, (steps, whole_steps, exact_steps, newton_steps),
+                    step, last_step)
                 converged = converged and confirmed and not refused
                 claimed_before, last_step = claim, step
                 unconfirmed, off_model = claim and not confirmed, refused
@@ -419,12 +428,14 @@ class Integrator:
                     break
                 continue
             exact = self._exact_hessian(increment, bool(quadratic) and cfg.solver.exact_stay)
-            self._shift, self._fallback, self._searched = 0.0, "", None
+            self._shift, self._fallback, self._searched, self._probe = 0.0, "", None, None
             unreduced = len(self.solver.not_reduced)  # solves short of -ksp_rtol so far
+            rejected = None                     # the exact step Armijo rejected
             if exact:
                 g, dx, alpha = self._exact_step(x, it, 0.0)
                 if dx is None or alpha is None:
                     self._fallback = "indefinite" if dx is None else "armijo"
+                    rejected = dx
                     for tau in EXACT_SHIFTS if cfg.solver.exact_fallback == "shifted" else ():
                         g, dx, alpha = self._exact_step(x, it, tau)
                         if dx is not None and alpha is not None:
@@ -454,13 +465,28 @@ class Integrator:
                 # full step cost smash's frame 0 a cutback, 28 -> 72 iterations)
                 whole, whole_absolute = self.increments(dx)
                 measure, absolute = max(increment, whole), max(absolute, whole_absolute)
+            if self.converging and rejected is not None:
+                # the step after an exact step Armijo rejected (alpha 0, as it were) is
+                # measured by that step too: a filtered 8e-6 after a rejected 1e-3 had
+                # stopped the stiff smash 242x the tolerance away (docs/newton.md)
+                whole, whole_absolute = self.increments(rejected)
+                measure, absolute = max(measure, whole), max(absolute, whole_absolute)
             steps.append(measure)
             reported = measure
             if self.history is not None:
                 self._record_iteration(it, x_prev, x, g, increment, alpha, exact)
-            converged = self._newton_converged(steps, absolute)
             whole = alpha == 1.0 and self._shift == 0.0 and not (
                 self.strand is not None and self.strand.last_cut)
+            # the contraction is measured over whole Newton steps only: a damped step's
+            # full measure taken as the rate's base let the stiff smash (E = 1e12, dt 0.2)
+            # stop 155x the tolerance away at 1e-5 (docs/newton.md "Stopping rule"); a
+            # step after an exact attempt Armijo rejected is a damped one (measured above),
+            # a shifted one or one after an indefinite exact matrix no Newton step at all
+            round_off = self._at_round_off()
+            newton_steps.append((self._shift == 0.0 and self._fallback in ("", "armijo")) or round_off)
+            whole_steps.append((whole and newton_steps[-1]) or round_off)
+            exact_steps.append(exact or cfg.solver.filter == "none")
+            converged = self._newton_converged(steps, absolute, whole_steps, exact_steps, newton_steps)
             full = exact and whole
             quadratic = quadratic + [increment] if full else []
             if not converged and cfg.time.newton_stop != "increment":
@@ -488,8 +514,8 @@ class Integrator:
             # the step's arrays are kept one more iteration only where the rule reads them
             step = dict(before=x_prev, after=x, g=g, dx=dx, whole=whole,
                         searched=self._searched if whole else None) if loose else None
-            confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure, steps,
-                                                     step, last_step)
+            confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure,
+                                                     (steps, whole_steps, exact_steps, newton_steps), step, last_step)
             converged = converged and confirmed and not refused
             claimed_before, last_step = claim, step
             unconfirmed, off_model = claim and not confirmed, refused
@@ -776,6 +802,7 @@ class Integrator:
         if give_up and slope >= 0.0:
             return None
         G0 = self.incremental_potential(x)
+        self._probe = (G0, slope)               # for _at_round_off, found or not
         alpha = 1.0
         for _ in range(halvings):
             G = self.incremental_potential(self.update(x, alpha * dx, exact))
@@ -857,13 +884,14 @@ class Integrator:
         """(confirmed, refused) for this iteration's stop ``claim`` at a ``loose``
         tolerance (:func:`confirms_stop`; else (True, False)).  Confirmed: the last
         iteration claimed a stop too (``claimed_before``), or ``measure`` times the
-        :func:`contraction_factor` of ``steps`` is below :data:`LOOSE_TOLERANCE` (one
+        :func:`contraction_factor` of ``steps`` (its arguments: the increments, whether
+        each step was whole, whether exact) is below :data:`LOOSE_TOLERANCE` (one
         small increment can be a lull: compression_40 at dt 0.2 stopped 16x the tolerance
         away).  Refused: a confirmed stop whose ``step`` or ``last_step`` (None on the
         first iteration) fails :meth:`_model_agrees`: where the quadratic model is off,
         the steps' size says nothing of the distance left (smash at E = 1e12: 200 steps
         of 1e-5 drifting 2.4e-3; docs/newton.md "Stopping rule").  Collective."""
-        confirmed = not loose or claimed_before or measure * contraction_factor(steps) < LOOSE_TOLERANCE
+        confirmed = not loose or claimed_before or measure * contraction_factor(*steps) < LOOSE_TOLERANCE
         refused = loose and claim and confirmed and not (
             self._model_agrees(step) and (last_step is None or self._model_agrees(last_step)))
         return confirmed, refused
@@ -890,21 +918,34 @@ class Integrator:
                 step["agrees"] = model_agrees(G0 - G1, -0.5 * slope, max(abs(G0), abs(G1)))
         return step["agrees"]
 
-    def _newton_converged(self, steps, absolute):
+    def _newton_converged(self, steps, absolute, whole=None, exact=None, newton=None):
         """True/False against the tolerances that are set (both when both are), None
         when neither is (a fixed iteration count).  ``steps``: this solve's relative
         increments so far (the last one's absolute size ``absolute`` cm); the last one,
-        times the :func:`contraction_factor` of the iteration, must be below each."""
+        times the :func:`contraction_factor` of the iteration (``whole``, ``exact``,
+        ``newton``: its per-step flags), must be below each."""
         t = self.cfg.time
         if not t.newton_converges:
             return None
-        factor = contraction_factor(steps)
+        factor = contraction_factor(steps, whole, exact, newton)
         ok = True
         if t.newton_increment_tol is not None:
             ok = steps[-1] * factor < t.newton_increment_tol
         if t.newton_tol is not None:
             ok = ok and absolute * factor < t.newton_tol
         return bool(ok)
+
+    def _at_round_off(self):
+        """Whether this iteration's last line search (of the step taken or of a rejected
+        exact attempt) predicted a decrease of G below round-off (-g . dx / 2 under
+        :data:`ENERGY_FLOOR` |G|): Armijo's verdict is noise there (the hairball's 1e-10
+        steps were halved, two crossing wisps' exact 1e-9 steps rejected), so a damped,
+        shifted or fallback step then still counts as a whole Newton step for
+        :func:`contraction_factor`."""
+        if self._probe is None:
+            return False
+        G0, slope = self._probe
+        return abs(0.5 * slope) <= ENERGY_FLOOR * abs(G0)
 
     def frame_force_scale(self):
         """The frame's force scale |f_ext| + |M v_n| / dt + |grad V(x_n)| (2-norms over
@@ -948,12 +989,17 @@ def chord_stop(chord, increment, tol):
     return chord < CHORD_CONTRACTION * increment and chord * (1.0 + CHORD_MARGIN * increment) < tol
 
 
-def confirms_stop(tol):
+def confirms_stop(tol, absolute=None, length=None):
     """Whether a stop at the relative increment tolerance ``tol`` (None: unset) must be
-    confirmed by the next step: above :data:`LOOSE_TOLERANCE`.  There an increment below
+    confirmed by the next step: above :data:`LOOSE_TOLERANCE`.  Without ``tol``, the
+    absolute tolerance ``absolute`` (``time.newton_tol``, cm; None: unset) is taken
+    relative to ``length``, the shortest wisp's rest length (alone it had been outside the
+    rule: the stiff smash stopped 14x and 138x its 1e-2 and 1e-3 cm away).  There an increment below
     the tolerance, after a sequence that looks quadratic, left frames of crushed curls at
     dt 0.1-0.2 up to 16x the tolerance from their solution (docs/newton.md "Stopping
     rule"); at 1e-6 every stop measured was within 0.33x of it."""
+    if tol is None and absolute is not None and length:
+        tol = absolute / length
     return tol is not None and tol > LOOSE_TOLERANCE
 
 
@@ -998,7 +1044,7 @@ def unconfirmed_note(steps, refused=0):
     return note
 
 
-def contraction_factor(increments):
+def contraction_factor(increments, whole=None, exact=None, newton=None):
     """What the last of ``increments`` (a Newton solve's relative increments, oldest
     first) must be multiplied by to bound the iterate's remaining error: max(1, q / (1 -
     q)), q the contraction per step over the last two steps, sqrt(d_k / d_{k-2}) (d_k /
@@ -1010,11 +1056,35 @@ def contraction_factor(increments):
     (fast convergence: the increment bounds the error); inf when the increments did not
     shrink.  The analytic filter crawls at q ~ 0.97 (factor ~ 35: its increment test had
     stopped frames 35-42x the tolerance from the solution, docs/newton.md "Twelfth
-    round")."""
-    moved = [d for d in increments if d > 0.0]
+    round").
+
+    Per step (None: all True, resp. all False for ``exact``): ``newton``, a Newton step
+    of the configured kind (unshifted, no exact attempt rejected before it), ``whole``,
+    a Newton step taken whole (alpha 1, not cut), ``exact``, of the exact Hessian.  The
+    last step must be a Newton step (a filtered step after a rejected exact attempt had
+    stopped the stiff smash 242x the tolerance away), and a rate whose base is a step
+    not taken whole measures nothing (a damped step's full measure as its base: 155x),
+    so both are inf (the last step may be damped: the caller measures it by its full
+    step); over three exact
+    steps q is the larger of the two ratios (a Newton iteration in its quadratic basin
+    shrinks at every step: 3.2e-6 after 1.5e-6 then 5.5e-7 had stopped the stiff smash
+    1.7x away at 1e-6; docs/newton.md "Stopping rule")."""
+    moved = [k for k, d in enumerate(increments) if d > 0.0]
+    if newton is not None and increments[-1] > 0.0 and not newton[-1]:
+        return float("inf")
     if len(moved) < 2 or increments[-1] == 0.0:
         return 1.0
-    q = float(np.sqrt(moved[-1] / moved[-3]) if len(moved) >= 3 else moved[-1] / moved[-2])
+    window = moved[-3:]
+    # the last step may be damped: its measure is already its full step's
+    if whole is not None and not all(whole[k] for k in window[:-1]):
+        return float("inf")
+    d = [increments[k] for k in window]
+    if len(d) == 2:
+        q = d[1] / d[0]
+    elif exact is not None and all(exact[k] for k in window):
+        q = max(d[1] / d[0], d[2] / d[1])
+    else:
+        q = float(np.sqrt(d[2] / d[0]))
     if q >= 1.0:
         return float("inf")
     return max(1.0, q / (1.0 - q))

@@ -175,6 +175,7 @@ def test_warn_when_ccd_runs_with_the_inertial_first_iterate(mode, guess, warned)
 @pytest.mark.parametrize("time, solver, warned", [
     (dict(newton_increment_tol=1e-6), dict(filter="analytic"), True),
     (dict(newton_tol=1e-5), dict(filter="abs"), True),
+    (dict(newton_increment_tol=1e-3, max_substeps=1), dict(filter="numerical"), True),
     (dict(newton_increment_tol=1e-6), dict(filter="exact_or_analytic"), False),
     (dict(newton_increment_tol=1e-6), dict(filter="none"), False),
     (dict(), dict(filter="analytic"), False),                 # a fixed count asks for nothing
@@ -189,6 +190,14 @@ def test_warn_when_a_tolerance_meets_a_linearly_converging_newton(time, solver, 
         assert "converges linearly" in w[0] and "exact_or_analytic" in w[0]
         # its loose stops are refused now (wander52), not merely several times away
         assert "several times the tolerance" not in w[0] and "stops are refused" in w[0], w[0]
+        # it names the cutback that multiplies the cost (the demo cut to 10 wisps at 1e-3:
+        # 45 iterations a frame with the default cap of 3, none converged; 379-395 with 30)
+        # and what to change (main named neither)
+        if cfg.time.max_substeps > 1:
+            assert f"time.max_substeps = {cfg.time.max_substeps} steps" in w[0], w[0]
+            assert "or time.max_substeps = 1 to keep this filter without the cutback" in w[0], w[0]
+        else:
+            assert "with time.max_substeps = 1 they are reported unconverged" in w[0], w[0]
 
 
 @pytest.mark.parametrize("dt, tol", [(0.2, 1e-3), (0.1, 1e-4), (0.2, 1e-6), (1 / 30, 1e-4), (0.2, None)])

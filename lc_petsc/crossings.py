@@ -38,22 +38,33 @@ def segments(offsets):
     return seg.astype(np.int64), wisp.astype(np.int64)
 
 
-def candidate_pairs(X0, X1, offsets, self_contact=False, margin=0.0):
+def candidate_pairs(X0, X1, offsets, self_contact=False, margin=0.0, stop=None):
     """Segment pairs (k, 2) of global first vertices that can come within ``margin`` on
     the linear path X0 -> X1 (n_vertices, 3) (the relative broad phase of
     :func:`segment_ccd.field_boxes`, with the affine field fitted to X1 - X0); different
-    wisps, or with ``self_contact`` also segments of one wisp sharing no vertex."""
+    wisps, or with ``self_contact`` also segments of one wisp sharing no vertex.  None
+    once ``stop()`` is true (looked at between parts of the broad phase, box_pairs, and
+    every SCREEN_CHUNK of its pairs)."""
     seg, wisp = segments(offsets)
     A, b, L = affine_field(*affine_sums(X0, X1 - X0))
     f = X1 - X0 - (X0 @ A.T + b)
     ij = box_pairs(*field_boxes(np.stack([X0[seg], X0[seg + 1]], axis=1),
                                 np.stack([f[seg], f[seg + 1]], axis=1), L, margin),
-                   group=None if self_contact else wisp)
-    i, j = ij[:, 0], ij[:, 1]
-    keep = wisp[i] != wisp[j]
-    if self_contact:
-        keep |= np.abs(seg[i] - seg[j]) > 1
-    return np.stack([seg[i[keep]], seg[j[keep]]], axis=1)
+                   group=None if self_contact else wisp, stop=stop)
+    if ij is None:
+        return None
+    out, n = np.empty((len(ij), 2), np.int64), 0     # filled in place: a concatenation took 4 s
+    for a in range(0, len(ij), SCREEN_CHUNK):   # 10 s for a wild step's 68M pairs at once
+        if a and stop is not None and stop():
+            return None
+        i, j = ij[a:a + SCREEN_CHUNK, 0], ij[a:a + SCREEN_CHUNK, 1]
+        keep = wisp[i] != wisp[j]
+        if self_contact:
+            keep |= np.abs(seg[i] - seg[j]) > 1
+        k = int(keep.sum())
+        out[n:n + k, 0], out[n:n + k, 1] = seg[i[keep]], seg[j[keep]]
+        n += k
+    return out[:n]
 
 
 def pair_positions(X, pairs):
@@ -88,8 +99,9 @@ def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
     return hit
 
 
-#: candidate pairs screened at a time between two looks at ``stop`` (about 0.6 s on
-#: this machine; a scrambled 200-wisp step has 68M candidates, 43 s to screen)
+#: candidate pairs sorted out and screened at a time between two looks at ``stop``
+#: (about 0.6 s on this machine; a scrambled 200-wisp step has 68M candidates, 43 s to
+#: screen; the broad phase that finds them looks every compiled_ccd.BOX_TESTS box tests)
 SCREEN_CHUNK = 1 << 20
 
 
@@ -99,13 +111,16 @@ def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0, stop=Non
     their first global vertices, ``same_wisp`` (k,) whether each is of one wisp,
     ``within`` (how many are),
     ``min_distance`` at X1 over the pairs of different wisps whose boxes are within
-    ``thickness`` (inf when there is none).  ``stop``: callable, looked at after the
-    broad phase and every SCREEN_CHUNK candidate pairs; None is returned once it is true."""
+    ``thickness`` (inf when there is none).  ``stop``: callable, looked at between parts
+    of the broad phase (:data:`compiled_ccd.BOX_TESTS` box tests) and every SCREEN_CHUNK
+    candidate pairs; None is returned once it is true."""
     X0, X1 = np.asarray(X0, float), np.asarray(X1, float)
     if X0.shape != X1.shape or X0.ndim != 2 or X0.shape[1] != 3:
         raise ValueError(f"count_crossings: positions must both be (n_vertices, 3), got "
                          f"{X0.shape} and {X1.shape}")
-    pairs = candidate_pairs(X0, X1, offsets, self_contact, margin=thickness)
+    pairs = candidate_pairs(X0, X1, offsets, self_contact, margin=thickness, stop=stop)
+    if pairs is None:
+        return None
     may_meet, d1 = np.empty(len(pairs), bool), np.empty(len(pairs))
     for a in range(0, len(pairs), SCREEN_CHUNK):
         if stop is not None and stop():

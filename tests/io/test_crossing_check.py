@@ -361,10 +361,41 @@ def test_count_crossings_screens_in_chunks_and_stops_between_them(monkeypatch):
     assert whole["crossings"] > 0 and n_pairs > 40
     monkeypatch.setattr(crossings, "SCREEN_CHUNK", 7)
     looks = []
+    crossings.candidate_pairs(X0, X1, off, True, stop=lambda: looks.append(1) and False)
+    broad = len(looks)                  # the broad phase's parts (box_pairs)
+    looks.clear()
     chunked = crossings.count_crossings(X0, X1, off, self_contact=True, stop=lambda: looks.append(1) and False)
-    assert len(looks) == -(-n_pairs // 7)
+    assert len(looks) == broad + -(-n_pairs // 7)
     assert chunked["crossings"] == whole["crossings"] and np.array_equal(chunked["pairs"], whole["pairs"])
     assert chunked["min_distance"] == whole["min_distance"]
     looks.clear()
-    assert crossings.count_crossings(X0, X1, off, True, stop=lambda: len(looks) > 2 or looks.append(1)) is None
-    assert len(looks) == 3
+    stop_at = broad + 2
+    assert crossings.count_crossings(X0, X1, off, True, stop=lambda: len(looks) >= stop_at or looks.append(1)) \
+        is None
+    assert len(looks) == stop_at
+
+
+def test_count_crossings_stops_inside_the_broad_phase(monkeypatch):
+    """A shuffled 200-wisp file's worst step spent 83 s in the broad phase, one compiled
+    call: a signal now stops it between two parts of BOX_TESTS box tests, before any
+    pair is screened."""
+    import lc_petsc.crossings as crossings
+    from lc_petsc.elements import compiled_ccd
+    rng = np.random.default_rng(4)
+    X0 = np.concatenate([bar(0.1 * k, k % 3) for k in range(8)]) + 0.05 * rng.standard_normal((8 * N, 3))
+    X1 = X0[rng.permutation(len(X0))]   # a wild step: every vertex jumps
+    off = np.arange(9) * N
+    screened = []
+    screen = crossings.screen_paths
+    monkeypatch.setattr(crossings, "screen_paths", lambda *a: screened.append(1) or screen(*a))
+    whole = crossings.count_crossings(X0, X1, off, self_contact=True)
+    assert whole["crossings"] > 100 and screened
+    monkeypatch.setattr(compiled_ccd, "BOX_TESTS", 50)
+    looks, screened[:] = [], []
+    assert crossings.count_crossings(X0, X1, off, True, stop=lambda: len(looks) >= 5 or looks.append(1)) is None
+    assert len(looks) == 5 and not screened
+    looks.clear()
+    parts = crossings.count_crossings(X0, X1, off, True, stop=lambda: looks.append(1) and False)
+    assert parts["crossings"] == whole["crossings"] and np.array_equal(parts["pairs"], whole["pairs"])
+    assert len(looks) > 20, len(looks)
+

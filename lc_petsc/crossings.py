@@ -14,6 +14,8 @@
 * ``scripts/count_crossings.py`` runs it over a ``frames.h5``; :func:`check_run` is the
   main job's end-of-run check (``output.check_crossings``): the crossings and the
   largest edge strain of a run's frames, the steps shared by the ranks.
+* :func:`min_distance`: the smallest distance between two wisps at one frame, exact
+  (``scripts/count_crossings.py``'s per-step figure).
 * :func:`rest_exempt_pairs`: which crossing pairs strand contact exempts (closer than
   its thickness at rest), so that the check does not blame the ccd limiter for them.
 * :func:`edge_strain`: every edge's strain against the rest pose
@@ -24,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.elements.compiled_ccd import box_pairs, safe_fraction, screen_paths
+from lc_petsc.elements.compiled_ccd import box_pairs, pair_distances, safe_fraction, screen_paths
 from lc_petsc.elements.segment_contact import distance as segment_distance
 from lc_petsc.elements.segment_ccd import affine_field, affine_sums, field_boxes, tight_inclusion_toi
 
@@ -38,22 +40,33 @@ def segments(offsets):
     return seg.astype(np.int64), wisp.astype(np.int64)
 
 
-def candidate_pairs(X0, X1, offsets, self_contact=False, margin=0.0):
+def candidate_pairs(X0, X1, offsets, self_contact=False, margin=0.0, stop=None):
     """Segment pairs (k, 2) of global first vertices that can come within ``margin`` on
     the linear path X0 -> X1 (n_vertices, 3) (the relative broad phase of
     :func:`segment_ccd.field_boxes`, with the affine field fitted to X1 - X0); different
-    wisps, or with ``self_contact`` also segments of one wisp sharing no vertex."""
+    wisps, or with ``self_contact`` also segments of one wisp sharing no vertex.  None
+    once ``stop()`` is true (looked at between parts of the broad phase, box_pairs, and
+    every SCREEN_CHUNK of its pairs)."""
     seg, wisp = segments(offsets)
     A, b, L = affine_field(*affine_sums(X0, X1 - X0))
     f = X1 - X0 - (X0 @ A.T + b)
     ij = box_pairs(*field_boxes(np.stack([X0[seg], X0[seg + 1]], axis=1),
                                 np.stack([f[seg], f[seg + 1]], axis=1), L, margin),
-                   group=None if self_contact else wisp)
-    i, j = ij[:, 0], ij[:, 1]
-    keep = wisp[i] != wisp[j]
-    if self_contact:
-        keep |= np.abs(seg[i] - seg[j]) > 1
-    return np.stack([seg[i[keep]], seg[j[keep]]], axis=1)
+                   group=None if self_contact else wisp, stop=stop)
+    if ij is None:
+        return None
+    out, n = np.empty((len(ij), 2), np.int64), 0     # filled in place: a concatenation took 4 s
+    for a in range(0, len(ij), SCREEN_CHUNK):   # 10 s for a wild step's 68M pairs at once
+        if a and stop is not None and stop():
+            return None
+        i, j = ij[a:a + SCREEN_CHUNK, 0], ij[a:a + SCREEN_CHUNK, 1]
+        keep = wisp[i] != wisp[j]
+        if self_contact:
+            keep |= np.abs(seg[i] - seg[j]) > 1
+        k = int(keep.sum())
+        out[n:n + k, 0], out[n:n + k, 1] = seg[i[keep]], seg[j[keep]]
+        n += k
+    return out[:n]
 
 
 def pair_positions(X, pairs):
@@ -88,39 +101,61 @@ def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
     return hit
 
 
-#: candidate pairs screened at a time between two looks at ``stop`` (about 0.6 s on
-#: this machine; a scrambled 200-wisp step has 68M candidates, 43 s to screen)
+#: candidate pairs sorted out and screened at a time between two looks at ``stop``
+#: (about 0.6 s on this machine; a scrambled 200-wisp step has 68M candidates, 43 s to
+#: screen; the broad phase that finds them looks every compiled_ccd.BOX_TESTS box tests)
 SCREEN_CHUNK = 1 << 20
 
 
-def count_crossings(X0, X1, offsets, self_contact=False, thickness=0.0, stop=None):
+def count_crossings(X0, X1, offsets, self_contact=False, stop=None):
     """Crossings on the linear path X0 -> X1 (n_vertices, 3) of wisps ``offsets``:
     dict with ``crossings`` (number of segment pairs that meet), ``pairs`` (k, 2) of
     their first global vertices, ``same_wisp`` (k,) whether each is of one wisp,
-    ``within`` (how many are),
-    ``min_distance`` at X1 over the pairs of different wisps whose boxes are within
-    ``thickness`` (inf when there is none).  ``stop``: callable, looked at after the
-    broad phase and every SCREEN_CHUNK candidate pairs; None is returned once it is true."""
+    ``within`` (how many are).  ``stop``: callable, looked at between parts
+    of the broad phase (:data:`compiled_ccd.BOX_TESTS` box tests) and every SCREEN_CHUNK
+    candidate pairs; None is returned once it is true."""
     X0, X1 = np.asarray(X0, float), np.asarray(X1, float)
     if X0.shape != X1.shape or X0.ndim != 2 or X0.shape[1] != 3:
         raise ValueError(f"count_crossings: positions must both be (n_vertices, 3), got "
                          f"{X0.shape} and {X1.shape}")
-    pairs = candidate_pairs(X0, X1, offsets, self_contact, margin=thickness)
-    may_meet, d1 = np.empty(len(pairs), bool), np.empty(len(pairs))
+    pairs = candidate_pairs(X0, X1, offsets, self_contact, stop=stop)
+    if pairs is None:
+        return None
+    may_meet = np.empty(len(pairs), bool)
     for a in range(0, len(pairs), SCREEN_CHUNK):
         if stop is not None and stop():
             return None
-        may_meet[a:a + SCREEN_CHUNK], d1[a:a + SCREEN_CHUNK] = screen_paths(X0, X1, pairs[a:a + SCREEN_CHUNK])
+        may_meet[a:a + SCREEN_CHUNK] = screen_paths(X0, X1, pairs[a:a + SCREEN_CHUNK])[0]
     near = pairs[may_meet]
     hit = crossing_pairs(pair_positions(X0, near), pair_positions(X1, near))
     seg, wisp = segments(offsets)
     wid = np.full(len(X0), -1, np.int64)
     wid[seg] = wisp
-    other = wid[pairs[:, 0]] != wid[pairs[:, 1]]
     hits = near[hit]
     same = wid[hits[:, 0]] == wid[hits[:, 1]]
-    return {"crossings": int(hit.sum()), "pairs": hits, "same_wisp": same, "within": int(same.sum()),
-            "min_distance": float(d1[other].min(initial=np.inf))}
+    return {"crossings": int(hit.sum()), "pairs": hits, "same_wisp": same, "within": int(same.sum())}
+
+
+def min_distance(X, offsets, reach=0.0):
+    """The smallest distance between two segments of different wisps at positions X
+    (n_vertices, 3) of wisps ``offsets``, exact; None with fewer than two wisps.  Broad
+    phases of the segments' boxes grown by m / 2 (every pair closer than m is then a
+    candidate), m from ``reach`` (or the median segment length) and growing to the
+    closest candidate's distance until one is within m."""
+    seg, wisp = segments(offsets)
+    X = np.asarray(X, float)
+    if len(seg) == 0 or wisp[0] == wisp[-1]:
+        return None
+    P = np.stack([X[seg], X[seg + 1]], axis=1)
+    lo, hi = P.min(axis=1), P.max(axis=1)
+    span = float(np.linalg.norm(hi.max(axis=0) - lo.min(axis=0)))
+    m = max(reach, float(np.median(np.linalg.norm(P[:, 1] - P[:, 0], axis=1))), 1e-12 * span, 1e-300)
+    while True:
+        ij = box_pairs(lo - 0.5 * m, hi + 0.5 * m, group=wisp)
+        found = float(pair_distances(P, ij[:, 0], ij[:, 1]).min(initial=np.inf))
+        if found <= m or m > span:      # beyond the span every pair is a candidate
+            return found
+        m = found * (1.0 + 1e-9) if found < np.inf else 2.0 * m   # the closest one counts as found
 
 
 def rest_exempt_pairs(rest, pairs, thickness):
@@ -173,9 +208,10 @@ def frames_layout(f, with_rest=False):
 def count_frames(path, self_contact=False, progress=None):
     """Per frame step of a ``frames.h5`` (step k: rows k -> k + 1): list of dicts with
     ``step``, ``frames`` (the simulation frames of its two rows), ``crossings`` and
-    ``min_distance`` (at the later frame, between different wisps within the run's
-    ``physics.strand_thickness`` when the config sets it, else touching boxes only), and
-    that thickness; steps from or to a row that holds no frame (lost in a recovery,
+    ``min_distance`` (the smallest distance between two segments of different wisps at
+    the later frame, :func:`min_distance`; None with one wisp), and the run's
+    ``physics.strand_thickness`` (0 when the config has none, the first reach of
+    min_distance); steps from or to a row that holds no frame (lost in a recovery,
     ``/frame_valid``) are left out.  ``progress(dict)`` is called per step."""
     import json
     import h5py
@@ -187,9 +223,9 @@ def count_frames(path, self_contact=False, progress=None):
         d0 = float((cfg.get("physics") or {}).get("strand_thickness") or 0.0)
         out = []
         for k, prev, cur in step_rows(f, valid_steps(valid_rows(f))):
-            r = count_crossings(prev, cur, off, self_contact, thickness=d0)
+            r = count_crossings(prev, cur, off, self_contact)
             out.append({"step": k, "frames": (k * every, (k + 1) * every), "crossings": r["crossings"],
-                        "min_distance": r["min_distance"]})
+                        "min_distance": min_distance(cur, off, reach=d0)})
             if progress is not None:
                 progress(out[-1])
     return out, d0

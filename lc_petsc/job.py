@@ -334,6 +334,7 @@ class Job:
         self.skipped_outputs = []   # the end-of-run check and outputs a signal skipped
         self.stop = None            # the StopNotice of the end-of-run work
         self.stopped_in_loop = False    # a signal stopped the frame loop (or its last frame)
+        self.frames_lost = False        # frames.h5 gone after the frame loop (folder removed)
 
     # ------------------------------------------------------------------ the steps
     def run(self):
@@ -826,12 +827,13 @@ class Job:
                 hdf5.mark_unclosable()
                 out_errors.append(str(e))
         self._stop_after_last_frame()
+        self.frames_lost = self._frames_lost()
         self.stopped_in_loop = self.preemption.stopped
         self.stop = StopNotice(comm, lambda: bool(self.preemption.flag))
         try:
             preempted = self.preemption.signal_name if self.preemption.stopped else None
             summary = self._summary(preempted)       # first: its wall time is the frame loop's alone
-            crossings = summary["crossings"] = self._check_crossings(preempted)
+            crossings = summary["crossings"] = None if self.frames_lost else self._check_crossings(preempted)
             if crossings and "interrupted" in crossings:
                 self.skipped_outputs.append("crossing check")
                 crossings = summary["crossings"] = None
@@ -890,6 +892,16 @@ class Job:
                 self.checkpointer.write(it)
         except OutputError as e:
             self.error = f"output error: {e}"
+
+    def _frames_lost(self):
+        """Collective: whether frames.h5 is gone after the frame loop (the output folder
+        removed or renamed during the run; the run's output error says so first).  Then
+        there is nothing to check or export from: the crossing check and the exports are
+        skipped, and said so once after the error (each used to add a warning that it
+        could not open the file)."""
+        if self.writer is None:
+            return False
+        return self.comm.bcast(not (self.out / "frames.h5").is_file() if self.comm.rank == 0 else None)
 
     def _check_crossings(self, preempted=None):
         """The end-of-run crossing check of frames.h5 (``output.check_crossings``), between
@@ -975,6 +987,8 @@ class Job:
         cfg, sim, out, writer = self.cfg, self.sim, self.out, self.writer
         h5_path = out / "frames.h5"
         problems = []
+        if self.frames_lost:            # said once by _frames_lost
+            return {"files": [], "not_written": problems, "xdmf_s": 0.0, "previews_s": 0.0, "usd_s": 0.0}
         files = ["frames.h5"] if writer is not None else []
         t0 = time.perf_counter()
         if cfg.output.xdmf and writer is not None and not hdf5.unclosable():
@@ -1040,6 +1054,10 @@ class Job:
         if self.error:
             print(f"{PROG}: error: {self.error}", file=sys.stderr, flush=True)
             self._say_how_to_continue()
+        if self.frames_lost:
+            print(f"{PROG}: {out / 'frames.h5'} is gone (the output folder was removed or renamed during the "
+                  "run?): no crossing check, frames.xdmf, previews or frames.usdc (nothing to make them from)",
+                  file=sys.stderr, flush=True)
         if self.skipped_outputs and not self.stopped_in_loop:
             self._say_outputs_skipped()
         elif summary["preempted"]:

@@ -4,8 +4,9 @@
 
 A crossing is a pair of segments whose linear path between two consecutive frames
 passes through each other (different wisps; with --self also non-adjacent segments of
-one wisp).  Prints one line per frame step and a summary; exits 0 whatever the count, 2 for a file
-that is not a readable frames.h5.
+one wisp).  Prints one line per frame step (its crossings, and the smallest distance between
+two segments of different wisps at the step's later frame, exact) and a summary; exits 0
+whatever the count, 2 for a file that is not a readable frames.h5.
 """
 
 import argparse
@@ -26,8 +27,9 @@ def main(argv=None):
     a = ap.parse_args(argv)
 
     def show(r):
+        d = "-" if r["min_distance"] is None else f"{r['min_distance']:.4g} cm"
         print(f"step {r['step']:4d} (frame {r['frames'][0]} -> {r['frames'][1]}): {r['crossings']:6d} crossings, "
-              f"min distance {r['min_distance']:.4g} cm", flush=True)
+              f"min distance {d}", flush=True)
 
     try:
         steps, d0 = count_frames(a.frames, self_contact=a.self, progress=show)

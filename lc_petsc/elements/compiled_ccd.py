@@ -747,14 +747,12 @@ def _radix_order(keys, bits):
 
 
 @_jit
-def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
-    """Overlapping boxes (i < j) through a uniform grid: each box is listed in every cell
-    it touches, pairs are tested within a cell and reported once, in the cell holding
-    the lower corner of their intersection.  Pairs of one group are skipped unless their
-    gap along the strand (``arc``, see box_pairs) is at least ``min_gap``, and pairs of
-    two boxes at or after ``n_local`` always.  Boxes
-    touching more than BIG_CELLS cells are tested against every box instead.  Returns
-    (out, their number): ``out`` holds them in its first rows (grown when full)."""
+def _grid_entries(lo, hi, group, origin, cell, dims):
+    """The grid of the broad phase: each box listed in every cell it touches, in cell
+    order (a cell's boxes by ascending index: listed in index order, and the radix sort
+    is stable): (keys, ids, B (6, entries) their boxes (one row per bound and axis),
+    R (3, entries) their lower cells, G their groups, big (n,)): boxes touching more
+    than BIG_CELLS cells are not listed (big, tested against every box instead)."""
     rng, count = _box_cells(lo, hi, origin, cell, dims)
     n = count.shape[0]
     big = count > BIG_CELLS
@@ -779,8 +777,8 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
     while (1 << bits) < dims[0] * dims[1] * dims[2]:
         bits += 1
     order = _radix_order(keys, bits)
-    # the entries' boxes (one row per bound and axis), lower cells and groups copied in
-    # cell order: the pair loop streams memory, and its overlap test vectorises
+    # the entries' boxes, lower cells and groups copied in cell order: the pair loop
+    # streams memory, and its overlap test vectorises
     keys, ids = keys[order], ids[order]
     B = np.empty((6, total))
     R = np.empty((3, total), np.int64)
@@ -790,33 +788,46 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
         for a in range(3):
             B[a, k], B[3 + a, k], R[a, k] = lo[i, a], hi[i, a], rng[i, a]
         G[k] = group[i]
+    return keys, ids, B, R, G, big
+
+
+@_jit
+def _cell_pairs(keys, ids, B, R, G, arc, min_gap, n_local, dims, p, budget, hit, out, found):
+    """The overlapping pairs (i < j) of the grid's cells (:func:`_grid_entries`), from
+    entry ``p`` on (a cell's first, or one inside a cell to resume it) until about
+    ``budget`` box tests are done: pairs are tested within a cell and reported once, in
+    the cell holding the lower corner of their intersection.  Pairs of one group are
+    skipped unless their gap along the strand (``arc``, see box_pairs) is at least
+    ``min_gap``, and pairs of two boxes at or after ``n_local`` always.  Returns (out,
+    found, the entry to resume from: len(keys) when done); ``out`` holds the pairs in
+    its first ``found`` rows (grown when full), ``hit`` is scratch (entries,)."""
+    total = keys.shape[0]
     lx, ly, lz, hx, hy, hz = B[0], B[1], B[2], B[3], B[4], B[5]
-    hit = np.empty(total, np.int64)
     skip_runs = min_gap == np.inf   # no pair of one group at all
-    found = 0
-    start = 0
-    while start < total:
-        key = keys[start]
-        stop = start
+    work = 0
+    while p < total and work < budget:
+        key = keys[p]
+        stop = p + 1
         while stop < total and keys[stop] == key:
             stop += 1
         cx, cy, cz = key // (dims[1] * dims[2]), (key // dims[2]) % dims[1], key % dims[2]
-        for p in range(start, stop):
+        while p < stop and work < budget:
             i = ids[p]
-            # a cell lists its boxes by ascending index (listed in index order, and the
-            # radix sort is stable): the rest are ghosts too
-            if i >= n_local:
+            if i >= n_local:        # the rest of the cell are ghosts too
+                p = stop
                 break
             q0 = p + 1
             if skip_runs:           # skip the run of p's group
                 while q0 < stop and G[q0] == G[p]:
                     q0 += 1
+            work += stop - q0 + 1
             plx, ply, plz, phx, phy, phz = lx[p], ly[p], lz[p], hx[p], hy[p], hz[p]
             hits = 0
             for q in range(q0, stop):   # closed boxes overlap: the entries listed, no branch
                 hit[hits] = q
                 hits += not ((phx < lx[q]) | (hx[q] < plx) | (phy < ly[q]) | (hy[q] < ply) |
                              (phz < lz[q]) | (hz[q] < plz))
+            work += hits            # each candidate's cell test (and a pair's writing)
             r0, r1, r2 = R[0, p], R[1, p], R[2, p]
             for h in range(hits):
                 q = hit[h]
@@ -831,19 +842,30 @@ def _box_pairs(lo, hi, group, arc, min_gap, n_local, origin, cell, dims, out):
                 else:   # written here: a call per pair cost 30 ns (the returned array's refcount)
                     out[found, 0], out[found, 1] = min(i, j), max(i, j)
                 found += 1
-        start = stop
-    # big boxes (a wild iterate's segment) against all boxes, each pair once
-    for i in range(n):
-        if not big[i]:
-            continue
-        for j in range(n):
-            if j == i or (big[j] and j < i) or (i >= n_local and j >= n_local) or \
-                    (group[i] == group[j] and _arc_gap(arc, i, j) < min_gap):
-                continue
-            if _grown_overlap(lo, hi, i, j, 0.0):
-                out = _push_pair(out, found, i, j)
-                found += 1
-    return out, found
+            p += 1
+    return out, found, p
+
+
+@_jit
+def _big_pairs(lo, hi, group, arc, min_gap, n_local, big, i, budget, out, found):
+    """The pairs of the big boxes (a wild iterate's segment) against all boxes, each pair
+    once, from box ``i`` on until about ``budget`` box tests are done: (out, found, the
+    box to resume from: n when done)."""
+    n = lo.shape[0]
+    work = 0
+    while i < n and work < budget:
+        work += 1
+        if big[i]:
+            work += n
+            for j in range(n):
+                if j == i or (big[j] and j < i) or (i >= n_local and j >= n_local) or \
+                        (group[i] == group[j] and _arc_gap(arc, i, j) < min_gap):
+                    continue
+                if _grown_overlap(lo, hi, i, j, 0.0):
+                    out = _push_pair(out, found, i, j)
+                    found += 1
+        i += 1
+    return out, found, i
 
 
 @_jit
@@ -935,19 +957,22 @@ def _vrows_overlap(P, a, Q, b):
 
 
 @_jit
-def _member_pairs(cp, start, box, run_box, group, arc, min_gap, self_runs, n_local, out):
+def _member_pairs(cp, start, box, run_box, group, arc, min_gap, q, budget, out, found):
     """The overlapping member pairs (i < j) of the run pairs cp (k, 2) (first run
-    ascending), and with ``self_runs`` those inside each run before ``n_local`` (pairs
-    of one group with an arc gap of at least ``min_gap``): each run's members are first
+    ascending) from run pair ``q`` on until about ``budget`` box tests are done (pairs of
+    one group with an arc gap of at least ``min_gap``): each run's members are first
     tested against the other run's box.  ``box`` (n, 6) and ``run_box`` (c, 6): lo then
-    hi.  Returns (out, their number), ``out`` grown when full."""
-    found = 0
+    hi.  Returns (out, found, the run pair to resume from: k when done), ``out`` grown
+    when full."""
     width = 0
     for r in range(start.shape[0] - 1):
         width = max(width, start[r + 1] - start[r])
     ia, jb = np.empty(width, np.int64), np.empty(width, np.int64)
-    for q in range(cp.shape[0]):
+    work = 0
+    while q < cp.shape[0] and work < budget:
         A, B = cp[q, 0], cp[q, 1]
+        q += 1
+        work += 1 + start[A + 1] - start[A]
         na = 0
         for i in range(start[A], start[A + 1]):
             ia[na] = i
@@ -958,6 +983,7 @@ def _member_pairs(cp, start, box, run_box, group, arc, min_gap, self_runs, n_loc
         for j in range(start[B], start[B + 1]):
             jb[nb] = j
             nb += _vrows_overlap(box, j, run_box, A)
+        work += start[B + 1] - start[B] + na * nb
         if found + na * nb > out.shape[0]:     # room for all, checked once per run pair
             grown = np.empty((2 * out.shape[0] + na * nb, 2), np.int64)
             grown[:found] = out[:found]
@@ -973,20 +999,34 @@ def _member_pairs(cp, start, box, run_box, group, arc, min_gap, self_runs, n_loc
                 # group, not gap < min_gap (as the grid's loop: a NaN gap keeps the pair)
                 found += _vbox_overlap(l0, l1, l2, h0, h1, h2, box, j) \
                     and (not one_group or not _arc_gap(arc, i, j) < min_gap)
-    if self_runs:
-        for r in range(start.shape[0] - 1):
-            if start[r] >= n_local:         # a run of ghosts: another rank has it
-                break
-            for i in range(start[r], start[r + 1]):
-                for j in range(i + 1, start[r + 1]):
-                    if not _arc_gap(arc, i, j) < min_gap and _vrows_overlap(box, i, box, j):
-                        out = _push_pair(out, found, i, j)
-                        found += 1
+    return out, found, q
+
+
+@_jit
+def _run_self_pairs(start, box, arc, min_gap, n_local, out, found):
+    """The overlapping pairs (i < j) inside each run before ``n_local`` with an arc gap
+    of at least ``min_gap`` (a run has at most CHUNK members): (out, found)."""
+    for r in range(start.shape[0] - 1):
+        if start[r] >= n_local:         # a run of ghosts: another rank has it
+            break
+        for i in range(start[r], start[r + 1]):
+            for j in range(i + 1, start[r + 1]):
+                if not _arc_gap(arc, i, j) < min_gap and _vrows_overlap(box, i, box, j):
+                    out = _push_pair(out, found, i, j)
+                    found += 1
     return out, found
 
 
-def _grid_pairs(lo, hi, group, arc, min_gap, n_local):
-    """(pairs, their number): :func:`_box_pairs` on a grid fitted to the boxes."""
+#: box tests (and candidates found) between two looks at box_pairs' ``stop``: 0.02-0.2 s
+#: a part on this machine (a shuffled 80-wisp step, 11.5M pairs, 12 parts); a wild
+#: step's broad phase, one compiled call before, took 83 s (shuffled 200-wisp file)
+BOX_TESTS = 1 << 22
+
+
+def _grid_pairs(lo, hi, group, arc, min_gap, n_local, stop=None):
+    """(pairs, their number) of the boxes through a uniform grid fitted to them
+    (:func:`_cell_pairs`, then :func:`_big_pairs`), in parts of about BOX_TESTS box
+    tests; None once ``stop()`` (looked at before each part) is true."""
     n = len(lo)
     ext = hi - lo
     origin, top = lo.min(axis=0), hi.max(axis=0)
@@ -994,11 +1034,23 @@ def _grid_pairs(lo, hi, group, arc, min_gap, n_local):
     cell = max(CELL_FACTOR * float(np.median(np.maximum(np.maximum(ext[:, 0], ext[:, 1]), ext[:, 2]))),
                span / 1024.0, 1e-12)
     dims = (np.floor((top - origin) / cell).astype(np.int64) + 1)
-    return _box_pairs(lo, hi, group, arc, float(min_gap), int(n_local), origin, cell, dims,
-                      np.empty((8 * n, 2), np.int64))
+    keys, ids, B, R, G, big = _grid_entries(lo, hi, group, origin, cell, dims)
+    out, found, p = np.empty((8 * n, 2), np.int64), 0, 0
+    hit = np.empty(len(keys), np.int64)
+    min_gap, n_local = float(min_gap), int(n_local)
+    while p < len(keys):
+        if stop is not None and stop():
+            return None
+        out, found, p = _cell_pairs(keys, ids, B, R, G, arc, min_gap, n_local, dims, p, BOX_TESTS, hit, out, found)
+    i = int(np.argmax(big)) if big.any() else n
+    while i < n:
+        if stop is not None and stop():
+            return None
+        out, found, i = _big_pairs(lo, hi, group, arc, min_gap, n_local, big, i, BOX_TESTS, out, found)
+    return out, found
 
 
-def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None):
+def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None, stop=None):
     """Index pairs (k, 2), i < j, of the axis-aligned boxes lo, hi (n, 3) that overlap
     (closed boxes), exact, in an order that is the same for the same input; with
     ``group`` (n,) only pairs of different groups, and with ``arc`` (n, 2) (the rest arc
@@ -1014,7 +1066,11 @@ def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None):
     consecutive boxes of one group (a strand's segments) go through the grid as one box,
     then their members are tested (0.60x the time on the 8K hairball's limiter boxes:
     a strand's neighbouring segments share most cells); the pairs then come run pair by
-    run pair."""
+    run pair.
+    The loops run in parts of about :data:`BOX_TESTS` box tests (the same pairs in the
+    same order); ``stop`` (callable or None) is looked at before each part, and None is
+    returned once it is true (a signal during the end-of-run check: a wild step's boxes
+    overlap nearly all others)."""
     lo = np.ascontiguousarray(lo, np.float64)
     hi = np.ascontiguousarray(hi, np.float64)
     n = len(lo)
@@ -1031,15 +1087,22 @@ def box_pairs(lo, hi, group=None, arc=None, min_gap=0.0, n_local=None):
     n_local = n if n_local is None else int(n_local)
     start = _run_starts(g, n_local, CHUNK) if CHUNK > 1 else None
     if start is None or len(start) - 1 > n // 2:        # short runs: the boxes themselves
-        out, found = _grid_pairs(lo, hi, g, arc, min_gap, n_local)
-        return out[:found]
+        grid = _grid_pairs(lo, hi, g, arc, min_gap, n_local, stop)
+        return None if grid is None else grid[0][:grid[1]]
     clo, chi, carc = _run_boxes(lo, hi, arc, start)
     first = start[:-1]
-    cp, k = _grid_pairs(clo, chi, g[first], carc, min_gap, int(np.searchsorted(first, n_local)))
-    cp = _runs_by_first(cp[:k], len(first))
-    out, found = _member_pairs(cp, start, np.concatenate([lo, hi], axis=1), np.concatenate([clo, chi], axis=1),
-                               g, arc, float(min_gap), not min_gap == np.inf, n_local,
-                               np.empty((2 * len(cp) + 16, 2), np.int64))
+    grid = _grid_pairs(clo, chi, g[first], carc, min_gap, int(np.searchsorted(first, n_local)), stop)
+    if grid is None:
+        return None
+    cp = _runs_by_first(grid[0][:grid[1]], len(first))
+    box, run_box = np.concatenate([lo, hi], axis=1), np.concatenate([clo, chi], axis=1)
+    out, found, q = np.empty((2 * len(cp) + 16, 2), np.int64), 0, 0
+    while q < len(cp):
+        if stop is not None and stop():
+            return None
+        out, found, q = _member_pairs(cp, start, box, run_box, g, arc, float(min_gap), q, BOX_TESTS, out, found)
+    if not min_gap == np.inf:
+        out, found = _run_self_pairs(start, box, arc, float(min_gap), n_local, out, found)
     return out[:found]
 
 

@@ -165,20 +165,13 @@ def test_box_pairs_against_all_pairs():
 
 
 
-@pytest.mark.parametrize("min_gap", [np.inf, 0.0, 0.35, 2.0])
-def test_box_pairs_through_strand_runs_against_all_pairs(monkeypatch, min_gap):
-    """Strands (consecutive boxes of one group, runs of up to CHUNK paired as one box
-    first): the same pairs as brute force and as the boxes paired one by one (CHUNK =
-    1), each once, i < j, with ghosts after n_local (no ghost pair), self pairs at an arc
-    gap of at least min_gap (inside one run too: 0 and 0.35 keep pairs 1-4 segments
-    apart; 2 keeps none here), strands of 1-30 segments, a run cut at n_local, and wild segments over more
-    than BIG_CELLS cells inside runs."""
-    from lc_petsc.elements import compiled_ccd
-    rng = np.random.default_rng(7)
+def _strand_boxes(seed=7):
+    """(lo, hi, group, arc, n_local) of 60 coiled strands of 1-30 segments (0.1 long,
+    turning along a helix, a few strands crossing), two wild segments inside runs, and
+    n_local cutting a run (and a strand)."""
+    rng = np.random.default_rng(seed)
     sizes = rng.integers(1, 31, 60)
     group = np.repeat(np.arange(len(sizes)), sizes)
-    n = len(group)
-    # coiled strands: segments 0.1 long turning along a helix, a few strands crossing
     t = np.concatenate([np.arange(k) for k in sizes]) * 0.6
     base = rng.uniform(0, 3, (len(sizes), 3))[group]
     a = base + 0.15 * np.stack([np.cos(t), np.sin(t), 0.15 * t], axis=1)
@@ -188,8 +181,51 @@ def test_box_pairs_through_strand_runs_against_all_pairs(monkeypatch, min_gap):
     hi[[17, 300]] += 20.0
     seg_len = np.linalg.norm(b - a, axis=1)
     arc0 = np.concatenate([np.r_[0.0, np.cumsum(seg_len[group == w])[:-1]] for w in range(len(sizes))])
-    arc = np.stack([arc0, arc0 + seg_len], axis=1)
-    n_local = int(np.cumsum(sizes)[40] - 5)               # a run (and a strand) cut there
+    return lo, hi, group, np.stack([arc0, arc0 + seg_len], axis=1), int(np.cumsum(sizes)[40] - 5)
+
+
+@pytest.mark.parametrize("args", [{}, {"group": True}, {"group": True, "n_local": True},
+                                  {"group": True, "arc": True, "min_gap": 0.35, "n_local": True}])
+def test_box_pairs_in_parts_are_the_same_pairs_and_stop_between_parts(monkeypatch, args):
+    """A wild step's broad phase (the end-of-run check of a shuffled 200-wisp file: 83 s)
+    was one compiled call a signal could not stop: it now runs in parts of BOX_TESTS box
+    tests, looking at ``stop`` before each (the grid's cells, the big boxes, the strand
+    runs' members); the pairs are the same, in the same order, in any part size, and
+    None comes back once stop() is true."""
+    lo, hi, group, arc, n_local = _strand_boxes()
+    kw = {"group": group if args.get("group") else None, "arc": arc if args.get("arc") else None,
+          "min_gap": args.get("min_gap", 0.0), "n_local": n_local if args.get("n_local") else None}
+    whole = box_pairs(lo, hi, **kw)
+    assert len(whole) > 1000
+    monkeypatch.setattr(compiled_ccd, "BOX_TESTS", 1 << 62)
+    looks = []
+    np.testing.assert_array_equal(box_pairs(lo, hi, **kw, stop=lambda: looks.append(1) and False), whole)
+    one_part = len(looks)                   # the grid's cells and the big boxes (+ the runs' members)
+    assert one_part == (2 if kw["group"] is None else 3), one_part
+    counts = []
+    for size in (1000, 37, 1):
+        monkeypatch.setattr(compiled_ccd, "BOX_TESTS", size)
+        looks.clear()
+        np.testing.assert_array_equal(box_pairs(lo, hi, **kw, stop=lambda: looks.append(1) and False), whole)
+        counts.append(len(looks))
+    # 10-15, 187-311 and 769-3400 looks here
+    assert 10 <= counts[0] and 15 * counts[0] < counts[1] and 3 * counts[1] < counts[2], counts
+    looks.clear()
+    assert box_pairs(lo, hi, **kw, stop=lambda: len(looks) > 4 or looks.append(1)) is None
+    assert len(looks) == 5
+
+
+@pytest.mark.parametrize("min_gap", [np.inf, 0.0, 0.35, 2.0])
+def test_box_pairs_through_strand_runs_against_all_pairs(monkeypatch, min_gap):
+    """Strands (consecutive boxes of one group, runs of up to CHUNK paired as one box
+    first): the same pairs as brute force and as the boxes paired one by one (CHUNK =
+    1), each once, i < j, with ghosts after n_local (no ghost pair), self pairs at an arc
+    gap of at least min_gap (inside one run too: 0 and 0.35 keep pairs 1-4 segments
+    apart; 2 keeps none here), strands of 1-30 segments, a run cut at n_local, and wild segments over more
+    than BIG_CELLS cells inside runs."""
+    from lc_petsc.elements import compiled_ccd
+    lo, hi, group, arc, n_local = _strand_boxes()
+    n = len(group)
     i, j = np.triu_indices(n, 1)
     touch = np.all((hi[i] >= lo[j]) & (hi[j] >= lo[i]), axis=1)
     along = np.maximum(arc[j, 0] - arc[i, 1], arc[i, 0] - arc[j, 1])

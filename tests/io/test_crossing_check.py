@@ -361,10 +361,77 @@ def test_count_crossings_screens_in_chunks_and_stops_between_them(monkeypatch):
     assert whole["crossings"] > 0 and n_pairs > 40
     monkeypatch.setattr(crossings, "SCREEN_CHUNK", 7)
     looks = []
-    chunked = crossings.count_crossings(X0, X1, off, self_contact=True, stop=lambda: looks.append(1) and False)
-    assert len(looks) == -(-n_pairs // 7)
-    assert chunked["crossings"] == whole["crossings"] and np.array_equal(chunked["pairs"], whole["pairs"])
-    assert chunked["min_distance"] == whole["min_distance"]
+    crossings.candidate_pairs(X0, X1, off, True, stop=lambda: looks.append(1) and False)
+    broad = len(looks)                  # the broad phase's parts (box_pairs)
     looks.clear()
-    assert crossings.count_crossings(X0, X1, off, True, stop=lambda: len(looks) > 2 or looks.append(1)) is None
-    assert len(looks) == 3
+    chunked = crossings.count_crossings(X0, X1, off, self_contact=True, stop=lambda: looks.append(1) and False)
+    assert len(looks) == broad + -(-n_pairs // 7)
+    assert chunked["crossings"] == whole["crossings"] and np.array_equal(chunked["pairs"], whole["pairs"])
+    looks.clear()
+    stop_at = broad + 2
+    assert crossings.count_crossings(X0, X1, off, True, stop=lambda: len(looks) >= stop_at or looks.append(1)) \
+        is None
+    assert len(looks) == stop_at
+
+
+def test_count_crossings_stops_inside_the_broad_phase(monkeypatch):
+    """A shuffled 200-wisp file's worst step spent 83 s in the broad phase, one compiled
+    call: a signal now stops it between two parts of BOX_TESTS box tests, before any
+    pair is screened."""
+    import lc_petsc.crossings as crossings
+    from lc_petsc.elements import compiled_ccd
+    rng = np.random.default_rng(4)
+    X0 = np.concatenate([bar(0.1 * k, k % 3) for k in range(8)]) + 0.05 * rng.standard_normal((8 * N, 3))
+    X1 = X0[rng.permutation(len(X0))]   # a wild step: every vertex jumps
+    off = np.arange(9) * N
+    screened = []
+    screen = crossings.screen_paths
+    monkeypatch.setattr(crossings, "screen_paths", lambda *a: screened.append(1) or screen(*a))
+    whole = crossings.count_crossings(X0, X1, off, self_contact=True)
+    assert whole["crossings"] > 100 and screened
+    monkeypatch.setattr(compiled_ccd, "BOX_TESTS", 50)
+    looks, screened[:] = [], []
+    assert crossings.count_crossings(X0, X1, off, True, stop=lambda: len(looks) >= 5 or looks.append(1)) is None
+    assert len(looks) == 5 and not screened
+    looks.clear()
+    parts = crossings.count_crossings(X0, X1, off, True, stop=lambda: looks.append(1) and False)
+    assert parts["crossings"] == whole["crossings"] and np.array_equal(parts["pairs"], whole["pairs"])
+    assert len(looks) > 20, len(looks)
+
+
+def test_count_frames_min_distance_is_each_frames_minimum(tmp_path):
+    """scripts/count_crossings.py's per-step min_distance was the closest of the
+    candidate pairs within the run's strand_thickness (touching boxes without one): inf
+    (and "Infinity" in --json) for a step whose closest pair is farther, every step of
+    the 20-wisp demo.  It is now the frame's minimum between wisps, against brute force;
+    None with one wisp."""
+    import json as json_module
+    from lc_petsc.crossings import count_frames, min_distance, pair_positions, segments
+    from lc_petsc.elements.segment_contact import distance
+    from scripts.count_crossings import main as count_main
+    path = tmp_path / "f.h5"
+    rng = np.random.default_rng(5)
+    frames = [np.concatenate([bar(0.0, 0), bar(y, 2)]) for y in (1.0, 0.5, -0.5)]
+    curls = rng.uniform(-3, 3, (6, 1, 3)) + 0.4 * np.cumsum(rng.standard_normal((6, N, 3)), axis=1)
+    frames.append(np.concatenate([bar(3.0, 0), bar(3.0, 2, z=0.2)]))
+    with h5py.File(path, "w") as f:
+        f["positions"] = np.asarray(frames)
+        f["wisp_offsets"] = np.array([0, N, 2 * N], np.int64)
+        f.attrs["config"] = json_module.dumps({"physics": {"strand_thickness": 0.1}})
+    steps, d0 = count_frames(path)
+    assert d0 == 0.1
+    assert [s["min_distance"] for s in steps] == pytest.approx([0.5, 0.5, 0.0], abs=1e-12)
+    assert count_main([str(path), "--json", str(tmp_path / "c.json")]) == 0
+    saved = json_module.loads((tmp_path / "c.json").read_text(),
+                              parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))
+    assert [s["min_distance"] for s in saved["steps"]] == pytest.approx([0.5, 0.5, 0.0], abs=1e-12)
+    off = np.arange(7) * N
+    seg, wisp = segments(off)
+    i, j = np.triu_indices(len(seg), 1)
+    other = wisp[i] != wisp[j]
+    X = curls.reshape(-1, 3)
+    brute = distance(pair_positions(X, np.stack([seg[i[other]], seg[j[other]]], axis=1))).min()
+    for reach in (0.0, 1e-6, 0.3, 100.0):
+        assert min_distance(X, off, reach) == pytest.approx(brute, rel=1e-12), reach
+    assert 0.05 < brute < 1.0, brute
+    assert min_distance(X[:N], off[:2]) is None

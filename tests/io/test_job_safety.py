@@ -463,6 +463,38 @@ def test_outputs_that_cannot_be_written_are_reported(tmp_path, capsys):
     assert (out / "contact_sheet.png").exists()         # the other outputs are written
 
 
+def test_output_folder_removed_during_the_run_skips_the_check_and_the_exports(tmp_path, monkeypatch, capsys):
+    """The output folder removed after frame 4: exit 3, the run's output error, then
+    one line saying frames.h5 is gone and that the crossing check and the exports are
+    skipped.  There used to be a warning of the check that could not open the file
+    (again in the report) and one of the USD export, and the report listed frames.h5."""
+    cfg = _smash(tmp_path, frames=8, ce=0, previews="true")
+    out = tmp_path / "out"
+    step = Integrator.step
+
+    def step_and_remove(self):
+        step(self)
+        if self.frame == 4:
+            shutil.rmtree(out)
+    monkeypatch.setattr(Integrator, "step", step_and_remove)
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet"]) == 3
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err
+    lines = [ln for ln in cap.err.splitlines() if ln.strip()]
+    assert "summary.json could not be written (No such file or directory)" in lines[0], lines
+    assert lines[-2] == f"simulate.py: error: output error: {out / 'frames.h5'}: cannot query the free space " \
+                        f"of {out}: No such file or directory", lines
+    assert lines[-1:] == [f"simulate.py: {out / 'frames.h5'} is gone (the output folder was removed or renamed during "
+                    "the run?): no crossing check, frames.xdmf, previews or frames.usdc (nothing to make them "
+                    "from)"], lines
+    for said in ("crossing check could not", "USD export", "warning"):
+        assert said not in cap.err + cap.out, said
+    assert "frames: 4" in cap.out and "crossings between" not in cap.out
+    assert f"output: {out}  (4 frames in frames.h5, every 1; summary.json)" in cap.out, cap.out
+    assert not out.exists()
+
+
 # ------------------------------------------------------------------------ Ctrl-C
 def test_ctrl_c_on_one_rank_checkpoints_and_exits_75(tmp_path):
     cfg = _smash(tmp_path, frames=100000, ce=0)

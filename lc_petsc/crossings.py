@@ -304,11 +304,13 @@ def valid_steps(held):
 
 def step_rows(f, steps):
     """(k, positions of row k, of row k + 1) for each step k of ``steps`` (ascending) of
-    the open frames.h5 ``f``; each row is read once where steps follow each other."""
+    the open frames.h5 ``f``; each row is read once where steps follow each other (a
+    damaged row is a ValueError, :func:`lc_petsc.io.frames.frame_row`)."""
+    from lc_petsc.io.frames import frame_row
     last = None                                  # (row, its positions)
     for k in steps:
-        prev = last[1] if last is not None and last[0] == k else np.asarray(f["positions"][k], float)
-        last = (k + 1, np.asarray(f["positions"][k + 1], float))
+        prev = last[1] if last is not None and last[0] == k else frame_row(f, k)
+        last = (k + 1, frame_row(f, k + 1))
         yield k, prev, last[1]
 
 

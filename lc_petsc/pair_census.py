@@ -81,7 +81,7 @@ def census_frames(path, thickness=None, stiffness=None, every=1, progress=None):
     ``physics.strand_stiffness``.  Rows that hold no frame (lost in a recovery,
     ``/frame_valid``) are left out.  ``progress(dict)`` is called per frame."""
     import h5py
-    from lc_petsc.io.frames import valid_rows
+    from lc_petsc.io.frames import frame_row, valid_rows
     if every < 1:
         raise ValueError(f"every = {every}: give a frame stride of at least 1")
     with h5py.File(path, "r") as f:
@@ -98,7 +98,7 @@ def census_frames(path, thickness=None, stiffness=None, every=1, progress=None):
             if not held[t]:            # lost in a recovery: no census, ages start again
                 age = {}
                 continue
-            X = np.asarray(f["positions"][t], float)
+            X = frame_row(f, t)
             r, age = frame_census(X, rest, seg, wisp, wid, d0, k, age if every == 1 else {})
             r["frame"] = t
             rows.append(r)

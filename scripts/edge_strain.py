@@ -22,13 +22,13 @@ def frame_rows(path):
     max, min, median, p99 strain, edges > +10 %, < -10 %, median root-to-tip distance /
     rest)."""
     import h5py
-    from lc_petsc.io.frames import valid_rows
+    from lc_petsc.io.frames import frame_row, valid_rows
     rows = []
     with h5py.File(path, "r") as f:
         off, rest = frames_layout(f, with_rest=True)
         reach0 = np.linalg.norm(rest[off[1:] - 1] - rest[off[:-1]], axis=1)
         for k in np.flatnonzero(valid_rows(f)):
-            x = np.asarray(f["positions"][k], float)
+            x = frame_row(f, k)
             s = edge_strain(x, rest, off)
             reach = np.linalg.norm(x[off[1:] - 1] - x[off[:-1]], axis=1) / reach0
             rows.append((int(k), s.max(), s.min(), np.median(s), np.percentile(s, 99), int((s > 0.1).sum()),

@@ -240,6 +240,23 @@ def valid_rows(f):
     return np.ones(n, bool)
 
 
+def frame_row(f, k):
+    """Row ``k`` of ``/positions`` (n_vertices, 3) of the open ``frames.h5`` ``f``, for a
+    row that holds a frame (:func:`valid_rows`).  Such a row is finite as written (the
+    integrator stops on a non-finite position), so a non-finite value is damage: a chunk
+    missing from a damaged chunk index reads as the fill value NaN without any error from
+    libhdf5 (the crossing check had ended in a LinAlgError and to_usd had written the NaN
+    frame).  Raises ValueError naming the row and the frame."""
+    x = np.asarray(f["positions"][k], float)
+    if not np.isfinite(x).all():
+        every = int(f.attrs.get("every", 1))
+        raise ValueError(f"/positions row {k} (frame {k * every}) reads as NaN or inf at "
+                         f"{int((~np.isfinite(x).all(axis=1)).sum())} vertices: the file is "
+                         "damaged (a chunk missing from its index reads as NaN); the rows "
+                         "before it may still be read, or rerun from a checkpoint")
+    return x
+
+
 class FramesWriter:
     """Collective writer of one run's ``frames.h5``.
 

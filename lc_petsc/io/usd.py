@@ -123,7 +123,7 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     of what was written and how long it took (seconds)."""
     import h5py
     from pxr import Gf, Sdf, Usd, UsdGeom, Vt
-    from lc_petsc.io.frames import valid_rows
+    from lc_petsc.io.frames import frame_row, valid_rows
     from lc_petsc.io.render_hairs import RenderHairs, root_normals
     from lc_petsc.scene.kinematics import HeadMotion
 
@@ -221,7 +221,7 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
 
             t_hairs = 0.0
             for done, k in enumerate(rows):
-                x = np.asarray(f["positions"][k], float)
+                x = frame_row(f, k)
                 p32 = x.astype(np.float32)
                 pts_attr.Set(Vt.Vec3fArray.FromNumpy(p32), float(k))
                 ext_attr.Set(Vt.Vec3fArray.FromNumpy(_extent(p32, half_w)), float(k))

@@ -233,3 +233,50 @@ def test_a_failed_export_says_whether_frames_h5_is_there(tmp_path):
     frames.write_bytes(b"")
     kept = export_failed(frames, "OSError: disk full")
     assert "frames.h5 is intact" in kept and f"drivers/to_usd.py {frames}" in kept, kept
+
+
+def _lose_a_chunk(src, dst, row):
+    """A copy of frames.h5 ``src`` whose /positions chunk of ``row`` is missing, as in a
+    file whose chunk index was damaged: libhdf5 reads the row as the fill value (NaN)
+    without an error."""
+    with h5py.File(src) as f, h5py.File(dst, "w") as g:
+        for k, v in f.attrs.items():
+            g.attrs[k] = v
+        for k in f:
+            if k != "positions":
+                f.copy(k, g)
+        pos = f["positions"]
+        d = g.create_dataset("positions", shape=pos.shape, dtype=pos.dtype, chunks=(1,) + pos.shape[1:],
+                             fillvalue=np.nan, maxshape=(None,) + pos.shape[1:])
+        for r in range(pos.shape[0]):
+            if r != row:
+                d[r] = pos[r]
+
+
+def test_a_row_missing_from_a_damaged_file_is_refused_by_every_reader(run, tmp_path):
+    """Row 1 (frame 2) read as NaN: to_usd had written it as a frame (exit 0) and the
+    crossing count had ended in a LinAlgError traceback; now every reader names the row."""
+    from lc_petsc.crossings import check_run, count_frames
+    from lc_petsc.io.previews import render_previews
+    bad = tmp_path / "frames.h5"
+    _lose_a_chunk(run / "frames.h5", bad, 1)
+    with h5py.File(bad) as f:
+        assert np.isnan(f["positions"][1]).all() and np.isfinite(f["positions"][2]).all()
+    why = r"/positions row 1 \(frame 2\) reads as NaN or inf at 505 vertices: the file is damaged"
+    with pytest.raises(ValueError, match=why):
+        write_usd(bad, tmp_path / "x.usdc")
+    assert not list(tmp_path.glob("*.usd*"))
+    p = subprocess.run([sys.executable, str(ROOT / "drivers" / "to_usd.py"), str(bad), "--quiet"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "row 1 (frame 2)" in p.stderr and "Traceback" not in p.stderr
+    with pytest.raises(ValueError, match=why):
+        count_frames(bad)
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "count_crossings.py"), str(bad)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "row 1 (frame 2)" in p.stderr and "Traceback" not in p.stderr
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "edge_strain.py"), str(bad)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "row 1 (frame 2)" in p.stderr and "Traceback" not in p.stderr
+    assert "row 1 (frame 2)" in check_run(bad, MPI.COMM_SELF)["error"]
+    with pytest.raises(ValueError, match=why):
+        render_previews(bad, tmp_path / "prev", [1])

@@ -998,15 +998,19 @@ class Job:
                 and writer.written and not hdf5.unclosable():
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_failed, export_run
+
+            def usd_warning(text):
+                # on stderr and in summary.json: a pipeline reading the summary must learn
+                # that frames.usdc is missing (a full disk's failure was on stderr only)
+                print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
+                summary["warnings"] = list(summary.get("warnings") or []) + [text]
             try:
-                usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop)
+                usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop, warn=usd_warning)
                 files += usd_files
             except Stopped:
                 self.skipped_outputs.append("frames.usdc")
             except Exception as e:  # noqa: BLE001 - like a preview, never worth the summary
-                text = export_failed(h5_path, f"{type(e).__name__}: {e}")
-                print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
-                summary["warnings"] = list(summary.get("warnings") or []) + [text]
+                usd_warning(export_failed(h5_path, f"{type(e).__name__}: {e}"))
         return {"files": files, "not_written": problems, "xdmf_s": t_xdmf, "previews_s": t_prev,
                 "usd_s": t_usd}
 

@@ -445,6 +445,28 @@ def test_usd_export_on_a_full_disk_leaves_no_temporary_file(tmp_path, small_volu
     assert sorted(p.name for p in out.iterdir()) == before
 
 
+def test_a_failed_usd_export_is_a_warning_in_summary_json(tmp_path, monkeypatch, capsys):
+    """A USD export that failed on a full disk (pxr's OSError) was a warning on stderr
+    only: summary.json's ``warnings`` and the report said nothing of the missing
+    frames.usdc, while an unexpected failure was recorded."""
+    import errno
+    import lc_petsc.io.usd as usd
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(usd, "write_usd", full_disk)
+    out = tmp_path / "out"
+    assert main([_smash(tmp_path, frames=2, ce=0), "--out", str(out), "--quiet"]) == 0
+    cap = capsys.readouterr()
+    s = json.loads((out / "summary.json").read_text())
+    said = [w for w in s["warnings"] if w.startswith("USD export failed, frames.h5 is intact")]
+    assert len(said) == 1 and "No space left on device" in said[0], s["warnings"]
+    assert f"drivers/to_usd.py {out / 'frames.h5'}" in said[0], said
+    assert "frames.usdc" not in s["output"]["files"] and not (out / "frames.usdc").exists()
+    assert cap.err.count("USD export failed") == 1, cap.err       # once on stderr
+    assert "warning: USD export failed" in cap.out, cap.out       # and in the report
+
+
 def test_outputs_that_cannot_be_written_are_reported(tmp_path, capsys):
     cfg = _smash(tmp_path, frames=3, ce=0, previews="true")
     out = tmp_path / "out"

@@ -231,6 +231,40 @@ def _fill_at(monkeypatch, vol, frame, leave):
     monkeypatch.setattr(Integrator, "step", step_and_fill)
 
 
+def test_a_full_volume_refuses_the_run_and_leaves_no_folder(tmp_path, small_volume, capsys):
+    """On a volume with no block free the lock file is created (an inode) but its record
+    cannot be written: the run was refused (exit 2) and left the folder it had created,
+    with an empty lock file in it; and a refused run never removed the parents it had
+    created (--out new/out left new)."""
+    _fill(small_volume, 0)
+    out = small_volume / "new" / "out"
+    assert main([_smash(tmp_path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"output folder {str(out)!r}: No space left on device" in err, err
+    assert sorted(p.name for p in small_volume.iterdir()) == ["filler"]
+
+
+def test_a_lock_whose_record_cannot_be_written_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
+    """The same failure in a folder with a killed run's lock file: it is given back as
+    it was (its record is what the next run's warning names), not removed or emptied."""
+    import errno
+    import lc_petsc.io.lock as lock
+
+    def no_space(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    stale = '{"pid": 4242, "host": "h", "started": "2026-12-06 10:00:00 UTC"}\n'
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / LOCK_NAME).write_text(stale)
+    monkeypatch.setattr(lock.os, "fsync", no_space)
+    for folder in (tmp_path / "old", tmp_path / "new"):
+        with pytest.raises(OSError, match="No space left"):
+            OutputLock(folder).acquire()
+    monkeypatch.undo()
+    assert (tmp_path / "old" / LOCK_NAME).read_text() == stale
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
+    assert OutputLock(tmp_path / "old").acquire().stale.startswith("pid 4242 on host h")
+
+
 def test_run_that_cannot_fit_is_refused_before_frame_0(tmp_path, small_volume, capsys):
     out = small_volume / "out"
     assert main([_smash(tmp_path, frames=5000), "--out", str(out), "--quiet"]) == 2

@@ -187,7 +187,7 @@ def term_warnings(sim):
     if "gravity" in terms and np.any(phys.gravity) and not has_pins and "head_collision" not in terms:
         out.append("no vertex is pinned and head_collision is off: gravity makes every wisp fall "
                    "freely; pin the roots (scene.n_pinned, or /pinned or primvars:pinned in a groom file)")
-    return out + groom_radius_warnings(sim)
+    return out + groom_radius_warnings(sim) + groom_edge_warnings(sim)
 
 
 def groom_radius_warnings(sim):
@@ -206,6 +206,42 @@ def groom_radius_warnings(sim):
     return [f"the radii of {cfg.scene.path} range from {rmin:.3g} to {rmax:.3g} cm, outside the "
             f"plausible range for hair, {lo:g} to {hi:g} cm: {below if rmin < lo else above}; "
             "lc_petsc's units are cm (USD: the stage's metersPerUnit converts widths)"]
+
+
+#: a groom edge shorter than this fraction of its wisp's median edge is warned about: a
+#: near-duplicate vertex (1e-3 cm in a fringe wisp of 0.5 cm edges) made the first frames'
+#: linear solves fail (DIVERGED_INDEFINITE_PC) with advice about solvers, not the groom;
+#: the shipped grooms' shortest edges are 0.5 of their median
+SHORT_EDGE = 1e-2
+
+
+def groom_edge_warnings(sim):
+    """Edges of a strands or USD file far shorter than the rest of their wisp
+    (:data:`SHORT_EDGE`), naming the file, the shortest one (wisp, edge, length) and how
+    many wisps have one: near-duplicate vertices (the exactly coincident ones are an
+    error of the rest state) leave the Newton matrix so ill-conditioned that its solves
+    fail."""
+    cfg, sc, comm = sim.config, sim.scene, sim.comm
+    if cfg.scene.kind not in ("file", "usd"):
+        return []
+    worst, n_short = (np.inf, 0, 0, 0.0, 0.0), 0
+    for w in range(sc.n_wisps):
+        L = np.linalg.norm(np.diff(sc.x_rest[sc.offsets[w]:sc.offsets[w + 1]], axis=0), axis=1)
+        med = float(np.median(L))
+        j = int(np.argmin(L))
+        if L[j] < SHORT_EDGE * med:
+            n_short += 1
+            wisp = int(sim.wisp_order[sc.first_wisp + w])
+            worst = min(worst, (float(L[j] / med), wisp, j, float(L[j]), med))
+    n_short = int(comm.allreduce(n_short))
+    if not n_short:
+        return []
+    ratio, wisp, j, length, med = min(comm.allgather(worst))
+    return [f"{cfg.scene.path}: {n_short} wisp(s) have an edge shorter than {SHORT_EDGE:g} of their "
+            f"wisp's median edge; the shortest: wisp {wisp}, edge {j} (vertices {j}, {j + 1}), rest "
+            f"length {length:.3g} cm against a median of {med:.3g} cm: a near-duplicate vertex, which "
+            "makes the Newton matrix so ill-conditioned that its linear solves can fail; remove the "
+            "vertex or resample the wisp"]
 
 
 def preview_warnings(cfg):

@@ -135,6 +135,20 @@ def unfinished_run(out):
     return None
 
 
+def finished_frames(out):
+    """The frame count (``frames``) of the run in the output folder ``out`` when its
+    summary.json says it finished (no signal, no error), else None (serial, read-only)."""
+    import json
+    try:
+        summary = json.loads((Path(out) / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(summary, dict) or summary.get("preempted") or summary.get("error"):
+        return None
+    frames = summary.get("frames")
+    return frames if isinstance(frames, int) else None
+
+
 def _frame_list(indices, start):
     """'3, 7, ... 2 more': the frames of the per-frame list ``indices`` (the list's entry
     0 is frame ``start``), the first MISSED_FRAMES_SHOWN of them."""
@@ -516,6 +530,16 @@ class Job:
         if ck["attrs"]["every"] != cfg.output.every:
             raise Refused(f"{ck['path']}: output.every = {cfg.output.every} but the run's frames.h5 was "
                           f"written with {ck['attrs']['every']}; it cannot be appended to")
+        # a finished run whose last checkpoint is before its end: "latest" used to run
+        # the frames after it again (on another rank count to round-off) and replace its
+        # outputs and summary.json, where one checkpointed at its end was refused
+        done = self.comm.bcast(finished_frames(self.out) if self.comm.rank == 0 else None)
+        if args.restart == "latest" and not args.force and done is not None and cfg.time.frames <= done:
+            a, b = ck["frame"] + 1, cfg.time.frames
+            again = "" if a > b else f", or add --force to run frame{f' {a}' if a == b else f's {a}-{b}'} again from it"
+            raise Refused(f"{self.out} holds a run that finished its {done} frames (its summary.json): "
+                          f"nothing to do; to continue it from {ck['path']} give a larger --frames "
+                          f"(time.frames, the total){again}")
         # a checkpoint at the last frame continues a run killed during its end-of-run
         # outputs (no summary.json): they are written again, no frame is run
         self.outputs_only = cfg.time.frames == ck["frame"] and self.comm.bcast(
@@ -1015,15 +1039,19 @@ class Job:
                 and writer.written and not hdf5.unclosable():
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_failed, export_run
+
+            def usd_warning(text):
+                # on stderr and in summary.json: a pipeline reading the summary must learn
+                # that frames.usdc is missing (a full disk's failure was on stderr only)
+                print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
+                summary["warnings"] = list(summary.get("warnings") or []) + [text]
             try:
-                usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop)
+                usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop, warn=usd_warning)
                 files += usd_files
             except Stopped:
                 self.skipped_outputs.append("frames.usdc")
             except Exception as e:  # noqa: BLE001 - like a preview, never worth the summary
-                text = export_failed(h5_path, f"{type(e).__name__}: {e}")
-                print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
-                summary["warnings"] = list(summary.get("warnings") or []) + [text]
+                usd_warning(export_failed(h5_path, f"{type(e).__name__}: {e}"))
         return {"files": files, "not_written": problems, "xdmf_s": t_xdmf, "previews_s": t_prev,
                 "usd_s": t_usd}
 

@@ -51,16 +51,33 @@ class OutputLock:
         self.fd = None
         self.inode = None           # of the file locked
         self.created_folder = False
+        self.created = []           # the folders acquire made, the deepest first
         self.stale = None           # holder description of a lock left by a killed run
 
     def acquire(self):
         """Create the folder if needed and lock it.  Raises :class:`FolderBusy` when a
         live run holds it, OSError when the folder cannot be created or written."""
         if not self.folder.exists():
+            # the parents too: a refused run removes every folder it made (--out new/run
+            # left new behind)
+            p = self.folder
+            while not p.exists():
+                self.created.append(p)
+                p = p.parent
             self.folder.mkdir(parents=True)
             self.created_folder = True
         elif not self.folder.is_dir():
             raise NotADirectoryError(f"{self.folder} exists and is not a folder")
+        try:
+            return self._take()
+        except BaseException:
+            # a refused run leaves no trace: a full volume (no block for the record) used to
+            # leave the folder it created, with an empty lock file in it
+            _remove_empty(self.created)
+            raise
+
+    def _take(self):
+        existed = self.path.exists()
         for _ in range(100):
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
@@ -92,14 +109,35 @@ class OutputLock:
                   "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
                   "command": " ".join(os.path.basename(a) if i == 0 else a
                                       for i, a in enumerate(sys.argv))[:300]}
-        os.ftruncate(self.fd, 0)
-        os.pwrite(self.fd, (json.dumps(record) + "\n").encode(), 0)
-        os.fsync(self.fd)
+        try:
+            os.ftruncate(self.fd, 0)
+            os.pwrite(self.fd, (json.dumps(record) + "\n").encode(), 0)
+            os.fsync(self.fd)
+        except BaseException:
+            self._give_back(old, existed)
+            raise
         return self
+
+    def _give_back(self, old, existed):
+        """Undo a lock whose record could not be written (ENOSPC): the lock file as it
+        was (a killed run's record kept for the next run's warning) or, if this run
+        created it, removed; then unlock."""
+        try:
+            if existed:
+                os.ftruncate(self.fd, 0)
+                os.pwrite(self.fd, old.encode(), 0)     # fits: truncating freed its blocks
+            elif os.stat(self.path).st_ino == self.inode:
+                self.path.unlink()
+        except OSError:
+            pass
+        finally:
+            os.close(self.fd)
+            self.fd = None
 
     def taken(self):
         """What another process of the same job needs for :func:`remove_for_holder`."""
-        return {"stale": self.stale, "inode": self.inode, "created_folder": self.created_folder}
+        return {"stale": self.stale, "inode": self.inode, "created_folder": self.created_folder,
+                "created": [str(p) for p in self.created]}
 
     def release(self, remove_created_folder=False):
         """Remove the lock file and unlock.  ``remove_created_folder``: also remove the
@@ -116,11 +154,8 @@ class OutputLock:
         finally:
             os.close(self.fd)       # releases the flock
             self.fd = None
-        if remove_created_folder and self.created_folder:
-            try:
-                self.folder.rmdir()
-            except OSError:
-                pass
+        if remove_created_folder:
+            _remove_empty(self.created)
 
     def __enter__(self):
         return self.acquire()
@@ -140,10 +175,18 @@ def remove_for_holder(folder, taken):
     try:
         if os.stat(folder / LOCK_NAME).st_ino == taken["inode"]:
             (folder / LOCK_NAME).unlink()
-        if taken["created_folder"]:
-            folder.rmdir()
     except OSError:
         pass
+    _remove_empty([Path(p) for p in taken.get("created", [])])
+
+
+def _remove_empty(folders):
+    """Remove ``folders`` (the deepest first) while they are empty."""
+    for p in folders:
+        try:
+            p.rmdir()
+        except OSError:
+            return
 
 
 def _read(fd):

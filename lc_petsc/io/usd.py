@@ -257,13 +257,17 @@ def export_failed(frames_path, error):
     return f"USD export failed, frames.h5 is intact (write it later with drivers/to_usd.py {frames_path}): {error}"
 
 
-def export_run(output, frames_path, out_dir, stop=None):
+def export_run(output, frames_path, out_dir, stop=None, warn=None):
     """The main job's USD export (rank 0, after ``frames.h5`` is closed): writes
     ``out_dir/frames.usdc`` when ``output.usd`` is on, else removes a stale one.  A
-    failure is reported on stderr as a warning; the run's other outputs are unaffected.
+    failure is a warning, given to ``warn`` (the main job's records it in summary.json;
+    None: printed on stderr); the run's other outputs are unaffected.
     Returns (files written relative to ``out_dir``, seconds).  ``stop``: called after
     each frame (the main job's raises :class:`lc_petsc.stop_notice.Stopped` on a signal:
     the temporary file is removed, no frames.usdc written), or None."""
+    if warn is None:
+        def warn(text):
+            print(f"simulate.py: warning: {text}", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     target = Path(out_dir) / USD_NAME
     if not output.usd:
@@ -273,12 +277,11 @@ def export_run(output, frames_path, out_dir, stop=None):
         from pxr import Tf
         failures = (OSError, ValueError, Tf.ErrorException)
     except ImportError as e:
-        print(f"simulate.py: warning: no USD export ({e}; install usd-core or set output.usd = false)",
-              file=sys.stderr, flush=True)
+        warn(f"no USD export ({e}; install usd-core or set output.usd = false)")
         return [], time.perf_counter() - t0
     try:
         write_usd(frames_path, target, progress=None if stop is None else lambda done, total: stop())
     except failures as e:
-        print(f"simulate.py: warning: {export_failed(frames_path, e)}", file=sys.stderr, flush=True)
+        warn(export_failed(frames_path, e))
         return [], time.perf_counter() - t0
     return [USD_NAME], time.perf_counter() - t0

@@ -236,9 +236,15 @@ def check_strands_file(path):
                 if offsets[0] != 0 or np.any(np.diff(offsets) < 0) or offsets[-1] != nv:
                     raise SceneError(f"{where}: /wisp_offsets must start at 0, be non-decreasing and end "
                                      f"at the vertex count {nv}")
-                for a in _chunks(pos, nv):
-                    if not np.isfinite(a).all():
-                        raise SceneError(f"{where}: /positions has non-finite values")
+                for k, a in enumerate(_chunks(pos, nv)):
+                    bad = ~np.isfinite(a).all(axis=1)
+                    if bad.any():
+                        # the row and its wisp: a groom of 1e5 vertices is not searched by hand
+                        j = int(np.flatnonzero(bad)[0])
+                        i = k * _CHECK_ROWS + j
+                        w = int(np.searchsorted(offsets, i, side="right")) - 1
+                        raise SceneError(f"{where}: /positions must be finite; vertex {i} (wisp {w}, "
+                                         f"its vertex {i - int(offsets[w])}) has {a[j].tolist()}")
                 for name, per in (("radius", "vertex"), ("youngs_modulus", "wisp"), ("density", "wisp")):
                     if name in dsets:
                         for k, a in enumerate(_chunks(dsets[name], dsets[name].shape[0])):

@@ -298,9 +298,45 @@ def test_groom_file_radii_outside_the_hair_range_are_warned_about(tmp_path, radi
     try:
         w = [m for m in term_warnings(sim) if "radii" in m]
         assert len(w) == int(expect is not None), w
+        assert not [m for m in term_warnings(sim) if "median edge" in m]    # even edges
         assert expect is None or w[0].startswith(f"the radii of {tmp_path / 'g.h5'} {expect}"), w
     finally:
         sim.close()
+
+
+@pytest.mark.mpi
+def test_groom_edges_far_shorter_than_their_wisp_are_warned_about():
+    """A near-duplicate vertex in a groom file (an edge of 1e-3 cm among 0.6 cm ones)
+    ran without a word until a linear solve failed (DIVERGED_INDEFINITE_PC), with advice
+    about solvers; now a warning names the file, the shortest edge and how many wisps
+    have one, the same on any rank count (wisps in the scene's numbering)."""
+    import os
+    import h5py
+    from lc_petsc.scene import geometry
+    from sim_helpers import shared_scene_dir
+    comm = MPI.COMM_WORLD
+    with shared_scene_dir(comm, "short_edge", "") as (d, _):
+        path = os.path.join(d, "g.h5")
+        x = np.concatenate([geometry.wisp4c(12, root=(3.0 * w, 0.0, 0.0)) for w in range(4)])
+        L = float(np.linalg.norm(x[1] - x[0]))
+        for v, length in ((12 + 5, 1e-4 * L), (36 + 7, 3e-3 * L)):      # wisp 1 edge 4, wisp 3 edge 6
+            e = x[v] - x[v - 1]
+            x[v] = x[v - 1] + length * e / np.linalg.norm(e)
+        if comm.rank == 0:
+            with h5py.File(path, "w") as f:
+                f["positions"] = x
+                f["wisp_offsets"] = np.arange(0, 49, 12)
+        comm.Barrier()
+        sim = build_simulator(SimConfig(scene=SceneConfig(kind="file", path=path)), comm=comm)
+        try:
+            w = [m for m in term_warnings(sim) if "median edge" in m]
+        finally:
+            sim.close()
+    assert len(w) == 1, w
+    med = np.median(np.linalg.norm(np.diff(x[12:24], axis=0), axis=1))
+    assert w[0].startswith(f"{path}: 2 wisp(s) have an edge shorter than 0.01 of their wisp's median "
+                           f"edge; the shortest: wisp 1, edge 4 (vertices 4, 5), rest length "
+                           f"{1e-4 * L:.3g} cm against a median of {med:.3g} cm"), w
 
 
 def test_the_job_says_why_a_frame_below_the_tolerance_missed_it(tmp_path):

@@ -325,6 +325,33 @@ def test_a_run_killed_in_its_end_of_run_outputs_restarts_from_its_last_frame(tmp
     assert "nothing to do" in capsys.readouterr().err
 
 
+def test_restart_latest_of_a_finished_run_is_refused(tmp_path, straight, capsys):
+    """A finished run whose last checkpoint is before its end (5 frames, checkpoints at
+    2 and 4): --restart latest ran frame 5 again (on another rank count to round-off) and
+    replaced the outputs and summary.json with this run's, where a run checkpointed at
+    its end was refused ("nothing to do").  Now it is refused too, the folder unchanged;
+    a larger --frames continues it as before."""
+    import hashlib
+    cfg = _config(tmp_path, frames=5)
+    out = tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet"]) == 0
+
+    def files():
+        return {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest()
+                for p in sorted(out.rglob("*")) if p.is_file()}
+    before = files()
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 2
+    ck = out / "checkpoints" / "checkpoint_000004.h5"
+    assert (f"{out} holds a run that finished its 5 frames (its summary.json): nothing to do; to continue "
+            f"it from {ck} give a larger --frames (time.frames, the total), or add --force to run frame 5 "
+            "again from it") in capsys.readouterr().err
+    assert files() == before
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest", "--frames", "6"]) == 0
+    pos, t = _frames(out)
+    assert np.array_equal(pos, straight[0]) and np.array_equal(t, straight[1])
+
+
 def test_clear_errors(tmp_path, capsys):
     cfg = _config(tmp_path)
     out = tmp_path / "out"

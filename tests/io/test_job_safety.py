@@ -231,6 +231,40 @@ def _fill_at(monkeypatch, vol, frame, leave):
     monkeypatch.setattr(Integrator, "step", step_and_fill)
 
 
+def test_a_full_volume_refuses_the_run_and_leaves_no_folder(tmp_path, small_volume, capsys):
+    """On a volume with no block free the lock file is created (an inode) but its record
+    cannot be written: the run was refused (exit 2) and left the folder it had created,
+    with an empty lock file in it; and a refused run never removed the parents it had
+    created (--out new/out left new)."""
+    _fill(small_volume, 0)
+    out = small_volume / "new" / "out"
+    assert main([_smash(tmp_path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"output folder {str(out)!r}: No space left on device" in err, err
+    assert sorted(p.name for p in small_volume.iterdir()) == ["filler"]
+
+
+def test_a_lock_whose_record_cannot_be_written_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
+    """The same failure in a folder with a killed run's lock file: it is given back as
+    it was (its record is what the next run's warning names), not removed or emptied."""
+    import errno
+    import lc_petsc.io.lock as lock
+
+    def no_space(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    stale = '{"pid": 4242, "host": "h", "started": "2026-12-06 10:00:00 UTC"}\n'
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / LOCK_NAME).write_text(stale)
+    monkeypatch.setattr(lock.os, "fsync", no_space)
+    for folder in (tmp_path / "old", tmp_path / "new"):
+        with pytest.raises(OSError, match="No space left"):
+            OutputLock(folder).acquire()
+    monkeypatch.undo()
+    assert (tmp_path / "old" / LOCK_NAME).read_text() == stale
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
+    assert OutputLock(tmp_path / "old").acquire().stale.startswith("pid 4242 on host h")
+
+
 def test_run_that_cannot_fit_is_refused_before_frame_0(tmp_path, small_volume, capsys):
     out = small_volume / "out"
     assert main([_smash(tmp_path, frames=5000), "--out", str(out), "--quiet"]) == 2
@@ -443,6 +477,28 @@ def test_usd_export_on_a_full_disk_leaves_no_temporary_file(tmp_path, small_volu
     assert "USD export failed, frames.h5 is intact" in err, err
     assert f"write it later with drivers/to_usd.py {out / 'frames.h5'}" in err, err
     assert sorted(p.name for p in out.iterdir()) == before
+
+
+def test_a_failed_usd_export_is_a_warning_in_summary_json(tmp_path, monkeypatch, capsys):
+    """A USD export that failed on a full disk (pxr's OSError) was a warning on stderr
+    only: summary.json's ``warnings`` and the report said nothing of the missing
+    frames.usdc, while an unexpected failure was recorded."""
+    import errno
+    import lc_petsc.io.usd as usd
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(usd, "write_usd", full_disk)
+    out = tmp_path / "out"
+    assert main([_smash(tmp_path, frames=2, ce=0), "--out", str(out), "--quiet"]) == 0
+    cap = capsys.readouterr()
+    s = json.loads((out / "summary.json").read_text())
+    said = [w for w in s["warnings"] if w.startswith("USD export failed, frames.h5 is intact")]
+    assert len(said) == 1 and "No space left on device" in said[0], s["warnings"]
+    assert f"drivers/to_usd.py {out / 'frames.h5'}" in said[0], said
+    assert "frames.usdc" not in s["output"]["files"] and not (out / "frames.usdc").exists()
+    assert cap.err.count("USD export failed") == 1, cap.err       # once on stderr
+    assert "warning: USD export failed" in cap.out, cap.out       # and in the report
 
 
 def test_outputs_that_cannot_be_written_are_reported(tmp_path, capsys):

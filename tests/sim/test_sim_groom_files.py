@@ -41,7 +41,7 @@ CASES = {
     "negative radius": (dict(radius=np.full(2 * N, -1.0)), "/radius must be finite and positive; vertex 0 has -1.0"),
     "nan radius at 7": (dict(radius=np.where(np.arange(2 * N) == 7, np.nan, 0.05)),
                         "/radius must be finite and positive; vertex 7 has nan"),
-    "nan positions": ("nan", "/positions has non-finite values"),
+    "nan positions": ("nan", "/positions must be finite; vertex 33 (wisp 1, its vertex 3) has [0.0, nan, inf]"),
     "bad offsets": (dict(wisp_offsets=np.array([0, N, 2 * N + 1])), "/wisp_offsets must start at 0"),
     "missing offsets": (dict(wisp_offsets=None), "missing dataset /wisp_offsets"),
     "2-D radius": (dict(radius=np.full((2 * N, 1), 0.05)), "/radius must have one entry per vertex"),
@@ -58,7 +58,7 @@ def _make(tmp_path, case):
         return _good(p, positions=np.full((2 * N, 3), b"1.0"))
     if case == "nan positions":
         pos = np.concatenate([geometry.wisp4c(N), geometry.wisp4c(N)])
-        pos[7, 1] = np.nan
+        pos[N + 3] = (0.0, np.nan, np.inf)
         return _good(p, positions=pos)
     return _good(p, **change)
 

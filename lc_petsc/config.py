@@ -192,7 +192,8 @@ class PhysicsConfig:
     ``head_push_out``: a vertex a step leaves deeper than its strand radius (less its
     edges' sagitta) is put back on the sphere, the length projection keeps it there, and a
     vertex's straight path between frames that cuts under the curved head is lifted out
-    (its end moved out by at most its strand radius).
+    (its end moved out by at most 4 strand radii, its wisp's rest lengths set again, the
+    velocity leaving the lift out), also after the strand contact's frame end.
     The head (sphere and pinned roots) follows ``head_motion``: ``static``, ``shake``
     (rotate back and forth about z, then y, then x; ``head_amplitude`` rad, each axis for
     ``head_period`` s; ``head_smooth``: each axis's swing starts and ends at rest, so the

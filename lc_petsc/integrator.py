@@ -186,6 +186,7 @@ class Integrator:
             carried = self.free & held[wisp]
             self.carried = carried if carried.any() else None
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
+        self.vertex_wisp = np.repeat(np.arange(len(scene.offsets) - 1), np.diff(scene.offsets))
         #: per vertex: how deep the head's push-out lets it rest (physics.head_push_out)
         self.allowed_depth = head_contact.allowed_depth(
             scene.radius, self.rest_edge, scene.offsets, head.radius + config.physics.head_margin
@@ -552,8 +553,9 @@ class Integrator:
             # tolerance it can exceed it, docs/newton.md "Stopping rule")
             self._projection_move = max(self._projection_move, self.increments(projected - x)[0])
             x = projected
+        lifted = None
         if push:        # last: the strand path check below keeps to the path it leaves
-            x = self._lift_head_paths(x_old, x, self.t)
+            x, lifted = self._lift_head_paths(x_old, x, self.t)
         contact = None
         if self.strand is not None:
             pairs, deep, dmin = self.strand.measure(x)
@@ -565,6 +567,8 @@ class Integrator:
                 x, pairs, deep, dmin, n_sep = self._separate(x, pairs, deep, dmin)
             contact = pairs, deep, dmin, n_sep
         self.v = (x - x_old) / dt
+        if lifted is not None:
+            self.v -= lifted / dt
         self.x = x
         self.t = self.t_next
         return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed, off_model)
@@ -585,41 +589,71 @@ class Integrator:
         docs/contact.md "Hair and the head").  A vertex resting on the head sinks by its
         push over the stiffness, far less than its radius, and is left alone, so a run
         whose hair never sinks that deep keeps its bits."""
+        c, R, _ = self._head_sphere()
+        deep = np.flatnonzero(self._sunk(x))
+        if len(deep):
+            y = x[deep] - c
+            x = x.copy()
+            x[deep] = c + y * (R / np.sqrt(np.einsum("ij,ij->i", y, y)))[:, None]
+        return x
+
+    def _sunk(self, x):
+        """Per vertex (n,): a free vertex deeper in the head sphere (radius + margin, at
+        the step's end) than the push-out allows (:meth:`_push_out_of_head`)."""
         c, R, allow = self._head_sphere()
         y = x - c
         dist = np.sqrt(np.einsum("ij,ij->i", y, y))
-        deep = np.flatnonzero(self.free & (R - dist > allow) & (dist > 0))
-        if len(deep):
-            x = x.copy()
-            x[deep] = c + y[deep] * (R / dist[deep])[:, None]
-        return x
+        return self.free & (R - dist > allow) & (dist > 0)
 
     def _lift_head_paths(self, x_old, x, t_old):
         """``x`` (the step's end, at t_next) with each free vertex whose straight path from
         ``x_old`` (at ``t_old``), relative to the moving centre, goes deeper in the head
         sphere than allowed lifted straight out just enough for the path to stay that
-        shallow, if that takes at most its strand radius
+        shallow, if that takes at most :data:`head_contact.LIFT_RADII` strand radii
         (:func:`head_contact.lift_paths`): both ends on the scalp, the chord of a vertex
-        sliding along it cuts under it (soft hairball: tips sliding 3.3 cm a frame,
-        chords 0.09-0.12 cm deep, 11 paths past their 0.07 cm radius)."""
+        sliding along it cuts under it (soft hairball: tips sliding 3.4 cm a frame,
+        chords 0.10-0.12 cm deep past their 0.07 cm radius).  The lifted wisps' rest
+        lengths are set again (:meth:`_keep_lengths`).  Returns (x, the move (n, 3), which
+        the velocity leaves out: an outward speed of lift / dt would kick the hair off
+        the scalp)."""
         c0 = self.head.sphere_center(t_old)
         c1, R, allow = self._head_sphere()
-        # at most a strand radius (2 radii: the soft hairball's edges 3.0% long, its
-        # gravity-5000 variant 2 rows sunk instead of 1)
-        p1, moved = head_contact.lift_paths(x_old - c0, x - c1, R, allow, self.scene.radius, self.free)
-        if not len(moved):
+        lifted = x
+        # the length projection of a lifted wisp moves its lifted vertices back a little
+        # (gravity 5000: 18 paths through after 1 round, 6 after 3)
+        for _ in range(head_contact.LIFT_ROUNDS):
+            p1, moved = head_contact.lift_paths(x_old - c0, lifted - c1, R, allow,
+                                                head_contact.LIFT_RADII * self.scene.radius, self.free)
+            if not len(moved):
+                break
+            lifted = lifted.copy()
+            lifted[moved] = c1 + p1[moved]
+            lifted = self._keep_lengths(lifted, moved)
+        if lifted is x:
+            return x, None
+        return lifted, lifted - x
+
+    def _keep_lengths(self, x, moved):
+        """``x`` with the wisps of the vertices ``moved`` (indices) set back to their rest
+        lengths around the head (the frame's length projection, when on; other wisps keep
+        their bits): a vertex lifted or pushed out alone stretches its edges (a lift of
+        2 radii: 3.0%; a push-out after the strand path check: 12.7%)."""
+        if not self.cfg.time.length_projection:
             return x
+        sc = self.scene
+        touched = np.zeros(len(sc.offsets) - 1, bool)
+        touched[self.vertex_wisp[moved]] = True
+        mask = touched[self.vertex_wisp]
+        projected = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass, self._head_sphere())
         x = x.copy()
-        x[moved] = c1 + p1[moved]
+        x[mask] = projected[mask]
         return x
 
     def _lift_frame_path(self, x_frame, t_frame):
         """After step cutback: the frame's path x_n -> x_{n+1} (what a viewer interpolates)
         is the chord of the substeps' chain and gets the head's path lift too
-        (:meth:`_lift_head_paths`); the velocity takes the move over the frame's dt."""
-        x = self._lift_head_paths(x_frame, self.x, t_frame)
-        self.v = self.v + (x - self.x) / self.cfg.time.dt
-        self.x = x
+        (:meth:`_lift_head_paths`; the velocity leaves the move out, as a step's does)."""
+        self.x = self._lift_head_paths(x_frame, self.x, t_frame)[0]
 
     def _collision_free_frame_path(self, x_frame, t_frame, last):
         """ccd mode after step cutback: each substep's straight path is collision-free,
@@ -654,16 +688,25 @@ class Integrator:
         (x, pairs, deep, min distance, pairs separated)."""
         strand = self.strand
         separation = self.cfg.physics.strand_separation
+        push = self.contact and self.cfg.physics.head_push_out
         n_sep = 0
+        sunk = False
         for rnd in range(FRAME_END_ROUNDS):
-            if rnd > 0 and (not separation or deep == 0):
+            if rnd > 0 and (not separation or deep == 0) and not sunk:
                 break
             if separation and deep:
                 # one call of all the rounds; no measure of its own (see above)
                 x, n, _ = strand.separate(x, max_iterations=SEPARATION_ROUNDS)
                 n_sep = max(n_sep, n)
+            if push:
+                # the path check holds a vertex back on its straight path, which can cut
+                # under the scalp, and the separation can push it in (soft hairball,
+                # gravity 5000: a tip 0.044 -> 0.119 -> 0.152 cm deep, radius 0.101)
+                pushed = np.flatnonzero(self._sunk(x))
+                x = self._keep_lengths(self._push_out_of_head(x), pushed) if len(pushed) else x
             x = strand.collision_free_frame(x_old, x, motion)[0]
             pairs, deep, dmin = strand.measure(x)
+            sunk = push and bool(global_reduce(self.comm, [float(self._sunk(x).any())], "max")[0])
         return x, pairs, deep, dmin, n_sep
 
     def _separate(self, x, pairs, deep, dmin):
@@ -1227,9 +1270,36 @@ def project_rest_lengths(x, free, offsets, rest_edge, mass, head=None):
     None or (centre (3,), radius, allowed depth (nv,)): on a wisp with a pinned vertex,
     a vertex the walk would leave deeper in that sphere than allowed is put on it
     instead, at its edge's rest length from its predecessor (the vertices after it
-    follow).  x (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), rest_edge (nv - 1,),
-    mass (nv,).  Returns (nv, 3)."""
-    return _set_edge_lengths(x, rest_edge, free, offsets, mass, head)
+    follow); a wisp with no pinned vertex that the mean shift leaves with a vertex that
+    deep gets a second walk around the head from its first vertex (pushed onto the
+    sphere if it is that deep), without the shift: the head's push is an outside force
+    (its mean shift took pushed vertices back in: a free strand dropped on the head 3.9
+    strand radii deep).  x (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), rest_edge
+    (nv - 1,), mass (nv,).  Returns (nv, 3)."""
+    out = _set_edge_lengths(x, rest_edge, free, offsets, mass, head)
+    if head is None:
+        return out
+    off = np.asarray(offsets, np.int64)
+    sizes = np.diff(off)
+    wisp = np.repeat(np.arange(len(sizes)), sizes)
+    loose = np.bincount(wisp[~free], minlength=len(sizes)) == 0
+    c, R, allow = head
+    y = out - c
+    dist = np.sqrt(np.einsum("ij,ij->i", y, y))
+    sunk = loose[wisp] & (R - dist > allow) & (dist > 0)
+    if not sunk.any():
+        return out
+    again = np.bincount(wisp[sunk], minlength=len(sizes)) > 0
+    first = off[:-1][again & (sizes > 0)]
+    out = out.copy()
+    deep = first[R - dist[first] > allow[first]]
+    out[deep] = c + y[deep] * (R / dist[deep])[:, None]
+    anchored = free.copy()
+    anchored[first] = False             # the walk starts from it and shifts nothing
+    second = _set_edge_lengths(out, rest_edge, anchored, offsets, None, head)
+    mask = again[wisp]
+    out[mask] = second[mask]
+    return out
 
 
 #: time.newton_increment_tol above this: a stop needs two iterations in a row that pass

@@ -272,8 +272,8 @@ def head_warnings(head, cfg):
         fix = "add \"head_collision\" to physics.terms (the head sphere is drawn, not modelled)"
     else:
         fix = ("the push-out (physics.head_push_out) is on, so this is what it leaves: vertex paths a "
-               "lift of their end by a strand radius cannot keep out, vertices the strand contact's path "
-               "check or separation moves back in, and wisps without a pinned vertex; to lessen it, "
+               "lift of their end by 4 strand radii cannot keep out (slides of several cm a frame) and "
+               "vertices the strand contact's frame end moves after it; to lessen it, "
                if phys.head_push_out else "set physics.head_push_out = true (vertices deeper than their "
                "radius put back on the sphere after each step), or ")
         fix += (f"raise time.newton_iterations or lower time.dt (the last Newton step of a frame can carry "

@@ -143,3 +143,35 @@ def rotate(w, e):
         return e.copy()
     k = w / th
     return e * np.cos(th) + np.cross(k, e) * np.sin(th) + k * (k @ e) * (1.0 - np.cos(th))
+
+
+def falling_strand(physics, time, n_pinned=2):
+    """A 30-vertex strand (radius 0.05 cm, 0.5 cm edges) falling onto a 5 cm head below
+    it, at 3 Newton iterations, 30 frames (``physics``, ``time``: more keys)."""
+    return SimConfig(scene=SceneConfig(kind="straight", n_vertices=30, n_pinned=n_pinned, direction=(1, 0, 0),
+                                       segment_length=0.5),
+                     material=MaterialConfig(youngs_modulus=1e7, root_radius=0.05, tip_radius=0.05),
+                     physics=PhysicsConfig(terms=("stretch", "bend", "gravity", "head_collision"),
+                                           head_radius=5.0, head_center=(8.0, -5.05, 0.0), head_stiffness=1e5,
+                                           **physics),
+                     time=TimeConfig(**dict(dict(frames=30, newton_iterations=3), **time)))
+
+
+def head_figures(sim):
+    """Runs ``sim`` (a :func:`falling_strand`) and returns its head figures per frame
+    step: (largest depth over strand radius of each frame written, vertex paths through
+    the head between frames in all, kinetic energy of the free vertices of each step,
+    the last frame's positions)."""
+    from lc_petsc.head_check import frame_depths, path_depths
+    X, T = [sim.x.copy()], [0.0]
+    sim.run(callback=lambda s: (X.append(s.x.copy()), T.append(s.integrator.t)))
+    head, sc, dt = sim.integrator.head, sim.scene, sim.config.time.dt
+    free = ~sc.pinned
+    ratio, through, ke = [], 0, []
+    for k in range(len(X) - 1):
+        c0, c1 = head.sphere_center(T[k]), head.sphere_center(T[k + 1])
+        ratio.append(frame_depths(X[k + 1], c1, head.radius, sc.offsets, sc.pinned, sc.radius)["ratio"])
+        through += path_depths(X[k], X[k + 1], c0, c1, head.radius, sc.pinned, sc.radius)["through"]
+        v = (X[k + 1] - X[k])[free] / dt
+        ke.append(0.5 * float(np.sum(sc.mass[free, None] * v * v)))
+    return np.array(ratio), through, np.array(ke), X[-1]

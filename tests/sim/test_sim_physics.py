@@ -8,7 +8,7 @@ from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfi
 from lc_petsc.elements import bend
 from lc_petsc.simulator import build_simulator
 from lc_petsc.errors import SolverError
-from sim_helpers import small_hairball_config
+from sim_helpers import falling_strand, head_figures, small_hairball_config
 
 SELF = MPI.COMM_SELF
 
@@ -170,17 +170,6 @@ def test_head_contact_penalty_holds_strand():
         sim.close()
 
 
-def _falling_strand(physics, time):
-    """A 30-vertex strand falling onto a 5 cm head below it, at 3 Newton iterations."""
-    return SimConfig(scene=SceneConfig(kind="straight", n_vertices=30, n_pinned=2, direction=(1, 0, 0),
-                                       segment_length=0.5),
-                     material=MaterialConfig(youngs_modulus=1e7, root_radius=0.05, tip_radius=0.05),
-                     physics=PhysicsConfig(terms=("stretch", "bend", "gravity", "head_collision"),
-                                           head_radius=5.0, head_center=(8.0, -5.05, 0.0), head_stiffness=1e5,
-                                           **physics),
-                     time=TimeConfig(frames=30, newton_iterations=3, **time))
-
-
 @pytest.mark.parametrize("push_out", [True, False])
 def test_head_push_out_at_a_fixed_newton_count(push_out):
     """The strand of the test above falls onto the head at the paper's fixed 3 Newton
@@ -189,7 +178,7 @@ def test_head_push_out_at_a_fixed_newton_count(push_out):
     radii, and deeper than the 0.05 cm radius in 15 of the 30 frames).  Pushed out, no
     free vertex ends a frame deeper than its radius (0.0499 cm at worst)."""
     c = np.array([8.0, -5.05, 0.0])
-    cfg = _falling_strand(dict(head_push_out=push_out), {})
+    cfg = falling_strand(dict(head_push_out=push_out), {})
     sim = _sim(cfg)
     try:
         depth = []
@@ -214,22 +203,12 @@ def test_head_push_out_kept_through_the_length_projection(motion, dt):
     strand deeper than its radius (edges included) and no path between frames goes that
     deep, without an outward kick (largest kinetic energy 46.7 and 73.5; 46.7 and 129.8
     on main)."""
-    from lc_petsc.head_check import frame_depths, path_depths
-    cfg = _falling_strand(dict(head_motion=motion, head_velocity=(0.0, 30.0, 0.0)),
-                          dict(dt=dt, length_projection=True))
+    cfg = falling_strand(dict(head_motion=motion, head_velocity=(0.0, 30.0, 0.0)),
+                         dict(dt=dt, length_projection=True))
     sim = _sim(cfg)
     try:
-        X, T = [sim.x.copy()], [0.0]
-        sim.run(callback=lambda s: (X.append(s.x.copy()), T.append(s.integrator.t)))
-        head, sc = sim.integrator.head, sim.scene
-        ratio, through, ke = [], 0, []
-        for k in range(len(X) - 1):
-            c0, c1 = head.sphere_center(T[k]), head.sphere_center(T[k + 1])
-            ratio.append(frame_depths(X[k + 1], c1, 5.0, sc.offsets, sc.pinned, sc.radius)["ratio"])
-            through += path_depths(X[k], X[k + 1], c0, c1, 5.0, sc.pinned, sc.radius)["through"]
-            v = (X[k + 1] - X[k])[~sc.pinned] / dt
-            ke.append(0.5 * float(np.sum(sc.mass[~sc.pinned, None] * v * v)))
-        edge = np.linalg.norm(np.diff(X[-1], axis=0), axis=1)
+        ratio, through, ke, x = head_figures(sim)
+        edge = np.linalg.norm(np.diff(x, axis=0), axis=1)
         assert np.abs(edge / 0.5 - 1).max() < 1e-9          # the projection's rest lengths hold
         assert max(ratio) <= 1.0 and max(ratio) > 0.5, max(ratio)     # it does rest on the head
         assert through == 0

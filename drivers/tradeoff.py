@@ -51,6 +51,11 @@ recommended, whatever its error: drawn-out curls, a wrong stretch energy.  A New
 tolerance that saves less than 10% of the Newton iterations of the same setting at a
 tighter tolerance reaching the same target is not recommended either: the tighter one is
 (since loose stops must agree with their model, 1e-3 can cost what 1e-6 costs).
+A variant converged in every frame at the reference's dt is named when its error is not
+Newton's: frames split into other substeps than the reference's (its error there is the
+time step's; the demo cut to 10 wisps, uncarried, to 1e-6: frame 0 in 3 substeps against
+2, 1.7e-3 away), or farther than its tolerance with the same splits (a step reached
+another of its solutions); column "not_newtons_error" (docs/newton.md).
 """
 
 import argparse

@@ -49,11 +49,13 @@ def _negative_pivots(rowptr, cols, values, first, offsets, b, counts):
                         if i >= j and i - j <= w:
                             L[i, i - j] = values[9 * p + 3 * r + c]
         negative = 0
+        u = np.empty(w)                 # u[j - k] = L[j, k] D[k]: row j's products, once
         for j in range(n):
             lo = max(0, j - w)
             d = L[j, 0]
             for k in range(lo, j):
-                d -= L[j, j - k] * L[j, j - k] * L[k, 0]
+                u[j - k - 1] = L[j, j - k] * L[k, 0]
+                d -= L[j, j - k] * u[j - k - 1]
             if not d > 0.0:
                 negative += 1
                 if d == 0.0 or d != d:      # singular or NaN: no pivot to divide by
@@ -62,7 +64,7 @@ def _negative_pivots(rowptr, cols, values, first, offsets, b, counts):
             for i in range(j + 1, min(n, j + w + 1)):
                 t = L[i, i - j]
                 for k in range(max(0, i - w), j):
-                    t -= L[i, i - k] * L[j, j - k] * L[k, 0]
+                    t -= L[i, i - k] * u[j - k - 1]
                 L[i, i - j] = t / d
         counts[wisp] = negative
 

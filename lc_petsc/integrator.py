@@ -202,6 +202,7 @@ class Integrator:
         self.newton_refused = []        # per frame: kept steps the cap ended on a refused stop
         self.newton_saddle = []         # per frame: stops refused on a saddle of G (all attempts)
         self._saddles = 0               # the frame's so far
+        self._saddle_wisps = []         # the last saddle's wisps (global; for the monitor)
         self.history = None             # a list: per-iteration measures are appended
         self.monitor = None             # a stream: a line per Newton iteration (rank 0)
         self._fallback = ""            # why the last exact step was rejected (history)
@@ -533,7 +534,7 @@ class Integrator:
             unconfirmed, off_model = claim and not confirmed, refused
             if self.monitor is not None:
                 short = ", solve short of -ksp_rtol" if short_of_rtol else ""
-                short += _stop_note(unconfirmed, refused) + (", stop refused: a saddle of G" if saddle else "")
+                short += _stop_note(unconfirmed, refused) + (_saddle_note(self._saddle_wisps) if saddle else "")
                 self._monitor(it, measure, self._step_kind(exact) + short, alpha, step_ksp,
                               cut=self.strand is not None and self.strand.last_cut, estimate=reported)
             if converged or saddle:
@@ -969,10 +970,7 @@ class Integrator:
         if not found:
             return False
         self._saddles += 1
-        if self.monitor is not None:
-            self._say(f"  frame {self.frame} (dt {self.dt:.4g}): the stop is a saddle of G: the exact "
-                      f"Hessian of wisp(s) {', '.join(map(str, found[:8]))}{' ...' if len(found) > 8 else ''} "
-                      f"is not positive definite")
+        self._saddle_wisps = found
         return True
 
     def _model_agrees(self, step):
@@ -1102,6 +1100,13 @@ def _stop_note(unconfirmed, refused):
     if unconfirmed:
         return ", stop to be confirmed"
     return ", stop refused: G's decrease off its quadratic model" if refused else ""
+
+
+def _saddle_note(wisps):
+    """The monitor's note on a stop refused on a saddle of G (:meth:`Integrator._at_saddle`):
+    the wisps (global indices) whose exact Hessian is not positive definite."""
+    more = " ..." if len(wisps) > 8 else ""
+    return f", stop refused: a saddle of G (wisps {', '.join(map(str, wisps[:8]))}{more})"
 
 
 def unconfirmed_note(steps, refused=0, saddles=0):

@@ -626,8 +626,9 @@ def test_contact_frames_converge_within_a_cap_of_100(monkeypatch):
     recommended settings and no cutback: frames 3-5 have active contact pairs and need
     36-80 iterations (measured 12 15 10 57 41 36 on 1 and 2 ranks, 12 15 10 80 45 33 on 3:
     the contact frames amplify the partition's round-off), so a cap of 100 reaches the
-    tolerance in every frame (frame 3 on 1 rank on a saddle of G, refused); at the cap of 30 they did not (docs/newton.md "Thirteenth round"), and
-    before the straight stem's twist was faded no frame did."""
+    tolerance in every frame (frame 3 on 1 rank on a saddle of G, refused); at the cap of
+    30 they did not (docs/newton.md "Thirteenth round"), and before the straight stem's
+    twist was faded no frame did."""
     sim = six_wisps_ccd(monkeypatch, 6, solver=(("filter", "exact_or_analytic"), ("exact_fallback", "shifted"),
                                                  ("exact_stay", True)),
                         newton_iterations=100, newton_increment_tol=1e-6, max_substeps=1,

@@ -42,6 +42,7 @@ from contextlib import contextmanager, nullcontext
 import numpy as np
 from petsc4py import PETSc
 
+from lc_petsc import curvature
 from lc_petsc.elements import bend, compiled, stretch, twist
 from lc_petsc.parallel import compile_in_turn
 from lc_petsc.petsc_capi import has_value_array, value_array
@@ -62,7 +63,9 @@ class Assembler:
                              f"default) or numpy (the reference kernels)")
         self.kernels = kernels
         #: seconds spent compiling (or loading from Numba's cache) the compiled kernels
-        self.compile_seconds = compile_in_turn(comm.tompi4py(), compiled.warm_up) if kernels == "compiled" else 0.0
+        # (the curvature check at Newton's stops is compiled either way: lc_petsc/curvature.py)
+        warm = (compiled.warm_up,) if kernels == "compiled" else ()
+        self.compile_seconds = compile_in_turn(comm.tompi4py(), *warm, curvature.warm_up)
         nv, b = scene.nv, scene.bandwidth
         self.b = b
         # Band storage R[i, r, 3 (d + b) + c] = entry (3 i + r, 3 (i + d) + c): an element's

@@ -40,6 +40,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   chord step's increment; ``newton_chord_checks`` counts these solves per frame,
   cut-back attempts included).  Not with strand contact (refused by the configuration).
   ``solver.exact_stay``: after a full, unshifted exact step the next one is exact too.
+  At any tolerance a stop whose last step was exact is refused when a wisp's exact
+  Hessian is not positive definite (:meth:`Integrator._at_saddle`: a saddle of G, not the
+  step's solution); the solve then ends unconverged, for step cutback to redo it
+  (``newton_saddle`` per frame).
 * Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
   misses it within the cap is redone from its start state as two backward-Euler steps
   of dt / 2 (head, pins and head sphere at their own times), each cut again if it
@@ -92,6 +96,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from lc_petsc import curvature
 from lc_petsc.elements import compiled, head_contact
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.scene.state import vertex_wisp_length
@@ -106,7 +111,8 @@ class _Solve(NamedTuple):
     deep pairs, min distance, pairs separated), and whether the cap ended it on a stop
     awaiting its confirmation (:func:`confirms_stop`: an increment below the tolerance,
     yet not converged) or on one refused for steps off their quadratic model
-    (:meth:`Integrator._loose_verdict`; the same)."""
+    (:meth:`Integrator._loose_verdict`; the same), or whether its stop was refused on a
+    saddle of G (:meth:`Integrator._at_saddle`: ended there, not converged)."""
 
     iterations: int
     converged: Optional[bool]
@@ -116,6 +122,7 @@ class _Solve(NamedTuple):
     contact: Optional[tuple]
     unconfirmed: bool = False
     refused: bool = False
+    saddle: bool = False
 
 
 class _Region:
@@ -197,6 +204,9 @@ class Integrator:
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
         self.newton_unconfirmed = []    # per frame: kept steps the cap ended on an unconfirmed stop
         self.newton_refused = []        # per frame: kept steps the cap ended on a refused stop
+        self.newton_saddle = []         # per frame: stops refused on a saddle of G (all attempts)
+        self._saddles = 0               # the frame's so far
+        self._saddle_wisps = []         # the last saddle's wisps (global; for the monitor)
         self.history = None             # a list: per-iteration measures are appended
         self.monitor = None             # a stream: a line per Newton iteration (rank 0)
         self._fallback = ""            # why the last exact step was rejected (history)
@@ -287,7 +297,7 @@ class Integrator:
         cfg = self.cfg
         if self.strand is not None:             # per frame: the statistics' entries
             self.strand.start_frame()
-        self._discarded = self._discarded_checks = 0
+        self._discarded = self._discarded_checks = self._saddles = 0
         self._projection_move = 0.0
         # the solves' solution vector is CG's first iterate under -ksp_initial_guess_nonzero:
         # it would carry the last frame's last Newton step, which no checkpoint holds, so a
@@ -303,12 +313,13 @@ class Integrator:
         converged = None if conv[0] is None else all(conv)
         unconfirmed = sum(s.unconfirmed for s in solves)
         refused = sum(s.refused for s in solves)
+        saddles = sum(s.saddle for s in solves)     # kept ones (cutback discards the others)
         if converged is False and cfg.time.unconverged == "error":
             raise SimulationError(
                 f"frame {self.frame}: Newton did not reach the tolerance within time.newton_iterations = "
                 f"{cfg.time.newton_iterations} in {len(solves)} substep(s) (time.max_substeps = "
                 f"{cfg.time.max_substeps}; largest final relative increment "
-                f"{max(s.increment for s in solves):.3g}{unconfirmed_note(unconfirmed, refused)}); raise "
+                f"{max(s.increment for s in solves):.3g}{unconfirmed_note(unconfirmed, refused, saddles)}); raise "
                 f"time.newton_iterations or time.max_substeps, loosen the tolerance, or set "
                 f"time.unconverged = \"accept\"")
         self.newton_iterations.append(self._discarded + sum(s.iterations for s in solves))
@@ -318,6 +329,7 @@ class Integrator:
         self.newton_converged.append(converged)
         self.newton_unconfirmed.append(unconfirmed)
         self.newton_refused.append(refused)
+        self.newton_saddle.append(self._saddles)
         self.exact_hessian_fallbacks.append(sum(s.fallbacks for s in solves))
         self.chord_checks.append(self._discarded_checks + sum(s.chord_checks for s in solves))
         self.length_projection_move.append(self._projection_move if cfg.time.length_projection else None)
@@ -395,9 +407,10 @@ class Integrator:
         last_step = None                        # the last iteration's step (_model_agrees)
         unconfirmed = False                     # this iteration's stop awaits the next
         off_model = False                       # this iteration's stop was refused (_loose_verdict)
+        saddle = False                          # this iteration's stop is on a saddle (_at_saddle)
         for it in range(cfg.time.newton_iterations):
             n_it += 1
-            unconfirmed = off_model = False
+            unconfirmed = off_model = saddle = False
             if region is not None and it > 0:   # after a filtered first step: lc_petsc/trust_region.py
                 g, dx, exact = self._trust_region_step(x, it, region)
                 x_prev, x = x, self.update(x, dx)
@@ -518,20 +531,24 @@ class Integrator:
             confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure,
                                                      (steps, whole_steps, exact_steps, newton_steps), step, last_step)
             converged = converged and confirmed and not refused
+            # a stop on a saddle of G ends the solve unconverged (step cutback redoes it)
+            saddle = bool(converged) and self._at_saddle(exact_steps[-1] and self._shift == 0.0)
+            converged = converged and not saddle
             claimed_before, last_step = claim, step
             unconfirmed, off_model = claim and not confirmed, refused
             if self.monitor is not None:
                 short = ", solve short of -ksp_rtol" if short_of_rtol else ""
-                short += _stop_note(unconfirmed, refused)
+                short += _stop_note(unconfirmed, refused) + (_saddle_note(self._saddle_wisps) if saddle else "")
                 self._monitor(it, measure, self._step_kind(exact) + short, alpha, step_ksp,
                               cut=self.strand is not None and self.strand.last_cut, estimate=reported)
-            if converged:
+            if converged or saddle:
                 break
         if self.monitor is not None and converged is not None:
             self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {'converged' if converged else 'NOT converged'} "
                       f"after {n_it} iteration(s), measure {reported:.3e}"
                       + (" (a stop the cap left unconfirmed)" if unconfirmed else "")
-                      + (" (a stop refused: G's decrease off its quadratic model)" if off_model else ""))
+                      + (" (a stop refused: G's decrease off its quadratic model)" if off_model else "")
+                      + (" (a stop refused: a saddle of G)" if saddle else ""))
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
         first_bad = sc.first_vertex + int(badv[0]) if len(badv) else -1
         bad_any = self.comm.allgather(first_bad)
@@ -571,7 +588,7 @@ class Integrator:
             self.v -= lifted / dt
         self.x = x
         self.t = self.t_next
-        return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed, off_model)
+        return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed, off_model, saddle)
 
     def _head_sphere(self):
         """(centre, radius, allowed depth (n,)) of the head sphere at the step's end: its
@@ -939,6 +956,27 @@ class Integrator:
             self._model_agrees(step) and (last_step is None or self._model_agrees(last_step)))
         return confirmed, refused
 
+    def _at_saddle(self, exact):
+        """Whether this iteration's stop is on a saddle of G: a wisp's diagonal block of
+        the Newton matrix, the exact Hessian of the stopping step (``exact``: the last step
+        was an exact, unshifted one; else nothing is checked), is not positive definite
+        (:func:`lc_petsc.curvature.negative_wisps`; the Hessian at the iterate before the
+        stopping step, whose increment is below the tolerance).  Per-wisp block Jacobi is
+        the exact inverse of an uncoupled wisp's block, so Newton stops on a saddle as on
+        a minimum (the demo cut to 10 wisps at full dt: coils spun ~167 degrees about
+        their roots, docs/newton.md "Saddles of G").  Collective when ``exact`` (one
+        gather, at stops only); counted in ``newton_saddle``."""
+        if not exact:
+            return False
+        with self.timers("solve"):
+            local = curvature.negative_wisps(self.asm, self.scene.offsets) + self.scene.first_wisp
+        found = [int(w) for part in self.comm.allgather(local.tolist()) for w in part]
+        if not found:
+            return False
+        self._saddles += 1
+        self._saddle_wisps = found
+        return True
+
     def _model_agrees(self, step):
         """Whether Newton step ``step`` (a dict: the iterates ``before`` and ``after``, the
         gradient ``g`` at ``before``, the solve's ``dx``, whether it was taken ``whole``
@@ -1068,12 +1106,26 @@ def _stop_note(unconfirmed, refused):
     return ", stop refused: G's decrease off its quadratic model" if refused else ""
 
 
-def unconfirmed_note(steps, refused=0):
+def _saddle_note(wisps):
+    """The monitor's note on a stop refused on a saddle of G (:meth:`Integrator._at_saddle`):
+    the wisps (global indices) whose exact Hessian is not positive definite."""
+    more = " ..." if len(wisps) > 8 else ""
+    return f", stop refused: a saddle of G (wisps {', '.join(map(str, wisps[:8]))}{more})"
+
+
+def unconfirmed_note(steps, refused=0, saddles=0):
     """For a missed tolerance's message: why ``steps`` (kept steps the cap ended on an
-    unconfirmed stop, :func:`confirms_stop`) and ``refused`` (kept steps it ended on a
-    stop refused by :meth:`Integrator._loose_verdict`) missed it although their last
-    increment is below the tolerance; '' for none."""
+    unconfirmed stop, :func:`confirms_stop`), ``refused`` (kept steps it ended on a
+    stop refused by :meth:`Integrator._loose_verdict`) and ``saddles`` (kept steps whose
+    stop was refused on a saddle of G, :meth:`Integrator._at_saddle`) missed it although
+    their last increment is below the tolerance; '' for none."""
     note = ""
+    if saddles:
+        note += (f"; {saddles} Newton stop(s) refused on a saddle of the step's potential G, not a minimum "
+                 f"(an exact Hessian with a negative eigenvalue where the increment passed "
+                 f"time.newton_increment_tol): such a stop is refused; step cutback (time.max_substeps "
+                 f">= 2) redoes the step in smaller ones, which add inertia (docs/newton.md, "
+                 f"\"Saddles of G\")")
     if steps:
         note += (f"; {steps} step(s) ended on an increment below time.newton_increment_tol at the cap: "
                  f"above {LOOSE_TOLERANCE:g} a stop must be confirmed by the next iteration, which "

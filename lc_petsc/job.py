@@ -183,12 +183,12 @@ def outcome_warnings(summary, start, time_config):
     if missed:
         worst = max(summary["newton_increment"][i] or 0.0 for i in missed)
         from lc_petsc.integrator import unconfirmed_note     # Numba kernels: loaded when needed
-        unconfirmed, refused = (sum(summary.get(key, [0] * (max(missed) + 1))[i] for i in missed)
-                                for key in ("newton_unconfirmed", "newton_refused"))
+        unconfirmed, refused, saddles = (sum(summary.get(key, [0] * (max(missed) + 1))[i] for i in missed)
+                                         for key in ("newton_unconfirmed", "newton_refused", "newton_saddle"))
         out.append(f"Newton missed the tolerance in {len(missed)} of {len(summary['newton_converged'])} "
                    f"frame(s) ({_frame_list(missed, start)}; largest final measure {worst:.3g}, see "
                    f"newton_converged and newton_increment in summary.json"
-                   f"{unconfirmed_note(unconfirmed, refused)}); they were kept "
+                   f"{unconfirmed_note(unconfirmed, refused, saddles)}); they were kept "
                    f"(time.unconverged = \"accept\"). Raise time.newton_iterations (now "
                    f"{time_config.newton_iterations}) or time.max_substeps (now "
                    f"{time_config.max_substeps}), or watch those frames with -lc_newton_monitor "

@@ -199,6 +199,7 @@ class Simulator:
                                  for v in self.integrator.newton_increment],
             "newton_unconfirmed": list(self.integrator.newton_unconfirmed),
             "newton_refused": list(self.integrator.newton_refused),
+            "newton_saddle": list(self.integrator.newton_saddle),
             "newton_exact_fallbacks": list(self.integrator.exact_hessian_fallbacks),
             "newton_chord_checks": list(self.integrator.chord_checks),
             "length_projection_move": list(self.integrator.length_projection_move),

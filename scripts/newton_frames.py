@@ -60,7 +60,8 @@ def main(argv=None):
     res = compare(base, variants, MPI.COMM_WORLD, a.frames, a.tol, a.iterations)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(res))
-    print(f"reference converged in every frame: {res['reference_converged']}")
+    print(f"reference converged in every frame: {res['reference_converged']} (stops refused on a saddle "
+          f"of G in frames {[f for f, s in enumerate(res['reference_saddle']) if s]})")
     miss = a.iterations + 1
     for name, _ in variants:
         rows = res[name]

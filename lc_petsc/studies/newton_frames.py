@@ -32,7 +32,9 @@ def reference_states(cfg, comm, frames, tol=1e-9, cap=60):
     """The start state (x, v, t) of frames 0..frames-1 and the final positions of a run
     of ``cfg`` converged to ``tol`` (``cap`` iterations, no cutback): ``frames + 1``
     entries, entry n + 1's positions being frame n's solution.  Also returns whether every
-    frame converged."""
+    frame converged and, per frame, whether its stop was refused on a saddle of G (then
+    that frame's solution is the saddle, a stationary point but not a minimum:
+    docs/newton.md "Saddles of G")."""
     sim = build_simulator(_tolerance(cfg, tol, cap), comm)
     it = sim.integrator
     states = []
@@ -42,9 +44,10 @@ def reference_states(cfg, comm, frames, tol=1e-9, cap=60):
             sim.step()
         states.append((it.x.copy(), it.v.copy(), it.t))
         converged = all(bool(c) for c in it.newton_converged)
+        saddles = [bool(n) for n in it.newton_saddle]
     finally:
         sim.close()
-    return states, converged
+    return states, converged, saddles
 
 
 def frame_iterations(cfg, comm, states, tol=1e-6, cap=30, stop="increment"):
@@ -52,7 +55,8 @@ def frame_iterations(cfg, comm, states, tol=1e-6, cap=30, stop="increment"):
     state to ``tol`` (``time.newton_stop`` ``stop``), cap ``cap``, no cutback.  Rows (dicts) per frame: iterations,
     converged, ``true`` (first iteration, 1-based, whose iterate is within ``tol`` of the
     reference solution; None: none), exact steps, the first iterate's error and the
-    errors after each iteration (relative to the wisp length)."""
+    errors after each iteration (relative to the wisp length), and ``saddle``: its stop was
+    refused on a saddle of G (docs/newton.md "Saddles of G")."""
     if comm.size != 1:
         raise ValueError("frame_iterations runs on one rank")
     sim = build_simulator(_tolerance(cfg, tol, cap, stop), comm)
@@ -70,7 +74,7 @@ def frame_iterations(cfg, comm, states, tol=1e-6, cap=30, stop="increment"):
             sim.step()
             within = [k for k, e in enumerate(errors) if k > 0 and e < tol]
             rows.append({"frame": f, "iterations": it.newton_iterations[-1],
-                         "converged": bool(it.newton_converged[-1]),
+                         "converged": bool(it.newton_converged[-1]), "saddle": bool(it.newton_saddle[-1]),
                          "true": within[0] if within else None,
                          "exact_steps": sum(r["exact"] for r in hist if r["frame"] == f),
                          "shifted_steps": sum(r["exact_shift"] > 0 for r in hist if r["frame"] == f),
@@ -85,10 +89,11 @@ def compare(base_cfg, variants, comm, frames, tol=1e-6, cap=30, reference="filte
     """:func:`frame_iterations` for each (name, SPEC) of ``variants`` (SPEC as in
     scripts/newton_history.py, and ``stop=quadratic_estimate`` or ``stop=chord_estimate``: ``time.newton_stop``,
     which needs the tolerance) from the states of the ``reference`` SPEC's converged run.
-    Returns {"reference_converged": bool, name: rows}."""
+    Returns {"reference_converged": bool, "reference_saddle": per frame, whether the
+    reference's stop was refused on a saddle of G, name: rows}."""
     ref = configure(base_cfg, parse_variant(reference), 1, frames)
-    states, ok = reference_states(ref, comm, frames)
-    out: dict = {"reference_converged": ok}
+    states, ok, saddles = reference_states(ref, comm, frames)
+    out: dict = {"reference_converged": ok, "reference_saddle": saddles}
     for name, spec in variants:
         variant = parse_variant(spec)
         stop = variant.pop("stop", "increment")

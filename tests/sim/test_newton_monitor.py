@@ -17,7 +17,7 @@ LINE = re.compile(r"  Newton frame (\d+) \(dt [0-9.e+-]+\) iteration (\d+): incr
                   r"(?:, estimate ([0-9.e+-]+))?, (filtered|exact|trust region)[^,]*(?:, [^,]+)*, "
                   r"alpha ([0-9.e+-]+), KSP (\d+)(, limiter cut)?")
 END = re.compile(r"  frame (\d+) \(dt ([0-9.e+-]+)\): (converged|NOT converged) after (\d+) iteration\(s\), "
-                 r"measure ([0-9.e+-]+)")
+                 r"measure ([0-9.e+-]+)(?: \(a stop [^)]*\))?")
 
 
 @pytest.mark.parametrize("options, on", [
@@ -74,7 +74,11 @@ def test_to_a_tolerance_each_frame_ends_with_its_verdict(capsys):
         return
     ends = [END.fullmatch(line) for line in lines if line.startswith("  frame")]
     assert all(ends) and [int(m[1]) for m in ends] == [0, 1, 2]
-    assert [m[3] == "converged" for m in ends] == summary["newton_converged"] == [True] * 3
+    # frame 0 (from rest) reaches the tolerance on a saddle of G: its stop is refused
+    assert [m[3] == "converged" for m in ends] == summary["newton_converged"] == [False, True, True]
+    assert summary["newton_saddle"] == [1, 0, 0] and ends[0][0].endswith("(a stop refused: a saddle of G)")
+    last = [line for line in lines if line.startswith("  Newton frame 0 ")][-1]
+    assert ", stop refused: a saddle of G (wisps " in last, last
     assert [int(m[4]) for m in ends] == summary["newton_iterations"]
     np.testing.assert_allclose([float(m[5]) for m in ends], summary["newton_increment"], rtol=1e-3)
     assert all(float(m[5]) < 1e-6 for m in ends)

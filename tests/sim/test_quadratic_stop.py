@@ -123,7 +123,9 @@ def test_chord_stop_stops_at_the_first_iterate_within_the_tolerance():
     res = compare(cfg, [("quadratic", spec + ",stop=quadratic_estimate"),
                         ("chord", spec + ",stop=chord_estimate")], COMM, 8)
     quadratic, chord = res["quadratic"], res["chord"]
-    assert all(r["converged"] for r in quadratic + chord)
+    # frame 0 (from rest) ends on a saddle of G (main called it converged): refused
+    assert res["reference_saddle"][0] and not any(res["reference_saddle"][1:])
+    assert all(r["converged"] == (r["frame"] > 0) and r["saddle"] == (r["frame"] == 0) for r in quadratic + chord)
     assert [r["iterations"] for r in chord] == [r["true"] for r in chord]
     assert sum(r["iterations"] > r["true"] for r in quadratic) >= 2, [r["iterations"] for r in quadratic]
     for q, c in zip(quadratic, chord):

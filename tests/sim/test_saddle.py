@@ -1,0 +1,158 @@
+"""A Newton stop on a saddle of the incremental potential G is refused (lc_petsc/curvature.py,
+docs/newton.md "Saddles of G")."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lc_petsc import curvature
+from lc_petsc.config import load_config, MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, SolverConfig, TimeConfig
+from lc_petsc.errors import SimulationError
+from lc_petsc.job import outcome_warnings
+from lc_petsc.simulator import build_simulator
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+def _band_csr(blocks, offsets, b, first, upper_only):
+    """Block-CSR (rowptr, global block columns, row-major 3x3 blocks) of the wisp blocks
+    ``blocks`` (dense, one per wisp) within half bandwidth ``b``."""
+    rowptr, cols, values = [0], [], []
+    for w, A in enumerate(blocks):
+        lo = offsets[w]
+        n = len(A) // 3
+        for i in range(n):
+            for j in range(max(0, i - b) if not upper_only else i, min(n, i + b + 1)):
+                cols.append(first + lo + j)
+                values.append(A[3 * i:3 * i + 3, 3 * j:3 * j + 3].ravel())
+            rowptr.append(len(cols))
+    return np.array(rowptr), np.array(cols), np.concatenate(values)
+
+
+@pytest.mark.parametrize("upper_only", [False, True])
+def test_negative_pivots_count_each_wisps_negative_eigenvalues(upper_only):
+    """The LDL^T without pivoting of each wisp's band gives its inertia: the count of
+    pivots <= 0 equals that of negative eigenvalues (numpy.linalg.eigvalsh), 200 random
+    symmetric banded blocks of 1-8 vertices, half bandwidth 3 (twist), definite and not;
+    also from the upper blocks alone (SBAIJ's storage)."""
+    rng = np.random.default_rng(3)
+    b, first = 3, 7
+    negatives = []
+    for _ in range(200):
+        sizes = rng.integers(1, 9, size=3)
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        blocks = []
+        for n in sizes:
+            X = rng.normal(size=(3 * n, 3 * n))
+            A = X + X.T + rng.uniform(-2.0, 8.0) * np.eye(3 * n)
+            i, j = np.indices(A.shape)
+            A[np.abs(i // 3 - j // 3) > b] = 0.0
+            blocks.append(A)
+        counts = np.zeros(3, np.int64)
+        curvature._negative_pivots(*_band_csr(blocks, offsets, b, first, upper_only), first, offsets, b, counts)
+        want = [int((np.linalg.eigvalsh(A) < 0).sum()) for A in blocks]
+        assert counts.tolist() == want
+        negatives += want
+    assert 0 in negatives and max(negatives) >= 5          # both kinds were drawn
+
+
+def _inverted_strand(youngs_modulus, n_wisps=1, max_substeps=1):
+    """Straight 30-vertex strands standing up from their two pinned roots under gravity
+    (a heavy column), one frame of dt 1/30 from rest, exact steps (filter none) to 1e-6.
+    By symmetry Newton stays on the vertical: at E = 1e5 the column buckles (its
+    compressed straight state is a saddle of G, lowest eigenvalue of dt^2 M^-1/2 H
+    M^-1/2 -0.94), at E = 1e6 it stands (0.66)."""
+    return SimConfig(
+        scene=SceneConfig(kind="straight", n_wisps=n_wisps, n_vertices=30, n_pinned=2, direction=(0.0, 1.0, 0.0)),
+        material=MaterialConfig(youngs_modulus=youngs_modulus),
+        physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity")),
+        time=TimeConfig(frames=1, dt=1.0 / 30.0, newton_iterations=20, newton_increment_tol=1e-6,
+                        max_substeps=max_substeps, newton_update="corotational"),
+        solver=SolverConfig(filter="none")).validate()
+
+
+def _run(cfg, comm=MPI.COMM_WORLD):
+    """(summary, lowest eigenvalue of dt^2 M^-1/2 H M^-1/2 at the last iterate (dense,
+    one rank only, else None))."""
+    sim = build_simulator(cfg, comm)
+    try:
+        sim.run()
+        it = sim.integrator
+        lowest = None
+        if comm.size == 1:
+            it._assemble_system(it.x, 0, filter="none")
+            op = it.solver.ksp.getOperators()[0]
+            xv, yv = op.createVecs()
+            free = np.flatnonzero(np.repeat(it.free, 3))
+            H = np.zeros((len(free), len(free)))
+            for k, c in enumerate(free):
+                xv.zeroEntries()
+                xv.array[c] = 1.0
+                op.mult(xv, yv)
+                H[:, k] = yv.array[free]
+            s = 1.0 / np.sqrt(np.repeat(sim.scene.mass, 3)[free])
+            lowest = float(np.linalg.eigvalsh(0.5 * (H + H.T) * s[:, None] * s[None, :])[0]) * it.dt ** 2
+        return sim.summary(), lowest
+    finally:
+        sim.close()
+
+
+def test_a_stop_on_a_saddle_is_refused():
+    """The buckling column: main claimed its straight, compressed state converged after 2
+    exact steps (increment 2e-16), a saddle of G.  The stop is now refused: not
+    converged, newton_saddle [1], and the warning and the error say why.  The standing
+    column's stop (a minimum) is kept."""
+    cfg = _inverted_strand(1e5)
+    s, lowest = _run(cfg, MPI.COMM_SELF)
+    assert lowest < -0.9                                # measured -0.943: a saddle
+    assert s["newton_iterations"] == [2] and s["newton_increment"][0] < 1e-12
+    assert s["newton_converged"] == [False] and s["newton_saddle"] == [1]
+    missed = [w for w in outcome_warnings(s, 0, cfg.time) if w.startswith("Newton missed")]
+    assert len(missed) == 1 and "1 Newton stop(s) refused on a saddle of the step's potential G" in missed[0]
+    cfg.time.unconverged = "error"
+    with pytest.raises(SimulationError, match="refused on a saddle"):
+        _run(cfg, MPI.COMM_SELF)
+    ok, lowest = _run(_inverted_strand(1e6), MPI.COMM_SELF)
+    assert lowest > 0.6                                 # measured 0.656: a minimum
+    assert ok["newton_converged"] == [True] and ok["newton_saddle"] == [0] and ok["newton_iterations"] == [2]
+
+
+def test_a_fixed_count_is_not_checked():
+    """Without a tolerance nothing is checked: the buckling column's 2 steps, as before."""
+    cfg = _inverted_strand(1e5)
+    cfg.time.newton_increment_tol, cfg.time.newton_iterations = None, 2
+    s, _ = _run(cfg.validate(), MPI.COMM_SELF)
+    assert s["newton_converged"] == [None] and s["newton_saddle"] == [0]
+
+
+def _small_hairball(max_substeps):
+    """configs/hairball_demo.toml cut to 3 wisps without strand contact (inertial first
+    iterate, no length projection): frame 0 from rest, the recommended Newton
+    (exact_or_analytic, corotational) to 1e-6, cap 30.  At the full step Newton stops
+    after 11 iterations on a saddle: the coil of wisp 2 (the last; on 2 or 3 ranks, on
+    the last rank alone) has a lowest eigenvalue of dt^2 M^-1/2 H M^-1/2 of -1.46."""
+    cfg = load_config(CONFIGS / "hairball_demo.toml")
+    cfg.scene.n_wisps = 3
+    cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
+    cfg.time.initial_guess, cfg.time.length_projection = "inertial", False
+    cfg.time.frames, cfg.time.max_substeps, cfg.time.newton_iterations = 1, max_substeps, 30
+    cfg.time.newton_increment_tol = 1e-6
+    cfg.solver.filter, cfg.time.newton_update = "exact_or_analytic", "corotational"
+    cfg.output.usd = False
+    return cfg.validate()
+
+
+@pytest.mark.mpi
+def test_a_saddle_on_one_rank_refuses_the_stop_on_every_rank():
+    """The 3-wisp hairball's full step: main claimed it converged after 11 iterations on a
+    saddle (wisp 2).  Every rank now refuses the stop, on 1, 2 and 3 ranks; with step
+    cutback the frame is 2 steps of dt / 2 (9 iterations each), converged."""
+    comm = MPI.COMM_WORLD
+    s, _ = _run(_small_hairball(1))
+    assert s["newton_iterations"] == [11] and s["newton_converged"] == [False] and s["newton_saddle"] == [1]
+    assert comm.allgather(s["newton_converged"]) == [[False]] * comm.size
+    s, _ = _run(_small_hairball(8))
+    assert s["newton_converged"] == [True] and s["newton_saddle"] == [1]
+    assert s["newton_substep_iterations"] == [[9, 9]] and s["newton_iterations"] == [29]

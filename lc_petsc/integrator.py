@@ -28,11 +28,13 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   (:func:`confirms_stop`), and the stopping step and the one before it must be whole
   steps whose decrease of G agrees with their quadratic model (:func:`model_agrees`:
   where it does not, a step's size says nothing of the distance left).
-  ``time.newton_stop = "quadratic_estimate"`` also stops once two full exact steps in a
-  row estimate the error below the tolerance / :data:`QUADRATIC_SAFETY`
-  (:func:`quadratic_error_estimate`); ``newton_increment`` is then that estimate.
-  ``time.newton_stop = "chord_estimate"`` does that too, and after a full exact step
-  whose increment d predicts the tolerance (:data:`CHORD_TRY_C` d^2 below it) measures
+  ``time.newton_stop = "quadratic_estimate"`` also stops once three full exact steps in
+  a row, each shorter and the last two on their quadratic model, estimate the error
+  below the tolerance / :data:`QUADRATIC_SAFETY` (:func:`quadratic_error_estimate`);
+  ``newton_increment`` is then that estimate.  ``time.newton_stop = "chord_estimate"``
+  does that too, and after two full exact steps in a row that contract on their model
+  (:func:`chord_basis`), the last of increment d predicting the tolerance
+  (:data:`CHORD_TRY_C` d^2 below it), measures
   the next increment instead of taking the step: the step a solve with the last exact
   matrix (a chord step, its factorisation reused) would take from the new iterate;
   when it shows the iteration converging and lies below the tolerance with a margin

@@ -33,7 +33,8 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   below the tolerance / :data:`QUADRATIC_SAFETY` (:func:`quadratic_error_estimate`);
   ``newton_increment`` is then that estimate.  ``time.newton_stop = "chord_estimate"``
   does that too, and after two full exact steps in a row that contract on their model
-  (:func:`chord_basis`), the last of increment d predicting the tolerance
+  (:func:`chord_basis`; at a loose tolerance after one, a claim then confirmed only by the
+  next iterate's check with that basis), the last of increment d predicting the tolerance
   (:data:`CHORD_TRY_C` d^2 below it), measures
   the next increment instead of taking the step: the step a solve with the last exact
   matrix (a chord step, its factorisation reused) would take from the new iterate;
@@ -406,6 +407,7 @@ class Integrator:
         quadratic = []                          # the increments of the last full exact steps in a row
         modelled = []                           # and whether each agreed with its quadratic model
         claimed_before = False                  # the last iteration's stop (to be confirmed)
+        unbased_claim = False                   # ... made by a chord check without chord_basis
         loose = confirms_stop(cfg.time.newton_increment_tol, cfg.time.newton_tol, self.shortest_wisp)
         last_step = None                        # the last iteration's step (_model_agrees)
         unconfirmed = False                     # this iteration's stop awaits the next
@@ -515,12 +517,19 @@ class Integrator:
                 estimate = quadratic_error_estimate(quadratic, modelled)
                 if estimate < cfg.time.newton_increment_tol / QUADRATIC_SAFETY:
                     converged, reported = True, estimate
-            if (not converged and cfg.time.newton_stop == "chord_estimate" and full
+            # a chord check needs two full exact steps that contract (chord_basis); at a
+            # loose tolerance it is also made after one, but that claim only counts as the
+            # first of two: the next iterate's check, with the basis, must claim too (it had
+            # confirmed the increment it predicted: the stiff smash at 1e-4 stopped 21x away)
+            based = chord_basis(quadratic, modelled)
+            chord_claim = False
+            if (cfg.time.newton_stop == "chord_estimate" and full and (based or loose)
                     and CHORD_TRY_C * increment ** 2 < cfg.time.newton_increment_tol
-                    and chord_basis(quadratic, modelled)):
+                    and (not converged or (unbased_claim and based))):
                 chord_checks += 1
                 chord = self._chord_increment(x, it)
-                if chord_stop(chord, increment, cfg.time.newton_increment_tol):
+                chord_claim = chord_stop(chord, increment, cfg.time.newton_increment_tol)
+                if chord_claim and not converged:
                     converged, reported = True, chord
             # a step (or chord check) whose solve ran no residual test and missed -ksp_rtol
             # is not a Newton step: its small increment certifies nothing (Jacobi's steps
@@ -537,6 +546,9 @@ class Integrator:
             # the step's arrays are kept one more iteration only where the rule reads them
             step = dict(before=x_prev, after=x, g=g, dx=dx, whole=whole,
                         searched=self._searched if whole else None) if loose else None
+            if unbased_claim and not (chord_claim and based):
+                claimed_before = False
+            unbased_claim = claim and chord_claim and not based
             confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure,
                                                      (steps, whole_steps, exact_steps, newton_steps), step, last_step)
             converged = converged and confirmed and not refused
@@ -1083,7 +1095,9 @@ def chord_basis(increments, modelled):
     """``time.newton_stop = "chord_estimate"``: whether the last full exact steps in a
     row (their ``increments``, oldest first, and per step whether it ``modelled``: G's
     decrease agreed with its quadratic model) let a chord step measure the next
-    increment: two of them, the last shorter, both on their model.  The chord step uses
+    increment: two of them, the last shorter, both on their model (at a loose tolerance
+    a check without them may claim, confirmed only by the next iterate's check with
+    them).  The chord step uses
     the Hessian of the iterate before the last step; where that Hessian changes over a
     step the chord step is no Newton step (the stiff smash at 1e-6: chord increments
     3-40x below the next Newton increment while the iterate was 200-20000x the

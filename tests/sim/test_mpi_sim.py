@@ -71,9 +71,10 @@ def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, 
         cfg.solver.exact_stay = True
         cfg.time.newton_stop = stop
     if stop == "chord_estimate":
-        # at 1e-4 the 4 frames take 17 10 10 12 iterations and frame 1 makes 2 chord checks
-        # (the first rejected: chord 4.0e-4 after 1.7e-3); the checks need two full exact
-        # steps that contract (at 1e-5 only one check is left: 0 1 0 0)
+        # at 1e-4 the 4 frames take 17 10 10 12 iterations and make 3 2 3 3 chord checks:
+        # rejected ones (frame 1: chord 4.0e-4 after 1.7e-3), accepted ones, and in frame 0
+        # a claim without chord_basis that the next iterate's check confirms (at 1e-5,
+        # where every check needs the basis, only one is left: 0 1 0 0)
         cfg.time.newton_increment_tol = 1e-4
     X, summ = run_positions(cfg)
     ref, ref_summ = serial_reference(cfg)

@@ -99,6 +99,29 @@ def test_the_estimates_do_not_certify_a_stiff_coils_lull():
     assert s["newton_converged"] == [False], s["newton_iterations"]                 # main: 25, 2170x
 
 
+def test_a_chord_claim_does_not_confirm_the_increment_it_predicted():
+    """At a loose tolerance a stop must be confirmed by the next iteration.  The stiff coil
+    (as above, two frames at 1e-4): in frame 1 main's chord check after the first exact
+    step (7.9e-4) claimed on a chord step of 3.2e-5, and the next Newton step (4.4e-5,
+    the increment that chord step predicted) took it as its confirmation: a stop after 8
+    iterations 21x the tolerance from the 1e-10 run (the next step would have been
+    7e-4).  A claim without chord_basis is now confirmed only by the next iterate's
+    chord check with it: frame 1 stops after 11 iterations, within 0.01x (measured
+    2.7e-7x against that frame's own 1e-10 solve)."""
+    def coil(tol, cap=30):
+        cfg = stiff_smash_config(tol, cap=cap, fallback="shifted", n_vertices=101)
+        cfg.time.frames, cfg.time.newton_update, cfg.solver.exact_stay = 2, "corotational", True
+        cfg.time.newton_stop = "chord_estimate" if tol > 1e-8 else "increment"
+        return cfg.validate()
+
+    Y, ref, wisp_length = run_alone(coil(1e-10, cap=60))
+    X, s, _ = run_alone(coil(1e-4))
+    distance = (np.linalg.norm(X - Y, axis=1) / wisp_length).max()
+    assert ref["newton_converged"] == [True, True] and s["newton_converged"] == [True, True]
+    assert s["newton_iterations"][1] == 11, s["newton_iterations"]                    # main: 8
+    assert distance < 0.01 * 1e-4, distance / 1e-4                                     # main: 21x
+
+
 def test_chord_stop_needs_contraction_and_a_margin():
     """A chord increment certifies the iterate only if it is a tenth of the last
     increment or less and below the tolerance with the margin 1 + 100 d.  The cases of

@@ -329,9 +329,10 @@ class TimeConfig:
     setting), whichever comes first.  ``line_search`` enables Armijo backtracking on the
     incremental potential G; ``newton_stop = "quadratic_estimate"`` (with
     ``solver.filter = "exact_or_analytic"`` and ``newton_increment_tol`` alone) also stops
-    once two full exact steps in a row predict an error below a tenth of the tolerance;
-    ``"chord_estimate"`` (same conditions) stops on that, or once a solve with the last
-    exact matrix from the new iterate (a chord step) moves no vertex by the tolerance.
+    once three full exact steps in a row predict an error below a tenth of the tolerance;
+    ``"chord_estimate"`` (same conditions) stops on that, or, after two full exact steps
+    that contract, once a solve with the last exact matrix from the new iterate (a chord
+    step) moves no vertex by the tolerance.
     ``newton_update``, ``initial_guess``, ``carry_with_head`` (the first iterate follows
     the head's change of motion over the step) and
     ``length_projection`` (final positions onto the rest edge lengths) and ``newton``

@@ -28,11 +28,14 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   (:func:`confirms_stop`), and the stopping step and the one before it must be whole
   steps whose decrease of G agrees with their quadratic model (:func:`model_agrees`:
   where it does not, a step's size says nothing of the distance left).
-  ``time.newton_stop = "quadratic_estimate"`` also stops once two full exact steps in a
-  row estimate the error below the tolerance / :data:`QUADRATIC_SAFETY`
-  (:func:`quadratic_error_estimate`); ``newton_increment`` is then that estimate.
-  ``time.newton_stop = "chord_estimate"`` does that too, and after a full exact step
-  whose increment d predicts the tolerance (:data:`CHORD_TRY_C` d^2 below it) measures
+  ``time.newton_stop = "quadratic_estimate"`` also stops once three full exact steps in
+  a row, each shorter and the last two on their quadratic model, estimate the error
+  below the tolerance / :data:`QUADRATIC_SAFETY` (:func:`quadratic_error_estimate`);
+  ``newton_increment`` is then that estimate.  ``time.newton_stop = "chord_estimate"``
+  does that too, and after two full exact steps in a row that contract on their model
+  (:func:`chord_basis`; at a loose tolerance after one, a claim then confirmed only by the
+  next iterate's check with that basis), the last of increment d predicting the tolerance
+  (:data:`CHORD_TRY_C` d^2 below it), measures
   the next increment instead of taking the step: the step a solve with the last exact
   matrix (a chord step, its factorisation reused) would take from the new iterate;
   when it shows the iteration converging and lies below the tolerance with a margin
@@ -402,7 +405,9 @@ class Integrator:
         whole_steps, exact_steps, newton_steps = [], [], []
         region = _Region() if self.trust is not None else None
         quadratic = []                          # the increments of the last full exact steps in a row
+        modelled = []                           # and whether each agreed with its quadratic model
         claimed_before = False                  # the last iteration's stop (to be confirmed)
+        unbased_claim = False                   # ... made by a chord check without chord_basis
         loose = confirms_stop(cfg.time.newton_increment_tol, cfg.time.newton_tol, self.shortest_wisp)
         last_step = None                        # the last iteration's step (_model_agrees)
         unconfirmed = False                     # this iteration's stop awaits the next
@@ -503,15 +508,28 @@ class Integrator:
             converged = self._newton_converged(steps, absolute, whole_steps, exact_steps, newton_steps)
             full = exact and whole
             quadratic = quadratic + [increment] if full else []
+            # whether the full exact step decreased G as its model predicts (the line
+            # search's energies: free): off it, the step is no quadratic one
+            modelled = modelled + [full and self._searched is not None and model_agrees(
+                self._searched[0] - self._searched[1], -0.5 * self._searched[2],
+                max(abs(self._searched[0]), abs(self._searched[1])))] if full else []
             if not converged and cfg.time.newton_stop != "increment":
-                estimate = quadratic_error_estimate(quadratic)
+                estimate = quadratic_error_estimate(quadratic, modelled)
                 if estimate < cfg.time.newton_increment_tol / QUADRATIC_SAFETY:
                     converged, reported = True, estimate
-            if (not converged and cfg.time.newton_stop == "chord_estimate" and full
-                    and CHORD_TRY_C * increment ** 2 < cfg.time.newton_increment_tol):
+            # a chord check needs two full exact steps that contract (chord_basis); at a
+            # loose tolerance it is also made after one, but that claim only counts as the
+            # first of two: the next iterate's check, with the basis, must claim too (it had
+            # confirmed the increment it predicted: the stiff smash at 1e-4 stopped 21x away)
+            based = chord_basis(quadratic, modelled)
+            chord_claim = False
+            if (cfg.time.newton_stop == "chord_estimate" and full and (based or loose)
+                    and CHORD_TRY_C * increment ** 2 < cfg.time.newton_increment_tol
+                    and (not converged or (unbased_claim and based))):
                 chord_checks += 1
                 chord = self._chord_increment(x, it)
-                if chord_stop(chord, increment, cfg.time.newton_increment_tol):
+                chord_claim = chord_stop(chord, increment, cfg.time.newton_increment_tol)
+                if chord_claim and not converged:
                     converged, reported = True, chord
             # a step (or chord check) whose solve ran no residual test and missed -ksp_rtol
             # is not a Newton step: its small increment certifies nothing (Jacobi's steps
@@ -528,6 +546,9 @@ class Integrator:
             # the step's arrays are kept one more iteration only where the rule reads them
             step = dict(before=x_prev, after=x, g=g, dx=dx, whole=whole,
                         searched=self._searched if whole else None) if loose else None
+            if unbased_claim and not (chord_claim and based):
+                claimed_before = False
+            unbased_claim = claim and chord_claim and not based
             confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure,
                                                      (steps, whole_steps, exact_steps, newton_steps), step, last_step)
             converged = converged and confirmed and not refused
@@ -1070,6 +1091,21 @@ def chord_stop(chord, increment, tol):
     return chord < CHORD_CONTRACTION * increment and chord * (1.0 + CHORD_MARGIN * increment) < tol
 
 
+def chord_basis(increments, modelled):
+    """``time.newton_stop = "chord_estimate"``: whether the last full exact steps in a
+    row (their ``increments``, oldest first, and per step whether it ``modelled``: G's
+    decrease agreed with its quadratic model) let a chord step measure the next
+    increment: two of them, the last shorter, both on their model (at a loose tolerance
+    a check without them may claim, confirmed only by the next iterate's check with
+    them).  The chord step uses
+    the Hessian of the iterate before the last step; where that Hessian changes over a
+    step the chord step is no Newton step (the stiff smash at 1e-6: chord increments
+    3-40x below the next Newton increment while the iterate was 200-20000x the
+    tolerance away; a stop 2170x away after a damped step, 242x after the first exact
+    step; docs/newton.md "Tight tolerances")."""
+    return len(increments) >= 2 and increments[-1] < increments[-2] and all(modelled[-2:])
+
+
 def confirms_stop(tol, absolute=None, length=None):
     """Whether a stop at the relative increment tolerance ``tol`` (None: unset) must be
     confirmed by the next step: above :data:`LOOSE_TOLERANCE`.  Without ``tol``, the
@@ -1185,19 +1221,28 @@ def contraction_factor(increments, whole=None, exact=None, newton=None):
     return max(1.0, q / (1.0 - q))
 
 
-def quadratic_error_estimate(increments):
+def quadratic_error_estimate(increments, modelled=None):
     """``time.newton_stop = "quadratic_estimate"``: the relative error of the iterate
     after the last of ``increments`` (those of the last full, unshifted exact steps in a
     row, oldest first), estimated from quadratic convergence.  A step's increment d_k is
-    the error of the iterate before it, to leading order, and e_{k+1} = C e_k^2, so with
-    C = d_k / d_{k-1}^2 the error after the last step is C d_k^2.  inf with fewer than
-    two such steps, when the earlier one started at or above :data:`EXACT_BELOW` (C
-    measured from there was 60x too small: a stop 1.3x above the tolerance on the demo
-    hairball, docs/newton.md "Eighth round"), or when the last did not contract."""
-    if len(increments) < 2 or not increments[-2] < EXACT_BELOW or not increments[-1] < increments[-2]:
+    the error of the iterate before it, to leading order, and e_{k+1} = C e_k^2, so the
+    error after the last step is C d_k^2.  C is measured twice, C = d_k / d_{k-1}^2 and
+    d_{k-1} / d_{k-2}^2, and the larger taken: three such steps in a row, each shorter
+    than the one before, the middle one below :data:`EXACT_BELOW` (C measured from a
+    step above it was 60x too small: a stop 1.3x above the tolerance on the demo
+    hairball, docs/newton.md "Eighth round"), and the last two decreasing G as their
+    quadratic model predicts (``modelled``, per step; None: all did).  inf otherwise:
+    one pair of steps that looks quadratic can be a lull of a wandering iteration (the
+    stiff smash at 1e-5: 3.0e-5 then 8.5e-6 after a step that grew, a claimed stop 230x
+    the tolerance away; 1.1e-3 then 5.7e-5, a next step of 7.4e-4, 150x away), and a
+    step off its model can end a quadratic-looking run that then only halves (jitter
+    at 1e-8: 30x; docs/newton.md "Tight tolerances")."""
+    if len(increments) < 3 or not increments[-2] < EXACT_BELOW:
         return np.inf
-    d_prev, d = increments[-2], increments[-1]
-    return d / d_prev ** 2 * d ** 2
+    d0, d1, d = increments[-3:]
+    if not d < d1 < d0 or (modelled is not None and not all(modelled[-2:])):
+        return np.inf
+    return max(d / d1 ** 2, d1 / d0 ** 2) * d ** 2
 
 
 #: The start from rest's carry decays along a wisp as exp(-s / (START_CARRY_LENGTH * S)),

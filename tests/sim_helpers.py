@@ -4,15 +4,18 @@ import contextlib
 import os
 import shutil
 import tempfile
+from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
 
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,
-                             SolverConfig, TimeConfig)
+                             SolverConfig, TimeConfig, load_config)
 from lc_petsc.scene import geometry
 from lc_petsc.scene.sources import ArraySource
 from lc_petsc.simulator import build_simulator
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 #: Environment for mpiexec launched by tests: root allowed, more ranks than cores allowed.
 # the environment of a test's own mpiexec: without the launcher variables of an outer
@@ -79,6 +82,30 @@ def serial_reference(config, frames=None):
     if MPI.COMM_WORLD.rank != 0:
         return None, None
     return run_positions(config, comm=MPI.COMM_SELF, frames=frames)
+
+
+def run_alone(config):
+    """(positions, summary, per-vertex rest wisp length) of ``config`` run on this rank
+    alone (COMM_SELF)."""
+    sim = build_simulator(config, MPI.COMM_SELF)
+    try:
+        sim.run()
+        return sim.integrator.x.copy(), sim.summary(), sim.integrator.wisp_length
+    finally:
+        sim.close()
+
+
+def stiff_smash_config(tol, cap=30, fallback="analytic", n_vertices=31):
+    """configs/smash.toml cut to ``n_vertices`` vertices with E = 1e12: a stiff coil
+    crushed to 40% of its length; one frame of dt 0.2 with exact_or_analytic steps to
+    the relative increment ``tol`` within ``cap`` iterations, no cutback (its Newton
+    wanders: docs/newton.md "Tight tolerances")."""
+    cfg = load_config(CONFIGS / "smash.toml")
+    cfg.scene.n_vertices, cfg.material.youngs_modulus = n_vertices, 1e12
+    cfg.time.frames, cfg.time.dt, cfg.time.max_substeps = 1, 0.2, 1
+    cfg.time.newton_increment_tol, cfg.time.newton_iterations = tol, cap
+    cfg.solver.filter, cfg.solver.exact_fallback = "exact_or_analytic", fallback
+    return cfg.validate()
 
 
 def rel_diff(a, b):

@@ -71,9 +71,11 @@ def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, 
         cfg.solver.exact_stay = True
         cfg.time.newton_stop = stop
     if stop == "chord_estimate":
-        # at 1e-5 the 4 frames make 1 1 1 2 chord checks (more checks than frames: one is
-        # rejected) and take 16 9 9 11 iterations
-        cfg.time.newton_increment_tol = 1e-5
+        # at 1e-4 the 4 frames take 17 10 10 12 iterations and make 3 2 3 3 chord checks:
+        # rejected ones (frame 1: chord 4.0e-4 after 1.7e-3), accepted ones, and in frame 0
+        # a claim without chord_basis that the next iterate's check confirms (at 1e-5,
+        # where every check needs the basis, only one is left: 0 1 0 0)
+        cfg.time.newton_increment_tol = 1e-4
     X, summ = run_positions(cfg)
     ref, ref_summ = serial_reference(cfg)
     _check(X, ref, tol)
@@ -84,7 +86,7 @@ def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, 
         assert summ["newton_chord_checks"] == ref_summ["newton_chord_checks"]
         assert summ["newton_saddle"] == ref_summ["newton_saddle"] == [int(fallback == "shifted"), 0, 0, 0]
         if stop == "chord_estimate":
-            assert sum(summ["newton_chord_checks"]) > len(summ["newton_chord_checks"])
+            assert max(summ["newton_chord_checks"]) > 1
         else:
             assert sum(summ["newton_chord_checks"]) == 0
         assert sum(summ["newton_converged"]) >= min_converged

@@ -20,6 +20,8 @@ from lc_petsc.studies.newton import configure, iterations_to, parse_variant, run
 from lc_petsc.studies.newton_frames import frame_iterations, reference_states
 from sim_helpers import chains as _chains
 from sim_helpers import rotate as _rotate
+from sim_helpers import run_alone as _run_coil
+from sim_helpers import stiff_smash_config as _stiff_smash
 from sim_helpers import small_hairball_config
 
 COMM = MPI.COMM_WORLD
@@ -395,16 +397,6 @@ def _crushed_coil(tol, cap=60, fallback="analytic"):
     return cfg.validate()
 
 
-def _run_coil(cfg):
-    """(positions, summary, per-vertex rest wisp length) of one frame on this rank alone."""
-    sim = build_simulator(cfg, MPI.COMM_SELF)
-    try:
-        sim.run()
-        return sim.integrator.x.copy(), sim.summary(), sim.integrator.wisp_length
-    finally:
-        sim.close()
-
-
 def test_a_loose_tolerance_stop_is_confirmed_by_the_next_step():
     """At 1e-4 the crushed coil's increments fell below the tolerance while the iterate
     was still 2.0x the tolerance from the step's solution (main: claimed converged after
@@ -444,17 +436,6 @@ def test_a_stop_the_cap_leaves_unconfirmed_is_named():
         _run_coil(cfg)
     _, ok, _ = _run_coil(_crushed_coil(3e-4, cap=49))            # converged at 49: nothing to name
     assert ok["newton_converged"] == [True] and ok["newton_unconfirmed"] == [0]
-
-
-def _stiff_smash(tol, cap=30, fallback="analytic", n_vertices=31):
-    """configs/smash.toml cut to 31 vertices with E = 1e12: a stiff coil crushed to 40%
-    of its length; one frame of dt 0.2 with exact_or_analytic steps, no cutback."""
-    cfg = load_config(CONFIGS / "smash.toml")
-    cfg.scene.n_vertices, cfg.material.youngs_modulus = n_vertices, 1e12
-    cfg.time.frames, cfg.time.dt, cfg.time.max_substeps = 1, 0.2, 1
-    cfg.time.newton_increment_tol, cfg.time.newton_iterations = tol, cap
-    cfg.solver.filter, cfg.solver.exact_fallback = "exact_or_analytic", fallback
-    return cfg.validate()
 
 
 def test_a_wandering_newton_is_not_claimed_converged():

@@ -1074,6 +1074,7 @@ class Job:
             print(f"{PROG}: error: {out / 'summary.json'} could not be written ({e.strerror or e}); "
                   "the run's figures are in the report below", file=sys.stderr, flush=True)
             self.error = self.error or f"output error: {out / 'summary.json'}: {e.strerror or e}"
+            summary["output"]["files"].remove("summary.json")      # the report says what is there
             try:
                 os.unlink(f"{out / 'summary.json'}.tmp")
             except OSError:

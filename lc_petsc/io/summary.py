@@ -118,6 +118,10 @@ def format_report(s) -> str:
         lines.append(f"  warning: {w}")
     out = s.get("output", {})
     if out:
-        lines.append(f"  output: {out.get('dir')}  ({out.get('frames_written')} frames in "
-                     f"frames.h5, every {out.get('every')}; " + ", ".join(out.get("files", [])) + ")")
+        files, n = out.get("files", []), out.get("frames_written")
+        # frames.h5 missing from the files written: its folder was removed during the run
+        every = out.get("every")
+        held = f"{n} frames in frames.h5, every {every}" if "frames.h5" in files or not n else \
+            f"{n} frames (every {every}) had been written to frames.h5, which is gone"
+        lines.append(f"  output: {out.get('dir')}  ({held}; " + (", ".join(files) or "no file") + ")")
     return "\n".join(lines)

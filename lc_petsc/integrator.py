@@ -618,7 +618,7 @@ class Integrator:
         return (self.head.sphere_center(self.t_next), self.head.radius + self.cfg.physics.head_margin,
                 self.allowed_depth)
 
-    def _push_out_of_head(self, x):
+    def _push_out_of_head(self, x, deep=None):
         """``x`` with every free vertex deeper in the head sphere (radius + margin) than
         allowed (its strand radius less its edges' sagitta on the sphere,
         :func:`head_contact.allowed_depth`) moved radially onto it.  The penalty sees a vertex only once an
@@ -626,9 +626,11 @@ class Integrator:
         unopposed (a soft hairball's tips 1.06 cm deep; 0.048 with 10 iterations,
         docs/contact.md "Hair and the head").  A vertex resting on the head sinks by its
         push over the stiffness, far less than its radius, and is left alone, so a run
-        whose hair never sinks that deep keeps its bits."""
+        whose hair never sinks that deep keeps its bits.  ``deep``: those vertices'
+        indices when the caller has them (:meth:`_sunk`)."""
         c, R, _ = self._head_sphere()
-        deep = np.flatnonzero(self._sunk(x))
+        if deep is None:
+            deep = np.flatnonzero(self._sunk(x))
         if len(deep):
             y = x[deep] - c
             x = x.copy()
@@ -741,7 +743,7 @@ class Integrator:
                 # under the scalp, and the separation can push it in (soft hairball,
                 # gravity 5000: a tip 0.044 -> 0.119 -> 0.152 cm deep, radius 0.101)
                 pushed = np.flatnonzero(self._sunk(x))
-                x = self._keep_lengths(self._push_out_of_head(x), pushed) if len(pushed) else x
+                x = self._keep_lengths(self._push_out_of_head(x, pushed), pushed) if len(pushed) else x
             x = strand.collision_free_frame(x_old, x, motion)[0]
             pairs, deep, dmin = strand.measure(x)
             sunk = push and bool(global_reduce(self.comm, [float(self._sunk(x).any())], "max")[0])

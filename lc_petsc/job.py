@@ -57,7 +57,12 @@ RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.preview
                      "output.preview_frames", "output.contact_sheet", "output.view",
                      "output.checkpoint_every", "output.checkpoints_kept",
                      "output.usd", "output.render_hairs", "output.render_hair_seed",
-                     "output.render_hair_spread", "output.check_crossings"}
+                     "output.render_hair_spread", "output.check_crossings", "scene.description"}
+#: keys every row of frames.h5 and frames.usdc shares (its dt and every attributes, the
+#: USD's timeCodesPerSecond): refused in a restart even with --force
+RESTART_FIXED_KEYS = ("time.dt", "output.every")
+#: scene kinds read from a file, whose path a restart does not compare (the content is)
+GROOM_FILE_KINDS = ("file", "usd")
 PROG = "simulate.py"
 #: frames.h5 is flushed at least this often (seconds; a checkpoint flushes it too)
 FRAMES_FLUSH_SECONDS = 30.0
@@ -487,7 +492,7 @@ class Job:
         """The checkpoint to continue from, checked against the config, the scene and
         the folder's frames.h5; restored into the simulator.  Raises Refused."""
         from lc_petsc.io.checkpoint import (LEGACY_VALUES, checkpoint_folder, config_differences,
-                                            find_latest, load_checkpoint)
+                                            find_latest, groom_differences, load_checkpoint)
         comm, args, cfg, sim = self.comm, self.args, self.cfg, self.sim
         skipped = []
         try:
@@ -506,6 +511,20 @@ class Job:
         diff = config_differences(ck["attrs"]["config"], cfg.to_dict(), ignore=RESTART_FREE_KEYS,
                                   defaults=SimConfig().to_dict())
         saved = ck["attrs"]["config"]
+        # a groom file's path is no difference where the checkpoint holds the groom's
+        # content (rest positions, pinned vertices, radius digest): compared below, so a
+        # moved copy restarts and a changed file is refused naming what differs
+        by_content = cfg.scene.kind in GROOM_FILE_KINDS and "radius_sha256" in ck["attrs"]
+        if by_content:
+            diff = [k for k in diff if k != "scene.path"]
+        fixed = [k for k in diff if k in RESTART_FIXED_KEYS]
+        if fixed:
+            raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
+                          f"{_differences_text(diff, saved, cfg.to_dict())}; {' and '.join(fixed)} cannot "
+                          f"change in a restart, not even with --force: the run's frames.h5 (its dt and every "
+                          f"attributes) and frames.usdc (timeCodesPerSecond = 1 / (dt * every)) give all its "
+                          f"rows one time step; restart with the checkpoint's value (its attribute "
+                          f"config_toml), or start a new run (without --restart) for another")
         legacy = [k for k in diff if k in LEGACY_VALUES
                   and k.split(".")[1] not in saved.get(k.split(".")[0], {})]
         hint = "".join(f"; the checkpoint predates {k} and ran as {k} = {str(LEGACY_VALUES[k]).lower()}, "
@@ -527,9 +546,6 @@ class Job:
             self._warn("PETSc options differ from the checkpoint's: " + ", ".join(
                 f"-{k} {shown(now, k)} (was {shown(before, k)})" for k in changed)
                 + "; the run continues with them, so it is not bit for bit the run it continues")
-        if ck["attrs"]["every"] != cfg.output.every:
-            raise Refused(f"{ck['path']}: output.every = {cfg.output.every} but the run's frames.h5 was "
-                          f"written with {ck['attrs']['every']}; it cannot be appended to")
         # a finished run whose last checkpoint is before its end: "latest" used to run
         # the frames after it again (on another rank count to round-off) and replace its
         # outputs and summary.json, where one checkpointed at its end was refused
@@ -547,12 +563,16 @@ class Job:
         if cfg.time.frames <= ck["frame"] and not self.outputs_only:
             raise Refused(f"{ck['path']}: the checkpoint is at frame {ck['frame']}, the run ends at frame "
                           f"{cfg.time.frames} (time.frames / --frames is the total): nothing to do")
-        same_rest = np.array_equal(ck["rest"], sim.user.x_rest) and np.array_equal(ck["pinned"], sim.user.pinned)
-        if global_max(comm, int(not same_rest)) != 0:
+        groom = groom_differences(comm, ck, sim.user)
+        if groom:
+            was = saved.get("scene", {}).get("path")
+            where = f" ({cfg.scene.path}; the checkpoint's run read {was})" if by_content and \
+                was != cfg.scene.path else ""
+            what = f"the scene's groom{where} differs from the checkpoint's in {'; '.join(groom)}"
             if not args.force:
-                raise Refused(f"{ck['path']}: the checkpoint's rest positions or pinned vertices differ "
-                              "from the scene's; restart with the same scene or add --force")
-            warn(comm, "--force: rest state differs from the checkpoint's; the scene's is used")
+                raise Refused(f"{ck['path']}: {what}; restart with the groom the checkpoint ran with or add "
+                              f"--force (continues with this one)")
+            warn(comm, f"--force: rest state differs from the checkpoint's: {what}; the scene's is used")
         self.recovery = self._frames_recovery(ck, ck["frame"] // cfg.output.every + 1)
         sim.restore(dict(ck, x=sim.user.from_user(ck["x"]), v=sim.user.from_user(ck["v"])))
         return ck
@@ -596,7 +616,7 @@ class Job:
                 vouched = (rows - 1, read_positions(ck["path"], offsets)["positions"])
             problem = resumable_problem(path, sim.n_wisps, sim.n_vertices, rows, checkpoint_row=vouched,
                                         offsets=offsets,
-                                        **({} if args.force else dict(dt=cfg.time.dt, every=cfg.output.every)))
+                                        dt=cfg.time.dt, every=cfg.output.every)
             if problem is None:
                 return None, None, not has_checksums(path)
             plan = plan_recovery(path, problem, ck, list_checkpoints(checkpoint_folder(self.out)), offsets, rows)

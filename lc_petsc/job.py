@@ -1055,16 +1055,22 @@ class Job:
                 problems.append(f"previews in {out}: {getattr(e, 'strerror', None) or e}")
         t_prev = time.perf_counter() - t0
         t_usd = 0.0
-        if (not cfg.output.usd or self._late_signal("frames.usdc")) and writer is not None \
+
+        def usd_warning(text):
+            # on stderr and in summary.json: a pipeline reading the summary must learn
+            # that frames.usdc is missing (a full disk's failure was on stderr only)
+            print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
+            summary["warnings"] = list(summary.get("warnings") or []) + [text]
+        if cfg.output.usd and self.error and self.error.startswith("output error") and writer is not None:
+            # the export, the largest output, would meet the same full disk or unwritable
+            # folder: pxr's 6-line failure used to follow the error as a warning
+            usd_warning(f"frames.usdc not written: the run stopped on an output error (above); "
+                        f"--restart latest writes it at the end of the continued run, or drivers/to_usd.py "
+                        f"{h5_path} from the frames written")
+        elif (not cfg.output.usd or self._late_signal("frames.usdc")) and writer is not None \
                 and writer.written and not hdf5.unclosable():
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_failed, export_run
-
-            def usd_warning(text):
-                # on stderr and in summary.json: a pipeline reading the summary must learn
-                # that frames.usdc is missing (a full disk's failure was on stderr only)
-                print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
-                summary["warnings"] = list(summary.get("warnings") or []) + [text]
             try:
                 usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop, warn=usd_warning)
                 files += usd_files

@@ -140,6 +140,18 @@ def unfinished_run(out):
     return None
 
 
+def petsc_error_text(e):
+    """A PETSc.Error in one line: its messages, the last (the most specific) first, then
+    the code and the function that raised it.  str() of the error is PETSc's traceback,
+    one "[rank] ..." line per call and message, which the refusal used to wrap whole."""
+    lines = [re.sub(r"^\[\d+\]\s*", "", line).strip() for line in str(e).splitlines()]
+    calls = [line.split("(")[0] for line in lines[1:] if re.match(r"^\w+\(\) at ", line)]
+    said = [line for line in lines[1:] if line and not re.match(r"^\w+\(\) at ", line)]
+    code = lines[0] if lines else f"error code {getattr(e, 'ierr', '?')}"
+    where = f", in {calls[-1]}()" if calls else ""
+    return f"{'; '.join(reversed(said)) or 'no message'} (PETSc {code}{where})"
+
+
 def finished_frames(out):
     """The frame count (``frames``) of the run in the output folder ``out`` when its
     summary.json says it finished (no signal, no error), else None (serial, read-only)."""
@@ -387,7 +399,7 @@ class Job:
                 except (ValueError, SolverError) as e:
                     raise Refused(str(e)) from None
                 except PETSc.Error as e:
-                    raise Refused(f"PETSc rejected the solver set-up ({e}); see PETSc's message above") from None
+                    raise Refused(f"PETSc rejected the solver set-up: {petsc_error_text(e)}") from None
                 self._validate()
         except Refused as e:
             say(comm, f"{PROG}: error: {e}", sys.stderr)

@@ -527,8 +527,16 @@ class Job:
         # content (rest positions, pinned vertices, radius digest): compared below, so a
         # moved copy restarts and a changed file is refused naming what differs
         by_content = cfg.scene.kind in GROOM_FILE_KINDS and "radius_sha256" in ck["attrs"]
+        hint = ""
         if by_content:
             diff = [k for k in diff if k != "scene.path"]
+        elif "scene.path" in diff and cfg.scene.kind in GROOM_FILE_KINDS:
+            hint += ("; the checkpoint predates radius_sha256 (2026-12-07), so its groom is compared by path "
+                     "(a link at the checkpoint's path to a moved file will do)")
+        legacy = [k for k in diff if k in LEGACY_VALUES
+                  and k.split(".")[1] not in saved.get(k.split(".")[0], {})]
+        hint += "".join(f"; the checkpoint predates {k} and ran as {k} = {str(LEGACY_VALUES[k]).lower()}, "
+                        f"set that to continue it as it ran" for k in legacy)
         fixed = [k for k in diff if k in RESTART_FIXED_KEYS]
         if fixed:
             raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
@@ -537,10 +545,6 @@ class Job:
                           f"attributes) and frames.usdc (timeCodesPerSecond = 1 / (dt * every)) give all its "
                           f"rows one time step; restart with the checkpoint's value (its attribute "
                           f"config_toml), or start a new run (without --restart) for another")
-        legacy = [k for k in diff if k in LEGACY_VALUES
-                  and k.split(".")[1] not in saved.get(k.split(".")[0], {})]
-        hint = "".join(f"; the checkpoint predates {k} and ran as {k} = {str(LEGACY_VALUES[k]).lower()}, "
-                       f"set that to continue it as it ran" for k in legacy)
         if diff and not args.force:
             raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
                           f"{_differences_text(diff, saved, cfg.to_dict())}{hint}; restart with the config "

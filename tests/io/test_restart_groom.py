@@ -11,6 +11,8 @@ import h5py
 import numpy as np
 
 from lc_petsc.batch import main
+from lc_petsc.io.checkpoint import GLOBAL_DATASETS, VERTEX_DATASETS, _meta_digest
+from lc_petsc.io.checkpoint_seal import seal
 
 ROOT = Path(__file__).resolve().parents[2]
 FRINGE = ROOT / "configs" / "data" / "fringe.h5"
@@ -68,6 +70,18 @@ def test_a_moved_groom_restarts_and_a_changed_one_is_refused(tmp_path, capsys):
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest", "--frames", "2"]) == 0
     assert capsys.readouterr().err == ""
     assert np.array_equal(_positions(out), _positions(straight)[:3])
+
+    # a checkpoint from before the radius digest: its groom is still compared by path
+    old = tmp_path / "old.h5"
+    shutil.copy(out / "checkpoints" / "checkpoint_000001.h5", old)
+    with h5py.File(old, "r+") as f:
+        del f.attrs["radius_sha256"]
+        f.attrs["meta_sha256"] = _meta_digest(dict(f.attrs))      # as its writer had
+    seal(old, h5py, VERTEX_DATASETS + GLOBAL_DATASETS)
+    assert main([cfg, "--out", str(tmp_path / "o2"), "--quiet", "--restart", str(old)]) == 2
+    assert (f"the config differs from the checkpoint's in scene.path (checkpoint: '{first}', config: '{moved}'); "
+            "the checkpoint predates radius_sha256 (2026-12-07), so its groom is compared by path (a link at "
+            "the checkpoint's path to a moved file will do)") in capsys.readouterr().err
 
     # a changed copy: refused, naming what differs and both paths (the folder unchanged)
     held = _digest(out / "frames.h5")

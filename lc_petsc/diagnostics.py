@@ -187,7 +187,7 @@ def term_warnings(sim):
     if "gravity" in terms and np.any(phys.gravity) and not has_pins and "head_collision" not in terms:
         out.append("no vertex is pinned and head_collision is off: gravity makes every wisp fall "
                    "freely; pin the roots (scene.n_pinned, or /pinned or primvars:pinned in a groom file)")
-    return out + groom_radius_warnings(sim) + groom_edge_warnings(sim)
+    return out + groom_radius_warnings(sim) + groom_edge_warnings(sim) + groom_scale_warnings(sim)
 
 
 def groom_radius_warnings(sim):
@@ -226,7 +226,7 @@ def groom_edge_warnings(sim):
         return []
     worst, n_short = (np.inf, 0, 0, 0.0, 0.0), 0
     for w in range(sc.n_wisps):
-        L = np.linalg.norm(np.diff(sc.x_rest[sc.offsets[w]:sc.offsets[w + 1]], axis=0), axis=1)
+        L = _rest_edges(sc, w)
         med = float(np.median(L))
         j = int(np.argmin(L))
         if L[j] < SHORT_EDGE * med:
@@ -242,6 +242,44 @@ def groom_edge_warnings(sim):
             f"length {length:.3g} cm against a median of {med:.3g} cm: a near-duplicate vertex, which "
             "makes the Newton matrix so ill-conditioned that its linear solves can fail; remove the "
             "vertex or resample the wisp"]
+
+
+def _rest_edges(sc, w):
+    """The rest lengths of wisp ``w``'s edges (``sc``: the rank's scene)."""
+    return np.linalg.norm(np.diff(sc.x_rest[sc.offsets[w]:sc.offsets[w + 1]], axis=0), axis=1)
+
+
+#: a wisp of a groom file whose median edge is below this fraction of the groom's (the
+#: median of the wisps' median edges) and below its own median radius is warned about as
+#: in other units: one fringe wisp in metres (x 0.01) is at 0.0078 of the groom and 0.073
+#: of its radius; the shipped scenes' wisps at least 0.66 and 2.84 (docs/elements.md)
+SMALL_WISP = 1.0 / 30.0
+
+
+def groom_scale_warnings(sim):
+    """Wisps of a strands or USD file far smaller than the rest of the groom, with edges
+    shorter than their strands are thick (:data:`SMALL_WISP`): a wisp written in metres
+    (or another unit) in a centimetre groom, which otherwise runs unnamed (collective)."""
+    cfg, sc, comm = sim.config, sim.scene, sim.comm
+    if cfg.scene.kind not in ("file", "usd"):
+        return []
+    mine = []
+    for w in range(sc.n_wisps):
+        radius = float(np.median(sc.radius[sc.offsets[w]:sc.offsets[w + 1]]))
+        mine.append((float(np.median(_rest_edges(sc, w))), radius, int(sim.wisp_order[sc.first_wisp + w])))
+    wisps = [m for part in comm.allgather(mine) for m in part]
+    if not wisps:
+        return []
+    groom = float(np.median([e for e, _, _ in wisps]))
+    small = sorted((e / groom, wisp, e, r) for e, r, wisp in wisps if e < SMALL_WISP * groom and e < r)
+    if not small:
+        return []
+    ratio, wisp, edge, radius = small[0]
+    more = f" (and {len(small) - 1} more wisp(s))" if len(small) > 1 else ""
+    return [f"{cfg.scene.path}: wisp {wisp}{more} is {1 / ratio:.3g} times smaller than the groom: its median "
+            f"edge is {edge:.3g} cm against the groom's {groom:.3g} cm, and shorter than its strand radius "
+            f"({radius:.3g} cm); a wisp written in other units (metres?) than the rest; lc_petsc's units are "
+            "cm (scale that wisp)"]
 
 
 def preview_warnings(cfg):

@@ -57,7 +57,12 @@ RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.preview
                      "output.preview_frames", "output.contact_sheet", "output.view",
                      "output.checkpoint_every", "output.checkpoints_kept",
                      "output.usd", "output.render_hairs", "output.render_hair_seed",
-                     "output.render_hair_spread", "output.check_crossings"}
+                     "output.render_hair_spread", "output.check_crossings", "scene.description"}
+#: keys every row of frames.h5 and frames.usdc shares (its dt and every attributes, the
+#: USD's timeCodesPerSecond): refused in a restart even with --force
+RESTART_FIXED_KEYS = ("time.dt", "output.every")
+#: scene kinds read from a file, whose path a restart does not compare (the content is)
+GROOM_FILE_KINDS = ("file", "usd")
 PROG = "simulate.py"
 #: frames.h5 is flushed at least this often (seconds; a checkpoint flushes it too)
 FRAMES_FLUSH_SECONDS = 30.0
@@ -133,6 +138,18 @@ def unfinished_run(out):
     if summary.get("error"):      # a full disk: free space and continue, not start over
         return f"failed: {summary['error']}; {newest}"
     return None
+
+
+def petsc_error_text(e):
+    """A PETSc.Error in one line: its messages, the last (the most specific) first, then
+    the code and the function that raised it.  str() of the error is PETSc's traceback,
+    one "[rank] ..." line per call and message, which the refusal used to wrap whole."""
+    lines = [re.sub(r"^\[\d+\]\s*", "", line).strip() for line in str(e).splitlines()]
+    calls = [line.split("(")[0] for line in lines[1:] if re.match(r"^\w+\(\) at ", line)]
+    said = [line for line in lines[1:] if line and not re.match(r"^\w+\(\) at ", line)]
+    code = lines[0] if lines else f"error code {getattr(e, 'ierr', '?')}"
+    where = f", in {calls[-1]}()" if calls else ""
+    return f"{'; '.join(reversed(said)) or 'no message'} (PETSc {code}{where})"
 
 
 def finished_frames(out):
@@ -382,7 +399,7 @@ class Job:
                 except (ValueError, SolverError) as e:
                     raise Refused(str(e)) from None
                 except PETSc.Error as e:
-                    raise Refused(f"PETSc rejected the solver set-up ({e}); see PETSc's message above") from None
+                    raise Refused(f"PETSc rejected the solver set-up: {petsc_error_text(e)}") from None
                 self._validate()
         except Refused as e:
             say(comm, f"{PROG}: error: {e}", sys.stderr)
@@ -487,7 +504,7 @@ class Job:
         """The checkpoint to continue from, checked against the config, the scene and
         the folder's frames.h5; restored into the simulator.  Raises Refused."""
         from lc_petsc.io.checkpoint import (LEGACY_VALUES, checkpoint_folder, config_differences,
-                                            find_latest, load_checkpoint)
+                                            find_latest, groom_differences, load_checkpoint)
         comm, args, cfg, sim = self.comm, self.args, self.cfg, self.sim
         skipped = []
         try:
@@ -506,10 +523,28 @@ class Job:
         diff = config_differences(ck["attrs"]["config"], cfg.to_dict(), ignore=RESTART_FREE_KEYS,
                                   defaults=SimConfig().to_dict())
         saved = ck["attrs"]["config"]
+        # a groom file's path is no difference where the checkpoint holds the groom's
+        # content (rest positions, pinned vertices, radius digest): compared below, so a
+        # moved copy restarts and a changed file is refused naming what differs
+        by_content = cfg.scene.kind in GROOM_FILE_KINDS and "radius_sha256" in ck["attrs"]
+        hint = ""
+        if by_content:
+            diff = [k for k in diff if k != "scene.path"]
+        elif "scene.path" in diff and cfg.scene.kind in GROOM_FILE_KINDS:
+            hint += ("; the checkpoint predates radius_sha256 (2026-12-07), so its groom is compared by path "
+                     "(a link at the checkpoint's path to a moved file will do)")
         legacy = [k for k in diff if k in LEGACY_VALUES
                   and k.split(".")[1] not in saved.get(k.split(".")[0], {})]
-        hint = "".join(f"; the checkpoint predates {k} and ran as {k} = {str(LEGACY_VALUES[k]).lower()}, "
-                       f"set that to continue it as it ran" for k in legacy)
+        hint += "".join(f"; the checkpoint predates {k} and ran as {k} = {str(LEGACY_VALUES[k]).lower()}, "
+                        f"set that to continue it as it ran" for k in legacy)
+        fixed = [k for k in diff if k in RESTART_FIXED_KEYS]
+        if fixed:
+            raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
+                          f"{_differences_text(diff, saved, cfg.to_dict())}; {' and '.join(fixed)} cannot "
+                          f"change in a restart, not even with --force: the run's frames.h5 (its dt and every "
+                          f"attributes) and frames.usdc (timeCodesPerSecond = 1 / (dt * every)) give all its "
+                          f"rows one time step; restart with the checkpoint's value (its attribute "
+                          f"config_toml), or start a new run (without --restart) for another")
         if diff and not args.force:
             raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
                           f"{_differences_text(diff, saved, cfg.to_dict())}{hint}; restart with the config "
@@ -527,9 +562,6 @@ class Job:
             self._warn("PETSc options differ from the checkpoint's: " + ", ".join(
                 f"-{k} {shown(now, k)} (was {shown(before, k)})" for k in changed)
                 + "; the run continues with them, so it is not bit for bit the run it continues")
-        if ck["attrs"]["every"] != cfg.output.every:
-            raise Refused(f"{ck['path']}: output.every = {cfg.output.every} but the run's frames.h5 was "
-                          f"written with {ck['attrs']['every']}; it cannot be appended to")
         # a finished run whose last checkpoint is before its end: "latest" used to run
         # the frames after it again (on another rank count to round-off) and replace its
         # outputs and summary.json, where one checkpointed at its end was refused
@@ -547,12 +579,16 @@ class Job:
         if cfg.time.frames <= ck["frame"] and not self.outputs_only:
             raise Refused(f"{ck['path']}: the checkpoint is at frame {ck['frame']}, the run ends at frame "
                           f"{cfg.time.frames} (time.frames / --frames is the total): nothing to do")
-        same_rest = np.array_equal(ck["rest"], sim.user.x_rest) and np.array_equal(ck["pinned"], sim.user.pinned)
-        if global_max(comm, int(not same_rest)) != 0:
+        groom = groom_differences(comm, ck, sim.user)
+        if groom:
+            was = saved.get("scene", {}).get("path")
+            where = f" ({cfg.scene.path}; the checkpoint's run read {was})" if by_content and \
+                was != cfg.scene.path else ""
+            what = f"the scene's groom{where} differs from the checkpoint's in {'; '.join(groom)}"
             if not args.force:
-                raise Refused(f"{ck['path']}: the checkpoint's rest positions or pinned vertices differ "
-                              "from the scene's; restart with the same scene or add --force")
-            warn(comm, "--force: rest state differs from the checkpoint's; the scene's is used")
+                raise Refused(f"{ck['path']}: {what}; restart with the groom the checkpoint ran with or add "
+                              f"--force (continues with this one)")
+            warn(comm, f"--force: rest state differs from the checkpoint's: {what}; the scene's is used")
         self.recovery = self._frames_recovery(ck, ck["frame"] // cfg.output.every + 1)
         sim.restore(dict(ck, x=sim.user.from_user(ck["x"]), v=sim.user.from_user(ck["v"])))
         return ck
@@ -596,7 +632,7 @@ class Job:
                 vouched = (rows - 1, read_positions(ck["path"], offsets)["positions"])
             problem = resumable_problem(path, sim.n_wisps, sim.n_vertices, rows, checkpoint_row=vouched,
                                         offsets=offsets,
-                                        **({} if args.force else dict(dt=cfg.time.dt, every=cfg.output.every)))
+                                        dt=cfg.time.dt, every=cfg.output.every)
             if problem is None:
                 return None, None, not has_checksums(path)
             plan = plan_recovery(path, problem, ck, list_checkpoints(checkpoint_folder(self.out)), offsets, rows)
@@ -1035,16 +1071,22 @@ class Job:
                 problems.append(f"previews in {out}: {getattr(e, 'strerror', None) or e}")
         t_prev = time.perf_counter() - t0
         t_usd = 0.0
-        if (not cfg.output.usd or self._late_signal("frames.usdc")) and writer is not None \
+
+        def usd_warning(text):
+            # on stderr and in summary.json: a pipeline reading the summary must learn
+            # that frames.usdc is missing (a full disk's failure was on stderr only)
+            print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
+            summary["warnings"] = list(summary.get("warnings") or []) + [text]
+        if cfg.output.usd and self.error and self.error.startswith("output error") and writer is not None:
+            # the export, the largest output, would meet the same full disk or unwritable
+            # folder: pxr's 6-line failure used to follow the error as a warning
+            usd_warning(f"frames.usdc not written: the run stopped on an output error (above); "
+                        f"--restart latest writes it at the end of the continued run, or drivers/to_usd.py "
+                        f"{h5_path} from the frames written")
+        elif (not cfg.output.usd or self._late_signal("frames.usdc")) and writer is not None \
                 and writer.written and not hdf5.unclosable():
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_failed, export_run
-
-            def usd_warning(text):
-                # on stderr and in summary.json: a pipeline reading the summary must learn
-                # that frames.usdc is missing (a full disk's failure was on stderr only)
-                print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
-                summary["warnings"] = list(summary.get("warnings") or []) + [text]
             try:
                 usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop, warn=usd_warning)
                 files += usd_files

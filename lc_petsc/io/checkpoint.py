@@ -15,8 +15,11 @@ Layout (format ``lc_petsc checkpoint``, ``format_version`` 1; plain h5py reads i
   ``every`` (output.every), ``frames_rows`` (rows of ``frames.h5`` that belong to frames
   <= ``frame``), ``n_wisps``, ``n_vertices``, ``ranks``, ``config`` (resolved config,
   JSON), ``config_toml`` (the config file's text), ``config_sha256``,
-  ``petsc_options`` (JSON), ``lc_petsc_version``, ``contact_state``, ``meta_sha256``
-  (over the attributes above).  Every dataset has a ``sha256`` attribute.
+  ``petsc_options`` (JSON), ``lc_petsc_version``, ``contact_state``, ``radius_sha256``
+  (the strands' radii, hashed as a vertex dataset: with ``/rest_positions`` and
+  ``/pinned`` the groom's content, which a restart compares instead of its path;
+  checkpoints before 2026-12-07 lack it), ``meta_sha256`` (over the attributes above).
+  Every dataset has a ``sha256`` attribute.
 
 Contact state: none is carried between frames (strand contact rebuilds its broad phase
 from the positions at every call, head contact is a function of positions and t), so
@@ -76,7 +79,7 @@ PAUSE_ENV = "LC_PETSC_TEST_CHECKPOINT_PAUSE"   # test hook, "FRAME:SECONDS": sle
 VERTEX_DATASETS = ("positions", "velocities", "rest_positions", "pinned")
 GLOBAL_DATASETS = ("wisp_offsets", "head_state")
 META_KEYS = ("format", "format_version", "frame", "time", "dt", "every", "frames_rows",
-             "n_wisps", "n_vertices", "config", "config_sha256", "lc_petsc_version")
+             "n_wisps", "n_vertices", "config", "config_sha256", "lc_petsc_version", "radius_sha256")
 CONTACT_STATE = "none: contact is recomputed from positions and time at every call"
 _NAME = re.compile(r"^checkpoint_(\d+)\.h5$")
 
@@ -194,6 +197,13 @@ def _wisp_digests(data, local_offsets) -> np.ndarray:
     return out
 
 
+def radius_digest(comm, scene) -> str:
+    """The SHA-256 of the scene's per-vertex radii (``scene``: this rank's LocalScene),
+    the same on any rank count; on every rank."""
+    return comm.bcast(_combine(comm, _wisp_digests(np.asarray(scene.radius, np.float64),
+                                                   np.asarray(scene.offsets, np.int64))))
+
+
 def _combine(comm, digests):
     """SHA-256 over all ranks' per-wisp digests in rank (= global wisp) order; on rank 0
     (None elsewhere)."""
@@ -253,13 +263,14 @@ def write_checkpoint(out, comm, *, frame, t, x, v, scene, n_wisps, n_vertices, h
     offsets = global_wisp_offsets(comm, lo)
     hs = head_state(head, t)
     digests.update({"wisp_offsets": _whole(offsets), "head_state": _whole(hs)})
+    radius = radius_digest(comm, scene)
     digests = comm.bcast(digests)          # attributes are written collectively: same values
     attrs = {"format": FORMAT, "format_version": FORMAT_VERSION, "frame": int(frame), "time": float(t),
              "dt": float(dt), "every": int(every), "frames_rows": int(frame) // int(every) + 1,
              "n_wisps": int(n_wisps), "n_vertices": int(n_vertices), "ranks": comm.size,
              "config": json.dumps(config_dict, sort_keys=True), "config_toml": config_toml,
              "config_sha256": config_sha256(config_dict), "petsc_options": json.dumps(petsc_options),
-             "lc_petsc_version": version, "contact_state": CONTACT_STATE}
+             "lc_petsc_version": version, "contact_state": CONTACT_STATE, "radius_sha256": radius}
     attrs["meta_sha256"] = _meta_digest(attrs)
 
     kw = collective_file_options(comm)
@@ -534,3 +545,32 @@ def find_latest(folder, comm, scene, n_wisps, n_vertices, head):
                                                   "checkpoint (output.checkpoint_every); run the same command "
                                                   "without --restart to start it over")
     raise CheckpointError(f"--restart latest: no valid checkpoint in {str(folder)!r} ({why})")
+
+
+def groom_differences(comm, checkpoint, scene) -> list:
+    """What differs between the loaded ``checkpoint``'s groom and the scene's (``scene``:
+    this rank's LocalScene): phrases naming the first differing vertex of the rest
+    positions and the pinned vertices, and whether the radii differ (checkpoints that
+    hold their digest); [] when the content is the same.  Collective."""
+    lo = np.asarray(scene.offsets, np.int64)
+    found = []
+    for name, saved, now in (("rest positions", checkpoint["rest"], scene.x_rest),
+                             ("pinned vertices", checkpoint["pinned"], scene.pinned)):
+        saved, now = np.asarray(saved), np.asarray(now)
+        bad = np.flatnonzero((saved != now).reshape(len(now), -1).any(axis=1))
+        first = None
+        if len(bad):
+            i = int(bad[0])
+            w = int(np.searchsorted(lo, i, side="right")) - 1
+            first = (int(scene.first_vertex) + i, int(scene.first_wisp) + w, i - int(lo[w]),
+                     saved[i].tolist(), now[i].tolist())
+        per_rank = comm.allgather((len(bad), first))
+        count = sum(n for n, _ in per_rank)
+        if count:
+            v, w, j, a, b = next(f for _, f in per_rank if f is not None)
+            found.append(f"its {name} at {count} {'vertex' if count == 1 else 'vertices'} (first: vertex {v}, "
+                         f"wisp {w}'s vertex {j}: checkpoint {a}, scene {b})")
+    saved_radius = checkpoint["attrs"].get("radius_sha256")
+    if saved_radius is not None and radius_digest(comm, scene) != saved_radius:
+        found.append("its radii")
+    return found

@@ -6,15 +6,19 @@ Stage layout (``metersPerUnit`` 0.01: centimetres; up axis Y; default prim ``/Gr
 * ``/Groom/wisps``: ``UsdGeom.BasisCurves``, type ``linear``, one curve per wisp in global
   wisp order.  ``curveVertexCounts`` = diff of ``/wisp_offsets``; ``points`` (float32)
   time-sampled at every written frame, with the rest pose as its default (un-animated)
-  value; ``widths`` = 2 x the radii (vertex interpolation); ``primvars:wisp_index``
-  (int, uniform: the wisp of each curve); ``primvars:pinned`` (int 0/1, vertex: the
-  pinned roots, read back by the ``usd`` scene kind); ``extent`` time-sampled.
+  value, relative to the prim's ``xformOp:translate`` (double, time-sampled with them:
+  :func:`local_origin`, 0 for a groom near the origin), so a groom far from the origin
+  keeps the detail float32 has at its own size (a groom 1e5 cm away lost 0.0039 cm, 13%
+  of a strand radius, to float32 before); ``widths`` = 2 x the radii (vertex
+  interpolation); ``primvars:wisp_index`` (int, uniform: the wisp of each curve);
+  ``primvars:pinned`` (int 0/1, vertex: the pinned roots, read back by the ``usd`` scene
+  kind); ``extent`` time-sampled, in the points' local space.
 * ``/Groom/head``: ``UsdGeom.Sphere`` of the head radius with the head's motion
   (:class:`lc_petsc.scene.kinematics.HeadMotion`) as a time-sampled ``xformOp:transform``;
   present when the scene has a head sphere (head contact on, or a hairball).
 * ``/Groom/render_hairs`` (``output.render_hairs`` > 0): a second linear BasisCurves of
   N interpolated hairs per wisp (:mod:`lc_petsc.io.render_hairs`), ``primvars:guide_wisp``
-  (int, uniform), time-sampled ``points``.
+  (int, uniform), time-sampled ``points`` relative to a translate as the wisps'.
 
 Time: row k of ``frames.h5`` (simulation frame k * every) is time code k;
 ``timeCodesPerSecond`` = ``framesPerSecond`` = 1 / (dt * every), so a DCC plays the run
@@ -106,6 +110,20 @@ def _int_primvar(curves, name, values, interpolation, Vt, UsdGeom, Sdf):
     return pv
 
 
+def local_origin(x):
+    """The translate of a frame's points (n, 3): the centre of their bounding box rounded
+    to a multiple of q, the power of two at least twice its largest side, so the local
+    points stay below 2.5 sides (float32 keeps them to 1.5e-7 of the groom's size) and a
+    groom within q/2 of the origin keeps the origin (its points are the world's)."""
+    x = np.asarray(x, float)
+    if not len(x):
+        return np.zeros(3)
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    side = max(float((hi - lo).max()), 1e-6)
+    q = 2.0 ** (np.ceil(np.log2(side)) + 1)
+    return np.round((lo + hi) / 2 / q) * q
+
+
 def _extent(p32, half_width):
     lo = p32.min(axis=0) - half_width
     hi = p32.max(axis=0) + half_width
@@ -195,7 +213,10 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
             _int_primvar(wisps, "wisp_index", np.arange(len(sizes)), UsdGeom.Tokens.uniform, Vt, UsdGeom, Sdf)
             _int_primvar(wisps, "pinned", pinned.astype(np.int32), UsdGeom.Tokens.vertex, Vt, UsdGeom, Sdf)
             pts_attr = wisps.GetPointsAttr()
-            pts_attr.Set(Vt.Vec3fArray.FromNumpy(rest.astype(np.float32)))     # default: rest pose
+            origin = local_origin(rest)
+            pts_attr.Set(Vt.Vec3fArray.FromNumpy((rest - origin).astype(np.float32)))     # default: rest pose
+            # double precision: the points' offset in the world, exact wherever the groom is
+            moves = [wisps.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)]
             ext_attr = wisps.CreateExtentAttr()
             half_w = float(radius.max(initial=0.0))
 
@@ -215,14 +236,21 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
                                     hairs.widths(), Vt, UsdGeom)
                 _int_primvar(hc, "guide_wisp", hairs.guide_wisp(), UsdGeom.Tokens.uniform, Vt, UsdGeom, Sdf)
                 hair_attr, hair_ext = hc.GetPointsAttr(), hc.CreateExtentAttr()
+                moves.append(hc.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble))
                 normal_rest = root_normals(rest, offsets)
                 hair_buf = np.empty((hairs.n_points, 3), np.float32)
+            for op in moves:
+                op.Set(Gf.Vec3d(*origin.tolist()))
             stage.Save()
 
             t_hairs = 0.0
             for done, k in enumerate(rows):
-                x = frame_row(f, k)
+                world = frame_row(f, k)
+                origin = local_origin(world)
+                x = world - origin          # the render hairs follow a translation exactly
                 p32 = x.astype(np.float32)
+                for op in moves:
+                    op.Set(Gf.Vec3d(*origin.tolist()), float(k))
                 pts_attr.Set(Vt.Vec3fArray.FromNumpy(p32), float(k))
                 ext_attr.Set(Vt.Vec3fArray.FromNumpy(_extent(p32, half_w)), float(k))
                 if head is not None:

@@ -339,6 +339,47 @@ def test_groom_edges_far_shorter_than_their_wisp_are_warned_about():
                            f"{1e-4 * L:.3g} cm against a median of {med:.3g} cm"), w
 
 
+@pytest.mark.mpi
+def test_a_wisp_in_other_units_than_its_groom_is_warned_about():
+    """One fringe wisp in metres (its positions x 0.01) ran without a word; now a warning
+    names it, the same on any rank count, and the shipped groom scenes (strands and USD)
+    get none."""
+    import os
+    from pathlib import Path
+    import h5py
+    from lc_petsc.config import load_config
+    from sim_helpers import shared_scene_dir
+    comm = MPI.COMM_WORLD
+    root = Path(__file__).resolve().parents[2] / "configs"
+
+    def scale_warnings(cfg):
+        sim = build_simulator(cfg, comm=comm)
+        try:
+            return [m for m in term_warnings(sim) if "smaller than the groom" in m]
+        finally:
+            sim.close()
+    for name in ("from_file.toml", "from_usd.toml"):
+        assert scale_warnings(load_config(root / name)) == [], name
+    with shared_scene_dir(comm, "metres", "") as (d, _):
+        path = os.path.join(d, "g.h5")
+        with h5py.File(root / "data" / "fringe.h5", "r") as f:
+            data = {k: f[k][...] for k in f}
+        off = data["wisp_offsets"]
+        data["positions"][off[3]:off[4]] *= 0.01
+        if comm.rank == 0:
+            with h5py.File(path, "w") as f:
+                for k, v in data.items():
+                    f[k] = v
+        comm.Barrier()
+        w = scale_warnings(SimConfig(scene=SceneConfig(kind="file", path=path)))
+    edges = [np.median(np.linalg.norm(np.diff(data["positions"][off[i]:off[i + 1]], axis=0), axis=1))
+             for i in range(len(off) - 1)]
+    assert len(w) == 1, w
+    assert w[0].startswith(f"{path}: wisp 3 is {np.median(edges) / edges[3]:.3g} times smaller than the groom: "
+                           f"its median edge is {edges[3]:.3g} cm against the groom's {np.median(edges):.3g} cm, "
+                           f"and shorter than its strand radius ("), w
+
+
 def test_the_job_says_why_a_frame_below_the_tolerance_missed_it(tmp_path):
     """The analytic filter's crawl at a loose tolerance: its last increments are below
     the tolerance, but its stops are refused (steps off their quadratic model,

@@ -201,6 +201,19 @@ def test_absurd_n_wisps_is_refused_before_building(tmp_path):
     assert not out.exists()
 
 
+def test_an_unknown_solver_type_is_one_line_naming_it(tmp_path, capsys):
+    """-ksp_type gmress: the refusal wrapped PETSc's whole traceback ("[0] KSPSetType()
+    at ./src/...") in parentheses and said "see PETSc's message above", where there was
+    none; now PETSc's messages, the code and the function, on one line."""
+    out = tmp_path / "out"
+    assert main([_config(tmp_path, n_wisps=2), "--out", str(out), "--quiet", "-ksp_type", "gmress"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert err.startswith("simulate.py: error: PETSc rejected the solver set-up: Unable to find requested KSP "
+                          "type gmress; Unknown type. Check for miss-spelling or missing package: "), err
+    assert err.endswith(" (PETSc error code 86, in KSPSetType())\n") and err.count("\n") == 1, err
+    assert not out.exists()
+
+
 def test_generated_scene_memory_estimate(monkeypatch):
     """The strands files' estimate (4 kB per vertex against the memory of the job's
     nodes) on a machine of 1 GiB: 2,000 hairball wisps fit, 3,000 do not on one node but

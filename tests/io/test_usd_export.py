@@ -127,6 +127,46 @@ def test_export_render_hairs(run):
         assert d.max() > 0.2 * radius.max()       # and not all on the guide
 
 
+def _world(prim, attr, k):
+    """Points of ``attr`` at time code ``k`` in world space (float64), as a DCC places them."""
+    M = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(k), float)
+    return np.asarray(attr.Get(k), float) @ M[:3, :3] + M[3, :3]
+
+
+def test_a_groom_far_from_the_origin_keeps_its_detail(run, tmp_path):
+    """The run moved 1e5 cm along x: its float32 points were off by up to 0.0039 cm (13%
+    of a 0.03 cm strand radius).  Now they are relative to a double translate, which pxr
+    applies: the world positions equal frames.h5 to float32 of the groom's own size."""
+    shift = np.array([1e5, -3e4, 2e5])
+    far = tmp_path / "far.h5"
+    far.write_bytes((run / "frames.h5").read_bytes())
+    with h5py.File(far, "r+") as f:
+        f["positions"][...] = f["positions"][...] + shift
+        f["rest_positions"][...] = f["rest_positions"][...] + shift
+    write_usd(far, tmp_path / "far.usdc")
+    F, near = _frames(run), Usd.Stage.Open(str(run / "frames.usdc"))
+    stage = Usd.Stage.Open(str(tmp_path / "far.usdc"))
+    c = stage.GetPrimAtPath("/Groom/wisps")
+    pts = UsdGeom.BasisCurves(c).GetPointsAttr()
+    side = np.ptp(F["positions"], axis=1).max()
+    for k in range(4):
+        err = np.abs(_world(c, pts, k) - (F["positions"][k] + shift)).max()
+        assert err <= 2.5 * side * 2.0 ** -24, (k, err)       # main: 0.0039 cm (0.0078 at 2e5)
+        assert np.abs(np.asarray(pts.Get(k))).max() < 2.5 * side   # local points: the groom's size
+    rest = _world(c, pts, Usd.TimeCode.Default())
+    assert np.abs(rest - (F["rest_positions"] + shift)).max() <= 2.5 * side * 2.0 ** -24
+    # the render hairs too: the near export's, moved by the shift
+    h, hn = stage.GetPrimAtPath("/Groom/render_hairs"), near.GetPrimAtPath("/Groom/render_hairs")
+    hp, hnp = UsdGeom.BasisCurves(h).GetPointsAttr(), UsdGeom.BasisCurves(hn).GetPointsAttr()
+    assert np.abs(_world(h, hp, 3) - (_world(hn, hnp, 3) + shift)).max() < 1e-5
+    # near the origin the translate is 0 and the points are the world's (readers that
+    # ignore transforms still place them)
+    assert np.abs(_world(near.GetPrimAtPath("/Groom/wisps"),
+                         UsdGeom.BasisCurves(near.GetPrimAtPath("/Groom/wisps")).GetPointsAttr(), 2)
+                  - np.asarray(UsdGeom.BasisCurves(near.GetPrimAtPath("/Groom/wisps")).GetPointsAttr().Get(2),
+                               float)).max() == 0.0
+
+
 def test_converter_matches_job_and_stride(run, tmp_path):
     """--stride 2 of 4 rows: samples 0 and 2, the stage ends at 2 (main: 3, past the last
     sample); --out into a missing folder creates it."""

@@ -13,7 +13,8 @@ from lc_petsc.contact import SEPARATION_STRAIN
 from lc_petsc.crossings import count_crossings
 from lc_petsc.elements import head_contact
 from lc_petsc.scene.sources import ArraySource
-from sim_helpers import falling_strand, head_figures
+from lc_petsc.integrator import project_rest_lengths
+from sim_helpers import falling_strand, head_figures, small_hairball_config
 
 R = 5.0                 # head sphere about the origin
 PHI = 0.5               # polar angle of the draped wisp's tip
@@ -182,5 +183,33 @@ def test_frame_end_keeps_paths_out_of_the_head(monkeypatch, blocker):
             np.testing.assert_allclose(kept[tip], beta * made[tip], rtol=1e-12)
         else:
             np.testing.assert_array_equal(kept, made)
+    finally:
+        sim.close()
+
+
+def test_keep_lengths_projects_only_the_touched_wisps():
+    """_keep_lengths runs the length projection around the head on the touched wisps'
+    vertices only: the same bits as projecting every wisp and keeping theirs (what it
+    did before), with the others' bits untouched."""
+    cfg = small_hairball_config(n_wisps=6, frames=1, length_projection=True)
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        itg, sc = sim.integrator, sim.scene
+        itg.t_next = cfg.time.dt            # the frame end's head sphere
+        rng = np.random.default_rng(5)
+        c, Rh, allow = itg._head_sphere()
+        x = sim.x + rng.normal(scale=0.3, size=sim.x.shape) * (~sc.pinned)[:, None]
+        y = x - c                   # some free vertices well inside the head
+        x[::7] = c + y[::7] * ((Rh - 0.5) / np.linalg.norm(y[::7], axis=1))[:, None]
+        x[sc.pinned] = sim.x[sc.pinned]
+        moved = np.flatnonzero(~sc.pinned & (np.arange(sc.nv) >= sc.offsets[2]) & (np.arange(sc.nv) < sc.offsets[4]))
+        moved = moved[::5]
+        full = project_rest_lengths(x, itg.free, sc.offsets, itg.rest_edge, sc.mass, itg._head_sphere())
+        touched = np.isin(itg.vertex_wisp, itg.vertex_wisp[moved])
+        expect = x.copy()
+        expect[touched] = full[touched]
+        out = itg._keep_lengths(x, moved)
+        assert touched.sum() < sc.nv and np.abs(out[touched] - x[touched]).max() > 0.01
+        np.testing.assert_array_equal(out, expect)
     finally:
         sim.close()

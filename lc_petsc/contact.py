@@ -460,6 +460,8 @@ class StrandContact:
                                                compiled_mult.warm_up, compiled_band.warm_up)
         # ccd mode (see limit_step): per-vertex step fractions, in a Vec by global vertex
         self.step_fraction = self.shrink = None
+        #: per vertex, the fraction beta of the last limiter pass (:meth:`_safe_fractions`)
+        self.path_fraction = None
         if mode == "ccd":
             self.step_fraction = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
             self.shrink = PETSc.Vec().createMPI((nv, self.N), comm=pcomm)
@@ -965,6 +967,9 @@ class StrandContact:
             # target by the field's shear); the rest may cross and are counted
             stuck = int(np.sum(~kept_apart_by_field(SV, E, inv[stopped], start_distance[stopped], A, b, L)))
         beta = np.where(self.scene.pinned, 1.0, beta)
+        # per vertex: a move made to T before this check is in E times beta (the
+        # integrator leaves the kept part of its head lift out of the velocity)
+        self.path_fraction = beta
         if skin > 0.0:
             held_points = np.zeros(len(V), bool)
             held_points[inv[tau < 1.0].ravel()] = True

@@ -600,9 +600,23 @@ class Integrator:
             n_sep = 0
             self.strand.last_separation = (0, 0, 0)
             if self.strand.mode == "ccd":
-                x, pairs, deep, dmin, n_sep = self._collision_free_end(x_old, x, motion, deep)
+                x, pairs, deep, dmin, n_sep, lifted = self._collision_free_end(x_old, x, motion, deep, self.t,
+                                                                               lifted)
             elif cfg.physics.strand_separation:
                 x, pairs, deep, dmin, n_sep = self._separate(x, pairs, deep, dmin)
+                if push:
+                    # the separation moves lifted vertices, their paths cut under the scalp
+                    # again (soft hairball, gravity 5000: 22 paths through in 8 steps, 14
+                    # of them mendable); penalty mode keeps no crossing guarantee, so the
+                    # head goes last, in rounds: the projection moves a lifted vertex back
+                    y = x
+                    for _ in range(FRAME_END_ROUNDS):
+                        y, lifted = self._head_end(x_old, y, self.t, lifted)
+                        if not self._head_left(x_old, y, self.t):
+                            break
+                    if global_reduce(self.comm, [float(y is not x)], "max")[0]:
+                        pairs, deep, dmin = self.strand.measure(y)
+                    x = y
             contact = pairs, deep, dmin, n_sep
         self.v = (x - x_old) / dt
         if lifted is not None:
@@ -655,7 +669,7 @@ class Integrator:
         chords 0.10-0.12 cm deep past their 0.07 cm radius).  The lifted wisps' rest
         lengths are set again (:meth:`_keep_lengths`).  Returns (x, the move (n, 3), which
         the velocity leaves out: an outward speed of lift / dt would kick the hair off
-        the scalp)."""
+        the scalp; None when nothing moved)."""
         c0 = self.head.sphere_center(t_old)
         c1, R, allow = self._head_sphere()
         lifted = x
@@ -673,20 +687,52 @@ class Integrator:
             return x, None
         return lifted, lifted - x
 
+    def _head_end(self, x_old, x, t_old, lifted=None):
+        """The head's part of the frame end on ``x``: the vertices deeper than allowed
+        pushed out (:meth:`_push_out_of_head`) with their wisps' rest lengths set
+        (:meth:`_keep_lengths`: a push alone left an edge 12.7% long), then the paths from
+        ``x_old`` lifted (:meth:`_lift_head_paths`).  Returns (x, ``lifted`` plus the
+        lift's move: what the velocity leaves out; None while nothing was lifted); ``x``
+        itself when nothing moved."""
+        pushed = np.flatnonzero(self._sunk(x))
+        if len(pushed):
+            x = self._keep_lengths(self._push_out_of_head(x, pushed), pushed)
+        x, move = self._lift_head_paths(x_old, x, t_old)
+        if move is not None:
+            lifted = move if lifted is None else lifted + move
+        return x, lifted
+
+    def _head_left(self, x_old, x, t_old):
+        """Whether a free vertex anywhere (collective) is deeper in the head than allowed
+        or has a path from ``x_old`` that :meth:`_lift_head_paths` would lift."""
+        c0 = self.head.sphere_center(t_old)
+        c1, R, allow = self._head_sphere()
+        left = self._sunk(x).any() or len(head_contact.lift_paths(
+            x_old - c0, x - c1, R, allow, head_contact.LIFT_RADII * self.scene.radius, self.free)[1]) > 0
+        return bool(global_reduce(self.comm, [float(left)], "max")[0])
+
     def _keep_lengths(self, x, moved):
         """``x`` with the wisps of the vertices ``moved`` (indices) set back to their rest
         lengths around the head (the frame's length projection, when on; other wisps keep
         their bits): a vertex lifted or pushed out alone stretches its edges (a lift of
-        2 radii: 3.0%; a push-out after the strand path check: 12.7%)."""
+        2 radii: 3.0%; a push-out after the strand path check: 12.7%).  Only those
+        wisps' vertices go through the projection (a wisp's walk depends on its own
+        vertices alone: the same bits as projecting all)."""
         if not self.cfg.time.length_projection:
             return x
         sc = self.scene
         touched = np.zeros(len(sc.offsets) - 1, bool)
         touched[self.vertex_wisp[moved]] = True
-        mask = touched[self.vertex_wisp]
-        projected = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass, self._head_sphere())
+        idx = np.flatnonzero(touched[self.vertex_wisp])
+        sizes = np.diff(sc.offsets)[touched]
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        # edge k of the subset joins idx[k] and idx[k + 1]: within a wisp idx[k] + 1 (its
+        # rest length rest_edge[idx[k]]); across two wisps unused
+        c, R, allow = self._head_sphere()
+        projected = project_rest_lengths(x[idx], self.free[idx], offsets, self.rest_edge[idx[:-1]],
+                                         sc.mass[idx], (c, R, allow[idx]))
         x = x.copy()
-        x[mask] = projected[mask]
+        x[idx] = projected
         return x
 
     def _lift_frame_path(self, x_frame, t_frame):
@@ -709,12 +755,14 @@ class Integrator:
         alone, 8.4% and 475; over dt, 2.0% and none (90 frames).  Returns ``last`` with the
         contact figures at the new end."""
         motion = self.head.rigid_motion(t_frame, self.t)
-        x, pairs, deep, dmin, n_sep = self._collision_free_end(x_frame, self.x, motion, last.contact[1])
-        self.v = self.v + (x - self.x) / self.cfg.time.dt
+        x, pairs, deep, dmin, n_sep, lifted = self._collision_free_end(x_frame, self.x, motion, last.contact[1],
+                                                                       t_frame)
+        moved = x - self.x if lifted is None else x - self.x - lifted
+        self.v = self.v + moved / self.cfg.time.dt
         self.x = x
         return last._replace(contact=(pairs, deep, dmin, max(n_sep, last.contact[3])))
 
-    def _collision_free_end(self, x_old, x, motion, deep):
+    def _collision_free_end(self, x_old, x, motion, deep, t_old, lifted=None):
         """ccd mode, the frame's end: the path check (the straight path x_old -> x must
         not cross, :meth:`StrandContact.collision_free_frame`) and the separation
         alternate, at most :data:`FRAME_END_ROUNDS` rounds after a first separation of the
@@ -724,15 +772,20 @@ class Integrator:
         (one round halved such a pair's distance every frame, docs/contact.md).  Stops
         early once no pair is deep after a path check (the separation calls are not
         followed by a measure of their own: the one after the path check finds what
-        they left, from the path check's candidates, without a broad phase).  Returns
-        (x, pairs, deep, min distance, pairs separated)."""
+        they left, from the path check's candidates, without a broad phase).  With the
+        head's push-out, each round's path check is preceded by the head's frame end
+        (:meth:`_head_end`, paths from ``x_old`` at ``t_old``), and a round follows while
+        a vertex is left too deep or with a path to lift (:meth:`_head_left`).
+        ``lifted``: the head lift's move in ``x`` so far (or None); each path check keeps
+        the fraction beta of it (:attr:`StrandContact.path_fraction`).  Returns (x, pairs,
+        deep, min distance, pairs separated, the lift's move kept in x or None)."""
         strand = self.strand
         separation = self.cfg.physics.strand_separation
         push = self.contact and self.cfg.physics.head_push_out
         n_sep = 0
-        sunk = False
+        head_left = False
         for rnd in range(FRAME_END_ROUNDS):
-            if rnd > 0 and (not separation or deep == 0) and not sunk:
+            if rnd > 0 and (not separation or deep == 0) and not head_left:
                 break
             if separation and deep:
                 # one call of all the rounds; no measure of its own (see above)
@@ -741,13 +794,16 @@ class Integrator:
             if push:
                 # the path check holds a vertex back on its straight path, which can cut
                 # under the scalp, and the separation can push it in (soft hairball,
-                # gravity 5000: a tip 0.044 -> 0.119 -> 0.152 cm deep, radius 0.101)
-                pushed = np.flatnonzero(self._sunk(x))
-                x = self._keep_lengths(self._push_out_of_head(x, pushed), pushed) if len(pushed) else x
+                # gravity 5000: a tip 0.044 -> 0.119 -> 0.152 cm deep, radius 0.101);
+                # lifted again here, the path check below keeps the lifted path's end
+                x, lifted = self._head_end(x_old, x, t_old, lifted)
             x = strand.collision_free_frame(x_old, x, motion)[0]
+            if lifted is not None:
+                # a held-back vertex keeps beta of its lift: only that is left out of v
+                lifted = lifted * strand.path_fraction[:, None]
             pairs, deep, dmin = strand.measure(x)
-            sunk = push and bool(global_reduce(self.comm, [float(self._sunk(x).any())], "max")[0])
-        return x, pairs, deep, dmin, n_sep
+            head_left = push and self._head_left(x_old, x, t_old)
+        return x, pairs, deep, dmin, n_sep, lifted
 
     def _separate(self, x, pairs, deep, dmin):
         """The separation of the pairs closer than d0 / 2 (``deep`` of them): at most

@@ -9,25 +9,31 @@ from mpi4py import MPI
 
 import lc_petsc.simulator as simmod
 from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig
+from lc_petsc.contact import SEPARATION_STRAIN
 from lc_petsc.crossings import count_crossings
+from lc_petsc.elements import head_contact
 from lc_petsc.scene.sources import ArraySource
-from sim_helpers import falling_strand, head_figures
+from lc_petsc.integrator import project_rest_lengths
+from sim_helpers import falling_strand, head_figures, small_hairball_config
 
 R = 5.0                 # head sphere about the origin
 PHI = 0.5               # polar angle of the draped wisp's tip
+ALONG = 0.6             # where A crosses the path of B's last edge
 
 
 def draped_source(blocker):
     """Wisp B draped from the head's top (pinned root on the y axis) down to polar angle
     PHI on the sphere, 4 vertices; wisp A, all pinned, 4 vertices along the radius
-    through the midpoint of B's tip chord when B turns by ``blocker`` rad about y
-    (None: A far away)."""
+    through the midpoint of the chord of B's last edge's point ALONG when B turns by
+    ``blocker`` rad about y (None: A far away): A crosses the surface that edge sweeps
+    inside it, so a lift of the tip by a few strand radii still meets it."""
     pol = np.linspace(0.0, PHI, 4)
     B = R * np.stack([np.sin(pol), np.cos(pol), np.zeros(4)], 1)
     if blocker is None:
         A = np.stack([np.linspace(20.0, 21.5, 4), np.zeros(4), np.zeros(4)], 1)
     else:
-        mid = 0.5 * (B[-1] + B[-1] @ turn(blocker).T)
+        p = B[-2] + ALONG * (B[-1] - B[-2])
+        mid = 0.5 * (p + p @ turn(blocker).T)
         A = np.outer(np.linspace(4.4, 5.2, 4), mid / np.linalg.norm(mid))
     return ArraySource(np.concatenate([A, B]), [0, 4, 8], pinned=[True] * 5 + [False] * 3,
                        root_radius=0.05, tip_radius=0.05)
@@ -54,9 +60,11 @@ def draped_sim(monkeypatch, blocker):
 def test_frame_end_path_check_leaves_no_vertex_in_the_head(monkeypatch):
     """B's free part turns 3 cm (at its tip) along the scalp and meets A, embedded in the
     scalp across the middle of its path: the strand path check holds B back on its
-    straight path, whose chord cuts under the scalp.  On main the tip ended 0.226 cm
-    deep (4.5 strand radii, allowed 0.033) and the vertex before it 0.093 cm; now every
-    free vertex is within the allowed depth, at rest length, without a crossing."""
+    straight path, whose chord cuts under the scalp.  Before scalp53 the tip ended 0.226
+    cm deep (4.5 strand radii, allowed 0.033); since, it was pushed out after the path
+    check, and its path from the last frame then went 0.039 cm deep (A crossing the tip's
+    own path: 0.036); now the frame end lifts before each path check: every free vertex
+    and every path within the allowed depth, at rest length, without a crossing."""
     sim = draped_sim(monkeypatch, 3.0 / (R * np.sin(PHI)))
     try:
         itg, sc = sim.integrator, sim.scene
@@ -66,9 +74,10 @@ def test_frame_end_path_check_leaves_no_vertex_in_the_head(monkeypatch):
         x[free] = x_old[free] @ turn(3.0 / (R * np.sin(PHI))).T
         assert np.allclose(np.linalg.norm(x[free], axis=1), R)        # both ends on the scalp
         deep = itg.strand.measure(x)[1]
-        out = itg._collision_free_end(x_old, x, itg.head.rigid_motion(0.0, itg.t_next), deep)[0]
+        out = itg._collision_free_end(x_old, x, itg.head.rigid_motion(0.0, itg.t_next), deep, 0.0)[0]
         depth = R - np.linalg.norm(out[free], axis=1)
         assert np.all(depth <= itg.allowed_depth[free] + 1e-12), (depth, itg.allowed_depth[free])
+        assert np.all(path_depth(x_old, out, free) <= itg.allowed_depth[free] + 1e-12), path_depth(x_old, out, free)
         assert np.linalg.norm(out[free[-1]] - x[free[-1]]) > 1.0           # it was held back
         edge = np.linalg.norm(np.diff(out[free[0] - 1:free[-1] + 1], axis=0), axis=1)
         rest = np.linalg.norm(np.diff(x_old[free[0] - 1:free[-1] + 1], axis=0), axis=1)
@@ -114,5 +123,93 @@ def test_strand_without_a_pinned_vertex_kept_out(motion, frames):
         assert max(ratio) <= 1.0 and max(ratio) > 0.5, max(ratio)
         edge = np.linalg.norm(np.diff(x, axis=0), axis=1)
         assert np.abs(edge / 0.5 - 1).max() < 1e-9
+    finally:
+        sim.close()
+
+
+def slid_draped(monkeypatch, slide, blocker):
+    """(sim, x_old, x): the draped wisp B turned about y so that its tip slides ``slide``
+    cm along the scalp (both ends on it), with A across that path (``blocker``) or far."""
+    psi = slide / (R * np.sin(PHI))
+    sim = draped_sim(monkeypatch, psi if blocker else None)
+    free = np.flatnonzero(~sim.scene.pinned)
+    x_old = sim.x.copy()
+    x = x_old.copy()
+    x[free] = x_old[free] @ turn(psi).T
+    return sim, x_old, x
+
+
+def path_depth(x_old, x, free):
+    """The deepest point of each free vertex's straight path x_old -> x in the head."""
+    return head_contact.segment_depth(x_old[free], x[free], R)[0]
+
+
+@pytest.mark.parametrize("blocker", [False, True])
+def test_frame_end_keeps_paths_out_of_the_head(monkeypatch, blocker):
+    """The frame end's input has B's tip sliding 1.5 cm along the scalp, whose straight
+    path cuts 0.055 cm under it (strand radius 0.05, allowed 0.033), as after a
+    separation move along the scalp.  On main the frame end pushed vertices out but did
+    not lift paths: the tip's path stayed 0.0547 cm deep.  Now each round lifts before
+    its path check: every path within the allowed depth, 0 crossings, rest lengths;
+    with A across the path the tip is held back on its lifted path and keeps only that
+    fraction of its lift, which is what the velocity leaves out (on main all of it)."""
+    sim, x_old, x = slid_draped(monkeypatch, 1.5, blocker)
+    try:
+        itg, sc = sim.integrator, sim.scene
+        free = np.flatnonzero(~sc.pinned)
+        assert path_depth(x_old, x, free)[-1] > 0.054
+        made = []
+        lift = itg._lift_head_paths
+        monkeypatch.setattr(itg, "_lift_head_paths",
+                            lambda *a: (lambda r: (made.append(r[1]), r)[1])(lift(*a)))
+        deep = itg.strand.measure(x)[1]
+        out, *_, kept = itg._collision_free_end(x_old, x, itg.head.rigid_motion(0.0, itg.t_next), deep, 0.0)
+        allow = itg.allowed_depth[free]
+        assert np.all(path_depth(x_old, out, free) <= allow + 1e-12), path_depth(x_old, out, free)
+        assert np.all(R - np.linalg.norm(out[free], axis=1) <= allow + 1e-12)
+        edge = np.linalg.norm(np.diff(out[free[0] - 1:free[-1] + 1], axis=0), axis=1)
+        rest = np.linalg.norm(np.diff(x_old[free[0] - 1:free[-1] + 1], axis=0), axis=1)
+        # the separation (A held B back to its floor) keeps edges within SEPARATION_STRAIN
+        assert np.abs(edge / rest - 1).max() <= (SEPARATION_STRAIN if blocker else 0.0) + 1e-9
+        assert count_crossings(x_old, out, sc.offsets)["crossings"] == 0
+        tip = free[-1]
+        made = sum(m for m in made if m is not None)
+        assert np.linalg.norm(made[tip]) > 0.04                # lifted (about one radius)
+        if blocker:
+            assert np.linalg.norm(out[tip] - x[tip]) > 0.8      # held back on its path
+            # the path checks' fractions beta times the lift (1.0 on main)
+            beta = np.linalg.norm(kept[tip]) / np.linalg.norm(made[tip])
+            assert 0.2 < beta < 0.8, beta
+            np.testing.assert_allclose(kept[tip], beta * made[tip], rtol=1e-12)
+        else:
+            np.testing.assert_array_equal(kept, made)
+    finally:
+        sim.close()
+
+
+def test_keep_lengths_projects_only_the_touched_wisps():
+    """_keep_lengths runs the length projection around the head on the touched wisps'
+    vertices only: the same bits as projecting every wisp and keeping theirs (what it
+    did before), with the others' bits untouched."""
+    cfg = small_hairball_config(n_wisps=6, frames=1, length_projection=True)
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        itg, sc = sim.integrator, sim.scene
+        itg.t_next = cfg.time.dt            # the frame end's head sphere
+        rng = np.random.default_rng(5)
+        c, Rh, allow = itg._head_sphere()
+        x = sim.x + rng.normal(scale=0.3, size=sim.x.shape) * (~sc.pinned)[:, None]
+        y = x - c                   # some free vertices well inside the head
+        x[::7] = c + y[::7] * ((Rh - 0.5) / np.linalg.norm(y[::7], axis=1))[:, None]
+        x[sc.pinned] = sim.x[sc.pinned]
+        moved = np.flatnonzero(~sc.pinned & (np.arange(sc.nv) >= sc.offsets[2]) & (np.arange(sc.nv) < sc.offsets[4]))
+        moved = moved[::5]
+        full = project_rest_lengths(x, itg.free, sc.offsets, itg.rest_edge, sc.mass, itg._head_sphere())
+        touched = np.isin(itg.vertex_wisp, itg.vertex_wisp[moved])
+        expect = x.copy()
+        expect[touched] = full[touched]
+        out = itg._keep_lengths(x, moved)
+        assert touched.sum() < sc.nv and np.abs(out[touched] - x[touched]).max() > 0.01
+        np.testing.assert_array_equal(out, expect)
     finally:
         sim.close()

@@ -23,8 +23,9 @@ PRICE_KEYS = ("filter", "newton", "line_search", "options")
 #: modelled costs within this fraction of the lowest are a tie, won by the lower error.
 #: Within a price group costs are exact ratios of counts; between groups they are ratios
 #: of medians of noisy times: replayed on the ten recorded studies of 2026-12-07 (two runs
-#: each), 10% and 20% still swapped a pick between groups (hairball10 0.01: trust_region
-#: N=3 / dt 1/60, 0.256 / 0.263 in one run, 0.211 / 0.245 in the other), 25% none
+#: each), 10% still swapped a pick between groups (hairball10 0.01: trust_region N=3 /
+#: dt 1/60, 0.256 / 0.263 in one run, 0.211 / 0.245 in the other), 20% another (Smash's
+#: 0.1 and 0.03 in the fourth-to-tenth-round axes), 25% none
 COST_TIE = 0.25
 
 

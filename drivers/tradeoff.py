@@ -46,6 +46,10 @@ ConfigError, e.g. the trust region with strand contact) is a row of status
 "unsupported", never run; a setting listed on several axes runs once (``same_as``).
 With ``--scene CONFIG.toml`` the file's own [time] and [solver] choices are a row of their
 own ("as configured"; the base runs the code's defaults).
+The recommendations take the cheapest by a modelled cost, the same in every run: Newton
+plus Krylov iterations per simulated second priced per group of settings (filter, Newton
+method, line search, solver set) by the group's median measured cost; modelled costs
+within 25% of the lowest go to the lower error (lc_petsc/studies/cost_model.py).
 A variant whose edges stretch by more than ``--max-strain`` (10%) is listed but not
 recommended, whatever its error: drawn-out curls, a wrong stretch energy.  A Newton
 tolerance that saves less than 10% of the Newton iterations of the same setting at a

@@ -21,6 +21,7 @@ from lc_petsc.parallel import global_max
 from lc_petsc.simulator import build_simulator
 from lc_petsc.solver_plan import default_ksp_rtol
 from lc_petsc.studies import report
+from lc_petsc.studies.cost_model import COST_TIE, cheapest, modelled_costs
 from lc_petsc.studies.measures import (BlowUp, TrajectoryRecorder, compare_trajectories,
                                        quality)
 
@@ -298,6 +299,10 @@ def run_trajectory(base_cfg, s: Settings, duration, out_dt, comm, blowup=5.0):
                    newton_substeps=list(summ["newton_substeps"]),
                    ksp_iterations_mean=float(np.mean(summ["ksp_iterations"])) if summ["ksp_iterations"] else None,
                    ksp_iterations_max=max(summ["ksp_iterations"], default=None),
+                   # Krylov work of the cost model (cost_model.work_per_sim_s), the
+                   # trust region's own solves included
+                   ksp_total=int(sum(summ["ksp_iterations"])
+                                 + sum(summ.get("trust_region", {}).get("ksp_iterations", []))),
                    timings_s=summ["timings_s"], cpu_s=global_max(comm, cpu))
         sim.close()
     res["total_wall_s"] = total
@@ -400,7 +405,7 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
     for row in rows:
         row["not_newtons_error"] = not_newtons_error(row, ref, rres.get("newton_substeps"))
     cols = ["variant", "axis", "label", "status", "stable", "wall_per_sim_s", "wall_per_frame_s",
-            "cpu_per_sim_s", "cpu_per_frame_s", "newton_total", "newton_cut_back_frames",
+            "cpu_per_sim_s", "cpu_per_frame_s", "newton_total", "ksp_total", "newton_cut_back_frames",
             "rms_rel_error", "max_rel_error", "final_rms_rel_error", "energy_rel_error",
             "max_stretch_strain", "curl_retention", "ref_max_stretch_strain",
             "ref_curl_retention", "failure", "failed_frame", "failed_time", "message", "same_as",
@@ -480,23 +485,28 @@ def not_newtons_error(row, ref: Settings, ref_substeps):
 
 
 def recommend(rows, targets, error="rms_rel_error", cost="wall_per_sim_s", floor=None,
-              max_strain=MAX_STRAIN, min_saving=MIN_TOLERANCE_SAVING):
-    """For each target error, the cheapest stable variant reaching it (or None).  A target
-    at or below ``floor`` (the reference's own error) is not judged: ``below_reference``.
-    A variant whose edges stretch beyond ``max_strain`` (None: no limit) is not
-    recommended whatever its error; the cheaper ones so passed over are listed under
-    ``stretched``.  A Newton tolerance that saves less than ``min_saving`` of the Newton
-    iterations of the same setting at a tighter tolerance that also reaches the target is
-    replaced by the tightest such (it buys nothing; listed under ``looser``)."""
+              max_strain=MAX_STRAIN, min_saving=MIN_TOLERANCE_SAVING, tie=COST_TIE):
+    """For each target error, the cheapest stable variant reaching it (or None), by the
+    modelled cost (:mod:`lc_petsc.studies.cost_model`: deterministic work counts priced by
+    the measured ``cost``; modelled costs within ``tie`` of the lowest go to the lower
+    error), so two runs of a study recommend the same.  A target at or below ``floor``
+    (the reference's own error) is not judged: ``below_reference``.  A variant whose
+    edges stretch beyond ``max_strain`` (None: no limit) is not recommended whatever its
+    error; the cheaper ones so passed over are listed under ``stretched``.  A Newton
+    tolerance that saves less than ``min_saving`` of the Newton iterations of the same
+    setting at a tighter tolerance that also reaches the target is replaced by the
+    tightest such (it buys nothing; listed under ``looser``)."""
+    model = {id(r): m for r, m in zip(rows, modelled_costs(rows, cost))}
     out = []
     for t in targets:
         below = floor is not None and t <= floor
         ok = [r for r in rows if r.get("stable") and r.get(error) is not None
               and r[error] <= t and r.get(cost)] if not below else []
-        kept = [r for r in ok if not stretched(r, max_strain)]
-        best = min(kept, key=lambda r: r[cost]) if kept else None
-        passed_over = [r["variant"] for r in sorted(ok, key=lambda r: r[cost])
-                       if stretched(r, max_strain) and (best is None or r[cost] < best[cost])]
+        # a copy of another row (same_as) is the same setting: the original is named
+        kept = [r for r in ok if not stretched(r, max_strain) and not r.get("same_as")]
+        best = cheapest([(model[id(r)], r) for r in kept], error, tie)[1] if kept else None
+        passed_over = [r["variant"] for r in sorted(ok, key=lambda r: (model[id(r)], r["variant"]))
+                       if stretched(r, max_strain) and (best is None or model[id(r)] < model[id(best)])]
         looser = []
         if best is not None:
             tighter = [r for r in kept if saves_little(best, r, min_saving)]
@@ -505,7 +515,9 @@ def recommend(rows, targets, error="rms_rel_error", cost="wall_per_sim_s", floor
                 best = min(tighter, key=_tolerances)
         out.append({"target": t, "variant": best["variant"] if best else None,
                     "label": best["label"] if best else None, "below_reference": below,
-                    "cost": best[cost] if best else None, "error": best[error] if best else None,
+                    "cost": best[cost] if best else None,
+                    "modelled_cost": model[id(best)] if best else None,
+                    "error": best[error] if best else None,
                     "max_stretch_strain": best.get("max_stretch_strain") if best else None,
                     "energy_rel_error": best.get("energy_rel_error") if best else None,
                     "stretched": passed_over, "looser": looser})
@@ -579,13 +591,19 @@ def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None,
         lines.append("Converged at the reference's time step, yet not Newton's error (table below, "
                      "last column): " + ", ".join(r["variant"] for r in flagged) + ".\n")
     lines.append(f"## Recommendations (cheapest stable setting reaching the target RMS error{limit})\n")
+    lines.append("Cheapest by the modelled cost: Newton + Krylov iterations per simulated second (the "
+                 "same in every run) times a price per unit, the median measured cost per unit over "
+                 "the rows of the same filter, Newton method, line search and solver set; modelled "
+                 f"costs within {100 * COST_TIE:g}% of the lowest go to the lower error. The measured "
+                 "cost is shown beside it.\n")
     lines.append(report.markdown_table(
-        ["target RMS error", "variant", "settings", f"cost ({cost})", "RMS error", "max strain",
+        ["target RMS error", "variant", "settings", f"cost ({cost})", "modelled cost", "RMS error", "max strain",
          "energy err", "cheaper, passed over (edges stretched)", "looser tolerance, passed over (saves too little)"],
         [[report.fmt(r["target"]),
           r["variant"] or ("below the reference's own error" if r.get("below_reference")
                            else "none reaches it"), r["label"] or "-",
-          report.fmt(r["cost"]), report.fmt(r["error"]), report.fmt(r.get("max_stretch_strain")),
+          report.fmt(r["cost"]), report.fmt(r.get("modelled_cost")), report.fmt(r["error"]),
+          report.fmt(r.get("max_stretch_strain")),
           report.fmt(r.get("energy_rel_error")), ", ".join(r.get("stretched") or ()) or "-",
           ", ".join(r.get("looser") or ()) or "-"]
          for r in recs]))

@@ -346,11 +346,14 @@ def test_a_looser_tolerance_that_saves_little_is_not_recommended():
             {"variant": "newton 12", "label": "n12", **asdict(replace(BASE, newton_iterations=12)),
              "status": "ok", "stable": True, "newton_total": 360, "cpu_per_sim_s": 1.39,
              "rms_rel_error": 1.02e-2, "max_stretch_strain": 5.7e-4}]
-    recs = recommend(rows, (0.03, 0.01), cost="cpu_per_sim_s")
+    # tie=0: the cheapest alone (these rows have no work counts: their measured cost), so
+    # the rule is seen on its own; the cost model's tie would already take 1e-6 on its
+    # lower error (7.594787694e-3 against 7.594787991e-3)
+    recs = recommend(rows, (0.03, 0.01), cost="cpu_per_sim_s", tie=0)
     assert [r["variant"] for r in recs] == ["corot 1e-6", "corot 1e-6"]
     assert recs[1]["looser"] == ["corot 1e-3"] and recs[1]["cost"] == 1.19
     # without the rule: main's pick, the cheapest
-    assert [r["variant"] for r in recommend(rows, (0.01,), cost="cpu_per_sim_s", min_saving=None)] \
+    assert [r["variant"] for r in recommend(rows, (0.01,), cost="cpu_per_sim_s", min_saving=None, tie=0)] \
         == ["corot 1e-3"]
     md = markdown(rows, recs, BASE, cost="cpu_per_sim_s")
     assert "saves more than 10% of the Newton iterations" in md
@@ -359,10 +362,10 @@ def test_a_looser_tolerance_that_saves_little_is_not_recommended():
     # a saving above 10% keeps the looser one
     retr = [row("retr 1e-3", 1e-3, 390, 0.72, 3.03e-3, "edge_retraction"),
             row("retr 1e-6", 1e-6, 440, 1.14, 3.02e-3, "edge_retraction")]
-    assert [(r["variant"], r["looser"]) for r in recommend(retr + rows[:1], (0.01,), cost="cpu_per_sim_s")] \
+    assert [(r["variant"], r["looser"]) for r in recommend(retr + rows[:1], (0.01,), cost="cpu_per_sim_s", tie=0)] \
         == [("retr 1e-3", [])]
     assert recommend([rows[0], dict(rows[1], rms_rel_error=0.02)], (0.01,),
-                     cost="cpu_per_sim_s")[0]["variant"] == "corot 1e-3"
+                     cost="cpu_per_sim_s", tie=0)[0]["variant"] == "corot 1e-3"
 
 
 def test_a_converged_variant_split_unlike_the_reference_is_not_called_newtons_error(tmp_path):
@@ -417,3 +420,58 @@ def test_a_converged_variant_far_from_the_reference_with_its_splits_reached_anot
     assert not_newtons_error(row, replace(ref, dt=1 / 120), [1] * 120) == ""
     assert not_newtons_error(dict(row, newton_substeps=[3] + [1] * 29), ref, [2] + [1] * 29).startswith(
         "frames split into other substeps than the reference's (frame 0: 3 against 2): its error")
+
+
+# The 10-wisp hairball's study run twice on the same code (drivers/tradeoff.py --scene
+# hairball --wisps 10 --duration 1.0 --cost cpu_per_sim_s, 2026-12-07, trade53): Newton
+# and Krylov counts, errors and strains equal to the digit, CPU s/sim-s (first, second run)
+# as measured.  variant: (filter, Newton method, dt, Newton its, Krylov its, RMS error,
+# max strain, CPU first run, CPU second run)
+HAIRBALL10_TWICE = {
+    "base": ("analytic", "filtered", 1 / 30, 90, 90, 0.01322, 7.32e-05, 0.1627, 0.1102),
+    "newton 1": ("analytic", "filtered", 1 / 30, 30, 30, 0.04377, 0.0117, 0.07952, 0.05125),
+    "newton 2": ("analytic", "filtered", 1 / 30, 60, 60, 0.01646, 0.00119, 0.1491, 0.0955),
+    "newton 6": ("analytic", "filtered", 1 / 30, 180, 180, 0.008914, 7.27e-05, 0.2968, 0.2006),
+    "dt 1/60": ("analytic", "filtered", 1 / 60, 180, 180, 0.008696, 4.69e-05, 0.2598, 0.2626),
+    "linear N=2": ("analytic", "filtered", 1 / 30, 60, 60, 0.01651, 0.00696, 0.07545, 0.08686),
+    "uncarried N=2": ("analytic", "filtered", 1 / 30, 60, 60, 0.02965, 0.0594, 0.0831, 0.07568),
+    "trust_region N=2": ("analytic", "trust_region", 1 / 30, 60, 60, 0.01646, 0.00119, 0.1255, 0.1162),
+    "trust_region N=3": ("analytic", "trust_region", 1 / 30, 90, 90, 0.009938, 0.000236, 0.246, 0.1947),
+    "trust_region N=4": ("analytic", "trust_region", 1 / 30, 120, 120, 0.007909, 0.000132, 0.3413, 0.2819),
+    "trust_region inc<1e-06": ("analytic", "trust_region", 1 / 30, 449, 449, 0.003024, 5.61e-05, 1.283, 1.332),
+}
+
+
+def test_two_runs_of_a_study_recommend_the_same():
+    """Main picked the cheapest measured CPU time, and the two runs of the hairball10
+    study above recommended different settings for 0.03: `linear N=2` (0.0755 against
+    0.0831) and `uncarried N=2` (0.0757 against 0.0869), the same 60 Newton iterations,
+    the second with a 1.8x larger error and 5.9% edge strain.  Now the modelled cost (counts
+    times a price per group of settings, cost_model) ties the 60-iteration rows exactly
+    and the lowest error wins (`newton 2`); 0.1 goes to `newton 1` in both."""
+    from lc_petsc.studies.cost_model import modelled_costs
+    def rows(run):
+        out = []
+        for name, (filt, method, dt, its, ksp, err, strain, *cpu) in HAIRBALL10_TWICE.items():
+            out.append({"variant": name, "label": name, "status": "ok", "stable": True, "filter": filt,
+                        "newton": method, "line_search": False, "options": "", "dt": dt,
+                        "frames_run": round(1 / dt), "newton_total": its, "ksp_total": ksp,
+                        "rms_rel_error": err, "max_stretch_strain": strain, "cpu_per_sim_s": cpu[run]})
+        return out
+    first, second = ([r["variant"] for r in recommend(rows(k), (0.1, 0.03), cost="cpu_per_sim_s")]
+                     for k in (0, 1))
+    assert first == second == ["newton 1", "newton 2"]
+    # main's rule, the cheapest measured: the two runs disagree
+    assert [min((r for r in rows(k) if r["rms_rel_error"] <= 0.03), key=lambda r: r["cpu_per_sim_s"])["variant"]
+            for k in (0, 1)] == ["linear N=2", "uncarried N=2"]
+    # the model: one price per group (the median CPU s per unit of work: newton 6's
+    # 0.2968 / 360 in the first run), the counts decide within it
+    m = dict(zip(HAIRBALL10_TWICE, modelled_costs(rows(0), "cpu_per_sim_s")))
+    assert m["newton 2"] == m["linear N=2"] == m["uncarried N=2"] == 2 * m["newton 1"]
+    assert m["newton 6"] == 0.2968 and abs(m["base"] - 0.2968 / 2) < 1e-15
+    # the trust region's group: median of 0.246 / 180 and 0.3413 / 240
+    assert abs(m["trust_region N=3"] - 180 * (0.246 / 180 + 0.3413 / 240) / 2) < 1e-15
+    rec = recommend(rows(1), (0.03,), cost="cpu_per_sim_s")[0]
+    # measured 0.0955; modelled at the second run's median price, linear N=2's 0.08686 / 120
+    assert rec["cost"] == 0.0955 and abs(rec["modelled_cost"] - 0.08686) < 1e-15
+    assert "within 25% of the lowest go to the lower error" in markdown(rows(1), [rec], BASE, cost="cpu_per_sim_s")

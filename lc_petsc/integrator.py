@@ -892,9 +892,9 @@ class Integrator:
         # beyond the searched range no shift of a wisp's own helps: the uniform ladder
         # (and CG, Armijo) decide as before
         tau = np.where(np.isfinite(least), np.maximum(WISP_SHIFT_FACTOR * least, shift), shift)
-        if (tau > shift).any():
-            g = self._assemble_system(x, it, filter="none", shift=np.repeat(tau, np.diff(offsets)))
         self._tried_shift = max(self.comm.allgather(float(tau.max(initial=shift))))
+        if self._tried_shift > shift:       # the assembly is collective: every rank again
+            g = self._assemble_system(x, it, filter="none", shift=np.repeat(tau, np.diff(offsets)))
         return g
 
     def _exact_hessian(self, increment, stay=False):

@@ -217,11 +217,12 @@ def test_a_saddle_on_one_rank_refuses_the_stop_on_every_rank():
 def test_the_recommended_path_avoids_the_saddle_and_reaches_the_minimum_at_full_dt():
     """The same full step on the recommended path (shifted fallback, exact_stay).  On main
     its Newton stopped on a saddle too after 11 iterations (wisp 2, lowest eigenvalue
-    -1.46; refused: not converged, newton_saddle [1]; with cutback 11 + 2 x 8 = 27).  Now an exact step never takes a wisp's indefinite
-    block as it is: that wisp is shifted by 1.5x the least shift making its block
-    positive definite (lc_petsc/curvature.least_definite_shifts), so Newton stays off
-    the saddle and converges at full dt to the step's minimum (lowest eigenvalue of dt^2
-    M^-1/2 H M^-1/2 > 0, dense), in the same iterations on 1, 2 and 3 ranks (the saddle's
+    -1.46; refused: not converged, newton_saddle [1]; with cutback 11 + 2 x 8 = 27).
+    Now an exact step never takes a wisp's indefinite block as it is: that wisp is
+    shifted by 1.5x the least shift making its block positive definite
+    (lc_petsc/curvature.least_definite_shifts), so Newton stays off the saddle and
+    converges at full dt to the step's minimum (lowest eigenvalue of dt^2 M^-1/2 H
+    M^-1/2 0.322, dense) in 18 iterations, the same on 1, 2 and 3 ranks (the saddle's
     wisp is on the last rank alone on 2 and 3)."""
     comm = MPI.COMM_WORLD
     cfg = _small_hairball(1)

@@ -65,7 +65,9 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   With ``solver.exact_fallback = "shifted"`` the exact Hessian plus tau M/dt^2, tau in
   :data:`EXACT_SHIFTS` (smallest first), is tried before that (docs/newton.md "Seventh
   round": an exact step that is an ascent direction near the solution had left the
-  iteration at the analytic filter's linear rate).
+  iteration at the analytic filter's linear rate), and a wisp whose exact block is
+  indefinite gets its own shift before the solve (:meth:`Integrator._exact_system`:
+  exact steps on indefinite blocks had led Newton to saddles of G).
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
   G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
 * ``time.length_projection``: the final iterate is projected onto the rest edge lengths

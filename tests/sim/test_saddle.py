@@ -31,6 +31,23 @@ def _band_csr(blocks, offsets, b, first, upper_only):
     return np.array(rowptr), np.array(cols), np.concatenate(values)
 
 
+def _wisp_sizes(rng, smallest):
+    """Three wisps of ``smallest`` to 8 vertices: (sizes, vertex offsets)."""
+    sizes = rng.integers(smallest, 9, size=3)
+    return sizes, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+
+
+def _random_band(rng, n, b, low):
+    """A random symmetric matrix of ``n`` vertices (3 n rows) within half bandwidth ``b``
+    vertices, its diagonal raised by a uniform draw from ``low`` to ``low`` + 10 (definite
+    or not)."""
+    X = rng.normal(size=(3 * n, 3 * n))
+    A = X + X.T + rng.uniform(low, low + 10.0) * np.eye(3 * n)
+    i, j = np.indices(A.shape)
+    A[np.abs(i // 3 - j // 3) > b] = 0.0
+    return A
+
+
 @pytest.mark.parametrize("upper_only", [False, True])
 def test_negative_pivots_count_each_wisps_negative_eigenvalues(upper_only):
     """The LDL^T without pivoting of each wisp's band gives its inertia: the count of
@@ -41,15 +58,10 @@ def test_negative_pivots_count_each_wisps_negative_eigenvalues(upper_only):
     b, first = 3, 7
     negatives = []
     for _ in range(200):
-        sizes = rng.integers(1, 9, size=3)
-        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        sizes, offsets = _wisp_sizes(rng, 1)
         blocks = []
         for n in sizes:
-            X = rng.normal(size=(3 * n, 3 * n))
-            A = X + X.T + rng.uniform(-2.0, 8.0) * np.eye(3 * n)
-            i, j = np.indices(A.shape)
-            A[np.abs(i // 3 - j // 3) > b] = 0.0
-            blocks.append(A)
+            blocks.append(_random_band(rng, n, b, -2.0))
         counts = np.zeros(3, np.int64)
         curvature._negative_pivots(*_band_csr(blocks, offsets, b, first, upper_only), first, offsets, b,
                                    np.zeros(offsets[-1]), np.ones(3, np.bool_), counts)
@@ -80,16 +92,12 @@ def test_least_definite_shifts_are_each_wisps_lowest_generalised_eigenvalue():
     b, first = 3, 4
     seen = []
     for _ in range(50):
-        sizes = rng.integers(2, 9, size=3)
-        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        sizes, offsets = _wisp_sizes(rng, 2)
         unit = rng.uniform(0.5, 2.0, size=offsets[-1])
         unit[offsets[:-1]] = 0.0                       # each wisp's first vertex pinned
         blocks, want = [], []
         for w, n in enumerate(sizes):
-            X = rng.normal(size=(3 * n, 3 * n))
-            A = X + X.T + rng.uniform(-3.0, 9.0) * np.eye(3 * n)
-            i, j = np.indices(A.shape)
-            A[np.abs(i // 3 - j // 3) > b] = 0.0
+            A = _random_band(rng, n, b, -3.0)
             A[:3, :], A[:, :3] = 0.0, 0.0
             A[:3, :3] = np.eye(3)                       # a pinned row, as commit() leaves it
             d = np.repeat(unit[offsets[w]:offsets[w + 1]], 3)[3:]

@@ -16,6 +16,11 @@ wisp's block is a principal submatrix of the whole Hessian (strand contact coupl
 only through its own matrix), so one negative eigenvalue in it proves the whole matrix
 indefinite (Cauchy interlacing); a negative mode spread over several wisps coupled by
 contact is not seen.  Rank-local and per wisp: the same answer on any partition.
+
+The same kernel with a trial diagonal finds, per indefinite wisp, the least mass shift
+that makes its block definite (:func:`least_definite_shifts`): the shifted fallback's
+exact steps shift such wisps before the solve, so Newton does not walk into the saddle
+(docs/newton.md "Avoiding the saddle").
 """
 
 from __future__ import annotations

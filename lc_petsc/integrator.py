@@ -65,7 +65,9 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   With ``solver.exact_fallback = "shifted"`` the exact Hessian plus tau M/dt^2, tau in
   :data:`EXACT_SHIFTS` (smallest first), is tried before that (docs/newton.md "Seventh
   round": an exact step that is an ascent direction near the solution had left the
-  iteration at the analytic filter's linear rate).
+  iteration at the analytic filter's linear rate), and a wisp whose exact block is
+  indefinite gets its own shift before the solve (:meth:`Integrator._exact_system`:
+  exact steps on indefinite blocks had led Newton to saddles of G).
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
   G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
 * ``time.length_projection``: the final iterate is projected onto the rest edge lengths
@@ -214,6 +216,7 @@ class Integrator:
         self.monitor = None             # a stream: a line per Newton iteration (rank 0)
         self._fallback = ""            # why the last exact step was rejected (history)
         self._shift = 0.0              # the mass shift of the last exact step (history)
+        self._tried_shift = 0.0        # the largest of the last exact assembly's (_exact_system)
         self._searched = None          # the last accepted line search's (G0, G, g . dx)
         self._probe = None             # the last line search's (G0, g . dx), found or not
         self._region_record = {}        # the last trust-region step's rho, radius (history)
@@ -452,13 +455,15 @@ class Integrator:
             rejected = None                     # the exact step Armijo rejected
             if exact:
                 g, dx, alpha = self._exact_step(x, it, 0.0)
+                if dx is not None and alpha is not None:
+                    self._shift = self._tried_shift     # > 0: some wisp's block was shifted
                 if dx is None or alpha is None:
                     self._fallback = "indefinite" if dx is None else "armijo"
                     rejected = dx
                     for tau in EXACT_SHIFTS if cfg.solver.exact_fallback == "shifted" else ():
                         g, dx, alpha = self._exact_step(x, it, tau)
                         if dx is not None and alpha is not None:
-                            self._shift = tau
+                            self._shift = self._tried_shift
                             break
                 if dx is None or alpha is None:     # no exact Newton step: a filtered one
                     exact = False
@@ -919,10 +924,36 @@ class Integrator:
         """An exact Newton step at x: the exact Hessian plus ``shift`` M/dt^2, its solve
         and the Armijo search along the (exact) update.  Returns (grad G, dx or None when
         CG finds the matrix indefinite, alpha or None when Armijo fails)."""
-        g = self._assemble_system(x, it, filter="none", shift=shift)
+        g = self._exact_system(x, it, shift)
         dx = self._solve_step(g, it, may_fail=True)
         alpha = None if dx is None else self._line_search(x, g, dx, EXACT_HALVINGS, exact=True)
         return g, dx, alpha
+
+    def _exact_system(self, x, it, shift):
+        """Assemble the exact Hessian + ``shift`` M/dt^2 at x (returns grad G).  With
+        ``solver.exact_fallback = "shifted"``, a wisp whose block is not positive definite
+        there gets its own shift, :data:`WISP_SHIFT_FACTOR` times the least that makes it
+        so (:func:`lc_petsc.curvature.least_definite_shifts`), and the matrix is assembled
+        again: an exact step on an indefinite block heads for a stationary point, often a
+        saddle of G (hairball10's frame 0 from rest: the step's solution found in 21
+        iterations instead of a saddle refused after 20 and cut back, 39; docs/newton.md
+        "Avoiding the saddle").  Per wisp and rank-local; one gather of the largest shift
+        (``_tried_shift``, the same on every rank: a shifted step is no Newton step)."""
+        g = self._assemble_system(x, it, filter="none", shift=shift)
+        self._tried_shift = shift
+        if self.cfg.solver.exact_fallback != "shifted":
+            return g
+        offsets = self.scene.offsets
+        unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
+        with self.timers("solve"):
+            least = curvature.least_definite_shifts(self.asm, offsets, unit)
+        # beyond the searched range no shift of a wisp's own helps: the uniform ladder
+        # (and CG, Armijo) decide as before
+        tau = np.where(np.isfinite(least), np.maximum(WISP_SHIFT_FACTOR * least, shift), shift)
+        self._tried_shift = max(self.comm.allgather(float(tau.max(initial=shift))))
+        if self._tried_shift > shift:       # the assembly is collective: every rank again
+            g = self._assemble_system(x, it, filter="none", shift=np.repeat(tau, np.diff(offsets)))
+        return g
 
     def _exact_hessian(self, increment, stay=False):
         """Whether this iteration assembles the exact Hessian: ``solver.filter =
@@ -1490,6 +1521,11 @@ CHORD_MARGIN = 100.0
 #: no step, 1 and 10 did; starting at 10 kept accepting steps too short to converge,
 #: docs/newton.md "Seventh round")
 EXACT_SHIFTS = (0.1, 1.0, 10.0, 100.0)
+#: ``solver.exact_fallback = "shifted"``: a wisp whose exact block is indefinite is
+#: shifted by this times the least shift making it positive definite (hairball10's frame
+#: 0 at 1e-6: 1.1 -> 22 iterations, 1.25 -> 23, 1.5 -> 21, 2 -> 25; each reached the
+#: step's minimum; docs/newton.md "Avoiding the saddle")
+WISP_SHIFT_FACTOR = 1.5
 EXACT_HALVINGS = 6
 #: ``time.newton_stop = "quadratic_estimate"`` stops once the estimated error is below
 #: the tolerance / QUADRATIC_SAFETY (C varies between steps; with this factor every stop

@@ -195,20 +195,21 @@ def test_chord_stop_stops_at_the_first_iterate_within_the_tolerance():
     """The demo hairball cut to 10 wisps without strand contact (the issue's scene, its
     first iterate carried with the head as shipped), frames 0-7 from a reference's
     start states, exact_or_analytic + corotational + shifted fallback + exact_stay, 1e-6
-    wisp lengths, cap 30.  ``quadratic_estimate`` takes 19 15 11 9 8 8 7 7 iterations,
-    one more than needed in frames 1, 2 and 7 (its iterate was within the tolerance of
-    the reference solution one step before: 19 14 10 9 8 8 7 6).  ``chord_estimate``
-    measures the next increment by a solve on the last exact matrix instead of taking
-    the step, and stops at the first iterate within the tolerance in every frame
-    (measured: 19 14 10 9 8 8 7 6; true errors at the stops at most 7.8e-7)."""
+    wisp lengths, cap 30.  ``quadratic_estimate`` takes 22 10 10 9 10 9 10 7 iterations,
+    one more than needed in frames 1, 2, 4, 5 and 6 (its iterate was within the
+    tolerance of the reference solution one step before: 22 9 9 9 9 8 9 7).
+    ``chord_estimate`` measures the next increment by a solve on the last exact matrix
+    instead of taking the step, and stops at the first iterate within the tolerance in
+    every frame (measured: 22 9 9 9 9 8 9 7; true errors at the stops at most 4.6e-7).
+    Frame 0 (from rest) had stopped on a saddle of G, refused; with the indefinite wisps
+    shifted it reaches the step's minimum (docs/newton.md "Avoiding the saddle")."""
     cfg = demo_without_strand_contact(10)
     spec = "filter=exact_or_analytic,update=corotational,fallback=shifted,stay=1"
     res = compare(cfg, [("quadratic", spec + ",stop=quadratic_estimate"),
                         ("chord", spec + ",stop=chord_estimate")], COMM, 8)
     quadratic, chord = res["quadratic"], res["chord"]
-    # frame 0 (from rest) ends on a saddle of G (main called it converged): refused
-    assert res["reference_saddle"][0] and not any(res["reference_saddle"][1:])
-    assert all(r["converged"] == (r["frame"] > 0) and r["saddle"] == (r["frame"] == 0) for r in quadratic + chord)
+    assert not any(res["reference_saddle"]) and res["reference_converged"]
+    assert all(r["converged"] and not r["saddle"] for r in quadratic + chord)
     assert [r["iterations"] for r in chord] == [r["true"] for r in chord]
     assert sum(r["iterations"] > r["true"] for r in quadratic) >= 2, [r["iterations"] for r in quadratic]
     for q, c in zip(quadratic, chord):

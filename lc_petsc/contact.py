@@ -57,7 +57,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from lc_petsc.elements import (compiled, compiled_band, compiled_ccd, compiled_contact, compiled_mult,
+from lc_petsc.elements import (compiled, compiled_band, compiled_ccd, compiled_cluster, compiled_contact, compiled_mult,
                                segment_barrier, segment_ccd, segment_contact)
 from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.contact_pc import local_block
@@ -457,7 +457,8 @@ class StrandContact:
         #: seconds compiling (or loading from Numba's cache) the compiled broad phase and
         #: limiter kernels, at set-up (not in any frame)
         self.compile_seconds = compile_in_turn(comm, compiled_ccd.warm_up, compiled_contact.warm_up,
-                                               compiled_mult.warm_up, compiled_band.warm_up)
+                                               compiled_mult.warm_up, compiled_band.warm_up,
+                                               compiled_cluster.warm_up)
         # ccd mode (see limit_step): per-vertex step fractions, in a Vec by global vertex
         self.step_fraction = self.shrink = None
         #: per vertex, the fraction beta of the last limiter pass (:meth:`_safe_fractions`)

@@ -74,6 +74,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from lc_petsc.elements import compiled_cluster
 from lc_petsc.elements.compiled_band import BandCholesky
 from lc_petsc.parallel import global_wisp_offsets
 from lc_petsc.petsc_capi import block_pattern, value_array
@@ -171,41 +172,12 @@ def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blo
     cap).  A refused pair stays outside; a wisp whose own blocks alone exceed
     ``max_blocks`` joins no other wisp (it is still factored alone: the caller's
     one-wisp cluster)."""
-    parent = np.arange(n_wisps)
-    size = np.ones(n_wisps, np.int64)
-    # cross blocks inside, at the root: each wisp starts with its self-contact blocks
+    # compiled (lc_petsc/elements/compiled_cluster.py): every rank repeats this set-up
     inner = np.zeros(n_wisps, np.int64) if own_blocks is None else np.array(own_blocks, np.int64)
-    between: list[dict] = [{} for _ in range(n_wisps)]    # root -> {root: blocks between them}
-    for (a, b), k in zip(np.asarray(pairs).tolist(), np.asarray(counts).tolist()):
-        between[a][b] = between[b][a] = k
-
-    def find(w):
-        while parent[w] != w:
-            parent[w] = parent[parent[w]]
-            w = parent[w]
-        return w
-
-    for e in np.argsort(-np.asarray(weights), kind="stable"):
-        ra, rb = find(pairs[e, 0]), find(pairs[e, 1])
-        if ra == rb:
-            continue
-        joined = inner[ra] + inner[rb] + between[ra][rb]
-        if size[ra] + size[rb] > max_wisps or joined > max_blocks:
-            continue
-        if rb < ra:
-            ra, rb = rb, ra
-        parent[rb] = ra
-        size[ra] += size[rb]
-        inner[ra] = joined
-        del between[ra][rb], between[rb][ra]
-        for r, k in between[rb].items():        # rb's neighbours now border ra
-            del between[r][rb]
-            between[ra][r] = between[r][ra] = between[ra].get(r, 0) + k
-        between[rb] = {}
-    roots = np.array([find(w) for w in range(n_wisps)], np.int64)
-    smallest = np.full(n_wisps, n_wisps, np.int64)
-    np.minimum.at(smallest, roots, np.arange(n_wisps))
-    return smallest[roots]
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    order = np.argsort(-np.asarray(weights, np.float64), kind="stable")
+    return compiled_cluster.cluster_roots(int(n_wisps), pairs, np.asarray(counts, np.int64), order,
+                                          int(max_wisps), int(max_blocks), inner)
 
 
 def cluster_owners(held):

@@ -74,6 +74,41 @@ def test_clusters_equal_brute_force(max_wisps, max_blocks, own):
         assert sizes.max() > 1      # the caps still let some clusters form
 
 
+@pytest.mark.parametrize("max_wisps, max_blocks", [(64, 10 ** 9), (8, 60), (40, 200), (3, 10 ** 9)])
+def test_compiled_clusters_equal_brute_force_on_strand_like_graphs(max_wisps, max_blocks):
+    # lc_petsc/elements/compiled_cluster.py: the blocks between two clusters summed on
+    # demand over the smaller side's pairs, stopped once past the room left under the cap;
+    # contact-like graphs (mostly near neighbours, a few far) grow clusters of tens of
+    # wisps, merged into each other many times (the member lists), with ties and own blocks
+    from lc_petsc.elements.compiled_cluster import cluster_roots
+    rng = np.random.default_rng(11)
+    n = 150
+    a = rng.integers(0, n, 700)
+    b = np.clip(a + rng.integers(-6, 7, 700), 0, n - 1)
+    far = rng.random(700) < 0.1
+    b[far] = rng.integers(0, n, far.sum())
+    pairs = np.unique(np.sort(np.stack([a, b], axis=1), axis=1), axis=0)
+    pairs = pairs[pairs[:, 0] < pairs[:, 1]]
+    weights = rng.choice([1.0, 2.0, 3.0, 4.0], len(pairs))
+    counts = rng.integers(1, 9, len(pairs))
+    own = rng.integers(0, 20, n) * (rng.random(n) < 0.3)
+    ref = brute_force_clusters(n, pairs, weights, counts, max_wisps, max_blocks, own)
+    got = cluster_labels(n, pairs, weights, counts, max_wisps, max_blocks, own)
+    np.testing.assert_array_equal(got, ref)
+    sizes = np.bincount(got, minlength=n)
+    assert 1 < sizes.max() <= max_wisps and len(np.unique(got)) < n // 2 or max_wisps == 3
+    # the kernel itself, with the order given: the same roots
+    order = np.argsort(-weights, kind="stable")
+    inner = own.astype(np.int64)
+    roots = cluster_roots(n, pairs.astype(np.int64), counts.astype(np.int64), order, max_wisps,
+                          max_blocks, inner)
+    np.testing.assert_array_equal(roots, ref)
+    # inner ends as each cluster's blocks at its root (own + pairs inside)
+    inside = ref[pairs[:, 0]] == ref[pairs[:, 1]]
+    held = np.bincount(ref[pairs[inside, 0]], counts[inside], n) + np.bincount(ref, own, n)
+    np.testing.assert_array_equal(inner[np.unique(ref)], held[np.unique(ref)])
+
+
 def test_wisp_couplings_sums_blocks_per_wisp_pair():
     # 4 vertices: wisps 0 (v0, v1), 1 (v2), 2 (v3); blocks (0,2) (1,2) (1,3) (2,0) (2,1) (3,1)
     rows = np.array([0, 1, 1, 2, 2, 3])

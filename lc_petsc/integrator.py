@@ -420,7 +420,7 @@ class Integrator:
         claimed_before = False                  # the last iteration's stop (to be confirmed)
         unbased_claim = False                   # ... made by a chord check without chord_basis
         loose = confirms_stop(cfg.time.newton_increment_tol, cfg.time.newton_tol, self.shortest_wisp)
-        last_step = None                        # the last iteration's step (_model_agrees)
+        last_step = prior_step = None           # the last two iterations' steps (_model_agrees)
         unconfirmed = False                     # this iteration's stop awaits the next
         off_model = False                       # this iteration's stop was refused (_loose_verdict)
         saddle = False                          # this iteration's stop is on a saddle (_at_saddle)
@@ -443,9 +443,9 @@ class Integrator:
                 claim = bool(converged)
                 step = dict(agrees=region.agrees)
                 confirmed, refused = self._loose_verdict(loose, claim, claimed_before, increment, steps,
-                                                         step, last_step)
+                                                         (step, last_step, prior_step))
                 converged = converged and confirmed and not refused
-                claimed_before, last_step = claim, step
+                claimed_before, last_step, prior_step = claim, step, last_step
                 unconfirmed, off_model = claim and not confirmed, refused
                 if self.monitor is not None:
                     self._monitor(it, increment, self._step_kind(exact, region=True)
@@ -554,12 +554,13 @@ class Integrator:
             if unbased_claim and not (chord_claim and based):
                 claimed_before = False
             unbased_claim = claim and chord_claim and not based
-            confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure, steps, step, last_step)
+            confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure, steps,
+                                                     (step, last_step, prior_step), chord_claim and based)
             converged = converged and confirmed and not refused
             # a stop on a saddle of G ends the solve unconverged (step cutback redoes it)
             saddle = bool(converged) and self._at_saddle(steps[-1].exact and self._shift == 0.0)
             converged = converged and not saddle
-            claimed_before, last_step = claim, step
+            claimed_before, last_step, prior_step = claim, step, last_step
             unconfirmed, off_model = claim and not confirmed, refused
             if self.monitor is not None:
                 short = ", solve short of -ksp_rtol" if short_of_rtol else ""
@@ -967,20 +968,29 @@ class Integrator:
         dx = self._solve_step(self.gradient(x), it, may_fail=True)
         return np.inf if dx is None else self.increments(dx)[0]
 
-    def _loose_verdict(self, loose, claim, claimed_before, measure, steps, step, last_step):
+    def _loose_verdict(self, loose, claim, claimed_before, measure, steps, recent, measured=False):
         """(confirmed, refused) for this iteration's stop ``claim`` at a ``loose``
         tolerance (:func:`confirms_stop`; else (True, False)).  Confirmed: the last
         iteration claimed a stop too (``claimed_before``), or ``measure`` times the
         contraction factor of ``steps`` (the solve's :class:`_Step` records,
         :func:`step_contraction`) is below :data:`LOOSE_TOLERANCE` (one
         small increment can be a lull: compression_40 at dt 0.2 stopped 16x the tolerance
-        away).  Refused: a confirmed stop whose ``step`` or ``last_step`` (None on the
-        first iteration) fails :meth:`_model_agrees`: where the quadratic model is off,
-        the steps' size says nothing of the distance left (smash at E = 1e12: 200 steps
-        of 1e-5 drifting 2.4e-3; docs/newton.md "Stopping rule").  Collective."""
-        confirmed = not loose or claimed_before or measure * step_contraction(steps) < LOOSE_TOLERANCE
-        refused = loose and claim and confirmed and not (
-            self._model_agrees(step) and (last_step is None or self._model_agrees(last_step)))
+        away).  Refused: a confirmed stop whose steps ``recent`` (this iteration's, the
+        last one's and the one before, None before the first) fail :meth:`_model_agrees`:
+        where the quadratic model is off, the steps' size says nothing of the distance
+        left (smash at E = 1e12: 200 steps of 1e-5 drifting 2.4e-3; docs/newton.md
+        "Stopping rule").  This step and the last one must agree; a stop confirmed by the
+        last iteration's claim (not by its own measure below LOOSE_TOLERANCE, nor
+        ``measured``: by a chord check with its basis, which measures the next step)
+        needs the step before that claim on its model too: a claim made by the first
+        step out of an off-model run, confirmed by one more step, had stopped two-step
+        lulls of the crushed coil 1.6x and of the stiff smash 2.4x the tolerance away
+        (docs/newton.md "The two-step lull").  Collective."""
+        shortcut = measure * step_contraction(steps) < LOOSE_TOLERANCE
+        confirmed = not loose or claimed_before or shortcut
+        needed = recent[:2] if shortcut or measured else recent
+        refused = loose and claim and confirmed and not all(
+            s is None or self._model_agrees(s) for s in needed)
         return confirmed, refused
 
     def _at_saddle(self, exact):

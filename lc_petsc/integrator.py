@@ -128,7 +128,7 @@ class _Solve(NamedTuple):
     saddle: bool = False
 
 
-class _Step(NamedTuple):
+class StepRecord(NamedTuple):
     """One Newton step as the stop test reads it (:func:`step_contraction`): its relative
     increment ``measure`` (the full step's where the step was damped or cut), whether it
     was ``whole`` (alpha 1, unshifted, not cut, no exact attempt rejected), of the
@@ -413,7 +413,7 @@ class Integrator:
         if self.history is not None:
             self._force_scale = self.frame_force_scale()
         fallbacks = chord_checks = 0
-        steps = []                              # this solve's steps (_Step), in order
+        steps = []                              # this solve's steps (StepRecord), in order
         region = _Region() if self.trust is not None else None
         quadratic = []                          # the increments of the last full exact steps in a row
         modelled = []                           # and whether each agreed with its quadratic model
@@ -431,7 +431,7 @@ class Integrator:
                 g, dx, exact = self._trust_region_step(x, it, region)
                 x_prev, x = x, self.update(x, dx)
                 increment, absolute = self.increments(x - x_prev)
-                steps.append(_Step(increment, region.interior, False, True))   # a boundary step is a cut one
+                steps.append(StepRecord(increment, region.interior, False, True))   # a boundary step is a cut one
                 reported = increment
                 if self.history is not None:
                     self._record_iteration(it, x_prev, x, g, increment, 1.0, exact)
@@ -509,7 +509,8 @@ class Integrator:
             # a shifted one or one after an indefinite exact matrix no Newton step at all
             round_off = self._at_round_off()
             newton = (self._shift == 0.0 and self._fallback in ("", "armijo")) or round_off
-            steps.append(_Step(measure, (whole and newton) or round_off, exact or cfg.solver.filter == "none", newton))
+            steps.append(StepRecord(measure, (whole and newton) or round_off,
+                                    exact or cfg.solver.filter == "none", newton))
             converged = self._newton_converged(steps, absolute)
             full = exact and whole
             quadratic = quadratic + [increment] if full else []
@@ -972,7 +973,7 @@ class Integrator:
         """(confirmed, refused) for this iteration's stop ``claim`` at a ``loose``
         tolerance (:func:`confirms_stop`; else (True, False)).  Confirmed: the last
         iteration claimed a stop too (``claimed_before``), or ``measure`` times the
-        contraction factor of ``steps`` (the solve's :class:`_Step` records,
+        contraction factor of ``steps`` (the solve's :class:`StepRecord` records,
         :func:`step_contraction`) is below :data:`LOOSE_TOLERANCE` (one
         small increment can be a lull: compression_40 at dt 0.2 stopped 16x the tolerance
         away).  Refused: a confirmed stop whose steps ``recent`` (this iteration's, the
@@ -1039,7 +1040,7 @@ class Integrator:
     def _newton_converged(self, steps, absolute):
         """True/False against the tolerances that are set (both when both are), None
         when neither is (a fixed iteration count).  ``steps``: this solve's steps so far
-        (:class:`_Step`; the last one's absolute size ``absolute`` cm); the last one's
+        (:class:`StepRecord`; the last one's absolute size ``absolute`` cm); the last one's
         measure, times the iteration's contraction factor (:func:`step_contraction`),
         must be below each."""
         t = self.cfg.time
@@ -1238,7 +1239,7 @@ def contraction_factor(increments, whole=None, exact=None, newton=None):
 
 
 def step_contraction(steps):
-    """:func:`contraction_factor` of a solve's :class:`_Step` records."""
+    """:func:`contraction_factor` of a solve's :class:`StepRecord` records."""
     return contraction_factor([s.measure for s in steps], [s.whole for s in steps],
                               [s.exact for s in steps], [s.newton for s in steps])
 

@@ -11,7 +11,7 @@ from mpi4py import MPI
 
 from lc_petsc.config import (ConfigError, load_config, MaterialConfig, PhysicsConfig, SceneConfig,
                              SimConfig, SolverConfig, TimeConfig)
-from lc_petsc.integrator import (ENERGY_FLOOR, LOOSE_TOLERANCE, Integrator, confirms_stop,
+from lc_petsc.integrator import (ENERGY_FLOOR, LOOSE_TOLERANCE, Integrator, StepRecord, confirms_stop,
                                  contraction_factor, corotational_update, follow_the_leader,
                                  model_agrees, project_rest_lengths, retract_edge_lengths,
                                  unconfirmed_note)
@@ -341,7 +341,8 @@ def test_the_absolute_tolerance_takes_the_contraction_factor_too():
     at 0.97 per step, and does stop one converging at 0.1."""
     cfg = SimConfig(time=TimeConfig(newton_tol=1e-3)).validate()
     probe = type("Probe", (), {"cfg": cfg})()
-    converged = Integrator._newton_converged
+    def converged(probe, increments, absolute):     # whole filtered Newton steps
+        return Integrator._newton_converged(probe, [StepRecord(d, True, False, True) for d in increments], absolute)
     assert converged(probe, [1.0, 0.97], 5e-4) is False
     assert converged(probe, [1.0, 0.1], 5e-4) is True
     assert converged(probe, [1.0, 0.1], 2e-3) is False

@@ -27,7 +27,8 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   Above :data:`LOOSE_TOLERANCE` a stop must be confirmed by the next iteration
   (:func:`confirms_stop`), and the stopping step and the one before it must be whole
   steps whose decrease of G agrees with their quadratic model (:func:`model_agrees`:
-  where it does not, a step's size says nothing of the distance left).
+  where it does not, a step's size says nothing of the distance left); so must the step
+  before a claim that the next step confirms (a two-step lull, docs/newton.md).
   ``time.newton_stop = "quadratic_estimate"`` also stops once three full exact steps in
   a row, each shorter and the last two on their quadratic model, estimate the error
   below the tolerance / :data:`QUADRATIC_SAFETY` (:func:`quadratic_error_estimate`);

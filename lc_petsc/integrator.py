@@ -27,7 +27,8 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   Above :data:`LOOSE_TOLERANCE` a stop must be confirmed by the next iteration
   (:func:`confirms_stop`), and the stopping step and the one before it must be whole
   steps whose decrease of G agrees with their quadratic model (:func:`model_agrees`:
-  where it does not, a step's size says nothing of the distance left).
+  where it does not, a step's size says nothing of the distance left); so must the step
+  before a claim that the next step confirms (a two-step lull, docs/newton.md).
   ``time.newton_stop = "quadratic_estimate"`` also stops once three full exact steps in
   a row, each shorter and the last two on their quadratic model, estimate the error
   below the tolerance / :data:`QUADRATIC_SAFETY` (:func:`quadratic_error_estimate`);
@@ -128,6 +129,19 @@ class _Solve(NamedTuple):
     unconfirmed: bool = False
     refused: bool = False
     saddle: bool = False
+
+
+class StepRecord(NamedTuple):
+    """One Newton step as the stop test reads it (:func:`step_contraction`): its relative
+    increment ``measure`` (the full step's where the step was damped or cut), whether it
+    was ``whole`` (alpha 1, unshifted, not cut, no exact attempt rejected), of the
+    ``exact`` Hessian, and a ``newton`` step (unshifted, not after an indefinite exact
+    matrix)."""
+
+    measure: float
+    whole: bool
+    exact: bool
+    newton: bool
 
 
 class _Region:
@@ -403,16 +417,14 @@ class Integrator:
         if self.history is not None:
             self._force_scale = self.frame_force_scale()
         fallbacks = chord_checks = 0
-        steps = []                              # this solve's relative increments, in order
-        # per step (contraction_factor): taken whole; of the exact Hessian; a Newton step
-        whole_steps, exact_steps, newton_steps = [], [], []
+        steps = []                              # this solve's steps (StepRecord), in order
         region = _Region() if self.trust is not None else None
         quadratic = []                          # the increments of the last full exact steps in a row
         modelled = []                           # and whether each agreed with its quadratic model
         claimed_before = False                  # the last iteration's stop (to be confirmed)
         unbased_claim = False                   # ... made by a chord check without chord_basis
         loose = confirms_stop(cfg.time.newton_increment_tol, cfg.time.newton_tol, self.shortest_wisp)
-        last_step = None                        # the last iteration's step (_model_agrees)
+        last_step = prior_step = None           # the last two iterations' steps (_model_agrees)
         unconfirmed = False                     # this iteration's stop awaits the next
         off_model = False                       # this iteration's stop was refused (_loose_verdict)
         saddle = False                          # this iteration's stop is on a saddle (_at_saddle)
@@ -423,25 +435,21 @@ class Integrator:
                 g, dx, exact = self._trust_region_step(x, it, region)
                 x_prev, x = x, self.update(x, dx)
                 increment, absolute = self.increments(x - x_prev)
-                steps.append(increment)
-                whole_steps.append(region.interior)     # a boundary step is a cut one
-                exact_steps.append(False)
-                newton_steps.append(True)
+                steps.append(StepRecord(increment, region.interior, False, True))   # a boundary step is a cut one
                 reported = increment
                 if self.history is not None:
                     self._record_iteration(it, x_prev, x, g, increment, 1.0, exact)
-                converged = self._newton_converged(steps, absolute, whole_steps, exact_steps, newton_steps)
+                converged = self._newton_converged(steps, absolute)
                 if converged is not None:       # a short step is not convergence
                     converged = converged and region.interior
                 # the loose-tolerance rule below, with the trust region's own rho (smash at
                 # E = 1e12, dt 0.2, 1e-3: a stop 2.5x the tolerance away)
                 claim = bool(converged)
                 step = dict(agrees=region.agrees)
-                confirmed, refused = self._loose_verdict(
-                    loose, claim, claimed_before, increment, (steps, whole_steps, exact_steps, newton_steps),
-                    step, last_step)
+                confirmed, refused = self._loose_verdict(loose, claim, claimed_before, increment, steps,
+                                                         (step, last_step, prior_step))
                 converged = converged and confirmed and not refused
-                claimed_before, last_step = claim, step
+                claimed_before, last_step, prior_step = claim, step, last_step
                 unconfirmed, off_model = claim and not confirmed, refused
                 if self.monitor is not None:
                     self._monitor(it, increment, self._step_kind(exact, region=True)
@@ -495,7 +503,6 @@ class Integrator:
                 # stopped the stiff smash 242x the tolerance away (docs/newton.md)
                 whole, whole_absolute = self.increments(rejected)
                 measure, absolute = max(measure, whole), max(absolute, whole_absolute)
-            steps.append(measure)
             reported = measure
             if self.history is not None:
                 self._record_iteration(it, x_prev, x, g, increment, alpha, exact)
@@ -507,10 +514,10 @@ class Integrator:
             # step after an exact attempt Armijo rejected is a damped one (measured above),
             # a shifted one or one after an indefinite exact matrix no Newton step at all
             round_off = self._at_round_off()
-            newton_steps.append((self._shift == 0.0 and self._fallback in ("", "armijo")) or round_off)
-            whole_steps.append((whole and newton_steps[-1]) or round_off)
-            exact_steps.append(exact or cfg.solver.filter == "none")
-            converged = self._newton_converged(steps, absolute, whole_steps, exact_steps, newton_steps)
+            newton = (self._shift == 0.0 and self._fallback in ("", "armijo")) or round_off
+            steps.append(StepRecord(measure, (whole and newton) or round_off,
+                                    exact or cfg.solver.filter == "none", newton))
+            converged = self._newton_converged(steps, absolute)
             full = exact and whole
             quadratic = quadratic + [increment] if full else []
             # whether the full exact step decreased G as its model predicts (the line
@@ -554,13 +561,13 @@ class Integrator:
             if unbased_claim and not (chord_claim and based):
                 claimed_before = False
             unbased_claim = claim and chord_claim and not based
-            confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure,
-                                                     (steps, whole_steps, exact_steps, newton_steps), step, last_step)
+            confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure, steps,
+                                                     (step, last_step, prior_step), chord_claim and based)
             converged = converged and confirmed and not refused
             # a stop on a saddle of G ends the solve unconverged (step cutback redoes it)
-            saddle = bool(converged) and self._at_saddle(exact_steps[-1] and self._shift == 0.0)
+            saddle = bool(converged) and self._at_saddle(steps[-1].exact and self._shift == 0.0)
             converged = converged and not saddle
-            claimed_before, last_step = claim, step
+            claimed_before, last_step, prior_step = claim, step, last_step
             unconfirmed, off_model = claim and not confirmed, refused
             if self.monitor is not None:
                 short = ", solve short of -ksp_rtol" if short_of_rtol else ""
@@ -1050,20 +1057,29 @@ class Integrator:
         dx = self._solve_step(self.gradient(x), it, may_fail=True)
         return np.inf if dx is None else self.increments(dx)[0]
 
-    def _loose_verdict(self, loose, claim, claimed_before, measure, steps, step, last_step):
+    def _loose_verdict(self, loose, claim, claimed_before, measure, steps, recent, measured=False):
         """(confirmed, refused) for this iteration's stop ``claim`` at a ``loose``
         tolerance (:func:`confirms_stop`; else (True, False)).  Confirmed: the last
         iteration claimed a stop too (``claimed_before``), or ``measure`` times the
-        :func:`contraction_factor` of ``steps`` (its arguments: the increments, whether
-        each step was whole, whether exact) is below :data:`LOOSE_TOLERANCE` (one
+        contraction factor of ``steps`` (the solve's :class:`StepRecord` records,
+        :func:`step_contraction`) is below :data:`LOOSE_TOLERANCE` (one
         small increment can be a lull: compression_40 at dt 0.2 stopped 16x the tolerance
-        away).  Refused: a confirmed stop whose ``step`` or ``last_step`` (None on the
-        first iteration) fails :meth:`_model_agrees`: where the quadratic model is off,
-        the steps' size says nothing of the distance left (smash at E = 1e12: 200 steps
-        of 1e-5 drifting 2.4e-3; docs/newton.md "Stopping rule").  Collective."""
-        confirmed = not loose or claimed_before or measure * contraction_factor(*steps) < LOOSE_TOLERANCE
-        refused = loose and claim and confirmed and not (
-            self._model_agrees(step) and (last_step is None or self._model_agrees(last_step)))
+        away).  Refused: a confirmed stop whose steps ``recent`` (this iteration's, the
+        last one's and the one before, None before the first) fail :meth:`_model_agrees`:
+        where the quadratic model is off, the steps' size says nothing of the distance
+        left (smash at E = 1e12: 200 steps of 1e-5 drifting 2.4e-3; docs/newton.md
+        "Stopping rule").  This step and the last one must agree; a stop confirmed by the
+        last iteration's claim (not by its own measure below LOOSE_TOLERANCE, nor
+        ``measured``: by a chord check with its basis, which measures the next step)
+        needs the step before that claim on its model too: a claim made by the first
+        step out of an off-model run, confirmed by one more step, had stopped two-step
+        lulls of the crushed coil 1.6x and of the stiff smash 2.4x the tolerance away
+        (docs/newton.md "The two-step lull").  Collective."""
+        shortcut = measure * step_contraction(steps) < LOOSE_TOLERANCE
+        confirmed = not loose or claimed_before or shortcut
+        needed = recent[:2] if shortcut or measured else recent
+        refused = loose and claim and confirmed and not all(
+            s is None or self._model_agrees(s) for s in needed)
         return confirmed, refused
 
     def _at_saddle(self, exact):
@@ -1109,19 +1125,19 @@ class Integrator:
                 step["agrees"] = model_agrees(G0 - G1, -0.5 * slope, max(abs(G0), abs(G1)))
         return step["agrees"]
 
-    def _newton_converged(self, steps, absolute, whole=None, exact=None, newton=None):
+    def _newton_converged(self, steps, absolute):
         """True/False against the tolerances that are set (both when both are), None
-        when neither is (a fixed iteration count).  ``steps``: this solve's relative
-        increments so far (the last one's absolute size ``absolute`` cm); the last one,
-        times the :func:`contraction_factor` of the iteration (``whole``, ``exact``,
-        ``newton``: its per-step flags), must be below each."""
+        when neither is (a fixed iteration count).  ``steps``: this solve's steps so far
+        (:class:`StepRecord`; the last one's absolute size ``absolute`` cm); the last one's
+        measure, times the iteration's contraction factor (:func:`step_contraction`),
+        must be below each."""
         t = self.cfg.time
         if not t.newton_converges:
             return None
-        factor = contraction_factor(steps, whole, exact, newton)
+        factor = step_contraction(steps)
         ok = True
         if t.newton_increment_tol is not None:
-            ok = steps[-1] * factor < t.newton_increment_tol
+            ok = steps[-1].measure * factor < t.newton_increment_tol
         if t.newton_tol is not None:
             ok = ok and absolute * factor < t.newton_tol
         return bool(ok)
@@ -1308,6 +1324,12 @@ def contraction_factor(increments, whole=None, exact=None, newton=None):
     if q >= 1.0:
         return float("inf")
     return max(1.0, q / (1.0 - q))
+
+
+def step_contraction(steps):
+    """:func:`contraction_factor` of a solve's :class:`StepRecord` records."""
+    return contraction_factor([s.measure for s in steps], [s.whole for s in steps],
+                              [s.exact for s in steps], [s.newton for s in steps])
 
 
 def quadratic_error_estimate(increments, modelled=None):

@@ -273,6 +273,28 @@ def test_run_that_cannot_fit_is_refused_before_frame_0(tmp_path, small_volume, c
     assert not out.exists()
 
 
+def test_a_refused_run_puts_back_a_killed_runs_lock(tmp_path, small_volume, capsys):
+    """A run refused (here by the disk estimate, and by a missing checkpoint) in a folder
+    with a killed run's lock file warned about it, then removed it: the folder was not
+    as it was, and the next run no longer warned.  Now the file is put back, its bytes
+    and times, so the next run still names the killed one."""
+    out = small_volume / "out"
+    assert main([_smash(tmp_path, frames=4), "--out", str(out), "--quiet"]) == 0
+    stale = b'{"pid": 4242, "host": "h", "started": "2026-12-06 10:00:00 UTC"}\n'
+    (out / LOCK_NAME).write_bytes(stale)
+    os.utime(out / LOCK_NAME, ns=(1_000_000_000_123, 1_000_000_000_456))    # not the refused run's
+    before = _snapshot(out)
+    for args in (["--frames", "5000"], ["--restart", str(tmp_path / "none.h5")]):
+        capsys.readouterr()
+        assert main([_smash(tmp_path), "--out", str(out), "--quiet"] + args) == 2
+        err = capsys.readouterr().err
+        assert "found the lock of a run that did not finish (pid 4242 on host h" in err, err
+        assert _snapshot(out) == before, args       # bytes and mtime
+    assert main([_smash(tmp_path), "--out", str(out), "--quiet"]) == 0
+    assert "found the lock of a run that did not finish (pid 4242 on host h" in capsys.readouterr().err
+    assert not (out / LOCK_NAME).exists()
+
+
 def test_full_disk_while_writing_frames(tmp_path, small_volume, monkeypatch, capsys):
     cfg = _smash(tmp_path, frames=40, ce=2)
     out = small_volume / "out"

@@ -584,11 +584,15 @@ class Job:
             was = saved.get("scene", {}).get("path")
             where = f" ({cfg.scene.path}; the checkpoint's run read {was})" if by_content and \
                 was != cfg.scene.path else ""
-            what = f"the scene's groom{where} differs from the checkpoint's in {'; '.join(groom)}"
-            if not args.force:
-                raise Refused(f"{ck['path']}: {what}; restart with the groom the checkpoint ran with or add "
-                              f"--force (continues with this one)")
-            warn(comm, f"--force: rest state differs from the checkpoint's: {what}; the scene's is used")
+            # refused like time.dt: frames.h5 holds one groom (/rest_positions, /pinned,
+            # /radius) for all its rows, which the USD export's widths, pinned primvar and
+            # rest pose, the crossing check and the head check read; --force used to keep
+            # the old groom there under the rows simulated with the new one
+            raise Refused(f"{ck['path']}: the scene's groom{where} differs from the checkpoint's in "
+                          f"{'; '.join(groom)}; the groom cannot change in a restart, not even with --force: "
+                          f"the run's frames.h5 (/rest_positions, /pinned, /radius) and frames.usdc (widths, "
+                          f"pinned, the rest pose) hold one groom for all its rows; restart with the groom the "
+                          f"checkpoint ran with, or start a new run (without --restart) with this one")
         self.recovery = self._frames_recovery(ck, ck["frame"] // cfg.output.every + 1)
         sim.restore(dict(ck, x=sim.user.from_user(ck["x"]), v=sim.user.from_user(ck["v"])))
         return ck

@@ -69,7 +69,7 @@ FRAMES_FLUSH_SECONDS = 30.0
 #: the frames a warning names before it says how many more
 MISSED_FRAMES_SHOWN = 8
 OUR_FILES = ("frames.h5", "frames.xdmf", "frames.usdc", "frames.tmp.usdc", "summary.json",
-             "contact_sheet.png")
+             "contact_sheet.png", "contact_sheet.png.tmp")
 
 
 class Refused(Exception):
@@ -705,8 +705,8 @@ class Job:
                         p.unlink()
                 if restart:
                     moved = set_aside_later(ck, self.restart["frame"])
-            if (out / "previews").is_dir():
-                for p in (out / "previews").glob("frame_*.png"):
+            if (out / "previews").is_dir():     # with a killed run's image written aside
+                for p in [*(out / "previews").glob("frame_*.png"), *(out / "previews").glob("frame_*.png.tmp")]:
                     p.unlink()
             return moved
         moved, problem = on_root(self.comm, clean)

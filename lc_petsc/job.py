@@ -1054,6 +1054,9 @@ class Job:
         if self.frames_lost:            # said once by _frames_lost
             return {"files": [], "not_written": problems, "xdmf_s": 0.0, "previews_s": 0.0, "usd_s": 0.0}
         files = ["frames.h5"] if writer is not None else []
+        # after an output error the previews and the export would meet the same full disk
+        # or unwritable folder: skipped, and one warning says so (below)
+        stopped = bool(self.error and self.error.startswith("output error")) and writer is not None
         t0 = time.perf_counter()
         if cfg.output.xdmf and writer is not None and not hdf5.unclosable():
             try:
@@ -1064,8 +1067,8 @@ class Job:
                 problems.append(f"{out / 'frames.xdmf'}: {e.strerror or e}")
         t_xdmf = time.perf_counter() - t0
         t0 = time.perf_counter()
-        if cfg.output.previews and self._late_signal("previews") and writer is not None and writer.written \
-                and not hdf5.unclosable():
+        if cfg.output.previews and not stopped and self._late_signal("previews") and writer is not None \
+                and writer.written and not hdf5.unclosable():
             try:
                 files += [os.path.relpath(p, out) for p in _previews(cfg, out, h5_path, writer,
                                                                      cfg.time.frames, self.name, self._stop)]
@@ -1081,14 +1084,19 @@ class Job:
             # that frames.usdc is missing (a full disk's failure was on stderr only)
             print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
             summary["warnings"] = list(summary.get("warnings") or []) + [text]
-        if cfg.output.usd and self.error and self.error.startswith("output error") and writer is not None:
-            # the export, the largest output, would meet the same full disk or unwritable
-            # folder: pxr's 6-line failure used to follow the error as a warning
-            usd_warning(f"frames.usdc not written: the run stopped on an output error (above); "
-                        f"--restart latest writes it at the end of the continued run, or drivers/to_usd.py "
-                        f"{h5_path} from the frames written")
-        elif (not cfg.output.usd or self._late_signal("frames.usdc")) and writer is not None \
-                and writer.written and not hdf5.unclosable():
+        skipped = [name for on, name in ((cfg.output.previews and writer is not None and writer.written, "previews"),
+                                         (cfg.output.usd, "frames.usdc")) if on and stopped]
+        if skipped:
+            # pxr's 6-line failure used to follow the error as a warning, and a preview's
+            # failure made a second error (output.not_written)
+            to_usd = "" if "frames.usdc" not in skipped else \
+                f", or drivers/to_usd.py {h5_path} from the frames written" if len(skipped) == 1 else \
+                f"; drivers/to_usd.py {h5_path} writes frames.usdc from the frames written"
+            usd_warning(f"{' and '.join(skipped)} not written: the run stopped on an output error (above); "
+                        f"--restart latest writes {'it' if len(skipped) == 1 else 'them'} at the end of the "
+                        f"continued run{to_usd}")
+        if "frames.usdc" not in skipped and (not cfg.output.usd or self._late_signal("frames.usdc")) \
+                and writer is not None and writer.written and not hdf5.unclosable():
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_failed, export_run
             try:

@@ -337,7 +337,7 @@ def test_full_disk_while_writing_frames(tmp_path, small_volume, monkeypatch, cap
 
 
 def test_full_disk_while_writing_a_checkpoint(tmp_path, small_volume, monkeypatch, capsys):
-    cfg = _smash(tmp_path, frames=40, ce=2)
+    cfg = _smash(tmp_path, frames=40, ce=2, previews="true")
     out = small_volume / "out"
     # frame 4 still fits, its checkpoint (about 70 kB) does not
     _fill_at(monkeypatch, small_volume, 4, RESERVE + frame_bytes(101) + 20_000)
@@ -348,13 +348,15 @@ def test_full_disk_while_writing_a_checkpoint(tmp_path, small_volume, monkeypatc
     assert "checkpoint_000004.h5: disk full" in cap.err, cap.err
     s = json.loads((out / "summary.json").read_text())
     assert "checkpoint_000004.h5: disk full" in s["error"]
-    # the USD export is not tried on the full disk (main: pxr's failure as a warning)
-    note = (f"frames.usdc not written: the run stopped on an output error (above); --restart latest writes "
-            f"it at the end of the continued run, or drivers/to_usd.py {out / 'frames.h5'} from the frames "
-            f"written")
-    assert cap.err.count("warning: frames.usdc not written") == 1 and note in cap.err, cap.err
+    # the previews and the USD export are not tried on the full disk, one warning says so
+    # (before: pxr's failure as a warning, and the previews' as a second error)
+    note = (f"previews and frames.usdc not written: the run stopped on an output error (above); --restart "
+            f"latest writes them at the end of the continued run; drivers/to_usd.py {out / 'frames.h5'} writes "
+            f"frames.usdc from the frames written")
+    assert cap.err.count("not written: the run stopped") == 1 and note in cap.err, cap.err
     assert "USD export failed" not in cap.err and not (out / "frames.usdc").exists()
-    assert s["warnings"][-1] == note
+    assert not (out / "previews").exists() and not (out / "contact_sheet.png").exists()
+    assert s["warnings"][-1] == note and s["output"]["not_written"] == []
     assert [c["frame"] for c in s["checkpoints"]] == [2]
     names = sorted(p.name for p in (out / "checkpoints").iterdir())
     assert names == ["checkpoint_000002.h5"]

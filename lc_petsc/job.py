@@ -69,7 +69,7 @@ FRAMES_FLUSH_SECONDS = 30.0
 #: the frames a warning names before it says how many more
 MISSED_FRAMES_SHOWN = 8
 OUR_FILES = ("frames.h5", "frames.xdmf", "frames.usdc", "frames.tmp.usdc", "summary.json",
-             "contact_sheet.png")
+             "contact_sheet.png", "contact_sheet.png.tmp")
 
 
 class Refused(Exception):
@@ -584,11 +584,15 @@ class Job:
             was = saved.get("scene", {}).get("path")
             where = f" ({cfg.scene.path}; the checkpoint's run read {was})" if by_content and \
                 was != cfg.scene.path else ""
-            what = f"the scene's groom{where} differs from the checkpoint's in {'; '.join(groom)}"
-            if not args.force:
-                raise Refused(f"{ck['path']}: {what}; restart with the groom the checkpoint ran with or add "
-                              f"--force (continues with this one)")
-            warn(comm, f"--force: rest state differs from the checkpoint's: {what}; the scene's is used")
+            # refused like time.dt: frames.h5 holds one groom (/rest_positions, /pinned,
+            # /radius) for all its rows, which the USD export's widths, pinned primvar and
+            # rest pose, the crossing check and the head check read; --force used to keep
+            # the old groom there under the rows simulated with the new one
+            raise Refused(f"{ck['path']}: the scene's groom{where} differs from the checkpoint's in "
+                          f"{'; '.join(groom)}; the groom cannot change in a restart, not even with --force: "
+                          f"the run's frames.h5 (/rest_positions, /pinned, /radius) and frames.usdc (widths, "
+                          f"pinned, the rest pose) hold one groom for all its rows; restart with the groom the "
+                          f"checkpoint ran with, or start a new run (without --restart) with this one")
         self.recovery = self._frames_recovery(ck, ck["frame"] // cfg.output.every + 1)
         sim.restore(dict(ck, x=sim.user.from_user(ck["x"]), v=sim.user.from_user(ck["v"])))
         return ck
@@ -701,8 +705,8 @@ class Job:
                         p.unlink()
                 if restart:
                     moved = set_aside_later(ck, self.restart["frame"])
-            if (out / "previews").is_dir():
-                for p in (out / "previews").glob("frame_*.png"):
+            if (out / "previews").is_dir():     # with a killed run's image written aside
+                for p in [*(out / "previews").glob("frame_*.png"), *(out / "previews").glob("frame_*.png.tmp")]:
                     p.unlink()
             return moved
         moved, problem = on_root(self.comm, clean)
@@ -1050,6 +1054,9 @@ class Job:
         if self.frames_lost:            # said once by _frames_lost
             return {"files": [], "not_written": problems, "xdmf_s": 0.0, "previews_s": 0.0, "usd_s": 0.0}
         files = ["frames.h5"] if writer is not None else []
+        # after an output error the previews and the export would meet the same full disk
+        # or unwritable folder: skipped, and one warning says so (below)
+        stopped = bool(self.error and self.error.startswith("output error")) and writer is not None
         t0 = time.perf_counter()
         if cfg.output.xdmf and writer is not None and not hdf5.unclosable():
             try:
@@ -1060,8 +1067,8 @@ class Job:
                 problems.append(f"{out / 'frames.xdmf'}: {e.strerror or e}")
         t_xdmf = time.perf_counter() - t0
         t0 = time.perf_counter()
-        if cfg.output.previews and self._late_signal("previews") and writer is not None and writer.written \
-                and not hdf5.unclosable():
+        if cfg.output.previews and not stopped and self._late_signal("previews") and writer is not None \
+                and writer.written and not hdf5.unclosable():
             try:
                 files += [os.path.relpath(p, out) for p in _previews(cfg, out, h5_path, writer,
                                                                      cfg.time.frames, self.name, self._stop)]
@@ -1077,14 +1084,19 @@ class Job:
             # that frames.usdc is missing (a full disk's failure was on stderr only)
             print(f"{PROG}: warning: {text}", file=sys.stderr, flush=True)
             summary["warnings"] = list(summary.get("warnings") or []) + [text]
-        if cfg.output.usd and self.error and self.error.startswith("output error") and writer is not None:
-            # the export, the largest output, would meet the same full disk or unwritable
-            # folder: pxr's 6-line failure used to follow the error as a warning
-            usd_warning(f"frames.usdc not written: the run stopped on an output error (above); "
-                        f"--restart latest writes it at the end of the continued run, or drivers/to_usd.py "
-                        f"{h5_path} from the frames written")
-        elif (not cfg.output.usd or self._late_signal("frames.usdc")) and writer is not None \
-                and writer.written and not hdf5.unclosable():
+        skipped = [name for on, name in ((cfg.output.previews and writer is not None and writer.written, "previews"),
+                                         (cfg.output.usd, "frames.usdc")) if on and stopped]
+        if skipped:
+            # pxr's 6-line failure used to follow the error as a warning, and a preview's
+            # failure made a second error (output.not_written)
+            to_usd = "" if "frames.usdc" not in skipped else \
+                f", or drivers/to_usd.py {h5_path} from the frames written" if len(skipped) == 1 else \
+                f"; drivers/to_usd.py {h5_path} writes frames.usdc from the frames written"
+            usd_warning(f"{' and '.join(skipped)} not written: the run stopped on an output error (above); "
+                        f"--restart latest writes {'it' if len(skipped) == 1 else 'them'} at the end of the "
+                        f"continued run{to_usd}")
+        if "frames.usdc" not in skipped and (not cfg.output.usd or self._late_signal("frames.usdc")) \
+                and writer is not None and writer.written and not hdf5.unclosable():
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_failed, export_run
             try:

@@ -195,10 +195,13 @@ def _kept_problem(f, path, rows, offsets):
             dict(obj.attrs)
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
         return f"{path}: its attributes cannot be read ({_why(e)}): the file is damaged"
+    problem = index_problem(f)      # before a read: a damaged chunk size crashed libhdf5
+    if problem:
+        return f"{path}: {problem}"
     frame_dsets = [k for k in ("positions", "time", "frame_valid") if k in f]
     static = [k for k in ("wisp_offsets", "rest_positions", "pinned", "polylines", "radius") if k in f]
     every = int(f.attrs.get("every", 1))
-    valid = valid_rows(f)
+    valid = valid_rows(f, check=False)
     for name, sel in [(k, Ellipsis) for k in static] + [(k, np.s_[:rows]) for k in frame_dsets[1:]] + \
             [("positions", k) for k in range(rows)]:
         where = f" row {sel} (frame {sel * every})" if isinstance(sel, int) else \
@@ -225,15 +228,67 @@ def _row_problem(f, path, checkpoint_row):
     if checkpoint_row is None:
         return None
     row, x = checkpoint_row
-    if valid_rows(f)[row] and not np.array_equal(f["positions"][row], x):
+    if valid_rows(f, check=False)[row] and not np.array_equal(f["positions"][row], x):
         return (f"{path}: row {row} differs from the checkpoint's positions at that frame: "
                 f"corrupt, or it does not belong to this checkpoint's run")
     return None
 
 
-def valid_rows(f):
+def index_problem(f):
+    """Why the chunk index of a frame dataset (``/positions``, ``/time``,
+    ``/frame_valid``) of the open ``frames.h5`` ``f`` cannot be trusted, else None.
+
+    The HDF5 1.8 format has no checksum on a chunk index (a v1 B-tree), and the
+    Fletcher-32 checksum of a chunk covers its bytes, not which row it is: a damaged key
+    (a chunk's row offset) makes libhdf5 read another row's chunk for a row, whose
+    checksum passes, and the row it belonged to reads as the fill value (NaN); a damaged
+    chunk size made libhdf5 crash (a segfault) reading it.  So every chunk is looked up
+    in the index (``H5Dget_chunk_info_by_coord``) before any is read: each must be found,
+    of its stored size (the chunk's bytes + 4 for the checksum), not filtered out,
+    inside the file and used by no other chunk.  One changed key is always found: only
+    its own chunk had the row it named, so that row is then missing.  A key byte
+    libhdf5 does not use (a row offset is divided by the chunk's extent, so the low bits
+    of the offset along the vertex axis, below one chunk, are dropped) changes nothing
+    and is not seen (docs/design_notes.md, "Checksums")."""
+    import itertools
+    size = f.id.get_filesize()
+    every = int(f.attrs.get("every", 1))
+    for name in ("positions", "time", "frame_valid"):
+        d = f.get(name)
+        if d is None or d.chunks is None or 0 in d.shape:
+            continue
+        want = int(np.prod(d.chunks)) * d.dtype.itemsize + (4 if d.fletcher32 else 0)
+        seen = {}
+        for at in itertools.product(*(range(0, n, c) for n, c in zip(d.shape, d.chunks))):
+            info = d.id.get_chunk_info_by_coord(at)
+            where = f"/{name} row {at[0]} (frame {at[0] * every})" if d.chunks[0] == 1 \
+                else f"/{name} chunk at {at}"
+            if info.byte_offset is None:
+                why = "its chunk is missing from the chunk index (a read returns the fill value, NaN)"
+            elif info.size != want or info.filter_mask != 0 or info.byte_offset + info.size > size:
+                why = (f"its chunk index entry is damaged (stored size {info.size} bytes, not {want}; filter "
+                       f"mask {info.filter_mask}; at byte {info.byte_offset} of {size})")
+            elif info.byte_offset in seen:
+                why = (f"its chunk index entry points at the chunk of {seen[info.byte_offset]} (a read "
+                       "returns that row's values)")
+            else:
+                seen[info.byte_offset] = where
+                continue
+            return (f"{where}: {why}: the file's chunk index (which has no checksum in the HDF5 1.8 "
+                    "format) is damaged")
+    return None
+
+
+def valid_rows(f, check=True):
     """Which rows of the open ``frames.h5`` ``f`` hold a frame (bool (n_frames,)):
-    ``/frame_valid`` where the file has it, else every row."""
+    ``/frame_valid`` where the file has it, else every row.  Every reader asks first:
+    ``check`` (not the writer's resume, whose file the restart checked) raises a
+    ValueError naming the damage when the chunk index cannot be trusted
+    (:func:`index_problem`)."""
+    problem = index_problem(f) if check else None
+    if problem:
+        raise ValueError(f"{f.filename}: {problem}; the rows before it may still be read, or rerun "
+                         "from a checkpoint")
     n = f["positions"].shape[0]
     if "frame_valid" in f:
         return np.asarray(f["frame_valid"][:n], bool)
@@ -369,7 +424,7 @@ class FramesWriter:
                                  f"first {rows}; it does not belong to this checkpoint's run")
             self.times_kept = [float(t) for t in f["time"][:rows]]
             self.valid = f.get("frame_valid")
-            self.rows_valid = valid_rows(f)[:rows].tolist()
+            self.rows_valid = valid_rows(f, check=False)[:rows].tolist()
         except Exception:
             f.close()
             self.f = None

@@ -7,14 +7,16 @@ running one.  ``flock`` locks belong to the open file and are released by the ke
 when the holder dies, however it dies (SIGKILL, a crash, a lost node's process), so a
 killed run never blocks the folder.  A clean exit removes the lock file; a lock file
 that is present, unlocked and not empty was left by a run that did not finish, which
-the next run reports (:attr:`OutputLock.stale`).
+the next run reports (:attr:`OutputLock.stale`).  A run refused before it changed
+anything puts the lock file back as it found it (a killed run's record, its times) or
+removes the one it created, so the folder is as it was and the next run still warns.
 
 The file is removed only while it is locked, and a lock is only trusted if the locked
 file is still the one at the path (the inode check in :meth:`acquire`): otherwise a run
 that opened the old file just before it was removed could lock a deleted file while a
 third run locks the new one.  Another process of the same job may remove the file for
-its holder (:func:`remove_for_holder`, a job stopped during its set-up): the holder then
-leaves alone whatever file is at the path when it releases the lock.
+its holder (:func:`remove_for_holder`, a job stopped during its set-up): both put back
+only the inode locked, so a file that came after it is left alone.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ class OutputLock:
         self.created_folder = False
         self.created = []           # the folders acquire made, the deepest first
         self.stale = None           # holder description of a lock left by a killed run
+        self.before = None          # the lock file as it was (bytes, atime_ns, mtime_ns), or None
 
     def acquire(self):
         """Create the folder if needed and lock it.  Raises :class:`FolderBusy` when a
@@ -77,7 +80,11 @@ class OutputLock:
             raise
 
     def _take(self):
-        existed = self.path.exists()
+        try:
+            st = os.stat(self.path)
+            before = (st.st_atime_ns, st.st_mtime_ns)
+        except FileNotFoundError:
+            before = None
         for _ in range(100):
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
@@ -102,9 +109,11 @@ class OutputLock:
             break
         else:  # pragma: no cover - would need 100 lost races in a row
             raise OSError(f"{self.path}: could not take the lock (the file keeps changing)")
-        old = _read(self.fd)
+        old = _read(self.fd, raw=True)
         if old.strip():
-            self.stale = describe_holder(old)
+            self.stale = describe_holder(old.decode(errors="replace"))
+        if before is not None:
+            self.before = (old, *before)
         record = {"pid": os.getpid(), "host": socket.gethostname(),
                   "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
                   "command": " ".join(os.path.basename(a) if i == 0 else a
@@ -114,22 +123,16 @@ class OutputLock:
             os.pwrite(self.fd, (json.dumps(record) + "\n").encode(), 0)
             os.fsync(self.fd)
         except BaseException:
-            self._give_back(old, existed)
+            self._give_back()
             raise
         return self
 
-    def _give_back(self, old, existed):
-        """Undo a lock whose record could not be written (ENOSPC): the lock file as it
-        was (a killed run's record kept for the next run's warning) or, if this run
-        created it, removed; then unlock."""
+    def _give_back(self):
+        """Undo the lock (its record not written: ENOSPC; or the run refused): the lock
+        file as it was, text and times (a killed run's record kept for the next run's
+        warning) or, if this run created it, removed; then unlock."""
         try:
-            if existed:
-                os.ftruncate(self.fd, 0)
-                os.pwrite(self.fd, old.encode(), 0)     # fits: truncating freed its blocks
-            elif os.stat(self.path).st_ino == self.inode:
-                self.path.unlink()
-        except OSError:
-            pass
+            put_back(self.path, self.inode, self.before)
         finally:
             os.close(self.fd)
             self.fd = None
@@ -137,13 +140,19 @@ class OutputLock:
     def taken(self):
         """What another process of the same job needs for :func:`remove_for_holder`."""
         return {"stale": self.stale, "inode": self.inode, "created_folder": self.created_folder,
-                "created": [str(p) for p in self.created]}
+                "created": [str(p) for p in self.created], "before": self.before}
 
     def release(self, remove_created_folder=False):
-        """Remove the lock file and unlock.  ``remove_created_folder``: also remove the
-        folder if this lock created it and nothing else is in it (a run refused before
-        it wrote anything leaves no trace)."""
+        """Remove the lock file and unlock.  ``remove_created_folder`` (a run refused
+        before it wrote anything, which leaves no trace): a lock file that was there
+        (a killed run's) is put back as it was instead, so the next run still warns
+        about it, and the folder is removed if this lock created it and nothing else is
+        in it."""
         if self.fd is None:
+            return
+        if remove_created_folder:
+            self._give_back()
+            _remove_empty(self.created)
             return
         try:
             # not a file that came after another rank removed ours (remove_for_holder)
@@ -154,8 +163,6 @@ class OutputLock:
         finally:
             os.close(self.fd)       # releases the flock
             self.fd = None
-        if remove_created_folder:
-            _remove_empty(self.created)
 
     def __enter__(self):
         return self.acquire()
@@ -165,19 +172,35 @@ class OutputLock:
 
 
 def remove_for_holder(folder, taken):
-    """Remove the lock file of ``folder`` and, when the run created the folder and
-    nothing else is in it, the folder, for the holder (``taken``: its
+    """Put the lock file of ``folder`` back as it was (:func:`put_back`) and, when the
+    run created the folder and nothing else is in it, remove the folder, for the holder (``taken``: its
     :meth:`OutputLock.taken`), a process of the same job that may not get to do it (a job
     stopped during its set-up: the holder may wait for the caller in a collective call
     until it is killed).  It still holds the lock, so the file at the path is the one it
-    locked, unless it is gone: only that inode is removed."""
+    locked, unless it is gone: only that inode is put back."""
     folder = Path(folder)
+    put_back(folder / LOCK_NAME, taken["inode"], taken.get("before"))
+    _remove_empty([Path(p) for p in taken.get("created", [])])
+
+
+def put_back(path, inode, before):
+    """The lock file ``path`` (if it is still the one locked, ``inode``) as it was before
+    the lock was taken: ``before`` = (bytes, atime_ns, mtime_ns) of a file that was there,
+    else None (removed).  A refused run leaves the folder as it was: removing a killed
+    run's lock file lost the warning about it for the next run."""
     try:
-        if os.stat(folder / LOCK_NAME).st_ino == taken["inode"]:
-            (folder / LOCK_NAME).unlink()
+        if os.stat(path).st_ino != inode:
+            return
+        if before is None:
+            os.unlink(path)
+            return
+        data, atime, mtime = before
+        with open(path, "r+b") as f:
+            f.truncate(0)
+            f.write(data)               # fits: truncating freed its blocks
+        os.utime(path, ns=(atime, mtime))
     except OSError:
         pass
-    _remove_empty([Path(p) for p in taken.get("created", [])])
 
 
 def _remove_empty(folders):
@@ -189,8 +212,10 @@ def _remove_empty(folders):
             return
 
 
-def _read(fd):
+def _read(fd, raw=False):
+    """The lock file's text (its first 64 kB; ``raw``: as bytes)."""
     try:
-        return os.pread(fd, 4096, 0).decode(errors="replace")
+        data = os.pread(fd, 1 << 16, 0)
     except OSError:
-        return ""
+        data = b""
+    return data if raw else data.decode(errors="replace")

@@ -170,6 +170,15 @@ def _limits(arrays, view, head_discs):
     return ((lo[a] - pad, hi[a] + pad), (lo[b] - pad, hi[b] + pad))
 
 
+def _save(fig, path, **kw):
+    """``fig`` as a PNG at ``path``, written aside and renamed when complete (like the
+    checkpoints): a failure mid-write (a full disk) used to leave a partial PNG there,
+    which a viewer showed as the run's image until a restart rewrote it."""
+    from lc_petsc.io.disk import written_aside
+    with written_aside(path) as tmp:
+        fig.savefig(tmp, format="png", **kw)
+
+
 def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view="front",
                     title="", head=None, every=1, stop=None):
     """Render ``preview_rows`` (row indices of ``/positions``) to
@@ -208,7 +217,7 @@ def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view=
         ax.set_xlabel(xl)
         ax.set_ylabel(yl)
         path = os.path.join(out_dir, "previews", f"frame_{r * every:05d}.png")
-        fig.savefig(path, bbox_inches="tight")
+        _save(fig, path, bbox_inches="tight")
         plt.close(fig)
         written.append(path)
     if sheet and stop is not None:
@@ -227,7 +236,7 @@ def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view=
             fig.suptitle(title)
         fig.tight_layout()
         path = os.path.join(out_dir, "contact_sheet.png")
-        fig.savefig(path)
+        _save(fig, path)
         plt.close(fig)
         written.append(path)
     return written

@@ -396,11 +396,11 @@ def test_clear_errors(tmp_path, capsys):
             "with the config the checkpoint ran with (its attribute config_toml) or add --force (continues "
             "with this config)") in e, e
     assert main([diff, "--out", str(out), "--quiet", "--restart", str(ck), "--force", "--frames", "3"]) == 0
-    # a different rest state (pinned vertices) with --force: warned about, the scene's is used
+    # a different groom (pinned vertices): refused even with --force, frames.h5 holds one groom
     pins = _config(tmp_path, name="pins.toml", **{"seed = 3": "seed = 3\nn_pinned = 5"})
-    assert main([pins, "--out", str(out), "--quiet", "--restart", str(ck), "--force", "--frames", "3"]) == 0
+    assert main([pins, "--out", str(out), "--quiet", "--restart", str(ck), "--force", "--frames", "3"]) == 2
     e = capsys.readouterr().err
-    assert "scene.n_pinned" in e and "rest state differs" in e
+    assert "scene.n_pinned" in e and "the groom cannot change in a restart, not even with --force" in e, e
     # a frames.h5 of another run with the same counts (another dt) is not appended to
     own = (out / "frames.h5").read_bytes()
     with h5py.File(out / "frames.h5", "r+") as f:

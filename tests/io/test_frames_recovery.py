@@ -314,20 +314,25 @@ def test_a_frames_file_from_before_the_checksums_still_restarts(tmp_path, straig
         assert not f["positions"].fletcher32
 
 
+def _positions_key(data, path, row):
+    """Where the key of /positions row ``row`` starts in ``data`` (the bytes of the file
+    at ``path``): the key before the child pointer to the row's chunk in a version-1
+    B-tree node ("TREE"): chunk size (4 bytes), filter mask (4), 4 offsets of 8 (row first)."""
+    with h5py.File(path, "r") as f:
+        addr = f["positions"].id.get_chunk_info(row).byte_offset
+    node = data.find(b"TREE")
+    while node >= 0 and data.find(addr.to_bytes(8, "little"), node, node + 4096) < 0:
+        node = data.find(b"TREE", node + 4)
+    return data.find(addr.to_bytes(8, "little"), node) - 40
+
+
 def _lose_a_chunk(path, row):
     """The key of /positions row ``row`` in its chunk index (a version-1 B-tree node,
     which has no checksum) given a huge row coordinate, as one flipped bit does (found
     by a random-corruption sweep): libhdf5 no longer finds the chunk and reads the fill
     value without an error."""
-    with h5py.File(path, "r") as f:
-        addr = f["positions"].id.get_chunk_info(row).byte_offset
     data = bytearray(Path(path).read_bytes())
-    node = data.find(b"TREE")
-    while node >= 0 and data.find(addr.to_bytes(8, "little"), node, node + 4096) < 0:
-        node = data.find(b"TREE", node + 4)
-    child = data.find(addr.to_bytes(8, "little"), node)
-    key = child - 40           # chunk size, filter mask, 4 offsets (row first) of 8 bytes
-    data[key + 15] ^= 0x80
+    data[_positions_key(data, path, row) + 15] ^= 0x80
     Path(path).write_bytes(bytes(data))
 
 
@@ -344,8 +349,49 @@ def test_a_chunk_lost_from_the_index_reads_as_nan_and_is_refused(tmp_path, strai
     capsys.readouterr()
     assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
     err = capsys.readouterr().err
-    assert (f"{out / 'frames.h5'}: /positions row 4 (frame 4): read as the fill value (NaN or -1), its chunk "
-            "missing from the chunk index (which has no checksum): the file is damaged. With --force") in err, err
+    assert (f"{out / 'frames.h5'}: /positions row 4 (frame 4): its chunk is missing from the chunk index (a "
+            "read returns the fill value, NaN): the file's chunk index (which has no checksum in the HDF5 1.8 "
+            "format) is damaged. With --force") in err, err
+
+
+def test_a_chunk_index_key_naming_another_row_is_found_before_any_read(tmp_path):
+    """The key of row 4's chunk (its row coordinate, in the chunk index, which has no
+    checksum) changed to 2: libhdf5 reads row 4's chunk for row 2, whose Fletcher-32
+    checksum passes (it covers the chunk's bytes, not its row), and rows 3-4 as NaN.  A
+    restart keeping rows 0-2 kept the wrong row 2, and a reader of row 2 alone (a
+    preview) drew frame 4 there, without a word.  And a damaged chunk size crashed every
+    reader (a segfault in libhdf5).  Now the index is looked up for every chunk before
+    any read (frames.index_problem), by the restart and by every reader."""
+    from lc_petsc.io.frames import resumable_problem
+    cfg, out = _config(tmp_path), tmp_path / "out"
+    assert _run(cfg, out) == 0
+    path = out / "frames.h5"
+    with h5py.File(path, "r") as f:
+        n_wisps, n_vertices = f["wisp_offsets"].shape[0] - 1, f["positions"].shape[1]
+        rows = f["positions"][...]
+    good = Path(path).read_bytes()
+    data = bytearray(good)
+    key = _positions_key(data, path, 4)
+    data[key + 8:key + 16] = (2).to_bytes(8, "little")
+    Path(path).write_bytes(bytes(data))
+    with h5py.File(path, "r") as f:      # what libhdf5 does with it
+        got = f["positions"][2]
+        assert [k for k in range(7) if np.array_equal(got, rows[k])] == [4], "row 2 reads row 4"
+        assert np.isnan(f["positions"][3]).all() and np.array_equal(f["positions"][5], rows[5])
+    assert resumable_problem(path, n_wisps, n_vertices, 3) == (
+        f"{path}: /positions row 4 (frame 4): its chunk is missing from the chunk index (a read returns the fill "
+        "value, NaN): the file's chunk index (which has no checksum in the HDF5 1.8 format) is damaged")
+    with pytest.raises(ValueError, match=r"/positions row 4 \(frame 4\): its chunk is missing from the chunk "
+                                         r"index .*; the rows before it may still be read, or rerun from"):
+        read_frames(path, frames=[2])
+    # a chunk's stored size 1 (not its 3 x 8 bytes per vertex + 4 for the checksum)
+    data = bytearray(good)
+    data[key:key + 4] = (1).to_bytes(4, "little")
+    Path(path).write_bytes(bytes(data))
+    assert f"/positions row 4 (frame 4): its chunk index entry is damaged (stored size 1 bytes, not " \
+           f"{24 * n_vertices + 4};" in resumable_problem(path, n_wisps, n_vertices, 3)
+    with pytest.raises(ValueError, match="its chunk index entry is damaged"):
+        read_frames(path, frames=[2])
 
 
 def test_recovery_names_damaged_wisp_offsets(tmp_path):

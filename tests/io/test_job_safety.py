@@ -273,6 +273,28 @@ def test_run_that_cannot_fit_is_refused_before_frame_0(tmp_path, small_volume, c
     assert not out.exists()
 
 
+def test_a_refused_run_puts_back_a_killed_runs_lock(tmp_path, small_volume, capsys):
+    """A run refused (here by the disk estimate, and by a missing checkpoint) in a folder
+    with a killed run's lock file warned about it, then removed it: the folder was not
+    as it was, and the next run no longer warned.  Now the file is put back, its bytes
+    and times, so the next run still names the killed one."""
+    out = small_volume / "out"
+    assert main([_smash(tmp_path, frames=4), "--out", str(out), "--quiet"]) == 0
+    stale = b'{"pid": 4242, "host": "h", "started": "2026-12-06 10:00:00 UTC"}\n'
+    (out / LOCK_NAME).write_bytes(stale)
+    os.utime(out / LOCK_NAME, ns=(1_000_000_000_123, 1_000_000_000_456))    # not the refused run's
+    before = _snapshot(out)
+    for args in (["--frames", "5000"], ["--restart", str(tmp_path / "none.h5")]):
+        capsys.readouterr()
+        assert main([_smash(tmp_path), "--out", str(out), "--quiet"] + args) == 2
+        err = capsys.readouterr().err
+        assert "found the lock of a run that did not finish (pid 4242 on host h" in err, err
+        assert _snapshot(out) == before, args       # bytes and mtime
+    assert main([_smash(tmp_path), "--out", str(out), "--quiet"]) == 0
+    assert "found the lock of a run that did not finish (pid 4242 on host h" in capsys.readouterr().err
+    assert not (out / LOCK_NAME).exists()
+
+
 def test_full_disk_while_writing_frames(tmp_path, small_volume, monkeypatch, capsys):
     cfg = _smash(tmp_path, frames=40, ce=2)
     out = small_volume / "out"
@@ -315,7 +337,7 @@ def test_full_disk_while_writing_frames(tmp_path, small_volume, monkeypatch, cap
 
 
 def test_full_disk_while_writing_a_checkpoint(tmp_path, small_volume, monkeypatch, capsys):
-    cfg = _smash(tmp_path, frames=40, ce=2)
+    cfg = _smash(tmp_path, frames=40, ce=2, previews="true")
     out = small_volume / "out"
     # frame 4 still fits, its checkpoint (about 70 kB) does not
     _fill_at(monkeypatch, small_volume, 4, RESERVE + frame_bytes(101) + 20_000)
@@ -326,13 +348,15 @@ def test_full_disk_while_writing_a_checkpoint(tmp_path, small_volume, monkeypatc
     assert "checkpoint_000004.h5: disk full" in cap.err, cap.err
     s = json.loads((out / "summary.json").read_text())
     assert "checkpoint_000004.h5: disk full" in s["error"]
-    # the USD export is not tried on the full disk (main: pxr's failure as a warning)
-    note = (f"frames.usdc not written: the run stopped on an output error (above); --restart latest writes "
-            f"it at the end of the continued run, or drivers/to_usd.py {out / 'frames.h5'} from the frames "
-            f"written")
-    assert cap.err.count("warning: frames.usdc not written") == 1 and note in cap.err, cap.err
+    # the previews and the USD export are not tried on the full disk, one warning says so
+    # (before: pxr's failure as a warning, and the previews' as a second error)
+    note = (f"previews and frames.usdc not written: the run stopped on an output error (above); --restart "
+            f"latest writes them at the end of the continued run; drivers/to_usd.py {out / 'frames.h5'} writes "
+            f"frames.usdc from the frames written")
+    assert cap.err.count("not written: the run stopped") == 1 and note in cap.err, cap.err
     assert "USD export failed" not in cap.err and not (out / "frames.usdc").exists()
-    assert s["warnings"][-1] == note
+    assert not (out / "previews").exists() and not (out / "contact_sheet.png").exists()
+    assert s["warnings"][-1] == note and s["output"]["not_written"] == []
     assert [c["frame"] for c in s["checkpoints"]] == [2]
     names = sorted(p.name for p in (out / "checkpoints").iterdir())
     assert names == ["checkpoint_000002.h5"]

@@ -83,3 +83,39 @@ def test_rendered_previews_not_blank(tmp_path):
         assert img.std() > 0.05
         colours = np.unique((img.reshape(-1, 3) * 255).astype(int), axis=0)
         assert len(colours) > 200           # shaded head and strands, not a flat plot
+
+
+def test_a_preview_that_fails_mid_write_leaves_no_partial_png(tmp_path, monkeypatch):
+    """A PNG is written aside and renamed when complete: a failure mid-write (a full
+    disk) left the first bytes of the image at the preview's name, which a viewer showed
+    until a restart rewrote it.  Now the image there is the last complete one (here an
+    earlier call's) and nothing else is left."""
+    import errno
+    import os
+    import h5py
+    import matplotlib.image
+    from lc_petsc.scene import geometry
+    x = np.concatenate([geometry.wisp4c(40, root=(2.0 * w, 15.0, 0.0), spin=w) for w in range(3)])
+    with h5py.File(tmp_path / "frames.h5", "w") as f:
+        f["positions"] = np.stack([x, x + [0.5, 0, 0]])
+        f["time"] = [0.0, 0.1]
+        f["wisp_offsets"] = np.arange(4) * 40
+    paths = render_previews(tmp_path / "frames.h5", tmp_path, [1], contact_panels=2)
+    assert [p.rsplit("/", 1)[1] for p in paths] == ["frame_00001.png", "contact_sheet.png"]
+    complete = {p: open(p, "rb").read() for p in paths}
+
+    imsave = matplotlib.image.imsave        # what the Agg canvas's print_png writes with
+
+    def full_disk(target, arr, **kw):
+        if not isinstance(target, (str, os.PathLike)):     # bbox_inches="tight"'s dry run
+            return imsave(target, arr, **kw)
+        with open(target, "wb") as fh:      # the header made it, the rest did not
+            fh.write(b"\x89PNG\r\n\x1a\n" + b"\0" * 100)
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(matplotlib.image, "imsave", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        render_previews(tmp_path / "frames.h5", tmp_path, [1], contact_panels=2)
+    for p, data in complete.items():
+        assert open(p, "rb").read() == data
+    assert sorted(p.name for p in (tmp_path / "previews").iterdir()) == ["frame_00001.png"]
+    assert not any(p.name.endswith(".tmp") for p in tmp_path.iterdir())

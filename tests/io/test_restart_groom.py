@@ -1,6 +1,6 @@
 """A restart of a scene read from a groom file: the groom's content is compared with the
 checkpoint's, not its path (a moved copy restarts, a changed file is refused naming what
-differs); the free-text scene.description may change; time.dt, which every row of
+differs, even with --force); the free-text scene.description may change; time.dt, which every row of
 frames.h5 and frames.usdc shares, may not, even with --force."""
 
 import hashlib
@@ -52,6 +52,11 @@ def _digest(path):
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def _snapshot(folder):
+    """{relative path: sha256} of every file under ``folder``."""
+    return {str(p.relative_to(folder)): _digest(p) for p in sorted(Path(folder).rglob("*")) if p.is_file()}
+
+
 def test_a_moved_groom_restarts_and_a_changed_one_is_refused(tmp_path, capsys):
     first = tmp_path / "a" / "fringe.h5"
     first.parent.mkdir()
@@ -83,8 +88,10 @@ def test_a_moved_groom_restarts_and_a_changed_one_is_refused(tmp_path, capsys):
             "the checkpoint predates radius_sha256 (2026-12-07), so its groom is compared by path (a link at "
             "the checkpoint's path to a moved file will do)") in capsys.readouterr().err
 
-    # a changed copy: refused, naming what differs and both paths (the folder unchanged)
-    held = _digest(out / "frames.h5")
+    # a changed copy: refused, naming what differs and both paths, also with --force
+    # (frames.h5 holds one groom: main went on and kept the old /rest_positions and
+    # /radius under the new rows, for the USD export's rest pose and widths)
+    held = _snapshot(out)
     changed = tmp_path / "b" / "changed.h5"
     shutil.copy(moved, changed)
     with h5py.File(changed, "r+") as f:
@@ -92,21 +99,26 @@ def test_a_moved_groom_restarts_and_a_changed_one_is_refused(tmp_path, capsys):
         offsets = f["wisp_offsets"][...]
     w = int(np.searchsorted(offsets, 45, side="right")) - 1
     cfg = _config(tmp_path, changed, "c.toml")
-    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 2
-    e = capsys.readouterr().err
-    assert (f"the scene's groom ({changed}; the checkpoint's run read {moved}) differs from the checkpoint's in "
-            f"its rest positions at 1 vertex (first: vertex 45, wisp {w}'s vertex {45 - offsets[w]}: ") in e, e
-    assert "restart with the groom the checkpoint ran with or add --force" in e
-    assert _digest(out / "frames.h5") == held
+    for force in ([], ["--force"]):
+        assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest", "--frames", "3"] + force) == 2
+        e = capsys.readouterr().err
+        assert (f"the scene's groom ({changed}; the checkpoint's run read {moved}) differs from the checkpoint's "
+                f"in its rest positions at 1 vertex (first: vertex 45, wisp {w}'s vertex {45 - offsets[w]}: ") in e, e
+        assert ("; the groom cannot change in a restart, not even with --force: the run's frames.h5 "
+                "(/rest_positions, /pinned, /radius) and frames.usdc (widths, pinned, the rest pose) hold one "
+                "groom for all its rows; restart with the groom the checkpoint ran with, or start a new run "
+                "(without --restart) with this one") in e, e
+        assert _snapshot(out) == held
 
     # radii only (not in the checkpoint's datasets, compared by their digest)
     shutil.copy(moved, changed)
     with h5py.File(changed, "r+") as f:
         f["radius"][7] *= 1.1
-    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 2
-    e = capsys.readouterr().err
-    assert "differs from the checkpoint's in its radii; restart with the groom" in e, e
-    assert _digest(out / "frames.h5") == held
+    for force in ([], ["--force"]):
+        assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest", "--frames", "3"] + force) == 2
+        e = capsys.readouterr().err
+        assert "differs from the checkpoint's in its radii; the groom cannot change in a restart" in e, e
+        assert _snapshot(out) == held
 
 
 def test_a_new_time_step_is_refused_even_with_force(tmp_path, capsys):

@@ -213,3 +213,35 @@ def test_keep_lengths_projects_only_the_touched_wisps():
         np.testing.assert_array_equal(out, expect)
     finally:
         sim.close()
+
+
+@pytest.mark.parametrize("slide, later, mended", [(1.5, 0.6, True), (2.0, 0.6, False)])
+def test_lifts_of_a_step_add_up_to_at_most_lift_radii(monkeypatch, slide, later, mended):
+    """Two rounds of the head's frame end in one step (:meth:`_head_end`), the wisp slid
+    a further ``later`` cm along the scalp between them (as a separation or path check
+    moves it): each round's lift used to be bounded from where the vertex then was, so
+    after a first lift of 3.2 radii (a 2 cm slide) the second took B's tip 6.89 radii
+    above its height before the first round.  Now all the step's lifts together keep it
+    within LIFT_RADII radii of that height; a path that would need more is left (to the
+    warning), one that needs less (1.0 radius, then 3.75 in all) is still mended."""
+    sim, x_old, x = slid_draped(monkeypatch, slide, False)
+    try:
+        itg = sim.integrator
+        free = np.flatnonzero(~sim.scene.pinned)
+        tip, r = free[-1], sim.scene.radius[free]
+        height = np.linalg.norm(x[free], axis=1)
+        x1, lifted = itg._head_end(x_old, x, 0.0)
+        first = (np.linalg.norm(x1[tip]) - height[-1]) / r[-1]
+        assert first > (3.0 if not mended else 0.9), first
+        x2 = x1.copy()
+        x2[free] = x1[free] @ turn(later / (R * np.sin(PHI))).T
+        out = itg._head_end(x_old, x2, 0.0, lifted)[0]
+        gain = (np.linalg.norm(out[free], axis=1) - height) / r
+        assert gain.max() <= head_contact.LIFT_RADII + 1e-9, gain
+        tip_path = path_depth(x_old, out, free)[-1]
+        if mended:       # (the last length projection moves the lifted tip back by 2e-6 cm)
+            assert gain[-1] > 3.5 and tip_path <= itg.allowed_depth[tip] + 1e-5, (gain, tip_path)
+        else:
+            assert tip_path > 0.08, tip_path            # it needs more than the room left
+    finally:
+        sim.close()

@@ -223,7 +223,8 @@ class Integrator:
         self.length_projection_move = []    # per frame: time.length_projection's largest move / wisp length
         self._projection_move = 0.0
         # per vertex: its distance from the head's centre before the step's first path
-        # lift (None until then), what bounds the step's lifts (:meth:`_lift_room`)
+        # lift, at least the sphere's radius (None until then): what bounds the step's
+        # lifts (:meth:`_lift_room`)
         self._lift_base = None
 
     # -------------------------------------------------------------- potential
@@ -665,14 +666,17 @@ class Integrator:
 
     def _lift_room(self, x):
         """Per vertex (n,): how much farther out the path lift may still move it in this
-        step (:data:`head_contact.LIFT_RADII` strand radii above its distance from the
-        head's centre before the step's first lift round, set by that round).  Each round
-        used to allow that much from where the vertex then was, so the rounds of the lift
-        and of the frame end added up (a vertex lifted by 8.2 radii in one frame)."""
-        y = x - self._head_sphere()[0]
+        step: up to :data:`head_contact.LIFT_RADII` strand radii above its distance from
+        the head's centre before the step's first lift round (set by that round), or above
+        the sphere when it was under it (a later push-out's rise onto the sphere is not a
+        lift: counted, it refused a tip pushed up from 0.84 radii deep the 3.2 radii its
+        path needed).  Each round used to allow that much from where the vertex then was,
+        so the rounds of the lift and of the frame end added up (8.2 radii in one frame)."""
+        c, R, _ = self._head_sphere()
+        y = x - c
         dist = np.sqrt(np.einsum("ij,ij->i", y, y))
         if self._lift_base is None:
-            self._lift_base = dist
+            self._lift_base = np.maximum(dist, R)
         return self._lift_base + head_contact.LIFT_RADII * self.scene.radius - dist
 
     def _lift_head_paths(self, x_old, x, t_old):

@@ -96,7 +96,8 @@ def segment_depth(p0, p1, radius):
 
 
 #: the integrator's path lift puts a vertex at most this many strand radii farther from
-#: the head's centre than it was before the step's first lift round, all rounds together
+#: the head's centre than it was before the step's first lift round (or than the sphere,
+#: when it was under it), all rounds together
 #: (its velocity leaves the move out and its wisp's rest lengths are set again, so a
 #: larger lift costs neither a kick nor strain; soft hairball with gravity 5000: paths
 #: through 13 with 2 radii, 6 with 4; at 1 radius the soft hairball's 4 tips were left)

@@ -239,6 +239,10 @@ class Integrator:
         self.chord_checks = []          # per frame: chord steps measured (newton_stop = "chord_estimate")
         self.length_projection_move = []    # per frame: time.length_projection's largest move / wisp length
         self._projection_move = 0.0
+        # per vertex: its distance from the head's centre before the step's first path
+        # lift, at least the sphere's radius (None until then): what bounds the step's
+        # lifts (:meth:`_lift_room`)
+        self._lift_base = None
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian):
@@ -394,6 +398,7 @@ class Integrator:
         cfg, sc = self.cfg, self.scene
         self.dt = dt
         self.t_next = t_next
+        self._lift_base = None
         x_old = self.x.copy()
         self.xhat = self.x + dt * self.v
         x = self.xhat.copy()
@@ -671,11 +676,27 @@ class Integrator:
         dist = np.sqrt(np.einsum("ij,ij->i", y, y))
         return self.free & (R - dist > allow) & (dist > 0)
 
+    def _lift_room(self, x):
+        """Per vertex (n,): how much farther out the path lift may still move it in this
+        step: up to :data:`head_contact.LIFT_RADII` strand radii above its distance from
+        the head's centre before the step's first lift round (set by that round), or above
+        the sphere when it was under it (a later push-out's rise onto the sphere is not a
+        lift: counted, it refused a tip pushed up from 0.84 radii deep the 3.2 radii its
+        path needed).  Each round used to allow that much from where the vertex then was,
+        so the rounds of the lift and of the frame end added up (8.2 radii in one frame)."""
+        c, R, _ = self._head_sphere()
+        y = x - c
+        dist = np.sqrt(np.einsum("ij,ij->i", y, y))
+        if self._lift_base is None:
+            self._lift_base = np.maximum(dist, R)
+        return self._lift_base + head_contact.LIFT_RADII * self.scene.radius - dist
+
     def _lift_head_paths(self, x_old, x, t_old):
         """``x`` (the step's end, at t_next) with each free vertex whose straight path from
         ``x_old`` (at ``t_old``), relative to the moving centre, goes deeper in the head
         sphere than allowed lifted straight out just enough for the path to stay that
-        shallow, if that takes at most :data:`head_contact.LIFT_RADII` strand radii
+        shallow, if that keeps it within :data:`head_contact.LIFT_RADII` strand radii of its
+        height before the step's first lift (:meth:`_lift_room`; all rounds together)
         (:func:`head_contact.lift_paths`): both ends on the scalp, the chord of a vertex
         sliding along it cuts under it (soft hairball: tips sliding 3.4 cm a frame,
         chords 0.10-0.12 cm deep past their 0.07 cm radius).  The lifted wisps' rest
@@ -688,8 +709,8 @@ class Integrator:
         # the length projection of a lifted wisp moves its lifted vertices back a little
         # (gravity 5000: 18 paths through after 1 round, 6 after 3)
         for _ in range(head_contact.LIFT_ROUNDS):
-            p1, moved = head_contact.lift_paths(x_old - c0, lifted - c1, R, allow,
-                                                head_contact.LIFT_RADII * self.scene.radius, self.free)
+            p1, moved = head_contact.lift_paths(x_old - c0, lifted - c1, R, allow, self._lift_room(lifted),
+                                                self.free)
             if not len(moved):
                 break
             lifted = lifted.copy()
@@ -720,7 +741,7 @@ class Integrator:
         c0 = self.head.sphere_center(t_old)
         c1, R, allow = self._head_sphere()
         left = self._sunk(x).any() or len(head_contact.lift_paths(
-            x_old - c0, x - c1, R, allow, head_contact.LIFT_RADII * self.scene.radius, self.free)[1]) > 0
+            x_old - c0, x - c1, R, allow, self._lift_room(x), self.free)[1]) > 0
         return bool(global_reduce(self.comm, [float(left)], "max")[0])
 
     def _keep_lengths(self, x, moved):

@@ -95,7 +95,9 @@ def segment_depth(p0, p1, radius):
     return radius - np.sqrt(np.einsum("ij,ij->i", q, q)), t
 
 
-#: the integrator's path lift moves a vertex by at most this many strand radii per round
+#: the integrator's path lift puts a vertex at most this many strand radii farther from
+#: the head's centre than it was before the step's first lift round (or than the sphere,
+#: when it was under it), all rounds together
 #: (its velocity leaves the move out and its wisp's rest lengths are set again, so a
 #: larger lift costs neither a kick nor strain; soft hairball with gravity 5000: paths
 #: through 13 with 2 radii, 6 with 4; at 1 radius the soft hairball's 4 tips were left)
@@ -107,15 +109,14 @@ LIFT_ROUNDS = 3
 LIFT_ROUND_OFF = 1e-12
 
 
-def lift_paths(p0, p1, radius, allow, strand_radius, free):
+def lift_paths(p0, p1, radius, allow, max_lift, free):
     """The ends ``p1`` (n, 3) of straight paths from ``p0`` (both relative to the sphere's
     centre) lifted where a path goes deeper in the sphere of ``radius`` than ``allow``
     (n,) while neither end does: the end is moved straight out from the centre until the
     path's line stays at ``radius - allow`` from it (the distance |p0 x p1| / |p1 - p0|
-    of the line, solved for |p1|), when that moves it by at most its ``strand_radius``
-    (a path the move cannot mend, one turning around the sphere, is left alone; no kick
-    beyond r / dt).  Only ``free`` vertices.  Returns (p1 with the lifted ends, their
-    indices)."""
+    of the line, solved for |p1|), when that moves it by at most ``max_lift`` (n,) (a
+    path the move cannot mend, one turning around the sphere, is left alone).  Only
+    ``free`` vertices.  Returns (p1 with the lifted ends, their indices)."""
     p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
     allow = np.asarray(allow, float)
     depth, _ = segment_depth(p0, p1, radius)
@@ -140,7 +141,7 @@ def lift_paths(p0, p1, radius, allow, strand_radius, free):
     roots[:, ~real] = np.inf
     roots[roots <= b] = np.inf
     rho = roots.min(axis=0)
-    ok = rho - b <= np.asarray(strand_radius, float)[i]
+    ok = rho - b <= np.asarray(max_lift, float)[i]
     i, rho, b = i[ok], rho[ok], b[ok]
     p1 = p1.copy()
     p1[i] *= (rho * (1.0 + LIFT_ROUND_OFF) / b)[:, None]

@@ -45,12 +45,12 @@ def turn(psi):
     return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
 
 
-def draped_sim(monkeypatch, blocker):
+def draped_sim(monkeypatch, blocker, mode="ccd"):
     monkeypatch.setattr(simmod, "source_from_config", lambda *a: draped_source(blocker))
     cfg = SimConfig(scene=SceneConfig(kind="straight"), material=MaterialConfig(youngs_modulus=1e9),
                     physics=PhysicsConfig(terms=("stretch", "bend", "head_collision", "strand_collision"),
                                           head_radius=R, head_center=(0.0, 0.0, 0.0), strand_thickness=0.2,
-                                          strand_contact_mode="ccd"),
+                                          strand_contact_mode=mode),
                     time=TimeConfig(frames=1, length_projection=True))
     sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
     sim.integrator.t_next = cfg.time.dt     # the frame end's head sphere (static)
@@ -211,5 +211,79 @@ def test_keep_lengths_projects_only_the_touched_wisps():
         out = itg._keep_lengths(x, moved)
         assert touched.sum() < sc.nv and np.abs(out[touched] - x[touched]).max() > 0.01
         np.testing.assert_array_equal(out, expect)
+    finally:
+        sim.close()
+
+
+@pytest.mark.parametrize("slide, later, mended", [(1.5, 0.6, True), (2.0, 0.6, False)])
+def test_lifts_of_a_step_add_up_to_at_most_lift_radii(monkeypatch, slide, later, mended):
+    """Two rounds of the head's frame end in one step (:meth:`_head_end`), the wisp slid
+    a further ``later`` cm along the scalp between them (as a separation or path check
+    moves it): each round's lift used to be bounded from where the vertex then was, so
+    after a first lift of 3.2 radii (a 2 cm slide) the second took B's tip 6.89 radii
+    above its height before the first round.  Now all the step's lifts together keep it
+    within LIFT_RADII radii of that height; a path that would need more is left (to the
+    warning), one that needs less (1.0 radius, then 3.75 in all) is still mended."""
+    sim, x_old, x = slid_draped(monkeypatch, slide, False)
+    try:
+        itg = sim.integrator
+        free = np.flatnonzero(~sim.scene.pinned)
+        tip, r = free[-1], sim.scene.radius[free]
+        height = np.linalg.norm(x[free], axis=1)
+        x1, lifted = itg._head_end(x_old, x, 0.0)
+        first = (np.linalg.norm(x1[tip]) - height[-1]) / r[-1]
+        assert first > (3.0 if not mended else 0.9), first
+        x2 = x1.copy()
+        x2[free] = x1[free] @ turn(later / (R * np.sin(PHI))).T
+        out = itg._head_end(x_old, x2, 0.0, lifted)[0]
+        gain = (np.linalg.norm(out[free], axis=1) - height) / r
+        assert gain.max() <= head_contact.LIFT_RADII + 1e-9, gain
+        tip_path = path_depth(x_old, out, free)[-1]
+        if mended:       # (the last length projection moves the lifted tip back by 2e-6 cm)
+            assert gain[-1] > 3.5 and tip_path <= itg.allowed_depth[tip] + 1e-5, (gain, tip_path)
+        else:
+            assert tip_path > 0.08, tip_path            # it needs more than the room left
+    finally:
+        sim.close()
+
+
+def test_penalty_frame_end_lifts_after_the_separation(monkeypatch):
+    """Penalty mode (separation on), one step of the draped wisp at rest, whose
+    separation moves it 1.5 cm along the scalp (as the soft hairball's separation moved
+    lifted tips, docs/contact.md "The frame end and the head agree"): the tip's straight
+    path from the last frame then cuts 0.055 cm under the scalp (allowed 0.033).  Before
+    head54 (cf91ae9) nothing ran after the separation and the frame kept that path; now
+    the head's push-out and lift follow it: every path and vertex within the allowed
+    depth, B at its rest lengths, and the velocity without the lift (no outward kick)."""
+    sim = draped_sim(monkeypatch, None, mode="penalty")
+    try:
+        itg, sc = sim.integrator, sim.scene
+        assert sim.config.physics.strand_separation
+        free = np.flatnonzero(~sc.pinned)
+        x_old = sim.x.copy()
+        slid = x_old.copy()
+        slid[free] = x_old[free] @ turn(1.5 / (R * np.sin(PHI))).T
+        assert path_depth(x_old, slid, free)[-1] > 0.054
+        seen = []
+
+        def separate(x, pairs, deep, dmin):         # the wisp, at rest, moved along the scalp
+            seen.append(np.abs(x - x_old).max())
+            y = x.copy()
+            y[free] = x[free] @ turn(1.5 / (R * np.sin(PHI))).T
+            return y, pairs, deep, dmin, 0
+        monkeypatch.setattr(itg, "_separate", separate)
+        sim.step()
+        out, allow = sim.x, itg.allowed_depth[free]
+        assert seen and seen[0] < 1e-6, seen                 # Newton left it where it was
+        assert np.all(path_depth(x_old, out, free) <= allow + 1e-5), path_depth(x_old, out, free)
+        assert np.all(R - np.linalg.norm(out[free], axis=1) <= allow + 1e-12)
+        tip = free[-1]
+        assert np.linalg.norm(out[tip]) - R > 0.04               # lifted (about one radius)
+        edge = np.linalg.norm(np.diff(out[free[0] - 1:free[-1] + 1], axis=0), axis=1)
+        rest = np.linalg.norm(np.diff(x_old[free[0] - 1:free[-1] + 1], axis=0), axis=1)
+        assert np.abs(edge / rest - 1).max() < 1e-9
+        # the velocity leaves the lift out (its move / dt: 1.5 cm/s at the tip): the slide's
+        kick = np.abs(itg.v - (slid - x_old) / sim.config.time.dt).max()
+        assert kick < 1e-3 < np.linalg.norm(out[tip] - slid[tip]) / sim.config.time.dt, kick
     finally:
         sim.close()

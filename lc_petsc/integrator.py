@@ -47,7 +47,11 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   At any tolerance a stop whose last step was exact is refused when a wisp's exact
   Hessian is not positive definite (:meth:`Integrator._at_saddle`: a saddle of G, not the
   step's solution); the solve then ends unconverged, for step cutback to redo it
-  (``newton_saddle`` per frame).
+  (``newton_saddle`` per frame).  With an element filter alone (not ``exact_or_analytic``) at a tolerance of
+  :data:`VERIFY_FROM` or tighter, a stop after a filtered step is checked by an exact
+  Newton step at its iterate (:meth:`Integrator._verify_stop`): kept when that step is
+  within the tolerances and on its quadratic model, else refused and the step taken next
+  (the analytic filter's stops on the stiff smash had been 1.6-238x away).
 * Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
   misses it within the cap is redone from its start state as two backward-Euler steps
   of dt / 2 (head, pins and head sphere at their own times), each cut again if it

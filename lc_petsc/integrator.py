@@ -47,7 +47,11 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   At any tolerance a stop whose last step was exact is refused when a wisp's exact
   Hessian is not positive definite (:meth:`Integrator._at_saddle`: a saddle of G, not the
   step's solution); the solve then ends unconverged, for step cutback to redo it
-  (``newton_saddle`` per frame).
+  (``newton_saddle`` per frame).  With an element filter alone (not ``exact_or_analytic``) at a tolerance of
+  :data:`VERIFY_FROM` or tighter, a stop after a filtered step is checked by an exact
+  Newton step at its iterate (:meth:`Integrator._verify_stop`): kept when that step is
+  within the tolerances and on its quadratic model, else refused and the step taken next
+  (the analytic filter's stops on the stiff smash had been 1.6-238x away).
 * Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
   misses it within the cap is redone from its start state as two backward-Euler steps
   of dt / 2 (head, pins and head sphere at their own times), each cut again if it
@@ -234,6 +238,7 @@ class Integrator:
         self._searched = None          # the last accepted line search's (G0, G, g . dx)
         self._probe = None             # the last line search's (G0, g . dx), found or not
         self._region_record = {}        # the last trust-region step's rho, radius (history)
+        self._verifying = np.inf        # the last verifying exact step's relative increment
         self._force_scale = 0.0         # the frame's force scale (with a history only)
         self.exact_hessian_fallbacks = []     # per frame: exact Hessians replaced by filtered ones
         self.chord_checks = []          # per frame: chord steps measured (newton_stop = "chord_estimate")
@@ -433,6 +438,7 @@ class Integrator:
         unconfirmed = False                     # this iteration's stop awaits the next
         off_model = False                       # this iteration's stop was refused (_loose_verdict)
         saddle = False                          # this iteration's stop is on a saddle (_at_saddle)
+        pending = None                          # a refused stop's verifying exact step (_verify_stop)
         for it in range(cfg.time.newton_iterations):
             n_it += 1
             unconfirmed = off_model = saddle = False
@@ -466,7 +472,13 @@ class Integrator:
             self._shift, self._fallback, self._searched, self._probe = 0.0, "", None, None
             unreduced = len(self.solver.not_reduced)  # solves short of -ksp_rtol so far
             rejected = None                     # the exact step Armijo rejected
-            if exact:
+            if pending is not None:             # taken now: its assembly and solve are done
+                exact, (g, dx), pending = True, pending, None
+                alpha = self._line_search(x, g, dx, EXACT_HALVINGS, exact=True)
+                if alpha is None:
+                    self._fallback, rejected = "armijo", dx
+                    exact, fallbacks = False, fallbacks + 1
+            elif exact:
                 g, dx, alpha = self._exact_step(x, it, 0.0)
                 if dx is not None and alpha is not None:
                     self._shift = self._tried_shift     # > 0: some wisp's block was shifted
@@ -572,11 +584,19 @@ class Integrator:
             # a stop on a saddle of G ends the solve unconverged (step cutback redoes it)
             saddle = bool(converged) and self._at_saddle(steps[-1].exact and self._shift == 0.0)
             converged = converged and not saddle
+            # a stop after filtered steps is checked by an exact Newton step at the iterate
+            # (the stiff smash's analytic stops were 15-238x away at 1e-4, 1e-5)
+            verdict = ""
+            if converged and not steps[-1].exact and self._verifies(cfg.time.newton_increment_tol):
+                verdict, pending = self._verify_stop(x, it)
+                saddle = verdict == "saddle"
+                converged = verdict == "kept"
             claimed_before, last_step, prior_step = claim, step, last_step
             unconfirmed, off_model = claim and not confirmed, refused
             if self.monitor is not None:
                 short = ", solve short of -ksp_rtol" if short_of_rtol else ""
                 short += _stop_note(unconfirmed, refused) + (_saddle_note(self._saddle_wisps) if saddle else "")
+                short += _verify_note(verdict, self._verifying)
                 self._monitor(it, measure, self._step_kind(exact) + short, alpha, step_ksp,
                               cut=self.strand is not None and self.strand.last_cut, estimate=reported)
             if converged or saddle:
@@ -1078,6 +1098,55 @@ class Integrator:
         dx = self._solve_step(self.gradient(x), it, may_fail=True)
         return np.inf if dx is None else self.increments(dx)[0]
 
+    def _verifies(self, tol):
+        """Whether a stop after a filtered step at the relative tolerance ``tol`` (None:
+        ``time.newton_tol`` alone, taken relative to the shortest wisp) is checked by
+        :meth:`_verify_stop`: with an element filter (not ``exact_or_analytic``, whose
+        filtered stops are a frame's first step or measured by a rejected exact attempt)
+        at or below :data:`VERIFY_FROM`."""
+        if tol is None:
+            tol = self.cfg.time.newton_tol / self.shortest_wisp
+        return self.cfg.solver.filter != "exact_or_analytic" and tol <= VERIFY_FROM
+
+    def _verify_stop(self, x, it):
+        """Check a stop claimed after filtered steps by one exact Newton step at its iterate
+        x (collective: one assembly, the per-wisp inertia pass, one solve).  The filtered
+        steps' sizes and rate do not bound the distance left (the stiff smash, analytic
+        filter: stops 15.7x to 238x the tolerance away, docs/newton.md "Verifying a stop
+        after filtered steps"); the exact step's length does, to first order, where the
+        exact Hessian is definite.  Returns (verdict, step): ``"kept"`` (the exact step
+        within the tolerances), ``"saddle"`` (a wisp's exact block is indefinite:
+        :meth:`_at_saddle`), ``"indefinite"`` (CG found A + C indefinite) or ``"short"``
+        (the solve missed -ksp_rtol), both step None, or with the step (grad G, dx), which
+        the next iteration takes instead of a filtered one (the work kept): ``"far"`` (the
+        exact step exceeds a tolerance) or ``"off_model"`` (within them, but G's decrease
+        along it is off its quadratic model, :func:`model_agrees`: two energies more)."""
+        g = self._assemble_system(x, it, filter="none")
+        self._verifying = np.inf
+        if self._at_saddle(True):
+            return "saddle", None
+        unreduced = len(self.solver.not_reduced)
+        dx = self._solve_step(g, it, may_fail=True)
+        if dx is None:
+            return "indefinite", None
+        if len(self.solver.not_reduced) > unreduced:
+            return "short", None
+        self._verifying, absolute = self.increments(dx)
+        t = self.cfg.time
+        within = ((t.newton_increment_tol is None or self._verifying < t.newton_increment_tol)
+                  and (t.newton_tol is None or absolute < t.newton_tol))
+        if within:
+            # and on its quadratic model: where G's decrease along it is off the model's
+            # the Hessian changes over the step and its length is no bound (the stiff
+            # smash at 1e-3: an exact step of 3.0e-4 where the solution was 1.6e-3 away,
+            # taken at alpha 1/16)
+            slope = self.comm.allreduce(float(np.sum(g * dx)))
+            G0, G1 = self.incremental_potential(x), self.incremental_potential(self.update(x, dx, True))
+            within = model_agrees(G0 - G1, -0.5 * slope, max(abs(G0), abs(G1)))
+            if not within:
+                return "off_model", (g, dx)
+        return ("kept", None) if within else ("far", (g, dx))
+
     def _loose_verdict(self, loose, claim, claimed_before, measure, steps, recent, measured=False):
         """(confirmed, refused) for this iteration's stop ``claim`` at a ``loose``
         tolerance (:func:`confirms_stop`; else (True, False)).  Confirmed: the last
@@ -1268,6 +1337,20 @@ def _stop_note(unconfirmed, refused):
     return ", stop refused: G's decrease off its quadratic model" if refused else ""
 
 
+def _verify_note(verdict, length):
+    """The monitor's note on a stop checked by an exact step (:meth:`Integrator._verify_stop`)."""
+    if verdict == "kept":
+        return f", stop verified: exact step {length:.3e}"
+    if verdict == "far":
+        return f", stop refused: the exact step at the stop is {length:.3e} (taken next)"
+    if verdict == "off_model":
+        return f", stop refused: the exact step at the stop ({length:.3e}) is off its quadratic model (taken next)"
+    if verdict in ("indefinite", "short"):
+        why = "the exact Hessian is indefinite" if verdict == "indefinite" else "its solve missed -ksp_rtol"
+        return f", stop refused: no exact step to verify it ({why})"
+    return ""
+
+
 def _saddle_note(wisps):
     """The monitor's note on a stop refused on a saddle of G (:meth:`Integrator._at_saddle`):
     the wisps (global indices) whose exact Hessian is not positive definite."""
@@ -1375,6 +1458,12 @@ def quadratic_error_estimate(increments, modelled=None):
     if not d < d1 < d0 or (modelled is not None and not all(modelled[-2:])):
         return np.inf
     return max(d / d1 ** 2, d1 / d0 ** 2) * d ** 2
+
+
+#: A stop after filtered steps (an element filter, not exact_or_analytic) at a relative
+#: tolerance at or below this is checked by an exact Newton step at its iterate
+#: (Integrator._verify_stop; docs/newton.md "Verifying a stop after filtered steps")
+VERIFY_FROM = 1e-3
 
 
 #: The start from rest's carry decays along a wisp as exp(-s / (START_CARRY_LENGTH * S)),

@@ -451,6 +451,59 @@ def test_a_two_step_lull_is_not_a_loose_stop():
     assert stiff["newton_converged"] == [False], stiff["newton_iterations"]   # main: [True] after 10
 
 
+def test_a_stop_after_filtered_steps_is_verified_by_an_exact_step():
+    """The stiff coil (101 vertices, E = 1e12, frame 0 at dt 0.2) with the analytic filter
+    alone at 1e-5: main claimed it converged after 12 filtered steps (3.1e-4, 1.1e-5,
+    3.7e-5, 2.4e-6) 238x the tolerance from the step's solution, on no saddle.  An exact
+    Newton step at the claimed iterate is 9.2e-4 (92x the tolerance): the stop is refused
+    and that step taken next (its assembly and solve not wasted); the frame is reported
+    not converged within 30, still > 10x away.  At 1e-3 the verifying step (3.0e-4) is
+    within the tolerance but off its quadratic model (taken at alpha 1/16): refused too
+    (docs/newton.md "Verifying a stop after filtered steps")."""
+    Y, ref, wisp_length = _run_coil(_stiff_smash(1e-10, cap=400, fallback="shifted", n_vertices=101))
+    assert ref["newton_converged"] == [True]
+
+    def analytic(tol):
+        cfg = _stiff_smash(tol, cap=30, n_vertices=101)
+        cfg.solver.filter = "analytic"
+        return cfg.validate()
+    X, s, _ = _run_coil(analytic(1e-5))
+    distance = (np.linalg.norm(X - Y, axis=1) / wisp_length).max()
+    assert s["newton_converged"] == [False], (s["newton_iterations"], distance / 1e-5)   # main: 12, 238x
+    assert distance > 10 * 1e-5                                 # rightly: still far
+    # each refused stop's exact step is the next iteration's step (the work kept): the
+    # monitor's next line is an exact step of that length (its full step: it is damped)
+    lines = _monitor_lines(analytic(1e-5))
+    refused = [k for k, line in enumerate(lines) if "(taken next)" in line]
+    assert refused, lines
+    for k in refused:
+        length = lines[k].split("the exact step at the stop is ")[1].split()[0]
+        if k + 1 < len(lines) and "iteration" in lines[k + 1]:
+            assert f"increment {length}, exact," in lines[k + 1], lines[k:k + 2]
+    # at 1e-3 over two frames frame 1 had stopped 1.57x away (9 iterations) on a
+    # verifying step of 3.0e-4, within the tolerance but taken at alpha 1/16: off its
+    # quadratic model, no bound; refused
+    cfg = analytic(1e-3)
+    cfg.time.frames = 2
+    lines = _monitor_lines(cfg.validate())
+    assert any("is off its quadratic model (taken next)" in line for line in lines), lines
+    assert not any("stop verified" in line for line in lines)
+    _, s, _ = _run_coil(cfg)
+    assert s["newton_converged"] == [False, False], s["newton_iterations"]     # main: [False, True]
+
+
+def _monitor_lines(cfg):
+    """The -lc_newton_monitor lines of ``cfg`` run on this rank alone."""
+    import io
+    sim = build_simulator(cfg, MPI.COMM_SELF)
+    try:
+        sim.integrator.monitor = io.StringIO()
+        sim.run()
+        return sim.integrator.monitor.getvalue().splitlines()
+    finally:
+        sim.close()
+
+
 def test_a_stop_the_cap_leaves_unconfirmed_is_named():
     """At 3e-4 the crushed coil claims a stop at iteration 7 (increment 2.6e-4) that the
     8th step refutes.  With the cap at 7 the frame is rightly not converged, but the

@@ -102,7 +102,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from lc_petsc import curvature
+from lc_petsc import contact_curvature, curvature
 from lc_petsc.elements import compiled, head_contact
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.scene.state import vertex_wisp_length
@@ -226,6 +226,8 @@ class Integrator:
         self.newton_saddle = []         # per frame: stops refused on a saddle of G (all attempts)
         self._saddles = 0               # the frame's so far
         self._saddle_wisps = []         # the last saddle's wisps (global; for the monitor)
+        self._coupled = None            # the check over contact-coupled wisps (_at_coupled_saddle)
+        self.coupled_checks = []        # its verdicts (contact_curvature.Verdict), one per check
         self.history = None             # a list: per-iteration measures are appended
         self.monitor = None             # a stream: a line per Newton iteration (rank 0)
         self._fallback = ""            # why the last exact step was rejected (history)
@@ -566,6 +568,7 @@ class Integrator:
             converged = converged and confirmed and not refused
             # a stop on a saddle of G ends the solve unconverged (step cutback redoes it)
             saddle = bool(converged) and self._at_saddle(steps[-1].exact and self._shift == 0.0)
+            saddle = saddle or (bool(converged) and self._at_coupled_saddle(steps[-1].exact and self._shift == 0.0))
             converged = converged and not saddle
             claimed_before, last_step, prior_step = claim, step, last_step
             unconfirmed, off_model = claim and not confirmed, refused
@@ -1101,6 +1104,30 @@ class Integrator:
             return False
         self._saddles += 1
         self._saddle_wisps = found
+        return True
+
+    def _at_coupled_saddle(self, exact):
+        """Whether this iteration's stop is on a saddle of G that only the coupling of
+        wisps by strand contact makes one: A + C has negative curvature although every
+        wisp block passed :meth:`_at_saddle` (the six touching wisps in phase stopped so
+        at -0.517 M/dt^2 over three wisps whose own blocks are definite; docs/newton.md
+        "A saddle over contact-coupled wisps").  Lanczos on A + C preconditioned by the
+        wisp blocks (:mod:`lc_petsc.contact_curvature`); only at an ``exact`` stop (as
+        :meth:`_at_saddle`) with contact cross blocks.  Collective; counted in
+        ``newton_saddle`` like a wisp's saddle."""
+        if not exact or self.strand is None or self.strand.C is None:
+            return False
+        if self._coupled is None:
+            self._coupled = contact_curvature.CoupledCurvature(
+                self.scene.offsets, self.asm.mat.getOwnershipRange()[0] // 3, self.free, self.comm)
+        with self.timers("solve"):
+            verdict = self._coupled.check(self.asm.local_block_csr(), self.solver.ksp.getOperators()[0],
+                                          np.where(self.free, self.scene.mass / self.dt ** 2, 0.0), self.asm.mat)
+        self.coupled_checks.append(verdict)
+        if not verdict.negative:
+            return False
+        self._saddles += 1
+        self._saddle_wisps = list(verdict.wisps)
         return True
 
     def _model_agrees(self, step):

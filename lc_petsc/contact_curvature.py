@@ -48,6 +48,7 @@ class Verdict(NamedTuple):
     Ritz vector's Rayleigh quotient of A + C in units of M/dt^2 (an upper bound of
     dt^2 M^-1/2 (A + C) M^-1/2's lowest eigenvalue), else None; ``wisps``: where
     negative, the global wisps holding at least :data:`NAMED_SHARE` of it (by share)."""
+
     negative: bool
     lowest: float
     iterations: int

@@ -46,8 +46,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   ``solver.exact_stay``: after a full, unshifted exact step the next one is exact too.
   At any tolerance a stop whose last step was exact is refused when a wisp's exact
   Hessian is not positive definite (:meth:`Integrator._at_saddle`: a saddle of G, not the
-  step's solution); the solve then ends unconverged, for step cutback to redo it
-  (``newton_saddle`` per frame).
+  step's solution), and with strand contact when the whole A + C has negative curvature
+  (:meth:`Integrator._at_coupled_saddle`: a mode over contact-coupled wisps whose own
+  blocks are definite, found by Lanczos); the solve then ends unconverged, for step
+  cutback to redo it (``newton_saddle`` per frame).
 * Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
   misses it within the cap is redone from its start state as two backward-Euler steps
   of dt / 2 (head, pins and head sphere at their own times), each cut again if it

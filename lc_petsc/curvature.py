@@ -15,7 +15,8 @@ Sylvester's law of inertia the negative pivots count the negative eigenvalues). 
 wisp's block is a principal submatrix of the whole Hessian (strand contact couples wisps
 only through its own matrix), so one negative eigenvalue in it proves the whole matrix
 indefinite (Cauchy interlacing); a negative mode spread over several wisps coupled by
-contact is not seen.  Rank-local and per wisp: the same answer on any partition.
+contact is not seen here (lc_petsc/contact_curvature.py checks the whole A + C).
+Rank-local and per wisp: the same answer on any partition.
 
 The same kernel with a trial diagonal finds, per indefinite wisp, the least mass shift
 that makes its block definite (:func:`least_definite_shifts`): the shifted fallback's

@@ -46,12 +46,15 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   ``solver.exact_stay``: after a full, unshifted exact step the next one is exact too.
   At any tolerance a stop whose last step was exact is refused when a wisp's exact
   Hessian is not positive definite (:meth:`Integrator._at_saddle`: a saddle of G, not the
-  step's solution); the solve then ends unconverged, for step cutback to redo it
-  (``newton_saddle`` per frame).  With an element filter alone (not ``exact_or_analytic``) at a tolerance of
-  :data:`VERIFY_FROM` or tighter, a stop after a filtered step is checked by an exact
-  Newton step at its iterate (:meth:`Integrator._verify_stop`): kept when that step is
-  within the tolerances and on its quadratic model, else refused and the step taken next
-  (the analytic filter's stops on the stiff smash had been 1.6-238x away).
+  step's solution), and with strand contact when the whole A + C has negative curvature
+  (:meth:`Integrator._at_coupled_saddle`: a mode over contact-coupled wisps whose own
+  blocks are definite, found by Lanczos); the solve then ends unconverged, for step
+  cutback to redo it (``newton_saddle`` per frame).  With an element filter alone (not
+  ``exact_or_analytic``) at a tolerance of :data:`VERIFY_FROM` or tighter, a stop after a
+  filtered step is checked by an exact Newton step at its iterate
+  (:meth:`Integrator._verify_stop`): kept when that step is within the tolerances and on
+  its quadratic model, else refused and the step taken next (the analytic filter's stops
+  on the stiff smash had been 1.6-238x away).
 * Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
   misses it within the cap is redone from its start state as two backward-Euler steps
   of dt / 2 (head, pins and head sphere at their own times), each cut again if it
@@ -106,7 +109,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from lc_petsc import curvature
+from lc_petsc import contact_curvature, curvature
 from lc_petsc.elements import compiled, head_contact
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.scene.state import vertex_wisp_length
@@ -230,6 +233,8 @@ class Integrator:
         self.newton_saddle = []         # per frame: stops refused on a saddle of G (all attempts)
         self._saddles = 0               # the frame's so far
         self._saddle_wisps = []         # the last saddle's wisps (global; for the monitor)
+        self._coupled = None            # the check over contact-coupled wisps (_at_coupled_saddle)
+        self.coupled_checks = []        # its verdicts (contact_curvature.Verdict), one per check
         self.history = None             # a list: per-iteration measures are appended
         self.monitor = None             # a stream: a line per Newton iteration (rank 0)
         self._fallback = ""            # why the last exact step was rejected (history)
@@ -582,7 +587,8 @@ class Integrator:
                                                      (step, last_step, prior_step), chord_claim and based)
             converged = converged and confirmed and not refused
             # a stop on a saddle of G ends the solve unconverged (step cutback redoes it)
-            saddle = bool(converged) and self._at_saddle(steps[-1].exact and self._shift == 0.0)
+            checked = steps[-1].exact and self._shift == 0.0
+            saddle = bool(converged) and (self._at_saddle(checked) or self._at_coupled_saddle(checked))
             converged = converged and not saddle
             # a stop after filtered steps is checked by an exact Newton step at the iterate
             # (the stiff smash's analytic stops were 15-238x away at 1e-4, 1e-5)
@@ -1191,6 +1197,30 @@ class Integrator:
             return False
         self._saddles += 1
         self._saddle_wisps = found
+        return True
+
+    def _at_coupled_saddle(self, exact):
+        """Whether this iteration's stop is on a saddle of G that only the coupling of
+        wisps by strand contact makes one: A + C has negative curvature although every
+        wisp block passed :meth:`_at_saddle` (the six touching wisps in phase stopped so
+        at -0.517 M/dt^2 over three wisps whose own blocks are definite; docs/newton.md
+        "A saddle over contact-coupled wisps").  Lanczos on A + C preconditioned by the
+        wisp blocks (:mod:`lc_petsc.contact_curvature`); only at an ``exact`` stop (as
+        :meth:`_at_saddle`) with contact cross blocks.  Collective; counted in
+        ``newton_saddle`` like a wisp's saddle."""
+        if not exact or self.strand is None or self.strand.C is None:
+            return False
+        if self._coupled is None:
+            self._coupled = contact_curvature.CoupledCurvature(
+                self.scene.offsets, self.asm.mat.getOwnershipRange()[0] // 3, self.free, self.comm)
+        with self.timers("solve"):
+            verdict = self._coupled.check(self.asm.local_block_csr(), self.solver.ksp.getOperators()[0],
+                                          np.where(self.free, self.scene.mass / self.dt ** 2, 0.0), self.asm.mat)
+        self.coupled_checks.append(verdict)
+        if not verdict.negative:
+            return False
+        self._saddles += 1
+        self._saddle_wisps = list(verdict.wisps)
         return True
 
     def _model_agrees(self, step):

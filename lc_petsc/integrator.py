@@ -232,7 +232,10 @@ class Integrator:
         self.newton_refused = []        # per frame: kept steps the cap ended on a refused stop
         self.newton_saddle = []         # per frame: stops refused on a saddle of G (all attempts)
         self._saddles = 0               # the frame's so far
-        self._saddle_wisps = []         # the last saddle's wisps (global; for the monitor)
+        self._saddle_wisps = []         # the last saddle's wisps (the scene's numbers; for the monitor)
+        # the scene's number of internal wisp i (-lc_wisp_order; set by the Simulator):
+        # the monitor names wisps as the user's scene and frames.h5 number them
+        self.wisp_order = None
         self._coupled = None            # the check over contact-coupled wisps (_at_coupled_saddle)
         self.coupled_checks = []        # its verdicts (contact_curvature.Verdict), one per check
         self.history = None             # a list: per-iteration measures are appended
@@ -1196,7 +1199,7 @@ class Integrator:
         if not found:
             return False
         self._saddles += 1
-        self._saddle_wisps = found
+        self._saddle_wisps = self._scene_wisps(found)
         return True
 
     def _at_coupled_saddle(self, exact):
@@ -1220,8 +1223,14 @@ class Integrator:
         if not verdict.negative:
             return False
         self._saddles += 1
-        self._saddle_wisps = list(verdict.wisps)
+        self._saddle_wisps = self._scene_wisps(verdict.wisps)
         return True
+
+    def _scene_wisps(self, internal):
+        """The scene's (user's) numbers of the internal global wisps ``internal``, sorted
+        (the partition renumbers wisps along a space-filling curve, -lc_wisp_order)."""
+        order = self.wisp_order
+        return sorted(int(w) if order is None else int(order[w]) for w in internal)
 
     def _model_agrees(self, step):
         """Whether Newton step ``step`` (a dict: the iterates ``before`` and ``after``, the

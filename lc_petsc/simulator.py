@@ -118,6 +118,7 @@ class Simulator:
         self.head = HeadMotion(cfg.physics)
         self.integrator = Integrator(scene, self.assembler, self.solver, comm, self.timers, cfg,
                                      self.head, x0, strand=self.strand, trust=self.trust)
+        self.integrator.wisp_order = self.wisp_order
         if plan.newton_monitor:                 # -lc_newton_monitor
             self.integrator.monitor = sys.stdout
         if self.strand is not None:

@@ -88,6 +88,30 @@ def test_to_a_tolerance_each_frame_ends_with_its_verdict(capsys):
     assert "exact" in kinds and kinds[0] == "filtered"       # the switch to exact steps is shown
 
 
+
+@pytest.mark.mpi
+def test_a_saddles_wisps_are_named_in_the_scenes_order(capsys):
+    """The partition renumbers wisps along a space-filling curve (-lc_wisp_order spatial,
+    the default; the 3-wisp hairball's internal order is 2, 1, 0): the refused saddle's
+    note named the internal numbers (wisps 1, 2 where the scene's, as in frames.h5, are
+    0, 1)."""
+    named = {}
+    for order in ("input", "spatial"):
+        options = f"-lc_newton_monitor -lc_wisp_order {order}"
+        config = small_hairball_config(n_wisps=3, frames=1, options=options, newton_iterations=30,
+                                       newton_increment_tol=1e-6, newton_update="corotational",
+                                       max_substeps=1)
+        config.solver = SolverConfig(options=options, filter="exact_or_analytic", exact_stay=True)
+        capsys.readouterr()
+        _, summary = run_positions(config, comm=MPI.COMM_WORLD)
+        lines = capsys.readouterr().out.splitlines()
+        assert summary["newton_saddle"] == [1]
+        if MPI.COMM_WORLD.rank == 0:
+            notes = [line for line in lines if "a saddle of G (wisps " in line]
+            named[order] = notes[-1].split("(wisps ")[1].split(")")[0]
+    if MPI.COMM_WORLD.rank == 0:
+        assert named["spatial"] == named["input"] == "0, 1", named
+
 def _run_lines(capsys, solver=None, **time):
     config = small_hairball_config(n_wisps=3, frames=2, options="-lc_newton_monitor", **time)
     if solver is not None:

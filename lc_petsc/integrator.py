@@ -1021,7 +1021,9 @@ class Integrator:
         g = self._assemble_system(x, it, filter="none", shift=shift if np.ndim(shift) == 0 else
                                   np.repeat(base, sizes))
         self._wisp_tau = base.copy()
-        self._tried_shift = max(self.comm.allgather(float(base.max(initial=0.0))))
+        # per-wisp shifts differ by rank (the retries of _wisp_step): their largest gathered
+        self._tried_shift = float(shift) if np.ndim(shift) == 0 else \
+            max(self.comm.allgather(float(base.max(initial=0.0))))
         if self.cfg.solver.exact_fallback != "shifted":
             return g
         unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)

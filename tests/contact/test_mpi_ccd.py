@@ -632,8 +632,10 @@ def test_contact_frames_converge_within_a_cap_of_100(monkeypatch):
     (docs/newton.md "Thirteenth round"), and before the straight stem's twist was faded
     no frame did.  Before the shifted fallback's ladder shifts made every wisp block
     definite (a wisp's least shift was taken instead of the ladder's, not on top of it):
-    12 15 10 61 29 30 on 1 rank, 12 15 10 74 29 30 on 3 (and before the three-step stop
-    rule, frame 3 on 1 rank stopped on a saddle of G, refused: 57 41 36)."""
+    12 15 10 61 29 30 on 1 rank, 12 15 10 74 29 30 on 3, and since stops after filtered
+    steps are verified, frame 0 on 1 rank refused as a saddle of G (newton_saddle [1, 0, ...],
+    not converged); before the three-step stop rule, frame 3 on 1 rank stopped on a saddle,
+    refused: 57 41 36."""
     sim = six_wisps_ccd(monkeypatch, 6, solver=(("filter", "exact_or_analytic"), ("exact_fallback", "shifted"),
                                                  ("exact_stay", True)),
                         newton_iterations=100, newton_increment_tol=1e-6, max_substeps=1,

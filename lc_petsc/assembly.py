@@ -205,6 +205,17 @@ class Assembler:
                 e += float(KERNELS[name].energy(x[t.index], t.rest, t.stiffness).sum())
         return e
 
+    def vertex_energy(self, x):
+        """Elastic energy (nv,) of this rank's enabled terms per vertex: vertex v's entry
+        is that of the elements starting at v (so within v's wisp; the NumPy kernels).
+        Rank-local: a wisp's sum of it is its own energy."""
+        e = np.zeros(len(x))
+        with self.timers("elements"):
+            for name, t in self.scene.terms.items():
+                if len(t.start):
+                    e += np.bincount(t.start, KERNELS[name].energy(t.gather(x), t.rest, t.stiffness), minlength=len(x))
+        return e
+
     def gradient(self, x):
         """Elastic gradient (nv, 3) of this rank's enabled terms."""
         g = np.zeros_like(x)

@@ -40,7 +40,8 @@ from lc_petsc.elements.common import FILTERS as ELEMENT_FILTERS  # noqa: E402
 FILTERS = ELEMENT_FILTERS + ("exact_or_analytic",)
 #: solver.exact_fallback: what replaces a failed exact step of "exact_or_analytic": the
 #: analytic filter's step, or first the exact Hessian shifted by tau M/dt^2; "shifted" also
-#: shifts each wisp whose exact block is indefinite before the solve (docs/newton.md)
+#: shifts each wisp whose exact block is indefinite before the solve and, without strand
+#: contact, searches the exact steps wisp by wisp (docs/newton.md)
 EXACT_FALLBACKS = ("analytic", "shifted")
 #: time.frames above this is refused (a billion frames at 1/30 s is a year of motion)
 MAX_FRAMES = 10 ** 9
@@ -431,7 +432,9 @@ class SolverConfig:
     "exact_or_analytic"``): ``"analytic"`` replaces a failed exact step by the analytic
     filter's, ``"shifted"`` first tries the exact Hessian + tau M/dt^2 (docs/newton.md
     "Seventh round"), and gives every wisp whose exact block is indefinite its own shift
-    before the solve (docs/newton.md "Avoiding the saddle").  ``exact_stay`` (same
+    before the solve (docs/newton.md "Avoiding the saddle"); without strand contact its
+    exact steps are searched wisp by wisp, a wisp whose search fails shifted further on
+    its own (docs/newton.md "Frame 0 wisp by wisp").  ``exact_stay`` (same
     filter): after a full, unshifted exact step the next step is exact too, whatever its
     increment (docs/newton.md "Eighth round").
     """

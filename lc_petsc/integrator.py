@@ -243,6 +243,8 @@ class Integrator:
         self._fallback = ""            # why the last exact step was rejected (history)
         self._shift = 0.0              # the mass shift of the last exact step (history)
         self._tried_shift = 0.0        # the largest of the last exact assembly's (_exact_system)
+        self._wisp_tau = None          # per wisp: the last exact assembly's shifts (_exact_system)
+        self._wisp_alpha = None        # per vertex: its wisp's alpha (_wisp_line_search) or None
         self._searched = None          # the last accepted line search's (G0, G, g . dx)
         self._probe = None             # the last line search's (G0, g . dx), found or not
         self._region_record = {}        # the last trust-region step's rho, radius (history)
@@ -258,7 +260,10 @@ class Integrator:
         self._lift_base = None
 
     # -------------------------------------------------------------- potential
-    def _contact_terms(self, x, need_hessian):
+    def _contact_terms(self, x, need_hessian, per_vertex=False):
+        """The head sphere's penalty at x: (energy (per active vertex with
+        ``per_vertex``), the active free vertices, (gradient, Hessian or None)); (0.0,
+        None, None) without head collision."""
         if not self.contact:
             return 0.0, None, None
         with self.timers("collision"):
@@ -269,7 +274,8 @@ class Integrator:
             if len(idx) == 0:
                 return 0.0, idx, None
             xi = x[idx]
-            e = float(head_contact.energy(xi, c, R, k).sum())
+            e = head_contact.energy(xi, c, R, k)
+            e = e if per_vertex else float(e.sum())
             g = head_contact.gradient(xi, c, R, k)
             # the exact Newton matrix needs the exact head Hessian too (its negative
             # curvature is what lets a sliding vertex converge quadratically)
@@ -291,6 +297,20 @@ class Integrator:
         if self.strand is not None:
             total += self.strand.energy(x)
         return total
+
+    def wisp_potentials(self, x):
+        """Each of this rank's wisps' share of G at x (n_local_wisps,): its inertia,
+        elastic, gravity and head-penalty terms (their sum over all ranks is G without
+        strand contact, up to round-off).  Rank-local, no collective; a wisp's share
+        depends on that wisp alone."""
+        d = x - self.xhat
+        per = np.where(self.free, 0.5 / self.dt ** 2 * self.scene.mass * np.sum(d * d, axis=1)
+                       - np.sum(self.f_ext * x, axis=1), 0.0)
+        per += self.asm.vertex_energy(x)
+        e, idx, _ = self._contact_terms(x, False, per_vertex=True)
+        if idx is not None and len(idx):
+            per[idx] += e
+        return np.bincount(self.vertex_wisp, per, minlength=len(self.scene.offsets) - 1)
 
     def gradient(self, x, elastic=None):
         """grad G at x (pinned rows zeroed); ``elastic`` reuses an elastic gradient."""
@@ -502,6 +522,7 @@ class Integrator:
                     exact = False
                     fallbacks += 1
             if not exact:
+                self._wisp_alpha = None
                 g = self._assemble_system(x, it)
                 dx = self._solve_step(g, it)
                 alpha = 1.0
@@ -509,7 +530,7 @@ class Integrator:
             step_ksp = self.solver.iterations[-1]     # the step taken (before a chord check)
             if cfg.time.line_search and not exact:
                 alpha = self._line_search(x, g, dx, 20, give_up=False)
-            x_prev, x = x, self.update(x, alpha * dx, exact)
+            x_prev, x = x, self.update(x, self._scaled(alpha, dx), exact)
             if self.strand is not None:         # ccd mode: per vertex, collision-free path
                 nonlinear = self.retract or (exact and self.turn_exact)
                 x = self.strand.limit_step(x_prev, x, x_prev + alpha * dx if nonlinear else None)
@@ -983,8 +1004,12 @@ class Integrator:
         CG finds the matrix indefinite, alpha or None when Armijo fails)."""
         g = self._exact_system(x, it, shift)
         dx = self._solve_step(g, it, may_fail=True)
-        alpha = None if dx is None else self._line_search(x, g, dx, EXACT_HALVINGS, exact=True)
-        return g, dx, alpha
+        self._wisp_alpha = None
+        if dx is None:
+            return g, dx, None
+        if not self._per_wisp_search():
+            return g, dx, self._line_search(x, g, dx, EXACT_HALVINGS, exact=True)
+        return g, dx, self._wisp_step(x, it, g, dx)
 
     def _exact_system(self, x, it, shift):
         """Assemble the exact Hessian + ``shift`` M/dt^2 at x (returns grad G).  With
@@ -994,22 +1019,33 @@ class Integrator:
         again: an exact step on an indefinite block heads for a stationary point, often a
         saddle of G (hairball10's frame 0 from rest: the step's solution found in 21
         iterations instead of a saddle refused after 20 and cut back, 39; docs/newton.md
-        "Avoiding the saddle").  Per wisp and rank-local; one gather of the largest shift
+        "Avoiding the saddle").  ``shift`` is a number or one per local wisp (the retries
+        of :meth:`_wisp_step`); a wisp's least shift is on top of the shift assembled (it
+        had replaced it: the ladder's steps at 0.1 and 1 left blocks indefinite).  Per wisp
+        and rank-local (the shifts in ``_wisp_tau``); one gather of the largest shift
         (``_tried_shift``, the same on every rank: a shifted step is no Newton step)."""
-        g = self._assemble_system(x, it, filter="none", shift=shift)
-        self._tried_shift = shift
+        offsets = self.scene.offsets
+        sizes = np.diff(offsets)
+        base = np.broadcast_to(np.asarray(shift, float), sizes.shape)   # per wisp
+        g = self._assemble_system(x, it, filter="none", shift=shift if np.ndim(shift) == 0 else
+                                  np.repeat(base, sizes))
+        self._wisp_tau = base.copy()
+        # per-wisp shifts differ by rank (the retries of _wisp_step): their largest gathered
+        self._tried_shift = float(shift) if np.ndim(shift) == 0 else \
+            max(self.comm.allgather(float(base.max(initial=0.0))))
         if self.cfg.solver.exact_fallback != "shifted":
             return g
-        offsets = self.scene.offsets
         unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
         with self.timers("solve"):
             least = curvature.least_definite_shifts(self.asm, offsets, unit)
         # beyond the searched range no shift of a wisp's own helps: the uniform ladder
-        # (and CG, Armijo) decide as before
-        tau = np.where(np.isfinite(least), np.maximum(WISP_SHIFT_FACTOR * least, shift), shift)
-        self._tried_shift = max(self.comm.allgather(float(tau.max(initial=shift))))
-        if self._tried_shift > shift:       # the assembly is collective: every rank again
-            g = self._assemble_system(x, it, filter="none", shift=np.repeat(tau, np.diff(offsets)))
+        # (and CG, Armijo) decide as before.  ``least`` is on top of the shift assembled
+        tau = np.where(np.isfinite(least), base + WISP_SHIFT_FACTOR * least, base)
+        self._wisp_tau = tau
+        tried = max(self.comm.allgather(float(tau.max(initial=0.0))))
+        if tried > self._tried_shift:       # the assembly is collective: every rank again
+            g = self._assemble_system(x, it, filter="none", shift=np.repeat(tau, sizes))
+        self._tried_shift = tried
         return g
 
     def _exact_hessian(self, increment, stay=False):
@@ -1041,6 +1077,74 @@ class Integrator:
             if give_up:
                 return None
         return alpha
+
+    def _per_wisp_search(self):
+        """Whether exact steps are searched wisp by wisp (:meth:`_wisp_step`): with
+        ``solver.exact_fallback = "shifted"`` (whose shifts are per wisp too) and without
+        strand contact, the only term that couples wisps (with it, the global search)."""
+        return self.strand is None and self.cfg.solver.exact_fallback == "shifted"
+
+    def _wisp_step(self, x, it, g, dx):
+        """The per-wisp line search of an exact step (:meth:`_wisp_line_search`); a wisp
+        it fails on (an ascent direction, or no decrease within :data:`EXACT_HALVINGS`
+        halvings) gets its own larger shift, :data:`WISP_RETRY_FACTOR` times its last (at
+        least the ladder's first), and the system is solved again for it, at most :data:`WISP_RETRIES` times (the other
+        wisps keep their steps and factors: no term couples them).  ``dx`` is updated in
+        place.  Returns the smallest alpha (all ranks) or None (then the uniform ladder
+        decides, as for the global search).  Collective."""
+        wisp = self.vertex_wisp
+        alpha, bad = self._wisp_line_search(x, g, dx, np.ones(len(self.scene.offsets) - 1, bool))
+        for _ in range(WISP_RETRIES):
+            if not global_reduce(self.comm, [float(bad.any())], "max")[0]:
+                break
+            tau = self._wisp_tau.copy()
+            tau[bad] = np.maximum(WISP_RETRY_FACTOR * tau[bad], EXACT_SHIFTS[0])
+            self._exact_system(x, it, tau)
+            again = self._solve_step(g, it, may_fail=True)
+            if again is None:
+                return None
+            moved = bad[wisp]
+            dx[moved] = again[moved]
+            alpha_again, bad_again = self._wisp_line_search(x, g, dx, bad, alpha)
+            alpha[bad], bad = alpha_again[bad], bad & bad_again
+        failed, least = global_reduce(self.comm, [float(bad.any()), -alpha.min(initial=1.0)], "max")
+        G0, slope = self.incremental_potential(x), self.comm.allreduce(float(np.sum(g * dx)))
+        self._probe = (G0, slope)
+        if failed:
+            return None
+        self._wisp_alpha = alpha[wisp]
+        self._searched = (G0, self.incremental_potential(self.update(x, self._scaled(1.0, dx), True)), slope)
+        return -least
+
+    def _wisp_line_search(self, x, g, dx, search, alpha=None):
+        """Armijo backtracking per wisp along the exact update, for the wisps ``search``
+        (the others at their factors ``alpha``): each wisp's alpha halves from 1 until
+        its share of G (:meth:`wisp_potentials`) satisfies Armijo with its own slope
+        g_w . dx_w.  G is a sum of the wisps' shares (no term couples them without
+        strand contact, and the update moves each wisp by its own step alone), so the
+        wisps' decreases add up to G's.  A wisp whose predicted decrease is below
+        round-off of its share keeps alpha 1 (noise would decide otherwise).  Returns
+        (alpha, failed) per wisp: failed where the step is an ascent direction or found
+        no decrease within :data:`EXACT_HALVINGS` halvings.  Rank-local."""
+        wisp = self.vertex_wisp
+        slope = np.bincount(wisp, np.sum(g * dx, axis=1), minlength=len(search))
+        G0 = self.wisp_potentials(x)
+        alpha = np.ones_like(slope) if alpha is None else np.where(search, 1.0, alpha)
+        noise = np.abs(0.5 * slope) <= ENERGY_FLOOR * np.abs(G0)
+        ascent = search & ~noise & (slope >= 0.0)
+        pending = search & ~noise & ~ascent
+        for _ in range(EXACT_HALVINGS):
+            if not pending.any():
+                break
+            G = self.wisp_potentials(self.update(x, alpha[wisp, None] * dx, True))
+            pending &= ~(G <= G0 + 1e-4 * alpha * slope)
+            alpha[pending] *= 0.5
+        return alpha, ascent | pending
+
+    def _scaled(self, alpha, dx):
+        """The step taken: ``alpha`` dx, or each wisp's own factor times its step after
+        :meth:`_wisp_line_search`."""
+        return alpha * dx if self._wisp_alpha is None else self._wisp_alpha[:, None] * dx
 
     def _solve_step(self, g, it, may_fail=False):
         """The Newton step dx (pinned rows zero).  With ``may_fail`` (the exact Hessian)
@@ -1697,6 +1801,8 @@ EXACT_SHIFTS = (0.1, 1.0, 10.0, 100.0)
 #: 0 at 1e-6: 1.1 -> 22 iterations, 1.25 -> 23, 1.5 -> 21, 2 -> 25; each reached the
 #: step's minimum; docs/newton.md "Avoiding the saddle")
 WISP_SHIFT_FACTOR = 1.5
+WISP_RETRY_FACTOR = 10.0
+WISP_RETRIES = 3
 EXACT_HALVINGS = 6
 #: ``time.newton_stop = "quadratic_estimate"`` stops once the estimated error is below
 #: the tolerance / QUADRATIC_SAFETY (C varies between steps; with this factor every stop

@@ -529,10 +529,11 @@ def test_newton_to_a_tolerance_in_ccd_mode_takes_the_configured_update():
     """The demo hairball cut to 10 wisps in ccd mode (its first iterate and projection
     off, as the studies measure it), Newton to 1e-6 wisp lengths (exact_or_analytic,
     shifted fallback, exact steps kept, cap 30, no cutback), 6 frames: with the
-    corotational update every frame reaches the tolerance (measured 23 11 10 9 9 8
-    iterations; frame 0, from rest, at the step's minimum: its indefinite wisps are
-    shifted, docs/newton.md "Avoiding the saddle"; before, 21 iterations stopped on a
-    saddle of G, refused, and frames 1-5 took 16 10 9 8 7 from there; ccd
+    corotational update every frame reaches the tolerance (measured 26 11 10 9 9 8
+    iterations on 1-3 ranks; frame 0, from rest, at the step's minimum: its indefinite
+    wisps are shifted, docs/newton.md "Avoiding the saddle"; 23 while the ladder's shifts
+    left some wisp blocks indefinite, "Frame 0 wisp by wisp"; before the shifts, 21
+    iterations stopped on a saddle of G, refused, and frames 1-5 took 16 10 9 8 7; ccd
     forced the linear update before, which converged in none of them, 30 each), with no
     crossing, on 1-3 ranks within 1e-7 of 1 rank (converged frames: measured 4e-9 on
     10 frames); at a fixed count ccd keeps the linear update (the same positions as
@@ -563,7 +564,7 @@ def test_newton_to_a_tolerance_in_ccd_mode_takes_the_configured_update():
         crossings = [count_crossings(X[k], X[k + 1], off)["crossings"] for k in range(len(X) - 1)]
         err = float(np.abs(X[-1] - serial[-1]).max() / np.abs(serial[-1]).max())
         ok = summ["newton_converged"] == [True] * 6 and summ["newton_saddle"] == [0] * 6 \
-            and max(summ["newton_iterations"]) <= 23 \
+            and max(summ["newton_iterations"]) <= 26 \
             and not any(lin["newton_converged"]) and sum(crossings) == 0 \
             and np.array_equal(fixed[0][-1], fixed[1][-1]) and err < 1e-7 \
             and len(summ["contact"]["limiter_replaced_updates_per_frame"]) == 6
@@ -625,9 +626,10 @@ def test_a_cut_step_is_measured_by_its_full_step(monkeypatch):
 def test_contact_frames_converge_within_a_cap_of_100(monkeypatch):
     """The six touching wisps (3 pinned vertices), ccd, Newton to 1e-6 with the
     recommended settings and no cutback: frames 3-5 have active contact pairs and need
-    29-80 iterations (measured 12 15 10 57 41 36 on 1 and 2 ranks, 12 15 10 80 45 33 on 3:
-    the contact frames amplify the partition's round-off; 12 15 10 61 29 30 on 1 rank on
-    2026-12-07), so a cap of 100 reaches the tolerance in every frame; at the cap of 30
+    29-64 iterations (measured 12 15 10 64 29 30 on 1 and 2 ranks, 12 15 10 62 29 30 on 3:
+    the contact frames amplify the partition's round-off; before the ladder shifts were
+    added to each wisp's least shift (docs/newton.md "Frame 0 wisp by wisp"): 57 41 36 /
+    80 45 33, then 61 29 30), so a cap of 100 reaches the tolerance in every frame; at the cap of 30
     they did not (docs/newton.md "Thirteenth round"), and before the straight stem's
     twist was faded no frame did.  Frame 0 reaches it on a saddle of A + C spread over
     three contact-coupled wisps (-0.517 M/dt^2, every wisp block definite): refused
@@ -644,6 +646,6 @@ def test_contact_frames_converge_within_a_cap_of_100(monkeypatch):
     # (frame 3 had, wisp 5, -0.43): refused; every other frame converges
     assert all(c or n == 1 for c, n in zip(s["newton_converged"], s["newton_saddle"])), (its, s["newton_saddle"])
     assert s["newton_converged"][:3] == [False, True, True] and s["newton_saddle"][0] == 1, its
-    assert sum(s["newton_saddle"]) <= 2, its
+    assert sum(s["newton_saddle"]) <= 2 and max(its[3:]) <= 64, its
     assert max(its[3:]) > 30                        # contact frames: beyond the old cap
     assert sum(s["contact"]["pairs_per_frame"][3:]) > 0

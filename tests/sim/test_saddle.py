@@ -241,3 +241,65 @@ def test_the_recommended_path_avoids_the_saddle_and_reaches_the_minimum_at_full_
     assert comm.allgather(s["newton_iterations"]) == [[ITS_3]] * comm.size
     if comm.size == 1:
         assert lowest > LOW_3
+
+
+def test_a_ladder_shift_leaves_no_wisp_block_indefinite():
+    """The buckling column's straight state (lowest eigenvalue of dt^2 M^-1/2 H M^-1/2
+    -0.94: the block needs a shift s* of 0.94 M/dt^2) with the ladder's shift 0.5 of the
+    shifted fallback: main gave the wisp max(1.5 x its least shift on top of 0.5, 0.5)
+    = 0.66 in all, and its block stayed indefinite (so did many of the 300-wisp demo's at
+    the ladder's 0.1 and 1); the wisp's shift is now 0.5 + 1.5 x 0.44, and its block
+    positive definite."""
+    cfg = _inverted_strand(1e5)
+    cfg.time.newton_increment_tol, cfg.time.newton_iterations = None, 2
+    sim = build_simulator(cfg.validate(), MPI.COMM_SELF)
+    try:
+        sim.run()
+        it = sim.integrator
+        it.xhat, it.t_next = it.x + it.dt * it.v, it.t
+        it.cfg.solver.exact_fallback = "shifted"
+        it._exact_system(it.x, 0, 0.0)
+        assert curvature.negative_wisps(it.asm, sim.scene.offsets).tolist() == []
+        assert 1.4 < it._tried_shift < 1.5              # 1.5 x s*, s* = 0.94-0.97
+        it._exact_system(it.x, 0, 0.5)
+        assert curvature.negative_wisps(it.asm, sim.scene.offsets).tolist() == []
+        assert 1.1 < it._tried_shift < 1.25             # 0.5 + 1.5 x (s* - 0.5); main 0.66
+    finally:
+        sim.close()
+
+
+def _hairball10(max_substeps=1):
+    """configs/hairball_demo.toml cut to 10 wisps without strand contact (hairball10 of
+    docs/newton.md), frame 0 from rest on the recommended path (exact_or_analytic,
+    corotational, shifted fallback, exact_stay) to 1e-6 at full dt, cap 30."""
+    cfg = _small_hairball(max_substeps)
+    cfg.scene.n_wisps = 10
+    cfg.solver.exact_fallback, cfg.solver.exact_stay = "shifted", True
+    return cfg.validate()
+
+
+@pytest.mark.mpi
+def test_frame_0_from_rest_searched_wisp_by_wisp_converges_in_21_iterations():
+    """hairball10's frame 0 from rest, the worst frame of the recommended path: main took
+    23 iterations to the step's minimum (its exact steps' line search is global: one
+    wisp's long step damps every wisp's).  Exact steps are now searched wisp by wisp (a
+    wisp whose search fails gets its own larger shift): 21 iterations, the same minimum
+    (G 1.1388833574e6, lowest eigenvalue 0.0951), the same on 1, 2 and 3 ranks (the
+    per-wisp decisions are rank-local); the wisps' shares of G add up to G."""
+    comm = MPI.COMM_WORLD
+    cfg = _hairball10()
+    sim = build_simulator(cfg, comm)
+    try:
+        sim.run()
+        s = sim.summary()
+        assert s["newton_converged"] == [True] and s["newton_saddle"] == [0] and s["newton_substeps"] == [1]
+        assert s["newton_iterations"] == [21]
+        it = sim.integrator
+        # the step's potential at the end state, from the same start (from rest: xhat = x_0)
+        it.xhat, it.dt, it.t_next = sim.scene.x_rest.copy(), cfg.time.dt, cfg.time.dt
+        assert abs(it.incremental_potential(it.x) - 1.1388833574e6) < 1.0
+        shares = comm.allreduce(float(it.wisp_potentials(it.x).sum()))
+        assert abs(shares - it.incremental_potential(it.x)) < 1e-9 * abs(shares)
+    finally:
+        sim.close()
+    assert comm.allgather(s["newton_iterations"]) == [[21]] * comm.size

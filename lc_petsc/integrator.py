@@ -1022,7 +1022,7 @@ class Integrator:
         "Avoiding the saddle").  ``shift`` is a number or one per local wisp (the retries
         of :meth:`_wisp_step`); a wisp's least shift is on top of the shift assembled (it
         had replaced it: the ladder's steps at 0.1 and 1 left blocks indefinite).  Per wisp
-        and rank-local (the shifts in ``_wisp_tau``); one gather of the largest shift
+        and rank-local (the shifts in ``_wisp_tau``); one reduction of the largest shift
         (``_tried_shift``, the same on every rank: a shifted step is no Newton step)."""
         offsets = self.scene.offsets
         sizes = np.diff(offsets)
@@ -1032,7 +1032,7 @@ class Integrator:
         self._wisp_tau = base.copy()
         # per-wisp shifts differ by rank (the retries of _wisp_step): their largest gathered
         self._tried_shift = float(shift) if np.ndim(shift) == 0 else \
-            max(self.comm.allgather(float(base.max(initial=0.0))))
+            float(global_reduce(self.comm, [base.max(initial=0.0)], "max")[0])
         if self.cfg.solver.exact_fallback != "shifted":
             return g
         unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
@@ -1042,7 +1042,7 @@ class Integrator:
         # (and CG, Armijo) decide as before.  ``least`` is on top of the shift assembled
         tau = np.where(np.isfinite(least), base + WISP_SHIFT_FACTOR * least, base)
         self._wisp_tau = tau
-        tried = max(self.comm.allgather(float(tau.max(initial=0.0))))
+        tried = float(global_reduce(self.comm, [tau.max(initial=0.0)], "max")[0])
         if tried > self._tried_shift:       # the assembly is collective: every rank again
             g = self._assemble_system(x, it, filter="none", shift=np.repeat(tau, sizes))
         self._tried_shift = tried

@@ -15,6 +15,7 @@ import pytest
 from mpi4py import MPI
 
 from lc_petsc.batch import main
+from lc_petsc.io.frames import digest_problem
 
 ROOT = Path(__file__).resolve().parents[2]
 from sim_helpers import MPI_ENV, hairball_toml  # noqa: E402
@@ -160,10 +161,13 @@ def test_frames_identical_on_1_and_2_ranks(tmp_path):
         os.chdir(cwd)
     with h5py.File(tmp_path / "one" / "frames.h5") as a, h5py.File(tmp_path / "two" / "frames.h5") as b:
         assert set(a) == set(b) == {"positions", "time", "wisp_offsets", "rest_positions", "pinned",
-                                    "radius", "polylines"}
+                                    "radius", "polylines", "row_digest"}
         for k in a:
             assert a[k].shape == b[k].shape and a[k].dtype == b[k].dtype, k
-            if k == "positions":
+            if k == "row_digest":       # of positions equal to 1e-10: each file's its own rows'
+                for f in (a, b):
+                    assert all(digest_problem(f, r, f["positions"][r]) is None for r in range(f[k].shape[0]))
+            elif k == "positions":
                 scale = np.abs(a[k][...]).max()
                 assert np.abs(a[k][...] - b[k][...]).max() <= 1e-10 * scale
             else:

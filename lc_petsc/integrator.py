@@ -1125,12 +1125,19 @@ class Integrator:
             alpha_again, bad_again, _, taken = self._wisp_line_search(x, g, dx, bad, alpha)
             alpha[bad], bad = alpha_again[bad], bad & bad_again
         failed, least = global_reduce(self.comm, [float(bad.any()), -alpha.min(initial=1.0)], "max")
-        G0, slope = self.incremental_potential(x), self.comm.allreduce(float(np.sum(g * dx)))
+        if not failed:
+            self._wisp_alpha = alpha[wisp]
+            if taken is None:       # no wisp was searched: the shares at the step taken
+                taken = self.wisp_potentials(self.update(x, self._scaled(1.0, dx), True))
+        # G before and after the step from the wisps' shares the search computed (no
+        # coupling term without strand contact), instead of two more passes over the
+        # elements; the same figures to round-off (docs/newton.md "A trust region per wisp")
+        G0, G1, slope = global_reduce(self.comm, [shares.sum(), 0.0 if failed else taken.sum(),
+                                                  float(np.sum(g * dx))], "sum")
         self._probe = (G0, slope)
         if failed:
             return None
-        self._wisp_alpha = alpha[wisp]
-        self._searched = (G0, self.incremental_potential(self.update(x, self._scaled(1.0, dx), True)), slope)
+        self._searched = (G0, G1, slope)
         if self.wisp_trust:
             self._carry_shifts(x, g, dx, alpha, shares, taken)
         return -least
@@ -1138,12 +1145,9 @@ class Integrator:
     def _carry_shifts(self, x, g, dx, alpha, shares, taken):
         """``solver.wisp_trust``: each wisp's shift for the next exact step from this
         step's shift (``_wisp_tau``), alpha and model ratio (:mod:`lc_petsc.wisp_trust`).
-        ``shares``: the wisps' shares of G at x; ``taken``: at the step taken (None: not
-        evaluated by the search).  The step was solved on H + tau M/dt^2 wisp by wisp, so
-        dx^T H dx = -g.dx - tau dx^T M/dt^2 dx.  Rank-local."""
+        ``shares``: the wisps' shares of G at x; ``taken``: at the step taken.  The step
+        was solved on H + tau M/dt^2 wisp by wisp, so dx^T H dx = -g.dx - tau dx^T M/dt^2 dx.  Rank-local."""
         wisp, n = self.vertex_wisp, len(self.scene.offsets) - 1
-        if taken is None:
-            taken = self.wisp_potentials(self.update(x, self._scaled(1.0, dx), True))
         slope = np.bincount(wisp, np.sum(g * dx, axis=1), minlength=n)
         unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
         mass_norm = np.bincount(wisp, unit * np.sum(dx * dx, axis=1), minlength=n)

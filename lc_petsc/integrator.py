@@ -75,7 +75,9 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   round": an exact step that is an ascent direction near the solution had left the
   iteration at the analytic filter's linear rate), and a wisp whose exact block is
   indefinite gets its own shift before the solve (:meth:`Integrator._exact_system`:
-  exact steps on indefinite blocks had led Newton to saddles of G).
+  exact steps on indefinite blocks had led Newton to saddles of G).  ``solver.wisp_trust``
+  carries each wisp's shift to its next exact step (:mod:`lc_petsc.wisp_trust`), starts
+  exact steps at 1e-2 and keeps them once one was kept.
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
   G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
 * ``time.length_projection``: the final iterate is projected onto the rest edge lengths

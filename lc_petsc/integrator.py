@@ -75,7 +75,9 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   round": an exact step that is an ascent direction near the solution had left the
   iteration at the analytic filter's linear rate), and a wisp whose exact block is
   indefinite gets its own shift before the solve (:meth:`Integrator._exact_system`:
-  exact steps on indefinite blocks had led Newton to saddles of G).
+  exact steps on indefinite blocks had led Newton to saddles of G).  ``solver.wisp_trust``
+  carries each wisp's shift to its next exact step (:mod:`lc_petsc.wisp_trust`), starts
+  exact steps at 1e-2 and keeps them once one was kept.
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
   G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
 * ``time.length_projection``: the final iterate is projected onto the rest edge lengths
@@ -109,7 +111,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from lc_petsc import contact_curvature, curvature
+from lc_petsc import contact_curvature, curvature, wisp_trust
 from lc_petsc.elements import compiled, head_contact
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.scene.state import vertex_wisp_length
@@ -245,6 +247,11 @@ class Integrator:
         self._tried_shift = 0.0        # the largest of the last exact assembly's (_exact_system)
         self._wisp_tau = None          # per wisp: the last exact assembly's shifts (_exact_system)
         self._wisp_alpha = None        # per vertex: its wisp's alpha (_wisp_line_search) or None
+        # solver.wisp_trust (lc_petsc/wisp_trust.py): per local wisp the shift its next exact
+        # step starts from, and whether this solve has kept an exact step (then it stays exact)
+        self.wisp_trust = config.solver.wisp_trust and self._per_wisp_search()
+        self._wisp_mu = np.zeros(len(scene.offsets) - 1)
+        self._kept_exact = False
         self._searched = None          # the last accepted line search's (G0, G, g . dx)
         self._probe = None             # the last line search's (G0, g . dx), found or not
         self._region_record = {}        # the last trust-region step's rho, radius (history)
@@ -467,6 +474,8 @@ class Integrator:
         off_model = False                       # this iteration's stop was refused (_loose_verdict)
         saddle = False                          # this iteration's stop is on a saddle (_at_saddle)
         pending = None                          # a refused stop's verifying exact step (_verify_stop)
+        self._wisp_mu = np.zeros(len(sc.offsets) - 1)
+        self._kept_exact = False
         for it in range(cfg.time.newton_iterations):
             n_it += 1
             unconfirmed = off_model = saddle = False
@@ -496,7 +505,7 @@ class Integrator:
                 if converged:
                     break
                 continue
-            exact = self._exact_hessian(increment, bool(quadratic) and cfg.solver.exact_stay)
+            exact = self._exact_hessian(increment, (bool(quadratic) and cfg.solver.exact_stay) or self._kept_exact)
             self._shift, self._fallback, self._searched, self._probe = 0.0, "", None, None
             unreduced = len(self.solver.not_reduced)  # solves short of -ksp_rtol so far
             rejected = None                     # the exact step Armijo rejected
@@ -521,6 +530,8 @@ class Integrator:
                 if dx is None or alpha is None:     # no exact Newton step: a filtered one
                     exact = False
                     fallbacks += 1
+                else:       # solver.wisp_trust: the wisps' shifts carry the damping from here on
+                    self._kept_exact = self.wisp_trust
             if not exact:
                 self._wisp_alpha = None
                 g = self._assemble_system(x, it)
@@ -1001,7 +1012,11 @@ class Integrator:
     def _exact_step(self, x, it, shift):
         """An exact Newton step at x: the exact Hessian plus ``shift`` M/dt^2, its solve
         and the Armijo search along the (exact) update.  Returns (grad G, dx or None when
-        CG finds the matrix indefinite, alpha or None when Armijo fails)."""
+        CG finds the matrix indefinite, alpha or None when Armijo fails).  With
+        ``solver.wisp_trust`` the first attempt (``shift`` 0) starts from each wisp's
+        carried shift (:meth:`_wisp_step`)."""
+        if self.wisp_trust and np.ndim(shift) == 0 and shift == 0.0:
+            shift = self._wisp_mu
         g = self._exact_system(x, it, shift)
         dx = self._solve_step(g, it, may_fail=True)
         self._wisp_alpha = None
@@ -1051,10 +1066,12 @@ class Integrator:
     def _exact_hessian(self, increment, stay=False):
         """Whether this iteration assembles the exact Hessian: ``solver.filter =
         "exact_or_analytic"`` once the last relative increment is below
-        :data:`EXACT_BELOW` (near the solution, where it is mostly positive definite), or
+        :data:`EXACT_BELOW` (near the solution, where it is mostly positive definite;
+        with ``solver.wisp_trust`` :data:`~lc_petsc.wisp_trust.WISP_TRUST_BELOW`), or
         whatever the increment when ``stay`` (``solver.exact_stay`` after a full,
-        unshifted exact step)."""
-        return self.cfg.solver.filter == "exact_or_analytic" and (stay or increment < EXACT_BELOW)
+        unshifted exact step; ``solver.wisp_trust`` after any kept exact step)."""
+        below = wisp_trust.WISP_TRUST_BELOW if self.wisp_trust else EXACT_BELOW
+        return self.cfg.solver.filter == "exact_or_analytic" and (stay or increment < below)
 
     def _line_search(self, x, g, dx, halvings, give_up=True, exact=False):
         """Armijo backtracking on G along update(x, alpha dx, exact): alpha halves from 1
@@ -1091,9 +1108,11 @@ class Integrator:
         least the ladder's first), and the system is solved again for it, at most :data:`WISP_RETRIES` times (the other
         wisps keep their steps and factors: no term couples them).  ``dx`` is updated in
         place.  Returns the smallest alpha (all ranks) or None (then the uniform ladder
-        decides, as for the global search).  Collective."""
+        decides, as for the global search).  With ``solver.wisp_trust`` each wisp's shift
+        for the next exact step is set from this one's (:func:`lc_petsc.wisp_trust.next_shifts`).
+        Collective."""
         wisp = self.vertex_wisp
-        alpha, bad = self._wisp_line_search(x, g, dx, np.ones(len(self.scene.offsets) - 1, bool))
+        alpha, bad, shares, taken = self._wisp_line_search(x, g, dx, np.ones(len(self.scene.offsets) - 1, bool))
         for _ in range(WISP_RETRIES):
             if not global_reduce(self.comm, [float(bad.any())], "max")[0]:
                 break
@@ -1105,16 +1124,38 @@ class Integrator:
                 return None
             moved = bad[wisp]
             dx[moved] = again[moved]
-            alpha_again, bad_again = self._wisp_line_search(x, g, dx, bad, alpha)
+            alpha_again, bad_again, _, taken = self._wisp_line_search(x, g, dx, bad, alpha)
             alpha[bad], bad = alpha_again[bad], bad & bad_again
         failed, least = global_reduce(self.comm, [float(bad.any()), -alpha.min(initial=1.0)], "max")
-        G0, slope = self.incremental_potential(x), self.comm.allreduce(float(np.sum(g * dx)))
+        if not failed:
+            self._wisp_alpha = alpha[wisp]
+            if taken is None:       # no wisp was searched: the shares at the step taken
+                taken = self.wisp_potentials(self.update(x, self._scaled(1.0, dx), True))
+        # G before and after the step from the wisps' shares the search computed (no
+        # coupling term without strand contact), instead of two more passes over the
+        # elements; the same figures to round-off (docs/newton.md "A trust region per wisp")
+        G0, G1, slope = global_reduce(self.comm, [shares.sum(), 0.0 if failed else taken.sum(),
+                                                  float(np.sum(g * dx))], "sum")
         self._probe = (G0, slope)
         if failed:
             return None
-        self._wisp_alpha = alpha[wisp]
-        self._searched = (G0, self.incremental_potential(self.update(x, self._scaled(1.0, dx), True)), slope)
+        self._searched = (G0, G1, slope)
+        if self.wisp_trust:
+            self._carry_shifts(x, g, dx, alpha, shares, taken)
         return -least
+
+    def _carry_shifts(self, x, g, dx, alpha, shares, taken):
+        """``solver.wisp_trust``: each wisp's shift for the next exact step from this
+        step's shift (``_wisp_tau``), alpha and model ratio (:mod:`lc_petsc.wisp_trust`).
+        ``shares``: the wisps' shares of G at x; ``taken``: at the step taken.  The step
+        was solved on H + tau M/dt^2 wisp by wisp, so dx^T H dx = -g.dx - tau dx^T M/dt^2 dx.  Rank-local."""
+        wisp, n = self.vertex_wisp, len(self.scene.offsets) - 1
+        slope = np.bincount(wisp, np.sum(g * dx, axis=1), minlength=n)
+        unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
+        mass_norm = np.bincount(wisp, unit * np.sum(dx * dx, axis=1), minlength=n)
+        curvature = -slope - self._wisp_tau * mass_norm
+        rho = wisp_trust.model_ratio(shares - taken, slope, curvature, alpha, shares, ENERGY_FLOOR)
+        self._wisp_mu = wisp_trust.next_shifts(self._wisp_tau, alpha, slope, mass_norm, rho)
 
     def _wisp_line_search(self, x, g, dx, search, alpha=None):
         """Armijo backtracking per wisp along the exact update, for the wisps ``search``
@@ -1124,8 +1165,10 @@ class Integrator:
         strand contact, and the update moves each wisp by its own step alone), so the
         wisps' decreases add up to G's.  A wisp whose predicted decrease is below
         round-off of its share keeps alpha 1 (noise would decide otherwise).  Returns
-        (alpha, failed) per wisp: failed where the step is an ascent direction or found
-        no decrease within :data:`EXACT_HALVINGS` halvings.  Rank-local."""
+        per wisp (alpha, failed, share of G at x, share at alpha): failed where the step
+        is an ascent direction or found no decrease within :data:`EXACT_HALVINGS`
+        halvings; the last None when no wisp was searched (a failed wisp's share is not
+        at its alpha).  Rank-local."""
         wisp = self.vertex_wisp
         slope = np.bincount(wisp, np.sum(g * dx, axis=1), minlength=len(search))
         G0 = self.wisp_potentials(x)
@@ -1133,13 +1176,14 @@ class Integrator:
         noise = np.abs(0.5 * slope) <= ENERGY_FLOOR * np.abs(G0)
         ascent = search & ~noise & (slope >= 0.0)
         pending = search & ~noise & ~ascent
+        G = None
         for _ in range(EXACT_HALVINGS):
             if not pending.any():
                 break
             G = self.wisp_potentials(self.update(x, alpha[wisp, None] * dx, True))
             pending &= ~(G <= G0 + 1e-4 * alpha * slope)
             alpha[pending] *= 0.5
-        return alpha, ascent | pending
+        return alpha, ascent | pending, G0, G
 
     def _scaled(self, alpha, dx):
         """The step taken: ``alpha`` dx, or each wisp's own factor times its step after

@@ -71,6 +71,10 @@ def format_report(s) -> str:
     if sum(chords):
         lines.append(f"  chord checks (time.newton_stop = \"chord_estimate\"): {sum(chords)} solves "
                      f"in {sum(n > 0 for n in chords)} frames")
+    verified, refused = s.get("newton_verified", []), s.get("newton_verify_refused", [])
+    if sum(verified):
+        lines.append(f"  stops after filtered steps verified by an exact step: {sum(verified)} "
+                     f"({sum(refused)} refused) in {sum(n > 0 for n in verified)} frames")
     subs = s.get("newton_substeps", [])
     if any(n > 1 for n in subs):
         lines.append(f"  step cutback (time.max_substeps) in {sum(n > 1 for n in subs)} of {len(subs)} "

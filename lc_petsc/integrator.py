@@ -236,6 +236,7 @@ class Integrator:
         self.newton_verified = []       # stops after filtered steps checked by an exact step
         self.newton_verify_refused = []     # ... of them refused (_verify_stop)
         self.newton_stops_refused = []      # claimed stops refused by any rule
+        self.newton_coupled_unknown = []    # coupled-saddle checks whose Lanczos did not converge
         self._counts = dict.fromkeys(FRAME_COUNTS, 0)   # the frame's so far
         self.verifications = []         # every verification: (frame, iteration, verdict, step length)
         self._saddle_wisps = []         # the last saddle's wisps (the scene's numbers; for the monitor)
@@ -1356,7 +1357,11 @@ class Integrator:
         "A saddle over contact-coupled wisps").  Lanczos on A + C preconditioned by the
         wisp blocks (:mod:`lc_petsc.contact_curvature`); only at an ``exact`` stop (as
         :meth:`_at_saddle`) with contact cross blocks.  Collective; counted in
-        ``newton_saddle`` like a wisp's saddle."""
+        ``newton_saddle`` like a wisp's saddle.  A check whose Lanczos did not converge
+        within its cap (:attr:`~lc_petsc.contact_curvature.Verdict.unknown`) found no
+        saddle and proved no minimum: the stop is kept (Newton's tolerance is met, every
+        wisp block is definite, and refusing would cut back where no saddle was seen), but
+        counted (``newton_coupled_unknown``) and named by the monitor."""
         if not exact or self.strand is None or self.strand.C is None:
             return False
         if self._coupled is None:
@@ -1366,6 +1371,12 @@ class Integrator:
             verdict = self._coupled.check(self.asm.local_block_csr(), self.solver.ksp.getOperators()[0],
                                           np.where(self.free, self.scene.mass / self.dt ** 2, 0.0), self.asm.mat)
         self.coupled_checks.append(verdict)
+        if verdict.unknown:
+            self._counts["newton_coupled_unknown"] += 1
+            if self.monitor is not None:
+                self._say(f"  frame {self.frame}: the stop's curvature over contact-coupled wisps is unknown "
+                          f"(Lanczos' lowest Ritz value {verdict.lowest:.4g} unconverged after "
+                          f"{verdict.iterations} iterations): the stop is kept")
         if not verdict.negative:
             return False
         self._saddles += 1
@@ -1650,7 +1661,8 @@ def quadratic_error_estimate(increments, modelled=None):
 #: (Integrator._verify_stop; docs/newton.md "Verifying a stop after filtered steps")
 VERIFY_FROM = 1e-3
 #: the per-frame counts of the stop's checks (Integrator attributes, summary.json keys)
-FRAME_COUNTS = ("newton_verified", "newton_verify_refused", "newton_stops_refused")
+FRAME_COUNTS = ("newton_verified", "newton_verify_refused", "newton_stops_refused",
+                "newton_coupled_unknown")
 
 
 #: The start from rest's carry decays along a wisp as exp(-s / (START_CARRY_LENGTH * S)),

@@ -75,6 +75,10 @@ def format_report(s) -> str:
     if sum(verified):
         lines.append(f"  stops after filtered steps verified by an exact step: {sum(verified)} "
                      f"({sum(refused)} refused) in {sum(n > 0 for n in verified)} frames")
+    unknown = s.get("newton_coupled_unknown", [])
+    if sum(unknown):
+        lines.append(f"  stops whose curvature over contact-coupled wisps is unknown (Lanczos unconverged, "
+                     f"kept): {sum(unknown)} in {sum(n > 0 for n in unknown)} frames")
     subs = s.get("newton_substeps", [])
     if any(n > 1 for n in subs):
         lines.append(f"  step cutback (time.max_substeps) in {sum(n > 1 for n in subs)} of {len(subs)} "

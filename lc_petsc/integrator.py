@@ -53,8 +53,11 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   ``exact_or_analytic``) at a tolerance of :data:`VERIFY_FROM` or tighter, a stop after a
   filtered step is checked by an exact Newton step at its iterate
   (:meth:`Integrator._verify_stop`): kept when that step is within the tolerances and on
-  its quadratic model, else refused and the step taken next (the analytic filter's stops
-  on the stiff smash had been 1.6-238x away).
+  its quadratic model, and the step taken (it lands 1e2-1e6x closer), else refused and
+  the step taken next (the analytic filter's stops on the stiff smash had been 1.6-238x
+  away).  A coupled check whose Lanczos did not converge keeps the stop as unknown.
+  Per frame: ``newton_verified``, ``newton_verify_refused``, ``newton_stops_refused``,
+  ``newton_coupled_unknown``.
 * Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
   misses it within the cap is redone from its start state as two backward-Euler steps
   of dt / 2 (head, pins and head sphere at their own times), each cut again if it

@@ -201,7 +201,7 @@ class Simulator:
             "newton_unconfirmed": list(self.integrator.newton_unconfirmed),
             "newton_refused": list(self.integrator.newton_refused),
             "newton_saddle": list(self.integrator.newton_saddle),
-            # the stop's checks per frame (docs/newton.md "The stop's checks counted")
+            # the stop's checks per frame (docs/newton.md "Taking the verifying step, ...")
             **{name: list(getattr(self.integrator, name)) for name in FRAME_COUNTS},
             "newton_exact_fallbacks": list(self.integrator.exact_hessian_fallbacks),
             "newton_chord_checks": list(self.integrator.chord_checks),

@@ -28,18 +28,23 @@ def six_wisps(monkeypatch, frames, max_substeps, c=comm):
     return simmod.build_simulator(cfg.validate(), comm=c)
 
 
+def frame_zero(monkeypatch):
+    """(simulator, summary) of the six wisps' frame 0 without cutback on every rank."""
+    sim = six_wisps(monkeypatch, 1, 1)
+    try:
+        sim.run(1)
+        return sim, sim.summary()
+    finally:
+        sim.close()
+
+
 @pytest.mark.mpi
 def test_a_saddle_over_contact_coupled_wisps_is_refused_on_every_rank(monkeypatch):
     """Frame 0 stops after 12 iterations as on main, but on a saddle: refused (main:
     converged, newton_saddle 0).  Lanczos finds the negative mode in 3 iterations (Ritz
     value of B^-1 (A + C) -0.3335; its Rayleigh quotient -0.287 M/dt^2), the same on 1, 2
     and 3 ranks (the wisps spread over the ranks), and names the three wisps holding it."""
-    sim = six_wisps(monkeypatch, 1, 1)
-    try:
-        sim.run(1)
-        summary = sim.summary()
-    finally:
-        sim.close()
+    sim, summary = frame_zero(monkeypatch)
     assert list(summary["newton_iterations"]) == [12]
     assert summary["newton_converged"] == [False]
     assert summary["newton_saddle"] == [1]
@@ -149,12 +154,7 @@ def test_a_check_cut_short_keeps_the_stop_as_unknown(monkeypatch):
     ``newton_coupled_unknown`` (main: kept as a minimum, uncounted), on 1, 2 and 3 ranks."""
     from lc_petsc import contact_curvature as cc
     monkeypatch.setattr(cc, "STEPS", 2)
-    sim = six_wisps(monkeypatch, 1, 1)
-    try:
-        sim.run(1)
-        summary = sim.summary()
-    finally:
-        sim.close()
+    sim, summary = frame_zero(monkeypatch)
     assert list(summary["newton_iterations"]) == [12]
     assert summary["newton_converged"] == [True]
     assert summary["newton_saddle"] == [0]

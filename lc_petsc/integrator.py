@@ -53,8 +53,11 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   ``exact_or_analytic``) at a tolerance of :data:`VERIFY_FROM` or tighter, a stop after a
   filtered step is checked by an exact Newton step at its iterate
   (:meth:`Integrator._verify_stop`): kept when that step is within the tolerances and on
-  its quadratic model, else refused and the step taken next (the analytic filter's stops
-  on the stiff smash had been 1.6-238x away).
+  its quadratic model, and the step taken (it lands 1e2-1e6x closer), else refused and
+  the step taken next (the analytic filter's stops on the stiff smash had been 1.6-238x
+  away).  A coupled check whose Lanczos did not converge keeps the stop as unknown.
+  Per frame: ``newton_verified``, ``newton_verify_refused``, ``newton_stops_refused``,
+  ``newton_coupled_unknown``.
 * Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
   misses it within the cap is redone from its start state as two backward-Euler steps
   of dt / 2 (head, pins and head sphere at their own times), each cut again if it
@@ -234,6 +237,13 @@ class Integrator:
         self.newton_refused = []        # per frame: kept steps the cap ended on a refused stop
         self.newton_saddle = []         # per frame: stops refused on a saddle of G (all attempts)
         self._saddles = 0               # the frame's so far
+        # per frame, all attempts (cutback's discarded ones included), as newton_saddle:
+        self.newton_verified = []       # stops after filtered steps checked by an exact step
+        self.newton_verify_refused = []     # ... of them refused (_verify_stop)
+        self.newton_stops_refused = []      # claimed stops refused by any rule
+        self.newton_coupled_unknown = []    # coupled-saddle checks whose Lanczos did not converge
+        self._counts = dict.fromkeys(FRAME_COUNTS, 0)   # the frame's so far
+        self.verifications = []         # every verification: (frame, iteration, verdict, step length)
         self._saddle_wisps = []         # the last saddle's wisps (the scene's numbers; for the monitor)
         # the scene's number of internal wisp i (-lc_wisp_order; set by the Simulator):
         # the monitor names wisps as the user's scene and frames.h5 number them
@@ -362,6 +372,7 @@ class Integrator:
         if self.strand is not None:             # per frame: the statistics' entries
             self.strand.start_frame()
         self._discarded = self._discarded_checks = self._saddles = 0
+        self._counts = dict.fromkeys(FRAME_COUNTS, 0)
         self._projection_move = 0.0
         # the solves' solution vector is CG's first iterate under -ksp_initial_guess_nonzero:
         # it would carry the last frame's last Newton step, which no checkpoint holds, so a
@@ -394,6 +405,8 @@ class Integrator:
         self.newton_unconfirmed.append(unconfirmed)
         self.newton_refused.append(refused)
         self.newton_saddle.append(self._saddles)
+        for name in FRAME_COUNTS:
+            getattr(self, name).append(self._counts[name])
         self.exact_hessian_fallbacks.append(sum(s.fallbacks for s in solves))
         self.chord_checks.append(self._discarded_checks + sum(s.chord_checks for s in solves))
         self.length_projection_move.append(self._projection_move if cfg.time.length_projection else None)
@@ -499,6 +512,7 @@ class Integrator:
                 converged = converged and confirmed and not refused
                 claimed_before, last_step, prior_step = claim, step, last_step
                 unconfirmed, off_model = claim and not confirmed, refused
+                self._counts["newton_stops_refused"] += refused
                 if self.monitor is not None:
                     self._monitor(it, increment, self._step_kind(exact, region=True)
                                   + _stop_note(unconfirmed, refused), 1.0, self.trust.iterations[-1], cut=False)
@@ -632,8 +646,15 @@ class Integrator:
                 verdict, pending = self._verify_stop(x, it)
                 saddle = verdict == "saddle"
                 converged = verdict == "kept"
+                if converged:
+                    # the verifying step is taken: it lands 1e2-1e6x closer to the step's
+                    # solution than the filtered iterate (docs/newton.md "Taking the
+                    # verifying step"); its length is then the last increment
+                    x, pending = self._take_verified(x, pending), None
+                    reported = self._verifying
             claimed_before, last_step, prior_step = claim, step, last_step
             unconfirmed, off_model = claim and not confirmed, refused
+            self._counts["newton_stops_refused"] += bool(refused or saddle or (verdict and not converged))
             if self.monitor is not None:
                 short = ", solve short of -ksp_rtol" if short_of_rtol else ""
                 short += _stop_note(unconfirmed, refused) + (_saddle_note(self._saddle_wisps) if saddle else "")
@@ -1274,10 +1295,21 @@ class Integrator:
         exact Hessian is definite.  Returns (verdict, step): ``"kept"`` (the exact step
         within the tolerances), ``"saddle"`` (a wisp's exact block is indefinite:
         :meth:`_at_saddle`), ``"indefinite"`` (CG found A + C indefinite) or ``"short"``
-        (the solve missed -ksp_rtol), both step None, or with the step (grad G, dx), which
-        the next iteration takes instead of a filtered one (the work kept): ``"far"`` (the
+        (the solve missed -ksp_rtol), both step None, or with the step (grad G, dx): the
+        kept stop's (taken by :meth:`_take_verified`), or that of a refused stop, which the
+        next iteration takes instead of a filtered one (the work kept): ``"far"`` (the
         exact step exceeds a tolerance) or ``"off_model"`` (within them, but G's decrease
-        along it is off its quadratic model, :func:`model_agrees`: two energies more)."""
+        along it is off its quadratic model, :func:`model_agrees`: two energies more).
+        Counted per frame (``newton_verified``, ``newton_verify_refused``) and recorded in
+        ``verifications``."""
+        verdict, step = self._verification(x, it)
+        self._counts["newton_verified"] += 1
+        self._counts["newton_verify_refused"] += verdict != "kept"
+        self.verifications.append((self.frame, it, verdict, self._verifying))
+        return verdict, step
+
+    def _verification(self, x, it):
+        """The verdict and step of :meth:`_verify_stop` (collective)."""
         g = self._assemble_system(x, it, filter="none")
         self._verifying = np.inf
         if self._at_saddle(True):
@@ -1302,7 +1334,21 @@ class Integrator:
             within = model_agrees(G0 - G1, -0.5 * slope, max(abs(G0), abs(G1)))
             if not within:
                 return "off_model", (g, dx)
-        return ("kept", None) if within else ("far", (g, dx))
+        return ("kept" if within else "far"), (g, dx)
+
+    def _take_verified(self, x, step):
+        """The iterate after a kept stop's verifying exact step ``step`` (grad G, dx) from
+        x: that step taken whole (on its quadratic model, within the tolerances: 1e2-1e6x
+        closer to the step's solution than x on the stiff smashes, docs/newton.md "Taking
+        the verifying step"); x itself where the ccd limiter would cut it (a cut step is
+        no Newton step; the filtered iterate is verified).  Collective."""
+        dx = step[1]
+        y = self.update(x, dx, True)
+        if self.strand is not None:
+            y = self.strand.limit_step(x, y, x + dx if self.retract or self.turn_exact else None)
+            if self.strand.last_cut:
+                return x
+        return y
 
     def _loose_verdict(self, loose, claim, claimed_before, measure, steps, recent, measured=False):
         """(confirmed, refused) for this iteration's stop ``claim`` at a ``loose``
@@ -1358,7 +1404,11 @@ class Integrator:
         "A saddle over contact-coupled wisps").  Lanczos on A + C preconditioned by the
         wisp blocks (:mod:`lc_petsc.contact_curvature`); only at an ``exact`` stop (as
         :meth:`_at_saddle`) with contact cross blocks.  Collective; counted in
-        ``newton_saddle`` like a wisp's saddle."""
+        ``newton_saddle`` like a wisp's saddle.  A check whose Lanczos did not converge
+        within its cap (:attr:`~lc_petsc.contact_curvature.Verdict.unknown`) found no
+        saddle and proved no minimum: the stop is kept (Newton's tolerance is met, every
+        wisp block is definite, and refusing would cut back where no saddle was seen), but
+        counted (``newton_coupled_unknown``) and named by the monitor."""
         if not exact or self.strand is None or self.strand.C is None:
             return False
         if self._coupled is None:
@@ -1368,6 +1418,12 @@ class Integrator:
             verdict = self._coupled.check(self.asm.local_block_csr(), self.solver.ksp.getOperators()[0],
                                           np.where(self.free, self.scene.mass / self.dt ** 2, 0.0), self.asm.mat)
         self.coupled_checks.append(verdict)
+        if verdict.unknown:
+            self._counts["newton_coupled_unknown"] += 1
+            if self.monitor is not None:
+                self._say(f"  frame {self.frame}: the stop's curvature over contact-coupled wisps is unknown "
+                          f"(Lanczos' lowest Ritz value {verdict.lowest:.4g} unconverged after "
+                          f"{verdict.iterations} iterations): the stop is kept")
         if not verdict.negative:
             return False
         self._saddles += 1
@@ -1651,6 +1707,9 @@ def quadratic_error_estimate(increments, modelled=None):
 #: tolerance at or below this is checked by an exact Newton step at its iterate
 #: (Integrator._verify_stop; docs/newton.md "Verifying a stop after filtered steps")
 VERIFY_FROM = 1e-3
+#: the per-frame counts of the stop's checks (Integrator attributes, summary.json keys)
+FRAME_COUNTS = ("newton_verified", "newton_verify_refused", "newton_stops_refused",
+                "newton_coupled_unknown")
 
 
 #: The start from rest's carry decays along a wisp as exp(-s / (START_CARRY_LENGTH * S)),

@@ -232,6 +232,22 @@ def test_report_counts_chord_checks_only_when_there_are_some():
     assert "chord checks" not in format_report(s)
 
 
+def test_report_counts_the_stop_checks_only_when_there_are_some():
+    """The report says how many stops after filtered steps an exact step verified (and
+    refused), and how many stops' coupled curvature stayed unknown; a run without any
+    says nothing about them (summary.json counts them per frame)."""
+    from lc_petsc.io.summary import format_report
+    s = {"frames": 3, "wall_time_s": 3.0, "wisps": 2, "dofs": 6, "ranks": 1,
+         "config": {"time": {"dt": 1.0 / 30.0}}, "newton_verified": [1, 0, 2],
+         "newton_verify_refused": [1, 0, 0], "newton_coupled_unknown": [0, 1, 0]}
+    report = format_report(s)
+    assert "stops after filtered steps verified by an exact step: 3 (1 refused) in 2 frames" in report
+    assert "contact-coupled wisps is unknown (Lanczos unconverged, kept): 1 in 1 frames" in report
+    s["newton_verified"], s["newton_coupled_unknown"] = [0, 0, 0], [0, 0, 0]
+    assert "verified by an exact step" not in format_report(s)
+    assert "is unknown" not in format_report(s)
+
+
 def test_preview_frames_outside_the_run_are_named(tmp_path):
     """A scene's preview_frames kept when the run is cut (--frames 3): frames 5 and 20 and
     -9 were drawn as the last and the first frame without a word."""

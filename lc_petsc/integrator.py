@@ -112,6 +112,7 @@ import numpy as np
 from lc_petsc import contact_curvature, curvature
 from lc_petsc.elements import compiled, head_contact
 from lc_petsc.parallel import collectively, global_reduce
+from lc_petsc.root_rotation import RootRotation
 from lc_petsc.scene.state import vertex_wisp_length
 from lc_petsc.errors import SimulationError, SolverError
 from lc_petsc.trust_region import ETA, TRUST_RETRIES, ratio, update_radius
@@ -219,6 +220,10 @@ class Integrator:
             carried = self.free & held[wisp]
             self.carried = carried if carried.any() else None
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
+        #: time.root_rotation: each root-held wisp turned after a fixed count (_root_turn)
+        self.root_turn = RootRotation(scene.offsets, scene.pinned, assembler.elements,
+                                      {n: t.k for n, t in scene.terms.items()}) \
+            if config.time.root_rotation else None
         self.vertex_wisp = np.repeat(np.arange(len(scene.offsets) - 1), np.diff(scene.offsets))
         #: per vertex: how deep the head's push-out lets it rest (physics.head_push_out)
         self.allowed_depth = head_contact.allowed_depth(
@@ -312,13 +317,14 @@ class Integrator:
             per[idx] += e
         return np.bincount(self.vertex_wisp, per, minlength=len(self.scene.offsets) - 1)
 
-    def gradient(self, x, elastic=None):
-        """grad G at x (pinned rows zeroed); ``elastic`` reuses an elastic gradient."""
+    def gradient(self, x, elastic=None, head=None):
+        """grad G at x (pinned rows zeroed); ``elastic`` reuses an elastic gradient,
+        ``head`` the head's terms at x (:meth:`_contact_terms`' last two)."""
         dt = self.dt
         if elastic is None:
             elastic = self.asm.gradient(x)
         g = self.scene.mass[:, None] * (x - self.xhat) / dt ** 2 + elastic - self.f_ext
-        _, idx, cg = self._contact_terms(x, False)
+        idx, cg = self._contact_terms(x, False)[1:] if head is None else head
         if cg is not None:
             g[idx] += cg[0]
         g[~self.free] = 0.0
@@ -631,6 +637,8 @@ class Integrator:
                               cut=self.strand is not None and self.strand.last_cut, estimate=reported)
             if converged or saddle:
                 break
+        if self.root_turn is not None:
+            x = self._root_turn(x)
         if self.monitor is not None and converged is not None:
             self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {'converged' if converged else 'NOT converged'} "
                       f"after {n_it} iteration(s), measure {reported:.3e}"
@@ -691,6 +699,26 @@ class Integrator:
         self.x = x
         self.t = self.t_next
         return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed, off_model, saddle)
+
+    def _root_turn(self, x):
+        """``time.root_rotation``: x with each root-held wisp turned about its root by the
+        Newton step of G over the turn's angles (lc_petsc/root_rotation.py); in ccd mode
+        limited as a Newton update is (collective)."""
+        unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
+        y = self.root_turn.step(x, self._turn_terms, unit)
+        if self.strand is not None:
+            y = self.strand.limit_step(x, y)
+        if self.monitor is not None:        # on every rank (-lc_newton_monitor): the reductions
+            turned = int(global_reduce(self.comm, [self.root_turn.turned], "sum")[0])
+            self._say(f"  frame {self.frame}: root turn of {turned} wisp(s), largest move "
+                      f"{self.increments(y - x)[0]:.3e} wisp lengths")
+        return y
+
+    def _turn_terms(self, x):
+        """(grad G without the elastic terms, the head's active vertices and their
+        Hessians or None) at x, for the root turn."""
+        _, idx, head = self._contact_terms(x, True)
+        return self.gradient(x, np.zeros_like(x), (idx, head)), None if head is None else (idx, head[1])
 
     def _head_sphere(self):
         """(centre, radius, allowed depth (n,)) of the head sphere at the step's end: its

@@ -8,7 +8,7 @@ from mpi4py import MPI
 
 import lc_petsc.simulator as simmod
 from lc_petsc.crossings import count_crossings
-from sim_helpers import (rel_diff, run_positions, serial_reference, small_hairball_config,
+from sim_helpers import (frames_run, rel_diff, run_positions, serial_reference, small_hairball_config,
                          touching_wisps_config, touching_wisps_source)
 
 pytestmark = pytest.mark.mpi
@@ -40,15 +40,7 @@ def _touching(c, frames):
     cfg = touching_wisps_config(frames)
     cfg.physics.strand_contact_mode = "ccd"
     cfg.time.root_rotation = True
-    sim = simmod.build_simulator(cfg.validate(), comm=c)
-    try:
-        X = [sim.gather_positions()]
-        for _ in range(frames):
-            sim.step()
-            X.append(sim.gather_positions())
-        return X, sim.summary()
-    finally:
-        sim.close()
+    return frames_run(simmod.build_simulator(cfg.validate(), comm=c), frames)
 
 
 def test_root_turn_in_ccd_mode_crosses_nothing(monkeypatch):

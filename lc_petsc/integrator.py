@@ -220,7 +220,7 @@ class Integrator:
             carried = self.free & held[wisp]
             self.carried = carried if carried.any() else None
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
-        #: time.root_rotation: each root-held wisp turned after a fixed count (_root_turn)
+        #: time.root_rotation: each root-held wisp turned after a fixed count (_last_turn)
         self.root_turn = RootRotation(scene.offsets, scene.pinned, assembler.elements,
                                       {n: t.k for n, t in scene.terms.items()}) \
             if config.time.root_rotation else None
@@ -478,7 +478,7 @@ class Integrator:
             unconfirmed = off_model = saddle = False
             if region is not None and it > 0:   # after a filtered first step: lc_petsc/trust_region.py
                 g, dx, exact = self._trust_region_step(x, it, region)
-                x_prev, x = x, self.update(x, dx)
+                x_prev, x = x, self._last_turn(it, self.update(x, dx))
                 increment, absolute = self.increments(x - x_prev)
                 steps.append(StepRecord(increment, region.interior, False, True))   # a boundary step is a cut one
                 reported = increment
@@ -536,7 +536,7 @@ class Integrator:
             step_ksp = self.solver.iterations[-1]     # the step taken (before a chord check)
             if cfg.time.line_search and not exact:
                 alpha = self._line_search(x, g, dx, 20, give_up=False)
-            x_prev, x = x, self.update(x, self._scaled(alpha, dx), exact)
+            x_prev, x = x, self._last_turn(it, self.update(x, self._scaled(alpha, dx), exact))
             if self.strand is not None:         # ccd mode: per vertex, collision-free path
                 nonlinear = self.retract or (exact and self.turn_exact)
                 x = self.strand.limit_step(x_prev, x, x_prev + alpha * dx if nonlinear else None)
@@ -637,8 +637,6 @@ class Integrator:
                               cut=self.strand is not None and self.strand.last_cut, estimate=reported)
             if converged or saddle:
                 break
-        if self.root_turn is not None:
-            x = self._root_turn(x)
         if self.monitor is not None and converged is not None:
             self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {'converged' if converged else 'NOT converged'} "
                       f"after {n_it} iteration(s), measure {reported:.3e}"
@@ -700,14 +698,16 @@ class Integrator:
         self.t = self.t_next
         return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed, off_model, saddle)
 
-    def _root_turn(self, x):
-        """``time.root_rotation``: x with each root-held wisp turned about its root by the
-        Newton step of G over the turn's angles (lc_petsc/root_rotation.py); in ccd mode
-        limited as a Newton update is (collective)."""
+    def _last_turn(self, it, x):
+        """``time.root_rotation``: after the last iteration's update x, each root-held wisp
+        turned about its root by the Newton step of G over the turn's angles
+        (lc_petsc/root_rotation.py); in ccd mode the step's limiter then takes the update
+        and the turn together (a limiter call of its own cost the 60-wisp demo 1.2-1.4x
+        its collision time).  Other iterations: x."""
+        if self.root_turn is None or it != self.cfg.time.newton_iterations - 1:
+            return x
         unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
         y = self.root_turn.step(x, self._turn_terms, unit)
-        if self.strand is not None:
-            y = self.strand.limit_step(x, y)
         if self.monitor is not None:        # on every rank (-lc_newton_monitor): the reductions
             turned = int(global_reduce(self.comm, [self.root_turn.turned], "sum")[0])
             self._say(f"  frame {self.frame}: root turn of {turned} wisp(s), largest move "

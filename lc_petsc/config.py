@@ -340,6 +340,9 @@ class TimeConfig:
     ``length_projection`` (final positions onto the rest edge lengths) and ``newton``
     (``"filtered"`` steps or ``"trust_region"`` on the exact Hessian): see
     lc_petsc/integrator.py, lc_petsc/trust_region.py and docs/newton.md.
+    ``root_rotation`` (a fixed count only): after the iterations each root-held wisp is
+    turned rigidly about its last pinned vertex by the Newton step of G over the turn's
+    three angles (lc_petsc/root_rotation.py; docs/newton.md "Fourteenth round").
 
     Step cutback (only with a tolerance): a frame whose Newton misses it within the cap
     is redone as 2 steps of dt / 2, each cut again if it fails, up to ``max_substeps``
@@ -359,6 +362,7 @@ class TimeConfig:
     newton: str = "filtered"
     newton_stop: str = "increment"
     length_projection: bool = False
+    root_rotation: bool = False
     max_substeps: int = 8
     unconverged: str = "accept"
 
@@ -410,6 +414,13 @@ class TimeConfig:
         if not isinstance(self.length_projection, bool):
             raise ConfigError(f"time.length_projection must be true or false, "
                               f"got {self.length_projection!r}")
+        if not isinstance(self.root_rotation, bool):
+            raise ConfigError(f"time.root_rotation must be true or false, got {self.root_rotation!r}")
+        if self.root_rotation and self.newton_converges:
+            raise ConfigError("time.root_rotation = true turns the wisps after a fixed count of Newton "
+                              "iterations; with time.newton_tol or time.newton_increment_tol set Newton "
+                              "converges the frame itself: set time.root_rotation = false or drop the "
+                              "tolerance")
         _int_at_least("time.max_substeps", self.max_substeps, 1)
         if self.max_substeps & (self.max_substeps - 1) or self.max_substeps > MAX_SUBSTEPS:
             raise ConfigError(f"time.max_substeps must be a power of 2 (1, 2, 4, ... {MAX_SUBSTEPS}; "

@@ -77,6 +77,19 @@ def run_positions(config, comm=None, frames=None):
     return X, summary
 
 
+def frames_run(sim, frames):
+    """Gathered positions (rank 0) at the start and after each of ``frames`` frames, and
+    the summary; closes ``sim``."""
+    try:
+        X = [sim.gather_positions()]
+        for _ in range(frames):
+            sim.step()
+            X.append(sim.gather_positions())
+        return X, sim.summary()
+    finally:
+        sim.close()
+
+
 def serial_reference(config, frames=None):
     """The same run on COMM_SELF, on rank 0 of COMM_WORLD only (None elsewhere)."""
     if MPI.COMM_WORLD.rank != 0:

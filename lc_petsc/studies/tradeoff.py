@@ -51,6 +51,7 @@ class Settings:
     length_projection: bool = TimeConfig.length_projection
     max_substeps: int = TimeConfig.max_substeps     # step cutback (with a tolerance only)
     newton: str = TimeConfig.newton                 # filtered or trust_region
+    root_rotation: bool = TimeConfig.root_rotation  # the root turn after a fixed count
 
     def effective_rtol(self) -> float:
         """The Krylov tolerance the run uses: ``ksp_rtol``, or the code default for its
@@ -83,6 +84,8 @@ class Settings:
             parts.append(self.newton)
         if self.length_projection:
             parts.append("projected")
+        if self.root_rotation:
+            parts.append("root turn")
         return " ".join(parts)
 
 
@@ -160,6 +163,15 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS, conf
         + [(f"{'carried' if c else 'uncarried'} exact_or_analytic inc<{t:g}",
             replace(base, carry_with_head=c, filter="exact_or_analytic", newton_iterations=30,
                     newton_increment_tol=t)) for c in (True, False) for t in (1e-3, 1e-6)],
+        # the root turn after a fixed count (docs/newton.md, "Fourteenth round"), against
+        # the same counts without it and the paper's setting (the issue's yardstick)
+        "root_rotation": [(f"{'root turn' if t else 'plain'}{' ftl' if f else ''} N={n}",
+                           replace(base, root_rotation=t, newton_iterations=n,
+                                   initial_guess="follow_the_leader" if f else base.initial_guess))
+                          for f in (False, True) for t in (True, False) for n in (2, 3, 4)]
+        + [(f"paper setting{' ftl' if f else ''}",
+            replace(base, newton_update="linear", carry_with_head=False,
+                    initial_guess="follow_the_leader" if f else base.initial_guess)) for f in (False, True)],
     }
     for a in (axes or ax):
         for name, s in ax[a]:
@@ -179,7 +191,8 @@ def configured_settings(cfg, options=""):
                     filter=cfg.solver.filter, line_search=t.line_search, options=options,
                     newton_update=t.newton_update, initial_guess=t.initial_guess,
                     carry_with_head=t.carry_with_head, newton_increment_tol=t.newton_increment_tol,
-                    length_projection=t.length_projection, max_substeps=t.max_substeps, newton=t.newton)
+                    length_projection=t.length_projection, max_substeps=t.max_substeps, newton=t.newton,
+                    root_rotation=t.root_rotation)
 
 
 def reference_settings(dt=1.0 / 120.0, newton_tol=1e-9, max_newton=100, filter="none",
@@ -253,6 +266,7 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.length_projection = s.length_projection
     cfg.time.max_substeps = s.max_substeps
     cfg.time.newton = s.newton
+    cfg.time.root_rotation = s.root_rotation
     cfg.solver.filter = s.filter
     rtol = "" if s.ksp_rtol is None else f"-ksp_rtol {s.ksp_rtol:g}"      # else the code default
     cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options, rtol) if x)

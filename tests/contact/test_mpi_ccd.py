@@ -15,7 +15,7 @@ from lc_petsc.crossings import count_crossings
 from lc_petsc.elements.segment_contact import distance
 from lc_petsc.scene import geometry
 from lc_petsc.scene.sources import ArraySource
-from sim_helpers import touching_wisps_config, touching_wisps_source
+from sim_helpers import frames_run, touching_wisps_config, touching_wisps_source
 from test_contact_sim import D0, N, crossing_config, crossing_source
 
 pytestmark = pytest.mark.mpi
@@ -23,19 +23,6 @@ comm = MPI.COMM_WORLD
 ROOT = Path(__file__).resolve().parents[2]
 FRAMES = 12
 SPEED = 10 * D0 * 30.0          # 10x the contact thickness per frame (dt = 1/30 s)
-
-
-def frames_run(sim, frames):
-    """Gathered positions (rank 0) at the start and after each of ``frames`` frames, and
-    the summary; closes ``sim``."""
-    try:
-        X = [sim.gather_positions()]
-        for _ in range(frames):
-            sim.step()
-            X.append(sim.gather_positions())
-        return X, sim.summary()
-    finally:
-        sim.close()
 
 
 def drive_together(c, mode):

@@ -23,7 +23,7 @@ from lc_petsc.errors import RestPoseOverlapError
 from lc_petsc.scene import geometry
 from lc_petsc.scene.sources import ArraySource
 from test_contact_pc import dense
-from test_mpi_ccd import frames_run
+from sim_helpers import frames_run
 
 comm = MPI.COMM_WORLD
 NV = 30             # vertices per smashed wisp: a 4C helix without its stem, 6 turns 0.5 cm apart

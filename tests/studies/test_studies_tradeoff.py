@@ -67,7 +67,7 @@ def test_variants_cover_the_axes():
     for n in ("newton 1", "newton 12", "rtol 1e-02", "rtol 1e-10", "dt 1/120", "filter none",
               "filter numerical", "line search", "inc<1e-06 cap 30 no cutback",
               "inc<1e-06 cap 10 cutback 8", "corotational N=3",
-              "exact_or_analytic corotational inc<1e-06"):
+              "exact_or_analytic corotational inc<1e-06", "root turn N=3", "paper setting ftl"):
         assert n in names
     assert sum(s == BASE for _, _, s in v) == 1
 

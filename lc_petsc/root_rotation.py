@@ -1,0 +1,201 @@
+"""The root turn (``time.root_rotation``): a coarse Newton step after a fixed count.
+
+After the filtered iterations of a fixed count, 86-94% of what a frame leaves unsolved is
+a rigid turn of each held wisp about its root, and the analytic filter makes that turn
+25-130x stiffer than it is, so each filtered step takes a few percent of it
+(docs/newton.md, "Fourteenth round").  Here each wisp whose pinned vertices are its first
+ones is turned about its last pinned vertex by the Newton step of G over the three angles
+of that turn, solved by conjugate gradients preconditioned by the turn's inertia.  G's
+curvature along the turns is cheap: an element whose vertices all turn only turns its
+gradient with them, so only the few elements across the root (central differences of
+their gradients), the inertia, the head's penalty (its Hessian) and the bending of the
+rotation curve (the gradient's own term) are evaluated.  One elastic gradient; no
+assembly, no solve.  Rank-local (a wisp is whole on one rank); pure NumPy around the
+compiled element kernels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lc_petsc.elements import compiled
+
+#: the angle (rad) of the central differences of the root elements' gradients along the
+#: turns: their error is about this squared (1e-8 of the curvature), their round-off about
+#: 1e-16 of the gradient over it (1e-6 with one-sided differences at 1e-6 amplified the
+#: partition's round-off to 2-4e-9 of the positions on 2-3 ranks after 6 frames, against
+#: 1e-13 without the turn)
+ANGLE_STEP = 1e-4
+
+
+def root_pivots(offsets, pinned):
+    """(n_wisps,) the last pinned vertex of each wisp whose pinned vertices are its first
+    ones and which has a free vertex (a root-held wisp), else -1: a wisp pinned elsewhere
+    cannot turn rigidly about one vertex."""
+    out = np.full(len(offsets) - 1, -1)
+    for w, (a, b) in enumerate(zip(offsets[:-1], offsets[1:])):
+        k = int(np.argmin(pinned[a:b])) if not pinned[a:b].all() else b - a
+        if 0 < k < b - a and not pinned[a + k:b].any():
+            out[w] = a + k - 1
+    return out
+
+
+def rotate(v, theta):
+    """The vectors v (n, 3) turned by the rotation vectors ``theta`` (n, 3) (Rodrigues)."""
+    angle = np.linalg.norm(theta, axis=1)
+    axis = theta / np.where(angle > 0.0, angle, 1.0)[:, None]
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    return v * c + cross(axis, v) * s + axis * (np.sum(axis * v, axis=1)[:, None] * (1.0 - c))
+
+
+def cross(a, c):
+    """Row-wise a x c of (n, 3) arrays (np.cross's axis handling costs more here)."""
+    out = np.empty(np.broadcast_shapes(a.shape, c.shape))
+    out[:, 0] = a[:, 1] * c[:, 2] - a[:, 2] * c[:, 1]
+    out[:, 1] = a[:, 2] * c[:, 0] - a[:, 0] * c[:, 2]
+    out[:, 2] = a[:, 0] * c[:, 1] - a[:, 1] * c[:, 0]
+    return out
+
+
+def skew(v):
+    """(n, 3, 3) the matrices [v]x with [v]x c = v x c."""
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return S
+
+
+def turn(x, theta, pivot, idx):
+    """x with the vertices ``idx`` turned about the vertices ``pivot`` (one per index) by
+    the rotation vectors ``theta`` (one per index)."""
+    y = x.copy()
+    y[idx] = x[pivot] + rotate(x[idx] - x[pivot], theta)
+    return y
+
+
+class RootRotation:
+    """The root turn of one rank's wisps (:meth:`step`).  ``elements``: the compiled
+    kernels' element arrays per term (:func:`lc_petsc.elements.compiled.element_arrays`),
+    ``stencils``: each term's vertices per element."""
+
+    def __init__(self, offsets, pinned, elements, stencils):
+        self.offsets = np.asarray(offsets)
+        self.pivot = root_pivots(self.offsets, np.asarray(pinned, bool))
+        sizes = np.diff(self.offsets)
+        self.wisp = np.repeat(np.arange(len(sizes)), sizes)
+        vertex = np.arange(len(self.wisp))
+        self.moved = (self.pivot[self.wisp] >= 0) & (vertex > self.pivot[self.wisp])
+        self.idx = np.flatnonzero(self.moved)
+        self.mask = self.moved.astype(float)
+        # the elements across a root (a vertex that stays and one that turns; elements
+        # stay inside their wisp), whose gradients are not turned copies: on their own
+        # vertices only (``near``, sorted: an element's consecutive vertices stay so)
+        across = {}
+        for name, (start, rest, stiffness) in elements.items():
+            k = stencils[name]
+            sel = self.moved[start + k - 1] & ~self.moved[start] if len(start) else np.zeros(0, bool)
+            across[name] = (start[sel], rest[sel], stiffness[sel], k)
+        self.near = np.unique(np.concatenate([s[:, None] + np.arange(k) for s, _, _, k in across.values()]
+                                             + [np.zeros((0, 1), int)], axis=None)).astype(np.int64)
+        self.across = {name: compiled.element_arrays(name, np.searchsorted(self.near, s), rest, stiff)
+                       for name, (s, rest, stiff, _) in across.items()}
+        # and six copies of them, one per turn and sign, for one kernel call (copy j's
+        # vertices after the j - 1 before it)
+        n = len(self.near)
+        self.across6 = {name: compiled.element_arrays(name, np.concatenate([s + j * n for j in range(6)]),
+                                                      np.concatenate([r] * 6), np.concatenate([k] * 6))
+                        for name, (s, r, k) in self.across.items()}
+        self.near_moved = self.moved[self.near]
+        self.turned = 0          # wisps turned by the last step
+
+    def _sums(self, a):
+        """Per wisp sums over the vertices of ``a`` (n, ...)."""
+        return np.add.reduceat(a, self.offsets[:-1], axis=0)
+
+    def _across_gradient(self, xs):
+        g = np.zeros_like(xs)
+        compiled.add_gradient(self.across, xs, g)
+        return g
+
+    def model(self, x, terms, unit):
+        """(b, A, P) per wisp at x (zeros for a wisp not held at its root): b the
+        gradient of G along the three turns (the torque of grad G about the pivot), A
+        G's curvature along them (its Hessian in the angles of the turn), P the turn's
+        inertia about the pivot over dt^2.  ``terms``: x -> (grad G without the elastic
+        terms, the head's active vertices and their Hessians or None); ``unit``: per
+        vertex the mass over dt^2.
+
+        An element whose vertices all turn exerts no torque about the pivot and turns its
+        gradient with them: it drops out of b, and of A but for the rotation curve's
+        bending, which cancels it there too.  So with q the gradient of G without those
+        elements (inertia, gravity, the head, the elements across the root) b = sum r x q
+        and A = sum (r . u) I - sym(r u^T), u = m r - q (m the mass over dt^2; -q the
+        curve's term g . d2x / dtheta_k dtheta_l, without which the turn overshoots:
+        hairball10 7.3e-3 against 5.0e-3, the demo cut to 10 wisps 1.37e-2 against
+        9.6e-3, docs/newton.md "Fourteenth round"), plus the across elements' and the
+        head's curvature.  The elastic gradient's large, cancelling terms never enter."""
+        held = self.pivot >= 0
+        outer, head = terms(x)
+        pivot_of = np.where(held, self.pivot, 0)[self.wisp]
+        r = (x - x[pivot_of]) * self.mask[:, None]
+        eye = np.eye(3)
+        xs = x[self.near]
+        q = outer * self.mask[:, None]
+        q[self.near] += self._across_gradient(xs) * self.near_moved[:, None]
+        b = self._sums(cross(r, q))             # d G / d theta_k = sum (e_k x r) . g
+        mr = (unit * self.mask)[:, None] * r
+        T = self._sums(r[:, :, None] * (mr - q)[:, None, :])
+        A = np.einsum("wkk->w", T)[:, None, None] * eye - 0.5 * (T + T.transpose(0, 2, 1))
+        # the elements across the root: central differences of their gradients, the six
+        # turns in one kernel call
+        pn, rn, wn = x[pivot_of[self.near]], r[self.near], self.wisp[self.near]
+        turned = np.concatenate([np.where(self.near_moved[:, None], pn + rotate(
+            xs - pn, np.broadcast_to(sign * ANGLE_STEP * e, xs.shape)), xs) for sign in (1, -1) for e in eye])
+        g6 = np.zeros_like(turned)
+        compiled.add_gradient(self.across6, turned, g6)
+        g6 = g6.reshape(2, 3, -1, 3)
+        HJ = (g6[0] - g6[1]) / (2 * ANGLE_STEP)          # (turn k, vertex, 3)
+        np.add.at(A, wn, np.stack([cross(rn, HJ[k]) for k in range(3)], axis=2))
+        if head is not None:                     # the head's penalty: sum [r]x^T H [r]x
+            hidx, H = head
+            S = skew(r[hidx])
+            np.add.at(A, self.wisp[hidx], np.einsum("nji,njk,nkl->nil", S, H, S))
+        A = 0.5 * (A + A.transpose(0, 2, 1))
+        M = self._sums(mr[:, :, None] * r[:, None, :])
+        P = np.einsum("wkk->w", M)[:, None, None] * eye - M
+        return b, A, P
+
+    def step(self, x, terms, unit):
+        """x after the root turn (a new array).  Per held wisp the turn theta solves
+        A theta = -b (:meth:`model`) by three conjugate-gradient steps preconditioned by
+        P (exact where A is positive definite); a direction of curvature that is not
+        positive ends a wisp's iteration, keeping its turn so far (on hairball10 that
+        gives 4.5e-3 against 5.0e-3 for the Newton step in the span of A's positive
+        eigenvalues)."""
+        held = self.pivot >= 0
+        self.turned = 0
+        if not held.any():
+            return x.copy()
+        b, A, P = self.model(x, terms, unit)
+        eye = np.eye(3)
+        P[~held] = eye
+        theta = np.zeros((len(held), 3))
+        res = -b
+        z = np.linalg.solve(P, res[:, :, None])[:, :, 0]
+        d = z.copy()
+        active = held.copy()
+        for _ in range(3):
+            Ad = np.einsum("wkl,wl->wk", A, d)
+            dAd = np.sum(d * Ad, axis=1)
+            active &= dAd > 0.0
+            if not active.any():
+                break
+            rz = np.sum(res * z, axis=1)
+            alpha = np.where(active, rz / np.where(active, dAd, 1.0), 0.0)
+            theta += alpha[:, None] * d
+            res = res - alpha[:, None] * Ad
+            z = np.linalg.solve(P, res[:, :, None])[:, :, 0]
+            beta = np.sum(res * z, axis=1) / np.where(rz != 0.0, rz, 1.0)
+            d = z + beta[:, None] * d
+        self.turned = int(np.count_nonzero(np.any(theta != 0.0, axis=1)))
+        return turn(x, theta[self.wisp[self.idx]], self.pivot[self.wisp[self.idx]], self.idx)

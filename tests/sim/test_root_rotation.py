@@ -1,0 +1,116 @@
+"""The root turn after a fixed count (``time.root_rotation``, lc_petsc/root_rotation.py;
+docs/newton.md, "Fourteenth round")."""
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lc_petsc.config import ConfigError, TimeConfig
+from lc_petsc.root_rotation import root_pivots, turn
+from lc_petsc.simulator import build_simulator
+from tests.sim_helpers import run_positions, small_hairball_config
+
+SELF = MPI.COMM_SELF
+
+
+def test_the_pivot_is_the_last_of_a_wisps_leading_pins():
+    offsets = np.array([0, 5, 10, 15, 20, 25])
+    pinned = np.zeros(25, bool)
+    pinned[0:3] = True            # wisp 0: held at its root -> pivot 2
+    # wisp 1: no pin -> not turned
+    pinned[11] = True             # wisp 2: a pin that is not the first vertex -> not turned
+    pinned[15:20] = True          # wisp 3: all pinned -> nothing to turn
+    pinned[20] = pinned[24] = True    # wisp 4: root and tip pinned -> not turned
+    assert root_pivots(offsets, pinned).tolist() == [2, -1, -1, -1, -1]
+
+
+def test_a_turn_is_rigid_about_the_pivot():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(8, 3))
+    idx = np.arange(3, 8)
+    theta = np.tile([0.3, -0.2, 0.5], (5, 1))
+    y = turn(x, theta, np.full(5, 2), idx)
+    assert np.array_equal(y[:3], x[:3])
+    d0 = np.linalg.norm(x[2:, None] - x[None, 2:], axis=2)
+    d1 = np.linalg.norm(y[2:, None] - y[None, 2:], axis=2)
+    assert np.abs(d1 - d0).max() < 1e-14
+    # a quarter turn about z takes (1, 0, 0) to (0, 1, 0)
+    q = turn(np.array([[0.0, 0, 0], [1.0, 0, 0]]), np.array([[0, 0, np.pi / 2]]), np.array([0]), np.array([1]))
+    assert np.allclose(q[1], [0.0, 1.0, 0.0], atol=1e-15)
+
+
+def _settled(terms, frames=3):
+    """A small shaking hairball after ``frames`` frames of the default, with the root
+    turn set up: (simulator, the step's state set for G at the next step)."""
+    cfg = small_hairball_config(n_wisps=3, frames=frames, terms=terms, root_rotation=True)
+    sim = build_simulator(cfg.validate(), comm=SELF)
+    sim.integrator.root_turn, turner = None, sim.integrator.root_turn
+    sim.run()
+    it = sim.integrator
+    # G of the next step at its first iterate (xhat, dt and the head as the step sets them)
+    it.dt, it.t_next, it.xhat = it.cfg.time.dt, it.t + it.cfg.time.dt, it.x + it.cfg.time.dt * it.v
+    return sim, turner
+
+
+@pytest.mark.parametrize("terms", [("stretch", "bend", "twist", "gravity"),
+                                   ("stretch", "bend", "twist", "gravity", "head_collision")])
+def test_the_model_is_Gs_slope_and_curvature_along_the_turns(terms):
+    """b and A of the model equal G's first and second differences along each wisp's
+    turns (the rotation curve, not a straight line: a linearised turn stretches the
+    edges), to the differences' own error."""
+    sim, turner = _settled(terms)
+    try:
+        it = sim.integrator
+        x = it.xhat.copy()
+        unit = np.where(it.free, it.scene.mass / it.dt ** 2, 0.0)
+        b, A, _ = turner.model(x, it._turn_terms, unit)
+        idx = turner.idx
+        piv = turner.pivot[turner.wisp[idx]]
+
+        def G(w, th):
+            theta = np.zeros((len(turner.pivot), 3))
+            theta[w] = th
+            return it.incremental_potential(turn(x, theta[turner.wisp[idx]], piv, idx))
+
+        h = 1e-4
+        eye = np.eye(3)
+        for w in range(len(turner.pivot)):
+            G0 = G(w, np.zeros(3))
+            slope = np.array([(G(w, h * e) - G(w, -h * e)) / (2 * h) for e in eye])
+            curv = np.array([[(G(w, h * (e + f)) - G(w, h * (e - f)) - G(w, h * (f - e)) + G(w, -h * (e + f)))
+                              / (4 * h * h) if k != m else (G(w, h * e) - 2 * G0 + G(w, -h * e)) / (h * h)
+                              for m, f in enumerate(eye)] for k, e in enumerate(eye)])
+            assert np.abs(b[w] - slope).max() <= 1e-5 * np.abs(b[w]).max() + 1e-6 * np.abs(A[w]).max()
+            assert np.abs(A[w] - curv).max() <= 1e-4 * np.abs(A[w]).max()
+    finally:
+        sim.close()
+
+
+def _rms(X, ref):
+    return float(np.sqrt(np.mean(np.sum((X - ref) ** 2, axis=1))))
+
+
+def test_the_root_turn_brings_a_fixed_count_near_the_converged_run():
+    """Three filtered iterations leave the wisps turned short of the step's solution; the
+    root turn takes half of that back at the same Newton count (3-wisp shaking hairball,
+    10 frames, against Newton converged to 1e-9 cm: RMS 0.997 cm -> 0.476 cm)."""
+    def run(**time):
+        X, summ = run_positions(small_hairball_config(n_wisps=3, frames=10, **time).validate(), comm=SELF)
+        return X, summ
+
+    ref, _ = run(newton_iterations=100, newton_tol=1e-9)
+    plain, s_plain = run()
+    turned, s_turned = run(root_rotation=True)
+    e_plain, e_turned = _rms(plain, ref), _rms(turned, ref)
+    print(f"\nRMS distance to the converged run: 3 iterations {e_plain:.3e} cm, with the root turn "
+          f"{e_turned:.3e} cm")
+    assert sum(s_turned["newton_iterations"]) == sum(s_plain["newton_iterations"]) == 30
+    assert e_turned < 0.55 * e_plain
+
+
+def test_the_root_turn_needs_a_fixed_count():
+    with pytest.raises(ConfigError, match="time.root_rotation"):
+        TimeConfig(root_rotation=True, newton_increment_tol=1e-6).validate()
+    with pytest.raises(ConfigError, match="time.root_rotation must be true or false"):
+        TimeConfig(root_rotation="yes").validate()
+    TimeConfig(root_rotation=True).validate()

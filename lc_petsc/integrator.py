@@ -110,8 +110,13 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from lc_petsc import contact_curvature, curvature
-from lc_petsc.elements import compiled, head_contact
+from lc_petsc.elements import head_contact
+from lc_petsc.newton_stop import (CHORD_TRY_C, ENERGY_FLOOR, EXACT_BELOW, LOOSE_TOLERANCE, QUADRATIC_SAFETY,
+                                  StepRecord, chord_basis, chord_stop, confirms_stop, model_agrees,
+                                  quadratic_error_estimate, step_contraction)
 from lc_petsc.parallel import collectively, global_reduce
+from lc_petsc.predictors import (corotational_update, follow_the_leader, project_rest_lengths,
+                                 retract_edge_lengths, start_carry_weight)
 from lc_petsc.scene.state import vertex_wisp_length
 from lc_petsc.errors import SimulationError, SolverError
 from lc_petsc.trust_region import ETA, TRUST_RETRIES, ratio, update_radius
@@ -136,19 +141,6 @@ class _Solve(NamedTuple):
     unconfirmed: bool = False
     refused: bool = False
     saddle: bool = False
-
-
-class StepRecord(NamedTuple):
-    """One Newton step as the stop test reads it (:func:`step_contraction`): its relative
-    increment ``measure`` (the full step's where the step was damped or cut), whether it
-    was ``whole`` (alpha 1, unshifted, not cut, no exact attempt rejected), of the
-    ``exact`` Hessian, and a ``newton`` step (unshifted, not after an indefinite exact
-    matrix)."""
-
-    measure: float
-    whole: bool
-    exact: bool
-    newton: bool
 
 
 class _Region:
@@ -1417,62 +1409,6 @@ class Integrator:
             exact_rejected=self._fallback, exact_shift=self._shift, **self._region_record))
 
 
-def chord_stop(chord, increment, tol):
-    """``time.newton_stop = "chord_estimate"``: whether the chord step's relative
-    increment ``chord``, measured after a full exact step of ``increment``, certifies the
-    iterate.  It must show the step converging (``chord`` below :data:`CHORD_CONTRACTION`
-    times ``increment``: an iteration crawling at 0.5 per step had chord steps below a
-    loose tolerance while its next Newton increment was 3-8x above it, docs/newton.md
-    "Eleventh round") and lie below ``tol`` with the margin 1 + :data:`CHORD_MARGIN`
-    ``increment`` (the chord and Newton steps differ by the change of the Hessian over
-    the last step: measured at a tolerance of 3e-4 up to 31%, within 2% at 1e-6)."""
-    return chord < CHORD_CONTRACTION * increment and chord * (1.0 + CHORD_MARGIN * increment) < tol
-
-
-def chord_basis(increments, modelled):
-    """``time.newton_stop = "chord_estimate"``: whether the last full exact steps in a
-    row (their ``increments``, oldest first, and per step whether it ``modelled``: G's
-    decrease agreed with its quadratic model) let a chord step measure the next
-    increment: two of them, the last shorter, both on their model (at a loose tolerance
-    a check without them may claim, confirmed only by the next iterate's check with
-    them).  The chord step uses
-    the Hessian of the iterate before the last step; where that Hessian changes over a
-    step the chord step is no Newton step (the stiff smash at 1e-6: chord increments
-    3-40x below the next Newton increment while the iterate was 200-20000x the
-    tolerance away; a stop 2170x away after a damped step, 242x after the first exact
-    step; docs/newton.md "Tight tolerances")."""
-    return len(increments) >= 2 and increments[-1] < increments[-2] and all(modelled[-2:])
-
-
-def confirms_stop(tol, absolute=None, length=None):
-    """Whether a stop at the relative increment tolerance ``tol`` (None: unset) must be
-    confirmed by the next step: above :data:`LOOSE_TOLERANCE`.  Without ``tol``, the
-    absolute tolerance ``absolute`` (``time.newton_tol``, cm; None: unset) is taken
-    relative to ``length``, the shortest wisp's rest length (alone it had been outside the
-    rule: the stiff smash stopped 14x and 138x its 1e-2 and 1e-3 cm away).  There an increment below
-    the tolerance, after a sequence that looks quadratic, left frames of crushed curls at
-    dt 0.1-0.2 up to 16x the tolerance from their solution (docs/newton.md "Stopping
-    rule"); at 1e-6 every stop measured was within 0.33x of it."""
-    if tol is None and absolute is not None and length:
-        tol = absolute / length
-    return tol is not None and tol > LOOSE_TOLERANCE
-
-
-def model_agrees(decrease, predicted, energy):
-    """Whether a whole Newton step's decrease of G, ``decrease``, agrees with the
-    quadratic model's prediction ``predicted`` (-g . dx / 2 for a step solving H dx = -g)
-    within :data:`MODEL_AGREEMENT`, or the prediction is below round-off
-    (:data:`ENERGY_FLOOR` times ``energy``, |G|: there G cannot tell).  Where the model is
-    off along a step (the exact Hessian changing faster than the step is long, or a filter
-    stiffening it), the step's size does not bound the distance to the solution: at a
-    loose tolerance such stops had been claimed 2.4-30x the tolerance from the step's
-    solution with |ratio - 1| of 0.25-1.0, while every honest stop on the recommended path
-    at dt 1/30 agreed within 0.09 (docs/newton.md "Stopping rule")."""
-    if abs(predicted) <= ENERGY_FLOOR * abs(energy):
-        return True
-    return predicted > 0.0 and abs(decrease / predicted - 1.0) <= MODEL_AGREEMENT
-
-
 def _stop_note(unconfirmed, refused):
     """The monitor's note on a loose-tolerance stop (:meth:`Integrator._loose_verdict`)."""
     if unconfirmed:
@@ -1527,270 +1463,12 @@ def unconfirmed_note(steps, refused=0, saddles=0):
     return note
 
 
-def contraction_factor(increments, whole=None, exact=None, newton=None):
-    """What the last of ``increments`` (a Newton solve's relative increments, oldest
-    first) must be multiplied by to bound the iterate's remaining error: max(1, q / (1 -
-    q)), q the contraction per step over the last two steps, sqrt(d_k / d_{k-2}) (d_k /
-    d_{k-1} after two steps): an iteration contracting by q per step has d q / (1 - q)
-    still to go after a step of d.  Over two steps because the filtered iterations
-    alternate, and because an exact step after a filtered one that grew shows its
-    quadratic rate already.  1 after a single step (no rate yet: the increment alone, the
-    rule before) or a zero step (a rejected trust-region step), and whenever q <= 1/2
-    (fast convergence: the increment bounds the error); inf when the increments did not
-    shrink.  The analytic filter crawls at q ~ 0.97 (factor ~ 35: its increment test had
-    stopped frames 35-42x the tolerance from the solution, docs/newton.md "Twelfth
-    round").
-
-    Per step (None: all True, resp. all False for ``exact``): ``newton``, a Newton step
-    of the configured kind (unshifted, no exact attempt rejected before it), ``whole``,
-    a Newton step taken whole (alpha 1, not cut), ``exact``, of the exact Hessian.  The
-    last step must be a Newton step (a filtered step after a rejected exact attempt had
-    stopped the stiff smash 242x the tolerance away), and a rate whose base is a step
-    not taken whole measures nothing (a damped step's full measure as its base: 155x),
-    so both are inf (the last step may be damped: the caller measures it by its full
-    step); over three exact
-    steps q is the larger of the two ratios (a Newton iteration in its quadratic basin
-    shrinks at every step: 3.2e-6 after 1.5e-6 then 5.5e-7 had stopped the stiff smash
-    1.7x away at 1e-6; docs/newton.md "Stopping rule")."""
-    moved = [k for k, d in enumerate(increments) if d > 0.0]
-    if newton is not None and increments[-1] > 0.0 and not newton[-1]:
-        return float("inf")
-    if len(moved) < 2 or increments[-1] == 0.0:
-        return 1.0
-    window = moved[-3:]
-    # the last step may be damped: its measure is already its full step's
-    if whole is not None and not all(whole[k] for k in window[:-1]):
-        return float("inf")
-    d = [increments[k] for k in window]
-    if len(d) == 2:
-        q = d[1] / d[0]
-    elif exact is not None and all(exact[k] for k in window):
-        q = max(d[1] / d[0], d[2] / d[1])
-    else:
-        q = float(np.sqrt(d[2] / d[0]))
-    if q >= 1.0:
-        return float("inf")
-    return max(1.0, q / (1.0 - q))
-
-
-def step_contraction(steps):
-    """:func:`contraction_factor` of a solve's :class:`StepRecord` records."""
-    return contraction_factor([s.measure for s in steps], [s.whole for s in steps],
-                              [s.exact for s in steps], [s.newton for s in steps])
-
-
-def quadratic_error_estimate(increments, modelled=None):
-    """``time.newton_stop = "quadratic_estimate"``: the relative error of the iterate
-    after the last of ``increments`` (those of the last full, unshifted exact steps in a
-    row, oldest first), estimated from quadratic convergence.  A step's increment d_k is
-    the error of the iterate before it, to leading order, and e_{k+1} = C e_k^2, so the
-    error after the last step is C d_k^2.  C is measured twice, C = d_k / d_{k-1}^2 and
-    d_{k-1} / d_{k-2}^2, and the larger taken: three such steps in a row, each shorter
-    than the one before, the middle one below :data:`EXACT_BELOW` (C measured from a
-    step above it was 60x too small: a stop 1.3x above the tolerance on the demo
-    hairball, docs/newton.md "Eighth round"), and the last two decreasing G as their
-    quadratic model predicts (``modelled``, per step; None: all did).  inf otherwise:
-    one pair of steps that looks quadratic can be a lull of a wandering iteration (the
-    stiff smash at 1e-5: 3.0e-5 then 8.5e-6 after a step that grew, a claimed stop 230x
-    the tolerance away; 1.1e-3 then 5.7e-5, a next step of 7.4e-4, 150x away), and a
-    step off its model can end a quadratic-looking run that then only halves (jitter
-    at 1e-8: 30x; docs/newton.md "Tight tolerances")."""
-    if len(increments) < 3 or not increments[-2] < EXACT_BELOW:
-        return np.inf
-    d0, d1, d = increments[-3:]
-    if not d < d1 < d0 or (modelled is not None and not all(modelled[-2:])):
-        return np.inf
-    return max(d / d1 ** 2, d1 / d0 ** 2) * d ** 2
-
-
 #: A stop after filtered steps (an element filter, not exact_or_analytic) at a relative
 #: tolerance at or below this is checked by an exact Newton step at its iterate
 #: (Integrator._verify_stop; docs/newton.md "Verifying a stop after filtered steps")
 VERIFY_FROM = 1e-3
 
 
-#: The start from rest's carry decays along a wisp as exp(-s / (START_CARRY_LENGTH * S)),
-#: s the rest arclength from the wisp's last pinned vertex, S that of its free part
-#: (docs/newton.md, "Tenth round": 0.3 measured against 0.03, 0.1 and the whole wisp)
-START_CARRY_LENGTH = 0.3
-
-
-def start_carry_weight(rest_edge, offsets, pinned, length=START_CARRY_LENGTH):
-    """Per-vertex weights (nv,) of the head's first step in the first iterate of the
-    start from rest: 1 up to each wisp's last pinned vertex, then exp(-s / (length S))
-    with s the rest arclength from that vertex and S the arclength from it to the tip
-    (1 on a wisp without pinned vertices, which is not carried).  A head starting from
-    rest jumps to its velocity; within one step only the part of a wisp near its roots
-    follows (the tips lag by inertia), while a smooth acceleration later is followed by
-    the whole wisp.  ``rest_edge`` (nv - 1,) rest length of edge (v, v + 1) (edges
-    across wisps unused), ``offsets`` (n_wisps + 1,), ``pinned`` (nv,)."""
-    off = np.asarray(offsets, np.int64)
-    nv, sizes = len(pinned), np.diff(off)
-    edge = np.zeros(nv)                 # edge[v]: the rest length of edge (v - 1, v)
-    edge[1:] = rest_edge[:max(nv - 1, 0)]
-    arc = np.zeros(nv)
-    for j in range(1, int(sizes.max(initial=0))):      # along each wisp from its root: the
-        v = off[:-1][sizes > j] + j                     # same sums on any partition
-        arc[v] = arc[v - 1] + edge[v]
-    wisp = np.repeat(np.arange(len(sizes)), sizes)
-    last = np.full(len(sizes), -1, np.int64)
-    np.maximum.at(last, wisp[pinned], np.flatnonzero(pinned))
-    anchor = last[wisp]
-    held = anchor >= 0
-    tip = off[1:][wisp] - 1
-    s = np.where(held, arc - arc[np.maximum(anchor, 0)], 0.0)
-    S = np.where(held, arc[tip] - arc[np.maximum(anchor, 0)], 0.0)
-    w = np.ones(nv)
-    decay = held & (s > 0.0) & (S > 0.0)
-    w[decay] = np.exp(-s[decay] / (length * S[decay]))
-    return w
-
-
-def follow_the_leader(x, free, offsets, rest_edge):
-    """Length-preserving prediction (Mueller et al. 2012): walking from each wisp's root,
-    every free vertex is put at its rest edge length from its predecessor, in the
-    direction of its predicted position.  Only wisps whose root (first vertex) is pinned
-    have a leader: on a wisp with a free root the walk would start at an arbitrary end
-    and drag the whole strand along itself towards it (the corrections accumulate), a
-    slide that costs no energy where the strand lies across another (so Newton does not
-    undo it) and whose straight path cuts the corner through what it lies on; such wisps
-    keep their prediction (measured: a free wisp draped over another slid 0.39 d0 per
-    frame at its far end, and the ccd path check then held the pair at its floor,
-    docs/contact.md "Follow the leader in ccd mode").  x (nv, 3) predicted positions,
-    free (nv,) bool, offsets (n_wisps + 1,), rest_edge (nv - 1,) rest length of edge
-    (v, v + 1) (edges across wisps unused).  Returns the new positions (nv, 3)."""
-    x = x.copy()
-    off = np.asarray(offsets)
-    sizes = np.diff(off)
-    rooted = np.zeros(len(sizes), bool)
-    rooted[sizes > 0] = ~free[off[:-1][sizes > 0]]
-    for j in range(1, int(sizes.max(initial=0))):
-        v = off[:-1][(sizes > j) & rooted] + j
-        v = v[free[v]]
-        d = x[v] - x[v - 1]
-        n = np.linalg.norm(d, axis=1)
-        ok = n > 0
-        x[v[ok]] = x[v[ok] - 1] + d[ok] * (rest_edge[v[ok] - 1] / n[ok])[:, None]
-    return x
-
-
-def retract_edge_lengths(x, dx, free, offsets, mass=None):
-    """x + dx with the length of every edge that ends at a free vertex set to its
-    first-order value |e| + eh . de (direction that of e + de), the corrections
-    accumulated from the root (or the last pinned vertex) outwards.  A linearised step
-    that turns an edge by an angle phi lengthens it by |e| phi^2 / 2, which the stiff
-    stretch term pulls back in the next iteration; this update keeps the step's rotation
-    and its first-order length change only.  It equals x + dx to second order in dx (so
-    Newton's convergence rate is kept) and has the same fixed points.  On a wisp with no
-    pinned vertex the mass-weighted mean correction is removed (``mass`` given): the
-    step then changes the wisp's momentum as x + dx does.  Each wisp's result depends on
-    that wisp alone (rank-count invariant to the last bit).  One compiled pass
-    (:func:`lc_petsc.elements.compiled.edge_lengths`).
-    x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
-    Returns (nv, 3)."""
-    return compiled.edge_lengths(x, dx, None, free, offsets, mass)
-
-
-def corotational_update(x, dx, free, offsets, mass=None):
-    """``time.newton_update = "corotational"``, the update of the exact steps: like
-    :func:`retract_edge_lengths` (each
-    free edge gets its first-order length |e| + eh . de, built from the root or the last
-    pinned vertex outwards), but each edge is first *turned* by the rotation w fitted to
-    the increments of the edges around it (itself and its two neighbours in the wisp:
-    least squares of w x e_k = de_k), R(w) e + (de - w x e), instead of moved to e + de.
-    A rigid rotation of a stretch of the wisp is then applied exactly, so the bend and
-    twist angles a linearised rotation of a coil distorts at second order (the slow mode
-    of the hairball's Newton, docs/newton.md "Sixth round") are kept.  Equal to x + dx to
-    second order in dx (Newton's rate and fixed points are kept).  On a wisp with no
-    pinned vertex the mass-weighted mean is that of x + dx (``mass`` given), so the step
-    changes its momentum as x + dx does.  Each wisp's result depends on that wisp alone.
-    Two compiled passes (:func:`lc_petsc.elements.compiled.corotate`).
-    x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
-    Returns (nv, 3)."""
-    return compiled.corotate(x, dx, free, offsets, mass)
-
-
-def _set_edge_lengths(x, length, free, offsets, mass=None, head=None):
-    """x with every edge (v - 1, v) that ends at a free vertex v of the same wisp given
-    the length ``length[v - 1]`` (> 0; its direction kept), the corrections accumulated
-    from the root (or the last pinned vertex) outwards; edges of zero length or with a
-    length <= 0 are left alone.  On a wisp with no pinned vertex the mass-weighted mean
-    of the corrections is removed (``mass`` given): the wisp's momentum (of the velocity
-    (x - x_n) / dt) is then unchanged.  One compiled pass
-    (:func:`lc_petsc.elements.compiled.edge_lengths`).  x (nv, 3), length (nv - 1,),
-    free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.  Returns (nv, 3)."""
-    return compiled.edge_lengths(x, None, length, free, offsets, mass, head)
-
-
-def project_rest_lengths(x, free, offsets, rest_edge, mass, head=None):
-    """``time.length_projection``: the frame's final positions with every edge that ends
-    at a free vertex set to its rest length, its direction kept, from each wisp's root
-    (or last pinned vertex) outwards (:func:`_set_edge_lengths`, one compiled pass);
-    on a wisp with no pinned vertex the mass-weighted mean of the corrections is
-    removed, so its momentum is kept (its lengths too: a uniform shift).  ``head``:
-    None or (centre (3,), radius, allowed depth (nv,)): on a wisp with a pinned vertex,
-    a vertex the walk would leave deeper in that sphere than allowed is put on it
-    instead, at its edge's rest length from its predecessor (the vertices after it
-    follow); a wisp with no pinned vertex that the mean shift leaves with a vertex that
-    deep gets a second walk around the head from its first vertex (pushed onto the
-    sphere if it is that deep), without the shift: the head's push is an outside force
-    (its mean shift took pushed vertices back in: a free strand dropped on the head 3.9
-    strand radii deep).  x (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), rest_edge
-    (nv - 1,), mass (nv,).  Returns (nv, 3)."""
-    out = _set_edge_lengths(x, rest_edge, free, offsets, mass, head)
-    if head is None:
-        return out
-    off = np.asarray(offsets, np.int64)
-    sizes = np.diff(off)
-    wisp = np.repeat(np.arange(len(sizes)), sizes)
-    loose = np.bincount(wisp[~free], minlength=len(sizes)) == 0
-    c, R, allow = head
-    y = out - c
-    dist = np.sqrt(np.einsum("ij,ij->i", y, y))
-    sunk = loose[wisp] & (R - dist > allow) & (dist > 0)
-    if not sunk.any():
-        return out
-    again = np.bincount(wisp[sunk], minlength=len(sizes)) > 0
-    first = off[:-1][again & (sizes > 0)]
-    out = out.copy()
-    deep = first[R - dist[first] > allow[first]]
-    out[deep] = c + y[deep] * (R / dist[deep])[:, None]
-    anchored = free.copy()
-    anchored[first] = False             # the walk starts from it and shifts nothing
-    second = _set_edge_lengths(out, rest_edge, anchored, offsets, None, head)
-    mask = again[wisp]
-    out[mask] = second[mask]
-    return out
-
-
-#: time.newton_increment_tol above this: a stop needs two iterations in a row that pass
-#: the tolerance, or one whose increment (times the contraction factor) is below this
-#: (:func:`confirms_stop`, docs/newton.md "Stopping rule")
-LOOSE_TOLERANCE = 1e-5
-#: above LOOSE_TOLERANCE a stop also needs its step and the one before it to decrease G
-#: as their quadratic model predicts, within this fraction (:func:`model_agrees`;
-#: measured: wandering stops 0.25-1.0 off, honest ones on the recommended path <= 0.09)
-MODEL_AGREEMENT = 0.1
-#: :func:`model_agrees`: a predicted decrease below this times |G| is round-off (the
-#: ratio was noise, off by 1.5 to 6e3, below 1e-12 |G| on smash and 1e-15 |G| on the
-#: hairball)
-ENERGY_FLOOR = 1e-10
-#: solver.filter "exact_or_analytic": the exact Hessian is tried once the last relative
-#: increment is below EXACT_BELOW, and its step kept if Armijo's condition holds within
-#: EXACT_HALVINGS halvings (measured, docs/newton.md: 3e-3 and 6 reach 1e-6 in the fewest
-#: iterations of 1e-2 / 3e-3 / always and 2 / 6 halvings on the hairball and smash).
-EXACT_BELOW = 3e-3
-#: ``time.newton_stop = "chord_estimate"`` measures the chord step after a full exact step
-#: of increment d when CHORD_TRY_C d^2 < tol: a quadratic step's constant e_{k+1} / e_k^2
-#: had quartiles 7.8 and 18 on the 10-wisp hairball (docs/newton.md, "Seventh round"), so
-#: from there the next increment may be below the tolerance; farther out the check
-#: would fail and cost a solve (measured: 16 checks in 30 frames, 11 stops)
-CHORD_TRY_C = 10.0
-#: :func:`chord_stop`: the chord step must be this much shorter than the step before it
-CHORD_CONTRACTION = 0.1
-#: :func:`chord_stop`: the chord increment times 1 + CHORD_MARGIN d must be below the
-#: tolerance (d the last increment; 2 C with C up to ~50, the quadratic constants measured)
-CHORD_MARGIN = 100.0
 #: ``solver.exact_fallback = "shifted"``: the shifts tau of the exact Hessian + tau M/dt^2
 #: tried, in order, when the exact step fails (measured on the hairball: tau = 0.1 gave
 #: no step, 1 and 10 did; starting at 10 kept accepting steps too short to converge,
@@ -1804,11 +1482,6 @@ WISP_SHIFT_FACTOR = 1.5
 WISP_RETRY_FACTOR = 10.0
 WISP_RETRIES = 3
 EXACT_HALVINGS = 6
-#: ``time.newton_stop = "quadratic_estimate"`` stops once the estimated error is below
-#: the tolerance / QUADRATIC_SAFETY (C varies between steps; with this factor every stop
-#: on the 10-wisp demo hairball and smash was within the tolerance of the converged
-#: solution, the worst at 0.58 of it, docs/newton.md "Eighth round")
-QUADRATIC_SAFETY = 10.0
 #: strand contact: Jacobi rounds of the end-of-frame separation in all (Integrator._separate)
 SEPARATION_ROUNDS = 60
 #: strand contact, ccd mode: rounds of separation + frame-path check at a frame's end

@@ -13,7 +13,7 @@ from lc_petsc.contact import SEPARATION_STRAIN
 from lc_petsc.crossings import count_crossings
 from lc_petsc.elements import head_contact
 from lc_petsc.scene.sources import ArraySource
-from lc_petsc.integrator import project_rest_lengths
+from lc_petsc.predictors import project_rest_lengths
 from sim_helpers import falling_strand, head_figures, small_hairball_config
 
 R = 5.0                 # head sphere about the origin

@@ -90,7 +90,7 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   blocks.  After the Newton iterations the active pairs and the minimum segment
   distance are measured; pairs closer than half the thickness are pushed apart
   (``physics.strand_separation``, :meth:`StrandContact.separate`, at most
-  :data:`SEPARATION_ROUNDS` Jacobi rounds over at most 3 calls, each followed by a
+  :data:`lc_petsc.frame_end.SEPARATION_ROUNDS` Jacobi rounds over at most 3 calls, each followed by a
   measure; the pairs found are counted in ``contact_separated``), and the
   figures at the final positions are recorded (``contact_pairs``,
   ``contact_deep_pairs`` closer than half the thickness, ``contact_min_distance``: the
@@ -101,6 +101,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   (``StrandContact.collision_free_frame``) are limited so that no two segments of
   different wisps meet on the straight path (docs/contact.md); in ``penalty`` mode
   these calls change nothing.
+
+The stop arithmetic is in :mod:`lc_petsc.newton_stop`, the first-iterate predictors and
+the edge-length walks in :mod:`lc_petsc.predictors`, the step's end (head push-out and
+path lift, strand separation, ccd frame path) in :class:`lc_petsc.frame_end.FrameEnd`.
 """
 
 from __future__ import annotations
@@ -111,6 +115,7 @@ import numpy as np
 
 from lc_petsc import contact_curvature, curvature
 from lc_petsc.elements import head_contact
+from lc_petsc.frame_end import FRAME_END_ROUNDS, FrameEnd
 from lc_petsc.newton_stop import (CHORD_TRY_C, ENERGY_FLOOR, EXACT_BELOW, LOOSE_TOLERANCE, QUADRATIC_SAFETY,
                                   StepRecord, chord_basis, chord_stop, confirms_stop, model_agrees,
                                   quadratic_error_estimate, step_contraction)
@@ -212,10 +217,12 @@ class Integrator:
             self.carried = carried if carried.any() else None
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
         self.vertex_wisp = np.repeat(np.arange(len(scene.offsets) - 1), np.diff(scene.offsets))
-        #: per vertex: how deep the head's push-out lets it rest (physics.head_push_out)
-        self.allowed_depth = head_contact.allowed_depth(
-            scene.radius, self.rest_edge, scene.offsets, head.radius + config.physics.head_margin
-        ) if self.contact else None
+        #: the step's end: head push-out and path lift, strand separation, ccd frame path
+        self.frame_end = FrameEnd(comm, head, strand, self.free, scene.offsets, scene.mass, scene.radius,
+                                  self.rest_edge, self.vertex_wisp, head_collision=self.contact,
+                                  margin=config.physics.head_margin, push_out=config.physics.head_push_out,
+                                  separation=config.physics.strand_separation,
+                                  length_projection=config.time.length_projection)
         if self.carried is not None:
             self.start_weight = start_carry_weight(self.rest_edge, scene.offsets, scene.pinned)
         self.newton_increment = []      # per frame: the last step's relative increment
@@ -246,10 +253,6 @@ class Integrator:
         self.chord_checks = []          # per frame: chord steps measured (newton_stop = "chord_estimate")
         self.length_projection_move = []    # per frame: time.length_projection's largest move / wisp length
         self._projection_move = 0.0
-        # per vertex: its distance from the head's centre before the step's first path
-        # lift, at least the sphere's radius (None until then): what bounds the step's
-        # lifts (:meth:`_lift_room`)
-        self._lift_base = None
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian, per_vertex=False):
@@ -355,7 +358,7 @@ class Integrator:
         x_frame, t_frame = self.x, self.t      # replaced by the step, never changed in place
         solves = self._advance(cfg.time.dt, self.t + cfg.time.dt, cfg.time.max_substeps)
         if len(solves) > 1 and self.contact and cfg.physics.head_push_out:
-            self._lift_frame_path(x_frame, t_frame)
+            self.x = self.frame_end.lift_frame_path(x_frame, self.x, t_frame)
         if len(solves) > 1 and self.strand is not None and self.strand.mode == "ccd":
             solves[-1] = self._collision_free_frame_path(x_frame, t_frame, solves[-1])
         conv = [s.converged for s in solves]
@@ -423,7 +426,7 @@ class Integrator:
         cfg, sc = self.cfg, self.scene
         self.dt = dt
         self.t_next = t_next
-        self._lift_base = None
+        self.frame_end.begin_step(t_next)
         x_old = self.x.copy()
         self.xhat = self.x + dt * self.v
         x = self.xhat.copy()
@@ -639,30 +642,30 @@ class Integrator:
         if push:
             # before the length projection, which takes back the edge strain it makes
             # (after it: edges 22% long on a soft hairball)
-            x = self._push_out_of_head(x)
+            x = self.frame_end.push_out_of_head(x)
         if cfg.time.length_projection:
             with self.timers("update"):
                 # around the head: without, it pulled pushed vertices back in (the soft
                 # hairball 0.11 cm deep, 1.63 strand radii)
                 projected = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass,
-                                                 self._head_sphere() if push else None)
+                                                 self.frame_end.head_sphere() if push else None)
             # how far the frame written is from Newton's iterate (reported: with a
             # tolerance it can exceed it, docs/newton.md "Stopping rule")
             self._projection_move = max(self._projection_move, self.increments(projected - x)[0])
             x = projected
         lifted = None
         if push:        # last: the strand path check below keeps to the path it leaves
-            x, lifted = self._lift_head_paths(x_old, x, self.t)
+            x, lifted = self.frame_end.lift_head_paths(x_old, x, self.t)
         contact = None
         if self.strand is not None:
             pairs, deep, dmin = self.strand.measure(x)
             n_sep = 0
             self.strand.last_separation = (0, 0, 0)
             if self.strand.mode == "ccd":
-                x, pairs, deep, dmin, n_sep, lifted = self._collision_free_end(x_old, x, motion, deep, self.t,
-                                                                               lifted)
+                x, pairs, deep, dmin, n_sep, lifted = self.frame_end.collision_free_end(x_old, x, motion, deep,
+                                                                                        self.t, lifted)
             elif cfg.physics.strand_separation:
-                x, pairs, deep, dmin, n_sep = self._separate(x, pairs, deep, dmin)
+                x, pairs, deep, dmin, n_sep = self.frame_end.separate(x, pairs, deep, dmin)
                 if push:
                     # the separation moves lifted vertices, their paths cut under the scalp
                     # again (soft hairball, gravity 5000: 22 paths through in 8 steps, 14
@@ -670,8 +673,8 @@ class Integrator:
                     # head goes last, in rounds: the projection moves a lifted vertex back
                     y = x
                     for _ in range(FRAME_END_ROUNDS):
-                        y, lifted = self._head_end(x_old, y, self.t, lifted)
-                        if not self._head_left(x_old, y, self.t):
+                        y, lifted = self.frame_end.head_end(x_old, y, self.t, lifted)
+                        if not self.frame_end.head_left(x_old, y, self.t):
                             break
                     if global_reduce(self.comm, [float(y is not x)], "max")[0]:
                         pairs, deep, dmin = self.strand.measure(y)
@@ -684,222 +687,19 @@ class Integrator:
         self.t = self.t_next
         return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed, off_model, saddle)
 
-    def _head_sphere(self):
-        """(centre, radius, allowed depth (n,)) of the head sphere at the step's end: its
-        radius + margin, and per vertex how deep the push-out lets it rest
-        (:func:`head_contact.allowed_depth`)."""
-        return (self.head.sphere_center(self.t_next), self.head.radius + self.cfg.physics.head_margin,
-                self.allowed_depth)
-
-    def _push_out_of_head(self, x, deep=None):
-        """``x`` with every free vertex deeper in the head sphere (radius + margin) than
-        allowed (its strand radius less its edges' sagitta on the sphere,
-        :func:`head_contact.allowed_depth`) moved radially onto it.  The penalty sees a vertex only once an
-        iterate is inside: at a fixed Newton count the last step can carry one in
-        unopposed (a soft hairball's tips 1.06 cm deep; 0.048 with 10 iterations,
-        docs/contact.md "Hair and the head").  A vertex resting on the head sinks by its
-        push over the stiffness, far less than its radius, and is left alone, so a run
-        whose hair never sinks that deep keeps its bits.  ``deep``: those vertices'
-        indices when the caller has them (:meth:`_sunk`)."""
-        c, R, _ = self._head_sphere()
-        if deep is None:
-            deep = np.flatnonzero(self._sunk(x))
-        if len(deep):
-            y = x[deep] - c
-            x = x.copy()
-            x[deep] = c + y * (R / np.sqrt(np.einsum("ij,ij->i", y, y)))[:, None]
-        return x
-
-    def _sunk(self, x):
-        """Per vertex (n,): a free vertex deeper in the head sphere (radius + margin, at
-        the step's end) than the push-out allows (:meth:`_push_out_of_head`)."""
-        c, R, allow = self._head_sphere()
-        y = x - c
-        dist = np.sqrt(np.einsum("ij,ij->i", y, y))
-        return self.free & (R - dist > allow) & (dist > 0)
-
-    def _lift_room(self, x):
-        """Per vertex (n,): how much farther out the path lift may still move it in this
-        step: up to :data:`head_contact.LIFT_RADII` strand radii above its distance from
-        the head's centre before the step's first lift round (set by that round), or above
-        the sphere when it was under it (a later push-out's rise onto the sphere is not a
-        lift: counted, it refused a tip pushed up from 0.84 radii deep the 3.2 radii its
-        path needed).  Each round used to allow that much from where the vertex then was,
-        so the rounds of the lift and of the frame end added up (8.2 radii in one frame)."""
-        c, R, _ = self._head_sphere()
-        y = x - c
-        dist = np.sqrt(np.einsum("ij,ij->i", y, y))
-        if self._lift_base is None:
-            self._lift_base = np.maximum(dist, R)
-        return self._lift_base + head_contact.LIFT_RADII * self.scene.radius - dist
-
-    def _lift_head_paths(self, x_old, x, t_old):
-        """``x`` (the step's end, at t_next) with each free vertex whose straight path from
-        ``x_old`` (at ``t_old``), relative to the moving centre, goes deeper in the head
-        sphere than allowed lifted straight out just enough for the path to stay that
-        shallow, if that keeps it within :data:`head_contact.LIFT_RADII` strand radii of its
-        height before the step's first lift (:meth:`_lift_room`; all rounds together)
-        (:func:`head_contact.lift_paths`): both ends on the scalp, the chord of a vertex
-        sliding along it cuts under it (soft hairball: tips sliding 3.4 cm a frame,
-        chords 0.10-0.12 cm deep past their 0.07 cm radius).  The lifted wisps' rest
-        lengths are set again (:meth:`_keep_lengths`).  Returns (x, the move (n, 3), which
-        the velocity leaves out: an outward speed of lift / dt would kick the hair off
-        the scalp; None when nothing moved)."""
-        c0 = self.head.sphere_center(t_old)
-        c1, R, allow = self._head_sphere()
-        lifted = x
-        # the length projection of a lifted wisp moves its lifted vertices back a little
-        # (gravity 5000: 18 paths through after 1 round, 6 after 3)
-        for _ in range(head_contact.LIFT_ROUNDS):
-            p1, moved = head_contact.lift_paths(x_old - c0, lifted - c1, R, allow, self._lift_room(lifted),
-                                                self.free)
-            if not len(moved):
-                break
-            lifted = lifted.copy()
-            lifted[moved] = c1 + p1[moved]
-            lifted = self._keep_lengths(lifted, moved)
-        if lifted is x:
-            return x, None
-        return lifted, lifted - x
-
-    def _head_end(self, x_old, x, t_old, lifted=None):
-        """The head's part of the frame end on ``x``: the vertices deeper than allowed
-        pushed out (:meth:`_push_out_of_head`) with their wisps' rest lengths set
-        (:meth:`_keep_lengths`: a push alone left an edge 12.7% long), then the paths from
-        ``x_old`` lifted (:meth:`_lift_head_paths`).  Returns (x, ``lifted`` plus the
-        lift's move: what the velocity leaves out; None while nothing was lifted); ``x``
-        itself when nothing moved."""
-        pushed = np.flatnonzero(self._sunk(x))
-        if len(pushed):
-            x = self._keep_lengths(self._push_out_of_head(x, pushed), pushed)
-        x, move = self._lift_head_paths(x_old, x, t_old)
-        if move is not None:
-            lifted = move if lifted is None else lifted + move
-        return x, lifted
-
-    def _head_left(self, x_old, x, t_old):
-        """Whether a free vertex anywhere (collective) is deeper in the head than allowed
-        or has a path from ``x_old`` that :meth:`_lift_head_paths` would lift."""
-        c0 = self.head.sphere_center(t_old)
-        c1, R, allow = self._head_sphere()
-        left = self._sunk(x).any() or len(head_contact.lift_paths(
-            x_old - c0, x - c1, R, allow, self._lift_room(x), self.free)[1]) > 0
-        return bool(global_reduce(self.comm, [float(left)], "max")[0])
-
-    def _keep_lengths(self, x, moved):
-        """``x`` with the wisps of the vertices ``moved`` (indices) set back to their rest
-        lengths around the head (the frame's length projection, when on; other wisps keep
-        their bits): a vertex lifted or pushed out alone stretches its edges (a lift of
-        2 radii: 3.0%; a push-out after the strand path check: 12.7%).  Only those
-        wisps' vertices go through the projection (a wisp's walk depends on its own
-        vertices alone: the same bits as projecting all)."""
-        if not self.cfg.time.length_projection:
-            return x
-        sc = self.scene
-        touched = np.zeros(len(sc.offsets) - 1, bool)
-        touched[self.vertex_wisp[moved]] = True
-        idx = np.flatnonzero(touched[self.vertex_wisp])
-        sizes = np.diff(sc.offsets)[touched]
-        offsets = np.concatenate([[0], np.cumsum(sizes)])
-        # edge k of the subset joins idx[k] and idx[k + 1]: within a wisp idx[k] + 1 (its
-        # rest length rest_edge[idx[k]]); across two wisps unused
-        c, R, allow = self._head_sphere()
-        projected = project_rest_lengths(x[idx], self.free[idx], offsets, self.rest_edge[idx[:-1]],
-                                         sc.mass[idx], (c, R, allow[idx]))
-        x = x.copy()
-        x[idx] = projected
-        return x
-
-    def _lift_frame_path(self, x_frame, t_frame):
-        """After step cutback: the frame's path x_n -> x_{n+1} (what a viewer interpolates)
-        is the chord of the substeps' chain and gets the head's path lift too
-        (:meth:`_lift_head_paths`; the velocity leaves the move out, as a step's does)."""
-        self.x = self._lift_head_paths(x_frame, self.x, t_frame)[0]
-
     def _collision_free_frame_path(self, x_frame, t_frame, last):
-        """ccd mode after step cutback: each substep's straight path is collision-free,
-        but the frame's, x_n -> x_{n+1} (the path between the rows of frames.h5 that a
-        viewer and the end-of-run check interpolate), is the chord of their chain and can
-        cross (60 soft wisps with self-contact, 8 substeps a frame: 180 crossings between
-        wisps and 51 within over 30 frames, none on any substep's path).  The frame's path
-        gets the frame end's path check and separation (:meth:`_collision_free_end`, with
-        the head's rigid motion over the whole frame), and the velocity loses what they
-        moved over the frame's dt, as an uncut frame's end does (v = (x_{n+1} - x_n) / dt).
-        Over the last substep's dt instead (8 substeps: 8x the kick) the same scene's edges
-        reached 45% strain and the limiter left 122 pairs unresolved; leaving the velocity
-        alone, 8.4% and 475; over dt, 2.0% and none (90 frames).  Returns ``last`` with the
-        contact figures at the new end."""
-        motion = self.head.rigid_motion(t_frame, self.t)
-        x, pairs, deep, dmin, n_sep, lifted = self._collision_free_end(x_frame, self.x, motion, last.contact[1],
-                                                                       t_frame)
-        moved = x - self.x if lifted is None else x - self.x - lifted
+        """ccd mode after step cutback: the frame's own path x_n -> x_{n+1}, the chord of
+        the substeps' chain, checked (:meth:`FrameEnd.collision_free_frame_path`), and the
+        velocity less what that moved over the frame's dt, as an uncut frame's end does (v
+        = (x_{n+1} - x_n) / dt).  Over the last substep's dt instead (8 substeps: 8x the
+        kick) 60 soft wisps with self-contact reached 45% edge strain and the limiter left
+        122 pairs unresolved; leaving the velocity alone, 8.4% and 475; over dt, 2.0% and
+        none (90 frames).  Returns ``last`` with the contact figures at the new end."""
+        x, moved, contact = self.frame_end.collision_free_frame_path(x_frame, t_frame, self.x, self.t,
+                                                                     last.contact)
         self.v = self.v + moved / self.cfg.time.dt
         self.x = x
-        return last._replace(contact=(pairs, deep, dmin, max(n_sep, last.contact[3])))
-
-    def _collision_free_end(self, x_old, x, motion, deep, t_old, lifted=None):
-        """ccd mode, the frame's end: the path check (the straight path x_old -> x must
-        not cross, :meth:`StrandContact.collision_free_frame`) and the separation
-        alternate, at most :data:`FRAME_END_ROUNDS` rounds after a first separation of the
-        ``deep`` pairs of the Newton iterate, the path check last: a pair
-        the path check holds back ends where its path stopped (at its floor, 0.05 d0),
-        and the separation pushes it apart again before the next frame starts from it
-        (one round halved such a pair's distance every frame, docs/contact.md).  Stops
-        early once no pair is deep after a path check (the separation calls are not
-        followed by a measure of their own: the one after the path check finds what
-        they left, from the path check's candidates, without a broad phase).  With the
-        head's push-out, each round's path check is preceded by the head's frame end
-        (:meth:`_head_end`, paths from ``x_old`` at ``t_old``), and a round follows while
-        a vertex is left too deep or with a path to lift (:meth:`_head_left`).
-        ``lifted``: the head lift's move in ``x`` so far (or None); each path check keeps
-        the fraction beta of it (:attr:`StrandContact.path_fraction`).  Returns (x, pairs,
-        deep, min distance, pairs separated, the lift's move kept in x or None)."""
-        strand = self.strand
-        separation = self.cfg.physics.strand_separation
-        push = self.contact and self.cfg.physics.head_push_out
-        n_sep = 0
-        head_left = False
-        for rnd in range(FRAME_END_ROUNDS):
-            if rnd > 0 and (not separation or deep == 0) and not head_left:
-                break
-            if separation and deep:
-                # one call of all the rounds; no measure of its own (see above)
-                x, n, _ = strand.separate(x, max_iterations=SEPARATION_ROUNDS)
-                n_sep = max(n_sep, n)
-            if push:
-                # the path check holds a vertex back on its straight path, which can cut
-                # under the scalp, and the separation can push it in (soft hairball,
-                # gravity 5000: a tip 0.044 -> 0.119 -> 0.152 cm deep, radius 0.101);
-                # lifted again here, the path check below keeps the lifted path's end
-                x, lifted = self._head_end(x_old, x, t_old, lifted)
-            x = strand.collision_free_frame(x_old, x, motion)[0]
-            if lifted is not None:
-                # a held-back vertex keeps beta of its lift: only that is left out of v
-                lifted = lifted * strand.path_fraction[:, None]
-            pairs, deep, dmin = strand.measure(x)
-            head_left = push and self._head_left(x_old, x, t_old)
-        return x, pairs, deep, dmin, n_sep, lifted
-
-    def _separate(self, x, pairs, deep, dmin):
-        """The separation of the pairs closer than d0 / 2 (``deep`` of them): at most
-        :data:`SEPARATION_ROUNDS` Jacobi rounds in all, over at most 3 calls of
-        :meth:`StrandContact.separate`, each followed by a measure.  A call works on
-        the pairs closer than d0 at its start and stops when none of them is deep; its
-        corrections can bring pairs it did not see within d0 / 2, which the measure
-        finds and the next call takes (3 calls of 20 rounds each paid a broad phase
-        per call for a few stubborn pairs, docs/contact.md).  Penalty mode; ccd mode
-        separates inside :meth:`_collision_free_end`.  Returns (x, pairs, deep, min
-        distance, pairs separated)."""
-        n_sep = 0
-        budget = SEPARATION_ROUNDS
-        for _ in range(3):
-            if deep == 0 or budget <= 0:
-                break
-            x, n, rounds = self.strand.separate(x, max_iterations=budget)
-            n_sep = max(n_sep, n)
-            budget -= max(rounds, 1)
-            pairs, deep, dmin = self.strand.measure(x)
-        return x, pairs, deep, dmin, n_sep
+        return last._replace(contact=contact)
 
     def update(self, x, step, exact=False):
         """The next Newton iterate from x and the (scaled) step: x + step, or with
@@ -1482,8 +1282,4 @@ WISP_SHIFT_FACTOR = 1.5
 WISP_RETRY_FACTOR = 10.0
 WISP_RETRIES = 3
 EXACT_HALVINGS = 6
-#: strand contact: Jacobi rounds of the end-of-frame separation in all (Integrator._separate)
-SEPARATION_ROUNDS = 60
-#: strand contact, ccd mode: rounds of separation + frame-path check at a frame's end
-#: (Integrator._collision_free_end, docs/contact.md "Over a whole run")
-FRAME_END_ROUNDS = 4
+

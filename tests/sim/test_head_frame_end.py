@@ -12,12 +12,15 @@ from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfi
 from lc_petsc.contact import SEPARATION_STRAIN
 from lc_petsc.crossings import count_crossings
 from lc_petsc.elements import head_contact
+from lc_petsc.frame_end import FrameEnd
+from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.sources import ArraySource
 from lc_petsc.predictors import project_rest_lengths
 from sim_helpers import falling_strand, head_figures, small_hairball_config
 
 R = 5.0                 # head sphere about the origin
 PHI = 0.5               # polar angle of the draped wisp's tip
+LIFT = head_contact.LIFT_RADII
 ALONG = 0.6             # where A crosses the path of B's last edge
 
 
@@ -247,6 +250,40 @@ def test_lifts_of_a_step_add_up_to_at_most_lift_radii(monkeypatch, slide, later,
             assert tip_path > 0.08, tip_path            # it needs more than the room left
     finally:
         sim.close()
+
+
+def test_lift_room_counts_from_the_sphere_for_a_vertex_under_it():
+    """The step's lift budget (FrameEnd.lift_room): LIFT_RADII strand radii above a
+    vertex's distance from the head's centre before the step's first lift round, but
+    above the sphere (radius + margin) for a vertex that was under it then: its later
+    rise onto the sphere (a push-out) is not a lift.  Counted from its depth (lift54's
+    first version), a tip 0.84 radii deep was refused the 3.2 radii its path needed (3
+    paths through the head in 2 steps of the soft hairball).  Three vertices on rays
+    from the centre: a pinned root on the sphere, one 0.84 radii under it, one 1.5
+    radii above it; radii 0.05, 0.07, 0.1."""
+    margin, dt = 0.3, 1.0 / 30.0
+    head = HeadMotion(PhysicsConfig(head_radius=R, head_center=(0.0, 0.0, 0.0), head_margin=margin))
+    Rs = R + margin                     # the sphere the push-out and the lift keep to
+    r = np.array([0.05, 0.07, 0.1])
+    dirs = np.array([[0.0, 1.0, 0.0], [0.1, 1.0, 0.0], [0.2, 1.0, 0.0]])
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    x = dirs * np.array([Rs, Rs - 0.84 * r[1], Rs + 1.5 * r[2]])[:, None]
+    free = np.array([False, True, True])
+    rest_edge = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    fe = FrameEnd(MPI.COMM_SELF, head, None, free, np.array([0, 3]), np.ones(3), r, rest_edge, np.zeros(3, int),
+                  head_collision=True, margin=margin, push_out=True, separation=False, length_projection=False)
+    fe.begin_step(dt)
+    room = fe.lift_room(x)
+    # under the sphere: 4 radii above it, 4.84 above where it is; above it: 4 radii
+    np.testing.assert_allclose(room[1:] / r[1:], [LIFT + 0.84, LIFT], rtol=1e-12)
+    # pushed onto the sphere and the other lifted 1 radius: the push spends nothing
+    y = x.copy()
+    y[1] = dirs[1] * Rs
+    y[2] = dirs[2] * (Rs + 2.5 * r[2])
+    np.testing.assert_allclose(fe.lift_room(y)[1:] / r[1:], [LIFT, LIFT - 1.0], rtol=1e-12)
+    # the next step measures from where its vertices are then
+    fe.begin_step(2 * dt)
+    np.testing.assert_allclose(fe.lift_room(y)[1:] / r[1:], [LIFT, LIFT], rtol=1e-12)
 
 
 def test_penalty_frame_end_lifts_after_the_separation(monkeypatch):

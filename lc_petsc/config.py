@@ -436,7 +436,13 @@ class SolverConfig:
     exact steps are searched wisp by wisp, a wisp whose search fails shifted further on
     its own (docs/newton.md "Frame 0 wisp by wisp").  ``exact_stay`` (same
     filter): after a full, unshifted exact step the next step is exact too, whatever its
-    increment (docs/newton.md "Eighth round").
+    increment (docs/newton.md "Eighth round").  ``wisp_trust`` (with ``exact_fallback =
+    "shifted"``, without strand contact): a trust region per wisp on those wisp-by-wisp
+    exact steps: each wisp's mass shift is carried from one exact step to the next
+    (raised where its step was cut, dropped where its quadratic model held), exact
+    steps start at a relative increment of 1e-2 and, once one is kept, every later step
+    of the solve is exact (lc_petsc/wisp_trust.py; docs/newton.md "A trust region per
+    wisp").
     """
 
     options: str = ""
@@ -444,6 +450,7 @@ class SolverConfig:
     filter: str = "analytic"
     exact_fallback: str = "analytic"
     exact_stay: bool = False
+    wisp_trust: bool = False
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` naming the key unless every value of this table is allowed."""
@@ -470,6 +477,13 @@ class SolverConfig:
             raise ConfigError(f"solver.exact_stay = true applies to the exact steps of solver.filter = "
                               f"\"exact_or_analytic\" (got solver.filter = {self.filter!r}); set that "
                               f"filter or drop solver.exact_stay")
+        if not isinstance(self.wisp_trust, bool):
+            raise ConfigError(f"solver.wisp_trust must be true or false, got {self.wisp_trust!r}")
+        if self.wisp_trust and self.exact_fallback != "shifted":
+            raise ConfigError(f"solver.wisp_trust = true carries the per-wisp shifts of solver.exact_fallback = "
+                              f"\"shifted\" (got {self.exact_fallback!r}); set solver.filter = "
+                              f"\"exact_or_analytic\" and solver.exact_fallback = \"shifted\", or drop "
+                              f"solver.wisp_trust")
 
     def _file_text(self) -> str:
         lines = Path(str(self.options_file)).read_text().splitlines()
@@ -585,6 +599,10 @@ class SimConfig:
                               "from a gradient without the strand-contact force; with "
                               "strand_collision in physics.terms use time.newton_stop = "
                               "\"quadratic_estimate\" or \"increment\"")
+        if self.solver.wisp_trust and "strand_collision" in self.physics.terms:
+            raise ConfigError("solver.wisp_trust = true needs exact steps searched wisp by wisp, which "
+                              "strand contact couples; remove strand_collision from physics.terms or "
+                              "drop solver.wisp_trust")
         if self.time.newton != "filtered":
             if self.solver.filter not in ("analytic", "numerical", "abs"):
                 raise ConfigError(f"time.newton = \"trust_region\" preconditions with the filtered "

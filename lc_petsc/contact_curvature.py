@@ -14,8 +14,11 @@ vector over the global vertex numbering (the same on any partition).  B^-1 (A + 
 the inertia of A + C (Sylvester), and every Ritz value is a Rayleigh quotient of it,
 so a negative Ritz value proves the saddle (no false positive beyond round-off); an
 extreme outlier is found in a few iterations.  A positive verdict is not a proof: the
-iteration stops once the lowest Ritz value has converged (or at the cap).  Collective:
-two reductions per iteration, the verdict the same on every rank.
+iteration stops once the lowest Ritz value has converged; where it has not by the cap,
+the verdict is "unknown", not "minimum" (at the six wisps' minima the lowest eigenvalue
+was found only after 21-54 iterations, behind a cluster of small ones: docs/newton.md
+"The coupled check's iterations").  Collective: two reductions per iteration, the
+verdict the same on every rank.
 """
 
 from __future__ import annotations
@@ -27,9 +30,11 @@ from mpi4py import MPI
 
 from lc_petsc.elements.compiled_band import BandCholesky
 
-#: the most Lanczos iterations per check (the six-wisp saddle is found in
-#: a few; a stop on a minimum ends when the lowest Ritz value has converged)
-STEPS = 40
+#: the most Lanczos iterations per check (the six-wisp saddle is found in 3; the
+#: lowest Ritz value at its minima converged after 8-54, and at 40 two of four had
+#: not, one of them 32% above the lowest eigenvalue at 30: docs/newton.md "The
+#: coupled check's iterations")
+STEPS = 60
 #: the lowest Ritz value has converged when its residual bound is below this share of it
 CONVERGED = 1e-2
 #: a Ritz value below -NEGATIVE times the largest one is negative curvature (round-off
@@ -47,13 +52,22 @@ class Verdict(NamedTuple):
     definite); ``iterations``: Lanczos iterations; ``curvature``: where negative, the
     Ritz vector's Rayleigh quotient of A + C in units of M/dt^2 (an upper bound of
     dt^2 M^-1/2 (A + C) M^-1/2's lowest eigenvalue), else None; ``wisps``: where
-    negative, the global wisps holding at least :data:`NAMED_SHARE` of it (by share)."""
+    negative, the global wisps holding at least :data:`NAMED_SHARE` of it (by share);
+    ``converged``: the lowest Ritz value converged (or a negative one proved the saddle);
+    False: the cap came first, :attr:`unknown`."""
 
     negative: bool
     lowest: float
     iterations: int
     curvature: float | None = None
     wisps: tuple = ()
+    converged: bool = True
+
+    @property
+    def unknown(self):
+        """No negative Ritz value, but the lowest one had not converged at the cap: the
+        lowest eigenvalue may lie below it, negative (neither a saddle nor a minimum)."""
+        return not self.negative and not self.converged
 
 
 class CoupledCurvature:
@@ -86,9 +100,9 @@ class CoupledCurvature:
                 operator.mult(xv, yv)
                 return yv.array * self.free
 
-            alphas, betas, ritz = self._lanczos(apply, self._start())
+            alphas, betas, ritz, converged = self._lanczos(apply, self._start())
             if ritz[0] >= -NEGATIVE * max(abs(ritz[-1]), 1.0):
-                return Verdict(False, float(ritz[0]), len(alphas))
+                return Verdict(False, float(ritz[0]), len(alphas), converged=converged)
             vector = self._ritz_vector(apply, alphas, betas)
             return self._negative(vector, apply, np.repeat(unit, 3), float(ritz[0]), len(alphas))
         finally:
@@ -151,17 +165,20 @@ class CoupledCurvature:
             yield alphas, betas
 
     def _lanczos(self, apply, start):
-        """(alphas, betas, the Ritz values) when a Ritz value is negative, the lowest has
-        converged (its residual bound below :data:`CONVERGED` of it) or after
-        :data:`STEPS`."""
+        """(alphas, betas, the Ritz values, converged) when a Ritz value is negative, the
+        lowest has converged (its residual bound below :data:`CONVERGED` of it) or after
+        :data:`STEPS` (converged False unless one of the first two held).  A recurrence
+        that breaks down (beta 0: the Krylov space is invariant) has converged."""
         alphas, betas, ritz = [], [], np.zeros(1)
+        converged = True
         for alphas, betas in self._recurrence(apply, start, STEPS):
             ritz, vectors = np.linalg.eigh(_tridiagonal(alphas, betas[:-1]))
             if ritz[0] < -NEGATIVE * max(abs(ritz[-1]), 1.0):
                 break
-            if betas[-1] * abs(vectors[-1, 0]) <= CONVERGED * abs(ritz[0]):
+            converged = bool(betas[-1] * abs(vectors[-1, 0]) <= CONVERGED * abs(ritz[0]))
+            if converged:
                 break
-        return alphas, betas, ritz
+        return alphas, betas, ritz, converged
 
     def _ritz_vector(self, apply, alphas, betas):
         """The lowest Ritz vector (x-space): the recurrence run again (its vectors are

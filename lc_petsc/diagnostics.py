@@ -254,32 +254,90 @@ def _rest_edges(sc, w):
 #: in other units: one fringe wisp in metres (x 0.01) is at 0.0078 of the groom and 0.073
 #: of its radius; the shipped scenes' wisps at least 0.66 and 2.84 (docs/elements.md)
 SMALL_WISP = 1.0 / 30.0
+#: a wisp whose median edge is this many times the groom's, or 1/this, is in other units
+#: when its root, scaled about the origin by the power of ten nearest that ratio, lands
+#: in the box of the other wisps' roots (:func:`_unit_wisp`): one fringe wisp in
+#: millimetres (x 10) is at 6.7-17 times the groom; the shipped and test grooms' wisps at
+#: most 1.7 (docs/elements.md)
+UNIT_WISP = 5.0
+#: the plausible median wisp length (cm) of a groom file: the fringe's 38 cm is 380 in
+#: millimetres, 0.38 in metres; a wisp :data:`UNIT_WISP` times finer than its groom and
+#: shorter than the low end is warned about too (a fringe wisp in metres: 0.17-0.91 cm)
+GROOM_LENGTH = (1.0, 200.0)
+
+
+def _box_distance(p, lo, hi):
+    """Distance from ``p`` to the box [lo, hi]."""
+    return float(np.linalg.norm(np.maximum(lo - p, 0.0) + np.maximum(p - hi, 0.0)))
+
+
+def _unit_wisp(ratio, root, others):
+    """Why a wisp whose median edge is ``ratio`` times the groom's and whose root is
+    ``root`` looks written in other units than the wisps rooted at ``others`` (n, 3),
+    else None: its edges a power of ten u off (within a factor :data:`UNIT_WISP`), its
+    root far outside the box of their roots (by a quarter of its diagonal) and ``root /
+    u`` (where it was in centimetres) inside it or twice as close.  A long wisp among
+    short ones keeps its root among theirs."""
+    if len(others) < 2 or 1.0 / UNIT_WISP < ratio < UNIT_WISP:
+        return None
+    u = 10.0 ** round(float(np.log10(ratio)))
+    lo, hi = others.min(axis=0), others.max(axis=0)
+    d, back = _box_distance(root, lo, hi), _box_distance(root / u, lo, hi)
+    if d <= 0.25 * float(np.linalg.norm(hi - lo)) or back >= 0.5 * d:
+        return None
+    return (f"and its root lies {d:.3g} cm outside the box of the other wisps' roots, "
+            f"{back:.3g} cm when scaled by {1 / u:g}")
 
 
 def groom_scale_warnings(sim):
-    """Wisps of a strands or USD file far smaller than the rest of the groom, with edges
-    shorter than their strands are thick (:data:`SMALL_WISP`): a wisp written in metres
-    (or another unit) in a centimetre groom, which otherwise runs unnamed (collective)."""
+    """Wisps of a strands or USD file in other units than the rest of the groom, and a
+    whole groom of implausible length (collective).  A wisp: far smaller than the groom
+    with edges shorter than its strands are thick (:data:`SMALL_WISP`), or a power of ten
+    off with its root outside the other roots where scaled back it fits
+    (:data:`UNIT_WISP`); a groom: its median wisp length outside :data:`GROOM_LENGTH`.
+    Each ran unnamed."""
     cfg, sc, comm = sim.config, sim.scene, sim.comm
     if cfg.scene.kind not in ("file", "usd"):
         return []
     mine = []
     for w in range(sc.n_wisps):
+        edges = _rest_edges(sc, w)
         radius = float(np.median(sc.radius[sc.offsets[w]:sc.offsets[w + 1]]))
-        mine.append((float(np.median(_rest_edges(sc, w))), radius, int(sim.wisp_order[sc.first_wisp + w])))
-    wisps = [m for part in comm.allgather(mine) for m in part]
+        mine.append((float(np.median(edges)), radius, float(edges.sum()), sc.x_rest[sc.offsets[w]].tolist(),
+                     int(sim.wisp_order[sc.first_wisp + w])))
+    wisps = sorted((m for part in comm.allgather(mine) for m in part), key=lambda m: m[4])
     if not wisps:
         return []
-    groom = float(np.median([e for e, _, _ in wisps]))
-    small = sorted((e / groom, wisp, e, r) for e, r, wisp in wisps if e < SMALL_WISP * groom and e < r)
-    if not small:
-        return []
-    ratio, wisp, edge, radius = small[0]
-    more = f" (and {len(small) - 1} more wisp(s))" if len(small) > 1 else ""
-    return [f"{cfg.scene.path}: wisp {wisp}{more} is {1 / ratio:.3g} times smaller than the groom: its median "
-            f"edge is {edge:.3g} cm against the groom's {groom:.3g} cm, and shorter than its strand radius "
-            f"({radius:.3g} cm); a wisp written in other units (metres?) than the rest; lc_petsc's units are "
-            "cm (scale that wisp)"]
+    out = []
+    length = float(np.median([m[2] for m in wisps]))
+    lo, hi = GROOM_LENGTH
+    if not lo <= length <= hi:
+        out.append(f"{cfg.scene.path}: its wisps are {length:.3g} cm long (the median), outside the plausible "
+                   f"range for hair, {lo:g} to {hi:g} cm: it looks like "
+                   f"{'millimetres' if length > hi else 'metres'}; lc_petsc's units are cm (scale the groom; "
+                   "a USD stage: its metersPerUnit)")
+    groom = float(np.median([m[0] for m in wisps]))
+    roots = np.array([m[3] for m in wisps])
+    odd = []
+    for i, (e, r, wisp_length, root, wisp) in enumerate(wisps):
+        ratio = e / groom
+        why = "and shorter than its strand radius" if ratio < SMALL_WISP and e < r else \
+            f"and {wisp_length:.3g} cm long, shorter than hair ({lo:g} cm)" \
+            if ratio <= 1.0 / UNIT_WISP and wisp_length < lo else \
+            _unit_wisp(ratio, np.asarray(root), np.delete(roots, i, axis=0))
+        if why:
+            odd.append((-abs(np.log(ratio)), wisp, ratio, e, r, why))
+    if not odd:
+        return out
+    _, wisp, ratio, edge, radius, why = min(odd)
+    more = f" (and {len(odd) - 1} more wisp(s))" if len(odd) > 1 else ""
+    if why.startswith("and shorter"):
+        why = f"{why} ({radius:.3g} cm)"
+    size = f"{1 / ratio:.3g} times smaller" if ratio < 1 else f"{ratio:.3g} times larger"
+    return out + [f"{cfg.scene.path}: wisp {wisp}{more} is {size} than the groom: its median edge is {edge:.3g} cm "
+                  f"against the groom's {groom:.3g} cm, {why}; a wisp written in other units "
+                  f"({'metres' if ratio < 1 else 'millimetres'}?) than the rest; lc_petsc's units are cm "
+                  "(scale that wisp)"]
 
 
 def preview_warnings(cfg):

@@ -53,8 +53,11 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   ``exact_or_analytic``) at a tolerance of :data:`VERIFY_FROM` or tighter, a stop after a
   filtered step is checked by an exact Newton step at its iterate
   (:meth:`Integrator._verify_stop`): kept when that step is within the tolerances and on
-  its quadratic model, else refused and the step taken next (the analytic filter's stops
-  on the stiff smash had been 1.6-238x away).
+  its quadratic model, and the step taken (it lands 1e2-1e6x closer), else refused and
+  the step taken next (the analytic filter's stops on the stiff smash had been 1.6-238x
+  away).  A coupled check whose Lanczos did not converge keeps the stop as unknown.
+  Per frame: ``newton_verified``, ``newton_verify_refused``, ``newton_stops_refused``,
+  ``newton_coupled_unknown``.
 * Step cutback (``time.max_substeps``, only with a tolerance): a frame whose Newton
   misses it within the cap is redone from its start state as two backward-Euler steps
   of dt / 2 (head, pins and head sphere at their own times), each cut again if it
@@ -75,7 +78,9 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   round": an exact step that is an ascent direction near the solution had left the
   iteration at the analytic filter's linear rate), and a wisp whose exact block is
   indefinite gets its own shift before the solve (:meth:`Integrator._exact_system`:
-  exact steps on indefinite blocks had led Newton to saddles of G).
+  exact steps on indefinite blocks had led Newton to saddles of G).  ``solver.wisp_trust``
+  carries each wisp's shift to its next exact step (:mod:`lc_petsc.wisp_trust`), starts
+  exact steps at 1e-2 and keeps them once one was kept.
 * Optional Armijo backtracking on G (``line_search``): alpha halves from 1 until
   G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx, at most 20 halvings.
 * ``time.length_projection``: the final iterate is projected onto the rest edge lengths
@@ -113,7 +118,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from lc_petsc import contact_curvature, curvature
+from lc_petsc import contact_curvature, curvature, wisp_trust
 from lc_petsc.elements import head_contact
 from lc_petsc.frame_end import FRAME_END_ROUNDS, FrameEnd
 from lc_petsc.newton_stop import (CHORD_TRY_C, ENERGY_FLOOR, EXACT_BELOW, LOOSE_TOLERANCE, QUADRATIC_SAFETY,
@@ -231,6 +236,13 @@ class Integrator:
         self.newton_refused = []        # per frame: kept steps the cap ended on a refused stop
         self.newton_saddle = []         # per frame: stops refused on a saddle of G (all attempts)
         self._saddles = 0               # the frame's so far
+        # per frame, all attempts (cutback's discarded ones included), as newton_saddle:
+        self.newton_verified = []       # stops after filtered steps checked by an exact step
+        self.newton_verify_refused = []     # ... of them refused (_verify_stop)
+        self.newton_stops_refused = []      # claimed stops refused by any rule
+        self.newton_coupled_unknown = []    # coupled-saddle checks whose Lanczos did not converge
+        self._counts = dict.fromkeys(FRAME_COUNTS, 0)   # the frame's so far
+        self.verifications = []         # every verification: (frame, iteration, verdict, step length)
         self._saddle_wisps = []         # the last saddle's wisps (the scene's numbers; for the monitor)
         # the scene's number of internal wisp i (-lc_wisp_order; set by the Simulator):
         # the monitor names wisps as the user's scene and frames.h5 number them
@@ -244,6 +256,11 @@ class Integrator:
         self._tried_shift = 0.0        # the largest of the last exact assembly's (_exact_system)
         self._wisp_tau = None          # per wisp: the last exact assembly's shifts (_exact_system)
         self._wisp_alpha = None        # per vertex: its wisp's alpha (_wisp_line_search) or None
+        # solver.wisp_trust (lc_petsc/wisp_trust.py): per local wisp the shift its next exact
+        # step starts from, and whether this solve has kept an exact step (then it stays exact)
+        self.wisp_trust = config.solver.wisp_trust and self._per_wisp_search()
+        self._wisp_mu = np.zeros(len(scene.offsets) - 1)
+        self._kept_exact = False
         self._searched = None          # the last accepted line search's (G0, G, g . dx)
         self._probe = None             # the last line search's (G0, g . dx), found or not
         self._region_record = {}        # the last trust-region step's rho, radius (history)
@@ -350,6 +367,7 @@ class Integrator:
         if self.strand is not None:             # per frame: the statistics' entries
             self.strand.start_frame()
         self._discarded = self._discarded_checks = self._saddles = 0
+        self._counts = dict.fromkeys(FRAME_COUNTS, 0)
         self._projection_move = 0.0
         # the solves' solution vector is CG's first iterate under -ksp_initial_guess_nonzero:
         # it would carry the last frame's last Newton step, which no checkpoint holds, so a
@@ -382,6 +400,8 @@ class Integrator:
         self.newton_unconfirmed.append(unconfirmed)
         self.newton_refused.append(refused)
         self.newton_saddle.append(self._saddles)
+        for name in FRAME_COUNTS:
+            getattr(self, name).append(self._counts[name])
         self.exact_hessian_fallbacks.append(sum(s.fallbacks for s in solves))
         self.chord_checks.append(self._discarded_checks + sum(s.chord_checks for s in solves))
         self.length_projection_move.append(self._projection_move if cfg.time.length_projection else None)
@@ -462,6 +482,8 @@ class Integrator:
         off_model = False                       # this iteration's stop was refused (_loose_verdict)
         saddle = False                          # this iteration's stop is on a saddle (_at_saddle)
         pending = None                          # a refused stop's verifying exact step (_verify_stop)
+        self._wisp_mu = np.zeros(len(sc.offsets) - 1)
+        self._kept_exact = False
         for it in range(cfg.time.newton_iterations):
             n_it += 1
             unconfirmed = off_model = saddle = False
@@ -485,13 +507,14 @@ class Integrator:
                 converged = converged and confirmed and not refused
                 claimed_before, last_step, prior_step = claim, step, last_step
                 unconfirmed, off_model = claim and not confirmed, refused
+                self._counts["newton_stops_refused"] += refused
                 if self.monitor is not None:
                     self._monitor(it, increment, self._step_kind(exact, region=True)
                                   + _stop_note(unconfirmed, refused), 1.0, self.trust.iterations[-1], cut=False)
                 if converged:
                     break
                 continue
-            exact = self._exact_hessian(increment, bool(quadratic) and cfg.solver.exact_stay)
+            exact = self._exact_hessian(increment, (bool(quadratic) and cfg.solver.exact_stay) or self._kept_exact)
             self._shift, self._fallback, self._searched, self._probe = 0.0, "", None, None
             unreduced = len(self.solver.not_reduced)  # solves short of -ksp_rtol so far
             rejected = None                     # the exact step Armijo rejected
@@ -516,6 +539,8 @@ class Integrator:
                 if dx is None or alpha is None:     # no exact Newton step: a filtered one
                     exact = False
                     fallbacks += 1
+                else:       # solver.wisp_trust: the wisps' shifts carry the damping from here on
+                    self._kept_exact = self.wisp_trust
             if not exact:
                 self._wisp_alpha = None
                 g = self._assemble_system(x, it)
@@ -616,8 +641,15 @@ class Integrator:
                 verdict, pending = self._verify_stop(x, it)
                 saddle = verdict == "saddle"
                 converged = verdict == "kept"
+                if converged:
+                    # the verifying step is taken: it lands 1e2-1e6x closer to the step's
+                    # solution than the filtered iterate (docs/newton.md "Taking the
+                    # verifying step"); its length is then the last increment
+                    x, pending = self._take_verified(x, pending), None
+                    reported = self._verifying
             claimed_before, last_step, prior_step = claim, step, last_step
             unconfirmed, off_model = claim and not confirmed, refused
+            self._counts["newton_stops_refused"] += bool(refused or saddle or (verdict and not converged))
             if self.monitor is not None:
                 short = ", solve short of -ksp_rtol" if short_of_rtol else ""
                 short += _stop_note(unconfirmed, refused) + (_saddle_note(self._saddle_wisps) if saddle else "")
@@ -793,7 +825,11 @@ class Integrator:
     def _exact_step(self, x, it, shift):
         """An exact Newton step at x: the exact Hessian plus ``shift`` M/dt^2, its solve
         and the Armijo search along the (exact) update.  Returns (grad G, dx or None when
-        CG finds the matrix indefinite, alpha or None when Armijo fails)."""
+        CG finds the matrix indefinite, alpha or None when Armijo fails).  With
+        ``solver.wisp_trust`` the first attempt (``shift`` 0) starts from each wisp's
+        carried shift (:meth:`_wisp_step`)."""
+        if self.wisp_trust and np.ndim(shift) == 0 and shift == 0.0:
+            shift = self._wisp_mu
         g = self._exact_system(x, it, shift)
         dx = self._solve_step(g, it, may_fail=True)
         self._wisp_alpha = None
@@ -843,10 +879,12 @@ class Integrator:
     def _exact_hessian(self, increment, stay=False):
         """Whether this iteration assembles the exact Hessian: ``solver.filter =
         "exact_or_analytic"`` once the last relative increment is below
-        :data:`EXACT_BELOW` (near the solution, where it is mostly positive definite), or
+        :data:`EXACT_BELOW` (near the solution, where it is mostly positive definite;
+        with ``solver.wisp_trust`` :data:`~lc_petsc.wisp_trust.WISP_TRUST_BELOW`), or
         whatever the increment when ``stay`` (``solver.exact_stay`` after a full,
-        unshifted exact step)."""
-        return self.cfg.solver.filter == "exact_or_analytic" and (stay or increment < EXACT_BELOW)
+        unshifted exact step; ``solver.wisp_trust`` after any kept exact step)."""
+        below = wisp_trust.WISP_TRUST_BELOW if self.wisp_trust else EXACT_BELOW
+        return self.cfg.solver.filter == "exact_or_analytic" and (stay or increment < below)
 
     def _line_search(self, x, g, dx, halvings, give_up=True, exact=False):
         """Armijo backtracking on G along update(x, alpha dx, exact): alpha halves from 1
@@ -883,9 +921,11 @@ class Integrator:
         least the ladder's first), and the system is solved again for it, at most :data:`WISP_RETRIES` times (the other
         wisps keep their steps and factors: no term couples them).  ``dx`` is updated in
         place.  Returns the smallest alpha (all ranks) or None (then the uniform ladder
-        decides, as for the global search).  Collective."""
+        decides, as for the global search).  With ``solver.wisp_trust`` each wisp's shift
+        for the next exact step is set from this one's (:func:`lc_petsc.wisp_trust.next_shifts`).
+        Collective."""
         wisp = self.vertex_wisp
-        alpha, bad = self._wisp_line_search(x, g, dx, np.ones(len(self.scene.offsets) - 1, bool))
+        alpha, bad, shares, taken = self._wisp_line_search(x, g, dx, np.ones(len(self.scene.offsets) - 1, bool))
         for _ in range(WISP_RETRIES):
             if not global_reduce(self.comm, [float(bad.any())], "max")[0]:
                 break
@@ -897,16 +937,38 @@ class Integrator:
                 return None
             moved = bad[wisp]
             dx[moved] = again[moved]
-            alpha_again, bad_again = self._wisp_line_search(x, g, dx, bad, alpha)
+            alpha_again, bad_again, _, taken = self._wisp_line_search(x, g, dx, bad, alpha)
             alpha[bad], bad = alpha_again[bad], bad & bad_again
         failed, least = global_reduce(self.comm, [float(bad.any()), -alpha.min(initial=1.0)], "max")
-        G0, slope = self.incremental_potential(x), self.comm.allreduce(float(np.sum(g * dx)))
+        if not failed:
+            self._wisp_alpha = alpha[wisp]
+            if taken is None:       # no wisp was searched: the shares at the step taken
+                taken = self.wisp_potentials(self.update(x, self._scaled(1.0, dx), True))
+        # G before and after the step from the wisps' shares the search computed (no
+        # coupling term without strand contact), instead of two more passes over the
+        # elements; the same figures to round-off (docs/newton.md "A trust region per wisp")
+        G0, G1, slope = global_reduce(self.comm, [shares.sum(), 0.0 if failed else taken.sum(),
+                                                  float(np.sum(g * dx))], "sum")
         self._probe = (G0, slope)
         if failed:
             return None
-        self._wisp_alpha = alpha[wisp]
-        self._searched = (G0, self.incremental_potential(self.update(x, self._scaled(1.0, dx), True)), slope)
+        self._searched = (G0, G1, slope)
+        if self.wisp_trust:
+            self._carry_shifts(x, g, dx, alpha, shares, taken)
         return -least
+
+    def _carry_shifts(self, x, g, dx, alpha, shares, taken):
+        """``solver.wisp_trust``: each wisp's shift for the next exact step from this
+        step's shift (``_wisp_tau``), alpha and model ratio (:mod:`lc_petsc.wisp_trust`).
+        ``shares``: the wisps' shares of G at x; ``taken``: at the step taken.  The step
+        was solved on H + tau M/dt^2 wisp by wisp, so dx^T H dx = -g.dx - tau dx^T M/dt^2 dx.  Rank-local."""
+        wisp, n = self.vertex_wisp, len(self.scene.offsets) - 1
+        slope = np.bincount(wisp, np.sum(g * dx, axis=1), minlength=n)
+        unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
+        mass_norm = np.bincount(wisp, unit * np.sum(dx * dx, axis=1), minlength=n)
+        curvature = -slope - self._wisp_tau * mass_norm
+        rho = wisp_trust.model_ratio(shares - taken, slope, curvature, alpha, shares, ENERGY_FLOOR)
+        self._wisp_mu = wisp_trust.next_shifts(self._wisp_tau, alpha, slope, mass_norm, rho)
 
     def _wisp_line_search(self, x, g, dx, search, alpha=None):
         """Armijo backtracking per wisp along the exact update, for the wisps ``search``
@@ -916,8 +978,10 @@ class Integrator:
         strand contact, and the update moves each wisp by its own step alone), so the
         wisps' decreases add up to G's.  A wisp whose predicted decrease is below
         round-off of its share keeps alpha 1 (noise would decide otherwise).  Returns
-        (alpha, failed) per wisp: failed where the step is an ascent direction or found
-        no decrease within :data:`EXACT_HALVINGS` halvings.  Rank-local."""
+        per wisp (alpha, failed, share of G at x, share at alpha): failed where the step
+        is an ascent direction or found no decrease within :data:`EXACT_HALVINGS`
+        halvings; the last None when no wisp was searched (a failed wisp's share is not
+        at its alpha).  Rank-local."""
         wisp = self.vertex_wisp
         slope = np.bincount(wisp, np.sum(g * dx, axis=1), minlength=len(search))
         G0 = self.wisp_potentials(x)
@@ -925,13 +989,14 @@ class Integrator:
         noise = np.abs(0.5 * slope) <= ENERGY_FLOOR * np.abs(G0)
         ascent = search & ~noise & (slope >= 0.0)
         pending = search & ~noise & ~ascent
+        G = None
         for _ in range(EXACT_HALVINGS):
             if not pending.any():
                 break
             G = self.wisp_potentials(self.update(x, alpha[wisp, None] * dx, True))
             pending &= ~(G <= G0 + 1e-4 * alpha * slope)
             alpha[pending] *= 0.5
-        return alpha, ascent | pending
+        return alpha, ascent | pending, G0, G
 
     def _scaled(self, alpha, dx):
         """The step taken: ``alpha`` dx, or each wisp's own factor times its step after
@@ -1022,10 +1087,21 @@ class Integrator:
         exact Hessian is definite.  Returns (verdict, step): ``"kept"`` (the exact step
         within the tolerances), ``"saddle"`` (a wisp's exact block is indefinite:
         :meth:`_at_saddle`), ``"indefinite"`` (CG found A + C indefinite) or ``"short"``
-        (the solve missed -ksp_rtol), both step None, or with the step (grad G, dx), which
-        the next iteration takes instead of a filtered one (the work kept): ``"far"`` (the
+        (the solve missed -ksp_rtol), both step None, or with the step (grad G, dx): the
+        kept stop's (taken by :meth:`_take_verified`), or that of a refused stop, which the
+        next iteration takes instead of a filtered one (the work kept): ``"far"`` (the
         exact step exceeds a tolerance) or ``"off_model"`` (within them, but G's decrease
-        along it is off its quadratic model, :func:`model_agrees`: two energies more)."""
+        along it is off its quadratic model, :func:`model_agrees`: two energies more).
+        Counted per frame (``newton_verified``, ``newton_verify_refused``) and recorded in
+        ``verifications``."""
+        verdict, step = self._verification(x, it)
+        self._counts["newton_verified"] += 1
+        self._counts["newton_verify_refused"] += verdict != "kept"
+        self.verifications.append((self.frame, it, verdict, self._verifying))
+        return verdict, step
+
+    def _verification(self, x, it):
+        """The verdict and step of :meth:`_verify_stop` (collective)."""
         g = self._assemble_system(x, it, filter="none")
         self._verifying = np.inf
         if self._at_saddle(True):
@@ -1050,7 +1126,21 @@ class Integrator:
             within = model_agrees(G0 - G1, -0.5 * slope, max(abs(G0), abs(G1)))
             if not within:
                 return "off_model", (g, dx)
-        return ("kept", None) if within else ("far", (g, dx))
+        return ("kept" if within else "far"), (g, dx)
+
+    def _take_verified(self, x, step):
+        """The iterate after a kept stop's verifying exact step ``step`` (grad G, dx) from
+        x: that step taken whole (on its quadratic model, within the tolerances: 1e2-1e6x
+        closer to the step's solution than x on the stiff smashes, docs/newton.md "Taking
+        the verifying step"); x itself where the ccd limiter would cut it (a cut step is
+        no Newton step; the filtered iterate is verified).  Collective."""
+        dx = step[1]
+        y = self.update(x, dx, True)
+        if self.strand is not None:
+            y = self.strand.limit_step(x, y, x + dx if self.retract or self.turn_exact else None)
+            if self.strand.last_cut:
+                return x
+        return y
 
     def _loose_verdict(self, loose, claim, claimed_before, measure, steps, recent, measured=False):
         """(confirmed, refused) for this iteration's stop ``claim`` at a ``loose``
@@ -1106,7 +1196,11 @@ class Integrator:
         "A saddle over contact-coupled wisps").  Lanczos on A + C preconditioned by the
         wisp blocks (:mod:`lc_petsc.contact_curvature`); only at an ``exact`` stop (as
         :meth:`_at_saddle`) with contact cross blocks.  Collective; counted in
-        ``newton_saddle`` like a wisp's saddle."""
+        ``newton_saddle`` like a wisp's saddle.  A check whose Lanczos did not converge
+        within its cap (:attr:`~lc_petsc.contact_curvature.Verdict.unknown`) found no
+        saddle and proved no minimum: the stop is kept (Newton's tolerance is met, every
+        wisp block is definite, and refusing would cut back where no saddle was seen), but
+        counted (``newton_coupled_unknown``) and named by the monitor."""
         if not exact or self.strand is None or self.strand.C is None:
             return False
         if self._coupled is None:
@@ -1116,6 +1210,12 @@ class Integrator:
             verdict = self._coupled.check(self.asm.local_block_csr(), self.solver.ksp.getOperators()[0],
                                           np.where(self.free, self.scene.mass / self.dt ** 2, 0.0), self.asm.mat)
         self.coupled_checks.append(verdict)
+        if verdict.unknown:
+            self._counts["newton_coupled_unknown"] += 1
+            if self.monitor is not None:
+                self._say(f"  frame {self.frame}: the stop's curvature over contact-coupled wisps is unknown "
+                          f"(Lanczos' lowest Ritz value {verdict.lowest:.4g} unconverged after "
+                          f"{verdict.iterations} iterations): the stop is kept")
         if not verdict.negative:
             return False
         self._saddles += 1
@@ -1267,6 +1367,9 @@ def unconfirmed_note(steps, refused=0, saddles=0):
 #: tolerance at or below this is checked by an exact Newton step at its iterate
 #: (Integrator._verify_stop; docs/newton.md "Verifying a stop after filtered steps")
 VERIFY_FROM = 1e-3
+#: the per-frame counts of the stop's checks (Integrator attributes, summary.json keys)
+FRAME_COUNTS = ("newton_verified", "newton_verify_refused", "newton_stops_refused",
+                "newton_coupled_unknown")
 
 
 #: ``solver.exact_fallback = "shifted"``: the shifts tau of the exact Hessian + tau M/dt^2

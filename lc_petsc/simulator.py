@@ -14,7 +14,7 @@ from petsc4py import PETSc
 from lc_petsc import parallel
 from lc_petsc.assembly import Assembler
 from lc_petsc.config import ELASTIC_TERMS, OTHER_TERMS, ConfigError, SimConfig
-from lc_petsc.integrator import Integrator
+from lc_petsc.integrator import FRAME_COUNTS, Integrator
 from lc_petsc.errors import RestPoseOverlapError
 from lc_petsc.rest_pose import check_rest_pose
 from lc_petsc.scene.kinematics import HeadMotion
@@ -201,6 +201,8 @@ class Simulator:
             "newton_unconfirmed": list(self.integrator.newton_unconfirmed),
             "newton_refused": list(self.integrator.newton_refused),
             "newton_saddle": list(self.integrator.newton_saddle),
+            # the stop's checks per frame (docs/newton.md "Taking the verifying step, ...")
+            **{name: list(getattr(self.integrator, name)) for name in FRAME_COUNTS},
             "newton_exact_fallbacks": list(self.integrator.exact_hessian_fallbacks),
             "newton_chord_checks": list(self.integrator.chord_checks),
             "length_projection_move": list(self.integrator.length_projection_move),

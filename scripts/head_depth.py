@@ -33,9 +33,10 @@ def head_rows(path, progress=None):
         head = file_head(f)
         if head is None:
             raise ValueError("the run's scene has no head sphere (no head_collision, not a hairball)")
+        steps = valid_steps(valid_rows(f))     # the chunk index first: a damaged /time entry crashed libhdf5
         times = np.asarray(f["time"][...], float)
         out = []
-        for k, prev, cur in step_rows(f, valid_steps(valid_rows(f))):
+        for k, prev, cur in step_rows(f, steps):
             out.append((k, step_depths(head[0], prev, cur, times[k], times[k + 1], off, head[1], head[2])))
             if progress is not None:
                 progress(*out[-1], head[0].radius)

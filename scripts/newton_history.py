@@ -8,7 +8,8 @@ smash, variants side by side (docs/newton.md).
 SPEC: comma-separated key=value: filter=analytic|numerical|none|abs|exact_or_analytic,
 update=linear|edge_retraction|corotational, guess=inertial|follow_the_leader, ls=0|1 (line search),
 terms=stretch+gravity, head=0 (no head contact), strands=0, options=-ksp_type gmres,
-fallback=analytic|shifted, stay=0|1 (solver.exact_stay), stop=quadratic_estimate|chord_estimate
+fallback=analytic|shifted, stay=0|1 (solver.exact_stay), trust=0|1 (solver.wisp_trust),
+stop=quadratic_estimate|chord_estimate
 (time.newton_stop; needs a tolerance: scripts/newton_frames.py only).
 hairball10 is configs/hairball_demo.toml cut to 10 wisps (--wisps) without strand
 contact (head contact and the shaking head kept; the inertial first iterate), demo10 the

@@ -108,6 +108,28 @@ def stiff_smash_config(tol, cap=30, fallback="analytic", n_vertices=31):
     return cfg.validate()
 
 
+def smashed_wisps_config(youngs_modulus, sizes=(51, 41, 31), frames=3, cap=12, tol=1e-3):
+    """(source, config): 4C wisps of ``sizes`` vertices (4 pinned) hanging 5 cm apart (no
+    contact), smashed to 40% of their length as configs/smash.toml's; stiffness
+    ``youngs_modulus``, ``frames`` of dt 0.2 with the analytic filter alone to the relative
+    increment ``tol`` within ``cap`` iterations, no cutback: stops after filtered steps,
+    checked by an exact step (docs/newton.md "Verifying a stop after filtered steps").
+    Use the source by monkeypatching ``lc_petsc.simulator.source_from_config``."""
+    wisps = [geometry.wisp4c(n, root=(5.0 * w, 0.0, 0.0)) for w, n in enumerate(sizes)]
+    off = np.concatenate([[0], np.cumsum([len(w) for w in wisps])])
+    pin = np.zeros(off[-1], bool)
+    for w in range(len(wisps)):
+        pin[off[w]:off[w] + 4] = True
+    source = ArraySource(np.concatenate(wisps), off, pinned=pin, root_radius=0.35, tip_radius=0.07)
+    cfg = load_config(CONFIGS / "smash.toml")
+    cfg.scene.kind = "straight"             # the source replaces the scene's wisps
+    cfg.material.youngs_modulus = youngs_modulus
+    cfg.time.frames, cfg.time.dt, cfg.time.max_substeps = frames, 0.2, 1
+    cfg.time.newton_increment_tol, cfg.time.newton_iterations = tol, cap
+    cfg.solver.filter = "analytic"
+    return source, cfg.validate()
+
+
 def rel_diff(a, b):
     return float(np.abs(a - b).max() / np.abs(b).max())
 

@@ -10,6 +10,10 @@ Layout (plain h5py reads it):
 * extension: ``/polylines`` int64 (2 n_wisps + n_vertices,), the XDMF "Mixed" topology
   of the wisps (for every wisp: 2 = polyline, its vertex count, its vertex indices),
   which ``frames.xdmf`` points at;
+* ``/row_digest`` uint64 (n_frames,): each row's digest (:func:`row_digest`, over its
+  positions' bits, its row number and its time), written with the row and checked by
+  every read of a row (:func:`frame_row`) and by a restart; files written before it
+  (2026-12-07) have none and are read unchecked;
 * ``/frame_valid`` bool (n_frames,), only in a file that continued a run whose own
   ``frames.h5`` was lost (``--restart ... --force``, :mod:`lc_petsc.io.recovery`):
   False marks a row that could not be recovered, its ``/positions`` and ``/time`` are
@@ -52,6 +56,55 @@ from lc_petsc.io.hdf5 import collective_file_options, collective_transfer, h5py_
 
 FORMAT = "lc_petsc frames 1"
 
+_MUL1, _MUL2, _GOLDEN = (np.array([c], np.uint64) for c in
+                         (0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0x9E3779B97F4A7C15))
+
+
+def _mix(z):
+    """splitmix64's finaliser on a uint64 array (wrapping): every input bit flips about
+    half the output bits, so a sum of mixed values is a digest."""
+    z = (z ^ (z >> np.uint64(30))) * _MUL1
+    z = (z ^ (z >> np.uint64(27))) * _MUL2
+    return z ^ (z >> np.uint64(31))
+
+
+def vertex_digest(x, first_vertex) -> int:
+    """This rank's part of a row's digest: the wrapping uint64 sum over its vertices
+    (``x`` (n, 3), the first of global index ``first_vertex``) of a hash of the bits of
+    the vertex's coordinates and its global index.  A sum, so the row's digest is the
+    same whatever the ranks' shares (and a restart on another rank count goes on with
+    the same digests)."""
+    bits = np.ascontiguousarray(x, np.float64).reshape(-1, 3).view(np.uint64)
+    h = _mix((np.arange(len(bits), dtype=np.uint64) + np.uint64(first_vertex)) * _GOLDEN)
+    for c in range(3):
+        h = _mix(h ^ bits[:, c])
+    return int(h.sum(dtype=np.uint64))
+
+
+def row_digest(parts, row, t) -> int:
+    """The digest of frame row ``row``, at time ``t``, from every rank's
+    :func:`vertex_digest` (``parts``): the row number and the time are in it, so a row
+    read in another row's place (two chunk index entries exchanged: libhdf5 reads each
+    row's chunk for the other, their Fletcher-32 checksums pass) fails it, and so does
+    /time's chunk in another's place."""
+    total = np.array([sum(parts) % (1 << 64)], np.uint64)
+    tb = np.array([t], np.float64).view(np.uint64)
+    return int(_mix(total ^ _mix(tb ^ _mix(np.array([row], np.uint64) * _GOLDEN)))[0])
+
+
+def digest_problem(f, k, x):
+    """Why row ``k`` of the open ``frames.h5`` ``f``, read as ``x``, is not the row written
+    (its ``/row_digest`` entry differs), else None; a file without ``/row_digest`` (written
+    before it) is not checked."""
+    if "row_digest" not in f:
+        return None
+    t = float(f["time"][k])
+    if int(f["row_digest"][k]) == row_digest([vertex_digest(x, 0)], k, t):
+        return None
+    every = int(f.attrs.get("every", 1))
+    return (f"/positions row {k} (frame {k * every}) does not match its /row_digest: another row's "
+            "values (a damaged chunk index), or its time in /time is another row's; the file is damaged")
+
 
 def write_rows(dset, start, data, dxpl):
     """Write ``data`` at ``start`` (a corner) of ``dset`` through the low-level API;
@@ -73,8 +126,8 @@ def write_rows(dset, start, data, dxpl):
 
 
 def frame_bytes(n_vertices) -> int:
-    """Bytes one frame adds to ``frames.h5`` (positions and time)."""
-    return 24 * int(n_vertices) + 8
+    """Bytes one frame adds to ``frames.h5`` (positions, time and digest)."""
+    return 24 * int(n_vertices) + 16
 
 
 def static_bytes(n_wisps, n_vertices) -> int:
@@ -213,6 +266,8 @@ def _kept_problem(f, path, rows, offsets):
         if _holds_fill(a, valid[sel] if name in frame_dsets else None):
             return (f"{path}: /{name}{where}: read as the fill value (NaN or -1), its chunk missing "
                     "from the chunk index (which has no checksum): the file is damaged")
+        if name == "positions" and valid[sel] and digest_problem(f, sel, a):
+            return f"{path}: {digest_problem(f, sel, a)}"
         if name == "wisp_offsets":
             problem = offsets_problem(a, f["positions"].shape[1])
             if problem is None and offsets is not None and not np.array_equal(a, offsets):
@@ -236,7 +291,7 @@ def _row_problem(f, path, checkpoint_row):
 
 def index_problem(f):
     """Why the chunk index of a frame dataset (``/positions``, ``/time``,
-    ``/frame_valid``) of the open ``frames.h5`` ``f`` cannot be trusted, else None.
+    ``/frame_valid``, ``/row_digest``) of the open ``frames.h5`` ``f`` cannot be trusted, else None.
 
     The HDF5 1.8 format has no checksum on a chunk index (a v1 B-tree), and the
     Fletcher-32 checksum of a chunk covers its bytes, not which row it is: a damaged key
@@ -249,11 +304,13 @@ def index_problem(f):
     its own chunk had the row it named, so that row is then missing.  A key byte
     libhdf5 does not use (a row offset is divided by the chunk's extent, so the low bits
     of the offset along the vertex axis, below one chunk, are dropped) changes nothing
-    and is not seen (docs/design_notes.md, "Checksums")."""
+    and is not seen (docs/design_notes.md, "Checksums").  Two entries exchanged (each
+    row then has one chunk, another row's) pass here: the rows' ``/row_digest`` finds
+    them when a row is read (:func:`digest_problem`)."""
     import itertools
     size = f.id.get_filesize()
     every = int(f.attrs.get("every", 1))
-    for name in ("positions", "time", "frame_valid"):
+    for name in ("positions", "time", "frame_valid", "row_digest"):
         d = f.get(name)
         if d is None or d.chunks is None or 0 in d.shape:
             continue
@@ -309,6 +366,9 @@ def frame_row(f, k):
                          f"{int((~np.isfinite(x).all(axis=1)).sum())} vertices: the file is "
                          "damaged (a chunk missing from its index reads as NaN); the rows "
                          "before it may still be read, or rerun from a checkpoint")
+    problem = digest_problem(f, k, x)
+    if problem:
+        raise ValueError(f"{problem}; the rows before it may still be read, or rerun from a checkpoint")
     return x
 
 
@@ -340,6 +400,7 @@ class FramesWriter:
         self.f, self.broken = None, False
         self.times_kept = []           # times of the frames kept from before a restart
         self.valid = None              # /frame_valid, where the file has one
+        self.digest = None             # /row_digest, where the file has one (not before 2026-12-07)
         self.rows_valid = []           # whether each row kept or written holds a frame (rank 0)
         # no chunk cache: a frame goes to the file when written, so the space checked
         # before the write is the space it takes
@@ -373,6 +434,8 @@ class FramesWriter:
                                        maxshape=(None, nv, 3), chunks=(1, max(1, min(nv, 1 << 16)), 3))
         self.time = self._dataset("time", (0,), np.float64, maxshape=(None,),
                                   chunks=(max(1, min(self.n_out, 4096)),))
+        self.digest = self._dataset("row_digest", (0,), np.uint64, maxshape=(None,),
+                                    chunks=(max(1, min(self.n_out, 4096)),))
         if track_valid:
             self.valid = self._dataset("frame_valid", (0,), np.bool_, maxshape=(None,),
                                        chunks=(max(1, min(self.n_out, 4096)),))
@@ -424,6 +487,8 @@ class FramesWriter:
                                  f"first {rows}; it does not belong to this checkpoint's run")
             self.times_kept = [float(t) for t in f["time"][:rows]]
             self.valid = f.get("frame_valid")
+            # a file written before the digests goes on without: its kept rows have none
+            self.digest = f.get("row_digest")
             self.rows_valid = valid_rows(f, check=False)[:rows].tolist()
         except Exception:
             f.close()
@@ -465,7 +530,7 @@ class FramesWriter:
 
     def _frame_datasets(self):
         """The datasets with a row per frame."""
-        return [d for d in (self.positions, self.time, self.valid) if d is not None]
+        return [d for d in (self.positions, self.time, self.valid, self.digest) if d is not None]
 
     def _grow(self):
         """One more row in the frame datasets."""
@@ -502,6 +567,10 @@ class FramesWriter:
         grow = k >= self.capacity
         check_space(self.comm, self.folder, frame_bytes(self.nv), self.path)
         root = self.comm.rank == 0
+        digest = None
+        if self.digest is not None:     # collective, before the writes
+            parts = self.comm.gather(vertex_digest(x, first_vertex), root=0)
+            digest = np.array([row_digest(parts, k, t)] if root else [], np.uint64)
 
         def write():
             if grow:
@@ -510,6 +579,8 @@ class FramesWriter:
             self._write(self.time, (k,), np.array([t]) if root else np.zeros(0))
             if self.valid is not None:
                 self._write(self.valid, (k,), np.array([valid], bool) if root else np.zeros(0, bool))
+            if digest is not None:
+                self._write(self.digest, (k,), digest)
         self._guarded(write)
         self.written += 1
         self.rows_valid.append(bool(valid))
@@ -546,8 +617,14 @@ def read_frames(path, frames=None):
         sel = slice(None) if frames is None else np.asarray(frames)
         out = {k: f[k][...] for k in ("wisp_offsets", "rest_positions", "pinned")}
         out["time"] = f["time"][...][sel]
-        out["frame_valid"] = valid_rows(f)[sel]
+        valid = valid_rows(f)
+        out["frame_valid"] = valid[sel]
         out["positions"] = f["positions"][sel] if frames is None else \
             np.stack([f["positions"][int(i)] for i in np.atleast_1d(frames)])
+        ks = np.arange(len(valid))[sel] if frames is None else np.atleast_1d(frames)
+        for k, x in zip(ks, out["positions"]):
+            problem = valid[int(k)] and digest_problem(f, int(k), x)
+            if problem:
+                raise ValueError(f"{f.filename}: {problem}")
         out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     return out

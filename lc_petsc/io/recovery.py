@@ -148,7 +148,7 @@ def _file_rows(path, offsets, rows, dt, every, vouched):
 
 
 def _readable_rows(f, offsets, rows, dt, every, vouched):
-    from lc_petsc.io.frames import offsets_problem, valid_rows
+    from lc_petsc.io.frames import digest_problem, offsets_problem, valid_rows
     if not np.array_equal(f["wisp_offsets"][...], offsets) or f["positions"].shape[1:] != (offsets[-1], 3):
         # a damaged /wisp_offsets is not another scene's: say which it is
         return [], (offsets_problem(f["wisp_offsets"][...], f["positions"].shape[1])
@@ -166,8 +166,8 @@ def _readable_rows(f, offsets, rows, dt, every, vouched):
             continue
         if k in vouched:
             agree[k] = np.array_equal(x, vouched[k])
-        elif valid[k] and np.isfinite(t) and np.isfinite(x).all():
-            found.append(k)
+        elif valid[k] and np.isfinite(t) and np.isfinite(x).all() and not digest_problem(f, k, x):
+            found.append(k)     # (a row failing its digest: another row's values, lost)
     if agree and not any(agree.values()):
         return [], (f"its rows at the checkpoints' frames ({frames_text(agree, every)}) differ from "
                     f"the checkpoints: another run's file, or corrupt there")

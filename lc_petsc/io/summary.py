@@ -67,10 +67,16 @@ def format_report(s) -> str:
     if conv_frames:
         lines.append(f"  Newton converged (time.newton_increment_tol / newton_tol) in "
                      f"{sum(conv_frames)} of {len(conv_frames)} frames")
-    chords = s.get("newton_chord_checks", [])
-    if sum(chords):
-        lines.append(f"  chord checks (time.newton_stop = \"chord_estimate\"): {sum(chords)} solves "
-                     f"in {sum(n > 0 for n in chords)} frames")
+    refused = sum(s.get("newton_verify_refused", []))
+    # per-frame counts: a line where any frame has some
+    for key, what in (("newton_chord_checks", "chord checks (time.newton_stop = \"chord_estimate\"): {} solves"),
+                      ("newton_verified", "stops after filtered steps verified by an exact step: {} "
+                                          f"({refused} refused)"),
+                      ("newton_coupled_unknown", "stops whose curvature over contact-coupled wisps is unknown "
+                                                 "(Lanczos unconverged, kept): {}")):
+        counts = s.get(key, [])
+        if sum(counts):
+            lines.append(f"  {what.format(sum(counts))} in {sum(n > 0 for n in counts)} frames")
     subs = s.get("newton_substeps", [])
     if any(n > 1 for n in subs):
         lines.append(f"  step cutback (time.max_substeps) in {sum(n > 1 for n in subs)} of {len(subs)} "

@@ -162,6 +162,8 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
                 raise ValueError(f"{frames_path}: not an lc_petsc frames file (no /{key})")
         if "config" not in f.attrs or "dt" not in f.attrs:
             raise ValueError(f"{frames_path}: has no 'config'/'dt' attributes (not written by the main job)")
+        # the chunk index first: a damaged /time entry crashed libhdf5 on the read below
+        held = valid_rows(f)
         config_dict = json.loads(f.attrs["config"])
         tables = config_tables(config_dict)
         dt, every = float(f.attrs["dt"]), int(f.attrs.get("every", 1))
@@ -171,7 +173,6 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
         pinned = np.asarray(f["pinned"][...], bool)
         times = np.asarray(f["time"][...], float)
         n_rows = len(times)
-        held = valid_rows(f)
         rows = [k for k in range(0, n_rows, int(stride)) if held[k]]
         # the run's radii; frames files written before /radius existed: from its config
         radius = f["radius"][...] if "radius" in f else scene_radius(tables, sizes)

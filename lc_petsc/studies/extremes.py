@@ -17,7 +17,6 @@ Expectations:
 from __future__ import annotations
 
 import copy
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -74,10 +73,13 @@ def helix_file(path, helix_radius=0.1, n_vertices=101, per_turn=5, rise=0.1, ste
     return str(path)
 
 
-def catalogue(quick=False, tmpdir=None):
-    """The catalogue's hard cases.  ``quick`` shortens every run (for tests)."""
+def catalogue(*, tmpdir, quick=False):
+    """The catalogue's hard cases; ``tmpdir``: an existing folder the cases' groom files
+    are written to, which must outlive the runs and which the caller removes (a folder
+    made here was left in /tmp by every run and test).  ``quick`` shortens every run
+    (for tests)."""
     q = (lambda n: max(3, n // 10)) if quick else (lambda n: n)
-    tmpdir = Path(tmpdir or tempfile.mkdtemp(prefix="lc_extremes_"))
+    tmpdir = Path(tmpdir)
     # the Krylov tolerance the catalogue's figures were set with (its one iterating case,
     # pbjacobi at dt = 1, would otherwise take the fixed count's looser code default)
     dt30 = Settings(ksp_rtol=1e-6)

@@ -32,6 +32,7 @@ VARIANT_KEYS: dict[str, tuple[str, str, Callable[[str], Any]]] = {
     "filter": ("solver", "filter", str),
     "fallback": ("solver", "exact_fallback", str),
     "stay": ("solver", "exact_stay", _flag),
+    "trust": ("solver", "wisp_trust", _flag),
     "stop": ("time", "newton_stop", str),
     "guess": ("time", "initial_guess", str),
     "carry": ("time", "carry_with_head", _flag),

@@ -15,6 +15,7 @@ import pytest
 from mpi4py import MPI
 
 from lc_petsc.batch import main
+from lc_petsc.io.frames import digest_problem
 
 ROOT = Path(__file__).resolve().parents[2]
 from sim_helpers import MPI_ENV, hairball_toml  # noqa: E402
@@ -160,10 +161,13 @@ def test_frames_identical_on_1_and_2_ranks(tmp_path):
         os.chdir(cwd)
     with h5py.File(tmp_path / "one" / "frames.h5") as a, h5py.File(tmp_path / "two" / "frames.h5") as b:
         assert set(a) == set(b) == {"positions", "time", "wisp_offsets", "rest_positions", "pinned",
-                                    "radius", "polylines"}
+                                    "radius", "polylines", "row_digest"}
         for k in a:
             assert a[k].shape == b[k].shape and a[k].dtype == b[k].dtype, k
-            if k == "positions":
+            if k == "row_digest":       # of positions equal to 1e-10: each file's its own rows'
+                for f in (a, b):
+                    assert all(digest_problem(f, r, f["positions"][r]) is None for r in range(f[k].shape[0]))
+            elif k == "positions":
                 scale = np.abs(a[k][...]).max()
                 assert np.abs(a[k][...] - b[k][...]).max() <= 1e-10 * scale
             else:
@@ -226,6 +230,22 @@ def test_report_counts_chord_checks_only_when_there_are_some():
     assert "chord checks (time.newton_stop = \"chord_estimate\"): 3 solves in 2 frames" in format_report(s)
     s["newton_chord_checks"] = [0, 0, 0]
     assert "chord checks" not in format_report(s)
+
+
+def test_report_counts_the_stop_checks_only_when_there_are_some():
+    """The report says how many stops after filtered steps an exact step verified (and
+    refused), and how many stops' coupled curvature stayed unknown; a run without any
+    says nothing about them (summary.json counts them per frame)."""
+    from lc_petsc.io.summary import format_report
+    s = {"frames": 3, "wall_time_s": 3.0, "wisps": 2, "dofs": 6, "ranks": 1,
+         "config": {"time": {"dt": 1.0 / 30.0}}, "newton_verified": [1, 0, 2],
+         "newton_verify_refused": [1, 0, 0], "newton_coupled_unknown": [0, 1, 0]}
+    report = format_report(s)
+    assert "stops after filtered steps verified by an exact step: 3 (1 refused) in 2 frames" in report
+    assert "contact-coupled wisps is unknown (Lanczos unconverged, kept): 1 in 1 frames" in report
+    s["newton_verified"], s["newton_coupled_unknown"] = [0, 0, 0], [0, 0, 0]
+    assert "verified by an exact step" not in format_report(s)
+    assert "is unknown" not in format_report(s)
 
 
 def test_preview_frames_outside_the_run_are_named(tmp_path):

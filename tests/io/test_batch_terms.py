@@ -343,7 +343,8 @@ def test_groom_edges_far_shorter_than_their_wisp_are_warned_about():
 def test_a_wisp_in_other_units_than_its_groom_is_warned_about():
     """One fringe wisp in metres (its positions x 0.01) ran without a word; now a warning
     names it, the same on any rank count, and the shipped groom scenes (strands and USD)
-    get none."""
+    get none.  A wisp in millimetres (x 10), a metres wisp of thin strands (edges still
+    longer than the radius) and a whole groom in millimetres or metres ran unnamed too."""
     import os
     from pathlib import Path
     import h5py
@@ -355,29 +356,53 @@ def test_a_wisp_in_other_units_than_its_groom_is_warned_about():
     def scale_warnings(cfg):
         sim = build_simulator(cfg, comm=comm)
         try:
-            return [m for m in term_warnings(sim) if "smaller than the groom" in m]
+            return [m for m in term_warnings(sim) if "than the groom" in m or "cm long (the median)" in m]
         finally:
             sim.close()
     for name in ("from_file.toml", "from_usd.toml"):
         assert scale_warnings(load_config(root / name)) == [], name
-    with shared_scene_dir(comm, "metres", "") as (d, _):
-        path = os.path.join(d, "g.h5")
-        with h5py.File(root / "data" / "fringe.h5", "r") as f:
-            data = {k: f[k][...] for k in f}
-        off = data["wisp_offsets"]
-        data["positions"][off[3]:off[4]] *= 0.01
+    with h5py.File(root / "data" / "fringe.h5", "r") as f:
+        fringe = {k: f[k][...] for k in f}
+    off = fringe["wisp_offsets"]
+
+    def groom(d, name, wisps, factor, radius=None):
+        data = {k: v.copy() for k, v in fringe.items()}
+        for w in wisps:
+            data["positions"][off[w]:off[w + 1]] *= factor
+        if radius is not None:
+            data["radius"][:] = radius
+        path = os.path.join(d, name)
         if comm.rank == 0:
             with h5py.File(path, "w") as f:
                 for k, v in data.items():
                     f[k] = v
         comm.Barrier()
-        w = scale_warnings(SimConfig(scene=SceneConfig(kind="file", path=path)))
-    edges = [np.median(np.linalg.norm(np.diff(data["positions"][off[i]:off[i + 1]], axis=0), axis=1))
-             for i in range(len(off) - 1)]
-    assert len(w) == 1, w
-    assert w[0].startswith(f"{path}: wisp 3 is {np.median(edges) / edges[3]:.3g} times smaller than the groom: "
-                           f"its median edge is {edges[3]:.3g} cm against the groom's {np.median(edges):.3g} cm, "
-                           f"and shorter than its strand radius ("), w
+        edges = [np.median(np.linalg.norm(np.diff(data["positions"][off[i]:off[i + 1]], axis=0), axis=1))
+                 for i in range(len(off) - 1)]
+        return path, edges, scale_warnings(SimConfig(scene=SceneConfig(kind="file", path=path)))
+    with shared_scene_dir(comm, "metres", "") as (d, _):
+        path, edges, w = groom(d, "g.h5", [3], 0.01)
+        assert len(w) == 1, w
+        assert w[0].startswith(f"{path}: wisp 3 is {np.median(edges) / edges[3]:.3g} times smaller than the groom: "
+                               f"its median edge is {edges[3]:.3g} cm against the groom's {np.median(edges):.3g} "
+                               "cm, and shorter than its strand radius ("), w
+        # millimetres: a root 10 times as far from the origin, outside the other roots
+        path, edges, w = groom(d, "mm.h5", [9], 10.0)
+        assert w == [f"{path}: wisp 9 is {edges[9] / np.median(edges):.3g} times larger than the groom: its median "
+                     f"edge is {edges[9]:.3g} cm against the groom's {np.median(edges):.3g} cm, and its root lies "
+                     "6.88 cm outside the box of the other wisps' roots, 0 cm when scaled by 0.1; a wisp written in "
+                     "other units (millimetres?) than the rest; lc_petsc's units are cm (scale that wisp)"], w
+        # strands of 0.002 cm: the metres wisp's edges (0.0056 cm) are longer than that
+        path, edges, w = groom(d, "thin.h5", [5], 0.01, radius=0.002)
+        assert len(w) == 1 and w[0].startswith(
+            f"{path}: wisp 5 is {np.median(edges) / edges[5]:.3g} times smaller than the groom: its median edge is "
+            f"{edges[5]:.3g} cm against the groom's {np.median(edges):.3g} cm, and 0.453 cm long, shorter than hair "
+            "(1 cm); a wisp written in other units (metres?)"), w
+        for factor, length, unit in ((10.0, "386", "millimetres"), (0.01, "0.386", "metres")):
+            path, _, w = groom(d, f"all{factor:g}.h5", range(len(off) - 1), factor)
+            assert w == [f"{path}: its wisps are {length} cm long (the median), outside the plausible range for "
+                         f"hair, 1 to 200 cm: it looks like {unit}; lc_petsc's units are cm (scale the groom; a USD "
+                         "stage: its metersPerUnit)"], w
 
 
 def test_the_job_says_why_a_frame_below_the_tolerance_missed_it(tmp_path):

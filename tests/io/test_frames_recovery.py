@@ -414,3 +414,77 @@ def test_recovery_names_damaged_wisp_offsets(tmp_path):
     rows, why = write([0, 2 + 2 ** 40, 5])             # a flipped bit
     assert rows == [] and "/wisp_offsets is not 0, increasing" in why and "damaged" in why
     assert write([0, 3, 5]) == ([], "it has other wisps than the scene")
+
+
+def _swap_chunks(path, a, b, at):
+    """The chunk index entries of /positions rows ``a`` and ``b`` exchanged, in the
+    version-1 B-tree node, which has no checksum: their child addresses (``at`` 40, after
+    the key) or the row offsets of their keys (``at`` 8)."""
+    data = bytearray(Path(path).read_bytes())
+    ka, kb = _positions_key(data, path, a) + at, _positions_key(data, path, b) + at
+    data[ka:ka + 8], data[kb:kb + 8] = data[kb:kb + 8], data[ka:ka + 8]
+    Path(path).write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("at, row_4", [(40, "row 2"), (8, "NaN")], ids=["children", "keys"])
+def test_two_rows_exchanged_in_the_chunk_index_fail_their_digests(tmp_path, straight, capsys, at, row_4):
+    """Rows 2 and 4 exchanged in /positions' chunk index (their chunk addresses, or their
+    keys' row offsets): every read of row 2 returned row 4's positions without an error,
+    and the index check passed (each row found, of its size, at a chunk no other row
+    has); a restart keeping rows 0-2 kept the wrong row.  Now every row has a digest in
+    /row_digest (over its values, its row number and its time), checked by every read of
+    a row and by the restart."""
+    from lc_petsc.io.frames import frame_row, index_problem, resumable_problem
+    cfg, out = _config(tmp_path), tmp_path / "out"
+    assert _run(cfg, out) == 0
+    path = out / "frames.h5"
+    with h5py.File(path, "r") as f:
+        n_wisps, n_vertices = f["wisp_offsets"].shape[0] - 1, f["positions"].shape[1]
+    _swap_chunks(path, 2, 4, at)
+    with h5py.File(path, "r") as f:      # what libhdf5 does with it
+        assert np.array_equal(f["positions"][2], straight[0][4])
+        if row_4 == "row 2":
+            assert np.array_equal(f["positions"][4], straight[0][2])
+        else:                            # (the keys out of order: rows 3 and 4 are not found)
+            assert np.isnan(f["positions"][4]).all() and np.isnan(f["positions"][3]).all()
+        assert index_problem(f) is None
+        with pytest.raises(ValueError, match=r"^/positions row 2 \(frame 2\) does not match its "
+                                             r"/row_digest: another row's values \(a damaged chunk index\)"):
+            frame_row(f, 2)
+        with pytest.raises(ValueError, match=r"/positions row 4 \(frame 4\) " + (
+                "does not match its /row_digest" if row_4 == "row 2" else "reads as NaN")):
+            frame_row(f, 4)
+        assert np.array_equal(frame_row(f, 1), straight[0][1])
+    assert resumable_problem(path, n_wisps, n_vertices, 3) == (
+        f"{path}: /positions row 2 (frame 2) does not match its /row_digest: another row's values (a damaged "
+        "chunk index), or its time in /time is another row's; the file is damaged")
+    assert resumable_problem(path, n_wisps, n_vertices, 2) is None
+    with pytest.raises(ValueError, match="row 2 .frame 2. does not match its /row_digest"):
+        read_frames(path, frames=[2])
+    with pytest.raises(ValueError, match="row 2 .frame 2. does not match its /row_digest"):
+        read_frames(path)
+    with pytest.raises(ValueError, match="row 2 .frame 2. does not match its /row_digest"):
+        count_frames(path)
+    # the restart from frame 4's checkpoint keeps rows 0-4: refused, nothing changed
+    damaged = _sha(path)
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", str(out / "checkpoints" / "checkpoint_000004.h5")) == 2
+    assert "/positions row 2 (frame 2) does not match its /row_digest" in capsys.readouterr().err
+    assert _sha(path) == damaged
+
+
+def test_a_frames_file_from_before_the_row_digests_still_reads_and_restarts(tmp_path, straight):
+    """A frames.h5 without /row_digest (written before 2026-12-07) is read and continued
+    unchecked; the continued file has no digests either (its kept rows have none)."""
+    cfg, out = _config(tmp_path), tmp_path / "out"
+    assert _run(cfg, out) == 0
+    with h5py.File(out / "frames.h5", "r+") as f:
+        assert f["row_digest"].shape == (7,) and f["row_digest"].dtype == np.uint64
+        del f["row_digest"]
+    got = read_frames(out / "frames.h5")
+    assert np.array_equal(got["positions"], straight[0][:7])
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 0
+    _check_rows(out, straight, recovered=[], lost=[], upto=8)
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert "row_digest" not in f
+    assert [r["step"] for r in count_frames(out / "frames.h5")[0]] == list(range(8))

@@ -16,6 +16,7 @@ from pxr import Usd, UsdGeom
 
 from lc_petsc.batch import main
 from lc_petsc.config import PhysicsConfig
+from lc_petsc.io.frames import row_digest, vertex_digest
 from lc_petsc.io.usd import export_failed, head_matrix, write_usd
 from lc_petsc.scene import geometry
 from lc_petsc.scene.kinematics import HeadMotion
@@ -143,6 +144,9 @@ def test_a_groom_far_from_the_origin_keeps_its_detail(run, tmp_path):
     with h5py.File(far, "r+") as f:
         f["positions"][...] = f["positions"][...] + shift
         f["rest_positions"][...] = f["rest_positions"][...] + shift
+        # the moved rows' digests, as the writer makes them (a row read is checked against it)
+        f["row_digest"][...] = [row_digest([vertex_digest(f["positions"][k], 0)], k, f["time"][k])
+                                for k in range(f["time"].shape[0])]
     write_usd(far, tmp_path / "far.usdc")
     F, near = _frames(run), Usd.Stage.Open(str(run / "frames.usdc"))
     stage = Usd.Stage.Open(str(tmp_path / "far.usdc"))
@@ -322,3 +326,37 @@ def test_a_row_missing_from_a_damaged_file_is_refused_by_every_reader(run, tmp_p
     assert "row 1 (frame 2)" in check_run(bad, MPI.COMM_SELF)["error"]
     with pytest.raises(ValueError, match=why):
         render_previews(bad, tmp_path / "prev", [1])
+
+
+def _time_chunk_size(src, dst, size):
+    """A copy of frames.h5 ``src`` whose /time chunk index entry (in a version-1 B-tree
+    node, which has no checksum) says the chunk is ``size`` bytes: key = stored size (4
+    bytes), filter mask (4), 2 offsets of 8, then the chunk's address."""
+    dst.write_bytes(src.read_bytes())
+    with h5py.File(dst) as f:
+        addr = f["time"].id.get_chunk_info(0).byte_offset.to_bytes(8, "little")
+    data = bytearray(dst.read_bytes())
+    node = data.find(b"TREE")
+    while data.find(addr, node, node + 4096) < 0:
+        node = data.find(b"TREE", node + 4)
+    key = data.find(addr, node) - 24
+    data[key:key + 4] = size.to_bytes(4, "little")
+    dst.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("size", [1, 1 << 30])
+def test_a_damaged_time_index_is_named_before_time_is_read(run, tmp_path, size):
+    """to_usd.py and head_depth.py read /time before the file's chunk index was checked:
+    a /time chunk of stored size 1 crashed both (a segfault in libhdf5, exit -11), one of
+    1 GB gave HDF5's own "Can't read data (addr overflow ...)".  Now the index is checked
+    first and both say what is damaged."""
+    bad = tmp_path / "frames.h5"
+    _time_chunk_size(run / "frames.h5", bad, size)
+    why = (f"{bad}: /time chunk at (0,): its chunk index entry is damaged (stored size {size} bytes, not "
+           f"{8 * 4 + 4}; filter mask 0; at byte ")
+    for script in ("drivers/to_usd.py", "scripts/head_depth.py"):
+        p = subprocess.run([sys.executable, str(ROOT / script), str(bad)] + (["--quiet"] if "usd" in script else []),
+                           capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+        assert p.returncode == 2 and why in p.stderr and "Traceback" not in p.stderr, (script, p.returncode,
+                                                                                          p.stderr[-800:])
+    assert not list(tmp_path.glob("*.usd*"))

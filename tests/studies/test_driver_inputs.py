@@ -4,6 +4,7 @@ scripts/bench_usd.py, the benchmarks and studies of scripts/): a missing or wron
 an unknown option set, an out-of-range or misspelt flag is one error line and exit
 status 2, no traceback, nothing run."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -151,14 +152,20 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, script, args, message):
             for a in args]
     message = message.replace("SCRATCH", str(tmp_path))
     out = tmp_path / "out"
+    # the temporary folder the script sees: scripts/extremes.py left one in /tmp on every
+    # run (lc_extremes_*, its groom file), even on bad input
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
     proc = subprocess.run([sys.executable, str(ROOT / script), *args]
                           + (["--out", str(out)] if script in TAKES_OUT else []),
-                          cwd=ROOT, capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+                          cwd=ROOT, capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL,
+                          env=dict(os.environ, TMPDIR=str(tmp)))
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr
     error_lines = [line for line in proc.stderr.splitlines() if "error:" in line]
     assert len(error_lines) == 1 and message in error_lines[0], proc.stderr
     assert not out.exists()
+    assert sorted(p.name for p in tmp.iterdir()) == []
 
 
 @pytest.mark.parametrize("args, message", [

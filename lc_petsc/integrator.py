@@ -95,7 +95,7 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   blocks.  After the Newton iterations the active pairs and the minimum segment
   distance are measured; pairs closer than half the thickness are pushed apart
   (``physics.strand_separation``, :meth:`StrandContact.separate`, at most
-  :data:`SEPARATION_ROUNDS` Jacobi rounds over at most 3 calls, each followed by a
+  :data:`lc_petsc.frame_end.SEPARATION_ROUNDS` Jacobi rounds over at most 3 calls, each followed by a
   measure; the pairs found are counted in ``contact_separated``), and the
   figures at the final positions are recorded (``contact_pairs``,
   ``contact_deep_pairs`` closer than half the thickness, ``contact_min_distance``: the
@@ -106,6 +106,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   (``StrandContact.collision_free_frame``) are limited so that no two segments of
   different wisps meet on the straight path (docs/contact.md); in ``penalty`` mode
   these calls change nothing.
+
+The stop arithmetic is in :mod:`lc_petsc.newton_stop`, the first-iterate predictors and
+the edge-length walks in :mod:`lc_petsc.predictors`, the step's end (head push-out and
+path lift, strand separation, ccd frame path) in :class:`lc_petsc.frame_end.FrameEnd`.
 """
 
 from __future__ import annotations
@@ -115,9 +119,15 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from lc_petsc import contact_curvature, curvature, wisp_trust
-from lc_petsc.elements import compiled, head_contact
+from lc_petsc.elements import head_contact
+from lc_petsc.frame_end import FRAME_END_ROUNDS, FrameEnd
+from lc_petsc.newton_stop import (CHORD_TRY_C, ENERGY_FLOOR, EXACT_BELOW, LOOSE_TOLERANCE, QUADRATIC_SAFETY,
+                                  StepRecord, chord_basis, chord_stop, confirms_stop, model_agrees,
+                                  quadratic_error_estimate, step_contraction)
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.root_rotation import RootRotation
+from lc_petsc.predictors import (corotational_update, follow_the_leader, project_rest_lengths,
+                                 retract_edge_lengths, start_carry_weight)
 from lc_petsc.scene.state import vertex_wisp_length
 from lc_petsc.errors import SimulationError, SolverError
 from lc_petsc.trust_region import ETA, TRUST_RETRIES, ratio, update_radius
@@ -142,19 +152,6 @@ class _Solve(NamedTuple):
     unconfirmed: bool = False
     refused: bool = False
     saddle: bool = False
-
-
-class StepRecord(NamedTuple):
-    """One Newton step as the stop test reads it (:func:`step_contraction`): its relative
-    increment ``measure`` (the full step's where the step was damped or cut), whether it
-    was ``whole`` (alpha 1, unshifted, not cut, no exact attempt rejected), of the
-    ``exact`` Hessian, and a ``newton`` step (unshifted, not after an indefinite exact
-    matrix)."""
-
-    measure: float
-    whole: bool
-    exact: bool
-    newton: bool
 
 
 class _Region:
@@ -230,10 +227,12 @@ class Integrator:
                                       {n: t.k for n, t in scene.terms.items()}) \
             if config.time.root_rotation else None
         self.vertex_wisp = np.repeat(np.arange(len(scene.offsets) - 1), np.diff(scene.offsets))
-        #: per vertex: how deep the head's push-out lets it rest (physics.head_push_out)
-        self.allowed_depth = head_contact.allowed_depth(
-            scene.radius, self.rest_edge, scene.offsets, head.radius + config.physics.head_margin
-        ) if self.contact else None
+        #: the step's end: head push-out and path lift, strand separation, ccd frame path
+        self.frame_end = FrameEnd(comm, head, strand, self.free, scene.offsets, scene.mass, scene.radius,
+                                  self.rest_edge, self.vertex_wisp, head_collision=self.contact,
+                                  margin=config.physics.head_margin, push_out=config.physics.head_push_out,
+                                  separation=config.physics.strand_separation,
+                                  length_projection=config.time.length_projection)
         if self.carried is not None:
             self.start_weight = start_carry_weight(self.rest_edge, scene.offsets, scene.pinned)
         self.newton_increment = []      # per frame: the last step's relative increment
@@ -276,10 +275,6 @@ class Integrator:
         self.chord_checks = []          # per frame: chord steps measured (newton_stop = "chord_estimate")
         self.length_projection_move = []    # per frame: time.length_projection's largest move / wisp length
         self._projection_move = 0.0
-        # per vertex: its distance from the head's centre before the step's first path
-        # lift, at least the sphere's radius (None until then): what bounds the step's
-        # lifts (:meth:`_lift_room`)
-        self._lift_base = None
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian, per_vertex=False):
@@ -387,7 +382,7 @@ class Integrator:
         x_frame, t_frame = self.x, self.t      # replaced by the step, never changed in place
         solves = self._advance(cfg.time.dt, self.t + cfg.time.dt, cfg.time.max_substeps)
         if len(solves) > 1 and self.contact and cfg.physics.head_push_out:
-            self._lift_frame_path(x_frame, t_frame)
+            self.x = self.frame_end.lift_frame_path(x_frame, self.x, t_frame)
         if len(solves) > 1 and self.strand is not None and self.strand.mode == "ccd":
             solves[-1] = self._collision_free_frame_path(x_frame, t_frame, solves[-1])
         conv = [s.converged for s in solves]
@@ -457,7 +452,7 @@ class Integrator:
         cfg, sc = self.cfg, self.scene
         self.dt = dt
         self.t_next = t_next
-        self._lift_base = None
+        self.frame_end.begin_step(t_next)
         x_old = self.x.copy()
         self.xhat = self.x + dt * self.v
         x = self.xhat.copy()
@@ -685,30 +680,30 @@ class Integrator:
         if push:
             # before the length projection, which takes back the edge strain it makes
             # (after it: edges 22% long on a soft hairball)
-            x = self._push_out_of_head(x)
+            x = self.frame_end.push_out_of_head(x)
         if cfg.time.length_projection:
             with self.timers("update"):
                 # around the head: without, it pulled pushed vertices back in (the soft
                 # hairball 0.11 cm deep, 1.63 strand radii)
                 projected = project_rest_lengths(x, self.free, sc.offsets, self.rest_edge, sc.mass,
-                                                 self._head_sphere() if push else None)
+                                                 self.frame_end.head_sphere() if push else None)
             # how far the frame written is from Newton's iterate (reported: with a
             # tolerance it can exceed it, docs/newton.md "Stopping rule")
             self._projection_move = max(self._projection_move, self.increments(projected - x)[0])
             x = projected
         lifted = None
         if push:        # last: the strand path check below keeps to the path it leaves
-            x, lifted = self._lift_head_paths(x_old, x, self.t)
+            x, lifted = self.frame_end.lift_head_paths(x_old, x, self.t)
         contact = None
         if self.strand is not None:
             pairs, deep, dmin = self.strand.measure(x)
             n_sep = 0
             self.strand.last_separation = (0, 0, 0)
             if self.strand.mode == "ccd":
-                x, pairs, deep, dmin, n_sep, lifted = self._collision_free_end(x_old, x, motion, deep, self.t,
-                                                                               lifted)
+                x, pairs, deep, dmin, n_sep, lifted = self.frame_end.collision_free_end(x_old, x, motion, deep,
+                                                                                        self.t, lifted)
             elif cfg.physics.strand_separation:
-                x, pairs, deep, dmin, n_sep = self._separate(x, pairs, deep, dmin)
+                x, pairs, deep, dmin, n_sep = self.frame_end.separate(x, pairs, deep, dmin)
                 if push:
                     # the separation moves lifted vertices, their paths cut under the scalp
                     # again (soft hairball, gravity 5000: 22 paths through in 8 steps, 14
@@ -716,8 +711,8 @@ class Integrator:
                     # head goes last, in rounds: the projection moves a lifted vertex back
                     y = x
                     for _ in range(FRAME_END_ROUNDS):
-                        y, lifted = self._head_end(x_old, y, self.t, lifted)
-                        if not self._head_left(x_old, y, self.t):
+                        y, lifted = self.frame_end.head_end(x_old, y, self.t, lifted)
+                        if not self.frame_end.head_left(x_old, y, self.t):
                             break
                     if global_reduce(self.comm, [float(y is not x)], "max")[0]:
                         pairs, deep, dmin = self.strand.measure(y)
@@ -752,222 +747,19 @@ class Integrator:
         _, idx, head = self._contact_terms(x, True)
         return self.gradient(x, np.zeros_like(x), (idx, head)), None if head is None else (idx, head[1])
 
-    def _head_sphere(self):
-        """(centre, radius, allowed depth (n,)) of the head sphere at the step's end: its
-        radius + margin, and per vertex how deep the push-out lets it rest
-        (:func:`head_contact.allowed_depth`)."""
-        return (self.head.sphere_center(self.t_next), self.head.radius + self.cfg.physics.head_margin,
-                self.allowed_depth)
-
-    def _push_out_of_head(self, x, deep=None):
-        """``x`` with every free vertex deeper in the head sphere (radius + margin) than
-        allowed (its strand radius less its edges' sagitta on the sphere,
-        :func:`head_contact.allowed_depth`) moved radially onto it.  The penalty sees a vertex only once an
-        iterate is inside: at a fixed Newton count the last step can carry one in
-        unopposed (a soft hairball's tips 1.06 cm deep; 0.048 with 10 iterations,
-        docs/contact.md "Hair and the head").  A vertex resting on the head sinks by its
-        push over the stiffness, far less than its radius, and is left alone, so a run
-        whose hair never sinks that deep keeps its bits.  ``deep``: those vertices'
-        indices when the caller has them (:meth:`_sunk`)."""
-        c, R, _ = self._head_sphere()
-        if deep is None:
-            deep = np.flatnonzero(self._sunk(x))
-        if len(deep):
-            y = x[deep] - c
-            x = x.copy()
-            x[deep] = c + y * (R / np.sqrt(np.einsum("ij,ij->i", y, y)))[:, None]
-        return x
-
-    def _sunk(self, x):
-        """Per vertex (n,): a free vertex deeper in the head sphere (radius + margin, at
-        the step's end) than the push-out allows (:meth:`_push_out_of_head`)."""
-        c, R, allow = self._head_sphere()
-        y = x - c
-        dist = np.sqrt(np.einsum("ij,ij->i", y, y))
-        return self.free & (R - dist > allow) & (dist > 0)
-
-    def _lift_room(self, x):
-        """Per vertex (n,): how much farther out the path lift may still move it in this
-        step: up to :data:`head_contact.LIFT_RADII` strand radii above its distance from
-        the head's centre before the step's first lift round (set by that round), or above
-        the sphere when it was under it (a later push-out's rise onto the sphere is not a
-        lift: counted, it refused a tip pushed up from 0.84 radii deep the 3.2 radii its
-        path needed).  Each round used to allow that much from where the vertex then was,
-        so the rounds of the lift and of the frame end added up (8.2 radii in one frame)."""
-        c, R, _ = self._head_sphere()
-        y = x - c
-        dist = np.sqrt(np.einsum("ij,ij->i", y, y))
-        if self._lift_base is None:
-            self._lift_base = np.maximum(dist, R)
-        return self._lift_base + head_contact.LIFT_RADII * self.scene.radius - dist
-
-    def _lift_head_paths(self, x_old, x, t_old):
-        """``x`` (the step's end, at t_next) with each free vertex whose straight path from
-        ``x_old`` (at ``t_old``), relative to the moving centre, goes deeper in the head
-        sphere than allowed lifted straight out just enough for the path to stay that
-        shallow, if that keeps it within :data:`head_contact.LIFT_RADII` strand radii of its
-        height before the step's first lift (:meth:`_lift_room`; all rounds together)
-        (:func:`head_contact.lift_paths`): both ends on the scalp, the chord of a vertex
-        sliding along it cuts under it (soft hairball: tips sliding 3.4 cm a frame,
-        chords 0.10-0.12 cm deep past their 0.07 cm radius).  The lifted wisps' rest
-        lengths are set again (:meth:`_keep_lengths`).  Returns (x, the move (n, 3), which
-        the velocity leaves out: an outward speed of lift / dt would kick the hair off
-        the scalp; None when nothing moved)."""
-        c0 = self.head.sphere_center(t_old)
-        c1, R, allow = self._head_sphere()
-        lifted = x
-        # the length projection of a lifted wisp moves its lifted vertices back a little
-        # (gravity 5000: 18 paths through after 1 round, 6 after 3)
-        for _ in range(head_contact.LIFT_ROUNDS):
-            p1, moved = head_contact.lift_paths(x_old - c0, lifted - c1, R, allow, self._lift_room(lifted),
-                                                self.free)
-            if not len(moved):
-                break
-            lifted = lifted.copy()
-            lifted[moved] = c1 + p1[moved]
-            lifted = self._keep_lengths(lifted, moved)
-        if lifted is x:
-            return x, None
-        return lifted, lifted - x
-
-    def _head_end(self, x_old, x, t_old, lifted=None):
-        """The head's part of the frame end on ``x``: the vertices deeper than allowed
-        pushed out (:meth:`_push_out_of_head`) with their wisps' rest lengths set
-        (:meth:`_keep_lengths`: a push alone left an edge 12.7% long), then the paths from
-        ``x_old`` lifted (:meth:`_lift_head_paths`).  Returns (x, ``lifted`` plus the
-        lift's move: what the velocity leaves out; None while nothing was lifted); ``x``
-        itself when nothing moved."""
-        pushed = np.flatnonzero(self._sunk(x))
-        if len(pushed):
-            x = self._keep_lengths(self._push_out_of_head(x, pushed), pushed)
-        x, move = self._lift_head_paths(x_old, x, t_old)
-        if move is not None:
-            lifted = move if lifted is None else lifted + move
-        return x, lifted
-
-    def _head_left(self, x_old, x, t_old):
-        """Whether a free vertex anywhere (collective) is deeper in the head than allowed
-        or has a path from ``x_old`` that :meth:`_lift_head_paths` would lift."""
-        c0 = self.head.sphere_center(t_old)
-        c1, R, allow = self._head_sphere()
-        left = self._sunk(x).any() or len(head_contact.lift_paths(
-            x_old - c0, x - c1, R, allow, self._lift_room(x), self.free)[1]) > 0
-        return bool(global_reduce(self.comm, [float(left)], "max")[0])
-
-    def _keep_lengths(self, x, moved):
-        """``x`` with the wisps of the vertices ``moved`` (indices) set back to their rest
-        lengths around the head (the frame's length projection, when on; other wisps keep
-        their bits): a vertex lifted or pushed out alone stretches its edges (a lift of
-        2 radii: 3.0%; a push-out after the strand path check: 12.7%).  Only those
-        wisps' vertices go through the projection (a wisp's walk depends on its own
-        vertices alone: the same bits as projecting all)."""
-        if not self.cfg.time.length_projection:
-            return x
-        sc = self.scene
-        touched = np.zeros(len(sc.offsets) - 1, bool)
-        touched[self.vertex_wisp[moved]] = True
-        idx = np.flatnonzero(touched[self.vertex_wisp])
-        sizes = np.diff(sc.offsets)[touched]
-        offsets = np.concatenate([[0], np.cumsum(sizes)])
-        # edge k of the subset joins idx[k] and idx[k + 1]: within a wisp idx[k] + 1 (its
-        # rest length rest_edge[idx[k]]); across two wisps unused
-        c, R, allow = self._head_sphere()
-        projected = project_rest_lengths(x[idx], self.free[idx], offsets, self.rest_edge[idx[:-1]],
-                                         sc.mass[idx], (c, R, allow[idx]))
-        x = x.copy()
-        x[idx] = projected
-        return x
-
-    def _lift_frame_path(self, x_frame, t_frame):
-        """After step cutback: the frame's path x_n -> x_{n+1} (what a viewer interpolates)
-        is the chord of the substeps' chain and gets the head's path lift too
-        (:meth:`_lift_head_paths`; the velocity leaves the move out, as a step's does)."""
-        self.x = self._lift_head_paths(x_frame, self.x, t_frame)[0]
-
     def _collision_free_frame_path(self, x_frame, t_frame, last):
-        """ccd mode after step cutback: each substep's straight path is collision-free,
-        but the frame's, x_n -> x_{n+1} (the path between the rows of frames.h5 that a
-        viewer and the end-of-run check interpolate), is the chord of their chain and can
-        cross (60 soft wisps with self-contact, 8 substeps a frame: 180 crossings between
-        wisps and 51 within over 30 frames, none on any substep's path).  The frame's path
-        gets the frame end's path check and separation (:meth:`_collision_free_end`, with
-        the head's rigid motion over the whole frame), and the velocity loses what they
-        moved over the frame's dt, as an uncut frame's end does (v = (x_{n+1} - x_n) / dt).
-        Over the last substep's dt instead (8 substeps: 8x the kick) the same scene's edges
-        reached 45% strain and the limiter left 122 pairs unresolved; leaving the velocity
-        alone, 8.4% and 475; over dt, 2.0% and none (90 frames).  Returns ``last`` with the
-        contact figures at the new end."""
-        motion = self.head.rigid_motion(t_frame, self.t)
-        x, pairs, deep, dmin, n_sep, lifted = self._collision_free_end(x_frame, self.x, motion, last.contact[1],
-                                                                       t_frame)
-        moved = x - self.x if lifted is None else x - self.x - lifted
+        """ccd mode after step cutback: the frame's own path x_n -> x_{n+1}, the chord of
+        the substeps' chain, checked (:meth:`FrameEnd.collision_free_frame_path`), and the
+        velocity less what that moved over the frame's dt, as an uncut frame's end does (v
+        = (x_{n+1} - x_n) / dt).  Over the last substep's dt instead (8 substeps: 8x the
+        kick) 60 soft wisps with self-contact reached 45% edge strain and the limiter left
+        122 pairs unresolved; leaving the velocity alone, 8.4% and 475; over dt, 2.0% and
+        none (90 frames).  Returns ``last`` with the contact figures at the new end."""
+        x, moved, contact = self.frame_end.collision_free_frame_path(x_frame, t_frame, self.x, self.t,
+                                                                     last.contact)
         self.v = self.v + moved / self.cfg.time.dt
         self.x = x
-        return last._replace(contact=(pairs, deep, dmin, max(n_sep, last.contact[3])))
-
-    def _collision_free_end(self, x_old, x, motion, deep, t_old, lifted=None):
-        """ccd mode, the frame's end: the path check (the straight path x_old -> x must
-        not cross, :meth:`StrandContact.collision_free_frame`) and the separation
-        alternate, at most :data:`FRAME_END_ROUNDS` rounds after a first separation of the
-        ``deep`` pairs of the Newton iterate, the path check last: a pair
-        the path check holds back ends where its path stopped (at its floor, 0.05 d0),
-        and the separation pushes it apart again before the next frame starts from it
-        (one round halved such a pair's distance every frame, docs/contact.md).  Stops
-        early once no pair is deep after a path check (the separation calls are not
-        followed by a measure of their own: the one after the path check finds what
-        they left, from the path check's candidates, without a broad phase).  With the
-        head's push-out, each round's path check is preceded by the head's frame end
-        (:meth:`_head_end`, paths from ``x_old`` at ``t_old``), and a round follows while
-        a vertex is left too deep or with a path to lift (:meth:`_head_left`).
-        ``lifted``: the head lift's move in ``x`` so far (or None); each path check keeps
-        the fraction beta of it (:attr:`StrandContact.path_fraction`).  Returns (x, pairs,
-        deep, min distance, pairs separated, the lift's move kept in x or None)."""
-        strand = self.strand
-        separation = self.cfg.physics.strand_separation
-        push = self.contact and self.cfg.physics.head_push_out
-        n_sep = 0
-        head_left = False
-        for rnd in range(FRAME_END_ROUNDS):
-            if rnd > 0 and (not separation or deep == 0) and not head_left:
-                break
-            if separation and deep:
-                # one call of all the rounds; no measure of its own (see above)
-                x, n, _ = strand.separate(x, max_iterations=SEPARATION_ROUNDS)
-                n_sep = max(n_sep, n)
-            if push:
-                # the path check holds a vertex back on its straight path, which can cut
-                # under the scalp, and the separation can push it in (soft hairball,
-                # gravity 5000: a tip 0.044 -> 0.119 -> 0.152 cm deep, radius 0.101);
-                # lifted again here, the path check below keeps the lifted path's end
-                x, lifted = self._head_end(x_old, x, t_old, lifted)
-            x = strand.collision_free_frame(x_old, x, motion)[0]
-            if lifted is not None:
-                # a held-back vertex keeps beta of its lift: only that is left out of v
-                lifted = lifted * strand.path_fraction[:, None]
-            pairs, deep, dmin = strand.measure(x)
-            head_left = push and self._head_left(x_old, x, t_old)
-        return x, pairs, deep, dmin, n_sep, lifted
-
-    def _separate(self, x, pairs, deep, dmin):
-        """The separation of the pairs closer than d0 / 2 (``deep`` of them): at most
-        :data:`SEPARATION_ROUNDS` Jacobi rounds in all, over at most 3 calls of
-        :meth:`StrandContact.separate`, each followed by a measure.  A call works on
-        the pairs closer than d0 at its start and stops when none of them is deep; its
-        corrections can bring pairs it did not see within d0 / 2, which the measure
-        finds and the next call takes (3 calls of 20 rounds each paid a broad phase
-        per call for a few stubborn pairs, docs/contact.md).  Penalty mode; ccd mode
-        separates inside :meth:`_collision_free_end`.  Returns (x, pairs, deep, min
-        distance, pairs separated)."""
-        n_sep = 0
-        budget = SEPARATION_ROUNDS
-        for _ in range(3):
-            if deep == 0 or budget <= 0:
-                break
-            x, n, rounds = self.strand.separate(x, max_iterations=budget)
-            n_sep = max(n_sep, n)
-            budget -= max(rounds, 1)
-            pairs, deep, dmin = self.strand.measure(x)
-        return x, pairs, deep, dmin, n_sep
+        return last._replace(contact=contact)
 
     def update(self, x, step, exact=False):
         """The next Newton iterate from x and the (scaled) step: x + step, or with
@@ -1545,62 +1337,6 @@ class Integrator:
             exact_rejected=self._fallback, exact_shift=self._shift, **self._region_record))
 
 
-def chord_stop(chord, increment, tol):
-    """``time.newton_stop = "chord_estimate"``: whether the chord step's relative
-    increment ``chord``, measured after a full exact step of ``increment``, certifies the
-    iterate.  It must show the step converging (``chord`` below :data:`CHORD_CONTRACTION`
-    times ``increment``: an iteration crawling at 0.5 per step had chord steps below a
-    loose tolerance while its next Newton increment was 3-8x above it, docs/newton.md
-    "Eleventh round") and lie below ``tol`` with the margin 1 + :data:`CHORD_MARGIN`
-    ``increment`` (the chord and Newton steps differ by the change of the Hessian over
-    the last step: measured at a tolerance of 3e-4 up to 31%, within 2% at 1e-6)."""
-    return chord < CHORD_CONTRACTION * increment and chord * (1.0 + CHORD_MARGIN * increment) < tol
-
-
-def chord_basis(increments, modelled):
-    """``time.newton_stop = "chord_estimate"``: whether the last full exact steps in a
-    row (their ``increments``, oldest first, and per step whether it ``modelled``: G's
-    decrease agreed with its quadratic model) let a chord step measure the next
-    increment: two of them, the last shorter, both on their model (at a loose tolerance
-    a check without them may claim, confirmed only by the next iterate's check with
-    them).  The chord step uses
-    the Hessian of the iterate before the last step; where that Hessian changes over a
-    step the chord step is no Newton step (the stiff smash at 1e-6: chord increments
-    3-40x below the next Newton increment while the iterate was 200-20000x the
-    tolerance away; a stop 2170x away after a damped step, 242x after the first exact
-    step; docs/newton.md "Tight tolerances")."""
-    return len(increments) >= 2 and increments[-1] < increments[-2] and all(modelled[-2:])
-
-
-def confirms_stop(tol, absolute=None, length=None):
-    """Whether a stop at the relative increment tolerance ``tol`` (None: unset) must be
-    confirmed by the next step: above :data:`LOOSE_TOLERANCE`.  Without ``tol``, the
-    absolute tolerance ``absolute`` (``time.newton_tol``, cm; None: unset) is taken
-    relative to ``length``, the shortest wisp's rest length (alone it had been outside the
-    rule: the stiff smash stopped 14x and 138x its 1e-2 and 1e-3 cm away).  There an increment below
-    the tolerance, after a sequence that looks quadratic, left frames of crushed curls at
-    dt 0.1-0.2 up to 16x the tolerance from their solution (docs/newton.md "Stopping
-    rule"); at 1e-6 every stop measured was within 0.33x of it."""
-    if tol is None and absolute is not None and length:
-        tol = absolute / length
-    return tol is not None and tol > LOOSE_TOLERANCE
-
-
-def model_agrees(decrease, predicted, energy):
-    """Whether a whole Newton step's decrease of G, ``decrease``, agrees with the
-    quadratic model's prediction ``predicted`` (-g . dx / 2 for a step solving H dx = -g)
-    within :data:`MODEL_AGREEMENT`, or the prediction is below round-off
-    (:data:`ENERGY_FLOOR` times ``energy``, |G|: there G cannot tell).  Where the model is
-    off along a step (the exact Hessian changing faster than the step is long, or a filter
-    stiffening it), the step's size does not bound the distance to the solution: at a
-    loose tolerance such stops had been claimed 2.4-30x the tolerance from the step's
-    solution with |ratio - 1| of 0.25-1.0, while every honest stop on the recommended path
-    at dt 1/30 agreed within 0.09 (docs/newton.md "Stopping rule")."""
-    if abs(predicted) <= ENERGY_FLOOR * abs(energy):
-        return True
-    return predicted > 0.0 and abs(decrease / predicted - 1.0) <= MODEL_AGREEMENT
-
-
 def _stop_note(unconfirmed, refused):
     """The monitor's note on a loose-tolerance stop (:meth:`Integrator._loose_verdict`)."""
     if unconfirmed:
@@ -1655,82 +1391,6 @@ def unconfirmed_note(steps, refused=0, saddles=0):
     return note
 
 
-def contraction_factor(increments, whole=None, exact=None, newton=None):
-    """What the last of ``increments`` (a Newton solve's relative increments, oldest
-    first) must be multiplied by to bound the iterate's remaining error: max(1, q / (1 -
-    q)), q the contraction per step over the last two steps, sqrt(d_k / d_{k-2}) (d_k /
-    d_{k-1} after two steps): an iteration contracting by q per step has d q / (1 - q)
-    still to go after a step of d.  Over two steps because the filtered iterations
-    alternate, and because an exact step after a filtered one that grew shows its
-    quadratic rate already.  1 after a single step (no rate yet: the increment alone, the
-    rule before) or a zero step (a rejected trust-region step), and whenever q <= 1/2
-    (fast convergence: the increment bounds the error); inf when the increments did not
-    shrink.  The analytic filter crawls at q ~ 0.97 (factor ~ 35: its increment test had
-    stopped frames 35-42x the tolerance from the solution, docs/newton.md "Twelfth
-    round").
-
-    Per step (None: all True, resp. all False for ``exact``): ``newton``, a Newton step
-    of the configured kind (unshifted, no exact attempt rejected before it), ``whole``,
-    a Newton step taken whole (alpha 1, not cut), ``exact``, of the exact Hessian.  The
-    last step must be a Newton step (a filtered step after a rejected exact attempt had
-    stopped the stiff smash 242x the tolerance away), and a rate whose base is a step
-    not taken whole measures nothing (a damped step's full measure as its base: 155x),
-    so both are inf (the last step may be damped: the caller measures it by its full
-    step); over three exact
-    steps q is the larger of the two ratios (a Newton iteration in its quadratic basin
-    shrinks at every step: 3.2e-6 after 1.5e-6 then 5.5e-7 had stopped the stiff smash
-    1.7x away at 1e-6; docs/newton.md "Stopping rule")."""
-    moved = [k for k, d in enumerate(increments) if d > 0.0]
-    if newton is not None and increments[-1] > 0.0 and not newton[-1]:
-        return float("inf")
-    if len(moved) < 2 or increments[-1] == 0.0:
-        return 1.0
-    window = moved[-3:]
-    # the last step may be damped: its measure is already its full step's
-    if whole is not None and not all(whole[k] for k in window[:-1]):
-        return float("inf")
-    d = [increments[k] for k in window]
-    if len(d) == 2:
-        q = d[1] / d[0]
-    elif exact is not None and all(exact[k] for k in window):
-        q = max(d[1] / d[0], d[2] / d[1])
-    else:
-        q = float(np.sqrt(d[2] / d[0]))
-    if q >= 1.0:
-        return float("inf")
-    return max(1.0, q / (1.0 - q))
-
-
-def step_contraction(steps):
-    """:func:`contraction_factor` of a solve's :class:`StepRecord` records."""
-    return contraction_factor([s.measure for s in steps], [s.whole for s in steps],
-                              [s.exact for s in steps], [s.newton for s in steps])
-
-
-def quadratic_error_estimate(increments, modelled=None):
-    """``time.newton_stop = "quadratic_estimate"``: the relative error of the iterate
-    after the last of ``increments`` (those of the last full, unshifted exact steps in a
-    row, oldest first), estimated from quadratic convergence.  A step's increment d_k is
-    the error of the iterate before it, to leading order, and e_{k+1} = C e_k^2, so the
-    error after the last step is C d_k^2.  C is measured twice, C = d_k / d_{k-1}^2 and
-    d_{k-1} / d_{k-2}^2, and the larger taken: three such steps in a row, each shorter
-    than the one before, the middle one below :data:`EXACT_BELOW` (C measured from a
-    step above it was 60x too small: a stop 1.3x above the tolerance on the demo
-    hairball, docs/newton.md "Eighth round"), and the last two decreasing G as their
-    quadratic model predicts (``modelled``, per step; None: all did).  inf otherwise:
-    one pair of steps that looks quadratic can be a lull of a wandering iteration (the
-    stiff smash at 1e-5: 3.0e-5 then 8.5e-6 after a step that grew, a claimed stop 230x
-    the tolerance away; 1.1e-3 then 5.7e-5, a next step of 7.4e-4, 150x away), and a
-    step off its model can end a quadratic-looking run that then only halves (jitter
-    at 1e-8: 30x; docs/newton.md "Tight tolerances")."""
-    if len(increments) < 3 or not increments[-2] < EXACT_BELOW:
-        return np.inf
-    d0, d1, d = increments[-3:]
-    if not d < d1 < d0 or (modelled is not None and not all(modelled[-2:])):
-        return np.inf
-    return max(d / d1 ** 2, d1 / d0 ** 2) * d ** 2
-
-
 #: A stop after filtered steps (an element filter, not exact_or_analytic) at a relative
 #: tolerance at or below this is checked by an exact Newton step at its iterate
 #: (Integrator._verify_stop; docs/newton.md "Verifying a stop after filtered steps")
@@ -1740,188 +1400,6 @@ FRAME_COUNTS = ("newton_verified", "newton_verify_refused", "newton_stops_refuse
                 "newton_coupled_unknown")
 
 
-#: The start from rest's carry decays along a wisp as exp(-s / (START_CARRY_LENGTH * S)),
-#: s the rest arclength from the wisp's last pinned vertex, S that of its free part
-#: (docs/newton.md, "Tenth round": 0.3 measured against 0.03, 0.1 and the whole wisp)
-START_CARRY_LENGTH = 0.3
-
-
-def start_carry_weight(rest_edge, offsets, pinned, length=START_CARRY_LENGTH):
-    """Per-vertex weights (nv,) of the head's first step in the first iterate of the
-    start from rest: 1 up to each wisp's last pinned vertex, then exp(-s / (length S))
-    with s the rest arclength from that vertex and S the arclength from it to the tip
-    (1 on a wisp without pinned vertices, which is not carried).  A head starting from
-    rest jumps to its velocity; within one step only the part of a wisp near its roots
-    follows (the tips lag by inertia), while a smooth acceleration later is followed by
-    the whole wisp.  ``rest_edge`` (nv - 1,) rest length of edge (v, v + 1) (edges
-    across wisps unused), ``offsets`` (n_wisps + 1,), ``pinned`` (nv,)."""
-    off = np.asarray(offsets, np.int64)
-    nv, sizes = len(pinned), np.diff(off)
-    edge = np.zeros(nv)                 # edge[v]: the rest length of edge (v - 1, v)
-    edge[1:] = rest_edge[:max(nv - 1, 0)]
-    arc = np.zeros(nv)
-    for j in range(1, int(sizes.max(initial=0))):      # along each wisp from its root: the
-        v = off[:-1][sizes > j] + j                     # same sums on any partition
-        arc[v] = arc[v - 1] + edge[v]
-    wisp = np.repeat(np.arange(len(sizes)), sizes)
-    last = np.full(len(sizes), -1, np.int64)
-    np.maximum.at(last, wisp[pinned], np.flatnonzero(pinned))
-    anchor = last[wisp]
-    held = anchor >= 0
-    tip = off[1:][wisp] - 1
-    s = np.where(held, arc - arc[np.maximum(anchor, 0)], 0.0)
-    S = np.where(held, arc[tip] - arc[np.maximum(anchor, 0)], 0.0)
-    w = np.ones(nv)
-    decay = held & (s > 0.0) & (S > 0.0)
-    w[decay] = np.exp(-s[decay] / (length * S[decay]))
-    return w
-
-
-def follow_the_leader(x, free, offsets, rest_edge):
-    """Length-preserving prediction (Mueller et al. 2012): walking from each wisp's root,
-    every free vertex is put at its rest edge length from its predecessor, in the
-    direction of its predicted position.  Only wisps whose root (first vertex) is pinned
-    have a leader: on a wisp with a free root the walk would start at an arbitrary end
-    and drag the whole strand along itself towards it (the corrections accumulate), a
-    slide that costs no energy where the strand lies across another (so Newton does not
-    undo it) and whose straight path cuts the corner through what it lies on; such wisps
-    keep their prediction (measured: a free wisp draped over another slid 0.39 d0 per
-    frame at its far end, and the ccd path check then held the pair at its floor,
-    docs/contact.md "Follow the leader in ccd mode").  x (nv, 3) predicted positions,
-    free (nv,) bool, offsets (n_wisps + 1,), rest_edge (nv - 1,) rest length of edge
-    (v, v + 1) (edges across wisps unused).  Returns the new positions (nv, 3)."""
-    x = x.copy()
-    off = np.asarray(offsets)
-    sizes = np.diff(off)
-    rooted = np.zeros(len(sizes), bool)
-    rooted[sizes > 0] = ~free[off[:-1][sizes > 0]]
-    for j in range(1, int(sizes.max(initial=0))):
-        v = off[:-1][(sizes > j) & rooted] + j
-        v = v[free[v]]
-        d = x[v] - x[v - 1]
-        n = np.linalg.norm(d, axis=1)
-        ok = n > 0
-        x[v[ok]] = x[v[ok] - 1] + d[ok] * (rest_edge[v[ok] - 1] / n[ok])[:, None]
-    return x
-
-
-def retract_edge_lengths(x, dx, free, offsets, mass=None):
-    """x + dx with the length of every edge that ends at a free vertex set to its
-    first-order value |e| + eh . de (direction that of e + de), the corrections
-    accumulated from the root (or the last pinned vertex) outwards.  A linearised step
-    that turns an edge by an angle phi lengthens it by |e| phi^2 / 2, which the stiff
-    stretch term pulls back in the next iteration; this update keeps the step's rotation
-    and its first-order length change only.  It equals x + dx to second order in dx (so
-    Newton's convergence rate is kept) and has the same fixed points.  On a wisp with no
-    pinned vertex the mass-weighted mean correction is removed (``mass`` given): the
-    step then changes the wisp's momentum as x + dx does.  Each wisp's result depends on
-    that wisp alone (rank-count invariant to the last bit).  One compiled pass
-    (:func:`lc_petsc.elements.compiled.edge_lengths`).
-    x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
-    Returns (nv, 3)."""
-    return compiled.edge_lengths(x, dx, None, free, offsets, mass)
-
-
-def corotational_update(x, dx, free, offsets, mass=None):
-    """``time.newton_update = "corotational"``, the update of the exact steps: like
-    :func:`retract_edge_lengths` (each
-    free edge gets its first-order length |e| + eh . de, built from the root or the last
-    pinned vertex outwards), but each edge is first *turned* by the rotation w fitted to
-    the increments of the edges around it (itself and its two neighbours in the wisp:
-    least squares of w x e_k = de_k), R(w) e + (de - w x e), instead of moved to e + de.
-    A rigid rotation of a stretch of the wisp is then applied exactly, so the bend and
-    twist angles a linearised rotation of a coil distorts at second order (the slow mode
-    of the hairball's Newton, docs/newton.md "Sixth round") are kept.  Equal to x + dx to
-    second order in dx (Newton's rate and fixed points are kept).  On a wisp with no
-    pinned vertex the mass-weighted mean is that of x + dx (``mass`` given), so the step
-    changes its momentum as x + dx does.  Each wisp's result depends on that wisp alone.
-    Two compiled passes (:func:`lc_petsc.elements.compiled.corotate`).
-    x, dx (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.
-    Returns (nv, 3)."""
-    return compiled.corotate(x, dx, free, offsets, mass)
-
-
-def _set_edge_lengths(x, length, free, offsets, mass=None, head=None):
-    """x with every edge (v - 1, v) that ends at a free vertex v of the same wisp given
-    the length ``length[v - 1]`` (> 0; its direction kept), the corrections accumulated
-    from the root (or the last pinned vertex) outwards; edges of zero length or with a
-    length <= 0 are left alone.  On a wisp with no pinned vertex the mass-weighted mean
-    of the corrections is removed (``mass`` given): the wisp's momentum (of the velocity
-    (x - x_n) / dt) is then unchanged.  One compiled pass
-    (:func:`lc_petsc.elements.compiled.edge_lengths`).  x (nv, 3), length (nv - 1,),
-    free (nv,) bool, offsets (n_wisps + 1,), mass (nv,) or None.  Returns (nv, 3)."""
-    return compiled.edge_lengths(x, None, length, free, offsets, mass, head)
-
-
-def project_rest_lengths(x, free, offsets, rest_edge, mass, head=None):
-    """``time.length_projection``: the frame's final positions with every edge that ends
-    at a free vertex set to its rest length, its direction kept, from each wisp's root
-    (or last pinned vertex) outwards (:func:`_set_edge_lengths`, one compiled pass);
-    on a wisp with no pinned vertex the mass-weighted mean of the corrections is
-    removed, so its momentum is kept (its lengths too: a uniform shift).  ``head``:
-    None or (centre (3,), radius, allowed depth (nv,)): on a wisp with a pinned vertex,
-    a vertex the walk would leave deeper in that sphere than allowed is put on it
-    instead, at its edge's rest length from its predecessor (the vertices after it
-    follow); a wisp with no pinned vertex that the mean shift leaves with a vertex that
-    deep gets a second walk around the head from its first vertex (pushed onto the
-    sphere if it is that deep), without the shift: the head's push is an outside force
-    (its mean shift took pushed vertices back in: a free strand dropped on the head 3.9
-    strand radii deep).  x (nv, 3), free (nv,) bool, offsets (n_wisps + 1,), rest_edge
-    (nv - 1,), mass (nv,).  Returns (nv, 3)."""
-    out = _set_edge_lengths(x, rest_edge, free, offsets, mass, head)
-    if head is None:
-        return out
-    off = np.asarray(offsets, np.int64)
-    sizes = np.diff(off)
-    wisp = np.repeat(np.arange(len(sizes)), sizes)
-    loose = np.bincount(wisp[~free], minlength=len(sizes)) == 0
-    c, R, allow = head
-    y = out - c
-    dist = np.sqrt(np.einsum("ij,ij->i", y, y))
-    sunk = loose[wisp] & (R - dist > allow) & (dist > 0)
-    if not sunk.any():
-        return out
-    again = np.bincount(wisp[sunk], minlength=len(sizes)) > 0
-    first = off[:-1][again & (sizes > 0)]
-    out = out.copy()
-    deep = first[R - dist[first] > allow[first]]
-    out[deep] = c + y[deep] * (R / dist[deep])[:, None]
-    anchored = free.copy()
-    anchored[first] = False             # the walk starts from it and shifts nothing
-    second = _set_edge_lengths(out, rest_edge, anchored, offsets, None, head)
-    mask = again[wisp]
-    out[mask] = second[mask]
-    return out
-
-
-#: time.newton_increment_tol above this: a stop needs two iterations in a row that pass
-#: the tolerance, or one whose increment (times the contraction factor) is below this
-#: (:func:`confirms_stop`, docs/newton.md "Stopping rule")
-LOOSE_TOLERANCE = 1e-5
-#: above LOOSE_TOLERANCE a stop also needs its step and the one before it to decrease G
-#: as their quadratic model predicts, within this fraction (:func:`model_agrees`;
-#: measured: wandering stops 0.25-1.0 off, honest ones on the recommended path <= 0.09)
-MODEL_AGREEMENT = 0.1
-#: :func:`model_agrees`: a predicted decrease below this times |G| is round-off (the
-#: ratio was noise, off by 1.5 to 6e3, below 1e-12 |G| on smash and 1e-15 |G| on the
-#: hairball)
-ENERGY_FLOOR = 1e-10
-#: solver.filter "exact_or_analytic": the exact Hessian is tried once the last relative
-#: increment is below EXACT_BELOW, and its step kept if Armijo's condition holds within
-#: EXACT_HALVINGS halvings (measured, docs/newton.md: 3e-3 and 6 reach 1e-6 in the fewest
-#: iterations of 1e-2 / 3e-3 / always and 2 / 6 halvings on the hairball and smash).
-EXACT_BELOW = 3e-3
-#: ``time.newton_stop = "chord_estimate"`` measures the chord step after a full exact step
-#: of increment d when CHORD_TRY_C d^2 < tol: a quadratic step's constant e_{k+1} / e_k^2
-#: had quartiles 7.8 and 18 on the 10-wisp hairball (docs/newton.md, "Seventh round"), so
-#: from there the next increment may be below the tolerance; farther out the check
-#: would fail and cost a solve (measured: 16 checks in 30 frames, 11 stops)
-CHORD_TRY_C = 10.0
-#: :func:`chord_stop`: the chord step must be this much shorter than the step before it
-CHORD_CONTRACTION = 0.1
-#: :func:`chord_stop`: the chord increment times 1 + CHORD_MARGIN d must be below the
-#: tolerance (d the last increment; 2 C with C up to ~50, the quadratic constants measured)
-CHORD_MARGIN = 100.0
 #: ``solver.exact_fallback = "shifted"``: the shifts tau of the exact Hessian + tau M/dt^2
 #: tried, in order, when the exact step fails (measured on the hairball: tau = 0.1 gave
 #: no step, 1 and 10 did; starting at 10 kept accepting steps too short to converge,
@@ -1935,13 +1413,4 @@ WISP_SHIFT_FACTOR = 1.5
 WISP_RETRY_FACTOR = 10.0
 WISP_RETRIES = 3
 EXACT_HALVINGS = 6
-#: ``time.newton_stop = "quadratic_estimate"`` stops once the estimated error is below
-#: the tolerance / QUADRATIC_SAFETY (C varies between steps; with this factor every stop
-#: on the 10-wisp demo hairball and smash was within the tolerance of the converged
-#: solution, the worst at 0.58 of it, docs/newton.md "Eighth round")
-QUADRATIC_SAFETY = 10.0
-#: strand contact: Jacobi rounds of the end-of-frame separation in all (Integrator._separate)
-SEPARATION_ROUNDS = 60
-#: strand contact, ccd mode: rounds of separation + frame-path check at a frame's end
-#: (Integrator._collision_free_end, docs/contact.md "Over a whole run")
-FRAME_END_ROUNDS = 4
+

@@ -1221,10 +1221,10 @@ def _onto_head(q0, q1, q2, y0, y1, y2, L, R):
 
 @_jit
 def _edge_lengths(x, dx, length, free, offsets, mass, retract, out, center, surface, allow):
-    """out = the positions of lc_petsc.integrator._set_edge_lengths, wisp by wisp.
+    """out = the positions of lc_petsc.predictors._set_edge_lengths, wisp by wisp.
 
     ``retract``: the positions are x + dx and the lengths |e| + eh . de of the edges e
-    of x (integrator.retract_edge_lengths; ``length`` unused), else the positions are x
+    of x (predictors.retract_edge_lengths; ``length`` unused), else the positions are x
     and the lengths ``length`` (nv - 1,) (dx unused).  Walking each wisp from its root,
     the correction of vertex v is the sum of (length / |edge| - 1) edge over the edges
     (u - 1, u) since the last pinned vertex (edges of zero length or with a length <= 0
@@ -1316,9 +1316,9 @@ def _chain_arrays(name, x, dx, offsets):
 
 
 def edge_lengths(x, dx, length, free, offsets, mass, head=None):
-    """The positions of :func:`lc_petsc.integrator._set_edge_lengths` (``dx`` None: x
+    """The positions of :func:`lc_petsc.predictors._set_edge_lengths` (``dx`` None: x
     with edge lengths ``length`` (nv - 1,)) or of
-    :func:`lc_petsc.integrator.retract_edge_lengths` (``length`` None: x + dx with the
+    :func:`lc_petsc.predictors.retract_edge_lengths` (``length`` None: x + dx with the
     linearised lengths), in one compiled pass over each wisp.  x, dx (nv, 3), free (nv,)
     bool, offsets (n_wisps + 1,) covering 0..nv, mass (nv,) or None; ``head``: None or
     (centre (3,), radius > 0, allowed depth (nv,)), a sphere the lengths are set
@@ -1353,7 +1353,7 @@ COROTATE_EPS = 1e-10
 def _corotate(x, dx, free, offsets, mass, y, length):
     """y = x + dx with every edge e ending at a free vertex turned by the rotation w fitted
     to the increments de of the edges around it, and ``length`` (nv - 1,) = |e| + eh . de,
-    the first-order lengths (integrator.corotational_update; the lengths are set by
+    the first-order lengths (predictors.corotational_update; the lengths are set by
     :func:`_edge_lengths` afterwards).
 
     Edge j = (v - 1, v): w minimises sum_k |w x e_k - de_k|^2 over the edges k = j - 1,
@@ -1437,7 +1437,7 @@ def _corotate(x, dx, free, offsets, mass, y, length):
 
 
 def corotate(x, dx, free, offsets, mass):
-    """The positions of :func:`lc_petsc.integrator.corotational_update`: x + dx with each
+    """The positions of :func:`lc_petsc.predictors.corotational_update`: x + dx with each
     free edge turned by the rotation fitted to its neighbourhood's increments and given
     its first-order length (:func:`_corotate`, then :func:`_edge_lengths`), in two
     compiled passes over each wisp.  x, dx (nv, 3), free (nv,) bool, offsets

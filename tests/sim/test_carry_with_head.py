@@ -6,7 +6,7 @@ import pytest
 from mpi4py import MPI
 
 from lc_petsc.config import ConfigError, PhysicsConfig, SolverConfig, TimeConfig
-from lc_petsc.integrator import START_CARRY_LENGTH, start_carry_weight
+from lc_petsc.predictors import START_CARRY_LENGTH, start_carry_weight
 from lc_petsc.scene import geometry
 from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.sources import ArraySource

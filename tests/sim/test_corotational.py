@@ -10,7 +10,7 @@ import numpy as np
 from mpi4py import MPI
 
 from lc_petsc.config import load_config
-from lc_petsc.integrator import corotational_update, retract_edge_lengths
+from lc_petsc.predictors import corotational_update, retract_edge_lengths
 from lc_petsc.studies.newton import configure, iterations_to, parse_variant, run_history
 from sim_helpers import chains as _chains
 from sim_helpers import rotate as _rotate

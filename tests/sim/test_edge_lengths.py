@@ -1,5 +1,5 @@
 """The compiled edge-length passes of the Newton update (lc_petsc.elements.compiled.
-edge_lengths, behind integrator.retract_edge_lengths and project_rest_lengths) against
+edge_lengths, behind predictors.retract_edge_lengths and project_rest_lengths) against
 the vectorised NumPy code they replaced (kept here as the reference), to round-off, on
 random and degenerate chains: pinned roots and inner pins, wisps without a pinned
 vertex (mean removal), one-vertex wisps, zero-length edges and non-positive lengths."""
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lc_petsc.elements import compiled
-from lc_petsc.integrator import project_rest_lengths, retract_edge_lengths
+from lc_petsc.predictors import project_rest_lengths, retract_edge_lengths
 
 
 # ---------------------------------------------------------------- the reference

@@ -12,12 +12,15 @@ from lc_petsc.config import MaterialConfig, PhysicsConfig, SceneConfig, SimConfi
 from lc_petsc.contact import SEPARATION_STRAIN
 from lc_petsc.crossings import count_crossings
 from lc_petsc.elements import head_contact
+from lc_petsc.frame_end import FrameEnd
+from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.sources import ArraySource
-from lc_petsc.integrator import project_rest_lengths
+from lc_petsc.predictors import project_rest_lengths
 from sim_helpers import falling_strand, head_figures, small_hairball_config
 
 R = 5.0                 # head sphere about the origin
 PHI = 0.5               # polar angle of the draped wisp's tip
+LIFT = head_contact.LIFT_RADII
 ALONG = 0.6             # where A crosses the path of B's last edge
 
 
@@ -53,7 +56,7 @@ def draped_sim(monkeypatch, blocker, mode="ccd"):
                                           strand_contact_mode=mode),
                     time=TimeConfig(frames=1, length_projection=True))
     sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
-    sim.integrator.t_next = cfg.time.dt     # the frame end's head sphere (static)
+    sim.integrator.frame_end.begin_step(cfg.time.dt)     # the frame end's head sphere (static)
     return sim
 
 
@@ -74,10 +77,11 @@ def test_frame_end_path_check_leaves_no_vertex_in_the_head(monkeypatch):
         x[free] = x_old[free] @ turn(3.0 / (R * np.sin(PHI))).T
         assert np.allclose(np.linalg.norm(x[free], axis=1), R)        # both ends on the scalp
         deep = itg.strand.measure(x)[1]
-        out = itg._collision_free_end(x_old, x, itg.head.rigid_motion(0.0, itg.t_next), deep, 0.0)[0]
+        out = itg.frame_end.collision_free_end(x_old, x, itg.head.rigid_motion(0.0, itg.frame_end.t_next), deep, 0.0)[0]
         depth = R - np.linalg.norm(out[free], axis=1)
-        assert np.all(depth <= itg.allowed_depth[free] + 1e-12), (depth, itg.allowed_depth[free])
-        assert np.all(path_depth(x_old, out, free) <= itg.allowed_depth[free] + 1e-12), path_depth(x_old, out, free)
+        allow = itg.frame_end.allowed_depth[free]
+        assert np.all(depth <= allow + 1e-12), (depth, allow)
+        assert np.all(path_depth(x_old, out, free) <= allow + 1e-12), path_depth(x_old, out, free)
         assert np.linalg.norm(out[free[-1]] - x[free[-1]]) > 1.0           # it was held back
         edge = np.linalg.norm(np.diff(out[free[0] - 1:free[-1] + 1], axis=0), axis=1)
         rest = np.linalg.norm(np.diff(x_old[free[0] - 1:free[-1] + 1], axis=0), axis=1)
@@ -159,12 +163,13 @@ def test_frame_end_keeps_paths_out_of_the_head(monkeypatch, blocker):
         free = np.flatnonzero(~sc.pinned)
         assert path_depth(x_old, x, free)[-1] > 0.054
         made = []
-        lift = itg._lift_head_paths
-        monkeypatch.setattr(itg, "_lift_head_paths",
+        lift = itg.frame_end.lift_head_paths
+        monkeypatch.setattr(itg.frame_end, "lift_head_paths",
                             lambda *a: (lambda r: (made.append(r[1]), r)[1])(lift(*a)))
         deep = itg.strand.measure(x)[1]
-        out, *_, kept = itg._collision_free_end(x_old, x, itg.head.rigid_motion(0.0, itg.t_next), deep, 0.0)
-        allow = itg.allowed_depth[free]
+        motion = itg.head.rigid_motion(0.0, itg.frame_end.t_next)
+        out, *_, kept = itg.frame_end.collision_free_end(x_old, x, motion, deep, 0.0)
+        allow = itg.frame_end.allowed_depth[free]
         assert np.all(path_depth(x_old, out, free) <= allow + 1e-12), path_depth(x_old, out, free)
         assert np.all(R - np.linalg.norm(out[free], axis=1) <= allow + 1e-12)
         edge = np.linalg.norm(np.diff(out[free[0] - 1:free[-1] + 1], axis=0), axis=1)
@@ -188,27 +193,27 @@ def test_frame_end_keeps_paths_out_of_the_head(monkeypatch, blocker):
 
 
 def test_keep_lengths_projects_only_the_touched_wisps():
-    """_keep_lengths runs the length projection around the head on the touched wisps'
+    """FrameEnd.keep_lengths runs the length projection around the head on the touched wisps'
     vertices only: the same bits as projecting every wisp and keeping theirs (what it
     did before), with the others' bits untouched."""
     cfg = small_hairball_config(n_wisps=6, frames=1, length_projection=True)
     sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
     try:
         itg, sc = sim.integrator, sim.scene
-        itg.t_next = cfg.time.dt            # the frame end's head sphere
+        itg.frame_end.begin_step(cfg.time.dt)     # the frame end's head sphere
         rng = np.random.default_rng(5)
-        c, Rh, allow = itg._head_sphere()
+        c, Rh, allow = itg.frame_end.head_sphere()
         x = sim.x + rng.normal(scale=0.3, size=sim.x.shape) * (~sc.pinned)[:, None]
         y = x - c                   # some free vertices well inside the head
         x[::7] = c + y[::7] * ((Rh - 0.5) / np.linalg.norm(y[::7], axis=1))[:, None]
         x[sc.pinned] = sim.x[sc.pinned]
         moved = np.flatnonzero(~sc.pinned & (np.arange(sc.nv) >= sc.offsets[2]) & (np.arange(sc.nv) < sc.offsets[4]))
         moved = moved[::5]
-        full = project_rest_lengths(x, itg.free, sc.offsets, itg.rest_edge, sc.mass, itg._head_sphere())
+        full = project_rest_lengths(x, itg.free, sc.offsets, itg.rest_edge, sc.mass, itg.frame_end.head_sphere())
         touched = np.isin(itg.vertex_wisp, itg.vertex_wisp[moved])
         expect = x.copy()
         expect[touched] = full[touched]
-        out = itg._keep_lengths(x, moved)
+        out = itg.frame_end.keep_lengths(x, moved)
         assert touched.sum() < sc.nv and np.abs(out[touched] - x[touched]).max() > 0.01
         np.testing.assert_array_equal(out, expect)
     finally:
@@ -217,7 +222,7 @@ def test_keep_lengths_projects_only_the_touched_wisps():
 
 @pytest.mark.parametrize("slide, later, mended", [(1.5, 0.6, True), (2.0, 0.6, False)])
 def test_lifts_of_a_step_add_up_to_at_most_lift_radii(monkeypatch, slide, later, mended):
-    """Two rounds of the head's frame end in one step (:meth:`_head_end`), the wisp slid
+    """Two rounds of the head's frame end in one step (:meth:`FrameEnd.head_end`), the wisp slid
     a further ``later`` cm along the scalp between them (as a separation or path check
     moves it): each round's lift used to be bounded from where the vertex then was, so
     after a first lift of 3.2 radii (a 2 cm slide) the second took B's tip 6.89 radii
@@ -230,21 +235,55 @@ def test_lifts_of_a_step_add_up_to_at_most_lift_radii(monkeypatch, slide, later,
         free = np.flatnonzero(~sim.scene.pinned)
         tip, r = free[-1], sim.scene.radius[free]
         height = np.linalg.norm(x[free], axis=1)
-        x1, lifted = itg._head_end(x_old, x, 0.0)
+        x1, lifted = itg.frame_end.head_end(x_old, x, 0.0)
         first = (np.linalg.norm(x1[tip]) - height[-1]) / r[-1]
         assert first > (3.0 if not mended else 0.9), first
         x2 = x1.copy()
         x2[free] = x1[free] @ turn(later / (R * np.sin(PHI))).T
-        out = itg._head_end(x_old, x2, 0.0, lifted)[0]
+        out = itg.frame_end.head_end(x_old, x2, 0.0, lifted)[0]
         gain = (np.linalg.norm(out[free], axis=1) - height) / r
         assert gain.max() <= head_contact.LIFT_RADII + 1e-9, gain
         tip_path = path_depth(x_old, out, free)[-1]
         if mended:       # (the last length projection moves the lifted tip back by 2e-6 cm)
-            assert gain[-1] > 3.5 and tip_path <= itg.allowed_depth[tip] + 1e-5, (gain, tip_path)
+            assert gain[-1] > 3.5 and tip_path <= itg.frame_end.allowed_depth[tip] + 1e-5, (gain, tip_path)
         else:
             assert tip_path > 0.08, tip_path            # it needs more than the room left
     finally:
         sim.close()
+
+
+def test_lift_room_counts_from_the_sphere_for_a_vertex_under_it():
+    """The step's lift budget (FrameEnd.lift_room): LIFT_RADII strand radii above a
+    vertex's distance from the head's centre before the step's first lift round, but
+    above the sphere (radius + margin) for a vertex that was under it then: its later
+    rise onto the sphere (a push-out) is not a lift.  Counted from its depth (lift54's
+    first version), a tip 0.84 radii deep was refused the 3.2 radii its path needed (3
+    paths through the head in 2 steps of the soft hairball).  Three vertices on rays
+    from the centre: a pinned root on the sphere, one 0.84 radii under it, one 1.5
+    radii above it; radii 0.05, 0.07, 0.1."""
+    margin, dt = 0.3, 1.0 / 30.0
+    head = HeadMotion(PhysicsConfig(head_radius=R, head_center=(0.0, 0.0, 0.0), head_margin=margin))
+    Rs = R + margin                     # the sphere the push-out and the lift keep to
+    r = np.array([0.05, 0.07, 0.1])
+    dirs = np.array([[0.0, 1.0, 0.0], [0.1, 1.0, 0.0], [0.2, 1.0, 0.0]])
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    x = dirs * np.array([Rs, Rs - 0.84 * r[1], Rs + 1.5 * r[2]])[:, None]
+    free = np.array([False, True, True])
+    rest_edge = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    fe = FrameEnd(MPI.COMM_SELF, head, None, free, np.array([0, 3]), np.ones(3), r, rest_edge, np.zeros(3, int),
+                  head_collision=True, margin=margin, push_out=True, separation=False, length_projection=False)
+    fe.begin_step(dt)
+    room = fe.lift_room(x)
+    # under the sphere: 4 radii above it, 4.84 above where it is; above it: 4 radii
+    np.testing.assert_allclose(room[1:] / r[1:], [LIFT + 0.84, LIFT], rtol=1e-12)
+    # pushed onto the sphere and the other lifted 1 radius: the push spends nothing
+    y = x.copy()
+    y[1] = dirs[1] * Rs
+    y[2] = dirs[2] * (Rs + 2.5 * r[2])
+    np.testing.assert_allclose(fe.lift_room(y)[1:] / r[1:], [LIFT, LIFT - 1.0], rtol=1e-12)
+    # the next step measures from where its vertices are then
+    fe.begin_step(2 * dt)
+    np.testing.assert_allclose(fe.lift_room(y)[1:] / r[1:], [LIFT, LIFT], rtol=1e-12)
 
 
 def test_penalty_frame_end_lifts_after_the_separation(monkeypatch):
@@ -271,9 +310,9 @@ def test_penalty_frame_end_lifts_after_the_separation(monkeypatch):
             y = x.copy()
             y[free] = x[free] @ turn(1.5 / (R * np.sin(PHI))).T
             return y, pairs, deep, dmin, 0
-        monkeypatch.setattr(itg, "_separate", separate)
+        monkeypatch.setattr(itg.frame_end, "separate", separate)
         sim.step()
-        out, allow = sim.x, itg.allowed_depth[free]
+        out, allow = sim.x, itg.frame_end.allowed_depth[free]
         assert seen and seen[0] < 1e-6, seen                 # Newton left it where it was
         assert np.all(path_depth(x_old, out, free) <= allow + 1e-5), path_depth(x_old, out, free)
         assert np.all(R - np.linalg.norm(out[free], axis=1) <= allow + 1e-12)

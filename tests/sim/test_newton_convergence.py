@@ -11,10 +11,11 @@ from mpi4py import MPI
 
 from lc_petsc.config import (ConfigError, load_config, MaterialConfig, PhysicsConfig, SceneConfig,
                              SimConfig, SolverConfig, TimeConfig)
-from lc_petsc.integrator import (ENERGY_FLOOR, LOOSE_TOLERANCE, Integrator, StepRecord, confirms_stop,
-                                 contraction_factor, corotational_update, follow_the_leader,
-                                 model_agrees, project_rest_lengths, retract_edge_lengths,
-                                 unconfirmed_note)
+from lc_petsc.integrator import Integrator, unconfirmed_note
+from lc_petsc.newton_stop import (ENERGY_FLOOR, LOOSE_TOLERANCE, StepRecord, confirms_stop, contraction_factor,
+                                  model_agrees)
+from lc_petsc.predictors import (corotational_update, follow_the_leader, project_rest_lengths,
+                                 retract_edge_lengths)
 from lc_petsc.simulator import build_simulator
 from lc_petsc.studies.newton import configure, iterations_to, parse_variant, run_history
 from lc_petsc.studies.newton_frames import frame_iterations, reference_states

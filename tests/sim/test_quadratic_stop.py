@@ -11,7 +11,7 @@ import pytest
 from mpi4py import MPI
 
 from lc_petsc.config import ConfigError, SimConfig, SolverConfig, TimeConfig, load_config
-from lc_petsc.integrator import chord_basis, chord_stop, quadratic_error_estimate
+from lc_petsc.newton_stop import chord_basis, chord_stop, quadratic_error_estimate
 from lc_petsc.studies.newton_frames import compare
 from sim_helpers import run_alone, stiff_smash_config
 

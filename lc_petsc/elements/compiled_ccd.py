@@ -550,10 +550,10 @@ def field_boxes(S, F, seg, lipschitz, min_distance):
 
 
 @_jit
-def _hull_gap(PS, PT, PH, a, b):
+def _hull_gap(PS, PF, a, b):
     """(gap, slack, rho_a + rho_b, d): a lower bound of the distance between the hulls of
-    segments a and b, each the hull of its ends at S (PS) and at S + f (f = PT - PH, the
-    residual), from their projections on the axis of the segments' closest points at S
+    segments a and b, each the hull of its ends at S (PS) and at S + f (PF, the residual
+    T - H), from their projections on the axis of the segments' closest points at S
     (the segments' own distance when f = 0; 0 when they touch), its round-off scale,
     rho the segment's largest |f|, and d the segments' distance at S (:func:`_vdistance`'s
     arithmetic, so equal to the pair test's d(S) bit for bit)."""
@@ -567,7 +567,7 @@ def _hull_gap(PS, PT, PH, a, b):
     low_a, high_b, rho_a, rho_b, scale = np.inf, -np.inf, 0.0, 0.0, 0.0
     for e in range(2):
         for g in (a, b):
-            f = (PT[g, e, 0] - PH[g, e, 0], PT[g, e, 1] - PH[g, e, 1], PT[g, e, 2] - PH[g, e, 2])
+            f = (PF[g, e, 0], PF[g, e, 1], PF[g, e, 2])
             p = _vdot(n, (PS[g, e, 0], PS[g, e, 1], PS[g, e, 2]))
             q = p + _vdot(n, f)
             scale = max(scale, abs(p), abs(q))
@@ -582,7 +582,7 @@ def _hull_gap(PS, PT, PH, a, b):
 
 
 @_jit
-def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, PS, PT, PH, lipschitz, reach, ci, cj, near, dist):
+def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, PS, PF, lipschitz, reach, ci, cj, near, dist):
     k = 0
     for q in range(ij.shape[0]):
         a, b = ij[q, 0], ij[q, 1]
@@ -601,7 +601,7 @@ def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, PS, PT, PH, lipschi
             # apart than the reach on every path of the call (segment_ccd.field_boxes'
             # bound, with the hull distance instead of the boxes'); a hair of margin so
             # that round-off cannot drop a pair that comes within reach
-            gap, slack, rho, dist[k] = _hull_gap(PS, PT, PH, a, b)
+            gap, slack, rho, dist[k] = _hull_gap(PS, PF, a, b)
             near[k] = (1.0 - lipschitz) * gap <= (reach + lipschitz * rho) * (1.0 + 1e-9) + 1e-12 * slack
         k += 1
     return k
@@ -683,9 +683,11 @@ def order_candidates(ij, n_local, gv, lo, hi, shrink, free, hulls=None):
         if not (PS.shape == PT.shape == PH.shape == (len(gv), 2, 3)) or not 0.0 <= lipschitz < 1.0 or not reach > 0.0:
             raise ValueError(f"order_candidates: hulls need PS, PT, PH ({len(gv)}, 2, 3), 0 <= L < 1 and reach > 0; "
                              f"got {PS.shape} {PT.shape} {PH.shape}, L {lipschitz}, reach {reach}")
+    # the residuals in one array: the hull test reads each pair's segments at random
+    PF = PT - PH
     k = _order_candidates(np.ascontiguousarray(ij, np.int64), int(n_local), np.ascontiguousarray(gv, np.int64),
                           np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
-                          float(shrink), np.ascontiguousarray(free, np.bool_), PS, PT, PH, lipschitz, reach,
+                          float(shrink), np.ascontiguousarray(free, np.bool_), PS, PF, lipschitz, reach,
                           ci, cj, near, dist)
     return ci[:k], cj[:k], near[:k], (dist[:k] if hulls is not None else np.full(k, np.nan))
 

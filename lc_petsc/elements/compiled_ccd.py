@@ -550,7 +550,39 @@ def field_boxes(S, F, seg, lipschitz, min_distance):
 
 
 @_jit
-def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, ci, cj, near):
+def _hull_gap(PS, PF, a, b):
+    """(gap, slack, rho_a + rho_b, d): a lower bound of the distance between the hulls of
+    segments a and b, each the hull of its ends at S (PS) and at S + f (PF, the residual
+    T - H), from their projections on the axis of the segments' closest points at S
+    (the segments' own distance when f = 0; 0 when they touch), its round-off scale,
+    rho the segment's largest |f|, and d the segments' distance at S (:func:`_vdistance`'s
+    arithmetic, so equal to the pair test's d(S) bit for bit)."""
+    x0 = (PS[a, 0, 0], PS[a, 0, 1], PS[a, 0, 2])
+    x1 = (PS[a, 1, 0], PS[a, 1, 1], PS[a, 1, 2])
+    x2 = (PS[b, 0, 0], PS[b, 0, 1], PS[b, 0, 2])
+    x3 = (PS[b, 1, 0], PS[b, 1, 1], PS[b, 1, 2])
+    s, t, d1, d2 = _vclosest(x0, x1, x2, x3)
+    n = (x0[0] + s * d1[0] - x2[0] - t * d2[0], x0[1] + s * d1[1] - x2[1] - t * d2[1],
+         x0[2] + s * d1[2] - x2[2] - t * d2[2])
+    low_a, high_b, rho_a, rho_b, scale = np.inf, -np.inf, 0.0, 0.0, 0.0
+    for e in range(2):
+        for g in (a, b):
+            f = (PF[g, e, 0], PF[g, e, 1], PF[g, e, 2])
+            p = _vdot(n, (PS[g, e, 0], PS[g, e, 1], PS[g, e, 2]))
+            q = p + _vdot(n, f)
+            scale = max(scale, abs(p), abs(q))
+            if g == a:
+                low_a, rho_a = min(low_a, p, q), max(rho_a, _vnorm(f))
+            else:
+                high_b, rho_b = max(high_b, p, q), max(rho_b, _vnorm(f))
+    nn = _vnorm(n)
+    if not nn > 0.0:
+        return 0.0, 0.0, rho_a + rho_b, nn
+    return (low_a - high_b) / nn, scale / nn, rho_a + rho_b, nn
+
+
+@_jit
+def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, PS, PF, lipschitz, reach, ci, cj, near, dist):
     k = 0
     for q in range(ij.shape[0]):
         a, b = ij[q, 0], ij[q, 1]
@@ -561,6 +593,16 @@ def _order_candidates(ij, n_local, gv, lo, hi, shrink, free, ci, cj, near):
         ci[k], cj[k] = a, b
         rigid = not (free[a, 0] or free[a, 1] or free[b, 0] or free[b, 1])
         near[k] = not rigid and _grown_overlap(lo, hi, a, b, -shrink)
+        if reach > 0.0:
+            dist[k] = np.nan
+        if near[k] and reach > 0.0:
+            # the boxes are axis-aligned: most of the pairs they keep are segments lying
+            # side by side at an angle, whose hulls a separating axis proves farther
+            # apart than the reach on every path of the call (segment_ccd.field_boxes'
+            # bound, with the hull distance instead of the boxes'); a hair of margin so
+            # that round-off cannot drop a pair that comes within reach
+            gap, slack, rho, dist[k] = _hull_gap(PS, PF, a, b)
+            near[k] = (1.0 - lipschitz) * gap <= (reach + lipschitz * rho) * (1.0 + 1e-9) + 1e-12 * slack
         k += 1
     return k
 
@@ -616,17 +658,38 @@ def segment_vertices(gv):
     return V[:n].copy(), sv
 
 
-def order_candidates(ij, n_local, gv, lo, hi, shrink, free):
+def order_candidates(ij, n_local, gv, lo, hi, shrink, free, hulls=None):
     """The limiter's candidates from the box pairs ``ij`` (k, 2) of local + ghost segments:
     (ci, cj, near): the pairs with a local segment (index < ``n_local``), the smaller
     first global vertex ``gv`` first, and ``near`` where their boxes lo, hi shrunk by
-    ``shrink`` still overlap and a segment has a free vertex (``free`` (m, 2))."""
+    ``shrink`` still overlap and a segment has a free vertex (``free`` (m, 2)).
+    ``hulls`` (PS, PT, PH, L, reach): the segments' ends (m, 2, 3) at the path's start,
+    end and fallback, the field's Lipschitz constant and the pair test's reach m; then
+    ``near`` also needs the hulls of the ends at S and S + (T - H) closer than (m + L
+    (rho_a + rho_b)) / (1 - L) along the axis of the segments' closest points at S: a
+    farther pair stays m apart on every path of the call (the bound of
+    :func:`segment_ccd.field_boxes`), so the pair test would give it 1.  Returns (ci, cj,
+    near, dist): dist the segments' distance at S where the hulls were tested (the pair
+    test's start distance bit for bit, for :func:`limit_pairs`), else NaN."""
     n = len(ij)
     ci, cj, near = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.bool_)
+    dist = np.empty(n if hulls is not None else 0)      # a frame end's reused pairs: 7M at 8K
+    if hulls is None:
+        PS = PT = PH = np.zeros((0, 2, 3))
+        lipschitz, reach = 0.0, 0.0
+    else:
+        PS, PT, PH = (np.ascontiguousarray(a, np.float64) for a in hulls[:3])
+        lipschitz, reach = float(hulls[3]), float(hulls[4])
+        if not (PS.shape == PT.shape == PH.shape == (len(gv), 2, 3)) or not 0.0 <= lipschitz < 1.0 or not reach > 0.0:
+            raise ValueError(f"order_candidates: hulls need PS, PT, PH ({len(gv)}, 2, 3), 0 <= L < 1 and reach > 0; "
+                             f"got {PS.shape} {PT.shape} {PH.shape}, L {lipschitz}, reach {reach}")
+    # the residuals in one array: the hull test reads each pair's segments at random
+    PF = PT - PH
     k = _order_candidates(np.ascontiguousarray(ij, np.int64), int(n_local), np.ascontiguousarray(gv, np.int64),
                           np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
-                          float(shrink), np.ascontiguousarray(free, np.bool_), ci, cj, near)
-    return ci[:k], cj[:k], near[:k]
+                          float(shrink), np.ascontiguousarray(free, np.bool_), PS, PF, lipschitz, reach,
+                          ci, cj, near, dist)
+    return ci[:k], cj[:k], near[:k], (dist[:k] if hulls is not None else np.full(k, np.nan))
 
 
 def warm_up():
@@ -641,6 +704,7 @@ def warm_up():
     lo, hi = field_boxes(S, S, seg, 0.1, 0.01)
     order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool))
     P2 = S.reshape(2, 2, 3)
+    order_candidates(np.array([[0, 1]]), 1, seg, lo, hi, 0.0, np.ones((2, 2), bool), (P2, P2, P2, 0.1, 0.01))
     pair_distances(P2, seg[:1] // 2, seg[1:] // 2)
     screen_paths(S, S + 0.1, np.array([[0, 2]]))
     segment_points(np.arange(4, dtype=np.int64).reshape(2, 2), 4, P2, P2, P2, np.ones((2, 2), bool))

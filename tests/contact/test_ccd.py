@@ -555,7 +555,7 @@ def test_compiled_field_boxes_and_candidate_order_match_numpy():
     free = rng.uniform(size=(len(seg), 2)) < 0.7
     ij = box_pairs(lo, hi, seg // 10)
     shrink = 0.04
-    ci, cj, near = compiled_ccd.order_candidates(ij, n_local, gv, lo, hi, shrink, free)
+    ci, cj, near, _ = compiled_ccd.order_candidates(ij, n_local, gv, lo, hi, shrink, free)
     i, j = ij[:, 0], ij[:, 1]
     loc = (i < n_local) | (j < n_local)
     i, j = i[loc], j[loc]

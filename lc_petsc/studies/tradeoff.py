@@ -15,7 +15,7 @@ from typing import Any, Optional
 import numpy as np
 from petsc4py import PETSc
 
-from lc_petsc.config import TimeConfig
+from lc_petsc.config import SolverConfig, TimeConfig
 from lc_petsc.errors import ConfigError, SimulationError, SolverError
 from lc_petsc.parallel import global_max
 from lc_petsc.simulator import build_simulator
@@ -52,6 +52,8 @@ class Settings:
     max_substeps: int = TimeConfig.max_substeps     # step cutback (with a tolerance only)
     newton: str = TimeConfig.newton                 # filtered or trust_region
     root_rotation: bool = TimeConfig.root_rotation  # the root turn after a fixed count
+    exact_fallback: str = SolverConfig.exact_fallback   # with exact_or_analytic only
+    exact_stay: bool = SolverConfig.exact_stay
 
     def effective_rtol(self) -> float:
         """The Krylov tolerance the run uses: ``ksp_rtol``, or the code default for its
@@ -86,6 +88,10 @@ class Settings:
             parts.append("projected")
         if self.root_rotation:
             parts.append("root turn")
+        if self.exact_fallback != SolverConfig.exact_fallback:
+            parts.append(f"{self.exact_fallback} fallback")
+        if self.exact_stay:
+            parts.append("exact_stay")
         return " ".join(parts)
 
 
@@ -192,32 +198,37 @@ def configured_settings(cfg, options=""):
                     newton_update=t.newton_update, initial_guess=t.initial_guess,
                     carry_with_head=t.carry_with_head, newton_increment_tol=t.newton_increment_tol,
                     length_projection=t.length_projection, max_substeps=t.max_substeps, newton=t.newton,
-                    root_rotation=t.root_rotation)
+                    root_rotation=t.root_rotation, exact_fallback=cfg.solver.exact_fallback,
+                    exact_stay=cfg.solver.exact_stay)
 
 
 def reference_settings(dt=1.0 / 120.0, newton_tol=1e-9, max_newton=100, filter="none",
                        line_search=True, method="exact_or_analytic"):
-    """The reference: BDF-1 solved to max|dx| < ``newton_tol`` cm.
+    """The reference: BDF-1 solved to max|dx| < ``newton_tol`` cm, every frame in one
+    step of ``dt`` (no step cutback: the variants are compared with its frames, so it
+    must solve their discretisation; :func:`reference_warning` flags a frame it missed).
 
     The filter changes only the Newton matrix, not the solution of a frame, so the
     reference may use the exact Hessian.  ``method="exact_or_analytic"`` (default): the
-    exact Hessian near the solution with the analytic filter as fallback and the
-    edge-length retraction (docs/newton.md), CG; measured on the 10-wisp hairball at
-    dt 1/30 every frame converged, in 579 Newton iterations over 30 frames.
-    ``method="unfiltered"`` (the reference before): the unfiltered Hessian (``filter``)
-    with the line search, solved by GMRES (:data:`REFERENCE_KSP`) since it may be
-    indefinite; on the same run it used 2,239 iterations and stalled in frames where the
-    line search found no decrease (docs/newton.md).  :func:`run_study` falls back to
+    recommended converging path (docs/newton.md): the exact Hessian near the solution,
+    the shifted fallback, exact steps kept once taken, the corotational update, CG.  The
+    edge retraction with the analytic fallback it replaced missed 1e-9 cm in frame 0 of
+    the 10-wisp hairball at dt 1/30 within 100 iterations and was cut into 2 x dt/2 (a
+    solution 1.2e-2 from the whole step's in frames 0-1; docs/newton.md, "Fifteenth
+    round").  ``method="unfiltered"`` (the reference before): the unfiltered Hessian
+    (``filter``) with the line search, solved by GMRES (:data:`REFERENCE_KSP`) since it
+    may be indefinite; it used 2,239 iterations on that run and stalled in frames where
+    the line search found no decrease.  :func:`run_study` falls back to
     :func:`reference_fallback` (analytic filter, CG) if the reference fails.
     """
     if method == "exact_or_analytic":
         return Settings(dt=dt, newton_iterations=max_newton, newton_tol=newton_tol,
-                        ksp_rtol=1e-12, filter="exact_or_analytic",
-                        newton_update="edge_retraction")
+                        ksp_rtol=1e-12, filter="exact_or_analytic", exact_fallback="shifted",
+                        exact_stay=True, newton_update="corotational", max_substeps=1)
     if method != "unfiltered":
         raise ValueError(f"reference method {method!r}: use unfiltered or exact_or_analytic")
     return Settings(dt=dt, newton_iterations=max_newton, newton_tol=newton_tol, ksp_rtol=1e-12,
-                    filter=filter, line_search=line_search, options=REFERENCE_KSP)
+                    filter=filter, line_search=line_search, options=REFERENCE_KSP, max_substeps=1)
 
 
 def base_reference(base: Settings = BASE, ksp_rtol=1e-10) -> Settings:
@@ -247,7 +258,7 @@ def tighter_reference(ref: Settings) -> Settings:
 def reference_fallback(ref: Settings) -> Settings:
     """The reference's fallback when it fails: analytic filter, many Newton iterations, default Krylov."""
     return replace(ref, filter="analytic", newton_iterations=max(ref.newton_iterations, 200),
-                   newton_update="linear",
+                   newton_update="linear", exact_fallback="analytic", exact_stay=False,
                    options=ref.options.replace(REFERENCE_KSP, "").strip())
 
 
@@ -268,6 +279,8 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.newton = s.newton
     cfg.time.root_rotation = s.root_rotation
     cfg.solver.filter = s.filter
+    cfg.solver.exact_fallback = s.exact_fallback
+    cfg.solver.exact_stay = s.exact_stay
     rtol = "" if s.ksp_rtol is None else f"-ksp_rtol {s.ksp_rtol:g}"      # else the code default
     cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options, rtol) if x)
     return cfg
@@ -362,6 +375,9 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
         f"over {rres['frames_run']} steps, {rres['newton_cut_back_frames']} frames cut back into "
         f"substeps, {rres['newton_unconverged_frames']} frames not converged "
         f"to the tolerance")
+    warning = reference_warning(rres)
+    if warning:
+        log(f"WARNING: {warning}")
     rows = []
     rq: dict[str, Any] = {}
     if comm.rank == 0:
@@ -430,7 +446,7 @@ def run_study(base_cfg, variants, comm, out_dir, duration=1.0, out_dt=1.0 / 30.0
     report.write_json({"meta": dict(meta or {}, duration=duration, out_dt=out_dt),
                        "reference": dict(asdict(ref), ksp_rtol=ref.effective_rtol(),
                                          **{k: v for k, v in rres.items() if k != "timings_s"},
-                                         **rq, own_error=own),
+                                         **rq, own_error=own, warning=warning),
                        "max_strain": max_strain, "variants": rows, "recommendations": recs},
                       out / "tradeoff.json")
     report.plot_pareto(rows, out / "pareto.png", cost=cost, cost_label=COSTS[cost], floor=floor,
@@ -451,6 +467,26 @@ def unsupported_variants(base_cfg, variants, duration):
         except ConfigError as e:
             out[name] = str(e)
     return out
+
+
+def reference_warning(rres) -> str:
+    """What makes the reference run ``rres`` (:func:`run_trajectory`'s record) no solution
+    of the variants' problem: frames cut into substeps (another discretisation than one
+    step of its dt) or short of its tolerance; "" if none.  A variant's error against it
+    then measures that too, not only the variant's own error."""
+    cut = [f for f, n in enumerate(rres.get("newton_substeps") or []) if n > 1]
+    missed = rres.get("newton_unconverged_frames") or 0
+    parts = []
+    if cut:
+        parts.append(f"{len(cut)} frame(s) cut into substeps (frames {', '.join(map(str, cut[:5]))}"
+                     f"{' ...' if len(cut) > 5 else ''}): another discretisation than the variants'")
+    if missed:
+        parts.append(f"{missed} frame(s) not converged to its tolerance")
+    if not parts:
+        return ""
+    return ("the reference is not the converged solution of every step: " + "; ".join(parts)
+            + ". Errors against it include its own deviation there; raise --ref-tol or use a "
+            "smaller --ref-dt")
 
 
 def reference_error(base_cfg, ref, rtraj, geo, duration, out_dt, comm, blowup):
@@ -590,6 +626,9 @@ def markdown(rows, recs, ref, meta=None, cost="wall_per_sim_s", ref_result=None,
                "not converged)")
     lines.append(f"Reference: {ref.label()}{how}. Errors at the common output times; position "
                  f"errors relative to the wisp length; cost = {COSTS[cost]}.\n")
+    warning = reference_warning(ref_result or {})
+    if warning:
+        lines.append(f"**WARNING: {warning}.**\n")
     if own is not None:
         lines.append(f"Reference's own error (its distance to {own['against']}): "
                      + (f"RMS {report.fmt(own.get('rms_rel_error'))}, max {report.fmt(own.get('max_rel_error'))}, "

@@ -475,3 +475,55 @@ def test_two_runs_of_a_study_recommend_the_same():
     # measured 0.0955; modelled at the second run's median price, linear N=2's 0.08686 / 120
     assert rec["cost"] == 0.0955 and abs(rec["modelled_cost"] - 0.08686) < 1e-15
     assert "within 25% of the lowest go to the lower error" in markdown(rows(1), [rec], BASE, cost="cpu_per_sim_s")
+
+
+def test_the_reference_solves_every_frame_whole():
+    """The study's reference must solve the variants' problem, one backward-Euler step of
+    its dt per frame: on main it took the edge retraction with the analytic fallback and
+    step cutback, which on the 10-wisp hairball missed 1e-9 cm in frame 0 within 100
+    iterations and split it into 2 x dt/2 (docs/newton.md, "Fifteenth round").  Here the
+    shaking two-wisp hairball at dt 1/30: main's reference cuts frame 0 into 2 substeps;
+    the recommended path (shifted fallback, exact_stay, corotational) solves every frame
+    whole to the tolerance."""
+    cfg = small_hairball_config(n_wisps=2, frames=4)
+    ref = reference_settings(dt=1 / 30)
+    res, _, _ = run_trajectory(cfg, ref, 4 / 30, 1 / 30, comm)
+    # on main: [2, 1, 1, 1]
+    assert res["status"] == "ok" and res["newton_substeps"] == [1, 1, 1, 1], res
+    from lc_petsc.studies.tradeoff import reference_warning
+    assert res["newton_unconverged_frames"] == 0 and reference_warning(res) == ""
+    assert (ref.exact_fallback, ref.exact_stay, ref.newton_update, ref.max_substeps) == \
+        ("shifted", True, "corotational", 1)
+    built = configure(cfg, ref, 4 / 30)
+    assert (built.solver.exact_fallback, built.solver.exact_stay, built.time.max_substeps) == ("shifted", True, 1)
+    # main's reference on the same frames, for the record of what it did
+    old = replace(ref, exact_fallback="analytic", exact_stay=False, newton_update="edge_retraction",
+                  max_substeps=8)
+    res, _, _ = run_trajectory(cfg, old, 4 / 30, 1 / 30, comm)
+    assert res["newton_substeps"][0] == 2, res
+
+
+def test_a_reference_cut_back_or_unconverged_is_reported_loudly(tmp_path):
+    """A reference whose frames were cut into substeps (another discretisation) or missed
+    its tolerance was compared against silently (only a count in one sentence of the
+    report); now the log, tradeoff.json and recommendations.md carry a warning naming
+    the frames.  The two-wisp hairball to 1e-6 with a cap of 8 cuts every frame (as in
+    test_a_run_reports_its_frames_cut_back)."""
+    cfg = small_hairball_config(n_wisps=2, frames=2)
+    ref = replace(BASE, newton_iterations=8, newton_increment_tol=1e-6, filter="exact_or_analytic")
+    logged = []
+    run_study(cfg, [("newton", "newton 2", replace(BASE, newton_iterations=2))], comm, tmp_path,
+              duration=2 / 30, ref=ref, ref_check=False, log=logged.append)
+    if comm.rank != 0:
+        return
+    want = ("the reference is not the converged solution of every step: 2 frame(s) cut into "
+            "substeps (frames 0, 1): another discretisation than the variants'. Errors against it "
+            "include its own deviation there; raise --ref-tol or use a smaller --ref-dt")
+    assert f"WARNING: {want}" in logged
+    assert json.loads((tmp_path / "tradeoff.json").read_text())["reference"]["warning"] == want
+    assert f"**WARNING: {want}.**" in (tmp_path / "recommendations.md").read_text()
+    from lc_petsc.studies.tradeoff import reference_warning
+    assert reference_warning({"newton_substeps": [1, 1, 1], "newton_unconverged_frames": 2}) == (
+        "the reference is not the converged solution of every step: 2 frame(s) not converged to "
+        "its tolerance. Errors against it include its own deviation there; raise --ref-tol or use "
+        "a smaller --ref-dt")

@@ -246,6 +246,7 @@ class Integrator:
         self.newton_verify_refused = []     # ... of them refused (_verify_stop)
         self.newton_stops_refused = []      # claimed stops refused by any rule
         self.newton_coupled_unknown = []    # coupled-saddle checks whose Lanczos did not converge
+        self.root_turns_reduced = []    # wisps whose root turn raised their share of G (RootRotation.step)
         self._counts = dict.fromkeys(FRAME_COUNTS, 0)   # the frame's so far
         self.verifications = []         # every verification: (frame, iteration, verdict, step length)
         self._saddle_wisps = []         # the last saddle's wisps (the scene's numbers; for the monitor)
@@ -320,13 +321,7 @@ class Integrator:
         elastic, gravity and head-penalty terms (their sum over all ranks is G without
         strand contact, up to round-off).  Rank-local, no collective; a wisp's share
         depends on that wisp alone."""
-        d = x - self.xhat
-        per = np.where(self.free, 0.5 / self.dt ** 2 * self.scene.mass * np.sum(d * d, axis=1)
-                       - np.sum(self.f_ext * x, axis=1), 0.0)
-        per += self.asm.vertex_energy(x)
-        e, idx, _ = self._contact_terms(x, False, per_vertex=True)
-        if idx is not None and len(idx):
-            per[idx] += e
+        per = self._vertex_potentials(x) + self.asm.vertex_energy(x)
         return np.bincount(self.vertex_wisp, per, minlength=len(self.scene.offsets) - 1)
 
     def gradient(self, x, elastic=None, head=None):
@@ -734,12 +729,30 @@ class Integrator:
         if self.root_turn is None or it != self.cfg.time.newton_iterations - 1:
             return x
         unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
-        y = self.root_turn.step(x, self._turn_terms, unit)
-        if self.monitor is not None:        # on every rank (-lc_newton_monitor): the reductions
-            turned = int(global_reduce(self.comm, [self.root_turn.turned], "sum")[0])
-            self._say(f"  frame {self.frame}: root turn of {turned} wisp(s), largest move "
-                      f"{self.increments(y - x)[0]:.3e} wisp lengths")
+        y = self.root_turn.step(x, self._turn_terms, unit, self._turn_change)
+        # every rank turns at the same iteration (a fixed count): the counts summed over all
+        turned, reduced = global_reduce(self.comm, [self.root_turn.turned, self.root_turn.reduced], "sum")
+        self._counts["root_turns_reduced"] += int(reduced)
+        if self.monitor is not None:
+            self._say(f"  frame {self.frame}: root turn of {int(turned)} wisp(s) ({int(reduced)} halved or "
+                      f"dropped), largest move {self.increments(y - x)[0]:.3e} wisp lengths")
         return y
+
+    def _vertex_potentials(self, x):
+        """Per vertex its inertia, gravity and head-penalty terms of G at x (zero on
+        pinned vertices)."""
+        d = x - self.xhat
+        per = np.where(self.free, 0.5 / self.dt ** 2 * self.scene.mass * np.sum(d * d, axis=1)
+                       - np.sum(self.f_ext * x, axis=1), 0.0)
+        e, idx, _ = self._contact_terms(x, False, per_vertex=True)
+        if idx is not None and len(idx):
+            per[idx] += e
+        return per
+
+    def _turn_change(self, x, y):
+        """Per vertex the change of :meth:`_vertex_potentials` from x to y (the root
+        turn's guard, RootRotation.share_change)."""
+        return self._vertex_potentials(y) - self._vertex_potentials(x)
 
     def _turn_terms(self, x):
         """(grad G without the elastic terms, the head's active vertices and their
@@ -1397,7 +1410,7 @@ def unconfirmed_note(steps, refused=0, saddles=0):
 VERIFY_FROM = 1e-3
 #: the per-frame counts of the stop's checks (Integrator attributes, summary.json keys)
 FRAME_COUNTS = ("newton_verified", "newton_verify_refused", "newton_stops_refused",
-                "newton_coupled_unknown")
+                "newton_coupled_unknown", "root_turns_reduced")
 
 
 #: ``solver.exact_fallback = "shifted"``: the shifts tau of the exact Hessian + tau M/dt^2

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.elements import compiled
+from lc_petsc.elements import bend, compiled, stretch, twist
 
 #: the angle (rad) of the central differences of the root elements' gradients along the
 #: turns: their error is about this squared (1e-8 of the curvature), their round-off about
@@ -26,6 +26,13 @@ from lc_petsc.elements import compiled
 #: partition's round-off to 2-4e-9 of the positions on 2-3 ranks after 6 frames, against
 #: 1e-13 without the turn)
 ANGLE_STEP = 1e-4
+
+#: a wisp whose share of G a turn raised has its turn halved this many times, then
+#: dropped (:meth:`RootRotation.step`)
+HALVINGS = 2
+
+#: the NumPy kernels' per-element energies of the elements across a root
+_ENERGY = {"stretch": stretch.energy, "bend": bend.energy, "twist": twist.energy}
 
 
 def root_pivots(offsets, pinned):
@@ -99,6 +106,9 @@ class RootRotation:
                                              + [np.zeros((0, 1), int)], axis=None)).astype(np.int64)
         self.across = {name: compiled.element_arrays(name, np.searchsorted(self.near, s), rest, stiff)
                        for name, (s, rest, stiff, _) in across.items()}
+        # their vertices in ``near`` and their wisps, for their energies (share_change)
+        self.across_wisp = {name: (s[:, None] + np.arange(stencils[name]), self.wisp[self.near[s]])
+                            for name, (s, _, _) in self.across.items()}
         # and six copies of them, one per turn and sign, for one kernel call (copy j's
         # vertices after the j - 1 before it)
         n = len(self.near)
@@ -107,6 +117,7 @@ class RootRotation:
                         for name, (s, r, k) in self.across.items()}
         self.near_moved = self.moved[self.near]
         self.turned = 0          # wisps turned by the last step
+        self.reduced = 0         # ... of them with their turn halved or dropped (share_change)
 
     def _sums(self, a):
         """Per wisp sums over the vertices of ``a`` (n, ...)."""
@@ -165,15 +176,34 @@ class RootRotation:
         P = np.einsum("wkk->w", M)[:, None, None] * eye - M
         return b, A, P
 
-    def step(self, x, terms, unit):
+    def share_change(self, x, y, change):
+        """Per wisp the change of its share of G from x to y, x with its wisps turned
+        about their pivots: ``change`` (x, y) -> per vertex the change of the terms of
+        one vertex (inertia, gravity, the head), plus the energies of the elements across
+        the root.  An element whose vertices all turn keeps its energy (stretch, bend and
+        twist depend on lengths and angles only), so this is the change of
+        :meth:`Integrator.wisp_potentials` without evaluating the wisps' elements."""
+        d = self._sums(change(x, y) * self.mask)
+        xs, ys = x[self.near], y[self.near]
+        for name, (start, rest, stiffness) in self.across.items():
+            if len(start):
+                vertices, wisp = self.across_wisp[name]
+                e = _ENERGY[name](ys[vertices], rest, stiffness) - _ENERGY[name](xs[vertices], rest, stiffness)
+                d += np.bincount(wisp, e, minlength=len(d))
+        return d
+
+    def step(self, x, terms, unit, change=None):
         """x after the root turn (a new array).  Per held wisp the turn theta solves
         A theta = -b (:meth:`model`) by three conjugate-gradient steps preconditioned by
         P (exact where A is positive definite); a direction of curvature that is not
         positive ends a wisp's iteration, keeping its turn so far (on hairball10 that
         gives 4.5e-3 against 5.0e-3 for the Newton step in the span of A's positive
-        eigenvalues)."""
+        eigenvalues).  With ``change`` (:meth:`share_change`) a wisp whose share of G
+        the turn raised has it halved, up to :data:`HALVINGS` times, then dropped: the
+        model is G's along the turn at x only, and a large turn or the head's contact
+        switching on or off over it can make the step climb."""
         held = self.pivot >= 0
-        self.turned = 0
+        self.turned = self.reduced = 0
         if not held.any():
             return x.copy()
         b, A, P = self.model(x, terms, unit)
@@ -197,5 +227,18 @@ class RootRotation:
             z = np.linalg.solve(P, res[:, :, None])[:, :, 0]
             beta = np.sum(res * z, axis=1) / np.where(rz != 0.0, rz, 1.0)
             d = z + beta[:, None] * d
-        self.turned = int(np.count_nonzero(np.any(theta != 0.0, axis=1)))
-        return turn(x, theta[self.wisp[self.idx]], self.pivot[self.wisp[self.idx]], self.idx)
+        pivot = self.pivot[self.wisp[self.idx]]
+        y = turn(x, theta[self.wisp[self.idx]], pivot, self.idx)
+        moving = np.any(theta != 0.0, axis=1)
+        self.turned = int(np.count_nonzero(moving))
+        reduced = np.zeros(len(held), bool)
+        for halving in range(HALVINGS + 1) if change is not None else ():
+            rose = moving & (self.share_change(x, y, change) > 0.0)
+            if not rose.any():
+                break
+            reduced |= rose
+            theta[rose] *= 0.5 if halving < HALVINGS else 0.0
+            moving &= np.any(theta != 0.0, axis=1)
+            y = turn(x, theta[self.wisp[self.idx]], pivot, self.idx)
+        self.reduced = int(np.count_nonzero(reduced))
+        return y

@@ -73,7 +73,9 @@ def format_report(s) -> str:
                       ("newton_verified", "stops after filtered steps verified by an exact step: {} "
                                           f"({refused} refused)"),
                       ("newton_coupled_unknown", "stops whose curvature over contact-coupled wisps is unknown "
-                                                 "(Lanczos unconverged, kept): {}")):
+                                                 "(Lanczos unconverged, kept): {}"),
+                      ("root_turns_reduced", "root turns halved or dropped (they raised a wisp's share of "
+                                             "G, time.root_rotation): {} wisp turns")):
         counts = s.get(key, [])
         if sum(counts):
             lines.append(f"  {what.format(sum(counts))} in {sum(n > 0 for n in counts)} frames")

@@ -36,6 +36,24 @@ def test_root_turn_follows_the_serial_run():
     _verdict(ok, msg)
 
 
+
+def test_the_guard_cuts_the_same_turns_on_any_rank_count():
+    """5 wisps under a stronger shake (0.5 rad, 1 s): the first frame's model turn raises
+    two wisps' shares of G, and the guard halves them (RootRotation.step); the count is
+    summed over the ranks, so every rank count reports [2, 0] and follows the serial run
+    within test_mpi_sim's 1e-10."""
+    cfg = small_hairball_config(n_wisps=5, frames=2, root_rotation=True, options="-ksp_rtol 1e-12")
+    cfg.scene.seed = 3
+    cfg.physics.head_amplitude, cfg.physics.head_period = 0.5, 1.0
+    X, summ = run_positions(cfg.validate(), comm=comm)
+    ref, _ = serial_reference(cfg)
+    ok, msg = summ["root_turns_reduced"] == [2, 0], f"{comm.size} ranks: {summ['root_turns_reduced']} turns cut"
+    if comm.rank == 0 and ok:
+        err = rel_diff(X, ref)
+        ok, msg = err <= 1e-10, f"{comm.size} ranks: relative difference to 1 rank {err:.3e}"
+        print("\n" + msg)
+    _verdict(ok, msg)
+
 def _touching(c, frames):
     cfg = touching_wisps_config(frames)
     cfg.physics.strand_contact_mode = "ccd"

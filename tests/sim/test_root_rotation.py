@@ -114,3 +114,55 @@ def test_the_root_turn_needs_a_fixed_count():
     with pytest.raises(ConfigError, match="time.root_rotation must be true or false"):
         TimeConfig(root_rotation="yes").validate()
     TimeConfig(root_rotation=True).validate()
+
+
+def _far_turned_start(terms, angle):
+    """The settled 3-wisp hairball with the step's inertial target xhat its own wisps
+    turned by ``angle`` (rad) about their pivots: the turn G wants is far beyond where
+    its quadratic model at x holds.  (simulator, turner, x, unit)"""
+    sim, turner = _settled(terms)
+    it = sim.integrator
+    x = it.x.copy()
+    idx = turner.idx
+    axis = np.array([0.3, 0.4, 0.866])
+    it.xhat = turn(x, np.tile(angle * axis / np.linalg.norm(axis), (len(idx), 1)),
+                   turner.pivot[turner.wisp[idx]], idx)
+    return sim, turner, x, np.where(it.free, it.scene.mass / it.dt ** 2, 0.0)
+
+
+def test_the_share_change_is_the_change_of_the_wisps_potentials():
+    """RootRotation.share_change (the vertex terms and the elements across the root)
+    equals the change of Integrator.wisp_potentials (every element) over a turn."""
+    sim, turner, x, unit = _far_turned_start(("stretch", "bend", "twist", "gravity", "head_collision"), 2.5)
+    try:
+        it = sim.integrator
+        y = turner.step(x, it._turn_terms, unit)
+        exact = it.wisp_potentials(y) - it.wisp_potentials(x)
+        cheap = turner.share_change(x, y, it._turn_change)
+        assert np.abs(exact).min() > 1.0          # a real change on every wisp
+        assert np.abs(cheap - exact).max() <= 1e-9 * np.abs(it.wisp_potentials(x)).max()
+    finally:
+        sim.close()
+
+
+def test_a_turn_that_raises_a_wisps_share_of_G_is_cut():
+    """With the inertial target 2.5 rad away G along a turn is far from its quadratic
+    model at x (a cosine, not a parabola): the model's turn raises two of the three
+    wisps' shares of G (by 6.6e3 and 2.3e3).  The guard halves those turns (then would
+    drop them), so no share rises and both wisps end lower than the unguarded turn
+    left them; the third wisp's turn is kept as it was."""
+    sim, turner, x, unit = _far_turned_start(("stretch", "bend", "twist", "gravity", "head_collision"), 2.5)
+    try:
+        it = sim.integrator
+        W0 = it.wisp_potentials(x)
+        unguarded = it.wisp_potentials(turner.step(x, it._turn_terms, unit)) - W0
+        assert turner.reduced == 0
+        guarded = it.wisp_potentials(turner.step(x, it._turn_terms, unit, it._turn_change)) - W0
+        print(f"\nshare change per wisp: unguarded {unguarded}, guarded {guarded}")
+        rose = unguarded > 1e3
+        assert rose.tolist() == [False, True, True]
+        assert turner.turned == 3 and turner.reduced == 2
+        assert (guarded < -1e3).all()
+        assert guarded[~rose] == unguarded[~rose]
+    finally:
+        sim.close()

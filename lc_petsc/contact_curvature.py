@@ -83,6 +83,7 @@ class CoupledCurvature:
         self.comm = comm
         self.band = BandCholesky(self.offsets)
         self.n_global = int(comm.allreduce(int(self.offsets[-1])))
+        self.start = self._start()      # the same at every check: drawn once
 
     def check(self, blocks, operator, unit, layout):
         """The verdict on ``operator`` (the PETSc Newton operator A + C) preconditioned
@@ -100,7 +101,7 @@ class CoupledCurvature:
                 operator.mult(xv, yv)
                 return yv.array * self.free
 
-            alphas, betas, ritz, converged = self._lanczos(apply, self._start())
+            alphas, betas, ritz, converged = self._lanczos(apply, self.start)
             if ritz[0] >= -NEGATIVE * max(abs(ritz[-1]), 1.0):
                 return Verdict(False, float(ritz[0]), len(alphas), converged=converged)
             vector = self._ritz_vector(apply, alphas, betas)
@@ -127,7 +128,7 @@ class CoupledCurvature:
 
     def _start(self):
         """The start vector: uniform on [-1, 1] per global DoF from :data:`SEED` (the
-        rank's slice), zero on pinned DoFs."""
+        rank's slice), zero on pinned DoFs (every rank draws all 3 n_global of them)."""
         full = np.random.default_rng(SEED).uniform(-1.0, 1.0, 3 * self.n_global)
         return full[3 * self.first_vertex:3 * (self.first_vertex + int(self.offsets[-1]))] * self.free
 
@@ -189,7 +190,7 @@ class CoupledCurvature:
         def visit(j, u):
             vector[:] += s[j] * u
 
-        for _ in self._recurrence(apply, self._start(), len(alphas), visit):
+        for _ in self._recurrence(apply, self.start, len(alphas), visit):
             pass
         return vector
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from lc_petsc.elements import bend, compiled, stretch, twist
+from lc_petsc.elements.angle import cross3
 
 #: the angle (rad) of the central differences of the root elements' gradients along the
 #: turns: their error is about this squared (1e-8 of the curvature), their round-off about
@@ -56,12 +57,9 @@ def rotate(v, theta):
 
 
 def cross(a, c):
-    """Row-wise a x c of (n, 3) arrays (np.cross's axis handling costs more here)."""
-    out = np.empty(np.broadcast_shapes(a.shape, c.shape))
-    out[:, 0] = a[:, 1] * c[:, 2] - a[:, 2] * c[:, 1]
-    out[:, 1] = a[:, 2] * c[:, 0] - a[:, 0] * c[:, 2]
-    out[:, 2] = a[:, 0] * c[:, 1] - a[:, 1] * c[:, 0]
-    return out
+    """Row-wise a x c of (n, 3) arrays: :func:`lc_petsc.elements.angle.cross3` on their
+    transposes (np.cross's axis handling costs more here)."""
+    return cross3(a.T, c.T).T
 
 
 def skew(v):

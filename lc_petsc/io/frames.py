@@ -268,8 +268,9 @@ def _kept_problem(f, path, rows, offsets):
         if _holds_fill(a, valid[sel] if name in frame_dsets else None):
             return (f"{path}: /{name}{where}: read as the fill value (NaN or -1), its chunk missing "
                     "from the chunk index (which has no checksum): the file is damaged")
-        if name == "positions" and valid[sel] and digest_problem(f, sel, a):
-            return f"{path}: {digest_problem(f, sel, a)}"
+        problem = name == "positions" and valid[sel] and digest_problem(f, sel, a)
+        if problem:
+            return f"{path}: {problem}"
         if name == "wisp_offsets":
             problem = offsets_problem(a, f["positions"].shape[1])
             if problem is None and offsets is not None and not np.array_equal(a, offsets):

@@ -322,18 +322,16 @@ def groom_scale_warnings(sim):
     odd = []
     for i, (e, r, wisp_length, _, wisp) in enumerate(wisps):
         ratio = e / groom
-        why = "and shorter than its strand radius" if ratio < SMALL_WISP and e < r else \
+        why = f"and shorter than its strand radius ({r:.3g} cm)" if ratio < SMALL_WISP and e < r else \
             f"and {wisp_length:.3g} cm long, shorter than hair ({lo:g} cm)" \
             if ratio <= 1.0 / UNIT_WISP and wisp_length < lo else \
             _unit_wisp(ratio, roots, i)
         if why:
-            odd.append((-abs(np.log(ratio)), wisp, ratio, e, r, why))
+            odd.append((-abs(np.log(ratio)), wisp, ratio, e, why))
     if not odd:
         return out
-    _, wisp, ratio, edge, radius, why = min(odd)
+    _, wisp, ratio, edge, why = min(odd)
     more = f" (and {len(odd) - 1} more wisp(s))" if len(odd) > 1 else ""
-    if why.startswith("and shorter"):
-        why = f"{why} ({radius:.3g} cm)"
     size = f"{1 / ratio:.3g} times smaller" if ratio < 1 else f"{ratio:.3g} times larger"
     return out + [f"{cfg.scene.path}: wisp {wisp}{more} is {size} than the groom: its median edge is {edge:.3g} cm "
                   f"against the groom's {groom:.3g} cm, {why}; a wisp written in other units "

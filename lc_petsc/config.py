@@ -342,7 +342,8 @@ class TimeConfig:
     lc_petsc/integrator.py, lc_petsc/trust_region.py and docs/newton.md.
     ``root_rotation`` (a fixed count only): after the iterations each root-held wisp is
     turned rigidly about its last pinned vertex by the Newton step of G over the turn's
-    three angles (lc_petsc/root_rotation.py; docs/newton.md "Fourteenth round").
+    three angles, a turn that raises its wisp's share of G halved, at most twice, then
+    dropped (lc_petsc/root_rotation.py; docs/newton.md "Fourteenth round", "Sixteenth round").
 
     Step cutback (only with a tolerance): a frame whose Newton misses it within the cap
     is redone as 2 steps of dt / 2, each cut again if it fails, up to ``max_substeps``

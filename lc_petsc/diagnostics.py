@@ -271,15 +271,16 @@ def _box_distance(p, lo, hi):
     return float(np.linalg.norm(np.maximum(lo - p, 0.0) + np.maximum(p - hi, 0.0)))
 
 
-def _unit_wisp(ratio, root, others):
-    """Why a wisp whose median edge is ``ratio`` times the groom's and whose root is
-    ``root`` looks written in other units than the wisps rooted at ``others`` (n, 3),
-    else None: its edges a power of ten u off (within a factor :data:`UNIT_WISP`), its
-    root far outside the box of their roots (by a quarter of its diagonal) and ``root /
-    u`` (where it was in centimetres) inside it or twice as close.  A long wisp among
-    short ones keeps its root among theirs."""
-    if len(others) < 2 or 1.0 / UNIT_WISP < ratio < UNIT_WISP:
+def _unit_wisp(ratio, roots, i):
+    """Why wisp ``i`` of the wisps rooted at ``roots`` (n, 3), whose median edge is
+    ``ratio`` times the groom's, looks written in other units than the others, else None:
+    its edges a power of ten u off (within a factor :data:`UNIT_WISP`), its root far
+    outside the box of their roots (by a quarter of its diagonal) and ``root / u`` (where
+    it was in centimetres) inside it or twice as close.  A long wisp among short ones
+    keeps its root among theirs."""
+    if len(roots) < 3 or 1.0 / UNIT_WISP < ratio < UNIT_WISP:
         return None
+    root, others = roots[i], np.delete(roots, i, axis=0)     # (a copy: only for an odd wisp)
     u = 10.0 ** round(float(np.log10(ratio)))
     lo, hi = others.min(axis=0), others.max(axis=0)
     d, back = _box_distance(root, lo, hi), _box_distance(root / u, lo, hi)
@@ -319,20 +320,18 @@ def groom_scale_warnings(sim):
     groom = float(np.median([m[0] for m in wisps]))
     roots = np.array([m[3] for m in wisps])
     odd = []
-    for i, (e, r, wisp_length, root, wisp) in enumerate(wisps):
+    for i, (e, r, wisp_length, _, wisp) in enumerate(wisps):
         ratio = e / groom
-        why = "and shorter than its strand radius" if ratio < SMALL_WISP and e < r else \
+        why = f"and shorter than its strand radius ({r:.3g} cm)" if ratio < SMALL_WISP and e < r else \
             f"and {wisp_length:.3g} cm long, shorter than hair ({lo:g} cm)" \
             if ratio <= 1.0 / UNIT_WISP and wisp_length < lo else \
-            _unit_wisp(ratio, np.asarray(root), np.delete(roots, i, axis=0))
+            _unit_wisp(ratio, roots, i)
         if why:
-            odd.append((-abs(np.log(ratio)), wisp, ratio, e, r, why))
+            odd.append((-abs(np.log(ratio)), wisp, ratio, e, why))
     if not odd:
         return out
-    _, wisp, ratio, edge, radius, why = min(odd)
+    _, wisp, ratio, edge, why = min(odd)
     more = f" (and {len(odd) - 1} more wisp(s))" if len(odd) > 1 else ""
-    if why.startswith("and shorter"):
-        why = f"{why} ({radius:.3g} cm)"
     size = f"{1 / ratio:.3g} times smaller" if ratio < 1 else f"{ratio:.3g} times larger"
     return out + [f"{cfg.scene.path}: wisp {wisp}{more} is {size} than the groom: its median edge is {edge:.3g} cm "
                   f"against the groom's {groom:.3g} cm, {why}; a wisp written in other units "

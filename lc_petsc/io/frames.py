@@ -92,14 +92,16 @@ def row_digest(parts, row, t) -> int:
     return int(_mix(total ^ _mix(tb ^ _mix(np.array([row], np.uint64) * _GOLDEN)))[0])
 
 
-def digest_problem(f, k, x):
+def digest_problem(f, k, x, t=None, digest=None):
     """Why row ``k`` of the open ``frames.h5`` ``f``, read as ``x``, is not the row written
     (its ``/row_digest`` entry differs), else None; a file without ``/row_digest`` (written
-    before it) is not checked."""
+    before it) is not checked.  ``t``, ``digest``: the row's ``/time`` and ``/row_digest``
+    entries where the caller has read them (default: read here)."""
     if "row_digest" not in f:
         return None
-    t = float(f["time"][k])
-    if int(f["row_digest"][k]) == row_digest([vertex_digest(x, 0)], k, t):
+    t = float(f["time"][k]) if t is None else float(t)
+    stored = int(f["row_digest"][k]) if digest is None else int(digest)
+    if stored == row_digest([vertex_digest(x, 0)], k, t):
         return None
     every = int(f.attrs.get("every", 1))
     return (f"/positions row {k} (frame {k * every}) does not match its /row_digest: another row's "
@@ -266,8 +268,9 @@ def _kept_problem(f, path, rows, offsets):
         if _holds_fill(a, valid[sel] if name in frame_dsets else None):
             return (f"{path}: /{name}{where}: read as the fill value (NaN or -1), its chunk missing "
                     "from the chunk index (which has no checksum): the file is damaged")
-        if name == "positions" and valid[sel] and digest_problem(f, sel, a):
-            return f"{path}: {digest_problem(f, sel, a)}"
+        problem = name == "positions" and valid[sel] and digest_problem(f, sel, a)
+        if problem:
+            return f"{path}: {problem}"
         if name == "wisp_offsets":
             problem = offsets_problem(a, f["positions"].shape[1])
             if problem is None and offsets is not None and not np.array_equal(a, offsets):
@@ -616,15 +619,18 @@ def read_frames(path, frames=None):
     with h5py.File(path, "r") as f:
         sel = slice(None) if frames is None else np.asarray(frames)
         out = {k: f[k][...] for k in ("wisp_offsets", "rest_positions", "pinned")}
-        out["time"] = f["time"][...][sel]
         valid = valid_rows(f)
+        times = f["time"][...]
+        out["time"] = times[sel]
         out["frame_valid"] = valid[sel]
         out["positions"] = f["positions"][sel] if frames is None else \
             np.stack([f["positions"][int(i)] for i in np.atleast_1d(frames)])
-        ks = np.arange(len(valid))[sel] if frames is None else np.atleast_1d(frames)
-        for k, x in zip(ks, out["positions"]):
-            problem = valid[int(k)] and digest_problem(f, int(k), x)
-            if problem:
-                raise ValueError(f"{f.filename}: {problem}")
+        if "row_digest" in f:           # /time and /row_digest read once, not per row
+            digests = f["row_digest"][...]
+            ks = np.arange(len(valid))[sel] if frames is None else np.atleast_1d(frames)
+            for k, x in zip(ks, out["positions"]):
+                problem = valid[int(k)] and digest_problem(f, int(k), x, times[int(k)], digests[int(k)])
+                if problem:
+                    raise ValueError(f"{f.filename}: {problem}")
         out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     return out

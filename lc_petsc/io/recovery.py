@@ -166,7 +166,7 @@ def _readable_rows(f, offsets, rows, dt, every, vouched):
             continue
         if k in vouched:
             agree[k] = np.array_equal(x, vouched[k])
-        elif valid[k] and np.isfinite(t) and np.isfinite(x).all() and not digest_problem(f, k, x):
+        elif valid[k] and np.isfinite(t) and np.isfinite(x).all() and not digest_problem(f, k, x, t):
             found.append(k)     # (a row failing its digest: another row's values, lost)
     if agree and not any(agree.values()):
         return [], (f"its rows at the checkpoints' frames ({frames_text(agree, every)}) differ from "

@@ -214,11 +214,11 @@ class Integrator:
         self.shortest_wisp = float(global_reduce(comm, [self.wisp_length.min(initial=np.inf)], "min")[0])
         # the free vertices of wisps held by the head (a pinned vertex), which the first
         # iterate carries with the head's change of motion (time.carry_with_head)
+        self.vertex_wisp = np.repeat(np.arange(len(scene.offsets) - 1), np.diff(scene.offsets))
         self.carried = None
         if config.time.carry_with_head and head.kind != "static":
-            sizes = np.diff(scene.offsets)
-            wisp = np.repeat(np.arange(len(sizes)), sizes)
-            held = np.bincount(wisp[scene.pinned], minlength=len(sizes)) > 0
+            wisp = self.vertex_wisp
+            held = np.bincount(wisp[scene.pinned], minlength=len(scene.offsets) - 1) > 0
             carried = self.free & held[wisp]
             self.carried = carried if carried.any() else None
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
@@ -226,7 +226,6 @@ class Integrator:
         self.root_turn = RootRotation(scene.offsets, scene.pinned, assembler.elements,
                                       {n: t.k for n, t in scene.terms.items()}) \
             if config.time.root_rotation else None
-        self.vertex_wisp = np.repeat(np.arange(len(scene.offsets) - 1), np.diff(scene.offsets))
         #: the step's end: head push-out and path lift, strand separation, ccd frame path
         self.frame_end = FrameEnd(comm, head, strand, self.free, scene.offsets, scene.mass, scene.radius,
                                   self.rest_edge, self.vertex_wisp, head_collision=self.contact,
@@ -322,7 +321,15 @@ class Integrator:
         strand contact, up to round-off).  Rank-local, no collective; a wisp's share
         depends on that wisp alone."""
         per = self._vertex_potentials(x) + self.asm.vertex_energy(x)
-        return np.bincount(self.vertex_wisp, per, minlength=len(self.scene.offsets) - 1)
+        return self._wisp_sum(per)
+
+    def _wisp_sum(self, per_vertex):
+        """Per local wisp, the sum of ``per_vertex`` (nv,) over its vertices."""
+        return np.bincount(self.vertex_wisp, per_vertex, minlength=len(self.scene.offsets) - 1)
+
+    def _mass_unit(self):
+        """Per vertex, the unit of the mass shifts: M/dt^2 on free vertices, 0 on pinned ones."""
+        return np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
 
     def gradient(self, x, elastic=None, head=None):
         """grad G at x (pinned rows zeroed); ``elastic`` reuses an elastic gradient,
@@ -728,7 +735,7 @@ class Integrator:
         its collision time).  Other iterations: x."""
         if self.root_turn is None or it != self.cfg.time.newton_iterations - 1:
             return x
-        unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
+        unit = self._mass_unit()
         y = self.root_turn.step(x, self._turn_terms, unit, self._turn_change)
         # every rank turns at the same iteration (a fixed count): the counts summed over all
         turned, reduced = global_reduce(self.comm, [self.root_turn.turned, self.root_turn.reduced], "sum")
@@ -904,7 +911,7 @@ class Integrator:
             float(global_reduce(self.comm, [base.max(initial=0.0)], "max")[0])
         if self.cfg.solver.exact_fallback != "shifted":
             return g
-        unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
+        unit = self._mass_unit()
         with self.timers("solve"):
             least = curvature.least_definite_shifts(self.asm, offsets, unit)
         # beyond the searched range no shift of a wisp's own helps: the uniform ladder
@@ -1003,10 +1010,9 @@ class Integrator:
         step's shift (``_wisp_tau``), alpha and model ratio (:mod:`lc_petsc.wisp_trust`).
         ``shares``: the wisps' shares of G at x; ``taken``: at the step taken.  The step
         was solved on H + tau M/dt^2 wisp by wisp, so dx^T H dx = -g.dx - tau dx^T M/dt^2 dx.  Rank-local."""
-        wisp, n = self.vertex_wisp, len(self.scene.offsets) - 1
-        slope = np.bincount(wisp, np.sum(g * dx, axis=1), minlength=n)
-        unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
-        mass_norm = np.bincount(wisp, unit * np.sum(dx * dx, axis=1), minlength=n)
+        slope = self._wisp_sum(np.sum(g * dx, axis=1))
+        unit = self._mass_unit()
+        mass_norm = self._wisp_sum(unit * np.sum(dx * dx, axis=1))
         curvature = -slope - self._wisp_tau * mass_norm
         rho = wisp_trust.model_ratio(shares - taken, slope, curvature, alpha, shares, ENERGY_FLOOR)
         self._wisp_mu = wisp_trust.next_shifts(self._wisp_tau, alpha, slope, mass_norm, rho)
@@ -1024,7 +1030,7 @@ class Integrator:
         halvings; the last None when no wisp was searched (a failed wisp's share is not
         at its alpha).  Rank-local."""
         wisp = self.vertex_wisp
-        slope = np.bincount(wisp, np.sum(g * dx, axis=1), minlength=len(search))
+        slope = self._wisp_sum(np.sum(g * dx, axis=1))
         G0 = self.wisp_potentials(x)
         alpha = np.ones_like(slope) if alpha is None else np.where(search, 1.0, alpha)
         noise = np.abs(0.5 * slope) <= ENERGY_FLOOR * np.abs(G0)
@@ -1249,7 +1255,7 @@ class Integrator:
                 self.scene.offsets, self.asm.mat.getOwnershipRange()[0] // 3, self.free, self.comm)
         with self.timers("solve"):
             verdict = self._coupled.check(self.asm.local_block_csr(), self.solver.ksp.getOperators()[0],
-                                          np.where(self.free, self.scene.mass / self.dt ** 2, 0.0), self.asm.mat)
+                                          self._mass_unit(), self.asm.mat)
         self.coupled_checks.append(verdict)
         if verdict.unknown:
             self._counts["newton_coupled_unknown"] += 1

@@ -985,7 +985,7 @@ class Integrator:
                 return None
             moved = bad[wisp]
             dx[moved] = again[moved]
-            alpha_again, bad_again, _, taken = self._wisp_line_search(x, g, dx, bad, alpha)
+            alpha_again, bad_again, _, taken = self._wisp_line_search(x, g, dx, bad, alpha, shares)
             alpha[bad], bad = alpha_again[bad], bad & bad_again
         failed, least = global_reduce(self.comm, [float(bad.any()), -alpha.min(initial=1.0)], "max")
         if not failed:
@@ -1017,7 +1017,7 @@ class Integrator:
         rho = wisp_trust.model_ratio(shares - taken, slope, curvature, alpha, shares, ENERGY_FLOOR)
         self._wisp_mu = wisp_trust.next_shifts(self._wisp_tau, alpha, slope, mass_norm, rho)
 
-    def _wisp_line_search(self, x, g, dx, search, alpha=None):
+    def _wisp_line_search(self, x, g, dx, search, alpha=None, shares=None):
         """Armijo backtracking per wisp along the exact update, for the wisps ``search``
         (the others at their factors ``alpha``): each wisp's alpha halves from 1 until
         its share of G (:meth:`wisp_potentials`) satisfies Armijo with its own slope
@@ -1028,10 +1028,11 @@ class Integrator:
         per wisp (alpha, failed, share of G at x, share at alpha): failed where the step
         is an ascent direction or found no decrease within :data:`EXACT_HALVINGS`
         halvings; the last None when no wisp was searched (a failed wisp's share is not
-        at its alpha).  Rank-local."""
+        at its alpha).  ``shares``: the wisps' shares at x when known (a retry's: x is
+        the same).  Rank-local."""
         wisp = self.vertex_wisp
         slope = self._wisp_sum(np.sum(g * dx, axis=1))
-        G0 = self.wisp_potentials(x)
+        G0 = self.wisp_potentials(x) if shares is None else shares
         alpha = np.ones_like(slope) if alpha is None else np.where(search, 1.0, alpha)
         noise = np.abs(0.5 * slope) <= ENERGY_FLOOR * np.abs(G0)
         ascent = search & ~noise & (slope >= 0.0)

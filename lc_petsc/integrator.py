@@ -527,8 +527,8 @@ class Integrator:
             unreduced = len(self.solver.not_reduced)  # solves short of -ksp_rtol so far
             rejected = None                     # the exact step Armijo rejected
             if pending is not None:             # taken now: its assembly and solve are done
-                exact, (g, dx), pending = True, pending, None
-                alpha = self._line_search(x, g, dx, EXACT_HALVINGS, exact=True)
+                exact, (g, dx, known), pending = True, pending, None
+                alpha = self._line_search(x, g, dx, EXACT_HALVINGS, exact=True, known=known)
                 if alpha is None:
                     self._fallback, rejected = "armijo", dx
                     exact, fallbacks = False, fallbacks + 1
@@ -934,19 +934,22 @@ class Integrator:
         below = wisp_trust.WISP_TRUST_BELOW if self.wisp_trust else EXACT_BELOW
         return self.cfg.solver.filter == "exact_or_analytic" and (stay or increment < below)
 
-    def _line_search(self, x, g, dx, halvings, give_up=True, exact=False):
+    def _line_search(self, x, g, dx, halvings, give_up=True, exact=False, known=None):
         """Armijo backtracking on G along update(x, alpha dx, exact): alpha halves from 1
         until G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx.  After ``halvings``
         halvings, or for an ascent direction, returns None (``give_up``) or the last
-        alpha.  Collective; the alphas are recorded."""
-        slope = self.comm.allreduce(float(np.sum(g * dx)))
+        alpha.  ``known``: (G(x), G at alpha 1, grad G . dx) when already computed (a
+        refused verifying step's, :meth:`_verification`), else None.  Collective; the
+        alphas are recorded."""
+        slope = self.comm.allreduce(float(np.sum(g * dx))) if known is None else known[2]
         if give_up and slope >= 0.0:
             return None
-        G0 = self.incremental_potential(x)
+        G0 = self.incremental_potential(x) if known is None else known[0]
         self._probe = (G0, slope)               # for _at_round_off, found or not
         alpha = 1.0
-        for _ in range(halvings):
-            G = self.incremental_potential(self.update(x, alpha * dx, exact))
+        for k in range(halvings):
+            G = known[1] if known is not None and k == 0 else \
+                self.incremental_potential(self.update(x, alpha * dx, exact))
             if G <= G0 + 1e-4 * alpha * slope:
                 self._searched = (G0, G, slope)     # for _model_agrees (alpha 1 only)
                 break
@@ -1135,11 +1138,13 @@ class Integrator:
         exact Hessian is definite.  Returns (verdict, step): ``"kept"`` (the exact step
         within the tolerances), ``"saddle"`` (a wisp's exact block is indefinite:
         :meth:`_at_saddle`), ``"indefinite"`` (CG found A + C indefinite) or ``"short"``
-        (the solve missed -ksp_rtol), both step None, or with the step (grad G, dx): the
+        (the solve missed -ksp_rtol), both step None, or with the step (grad G, dx, the
+        line search's known energies or None, :meth:`_line_search`): the
         kept stop's (taken by :meth:`_take_verified`), or that of a refused stop, which the
         next iteration takes instead of a filtered one (the work kept): ``"far"`` (the
         exact step exceeds a tolerance) or ``"off_model"`` (within them, but G's decrease
-        along it is off its quadratic model, :func:`model_agrees`: two energies more).
+        along it is off its quadratic model, :func:`model_agrees`: two energies more, which
+        the next iteration's line search reuses).
         Counted per frame (``newton_verified``, ``newton_verify_refused``) and recorded in
         ``verifications``."""
         verdict, step = self._verification(x, it)
@@ -1172,12 +1177,12 @@ class Integrator:
             slope = self.comm.allreduce(float(np.sum(g * dx)))
             G0, G1 = self.incremental_potential(x), self.incremental_potential(self.update(x, dx, True))
             within = model_agrees(G0 - G1, -0.5 * slope, max(abs(G0), abs(G1)))
-            if not within:
-                return "off_model", (g, dx)
-        return ("kept" if within else "far"), (g, dx)
+            if not within:      # its energies are the next iteration's line search's first
+                return "off_model", (g, dx, (G0, G1, slope))
+        return ("kept" if within else "far"), (g, dx, None)
 
     def _take_verified(self, x, step):
-        """The iterate after a kept stop's verifying exact step ``step`` (grad G, dx) from
+        """The iterate after a kept stop's verifying exact step ``step`` (grad G, dx, _) from
         x: that step taken whole (on its quadratic model, within the tolerances: 1e2-1e6x
         closer to the step's solution than x on the stiff smashes, docs/newton.md "Taking
         the verifying step"); x itself where the ccd limiter would cut it (a cut step is

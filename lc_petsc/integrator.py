@@ -214,11 +214,11 @@ class Integrator:
         self.shortest_wisp = float(global_reduce(comm, [self.wisp_length.min(initial=np.inf)], "min")[0])
         # the free vertices of wisps held by the head (a pinned vertex), which the first
         # iterate carries with the head's change of motion (time.carry_with_head)
+        self.vertex_wisp = np.repeat(np.arange(len(scene.offsets) - 1), np.diff(scene.offsets))
         self.carried = None
         if config.time.carry_with_head and head.kind != "static":
-            sizes = np.diff(scene.offsets)
-            wisp = np.repeat(np.arange(len(sizes)), sizes)
-            held = np.bincount(wisp[scene.pinned], minlength=len(sizes)) > 0
+            wisp = self.vertex_wisp
+            held = np.bincount(wisp[scene.pinned], minlength=len(scene.offsets) - 1) > 0
             carried = self.free & held[wisp]
             self.carried = carried if carried.any() else None
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
@@ -226,7 +226,6 @@ class Integrator:
         self.root_turn = RootRotation(scene.offsets, scene.pinned, assembler.elements,
                                       {n: t.k for n, t in scene.terms.items()}) \
             if config.time.root_rotation else None
-        self.vertex_wisp = np.repeat(np.arange(len(scene.offsets) - 1), np.diff(scene.offsets))
         #: the step's end: head push-out and path lift, strand separation, ccd frame path
         self.frame_end = FrameEnd(comm, head, strand, self.free, scene.offsets, scene.mass, scene.radius,
                                   self.rest_edge, self.vertex_wisp, head_collision=self.contact,
@@ -322,7 +321,15 @@ class Integrator:
         strand contact, up to round-off).  Rank-local, no collective; a wisp's share
         depends on that wisp alone."""
         per = self._vertex_potentials(x) + self.asm.vertex_energy(x)
-        return np.bincount(self.vertex_wisp, per, minlength=len(self.scene.offsets) - 1)
+        return self._wisp_sum(per)
+
+    def _wisp_sum(self, per_vertex):
+        """Per local wisp, the sum of ``per_vertex`` (nv,) over its vertices."""
+        return np.bincount(self.vertex_wisp, per_vertex, minlength=len(self.scene.offsets) - 1)
+
+    def _mass_unit(self):
+        """Per vertex, the unit of the mass shifts: M/dt^2 on free vertices, 0 on pinned ones."""
+        return np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
 
     def gradient(self, x, elastic=None, head=None):
         """grad G at x (pinned rows zeroed); ``elastic`` reuses an elastic gradient,
@@ -520,8 +527,8 @@ class Integrator:
             unreduced = len(self.solver.not_reduced)  # solves short of -ksp_rtol so far
             rejected = None                     # the exact step Armijo rejected
             if pending is not None:             # taken now: its assembly and solve are done
-                exact, (g, dx), pending = True, pending, None
-                alpha = self._line_search(x, g, dx, EXACT_HALVINGS, exact=True)
+                exact, (g, dx, known), pending = True, pending, None
+                alpha = self._line_search(x, g, dx, EXACT_HALVINGS, exact=True, known=known)
                 if alpha is None:
                     self._fallback, rejected = "armijo", dx
                     exact, fallbacks = False, fallbacks + 1
@@ -728,7 +735,7 @@ class Integrator:
         its collision time).  Other iterations: x."""
         if self.root_turn is None or it != self.cfg.time.newton_iterations - 1:
             return x
-        unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
+        unit = self._mass_unit()
         y = self.root_turn.step(x, self._turn_terms, unit, self._turn_change)
         # every rank turns at the same iteration (a fixed count): the counts summed over all
         turned, reduced = global_reduce(self.comm, [self.root_turn.turned, self.root_turn.reduced], "sum")
@@ -904,7 +911,7 @@ class Integrator:
             float(global_reduce(self.comm, [base.max(initial=0.0)], "max")[0])
         if self.cfg.solver.exact_fallback != "shifted":
             return g
-        unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
+        unit = self._mass_unit()
         with self.timers("solve"):
             least = curvature.least_definite_shifts(self.asm, offsets, unit)
         # beyond the searched range no shift of a wisp's own helps: the uniform ladder
@@ -927,19 +934,22 @@ class Integrator:
         below = wisp_trust.WISP_TRUST_BELOW if self.wisp_trust else EXACT_BELOW
         return self.cfg.solver.filter == "exact_or_analytic" and (stay or increment < below)
 
-    def _line_search(self, x, g, dx, halvings, give_up=True, exact=False):
+    def _line_search(self, x, g, dx, halvings, give_up=True, exact=False, known=None):
         """Armijo backtracking on G along update(x, alpha dx, exact): alpha halves from 1
         until G(update(x, alpha dx)) <= G(x) + 1e-4 alpha grad G . dx.  After ``halvings``
         halvings, or for an ascent direction, returns None (``give_up``) or the last
-        alpha.  Collective; the alphas are recorded."""
-        slope = self.comm.allreduce(float(np.sum(g * dx)))
+        alpha.  ``known``: (G(x), G at alpha 1, grad G . dx) when already computed (a
+        refused verifying step's, :meth:`_verification`), else None.  Collective; the
+        alphas are recorded."""
+        slope = self.comm.allreduce(float(np.sum(g * dx))) if known is None else known[2]
         if give_up and slope >= 0.0:
             return None
-        G0 = self.incremental_potential(x)
+        G0 = self.incremental_potential(x) if known is None else known[0]
         self._probe = (G0, slope)               # for _at_round_off, found or not
         alpha = 1.0
-        for _ in range(halvings):
-            G = self.incremental_potential(self.update(x, alpha * dx, exact))
+        for k in range(halvings):
+            G = known[1] if known is not None and k == 0 else \
+                self.incremental_potential(self.update(x, alpha * dx, exact))
             if G <= G0 + 1e-4 * alpha * slope:
                 self._searched = (G0, G, slope)     # for _model_agrees (alpha 1 only)
                 break
@@ -978,7 +988,7 @@ class Integrator:
                 return None
             moved = bad[wisp]
             dx[moved] = again[moved]
-            alpha_again, bad_again, _, taken = self._wisp_line_search(x, g, dx, bad, alpha)
+            alpha_again, bad_again, _, taken = self._wisp_line_search(x, g, dx, bad, alpha, shares)
             alpha[bad], bad = alpha_again[bad], bad & bad_again
         failed, least = global_reduce(self.comm, [float(bad.any()), -alpha.min(initial=1.0)], "max")
         if not failed:
@@ -1003,15 +1013,14 @@ class Integrator:
         step's shift (``_wisp_tau``), alpha and model ratio (:mod:`lc_petsc.wisp_trust`).
         ``shares``: the wisps' shares of G at x; ``taken``: at the step taken.  The step
         was solved on H + tau M/dt^2 wisp by wisp, so dx^T H dx = -g.dx - tau dx^T M/dt^2 dx.  Rank-local."""
-        wisp, n = self.vertex_wisp, len(self.scene.offsets) - 1
-        slope = np.bincount(wisp, np.sum(g * dx, axis=1), minlength=n)
-        unit = np.where(self.free, self.scene.mass / self.dt ** 2, 0.0)
-        mass_norm = np.bincount(wisp, unit * np.sum(dx * dx, axis=1), minlength=n)
+        slope = self._wisp_sum(np.sum(g * dx, axis=1))
+        unit = self._mass_unit()
+        mass_norm = self._wisp_sum(unit * np.sum(dx * dx, axis=1))
         curvature = -slope - self._wisp_tau * mass_norm
         rho = wisp_trust.model_ratio(shares - taken, slope, curvature, alpha, shares, ENERGY_FLOOR)
         self._wisp_mu = wisp_trust.next_shifts(self._wisp_tau, alpha, slope, mass_norm, rho)
 
-    def _wisp_line_search(self, x, g, dx, search, alpha=None):
+    def _wisp_line_search(self, x, g, dx, search, alpha=None, shares=None):
         """Armijo backtracking per wisp along the exact update, for the wisps ``search``
         (the others at their factors ``alpha``): each wisp's alpha halves from 1 until
         its share of G (:meth:`wisp_potentials`) satisfies Armijo with its own slope
@@ -1022,10 +1031,11 @@ class Integrator:
         per wisp (alpha, failed, share of G at x, share at alpha): failed where the step
         is an ascent direction or found no decrease within :data:`EXACT_HALVINGS`
         halvings; the last None when no wisp was searched (a failed wisp's share is not
-        at its alpha).  Rank-local."""
+        at its alpha).  ``shares``: the wisps' shares at x when known (a retry's: x is
+        the same).  Rank-local."""
         wisp = self.vertex_wisp
-        slope = np.bincount(wisp, np.sum(g * dx, axis=1), minlength=len(search))
-        G0 = self.wisp_potentials(x)
+        slope = self._wisp_sum(np.sum(g * dx, axis=1))
+        G0 = self.wisp_potentials(x) if shares is None else shares
         alpha = np.ones_like(slope) if alpha is None else np.where(search, 1.0, alpha)
         noise = np.abs(0.5 * slope) <= ENERGY_FLOOR * np.abs(G0)
         ascent = search & ~noise & (slope >= 0.0)
@@ -1128,11 +1138,13 @@ class Integrator:
         exact Hessian is definite.  Returns (verdict, step): ``"kept"`` (the exact step
         within the tolerances), ``"saddle"`` (a wisp's exact block is indefinite:
         :meth:`_at_saddle`), ``"indefinite"`` (CG found A + C indefinite) or ``"short"``
-        (the solve missed -ksp_rtol), both step None, or with the step (grad G, dx): the
+        (the solve missed -ksp_rtol), both step None, or with the step (grad G, dx, the
+        line search's known energies or None, :meth:`_line_search`): the
         kept stop's (taken by :meth:`_take_verified`), or that of a refused stop, which the
         next iteration takes instead of a filtered one (the work kept): ``"far"`` (the
         exact step exceeds a tolerance) or ``"off_model"`` (within them, but G's decrease
-        along it is off its quadratic model, :func:`model_agrees`: two energies more).
+        along it is off its quadratic model, :func:`model_agrees`: two energies more, which
+        the next iteration's line search reuses).
         Counted per frame (``newton_verified``, ``newton_verify_refused``) and recorded in
         ``verifications``."""
         verdict, step = self._verification(x, it)
@@ -1165,12 +1177,12 @@ class Integrator:
             slope = self.comm.allreduce(float(np.sum(g * dx)))
             G0, G1 = self.incremental_potential(x), self.incremental_potential(self.update(x, dx, True))
             within = model_agrees(G0 - G1, -0.5 * slope, max(abs(G0), abs(G1)))
-            if not within:
-                return "off_model", (g, dx)
-        return ("kept" if within else "far"), (g, dx)
+            if not within:      # its energies are the next iteration's line search's first
+                return "off_model", (g, dx, (G0, G1, slope))
+        return ("kept" if within else "far"), (g, dx, None)
 
     def _take_verified(self, x, step):
-        """The iterate after a kept stop's verifying exact step ``step`` (grad G, dx) from
+        """The iterate after a kept stop's verifying exact step ``step`` (grad G, dx, _) from
         x: that step taken whole (on its quadratic model, within the tolerances: 1e2-1e6x
         closer to the step's solution than x on the stiff smashes, docs/newton.md "Taking
         the verifying step"); x itself where the ccd limiter would cut it (a cut step is
@@ -1249,7 +1261,7 @@ class Integrator:
                 self.scene.offsets, self.asm.mat.getOwnershipRange()[0] // 3, self.free, self.comm)
         with self.timers("solve"):
             verdict = self._coupled.check(self.asm.local_block_csr(), self.solver.ksp.getOperators()[0],
-                                          np.where(self.free, self.scene.mass / self.dt ** 2, 0.0), self.asm.mat)
+                                          self._mass_unit(), self.asm.mat)
         self.coupled_checks.append(verdict)
         if verdict.unknown:
             self._counts["newton_coupled_unknown"] += 1

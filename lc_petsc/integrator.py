@@ -228,6 +228,7 @@ class Integrator:
         self._shift = 0.0              # the mass shift of the last exact step (history)
         self._tried_shift = 0.0        # the largest of the last exact assembly's (_exact_system)
         self._wisp_tau = None          # per wisp: the last exact assembly's shifts (_exact_system)
+        self._kept_system = None       # the last exact assembly's x, matrix and parts (_exact_assembly)
         self._wisp_alpha = None        # per vertex: its wisp's alpha (_wisp_line_search) or None
         # solver.wisp_trust (lc_petsc/wisp_trust.py): per local wisp the shift its next exact
         # step starts from, and whether this solve has kept an exact step (then it stays exact)
@@ -794,11 +795,13 @@ class Integrator:
             return x + step
 
     # -------------------------------------------------------------- Newton system
-    def _assemble_system(self, x, it, filter=None, shift=0.0):
+    def _assemble_system(self, x, it, filter=None, shift=0.0, keep=False):
         """Fill the Newton matrix at x (element and strand-contact Hessians with
         ``filter``, default the configured one; the mass term (1 + ``shift``) M/dt^2);
-        returns grad G."""
+        returns grad G.  ``keep``: the elements' diagonal blocks are kept for
+        :meth:`_exact_assembly` (the mass added after them: the same bits)."""
         asm, sc, dt = self.asm, self.scene, self.dt
+        mass = (1.0 + shift) * sc.mass / dt ** 2
         chosen = asm.filter
         if filter is not None:
             asm.filter = filter
@@ -806,7 +809,11 @@ class Integrator:
                 self.strand.filter = filter
         try:
             with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
-                g = self.gradient(x, elastic=asm.assemble(x, (1.0 + shift) * sc.mass / dt ** 2))
+                g = self.gradient(x, elastic=asm.assemble(x, None if keep else mass))
+                if keep:
+                    diagonal = asm.diagonal_blocks()
+                    with self.timers("assembly"):
+                        asm.add_mass(mass)
                 _, idx, cg = self._contact_terms(x, True)
                 if cg is not None:
                     with self.timers("collision"):
@@ -820,6 +827,32 @@ class Integrator:
         asm.commit()
         if self.strand is not None:         # the Newton matrix is A + C (contact.py)
             self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat, asm.local_block_csr))
+        if keep:
+            self._kept_system = (x, asm.commits, g, diagonal, idx, cg)
+        return g
+
+    def _exact_assembly(self, x, it, shift):
+        """The exact Hessian + ``shift`` M/dt^2 at x committed (returns grad G).  At the x
+        of the last exact assembly, its matrix still the committed one, only the mass term
+        changes: the elements' diagonal blocks kept from it, the new mass and the head's
+        blocks added in :meth:`_assemble_system`'s order (the same bits), without the
+        elements' pass (the wisps' own shifts of :meth:`_exact_system`, the retries of
+        :meth:`_wisp_step` and the :data:`EXACT_SHIFTS` ladder are all at one x).  With
+        strand contact, whose blocks go on the diagonal too in its own order, the whole
+        system is assembled again.  Collective."""
+        kept, asm = self._kept_system, self.asm
+        if kept is None or kept[0] is not x or kept[1] != asm.commits:
+            keep = self.strand is None and self.cfg.solver.exact_fallback == "shifted"
+            return self._assemble_system(x, it, filter="none", shift=shift, keep=keep)
+        _, _, g, diagonal, idx, cg = kept
+        with self.timers("assembly"):
+            asm.set_diagonal_blocks(diagonal)
+            asm.add_mass((1.0 + shift) * self.scene.mass / self.dt ** 2)
+        if cg is not None:
+            with self.timers("collision"):
+                asm.add_diagonal(idx, cg[1])
+        asm.commit()
+        self._kept_system = (x, asm.commits, g, diagonal, idx, cg)
         return g
 
     def _trust_region_step(self, x, it, region):
@@ -880,11 +913,11 @@ class Integrator:
         """Assemble the exact Hessian + ``shift`` M/dt^2 at x (returns grad G).  With
         ``solver.exact_fallback = "shifted"``, a wisp whose block is not positive definite
         there gets its own shift, :data:`WISP_SHIFT_FACTOR` times the least that makes it
-        so (:func:`lc_petsc.curvature.least_definite_shifts`), and the matrix is assembled
-        again: an exact step on an indefinite block heads for a stationary point, often a
-        saddle of G (hairball10's frame 0 from rest: the step's solution found in 21
-        iterations instead of a saddle refused after 20 and cut back, 39; docs/newton.md
-        "Avoiding the saddle").  ``shift`` is a number or one per local wisp (the retries
+        so (:func:`lc_petsc.curvature.least_definite_shifts`), and the matrix's mass term
+        is replaced (:meth:`_exact_assembly`): an exact step on an indefinite block heads
+        for a stationary point, often a saddle of G (hairball10's frame 0 from rest: the
+        step's solution found in 21 iterations instead of a saddle refused after 20 and
+        cut back, 39; docs/newton.md "Avoiding the saddle").  ``shift`` is a number or one per local wisp (the retries
         of :meth:`_wisp_step`); a wisp's least shift is on top of the shift assembled (it
         had replaced it: the ladder's steps at 0.1 and 1 left blocks indefinite).  Per wisp
         and rank-local (the shifts in ``_wisp_tau``); one reduction of the largest shift
@@ -892,8 +925,7 @@ class Integrator:
         offsets = self.scene.offsets
         sizes = np.diff(offsets)
         base = np.broadcast_to(np.asarray(shift, float), sizes.shape)   # per wisp
-        g = self._assemble_system(x, it, filter="none", shift=shift if np.ndim(shift) == 0 else
-                                  np.repeat(base, sizes))
+        g = self._exact_assembly(x, it, shift if np.ndim(shift) == 0 else np.repeat(base, sizes))
         self._wisp_tau = base.copy()
         # per-wisp shifts differ by rank (the retries of _wisp_step): their largest gathered
         self._tried_shift = float(shift) if np.ndim(shift) == 0 else \
@@ -908,8 +940,8 @@ class Integrator:
         tau = np.where(np.isfinite(least), base + WISP_SHIFT_FACTOR * least, base)
         self._wisp_tau = tau
         tried = float(global_reduce(self.comm, [tau.max(initial=0.0)], "max")[0])
-        if tried > self._tried_shift:       # the assembly is collective: every rank again
-            g = self._assemble_system(x, it, filter="none", shift=np.repeat(tau, sizes))
+        if tried > self._tried_shift:       # collective: every rank commits its shifts
+            g = self._exact_assembly(x, it, np.repeat(tau, sizes))
         self._tried_shift = tried
         return g
 

@@ -229,6 +229,8 @@ class Integrator:
         self._tried_shift = 0.0        # the largest of the last exact assembly's (_exact_system)
         self._wisp_tau = None          # per wisp: the last exact assembly's shifts (_exact_system)
         self._kept_system = None       # the last exact assembly's x, matrix and parts (_exact_assembly)
+        self._inertia = None           # (matrix, its wisps not positive definite) (_negative_wisps)
+        self._kept_shares = None       # (x, the wisps' shares of G at x) (_wisp_step)
         self._wisp_alpha = None        # per vertex: its wisp's alpha (_wisp_line_search) or None
         # solver.wisp_trust (lc_petsc/wisp_trust.py): per local wisp the shift its next exact
         # step starts from, and whether this solve has kept an exact step (then it stays exact)
@@ -933,8 +935,10 @@ class Integrator:
         if self.cfg.solver.exact_fallback != "shifted":
             return g
         unit = self._mass_unit()
+        negative = np.zeros(len(sizes), bool)
         with self.timers("solve"):
-            least = curvature.least_definite_shifts(self.asm, offsets, unit)
+            least = curvature.least_definite_shifts(self.asm, offsets, unit, negative)
+        self._inertia = self.asm.commits, np.flatnonzero(negative)     # for _at_saddle
         # beyond the searched range no shift of a wisp's own helps: the uniform ladder
         # (and CG, Armijo) decide as before.  ``least`` is on top of the shift assembled
         tau = np.where(np.isfinite(least), base + WISP_SHIFT_FACTOR * least, base)
@@ -997,7 +1001,11 @@ class Integrator:
         for the next exact step is set from this one's (:func:`lc_petsc.wisp_trust.next_shifts`).
         Collective."""
         wisp = self.vertex_wisp
-        alpha, bad, shares, taken = self._wisp_line_search(x, g, dx, np.ones(len(self.scene.offsets) - 1, bool))
+        # the EXACT_SHIFTS ladder searches at the same x: its shares kept
+        known = self._kept_shares[1] if self._kept_shares is not None and self._kept_shares[0] is x else None
+        alpha, bad, shares, taken = self._wisp_line_search(x, g, dx, np.ones(len(self.scene.offsets) - 1, bool),
+                                                           shares=known)
+        self._kept_shares = x, shares
         for _ in range(WISP_RETRIES):
             if not global_reduce(self.comm, [float(bad.any())], "max")[0]:
                 break
@@ -1253,14 +1261,23 @@ class Integrator:
         gather, at stops only); counted in ``newton_saddle``."""
         if not exact:
             return False
-        with self.timers("solve"):
-            local = curvature.negative_wisps(self.asm, self.scene.offsets) + self.scene.first_wisp
+        local = self._negative_wisps() + self.scene.first_wisp
         found = [int(w) for part in self.comm.allgather(local.tolist()) for w in part]
         if not found:
             return False
         self._saddles += 1
         self._saddle_wisps = self._scene_wisps(found)
         return True
+
+    def _negative_wisps(self):
+        """The local wisps whose block of the committed matrix is not positive definite
+        (:func:`lc_petsc.curvature.negative_wisps`), counted once per matrix: the shifted
+        fallback's :meth:`_exact_system` counts them in its own pass, and a verifying
+        step's matrix (:meth:`_verification`) is the next iteration's when it is taken."""
+        if self._inertia is None or self._inertia[0] != self.asm.commits:
+            with self.timers("solve"):
+                self._inertia = self.asm.commits, curvature.negative_wisps(self.asm, self.scene.offsets)
+        return self._inertia[1]
 
     def _at_coupled_saddle(self, exact):
         """Whether this iteration's stop is on a saddle of G that only the coupling of

@@ -110,6 +110,7 @@ class Assembler:
         if self.mat_block is None:
             self.values = buffer((len(self.csr_rows), 9))
         self._in_blocks = False     # this iteration's values are in block_array(), not in R
+        self.commits = 0            #: matrices committed so far
         self.commit()   # first fill (PETSc's one-off row compression) at build, not frame 0
 
     # ------------------------------------------------------------------ pattern
@@ -308,6 +309,19 @@ class Assembler:
         self.B[idx, b + 1] += h01
         self.B[idx + 1, b - 1] += h01.transpose(0, 2, 1)
 
+    def diagonal_blocks(self):
+        """A copy of this iteration's diagonal blocks (nv, 3, 3) before :meth:`commit` (after
+        ``assemble(x)`` without a mass: the elements' own, which :meth:`set_diagonal_blocks`
+        puts back to change the mass term without the elements' pass)."""
+        with self._blocks() as (view, at):
+            return view[at(np.arange(self.scene.nv), self.b)].copy()
+
+    def set_diagonal_blocks(self, blocks):
+        """Overwrite this iteration's diagonal blocks with ``blocks`` (nv, 3, 3) (from
+        :meth:`diagonal_blocks`); the other blocks keep their values, then :meth:`commit`."""
+        with self._blocks() as (view, at):
+            view[at(np.arange(self.scene.nv), self.b)] = blocks
+
     def add_mass(self, diag):
         """Add diag (nv,) * I on the diagonal (M / dt^2)."""
         if not self._in_blocks:
@@ -350,7 +364,9 @@ class Assembler:
 
     def commit(self):
         """Pinned rows/cols -> identity; refill the matrix (and pmat): in place when
-        possible (:meth:`_probe_value_arrays`), else with one CSR call each."""
+        possible (:meth:`_probe_value_arrays`), else with one CSR call each.  Counted in
+        :attr:`commits` (what identifies the committed matrix)."""
+        self.commits += 1
         with self.timers("assembly"):
             B, b = self.B, self.b
             with self._blocks() as (view, at):

@@ -89,18 +89,22 @@ def negative_wisps(assembler, offsets):
     return np.flatnonzero(_Blocks(assembler, offsets).counts(np.zeros(offsets[-1]), np.ones(len(offsets) - 1, bool)))
 
 
-def least_definite_shifts(assembler, offsets, unit):
+def least_definite_shifts(assembler, offsets, unit, negative=None):
     """Per local wisp, the least s >= 0 (to a ratio of :data:`SHIFT_RESOLUTION` above it)
     for which its diagonal block of ``assembler``'s committed matrix plus s ``unit``
     (one diagonal entry per local vertex: M/dt^2 on the free vertices, 0 on pinned ones)
     is positive definite: 0 where the block already is, inf where not even s =
     :data:`SHIFT_RANGE`[1] makes it so.  A bisection in log s of the inertia, the
     indefinite wisps only (docs/newton.md "Avoiding the saddle"); rank-local, per wisp,
-    so the same on any partition."""
+    so the same on any partition.  ``negative``: None or a bool array (n_wisps,) set to
+    the wisps whose unshifted block is not positive definite (:func:`negative_wisps`'
+    answer, from the same pass)."""
     blocks = _Blocks(assembler, offsets)
     n = len(offsets) - 1
     least = np.zeros(n)
     bad = blocks.counts(np.zeros(offsets[-1]), np.ones(n, bool)) > 0
+    if negative is not None:
+        negative[:] = bad
     if not bad.any():
         return least
     lo, hi = np.log(SHIFT_RANGE[0]), np.full(n, np.log(SHIFT_RANGE[1]))

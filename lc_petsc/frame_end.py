@@ -255,6 +255,44 @@ class FrameEnd:
             head_left = push and self.head_left(x_old, x, t_old)
         return x, pairs, deep, dmin, n_sep, lifted
 
+    def strand_end(self, x_old, x, motion, t_old, lifted=None):
+        """Strand contact's part of a step's end on ``x`` (collective): its measure, then
+        in ccd mode the path check and separation (:meth:`collision_free_end`), in
+        penalty mode the separation (:meth:`separate`) and the head after it
+        (:meth:`head_after_separation`).  ``x_old`` at ``t_old``: the step's start;
+        ``motion``: the head's rigid motion over the step; ``lifted``: the head lift's
+        move in ``x`` so far (or None).  Returns (x, the lift's move kept in x or None,
+        (pairs, deep pairs, min distance, pairs separated))."""
+        strand = self.strand
+        pairs, deep, dmin = strand.measure(x)
+        n_sep = 0
+        strand.last_separation = (0, 0, 0)
+        if strand.mode == "ccd":
+            x, pairs, deep, dmin, n_sep, lifted = self.collision_free_end(x_old, x, motion, deep, t_old, lifted)
+        elif self.separation:
+            x, pairs, deep, dmin, n_sep = self.separate(x, pairs, deep, dmin)
+            if self.push_out:
+                y, lifted = self.head_after_separation(x_old, x, t_old, lifted)
+                if global_reduce(self.comm, [float(y is not x)], "max")[0]:
+                    pairs, deep, dmin = strand.measure(y)
+                x = y
+        return x, lifted, (pairs, deep, dmin, n_sep)
+
+    def head_after_separation(self, x_old, x, t_old, lifted):
+        """Penalty mode, after the separation: the head's end (:meth:`head_end`) in at
+        most :data:`FRAME_END_ROUNDS` rounds, until no vertex is left too deep or with a
+        path to lift (:meth:`head_left`).  The separation moves lifted vertices, their
+        paths cut under the scalp again (soft hairball, gravity 5000: 22 paths through in
+        8 steps, 14 of them mendable); penalty mode keeps no crossing guarantee, so the
+        head goes last, in rounds: the projection moves a lifted vertex back.  Returns
+        (x, ``lifted`` plus the lifts' moves); ``x`` itself when nothing moved."""
+        y = x
+        for _ in range(FRAME_END_ROUNDS):
+            y, lifted = self.head_end(x_old, y, t_old, lifted)
+            if not self.head_left(x_old, y, t_old):
+                break
+        return y, lifted
+
     def separate(self, x, pairs, deep, dmin):
         """The separation of the pairs closer than d0 / 2 (``deep`` of them): at most
         :data:`SEPARATION_ROUNDS` Jacobi rounds in all, over at most 3 calls of

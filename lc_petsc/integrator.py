@@ -107,62 +107,30 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   different wisps meet on the straight path (docs/contact.md); in ``penalty`` mode
   these calls change nothing.
 
-The stop arithmetic is in :mod:`lc_petsc.newton_stop`, the first-iterate predictors and
-the edge-length walks in :mod:`lc_petsc.predictors`, the step's end (head push-out and
-path lift, strand separation, ccd frame path) in :class:`lc_petsc.frame_end.FrameEnd`.
+The stop arithmetic, the loop's state and the notes on stops are in
+:mod:`lc_petsc.newton_stop`, the first-iterate predictors and the edge-length walks in
+:mod:`lc_petsc.predictors`, the step's end (head push-out and path lift, strand
+separation, ccd frame path) in :class:`lc_petsc.frame_end.FrameEnd`.
 """
 
 from __future__ import annotations
-
-from typing import NamedTuple, Optional
 
 import numpy as np
 
 from lc_petsc import contact_curvature, curvature, wisp_trust
 from lc_petsc.elements import head_contact
-from lc_petsc.frame_end import FRAME_END_ROUNDS, FrameEnd
+from lc_petsc.frame_end import FrameEnd
 from lc_petsc.newton_stop import (CHORD_TRY_C, ENERGY_FLOOR, EXACT_BELOW, LOOSE_TOLERANCE, QUADRATIC_SAFETY,
-                                  StepRecord, chord_basis, chord_stop, confirms_stop, model_agrees,
-                                  quadratic_error_estimate, step_contraction)
+                                  NewtonState, SolveRecord, StepRecord, chord_basis, chord_stop, confirms_stop,
+                                  model_agrees, quadratic_error_estimate, saddle_note, step_contraction, stop_note,
+                                  unconfirmed_note, verify_note)
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.root_rotation import RootRotation
-from lc_petsc.predictors import (corotational_update, follow_the_leader, project_rest_lengths,
+from lc_petsc.predictors import (corotational_update, follow_the_leader, head_motion_change, project_rest_lengths,
                                  retract_edge_lengths, start_carry_weight)
 from lc_petsc.scene.state import vertex_wisp_length
 from lc_petsc.errors import SimulationError, SolverError
-from lc_petsc.trust_region import ETA, TRUST_RETRIES, ratio, update_radius
-
-
-class _Solve(NamedTuple):
-    """One backward-Euler step's Newton: iterations, converged (None without a
-    tolerance), the last relative increment, exact Hessians replaced by filtered ones,
-    chord checks (``time.newton_stop = "chord_estimate"``), with strand contact (pairs,
-    deep pairs, min distance, pairs separated), and whether the cap ended it on a stop
-    awaiting its confirmation (:func:`confirms_stop`: an increment below the tolerance,
-    yet not converged) or on one refused for steps off their quadratic model
-    (:meth:`Integrator._loose_verdict`; the same), or whether its stop was refused on a
-    saddle of G (:meth:`Integrator._at_saddle`: ended there, not converged)."""
-
-    iterations: int
-    converged: Optional[bool]
-    increment: float
-    fallbacks: int
-    chord_checks: int
-    contact: Optional[tuple]
-    unconfirmed: bool = False
-    refused: bool = False
-    saddle: bool = False
-
-
-class _Region:
-    """A backward-Euler step's trust-region state: the radius (None before the first
-    iterate), whether the last step was kept and interior (not on the boundary) and
-    whether its decrease of G agreed with the model's (:func:`model_agrees`)."""
-
-    def __init__(self):
-        self.radius = None
-        self.interior = False
-        self.agrees = False             # and its decrease agreed with the model (model_agrees)
+from lc_petsc.trust_region import ETA, TRUST_RETRIES, Region, ratio, update_radius
 
 
 class Integrator:
@@ -260,6 +228,9 @@ class Integrator:
         self._shift = 0.0              # the mass shift of the last exact step (history)
         self._tried_shift = 0.0        # the largest of the last exact assembly's (_exact_system)
         self._wisp_tau = None          # per wisp: the last exact assembly's shifts (_exact_system)
+        self._kept_system = None       # the last exact assembly's x, matrix and parts (_exact_assembly)
+        self._inertia = None           # (matrix, its wisps not positive definite) (_negative_wisps)
+        self._kept_shares = None       # (x, the wisps' shares of G at x) (_wisp_step)
         self._wisp_alpha = None        # per vertex: its wisp's alpha (_wisp_line_search) or None
         # solver.wisp_trust (lc_petsc/wisp_trust.py): per local wisp the shift its next exact
         # step starts from, and whether this solve has kept an exact step (then it stays exact)
@@ -344,27 +315,6 @@ class Integrator:
         g[~self.free] = 0.0
         return g
 
-    def head_motion_change(self, x, dt, t_next):
-        """The change of the head's rigid motion at positions ``x`` (n, 3) between the
-        last step and this one: u_now(x) - u_last(x), u_now the motion from t to
-        ``t_next`` (= t + ``dt``), u_last the one from t - ``dt`` to t (none before t = 0:
-        the head starts from rest).  For a smooth motion it is second order in dt: the
-        change of the head's step displacement field (its angular and linear acceleration
-        times dt^2; zero for a steady rotation, whose centripetal term it leaves out, as
-        x_n + dt v_n does); at a start, the head's whole first step.  Both fields are taken
-        at x_n (u_last maps positions at t - dt; the difference is second order in the
-        step's rotation).  With step cutback ``dt`` is the substep's, while v_n spans the
-        last step's: the carry is then only roughly the rigid-consistent one.  Added to
-        x_n + dt v_n for the free vertices of the wisps the head holds, it makes Newton's
-        first iterate move them as the roots must move (measured in docs/newton.md,
-        "Tenth round")."""
-        Q, q = self.head.rigid_motion(self.t, t_next)
-        Qp, qp = self.head.rigid_motion(max(self.t - dt, 0.0), self.t)
-        D = Q - Qp
-        # row by row in a fixed order (not a BLAS product, whose summation order may
-        # depend on the number of rows): the same bits on any partition
-        return x[:, 0:1] * D[:, 0] + x[:, 1:2] * D[:, 1] + x[:, 2:3] * D[:, 2] + (q - qp)
-
     # -------------------------------------------------------------- one frame
     def step(self):
         """Advance one frame (collective): one backward-Euler step of ``time.dt``, with
@@ -431,7 +381,7 @@ class Integrator:
         (its iterations counted in ``_discarded``) and the step redone from its start
         state as two steps of dt / 2, each cut again if it fails (up to ``substeps``
         in all).  The decision is the same on every rank (the increments are reduced).
-        Returns the kept steps' :class:`_Solve` records, in time order."""
+        Returns the kept steps' :class:`~lc_petsc.newton_stop.SolveRecord` records, in time order."""
         start = self.x, self.v, self.t
         move = self._projection_move
         solve = self._backward_euler(dt, t_next)
@@ -449,8 +399,24 @@ class Integrator:
 
     def _backward_euler(self, dt, t_next):
         """One backward-Euler step of ``dt`` from (x, v, t) to ``t_next`` (head and
-        pinned vertices at ``t_next``): Newton, the strand-contact hooks, then x, v and
-        t are updated (collective).  Returns its :class:`_Solve` record."""
+        pinned vertices at ``t_next``): the first iterate (:meth:`_first_iterate`),
+        Newton (:meth:`_newton`), the step's end (:meth:`_end_step`), then x, v and t
+        are updated (collective).  Returns its :class:`~lc_petsc.newton_stop.SolveRecord` record."""
+        x_old, x, motion = self._first_iterate(dt, t_next)
+        s = self._newton(x)
+        x, lifted, contact = self._end_step(x_old, s.x, motion)
+        self.v = (x - x_old) / dt
+        if lifted is not None:
+            self.v -= lifted / dt
+        self.x = x
+        self.t = self.t_next
+        return SolveRecord(s.n_it, s.converged, s.reported, s.fallbacks, s.chord_checks, contact, s.unconfirmed,
+                      s.off_model, s.saddle)
+
+    def _first_iterate(self, dt, t_next):
+        """The step's set-up and Newton's first iterate: pinned vertices at ``t_next``,
+        the head's carry, follow-the-leader, in ccd mode no crossing on the path from
+        x_n.  Returns (x_n, the first iterate, the head's rigid motion over the step)."""
         cfg, sc = self.cfg, self.scene
         self.dt = dt
         self.t_next = t_next
@@ -462,7 +428,7 @@ class Integrator:
         if pin.any():
             x[pin] = self.head.pinned_positions(sc.x_rest[pin], self.t_next)
         if self.carried is not None:
-            change = self.head_motion_change(x_old[self.carried], dt, t_next)
+            change = head_motion_change(self.head, x_old[self.carried], self.t, dt, t_next)
             if self.t == 0.0:       # the start from rest: a velocity jump, felt near the roots
                 change *= self.start_weight[self.carried, None]
             x[self.carried] += change
@@ -472,206 +438,259 @@ class Integrator:
         motion = self.head.rigid_motion(self.t, self.t_next)
         if self.strand is not None:             # ccd mode: no crossing on x_old -> first iterate
             x = self.strand.collision_free_frame(x_old, x, motion, reuse=False)[0]
-        n_it = 0
-        converged = None
-        increment = reported = np.inf     # the last step's; what newton_increment reports
+        return x_old, x, motion
+
+    def _newton(self, x):
+        """Newton's iterations from the first iterate ``x`` until a stop or the cap
+        (collective).  Returns their :class:`~lc_petsc.newton_stop.NewtonState` state (the last iterate in ``x``)."""
+        cfg = self.cfg
         if self.history is not None:
             self._force_scale = self.frame_force_scale()
-        fallbacks = chord_checks = 0
-        steps = []                              # this solve's steps (StepRecord), in order
-        region = _Region() if self.trust is not None else None
-        quadratic = []                          # the increments of the last full exact steps in a row
-        modelled = []                           # and whether each agreed with its quadratic model
-        claimed_before = False                  # the last iteration's stop (to be confirmed)
-        unbased_claim = False                   # ... made by a chord check without chord_basis
-        loose = confirms_stop(cfg.time.newton_increment_tol, cfg.time.newton_tol, self.shortest_wisp)
-        last_step = prior_step = None           # the last two iterations' steps (_model_agrees)
-        unconfirmed = False                     # this iteration's stop awaits the next
-        off_model = False                       # this iteration's stop was refused (_loose_verdict)
-        saddle = False                          # this iteration's stop is on a saddle (_at_saddle)
-        pending = None                          # a refused stop's verifying exact step (_verify_stop)
-        self._wisp_mu = np.zeros(len(sc.offsets) - 1)
+        s = NewtonState(x, confirms_stop(cfg.time.newton_increment_tol, cfg.time.newton_tol, self.shortest_wisp),
+                    Region() if self.trust is not None else None)
+        self._wisp_mu = np.zeros(len(self.scene.offsets) - 1)
         self._kept_exact = False
         for it in range(cfg.time.newton_iterations):
-            n_it += 1
-            unconfirmed = off_model = saddle = False
-            if region is not None and it > 0:   # after a filtered first step: lc_petsc/trust_region.py
-                g, dx, exact = self._trust_region_step(x, it, region)
-                x_prev, x = x, self._last_turn(it, self.update(x, dx))
-                increment, absolute = self.increments(x - x_prev)
-                steps.append(StepRecord(increment, region.interior, False, True))   # a boundary step is a cut one
-                reported = increment
-                if self.history is not None:
-                    self._record_iteration(it, x_prev, x, g, increment, 1.0, exact)
-                converged = self._newton_converged(steps, absolute)
-                if converged is not None:       # a short step is not convergence
-                    converged = converged and region.interior
-                # the loose-tolerance rule below, with the trust region's own rho (smash at
-                # E = 1e12, dt 0.2, 1e-3: a stop 2.5x the tolerance away)
-                claim = bool(converged)
-                step = dict(agrees=region.agrees)
-                confirmed, refused = self._loose_verdict(loose, claim, claimed_before, increment, steps,
-                                                         (step, last_step, prior_step))
-                converged = converged and confirmed and not refused
-                claimed_before, last_step, prior_step = claim, step, last_step
-                unconfirmed, off_model = claim and not confirmed, refused
-                self._counts["newton_stops_refused"] += refused
-                if self.monitor is not None:
-                    self._monitor(it, increment, self._step_kind(exact, region=True)
-                                  + _stop_note(unconfirmed, refused), 1.0, self.trust.iterations[-1], cut=False)
-                if converged:
-                    break
-                continue
-            exact = self._exact_hessian(increment, (bool(quadratic) and cfg.solver.exact_stay) or self._kept_exact)
-            self._shift, self._fallback, self._searched, self._probe = 0.0, "", None, None
-            unreduced = len(self.solver.not_reduced)  # solves short of -ksp_rtol so far
-            rejected = None                     # the exact step Armijo rejected
-            if pending is not None:             # taken now: its assembly and solve are done
-                exact, (g, dx, known), pending = True, pending, None
-                alpha = self._line_search(x, g, dx, EXACT_HALVINGS, exact=True, known=known)
-                if alpha is None:
-                    self._fallback, rejected = "armijo", dx
-                    exact, fallbacks = False, fallbacks + 1
-            elif exact:
-                g, dx, alpha = self._exact_step(x, it, 0.0)
-                if dx is not None and alpha is not None:
-                    self._shift = self._tried_shift     # > 0: some wisp's block was shifted
-                if dx is None or alpha is None:
-                    self._fallback = "indefinite" if dx is None else "armijo"
-                    rejected = dx
-                    for tau in EXACT_SHIFTS if cfg.solver.exact_fallback == "shifted" else ():
-                        g, dx, alpha = self._exact_step(x, it, tau)
-                        if dx is not None and alpha is not None:
-                            self._shift = self._tried_shift
-                            break
-                if dx is None or alpha is None:     # no exact Newton step: a filtered one
-                    exact = False
-                    fallbacks += 1
-                else:       # solver.wisp_trust: the wisps' shifts carry the damping from here on
-                    self._kept_exact = self.wisp_trust
-            if not exact:
-                self._wisp_alpha = None
-                g = self._assemble_system(x, it)
-                dx = self._solve_step(g, it)
-                alpha = 1.0
-                self._searched = None
-            step_ksp = self.solver.iterations[-1]     # the step taken (before a chord check)
-            if cfg.time.line_search and not exact:
-                alpha = self._line_search(x, g, dx, 20, give_up=False)
-            x_prev, x = x, self._last_turn(it, self.update(x, self._scaled(alpha, dx), exact))
-            if self.strand is not None:         # ccd mode: per vertex, collision-free path
-                nonlinear = self.retract or (exact and self.turn_exact)
-                x = self.strand.limit_step(x_prev, x, x_prev + alpha * dx if nonlinear else None)
-            increment, absolute = self.increments(x - x_prev)
-            measure = increment
-            if self.converging and (alpha < 1.0 or (self.strand is not None and self.strand.mode == "ccd")):
-                # a damped or limiter-cut step is short without the iterate being close:
-                # the full step measures it for the stop and newton_increment (docs/newton.md
-                # "Twelfth round"; the exact switch keeps the step taken: switching on the
-                # full step cost smash's frame 0 a cutback, 28 -> 72 iterations)
-                whole, whole_absolute = self.increments(dx)
-                measure, absolute = max(increment, whole), max(absolute, whole_absolute)
-            if self.converging and rejected is not None:
-                # the step after an exact step Armijo rejected (alpha 0, as it were) is
-                # measured by that step too: a filtered 8e-6 after a rejected 1e-3 had
-                # stopped the stiff smash 242x the tolerance away (docs/newton.md)
-                whole, whole_absolute = self.increments(rejected)
-                measure, absolute = max(measure, whole), max(absolute, whole_absolute)
-            reported = measure
-            if self.history is not None:
-                self._record_iteration(it, x_prev, x, g, increment, alpha, exact)
-            whole = alpha == 1.0 and self._shift == 0.0 and not (
-                self.strand is not None and self.strand.last_cut)
-            # the contraction is measured over whole Newton steps only: a damped step's
-            # full measure taken as the rate's base let the stiff smash (E = 1e12, dt 0.2)
-            # stop 155x the tolerance away at 1e-5 (docs/newton.md "Stopping rule"); a
-            # step after an exact attempt Armijo rejected is a damped one (measured above),
-            # a shifted one or one after an indefinite exact matrix no Newton step at all
-            round_off = self._at_round_off()
-            newton = (self._shift == 0.0 and self._fallback in ("", "armijo")) or round_off
-            steps.append(StepRecord(measure, (whole and newton) or round_off,
-                                    exact or cfg.solver.filter == "none", newton))
-            converged = self._newton_converged(steps, absolute)
-            full = exact and whole
-            quadratic = quadratic + [increment] if full else []
-            # whether the full exact step decreased G as its model predicts (the line
-            # search's energies: free): off it, the step is no quadratic one
-            modelled = modelled + [full and self._searched is not None and model_agrees(
-                self._searched[0] - self._searched[1], -0.5 * self._searched[2],
-                max(abs(self._searched[0]), abs(self._searched[1])))] if full else []
-            if not converged and cfg.time.newton_stop != "increment":
-                estimate = quadratic_error_estimate(quadratic, modelled)
-                if estimate < cfg.time.newton_increment_tol / QUADRATIC_SAFETY:
-                    converged, reported = True, estimate
-            # a chord check needs two full exact steps that contract (chord_basis); at a
-            # loose tolerance it is also made after one, but that claim only counts as the
-            # first of two: the next iterate's check, with the basis, must claim too (it had
-            # confirmed the increment it predicted: the stiff smash at 1e-4 stopped 21x away)
-            based = chord_basis(quadratic, modelled)
-            chord_claim = False
-            if (cfg.time.newton_stop == "chord_estimate" and full and (based or loose)
-                    and CHORD_TRY_C * increment ** 2 < cfg.time.newton_increment_tol
-                    and (not converged or (unbased_claim and based))):
-                chord_checks += 1
-                chord = self._chord_increment(x, it)
-                chord_claim = chord_stop(chord, increment, cfg.time.newton_increment_tol)
-                if chord_claim and not converged:
-                    converged, reported = True, chord
-            # a step (or chord check) whose solve ran no residual test and missed -ksp_rtol
-            # is not a Newton step: its small increment certifies nothing (Jacobi's steps
-            # left the cantilever 39x the tolerance away, docs/newton.md "Stopping rule")
-            short_of_rtol = len(self.solver.not_reduced) > unreduced
-            converged = converged and not short_of_rtol
-            # at a loose tolerance one small increment can be a lull, not convergence
-            # (compression_40 at dt 0.2: a stop 16x the tolerance away): the next step
-            # must confirm it, unless the step already passes LOOSE_TOLERANCE
-            claim = bool(converged)
-            # (a rejected exact attempt shows the quadratic model failing here: smash at
-            # E = 1e12 stopped 2.4x away on the tiny filtered step that followed one)
-            whole = whole and not self._fallback
-            # the step's arrays are kept one more iteration only where the rule reads them
-            step = dict(before=x_prev, after=x, g=g, dx=dx, whole=whole,
-                        searched=self._searched if whole else None) if loose else None
-            if unbased_claim and not (chord_claim and based):
-                claimed_before = False
-            unbased_claim = claim and chord_claim and not based
-            confirmed, refused = self._loose_verdict(loose, claim, claimed_before, measure, steps,
-                                                     (step, last_step, prior_step), chord_claim and based)
-            converged = converged and confirmed and not refused
-            # a stop on a saddle of G ends the solve unconverged (step cutback redoes it)
-            checked = steps[-1].exact and self._shift == 0.0
-            saddle = bool(converged) and (self._at_saddle(checked) or self._at_coupled_saddle(checked))
-            converged = converged and not saddle
-            # a stop after filtered steps is checked by an exact Newton step at the iterate
-            # (the stiff smash's analytic stops were 15-238x away at 1e-4, 1e-5)
-            verdict = ""
-            if converged and not steps[-1].exact and self._verifies(cfg.time.newton_increment_tol):
-                verdict, pending = self._verify_stop(x, it)
-                saddle = verdict == "saddle"
-                converged = verdict == "kept"
-                if converged:
-                    # the verifying step is taken: it lands 1e2-1e6x closer to the step's
-                    # solution than the filtered iterate (docs/newton.md "Taking the
-                    # verifying step"); its length is then the last increment
-                    x, pending = self._take_verified(x, pending), None
-                    reported = self._verifying
-            claimed_before, last_step, prior_step = claim, step, last_step
-            unconfirmed, off_model = claim and not confirmed, refused
-            self._counts["newton_stops_refused"] += bool(refused or saddle or (verdict and not converged))
-            if self.monitor is not None:
-                short = ", solve short of -ksp_rtol" if short_of_rtol else ""
-                short += _stop_note(unconfirmed, refused) + (_saddle_note(self._saddle_wisps) if saddle else "")
-                short += _verify_note(verdict, self._verifying)
-                self._monitor(it, measure, self._step_kind(exact) + short, alpha, step_ksp,
-                              cut=self.strand is not None and self.strand.last_cut, estimate=reported)
-            if converged or saddle:
+            s.n_it += 1
+            s.unconfirmed = s.off_model = s.saddle = False
+            if s.region is not None and it > 0:     # after a filtered first step: lc_petsc/trust_region.py
+                self._trust_iteration(s, it)
+            else:
+                self._newton_iteration(s, it)
+            if s.converged or s.saddle:
                 break
-        if self.monitor is not None and converged is not None:
-            self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {'converged' if converged else 'NOT converged'} "
-                      f"after {n_it} iteration(s), measure {reported:.3e}"
-                      + (" (a stop the cap left unconfirmed)" if unconfirmed else "")
-                      + (" (a stop refused: G's decrease off its quadratic model)" if off_model else "")
-                      + (" (a stop refused: a saddle of G)" if saddle else ""))
+        if self.monitor is not None and s.converged is not None:
+            self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {'converged' if s.converged else 'NOT converged'} "
+                      f"after {s.n_it} iteration(s), measure {s.reported:.3e}"
+                      + (" (a stop the cap left unconfirmed)" if s.unconfirmed else "")
+                      + (" (a stop refused: G's decrease off its quadratic model)" if s.off_model else "")
+                      + (" (a stop refused: a saddle of G)" if s.saddle else ""))
+        return s
+
+    def _trust_iteration(self, s, it):
+        """One trust-region Newton iteration (``time.newton = "trust_region"``, after the
+        first) and its stop test, on the state ``s``."""
+        region = s.region
+        g, dx, exact = self._trust_region_step(s.x, it, region)
+        x_prev, s.x = s.x, self._last_turn(it, self.update(s.x, dx))
+        s.increment, absolute = self.increments(s.x - x_prev)
+        s.steps.append(StepRecord(s.increment, region.interior, False, True))   # a boundary step is a cut one
+        s.reported = s.increment
+        if self.history is not None:
+            self._record_iteration(it, x_prev, s.x, g, s.increment, 1.0, exact)
+        s.converged = self._newton_converged(s.steps, absolute)
+        if s.converged is not None:         # a short step is not convergence
+            s.converged = s.converged and region.interior
+        # the loose-tolerance rule below, with the trust region's own rho (smash at
+        # E = 1e12, dt 0.2, 1e-3: a stop 2.5x the tolerance away)
+        claim = bool(s.converged)
+        step = dict(agrees=region.agrees)
+        confirmed, refused = self._loose_verdict(s.loose, claim, s.claimed_before, s.increment, s.steps,
+                                                 (step, s.last_step, s.prior_step))
+        s.converged = s.converged and confirmed and not refused
+        s.settle(claim, step, confirmed, refused)
+        self._counts["newton_stops_refused"] += refused
+        if self.monitor is not None:
+            self._monitor(it, s.increment, self._step_kind(exact, region=True)
+                          + stop_note(s.unconfirmed, refused), 1.0, self.trust.iterations[-1], cut=False)
+
+    def _newton_iteration(self, s, it):
+        """One Newton iteration with a line search on the state ``s``: the step
+        (:meth:`_direction`), the update and its measures (:meth:`_take_step`), the stop
+        estimates (:meth:`_estimate_stop`) and the checks of a claimed stop
+        (:meth:`_check_stop`)."""
+        cfg = self.cfg
+        unreduced = len(self.solver.not_reduced)    # solves short of -ksp_rtol so far
+        g, dx, alpha, exact, rejected = self._direction(s, it)
+        step_ksp = self.solver.iterations[-1]     # the step taken (before a chord check)
+        if cfg.time.line_search and not exact:
+            alpha = self._line_search(s.x, g, dx, 20, give_up=False)
+        x_prev = s.x
+        s.x, s.increment, measure, absolute = self._take_step(it, s.x, dx, alpha, exact, rejected)
+        s.reported = measure
+        if self.history is not None:
+            self._record_iteration(it, x_prev, s.x, g, s.increment, alpha, exact)
+        whole = alpha == 1.0 and self._shift == 0.0 and not (
+            self.strand is not None and self.strand.last_cut)
+        # the contraction is measured over whole Newton steps only: a damped step's
+        # full measure taken as the rate's base let the stiff smash (E = 1e12, dt 0.2)
+        # stop 155x the tolerance away at 1e-5 (docs/newton.md "Stopping rule"); a
+        # step after an exact attempt Armijo rejected is a damped one (measured above),
+        # a shifted one or one after an indefinite exact matrix no Newton step at all
+        round_off = self._at_round_off()
+        newton = (self._shift == 0.0 and self._fallback in ("", "armijo")) or round_off
+        s.steps.append(StepRecord(measure, (whole and newton) or round_off,
+                                  exact or cfg.solver.filter == "none", newton))
+        s.converged = self._newton_converged(s.steps, absolute)
+        chord_claim, based = self._estimate_stop(s, it, exact and whole)
+        # a step (or chord check) whose solve ran no residual test and missed -ksp_rtol
+        # is not a Newton step: its small increment certifies nothing (Jacobi's steps
+        # left the cantilever 39x the tolerance away, docs/newton.md "Stopping rule")
+        short_of_rtol = len(self.solver.not_reduced) > unreduced
+        s.converged = s.converged and not short_of_rtol
+        # (a rejected exact attempt shows the quadratic model failing here: smash at
+        # E = 1e12 stopped 2.4x away on the tiny filtered step that followed one)
+        whole = whole and not self._fallback
+        # the step's arrays are kept one more iteration only where the rule reads them
+        step = dict(before=x_prev, after=s.x, g=g, dx=dx, whole=whole,
+                    searched=self._searched if whole else None) if s.loose else None
+        verdict, refused = self._check_stop(s, it, step, measure, chord_claim, based)
+        if self.monitor is not None:
+            short = ", solve short of -ksp_rtol" if short_of_rtol else ""
+            short += stop_note(s.unconfirmed, refused) + (saddle_note(self._saddle_wisps) if s.saddle else "")
+            short += verify_note(verdict, self._verifying)
+            self._monitor(it, measure, self._step_kind(exact) + short, alpha, step_ksp,
+                          cut=self.strand is not None and self.strand.last_cut, estimate=s.reported)
+
+    def _direction(self, s, it):
+        """This iteration's Newton step at ``s.x``: a refused stop's verifying exact step
+        (``s.pending``), an exact one (:meth:`_exact_attempts`) or a filtered one.
+        Returns (grad G, dx, alpha, whether exact, the exact step Armijo rejected or
+        None)."""
+        cfg, x = self.cfg, s.x
+        exact = self._exact_hessian(s.increment, (bool(s.quadratic) and cfg.solver.exact_stay) or self._kept_exact)
+        self._shift, self._fallback, self._searched, self._probe = 0.0, "", None, None
+        rejected = None                     # the exact step Armijo rejected
+        if s.pending is not None:           # taken now: its assembly and solve are done
+            exact, (g, dx, known), s.pending = True, s.pending, None
+            alpha = self._line_search(x, g, dx, EXACT_HALVINGS, exact=True, known=known)
+            if alpha is None:
+                self._fallback, rejected = "armijo", dx
+                exact, s.fallbacks = False, s.fallbacks + 1
+        elif exact:
+            g, dx, alpha, rejected = self._exact_attempts(x, it)
+            if dx is None or alpha is None:     # no exact Newton step: a filtered one
+                exact = False
+                s.fallbacks += 1
+            else:       # solver.wisp_trust: the wisps' shifts carry the damping from here on
+                self._kept_exact = self.wisp_trust
+        if not exact:
+            self._wisp_alpha = None
+            g = self._assemble_system(x, it)
+            dx = self._solve_step(g, it)
+            alpha = 1.0
+            self._searched = None
+        return g, dx, alpha, exact, rejected
+
+    def _exact_attempts(self, x, it):
+        """The exact step at x (:meth:`_exact_step`), then with ``solver.exact_fallback =
+        "shifted"`` the :data:`EXACT_SHIFTS` ladder until one is kept.  Returns (grad G,
+        dx, alpha, the first attempt's dx when it was rejected, else None); dx or alpha
+        None when none was kept."""
+        g, dx, alpha = self._exact_step(x, it, 0.0)
+        if dx is not None and alpha is not None:
+            self._shift = self._tried_shift     # > 0: some wisp's block was shifted
+            return g, dx, alpha, None
+        self._fallback = "indefinite" if dx is None else "armijo"
+        rejected = dx
+        for tau in EXACT_SHIFTS if self.cfg.solver.exact_fallback == "shifted" else ():
+            g, dx, alpha = self._exact_step(x, it, tau)
+            if dx is not None and alpha is not None:
+                self._shift = self._tried_shift
+                break
+        return g, dx, alpha, rejected
+
+    def _take_step(self, it, x, dx, alpha, exact, rejected):
+        """The iterate after the step dx at ``alpha`` from x (in ccd mode limited) and the
+        step's measures: (iterate, relative increment of the step taken, the stop's
+        measure, its absolute size in cm).  Collective."""
+        y = self._last_turn(it, self.update(x, self._scaled(alpha, dx), exact))
+        if self.strand is not None:         # ccd mode: per vertex, collision-free path
+            nonlinear = self.retract or (exact and self.turn_exact)
+            y = self.strand.limit_step(x, y, x + alpha * dx if nonlinear else None)
+        increment, absolute = self.increments(y - x)
+        measure = increment
+        if self.converging and (alpha < 1.0 or (self.strand is not None and self.strand.mode == "ccd")):
+            # a damped or limiter-cut step is short without the iterate being close:
+            # the full step measures it for the stop and newton_increment (docs/newton.md
+            # "Twelfth round"; the exact switch keeps the step taken: switching on the
+            # full step cost smash's frame 0 a cutback, 28 -> 72 iterations)
+            whole, whole_absolute = self.increments(dx)
+            measure, absolute = max(increment, whole), max(absolute, whole_absolute)
+        if self.converging and rejected is not None:
+            # the step after an exact step Armijo rejected (alpha 0, as it were) is
+            # measured by that step too: a filtered 8e-6 after a rejected 1e-3 had
+            # stopped the stiff smash 242x the tolerance away (docs/newton.md)
+            whole, whole_absolute = self.increments(rejected)
+            measure, absolute = max(measure, whole), max(absolute, whole_absolute)
+        return y, increment, measure, absolute
+
+    def _estimate_stop(self, s, it, full):
+        """The stop estimates after a step (``full``: a whole exact one): the quadratic
+        one (``time.newton_stop`` other than ``"increment"``) and the chord check
+        (``"chord_estimate"``), each of which can claim the stop in ``s``.  Returns
+        (whether a chord check claimed it, whether the steps are its basis)."""
+        cfg = self.cfg
+        s.quadratic = s.quadratic + [s.increment] if full else []
+        # whether the full exact step decreased G as its model predicts (the line
+        # search's energies: free): off it, the step is no quadratic one
+        s.modelled = s.modelled + [full and self._searched is not None and model_agrees(
+            self._searched[0] - self._searched[1], -0.5 * self._searched[2],
+            max(abs(self._searched[0]), abs(self._searched[1])))] if full else []
+        if not s.converged and cfg.time.newton_stop != "increment":
+            estimate = quadratic_error_estimate(s.quadratic, s.modelled)
+            if estimate < cfg.time.newton_increment_tol / QUADRATIC_SAFETY:
+                s.converged, s.reported = True, estimate
+        # a chord check needs two full exact steps that contract (chord_basis); at a
+        # loose tolerance it is also made after one, but that claim only counts as the
+        # first of two: the next iterate's check, with the basis, must claim too (it had
+        # confirmed the increment it predicted: the stiff smash at 1e-4 stopped 21x away)
+        based = chord_basis(s.quadratic, s.modelled)
+        chord_claim = False
+        if (cfg.time.newton_stop == "chord_estimate" and full and (based or s.loose)
+                and CHORD_TRY_C * s.increment ** 2 < cfg.time.newton_increment_tol
+                and (not s.converged or (s.unbased_claim and based))):
+            s.chord_checks += 1
+            chord = self._chord_increment(s.x, it)
+            chord_claim = chord_stop(chord, s.increment, cfg.time.newton_increment_tol)
+            if chord_claim and not s.converged:
+                s.converged, s.reported = True, chord
+        return chord_claim, based
+
+    def _check_stop(self, s, it, step, measure, chord_claim, based):
+        """The checks of the stop claimed in ``s``: at a loose tolerance its confirmation
+        and model agreement (:meth:`_loose_verdict`), then a saddle of G
+        (:meth:`_at_saddle`, :meth:`_at_coupled_saddle`), then after filtered steps the
+        verifying exact step (:meth:`_verify_stop`; a kept one taken).  ``step``: this
+        iteration's step for :meth:`_model_agrees`.  Returns (the verification's verdict
+        or '', whether the stop was refused off its model).  Collective."""
+        # at a loose tolerance one small increment can be a lull, not convergence
+        # (compression_40 at dt 0.2: a stop 16x the tolerance away): the next step
+        # must confirm it, unless the step already passes LOOSE_TOLERANCE
+        claim = bool(s.converged)
+        if s.unbased_claim and not (chord_claim and based):
+            s.claimed_before = False
+        s.unbased_claim = claim and chord_claim and not based
+        confirmed, refused = self._loose_verdict(s.loose, claim, s.claimed_before, measure, s.steps,
+                                                 (step, s.last_step, s.prior_step), chord_claim and based)
+        s.converged = s.converged and confirmed and not refused
+        # a stop on a saddle of G ends the solve unconverged (step cutback redoes it)
+        checked = s.steps[-1].exact and self._shift == 0.0
+        s.saddle = bool(s.converged) and (self._at_saddle(checked) or self._at_coupled_saddle(checked))
+        s.converged = s.converged and not s.saddle
+        # a stop after filtered steps is checked by an exact Newton step at the iterate
+        # (the stiff smash's analytic stops were 15-238x away at 1e-4, 1e-5)
+        verdict = ""
+        if s.converged and not s.steps[-1].exact and self._verifies(self.cfg.time.newton_increment_tol):
+            verdict, s.pending = self._verify_stop(s.x, it)
+            s.saddle = verdict == "saddle"
+            s.converged = verdict == "kept"
+            if s.converged:
+                # the verifying step is taken: it lands 1e2-1e6x closer to the step's
+                # solution than the filtered iterate (docs/newton.md "Taking the
+                # verifying step"); its length is then the last increment
+                s.x, s.pending = self._take_verified(s.x, s.pending), None
+                s.reported = self._verifying
+        s.settle(claim, step, confirmed, refused)
+        self._counts["newton_stops_refused"] += bool(refused or s.saddle or (verdict and not s.converged))
+        return verdict, refused
+
+    def _end_step(self, x_old, x, motion):
+        """The step's end after Newton (collective): a non-finite position is an error;
+        the head's push-out, the projection onto the rest lengths, the head's path lift,
+        then strand contact's (:meth:`FrameEnd.strand_end`).  Returns (the step's end, the
+        lift's move the velocity leaves out or None, the contact figures or None)."""
+        cfg, sc = self.cfg, self.scene
         badv = np.flatnonzero(~np.isfinite(x).all(axis=1))
         first_bad = sc.first_vertex + int(badv[0]) if len(badv) else -1
         bad_any = self.comm.allgather(first_bad)
@@ -696,36 +715,9 @@ class Integrator:
         lifted = None
         if push:        # last: the strand path check below keeps to the path it leaves
             x, lifted = self.frame_end.lift_head_paths(x_old, x, self.t)
-        contact = None
-        if self.strand is not None:
-            pairs, deep, dmin = self.strand.measure(x)
-            n_sep = 0
-            self.strand.last_separation = (0, 0, 0)
-            if self.strand.mode == "ccd":
-                x, pairs, deep, dmin, n_sep, lifted = self.frame_end.collision_free_end(x_old, x, motion, deep,
-                                                                                        self.t, lifted)
-            elif cfg.physics.strand_separation:
-                x, pairs, deep, dmin, n_sep = self.frame_end.separate(x, pairs, deep, dmin)
-                if push:
-                    # the separation moves lifted vertices, their paths cut under the scalp
-                    # again (soft hairball, gravity 5000: 22 paths through in 8 steps, 14
-                    # of them mendable); penalty mode keeps no crossing guarantee, so the
-                    # head goes last, in rounds: the projection moves a lifted vertex back
-                    y = x
-                    for _ in range(FRAME_END_ROUNDS):
-                        y, lifted = self.frame_end.head_end(x_old, y, self.t, lifted)
-                        if not self.frame_end.head_left(x_old, y, self.t):
-                            break
-                    if global_reduce(self.comm, [float(y is not x)], "max")[0]:
-                        pairs, deep, dmin = self.strand.measure(y)
-                    x = y
-            contact = pairs, deep, dmin, n_sep
-        self.v = (x - x_old) / dt
-        if lifted is not None:
-            self.v -= lifted / dt
-        self.x = x
-        self.t = self.t_next
-        return _Solve(n_it, converged, reported, fallbacks, chord_checks, contact, unconfirmed, off_model, saddle)
+        if self.strand is None:
+            return x, lifted, None
+        return self.frame_end.strand_end(x_old, x, motion, self.t, lifted)
 
     def _last_turn(self, it, x):
         """``time.root_rotation``: after the last iteration's update x, each root-held wisp
@@ -805,11 +797,13 @@ class Integrator:
             return x + step
 
     # -------------------------------------------------------------- Newton system
-    def _assemble_system(self, x, it, filter=None, shift=0.0):
+    def _assemble_system(self, x, it, filter=None, shift=0.0, keep=False):
         """Fill the Newton matrix at x (element and strand-contact Hessians with
         ``filter``, default the configured one; the mass term (1 + ``shift``) M/dt^2);
-        returns grad G."""
+        returns grad G.  ``keep``: the elements' diagonal blocks are kept for
+        :meth:`_exact_assembly` (the mass added after them: the same bits)."""
         asm, sc, dt = self.asm, self.scene, self.dt
+        mass = (1.0 + shift) * sc.mass / dt ** 2
         chosen = asm.filter
         if filter is not None:
             asm.filter = filter
@@ -817,7 +811,11 @@ class Integrator:
                 self.strand.filter = filter
         try:
             with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
-                g = self.gradient(x, elastic=asm.assemble(x, (1.0 + shift) * sc.mass / dt ** 2))
+                g = self.gradient(x, elastic=asm.assemble(x, None if keep else mass))
+                if keep:
+                    diagonal = asm.diagonal_blocks()
+                    with self.timers("assembly"):
+                        asm.add_mass(mass)
                 _, idx, cg = self._contact_terms(x, True)
                 if cg is not None:
                     with self.timers("collision"):
@@ -831,6 +829,32 @@ class Integrator:
         asm.commit()
         if self.strand is not None:         # the Newton matrix is A + C (contact.py)
             self.solver.ksp.setOperators(*self.strand.system(asm.mat, asm.pmat, asm.local_block_csr))
+        if keep:
+            self._kept_system = (x, asm.commits, g, diagonal, idx, cg)
+        return g
+
+    def _exact_assembly(self, x, it, shift):
+        """The exact Hessian + ``shift`` M/dt^2 at x committed (returns grad G).  At the x
+        of the last exact assembly, its matrix still the committed one, only the mass term
+        changes: the elements' diagonal blocks kept from it, the new mass and the head's
+        blocks added in :meth:`_assemble_system`'s order (the same bits), without the
+        elements' pass (the wisps' own shifts of :meth:`_exact_system`, the retries of
+        :meth:`_wisp_step` and the :data:`EXACT_SHIFTS` ladder are all at one x).  With
+        strand contact, whose blocks go on the diagonal too in its own order, the whole
+        system is assembled again.  Collective."""
+        kept, asm = self._kept_system, self.asm
+        if kept is None or kept[0] is not x or kept[1] != asm.commits:
+            keep = self.strand is None and self.cfg.solver.exact_fallback == "shifted"
+            return self._assemble_system(x, it, filter="none", shift=shift, keep=keep)
+        _, _, g, diagonal, idx, cg = kept
+        with self.timers("assembly"):
+            asm.set_diagonal_blocks(diagonal)
+            asm.add_mass((1.0 + shift) * self.scene.mass / self.dt ** 2)
+        if cg is not None:
+            with self.timers("collision"):
+                asm.add_diagonal(idx, cg[1])
+        asm.commit()
+        self._kept_system = (x, asm.commits, g, diagonal, idx, cg)
         return g
 
     def _trust_region_step(self, x, it, region):
@@ -891,11 +915,11 @@ class Integrator:
         """Assemble the exact Hessian + ``shift`` M/dt^2 at x (returns grad G).  With
         ``solver.exact_fallback = "shifted"``, a wisp whose block is not positive definite
         there gets its own shift, :data:`WISP_SHIFT_FACTOR` times the least that makes it
-        so (:func:`lc_petsc.curvature.least_definite_shifts`), and the matrix is assembled
-        again: an exact step on an indefinite block heads for a stationary point, often a
-        saddle of G (hairball10's frame 0 from rest: the step's solution found in 21
-        iterations instead of a saddle refused after 20 and cut back, 39; docs/newton.md
-        "Avoiding the saddle").  ``shift`` is a number or one per local wisp (the retries
+        so (:func:`lc_petsc.curvature.least_definite_shifts`), and the matrix's mass term
+        is replaced (:meth:`_exact_assembly`): an exact step on an indefinite block heads
+        for a stationary point, often a saddle of G (hairball10's frame 0 from rest: the
+        step's solution found in 21 iterations instead of a saddle refused after 20 and
+        cut back, 39; docs/newton.md "Avoiding the saddle").  ``shift`` is a number or one per local wisp (the retries
         of :meth:`_wisp_step`); a wisp's least shift is on top of the shift assembled (it
         had replaced it: the ladder's steps at 0.1 and 1 left blocks indefinite).  Per wisp
         and rank-local (the shifts in ``_wisp_tau``); one reduction of the largest shift
@@ -903,8 +927,7 @@ class Integrator:
         offsets = self.scene.offsets
         sizes = np.diff(offsets)
         base = np.broadcast_to(np.asarray(shift, float), sizes.shape)   # per wisp
-        g = self._assemble_system(x, it, filter="none", shift=shift if np.ndim(shift) == 0 else
-                                  np.repeat(base, sizes))
+        g = self._exact_assembly(x, it, shift if np.ndim(shift) == 0 else np.repeat(base, sizes))
         self._wisp_tau = base.copy()
         # per-wisp shifts differ by rank (the retries of _wisp_step): their largest gathered
         self._tried_shift = float(shift) if np.ndim(shift) == 0 else \
@@ -912,15 +935,17 @@ class Integrator:
         if self.cfg.solver.exact_fallback != "shifted":
             return g
         unit = self._mass_unit()
+        negative = np.zeros(len(sizes), bool)
         with self.timers("solve"):
-            least = curvature.least_definite_shifts(self.asm, offsets, unit)
+            least = curvature.least_definite_shifts(self.asm, offsets, unit, negative)
+        self._inertia = self.asm.commits, np.flatnonzero(negative)     # for _at_saddle
         # beyond the searched range no shift of a wisp's own helps: the uniform ladder
         # (and CG, Armijo) decide as before.  ``least`` is on top of the shift assembled
         tau = np.where(np.isfinite(least), base + WISP_SHIFT_FACTOR * least, base)
         self._wisp_tau = tau
         tried = float(global_reduce(self.comm, [tau.max(initial=0.0)], "max")[0])
-        if tried > self._tried_shift:       # the assembly is collective: every rank again
-            g = self._assemble_system(x, it, filter="none", shift=np.repeat(tau, sizes))
+        if tried > self._tried_shift:       # collective: every rank commits its shifts
+            g = self._exact_assembly(x, it, np.repeat(tau, sizes))
         self._tried_shift = tried
         return g
 
@@ -976,7 +1001,11 @@ class Integrator:
         for the next exact step is set from this one's (:func:`lc_petsc.wisp_trust.next_shifts`).
         Collective."""
         wisp = self.vertex_wisp
-        alpha, bad, shares, taken = self._wisp_line_search(x, g, dx, np.ones(len(self.scene.offsets) - 1, bool))
+        # the EXACT_SHIFTS ladder searches at the same x: its shares kept
+        known = self._kept_shares[1] if self._kept_shares is not None and self._kept_shares[0] is x else None
+        alpha, bad, shares, taken = self._wisp_line_search(x, g, dx, np.ones(len(self.scene.offsets) - 1, bool),
+                                                           shares=known)
+        self._kept_shares = x, shares
         for _ in range(WISP_RETRIES):
             if not global_reduce(self.comm, [float(bad.any())], "max")[0]:
                 break
@@ -1232,14 +1261,23 @@ class Integrator:
         gather, at stops only); counted in ``newton_saddle``."""
         if not exact:
             return False
-        with self.timers("solve"):
-            local = curvature.negative_wisps(self.asm, self.scene.offsets) + self.scene.first_wisp
+        local = self._negative_wisps() + self.scene.first_wisp
         found = [int(w) for part in self.comm.allgather(local.tolist()) for w in part]
         if not found:
             return False
         self._saddles += 1
         self._saddle_wisps = self._scene_wisps(found)
         return True
+
+    def _negative_wisps(self):
+        """The local wisps whose block of the committed matrix is not positive definite
+        (:func:`lc_petsc.curvature.negative_wisps`), counted once per matrix: the shifted
+        fallback's :meth:`_exact_system` counts them in its own pass, and a verifying
+        step's matrix (:meth:`_verification`) is the next iteration's when it is taken."""
+        if self._inertia is None or self._inertia[0] != self.asm.commits:
+            with self.timers("solve"):
+                self._inertia = self.asm.commits, curvature.negative_wisps(self.asm, self.scene.offsets)
+        return self._inertia[1]
 
     def _at_coupled_saddle(self, exact):
         """Whether this iteration's stop is on a saddle of G that only the coupling of
@@ -1360,60 +1398,6 @@ class Integrator:
             ksp_reason=solver.reasons[-1] if solver.reasons else "",
             ksp_iterations=solver.iterations[-1] if solver.iterations else 0,
             exact_rejected=self._fallback, exact_shift=self._shift, **self._region_record))
-
-
-def _stop_note(unconfirmed, refused):
-    """The monitor's note on a loose-tolerance stop (:meth:`Integrator._loose_verdict`)."""
-    if unconfirmed:
-        return ", stop to be confirmed"
-    return ", stop refused: G's decrease off its quadratic model" if refused else ""
-
-
-def _verify_note(verdict, length):
-    """The monitor's note on a stop checked by an exact step (:meth:`Integrator._verify_stop`)."""
-    if verdict == "kept":
-        return f", stop verified: exact step {length:.3e}"
-    if verdict == "far":
-        return f", stop refused: the exact step at the stop is {length:.3e} (taken next)"
-    if verdict == "off_model":
-        return f", stop refused: the exact step at the stop ({length:.3e}) is off its quadratic model (taken next)"
-    if verdict in ("indefinite", "short"):
-        why = "the exact Hessian is indefinite" if verdict == "indefinite" else "its solve missed -ksp_rtol"
-        return f", stop refused: no exact step to verify it ({why})"
-    return ""
-
-
-def _saddle_note(wisps):
-    """The monitor's note on a stop refused on a saddle of G (:meth:`Integrator._at_saddle`):
-    the wisps (global indices) whose exact Hessian is not positive definite."""
-    more = " ..." if len(wisps) > 8 else ""
-    return f", stop refused: a saddle of G (wisps {', '.join(map(str, wisps[:8]))}{more})"
-
-
-def unconfirmed_note(steps, refused=0, saddles=0):
-    """For a missed tolerance's message: why ``steps`` (kept steps the cap ended on an
-    unconfirmed stop, :func:`confirms_stop`), ``refused`` (kept steps it ended on a
-    stop refused by :meth:`Integrator._loose_verdict`) and ``saddles`` (kept steps whose
-    stop was refused on a saddle of G, :meth:`Integrator._at_saddle`) missed it although
-    their last increment is below the tolerance; '' for none."""
-    note = ""
-    if saddles:
-        note += (f"; {saddles} Newton stop(s) refused on a saddle of the step's potential G, not a minimum "
-                 f"(an exact Hessian with a negative eigenvalue where the increment passed "
-                 f"time.newton_increment_tol): such a stop is refused; step cutback (time.max_substeps "
-                 f">= 2) redoes the step in smaller ones, which add inertia (docs/newton.md, "
-                 f"\"Saddles of G\")")
-    if steps:
-        note += (f"; {steps} step(s) ended on an increment below time.newton_increment_tol at the cap: "
-                 f"above {LOOSE_TOLERANCE:g} a stop must be confirmed by the next iteration, which "
-                 f"time.newton_iterations left out (docs/newton.md, \"Stopping rule\")")
-    if refused:
-        note += (f"; {refused} step(s) ended on an increment below time.newton_increment_tol whose "
-                 f"stop was refused: above {LOOSE_TOLERANCE:g} the last two steps must decrease G as "
-                 f"their quadratic model predicts, and where they do not their size says nothing of "
-                 f"the distance to the solution (filtered steps rarely do: use solver.filter = "
-                 f"\"exact_or_analytic\"; docs/newton.md, \"Stopping rule\")")
-    return note
 
 
 #: A stop after filtered steps (an element filter, not exact_or_analytic) at a relative

@@ -47,6 +47,7 @@ from lc_petsc.config import SimConfig
 from lc_petsc.io import hdf5
 from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
 from lc_petsc.parallel import global_max, global_wisp_offsets, on_root
+from lc_petsc.newton_stop import unconfirmed_note
 
 EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
 EXIT_PREEMPTED = 75         # EX_TEMPFAIL: stopped by a signal after a checkpoint; restart
@@ -199,7 +200,6 @@ def outcome_warnings(summary, start, time_config):
     missed = [i for i, c in enumerate(summary["newton_converged"]) if c is False]
     if missed:
         worst = max(summary["newton_increment"][i] or 0.0 for i in missed)
-        from lc_petsc.integrator import unconfirmed_note     # Numba kernels: loaded when needed
         unconfirmed, refused, saddles = (sum(summary.get(key, [0] * (max(missed) + 1))[i] for i in missed)
                                          for key in ("newton_unconfirmed", "newton_refused", "newton_saddle"))
         out.append(f"Newton missed the tolerance in {len(missed)} of {len(summary['newton_converged'])} "

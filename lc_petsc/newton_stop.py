@@ -4,11 +4,12 @@ iterate may stop.  The contraction factor that turns the last increment into an 
 bound (:func:`contraction_factor`, :func:`step_contraction`), the loose-tolerance rule
 (:func:`confirms_stop`, :func:`model_agrees`), and the estimates of
 ``time.newton_stop``: ``"quadratic_estimate"`` (:func:`quadratic_error_estimate`) and
-``"chord_estimate"`` (:func:`chord_basis`, :func:`chord_stop`), with their constants."""
+``"chord_estimate"`` (:func:`chord_basis`, :func:`chord_stop`), with their constants; and
+the notes on stops for the monitor and a missed tolerance's message (:func:`unconfirmed_note`)."""
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -24,6 +25,56 @@ class StepRecord(NamedTuple):
     whole: bool
     exact: bool
     newton: bool
+
+
+class SolveRecord(NamedTuple):
+    """One backward-Euler step's Newton: iterations, converged (None without a
+    tolerance), the last relative increment, exact Hessians replaced by filtered ones,
+    chord checks (``time.newton_stop = "chord_estimate"``), with strand contact (pairs,
+    deep pairs, min distance, pairs separated), and whether the cap ended it on a stop
+    awaiting its confirmation (:func:`confirms_stop`: an increment below the tolerance,
+    yet not converged) or on one refused for steps off their quadratic model
+    (:meth:`lc_petsc.integrator.Integrator._loose_verdict`; the same), or whether its stop was refused on a
+    saddle of G (:meth:`lc_petsc.integrator.Integrator._at_saddle`: ended there, not converged)."""
+
+    iterations: int
+    converged: Optional[bool]
+    increment: float
+    fallbacks: int
+    chord_checks: int
+    contact: Optional[tuple]
+    unconfirmed: bool = False
+    refused: bool = False
+    saddle: bool = False
+
+
+class NewtonState:
+    """A backward-Euler step's Newton state (:meth:`lc_petsc.integrator.Integrator._newton`),
+    updated by its iterations: the iterate and what the stop rules read across them."""
+
+    def __init__(self, x, loose, region):
+        self.x = x                      # the iterate
+        self.n_it = 0
+        self.converged = None
+        self.increment = self.reported = np.inf     # the last step's; what newton_increment reports
+        self.fallbacks = self.chord_checks = 0
+        self.steps = []                 # this solve's steps (StepRecord), in order
+        self.region = region            # the trust region's (trust_region.Region) or None
+        self.quadratic = []             # the increments of the last full exact steps in a row
+        self.modelled = []              # and whether each agreed with its quadratic model
+        self.claimed_before = False     # the last iteration's stop (to be confirmed)
+        self.unbased_claim = False      # ... made by a chord check without chord_basis
+        self.loose = loose              # a loose tolerance (confirms_stop)
+        self.last_step = self.prior_step = None     # the last two iterations' steps (_model_agrees)
+        self.unconfirmed = False        # this iteration's stop awaits the next
+        self.off_model = False          # this iteration's stop was refused (_loose_verdict)
+        self.saddle = False             # this iteration's stop is on a saddle (_at_saddle)
+        self.pending = None             # a refused stop's verifying exact step (_verify_stop)
+
+    def settle(self, claim, step, confirmed, refused):
+        """After an iteration's stop test: its claim and step become the last ones."""
+        self.claimed_before, self.last_step, self.prior_step = claim, step, self.last_step
+        self.unconfirmed, self.off_model = claim and not confirmed, refused
 
 
 def chord_stop(chord, increment, tol):
@@ -158,6 +209,61 @@ def quadratic_error_estimate(increments, modelled=None):
         return np.inf
     return max(d / d1 ** 2, d1 / d0 ** 2) * d ** 2
 
+
+def stop_note(unconfirmed, refused):
+    """The monitor's note on a loose-tolerance stop
+    (:meth:`lc_petsc.integrator.Integrator._loose_verdict`)."""
+    if unconfirmed:
+        return ", stop to be confirmed"
+    return ", stop refused: G's decrease off its quadratic model" if refused else ""
+
+
+def verify_note(verdict, length):
+    """The monitor's note on a stop checked by an exact step
+    (:meth:`lc_petsc.integrator.Integrator._verify_stop`)."""
+    if verdict == "kept":
+        return f", stop verified: exact step {length:.3e}"
+    if verdict == "far":
+        return f", stop refused: the exact step at the stop is {length:.3e} (taken next)"
+    if verdict == "off_model":
+        return f", stop refused: the exact step at the stop ({length:.3e}) is off its quadratic model (taken next)"
+    if verdict in ("indefinite", "short"):
+        why = "the exact Hessian is indefinite" if verdict == "indefinite" else "its solve missed -ksp_rtol"
+        return f", stop refused: no exact step to verify it ({why})"
+    return ""
+
+
+def saddle_note(wisps):
+    """The monitor's note on a stop refused on a saddle of G (:meth:`lc_petsc.integrator.Integrator._at_saddle`):
+    the wisps (global indices) whose exact Hessian is not positive definite."""
+    more = " ..." if len(wisps) > 8 else ""
+    return f", stop refused: a saddle of G (wisps {', '.join(map(str, wisps[:8]))}{more})"
+
+
+def unconfirmed_note(steps, refused=0, saddles=0):
+    """For a missed tolerance's message: why ``steps`` (kept steps the cap ended on an
+    unconfirmed stop, :func:`confirms_stop`), ``refused`` (kept steps it ended on a
+    stop refused by :meth:`lc_petsc.integrator.Integrator._loose_verdict`) and ``saddles`` (kept steps whose
+    stop was refused on a saddle of G, :meth:`lc_petsc.integrator.Integrator._at_saddle`) missed it although
+    their last increment is below the tolerance; '' for none."""
+    note = ""
+    if saddles:
+        note += (f"; {saddles} Newton stop(s) refused on a saddle of the step's potential G, not a minimum "
+                 f"(an exact Hessian with a negative eigenvalue where the increment passed "
+                 f"time.newton_increment_tol): such a stop is refused; step cutback (time.max_substeps "
+                 f">= 2) redoes the step in smaller ones, which add inertia (docs/newton.md, "
+                 f"\"Saddles of G\")")
+    if steps:
+        note += (f"; {steps} step(s) ended on an increment below time.newton_increment_tol at the cap: "
+                 f"above {LOOSE_TOLERANCE:g} a stop must be confirmed by the next iteration, which "
+                 f"time.newton_iterations left out (docs/newton.md, \"Stopping rule\")")
+    if refused:
+        note += (f"; {refused} step(s) ended on an increment below time.newton_increment_tol whose "
+                 f"stop was refused: above {LOOSE_TOLERANCE:g} the last two steps must decrease G as "
+                 f"their quadratic model predicts, and where they do not their size says nothing of "
+                 f"the distance to the solution (filtered steps rarely do: use solver.filter = "
+                 f"\"exact_or_analytic\"; docs/newton.md, \"Stopping rule\")")
+    return note
 
 
 #: time.newton_increment_tol above this: a stop needs two iterations in a row that pass

@@ -1,6 +1,7 @@
 """A step's positions besides the linear solve: the first iterate's predictions
-(:func:`start_carry_weight`, how much of the head's first step the start from rest
-carries along a wisp, ``time.carry_with_head``; :func:`follow_the_leader`,
+(``time.carry_with_head``: :func:`head_motion_change`, the head's change of motion the
+first iterate carries, and :func:`start_carry_weight`, how much of the head's first step
+the start from rest carries along a wisp; :func:`follow_the_leader`,
 ``time.initial_guess``) and the walks that keep the edge lengths: the Newton updates of
 ``time.newton_update`` (:func:`retract_edge_lengths`, :func:`corotational_update`) and
 the frame's projection onto the rest lengths (:func:`project_rest_lengths`,
@@ -49,6 +50,28 @@ def start_carry_weight(rest_edge, offsets, pinned, length=START_CARRY_LENGTH):
     decay = held & (s > 0.0) & (S > 0.0)
     w[decay] = np.exp(-s[decay] / (length * S[decay]))
     return w
+
+
+def head_motion_change(head, x, t, dt, t_next):
+    """The change of ``head``'s rigid motion at positions ``x`` (n, 3) between the last
+    step and this one (from ``t`` to ``t_next`` = t + ``dt``): u_now(x) - u_last(x),
+    u_now the motion from t to ``t_next``, u_last the one from t - ``dt`` to t (none
+    before t = 0: the head starts from rest).  For a smooth motion it is second order in
+    dt: the change of the head's step displacement field (its angular and linear
+    acceleration times dt^2; zero for a steady rotation, whose centripetal term it leaves
+    out, as x_n + dt v_n does); at a start, the head's whole first step.  Both fields are
+    taken at x_n (u_last maps positions at t - dt; the difference is second order in the
+    step's rotation).  With step cutback ``dt`` is the substep's, while v_n spans the
+    last step's: the carry is then only roughly the rigid-consistent one.  Added to
+    x_n + dt v_n for the free vertices of the wisps the head holds, it makes Newton's
+    first iterate move them as the roots must move (``time.carry_with_head``, measured in
+    docs/newton.md, "Tenth round")."""
+    Q, q = head.rigid_motion(t, t_next)
+    Qp, qp = head.rigid_motion(max(t - dt, 0.0), t)
+    D = Q - Qp
+    # row by row in a fixed order (not a BLAS product, whose summation order may
+    # depend on the number of rows): the same bits on any partition
+    return x[:, 0:1] * D[:, 0] + x[:, 1:2] * D[:, 1] + x[:, 2:3] * D[:, 2] + (q - qp)
 
 
 def follow_the_leader(x, free, offsets, rest_edge):

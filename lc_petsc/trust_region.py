@@ -59,6 +59,18 @@ TRUST_RETRIES = 10
 ROUNDOFF = 1e-13
 
 
+class Region:
+    """A backward-Euler step's trust-region state: the radius (None before the first
+    iterate), whether the last step was kept and interior (not on the boundary) and
+    whether its decrease of G agreed with the model's
+    (:func:`lc_petsc.newton_stop.model_agrees`)."""
+
+    def __init__(self):
+        self.radius = None
+        self.interior = False
+        self.agrees = False             # and its decrease agreed with the model (model_agrees)
+
+
 class TrustRegionSolver:
     """The trust-region KSP: operator the exact Newton matrix ``A`` (the assembler's),
     preconditioner built from :attr:`P`, a copy this class owns that the integrator

@@ -54,6 +54,7 @@ class Settings:
     root_rotation: bool = TimeConfig.root_rotation  # the root turn after a fixed count
     exact_fallback: str = SolverConfig.exact_fallback   # with exact_or_analytic only
     exact_stay: bool = SolverConfig.exact_stay
+    wisp_trust: bool = SolverConfig.wisp_trust      # with the shifted fallback only
 
     def effective_rtol(self) -> float:
         """The Krylov tolerance the run uses: ``ksp_rtol``, or the code default for its
@@ -92,6 +93,8 @@ class Settings:
             parts.append(f"{self.exact_fallback} fallback")
         if self.exact_stay:
             parts.append("exact_stay")
+        if self.wisp_trust:
+            parts.append("wisp_trust")
         return " ".join(parts)
 
 
@@ -178,6 +181,13 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS, conf
         + [(f"paper setting{' ftl' if f else ''}",
             replace(base, newton_update="linear", carry_with_head=False,
                     initial_guess="follow_the_leader" if f else base.initial_guess)) for f in (False, True)],
+        # a trust region per wisp on the shifted fallback's exact steps (docs/newton.md "A
+        # trust region per wisp"), against the recommended path without it
+        "wisp_trust": [(f"{'wisp trust' if w else 'shifted'} inc<{t:g}",
+                        replace(base, filter="exact_or_analytic", newton_update="corotational",
+                                exact_fallback="shifted", exact_stay=True, wisp_trust=w,
+                                newton_iterations=30, newton_increment_tol=t))
+                       for t in (1e-3, 1e-6) for w in (True, False)],
     }
     for a in (axes or ax):
         for name, s in ax[a]:
@@ -199,7 +209,7 @@ def configured_settings(cfg, options=""):
                     carry_with_head=t.carry_with_head, newton_increment_tol=t.newton_increment_tol,
                     length_projection=t.length_projection, max_substeps=t.max_substeps, newton=t.newton,
                     root_rotation=t.root_rotation, exact_fallback=cfg.solver.exact_fallback,
-                    exact_stay=cfg.solver.exact_stay)
+                    exact_stay=cfg.solver.exact_stay, wisp_trust=cfg.solver.wisp_trust)
 
 
 def reference_settings(dt=1.0 / 120.0, newton_tol=1e-9, max_newton=100, filter="none",
@@ -258,7 +268,7 @@ def tighter_reference(ref: Settings) -> Settings:
 def reference_fallback(ref: Settings) -> Settings:
     """The reference's fallback when it fails: analytic filter, many Newton iterations, default Krylov."""
     return replace(ref, filter="analytic", newton_iterations=max(ref.newton_iterations, 200),
-                   newton_update="linear", exact_fallback="analytic", exact_stay=False,
+                   newton_update="linear", exact_fallback="analytic", exact_stay=False, wisp_trust=False,
                    options=ref.options.replace(REFERENCE_KSP, "").strip())
 
 
@@ -281,6 +291,7 @@ def configure(base_cfg, s: Settings, duration):
     cfg.solver.filter = s.filter
     cfg.solver.exact_fallback = s.exact_fallback
     cfg.solver.exact_stay = s.exact_stay
+    cfg.solver.wisp_trust = s.wisp_trust
     rtol = "" if s.ksp_rtol is None else f"-ksp_rtol {s.ksp_rtol:g}"      # else the code default
     cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options, rtol) if x)
     return cfg

@@ -1,12 +1,12 @@
 """Newton's first iterate carried with the head's change of motion (``time.carry_with_head``,
-lc_petsc/integrator.py ``Integrator.head_motion_change``; docs/newton.md, "Tenth round")."""
+lc_petsc/predictors.py ``head_motion_change``; docs/newton.md, "Tenth round")."""
 
 import numpy as np
 import pytest
 from mpi4py import MPI
 
 from lc_petsc.config import ConfigError, PhysicsConfig, SolverConfig, TimeConfig
-from lc_petsc.predictors import START_CARRY_LENGTH, start_carry_weight
+from lc_petsc.predictors import START_CARRY_LENGTH, head_motion_change, start_carry_weight
 from lc_petsc.scene import geometry
 from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.sources import ArraySource
@@ -26,7 +26,7 @@ def _integrator_change(kind, t, dt, x, **physics):
     try:
         it = sim.integrator
         it.t = t
-        return it.head_motion_change(x, dt, t + dt), it.head
+        return head_motion_change(it.head, x, t, dt, t + dt), it.head
     finally:
         sim.close()
 

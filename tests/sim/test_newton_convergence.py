@@ -11,9 +11,9 @@ from mpi4py import MPI
 
 from lc_petsc.config import (ConfigError, load_config, MaterialConfig, PhysicsConfig, SceneConfig,
                              SimConfig, SolverConfig, TimeConfig)
-from lc_petsc.integrator import Integrator, unconfirmed_note
+from lc_petsc.integrator import Integrator
 from lc_petsc.newton_stop import (ENERGY_FLOOR, LOOSE_TOLERANCE, StepRecord, confirms_stop, contraction_factor,
-                                  model_agrees)
+                                  model_agrees, unconfirmed_note)
 from lc_petsc.predictors import (corotational_update, follow_the_leader, project_rest_lengths,
                                  retract_edge_lengths)
 from lc_petsc.simulator import build_simulator

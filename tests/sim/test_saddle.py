@@ -243,6 +243,20 @@ def test_the_recommended_path_avoids_the_saddle_and_reaches_the_minimum_at_full_
         assert lowest > LOW_3
 
 
+def _straight_column():
+    """The buckling column (:func:`_inverted_strand`, load 1e5) after 2 fixed-count
+    iterations, its integrator set at its straight state (an indefinite block) for exact
+    systems with the shifted fallback."""
+    cfg = _inverted_strand(1e5)
+    cfg.time.newton_increment_tol, cfg.time.newton_iterations = None, 2
+    sim = build_simulator(cfg.validate(), MPI.COMM_SELF)
+    sim.run()
+    it = sim.integrator
+    it.xhat, it.t_next = it.x + it.dt * it.v, it.t
+    it.cfg.solver.exact_fallback = "shifted"
+    return sim
+
+
 def test_a_ladder_shift_leaves_no_wisp_block_indefinite():
     """The buckling column's straight state (lowest eigenvalue of dt^2 M^-1/2 H M^-1/2
     -0.94: the block needs a shift s* of 0.94 M/dt^2) with the ladder's shift 0.5 of the
@@ -250,14 +264,9 @@ def test_a_ladder_shift_leaves_no_wisp_block_indefinite():
     = 0.66 in all, and its block stayed indefinite (so did many of the 300-wisp demo's at
     the ladder's 0.1 and 1); the wisp's shift is now 0.5 + 1.5 x 0.44, and its block
     positive definite."""
-    cfg = _inverted_strand(1e5)
-    cfg.time.newton_increment_tol, cfg.time.newton_iterations = None, 2
-    sim = build_simulator(cfg.validate(), MPI.COMM_SELF)
+    sim = _straight_column()
     try:
-        sim.run()
         it = sim.integrator
-        it.xhat, it.t_next = it.x + it.dt * it.v, it.t
-        it.cfg.solver.exact_fallback = "shifted"
         it._exact_system(it.x, 0, 0.0)
         assert curvature.negative_wisps(it.asm, sim.scene.offsets).tolist() == []
         assert 1.4 < it._tried_shift < 1.5              # 1.5 x s*, s* = 0.94-0.97
@@ -267,6 +276,40 @@ def test_a_ladder_shift_leaves_no_wisp_block_indefinite():
     finally:
         sim.close()
 
+
+
+def test_a_wisps_shift_and_the_ladder_reuse_the_element_pass_and_the_inertia(monkeypatch):
+    """The buckling column's straight state, its block indefinite: the shifted exact
+    system, then a ladder rung (shift 0.5) and a rung whose shift leaves the block
+    definite (10), all at one x.  Main assembled the elements for each system and again
+    for each wisp's own shift (4 element passes; with the rung at 10, 5), and the stop's
+    saddle check counted the inertia of the rung's matrix once more; now one element
+    pass, the mass term replaced, and the rung's count reused, every committed matrix
+    equal to the bit to a full assembly with the same shifts."""
+    from lc_petsc.assembly import Assembler
+    sim = _straight_column()
+    try:
+        it = sim.integrator
+        sizes = np.diff(sim.scene.offsets)
+        passes, pivots = [], []
+        assemble, negative_pivots = Assembler.assemble, curvature._negative_pivots
+        monkeypatch.setattr(Assembler, "assemble", lambda self, x, mass=None: passes.append(1) or
+                            assemble(self, x, mass))
+        monkeypatch.setattr(curvature, "_negative_pivots", lambda *a: pivots.append(1) or negative_pivots(*a))
+        systems = []
+        for shift in (0.0, 0.5, 10.0):
+            g = it._exact_system(it.x, 0, shift)
+            systems.append((g, it.asm.local_block_csr()[2].copy(), it._wisp_tau.copy()))
+        assert len(passes) == 1
+        assert [round(float(tau[0]), 2) for _, _, tau in systems] == [1.42, 1.17, 10.0]
+        counted = len(pivots)
+        assert not it._at_saddle(True) and len(pivots) == counted      # the rung's count reused
+        for g, values, tau in systems:
+            full = it._assemble_system(it.x.copy(), 0, filter="none", shift=np.repeat(tau, sizes))
+            assert np.array_equal(full, g) and np.array_equal(it.asm.local_block_csr()[2], values)
+        assert len(passes) == 4
+    finally:
+        sim.close()
 
 def _hairball10(max_substeps=1):
     """configs/hairball_demo.toml cut to 10 wisps without strand contact (hairball10 of

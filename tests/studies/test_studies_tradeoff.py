@@ -102,6 +102,32 @@ def test_a_config_file_runs_as_configured(tmp_path):
     assert "| as configured | ok |" in (tmp_path / "recommendations.md").read_text()
 
 
+def test_the_study_sweeps_wisp_trust():
+    """``solver.wisp_trust`` is a field of the study's Settings (main had none: the
+    driver could not sweep it, and a config file's "as configured" row ran without it):
+    its axis against the recommended path without it, its label, the run's config, the
+    config file's own row, and the reference's fallback (whose analytic fallback refuses
+    it).  Run on the 60% smash for 3 frames to 1e-6: 23 Newton iterations with it, 24
+    without (the same figures as the config option's)."""
+    from lc_petsc.studies.tradeoff import configured_settings, reference_fallback
+    on = replace(BASE, filter="exact_or_analytic", newton_update="corotational", exact_fallback="shifted",
+                 exact_stay=True, wisp_trust=True, newton_iterations=30, newton_increment_tol=1e-6)
+    off = replace(on, wisp_trust=False)
+    assert on.label().endswith("shifted fallback exact_stay wisp_trust") and "wisp_trust" not in off.label()
+    variants = default_variants(BASE, ["wisp_trust"])
+    assert [n for _, n, _ in variants] == ["base", "wisp trust inc<0.001", "shifted inc<0.001",
+                                           "wisp trust inc<1e-06", "shifted inc<1e-06"]
+    assert variants[3][2] == on and variants[4][2] == off
+    cfg = configure(smash(), on, 0.1).validate()
+    assert cfg.solver.wisp_trust and configured_settings(cfg) == on
+    assert not configure(smash(), off, 0.1).validate().solver.wisp_trust
+    fallback = reference_fallback(on)
+    assert not fallback.wisp_trust and configure(smash(), fallback, 0.1).validate().solver.exact_fallback == "analytic"
+    runs = {s.wisp_trust: run_trajectory(smash(0.6), s, 3 / 30, 1 / 30, comm)[0] for s in (on, off)}
+    assert [(runs[w]["status"], runs[w]["newton_total"], runs[w]["newton_substeps"]) for w in (True, False)] == \
+        [("ok", 23, [1, 1, 1]), ("ok", 24, [1, 1, 1])]
+
+
 def test_study_outputs_and_unstable_variant(tmp_path):
     # filter none on a 40% compression: the unfiltered Hessian is indefinite, CG with a
     # point-block Jacobi preconditioner detects it (DIVERGED_INDEFINITE_MAT): unstable

@@ -865,6 +865,9 @@ def load_config(path) -> SimConfig:
         raise ConfigError(f"{path}: not a UTF-8 text file ({e.reason} at byte {e.start})") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: invalid TOML: {e}") from None
+    if not data:        # a zero-length file (a failed copy) ran the defaults' 1-wisp scene
+        raise ConfigError(f"{path}: the config file is empty ({len(raw)} bytes, no key): a scene file "
+                          "names at least its [scene]; see configs/ for examples")
     try:
         return config_from_dict(data, base_dir=path.resolve().parent)
     except ConfigError as e:

@@ -93,6 +93,10 @@ BAD = [
     ("bad enum", GOOD + '[output]\nview = "iso"\n', ["output.view", "'iso'", "front"]),
     ("TOML syntax", GOOD + "[time\n", ["invalid TOML"]),
     ("missing config file", None, ["no such config file"]),
+    # a zero-length file (a failed copy) ran the defaults' 1-wisp scene, exit 0, and
+    # replaced a finished run's outputs in --out
+    ("empty file", "", ["the config file is empty (0 bytes, no key)", "[scene]"]),
+    ("comments only", "# cut here\n\n", ["the config file is empty (12 bytes, no key)"]),
 ]
 
 

@@ -214,9 +214,8 @@ def count_frames(path, self_contact=False, progress=None):
     min_distance); steps from or to a row that holds no frame (lost in a recovery,
     ``/frame_valid``) are left out.  ``progress(dict)`` is called per step."""
     import json
-    import h5py
-    from lc_petsc.io.frames import valid_rows
-    with h5py.File(path, "r") as f:
+    from lc_petsc.io.frames import open_frames, valid_rows
+    with open_frames(path) as f:
         off = frames_layout(f)
         every = int(f.attrs.get("every", 1))       # row k is simulation frame k * every
         cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}

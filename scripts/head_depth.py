@@ -24,9 +24,8 @@ def head_rows(path, progress=None):
     """(head radius, [(step k, :func:`step_depths` dict of rows k -> k + 1)]) of the
     frames.h5 at ``path``; ValueError when its scene has no head sphere.  ``progress(k,
     dict, head radius)`` is called per step."""
-    import h5py
-    from lc_petsc.io.frames import frame_times, valid_rows
-    with h5py.File(path, "r") as f:
+    from lc_petsc.io.frames import frame_times, open_frames, valid_rows
+    with open_frames(path) as f:
         off = frames_layout(f)
         head = file_head(f)
         if head is None:

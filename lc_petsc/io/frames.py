@@ -364,6 +364,17 @@ def valid_rows(f, check=True):
     return np.ones(n, bool)
 
 
+def open_frames(path):
+    """The ``frames.h5`` at ``path`` opened read-only (an h5py ``File``).  A folder (a run's
+    output folder given for its ``frames.h5``) is a ValueError saying which file to give:
+    libhdf5's own error was a multi-line dump ending in 'Is a directory'."""
+    if os.path.isdir(path):
+        inside = os.path.join(path, "frames.h5")
+        hint = f"; give {inside}" if os.path.isfile(inside) else ""
+        raise ValueError(f"a folder, not a frames.h5 file{hint}")
+    return h5py_module().File(str(path), "r")
+
+
 #: per open frames.h5 (id of the h5py File object): its /time and /row_digest, read once
 #: (a row's read checks its digest: two more small reads per row had doubled the reads)
 _ROW_TABLES: dict = {}

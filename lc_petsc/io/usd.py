@@ -139,9 +139,8 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     lost in a recovery are left out; the stage's start and end time codes are the first
     and last row written).  ``progress``: callable(done, total) or None.  Returns a dict
     of what was written and how long it took (seconds)."""
-    import h5py
     from pxr import Gf, Sdf, Usd, UsdGeom, Vt
-    from lc_petsc.io.frames import frame_row, frame_times, naming, read_dataset, valid_rows
+    from lc_petsc.io.frames import frame_row, frame_times, naming, open_frames, read_dataset, valid_rows
     from lc_petsc.io.render_hairs import RenderHairs, root_normals
     from lc_petsc.scene.kinematics import HeadMotion
 
@@ -153,8 +152,8 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
         raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
     try:
-        f = h5py.File(frames_path, "r")
-    except OSError as e:
+        f = open_frames(frames_path)
+    except (OSError, ValueError) as e:
         raise ValueError(f"{frames_path}: cannot open the frames file ({e})") from None
     with f:
         for key in ("positions", "time", "wisp_offsets", "rest_positions", "pinned"):

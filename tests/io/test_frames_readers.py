@@ -105,3 +105,21 @@ def test_rows_are_read_with_one_read_each(run, monkeypatch):
         reads.clear()
         frame_row(f, 3)
         assert dict(reads) == {"/positions": 1, "/time": 1, "/row_digest": 1}
+
+
+def test_a_run_folder_given_for_its_frames_file_says_which_file(run, tmp_path, capsys):
+    """count_crossings.py OUT (the run's folder, a common slip) printed libhdf5's
+    multi-line dump ending in 'Is a directory'; now each reader says it is a folder and
+    names the frames.h5 inside it."""
+    out = run / "out"
+    want = f"a folder, not a frames.h5 file; give {out / 'frames.h5'})"
+    for tool in (count_crossings, edge_strain, head_depth):
+        capsys.readouterr()
+        assert tool.main([str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"error: {out}: not a readable frames.h5 of lc_petsc" in err \
+            and err.rstrip().endswith(want), (tool, err)
+    assert to_usd.main([str(out), "--out", str(tmp_path / "x.usdc"), "--quiet"]) == 2
+    assert capsys.readouterr().err == f"to_usd.py: error: {out}: cannot open the frames file ({want}\n"
+    assert count_crossings.main([str(tmp_path)]) == 2      # a folder without one: no hint
+    assert capsys.readouterr().err.rstrip().endswith("(a folder, not a frames.h5 file)")

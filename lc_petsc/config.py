@@ -498,14 +498,28 @@ class SolverConfig:
                               f"solver.wisp_trust")
 
     def _file_text(self) -> str:
-        lines = Path(str(self.options_file)).read_text().splitlines()
-        return " ".join(line.split("#", 1)[0] for line in lines)
+        return read_options_file(self.options_file, "solver.options_file = ")
 
     def effective_options(self) -> str:
         """The options file's options followed by ``options`` (later ones win)."""
         parts = [self._file_text()] if self.options_file else []
         parts.append(self.options)
         return " ".join(p for p in parts if p.strip())
+
+
+def read_options_file(path, where="") -> str:
+    """The options of the PETSc options file at ``path`` (``#`` comments dropped), one
+    string.  A file that cannot be read or is not UTF-8 text is a ConfigError naming it
+    (``where``: what names it, e.g. the config key); a binary file was a
+    UnicodeDecodeError traceback."""
+    try:
+        text = Path(str(path)).read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{where}{str(path)!r}: not a text file of PETSc options ({e.reason} at byte "
+                          f"{e.start})") from None
+    except OSError as e:
+        raise ConfigError(f"{where}{str(path)!r}: cannot read the options file: {e.strerror or e}") from None
+    return " ".join(line.split("#", 1)[0] for line in text.splitlines()).strip()
 
 
 def _check_options(where: str, text: str) -> None:
@@ -865,6 +879,9 @@ def load_config(path) -> SimConfig:
         raise ConfigError(f"{path}: not a UTF-8 text file ({e.reason} at byte {e.start})") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: invalid TOML: {e}") from None
+    if not data:        # a zero-length file (a failed copy) ran the defaults' 1-wisp scene
+        raise ConfigError(f"{path}: the config file is empty ({len(raw)} bytes, no key): a scene file "
+                          "names at least its [scene]; see configs/ for examples")
     try:
         return config_from_dict(data, base_dir=path.resolve().parent)
     except ConfigError as e:

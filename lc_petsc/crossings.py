@@ -214,9 +214,8 @@ def count_frames(path, self_contact=False, progress=None):
     min_distance); steps from or to a row that holds no frame (lost in a recovery,
     ``/frame_valid``) are left out.  ``progress(dict)`` is called per step."""
     import json
-    import h5py
-    from lc_petsc.io.frames import valid_rows
-    with h5py.File(path, "r") as f:
+    from lc_petsc.io.frames import open_frames, valid_rows
+    with open_frames(path) as f:
         off = frames_layout(f)
         every = int(f.attrs.get("every", 1))       # row k is simulation frame k * every
         cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
@@ -321,12 +320,12 @@ def _count_share(path, rank, size, self_contact, rest_exempt=None, stop=None):
     head sphere))."""
     import h5py
     from lc_petsc.head_check import file_head, step_depths
-    from lc_petsc.io.frames import valid_rows
+    from lc_petsc.io.frames import frame_times, valid_rows
     with h5py.File(path, "r") as f:
         off, rest = frames_layout(f, with_rest=True)
         steps = valid_steps(valid_rows(f))
         head = file_head(f)
-        times = np.asarray(f["time"][...], float) if head is not None else None
+        times = frame_times(f) if head is not None else None
         rows = []
         for k, prev, cur in step_rows(f, steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]):
             if stop is not None and stop.requested():

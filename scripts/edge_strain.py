@@ -21,10 +21,9 @@ def frame_rows(path):
     """Per row of ``path`` that holds a frame (rows lost in a recovery are left out): (row,
     max, min, median, p99 strain, edges > +10 %, < -10 %, median root-to-tip distance /
     rest)."""
-    import h5py
-    from lc_petsc.io.frames import frame_row, valid_rows
+    from lc_petsc.io.frames import frame_row, open_frames, valid_rows
     rows = []
-    with h5py.File(path, "r") as f:
+    with open_frames(path) as f:
         off, rest = frames_layout(f, with_rest=True)
         reach0 = np.linalg.norm(rest[off[1:] - 1] - rest[off[:-1]], axis=1)
         for k in np.flatnonzero(valid_rows(f)):

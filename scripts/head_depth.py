@@ -15,8 +15,6 @@ import argparse
 import json
 import sys
 
-import numpy as np
-
 from lc_petsc.crossings import frames_layout, step_rows, valid_steps
 from lc_petsc.head_check import file_head, step_depths, summarize
 from lc_petsc.studies.command_line import output_file
@@ -26,15 +24,14 @@ def head_rows(path, progress=None):
     """(head radius, [(step k, :func:`step_depths` dict of rows k -> k + 1)]) of the
     frames.h5 at ``path``; ValueError when its scene has no head sphere.  ``progress(k,
     dict, head radius)`` is called per step."""
-    import h5py
-    from lc_petsc.io.frames import valid_rows
-    with h5py.File(path, "r") as f:
+    from lc_petsc.io.frames import frame_times, open_frames, valid_rows
+    with open_frames(path) as f:
         off = frames_layout(f)
         head = file_head(f)
         if head is None:
             raise ValueError("the run's scene has no head sphere (no head_collision, not a hairball)")
         steps = valid_steps(valid_rows(f))     # the chunk index first: a damaged /time entry crashed libhdf5
-        times = np.asarray(f["time"][...], float)
+        times = frame_times(f)
         out = []
         for k, prev, cur in step_rows(f, steps):
             out.append((k, step_depths(head[0], prev, cur, times[k], times[k + 1], off, head[1], head[2])))

@@ -49,12 +49,17 @@ from __future__ import annotations
 import json
 import os
 import re
+import weakref
+from contextlib import contextmanager
+from typing import NoReturn
 
 import numpy as np
 
 from lc_petsc.io.hdf5 import collective_file_options, collective_transfer, h5py_module, is_parallel
 
 FORMAT = "lc_petsc frames 1"
+#: the datasets with a row per frame
+_FRAME_DATASETS = ("positions", "time", "frame_valid", "row_digest")
 
 _MUL1, _MUL2, _GOLDEN = (np.array([c], np.uint64) for c in
                          (0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0x9E3779B97F4A7C15))
@@ -96,11 +101,15 @@ def digest_problem(f, k, x, t=None, digest=None):
     """Why row ``k`` of the open ``frames.h5`` ``f``, read as ``x``, is not the row written
     (its ``/row_digest`` entry differs), else None; a file without ``/row_digest`` (written
     before it) is not checked.  ``t``, ``digest``: the row's ``/time`` and ``/row_digest``
-    entries where the caller has read them (default: read here)."""
+    entries where the caller has read them (default: :func:`row_table`'s, read once per
+    open file; a damaged one is a ValueError naming it)."""
     if "row_digest" not in f:
         return None
-    t = float(f["time"][k]) if t is None else float(t)
-    stored = int(f["row_digest"][k]) if digest is None else int(digest)
+    if t is None or digest is None:
+        times, digests = row_table(f)
+        t = times[k] if t is None else t
+        digest = digests[k] if digest is None else digest
+    t, stored = float(t), int(digest)
     if stored == row_digest([vertex_digest(x, 0)], k, t):
         return None
     every = int(f.attrs.get("every", 1))
@@ -253,7 +262,7 @@ def _kept_problem(f, path, rows, offsets):
     problem = index_problem(f)      # before a read: a damaged chunk size crashed libhdf5
     if problem:
         return f"{path}: {problem}"
-    frame_dsets = [k for k in ("positions", "time", "frame_valid") if k in f]
+    frame_dsets = [k for k in _FRAME_DATASETS if k in f]
     static = [k for k in ("wisp_offsets", "rest_positions", "pinned", "polylines", "radius") if k in f]
     every = int(f.attrs.get("every", 1))
     valid = valid_rows(f, check=False)
@@ -313,7 +322,7 @@ def index_problem(f):
     import itertools
     size = f.id.get_filesize()
     every = int(f.attrs.get("every", 1))
-    for name in ("positions", "time", "frame_valid", "row_digest"):
+    for name in _FRAME_DATASETS:
         d = f.get(name)
         if d is None or d.chunks is None or 0 in d.shape:
             continue
@@ -355,6 +364,76 @@ def valid_rows(f, check=True):
     return np.ones(n, bool)
 
 
+def open_frames(path):
+    """The ``frames.h5`` at ``path`` opened read-only (an h5py ``File``).  A folder (a run's
+    output folder given for its ``frames.h5``) is a ValueError saying which file to give:
+    libhdf5's own error was a multi-line dump ending in 'Is a directory'."""
+    if os.path.isdir(path):
+        inside = os.path.join(path, "frames.h5")
+        hint = f"; give {inside}" if os.path.isfile(inside) else ""
+        raise ValueError(f"a folder, not a frames.h5 file{hint}")
+    return h5py_module().File(str(path), "r")
+
+
+#: per open frames.h5 (id of the h5py File object): its /time and /row_digest, read once
+#: (a row's read checks its digest: two more small reads per row had doubled the reads)
+_ROW_TABLES: dict = {}
+
+
+def read_dataset(f, name):
+    """Dataset ``name`` of the open ``frames.h5`` ``f``, whole; one that cannot be read (a
+    chunk failing its checksum) is a ValueError naming the dataset and, for a frame
+    dataset, the rows of the damaged chunk."""
+    d = f[name]
+    try:
+        return d[...]
+    except (OSError, ValueError) as e:
+        why = _why(e)
+    if d.chunks and name in _FRAME_DATASETS:
+        every, step = int(f.attrs.get("every", 1)), d.chunks[0]
+        for a in range(0, len(d), step):            # which chunk: the rows it holds
+            try:
+                d[a:a + step]
+            except (OSError, ValueError):
+                b = min(a + step, len(d)) - 1
+                _damaged(f"/{name} rows {a}-{b} (frames {a * every}-{b * every}) cannot be read ({why})")
+    _damaged(f"/{name} cannot be read ({why})")
+
+
+def _damaged(what, rows_before=False) -> NoReturn:
+    more = "the rows before it may still be read, or rerun" if rows_before else "rerun"
+    raise ValueError(f"{what}: the file is damaged; {more} from a checkpoint")
+
+
+def row_table(f):
+    """(``/time``, ``/row_digest`` or None) of the open ``frames.h5`` ``f``, read once per
+    open file and kept while ``f`` lives (readers do not write).  A chunk failing its
+    checksum is a ValueError naming the dataset and its rows."""
+    key = id(f)
+    got = _ROW_TABLES.get(key)
+    if got is None or got[0]() is not f:
+        got = _ROW_TABLES[key] = (weakref.ref(f, lambda _, key=key: _ROW_TABLES.pop(key, None)),
+                                  np.asarray(read_dataset(f, "time"), float),
+                                  read_dataset(f, "row_digest") if "row_digest" in f else None)
+    return got[1], got[2]
+
+
+def frame_times(f):
+    """``/time`` of the open ``frames.h5`` ``f`` (s, one per row), read once per open file
+    (:func:`row_table`)."""
+    return row_table(f)[0]
+
+
+@contextmanager
+def naming(path):
+    """Reads of the frames file at ``path`` inside: a damaged value's ValueError
+    (:func:`frame_row`, :func:`read_dataset`) starts with the path."""
+    try:
+        yield
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
+
+
 def frame_row(f, k):
     """Row ``k`` of ``/positions`` (n_vertices, 3) of the open ``frames.h5`` ``f``, for a
     row that holds a frame (:func:`valid_rows`).  Such a row is finite as written (the
@@ -362,9 +441,12 @@ def frame_row(f, k):
     missing from a damaged chunk index reads as the fill value NaN without any error from
     libhdf5 (the crossing check had ended in a LinAlgError and to_usd had written the NaN
     frame).  Raises ValueError naming the row and the frame."""
-    x = np.asarray(f["positions"][k], float)
+    every = int(f.attrs.get("every", 1))
+    try:
+        x = np.asarray(f["positions"][k], float)
+    except (OSError, ValueError) as e:
+        _damaged(f"/positions row {k} (frame {k * every}) cannot be read ({_why(e)})", rows_before=True)
     if not np.isfinite(x).all():
-        every = int(f.attrs.get("every", 1))
         raise ValueError(f"/positions row {k} (frame {k * every}) reads as NaN or inf at "
                          f"{int((~np.isfinite(x).all(axis=1)).sum())} vertices: the file is "
                          "damaged (a chunk missing from its index reads as NaN); the rows "
@@ -614,23 +696,24 @@ class FramesWriter:
 
 def read_frames(path, frames=None):
     """Read ``frames.h5`` (serially) into a dict of arrays; ``frames`` selects rows of
-    ``/positions``, ``/time`` and ``frame_valid`` (:func:`valid_rows`; default: all)."""
+    ``/positions``, ``/time`` and ``frame_valid`` (:func:`valid_rows`; default: all).  Each
+    row that holds a frame is read by :func:`frame_row` (checked against its digest); a
+    damaged one is a ValueError naming the file, the dataset and the row."""
     h5py = h5py_module()
     with h5py.File(path, "r") as f:
-        sel = slice(None) if frames is None else np.asarray(frames)
-        out = {k: f[k][...] for k in ("wisp_offsets", "rest_positions", "pinned")}
-        valid = valid_rows(f)
-        times = f["time"][...]
-        out["time"] = times[sel]
-        out["frame_valid"] = valid[sel]
-        out["positions"] = f["positions"][sel] if frames is None else \
-            np.stack([f["positions"][int(i)] for i in np.atleast_1d(frames)])
-        if "row_digest" in f:           # /time and /row_digest read once, not per row
-            digests = f["row_digest"][...]
-            ks = np.arange(len(valid))[sel] if frames is None else np.atleast_1d(frames)
-            for k, x in zip(ks, out["positions"]):
-                problem = valid[int(k)] and digest_problem(f, int(k), x, times[int(k)], digests[int(k)])
-                if problem:
-                    raise ValueError(f"{f.filename}: {problem}")
-        out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        valid = valid_rows(f)       # (its error names the file)
+        with naming(f.filename):
+            return _read_rows(f, valid, frames)
+
+
+def _read_rows(f, valid, frames):
+    """:func:`read_frames`' reads of the open ``f``."""
+    out = {k: read_dataset(f, k) for k in ("wisp_offsets", "rest_positions", "pinned")}
+    ks = np.arange(len(valid))[slice(None) if frames is None else np.asarray(frames)]
+    times = row_table(f)[0]
+    out["time"], out["frame_valid"] = times[ks], valid[ks]
+    pos = f["positions"]
+    out["positions"] = np.stack([frame_row(f, k) if valid[k] else pos[k] for k in ks.tolist()]) \
+        if len(ks) else np.zeros((0,) + pos.shape[1:])
+    out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     return out

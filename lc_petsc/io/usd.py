@@ -139,9 +139,8 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     lost in a recovery are left out; the stage's start and end time codes are the first
     and last row written).  ``progress``: callable(done, total) or None.  Returns a dict
     of what was written and how long it took (seconds)."""
-    import h5py
     from pxr import Gf, Sdf, Usd, UsdGeom, Vt
-    from lc_petsc.io.frames import frame_row, valid_rows
+    from lc_petsc.io.frames import frame_row, frame_times, naming, open_frames, read_dataset, valid_rows
     from lc_petsc.io.render_hairs import RenderHairs, root_normals
     from lc_petsc.scene.kinematics import HeadMotion
 
@@ -153,8 +152,8 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
         raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
     try:
-        f = h5py.File(frames_path, "r")
-    except OSError as e:
+        f = open_frames(frames_path)
+    except (OSError, ValueError) as e:
         raise ValueError(f"{frames_path}: cannot open the frames file ({e})") from None
     with f:
         for key in ("positions", "time", "wisp_offsets", "rest_positions", "pinned"):
@@ -167,15 +166,17 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
         config_dict = json.loads(f.attrs["config"])
         tables = config_tables(config_dict)
         dt, every = float(f.attrs["dt"]), int(f.attrs.get("every", 1))
-        offsets = np.asarray(f["wisp_offsets"][...], np.int64)
+        with naming(frames_path):
+            static = {k: read_dataset(f, k) for k in ("wisp_offsets", "rest_positions", "pinned", "radius") if k in f}
+            times = frame_times(f)
+        offsets = np.asarray(static["wisp_offsets"], np.int64)
         sizes = np.diff(offsets)
-        rest = np.asarray(f["rest_positions"][...], float)
-        pinned = np.asarray(f["pinned"][...], bool)
-        times = np.asarray(f["time"][...], float)
+        rest = np.asarray(static["rest_positions"], float)
+        pinned = np.asarray(static["pinned"], bool)
         n_rows = len(times)
         rows = [k for k in range(0, n_rows, int(stride)) if held[k]]
         # the run's radii; frames files written before /radius existed: from its config
-        radius = f["radius"][...] if "radius" in f else scene_radius(tables, sizes)
+        radius = static["radius"] if "radius" in static else scene_radius(tables, sizes)
         out_cfg = tables["output"]
         n_hairs = out_cfg.render_hairs if render_hairs is None else render_hairs
         seed = out_cfg.render_hair_seed if render_hair_seed is None else render_hair_seed
@@ -246,7 +247,8 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
 
             t_hairs = 0.0
             for done, k in enumerate(rows):
-                world = frame_row(f, k)
+                with naming(frames_path):
+                    world = frame_row(f, k)
                 origin = local_origin(world)
                 x = world - origin          # the render hairs follow a translation exactly
                 p32 = x.astype(np.float32)

@@ -41,6 +41,8 @@ second) and keeps its own wisps' slices.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from lc_petsc.errors import SceneError
@@ -280,10 +282,14 @@ def _stage_curves(path, prim_path):
     try:
         stage = Usd.Stage.Open(str(path))
     except Tf.ErrorException as e:
-        # USD's text is "Error in '<C++ function>' at line N in file <source> : '<reason>'"
-        reason = str(e).strip().splitlines()[-1].rsplit(" : ", 1)[-1].strip("'")
-        raise SceneError(f"{where}: cannot open it as USD ({reason}); scene.path must be a "
-                         ".usd, .usda or .usdc file") from None
+        # USD's text is "Error in '<C++ function>' at line N in file <source> : '<reason>'",
+        # one per line, the most specific first (a truncated .usda: its parse error, then
+        # only "Failed to open layer", which was all the message said)
+        reasons = [re.sub(r"pxrInternal_\w+::", "", line.rsplit(" : ", 1)[-1].strip().strip("'").strip())
+                   for line in str(e).strip().split("\n\tError in ") if " : " in line]
+        reason = "; ".join(r for r in reasons if r) or str(e).strip()
+        raise SceneError(f"{where}: cannot open it as USD ({reason}): damaged, truncated or not USD; "
+                         "scene.path must be a .usd, .usda or .usdc file") from None
     if stage is None:
         raise SceneError(f"{where}: cannot open it as USD")
     every = [p for p in stage.Traverse() if p.IsA(UsdGeom.BasisCurves)]

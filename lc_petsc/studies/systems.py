@@ -105,15 +105,10 @@ def destroy_systems(systems):
                 m.destroy()
 
 
-def read_options_file(path) -> str:
-    """The options of a PETSc options file (``#`` comments dropped), one string."""
-    lines = Path(path).read_text().splitlines()
-    return " ".join(line.split("#", 1)[0] for line in lines).strip()
-
-
 def option_sets(folder, names=None) -> dict:
     """``{name: options string}`` of ``folder/*.opts`` (``names``: a subset, in order)."""
-    found = {p.stem: read_options_file(p) for p in sorted(Path(folder).glob("*.opts"))}
+    from lc_petsc.config import read_options_file
+    found = {p.stem: read_options_file(p, "option set ") for p in sorted(Path(folder).glob("*.opts"))}
     if not found:
         raise ValueError(f"no option sets (*.opts files) in {folder}; give a folder of PETSc "
                          "options files such as configs/solvers")

@@ -93,6 +93,10 @@ BAD = [
     ("bad enum", GOOD + '[output]\nview = "iso"\n', ["output.view", "'iso'", "front"]),
     ("TOML syntax", GOOD + "[time\n", ["invalid TOML"]),
     ("missing config file", None, ["no such config file"]),
+    # a zero-length file (a failed copy) ran the defaults' 1-wisp scene, exit 0, and
+    # replaced a finished run's outputs in --out
+    ("empty file", "", ["the config file is empty (0 bytes, no key)", "[scene]"]),
+    ("comments only", "# cut here\n\n", ["the config file is empty (12 bytes, no key)"]),
 ]
 
 
@@ -237,3 +241,16 @@ def test_implausible_value_is_reported_by_the_main_job(tmp_path, capsys):
     assert "warning: material.density = 1300 g/cm^3 is outside the plausible range for hair" in err
     warnings = json.loads((tmp_path / "o" / "summary.json").read_text())["warnings"]
     assert len(warnings) == 1 and warnings[0].startswith("material.density = 1300 g/cm^3")
+
+
+def test_a_binary_options_file_is_named(tmp_path, capsys):
+    """solver.options_file naming a file that is not UTF-8 text ended simulate.py in a
+    UnicodeDecodeError traceback; now exit 2 naming the key and the file, nothing written."""
+    (tmp_path / "x.opts").write_bytes(b"-ksp_rtol 1e-6\n\x80\n")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(GOOD + '[solver]\noptions_file = "x.opts"\n')
+    code, out, err = _run_main(capsys, [str(cfg), "--out", str(tmp_path / "out"), "--quiet"])
+    assert code == 2 and "Traceback" not in err + out
+    assert err.strip() == (f"simulate.py: error: {cfg}: solver.options_file = '{tmp_path / 'x.opts'}': not a "
+                           "text file of PETSc options (invalid start byte at byte 15)"), err
+    assert not (tmp_path / "out").exists()

@@ -119,3 +119,25 @@ def test_a_preview_that_fails_mid_write_leaves_no_partial_png(tmp_path, monkeypa
         assert open(p, "rb").read() == data
     assert sorted(p.name for p in (tmp_path / "previews").iterdir()) == ["frame_00001.png"]
     assert not any(p.name.endswith(".tmp") for p in tmp_path.iterdir())
+
+
+def test_no_preview_frames_and_no_contact_sheet_draw_nothing(tmp_path, capsys):
+    """output.preview_frames = [] with contact_sheet = 0 (valid config: no images asked
+    for) failed the run after its last frame: exit 3, "output error: previews in ...:
+    zero-size array to reduction operation minimum" (the limits of no frames).  Now
+    nothing is drawn and the run ends with exit 0."""
+    import h5py
+    from lc_petsc.batch import main
+    from sim_helpers import hairball_toml
+    x = np.zeros((6, 3)) + np.arange(6)[:, None]
+    with h5py.File(tmp_path / "frames.h5", "w") as f:
+        f["positions"] = np.stack([x, x + 1.0])
+        f["time"] = [0.0, 0.1]
+        f["wisp_offsets"] = [0, 3, 6]
+    assert render_previews(tmp_path / "frames.h5", tmp_path, [], contact_panels=0) == []
+    assert not (tmp_path / "previews").exists() and not (tmp_path / "contact_sheet.png").exists()
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(hairball_toml(frames=2, output="preview_frames = []\ncontact_sheet = 0\nusd = false"))
+    assert main([str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0, capsys.readouterr().err
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "frames.h5", "frames.xdmf", "summary.json"]

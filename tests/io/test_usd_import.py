@@ -274,3 +274,18 @@ def test_shipped_usd_groom_is_the_fringe():
     assert np.abs(src.positions - x).max() < 2e-6 * np.abs(x).max()      # float32 of metres
     assert np.allclose(src.radius, r, rtol=1e-6)
     assert np.array_equal(src.pinned, pin)
+
+
+def test_a_truncated_usd_groom_names_the_parse_error(tmp_path):
+    """A .usda groom cut short (a failed copy) said only 'cannot open it as USD (Failed to
+    open layer @...@)': USD's last, least specific line.  Now every reason USD gives is
+    kept, the parse error with its line and column first."""
+    good = Path(__file__).resolve().parents[2] / "configs" / "data" / "fringe.usda"
+    cut = tmp_path / "cut.usda"
+    cut.write_bytes(good.read_bytes()[:20000])
+    with pytest.raises(ValueError) as e:
+        UsdSource(cut)
+    assert str(e.value).startswith(f"USD file {cut}: cannot open it as USD ({cut}:18:19461: parse error "), e.value
+    assert str(e.value).endswith(f"; Failed to open layer @{cut}@): damaged, truncated or not USD; scene.path "
+                                 "must be a .usd, .usda or .usdc file")
+    assert "pxrInternal" not in str(e.value) and "Error in" not in str(e.value)

@@ -181,3 +181,24 @@ def test_bad_input_under_mpiexec_is_reported_once(tmp_path, args, message):
     error_lines = [line for line in proc.stderr.splitlines() if "error:" in line]
     assert len(error_lines) == 1 and message in error_lines[0], proc.stderr
     assert proc.stderr.count("usage:") <= 1 and "Traceback" not in proc.stderr
+
+
+def test_a_binary_option_set_is_named(tmp_path):
+    """An option set that is not UTF-8 text (a binary file named *.opts) ended
+    compare_solvers.py in a UnicodeDecodeError traceback naming no file; now one error
+    line names it (exit 2), and so does a folder named *.opts."""
+    sets = tmp_path / "sets"
+    sets.mkdir()
+    (sets / "default.opts").write_text("-ksp_type cg\n")
+    (sets / "bin.opts").write_bytes(b"-ksp_type \xff\xfe\n")
+    for bad, why in [("bin", "not a text file of PETSc options (invalid start byte at byte 10)"),
+                     ("dir", "cannot read the options file: Is a directory")]:
+        if bad == "dir":
+            (sets / "bin.opts").unlink()
+            (sets / "dir.opts").mkdir()
+        proc = subprocess.run([sys.executable, str(ROOT / "drivers" / "compare_solvers.py"), "--sets-dir",
+                               str(sets), "--out", str(tmp_path / "out")], cwd=ROOT, capture_output=True,
+                              text=True, timeout=120, stdin=subprocess.DEVNULL)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+        assert proc.stderr.strip() == f"compare_solvers.py: error: option set '{sets / (bad + '.opts')}': {why}"
+        assert not (tmp_path / "out").exists()

@@ -62,3 +62,37 @@ def test_bench_bandwidth_prints_a_positive_rate_per_rank(capsys):
     with pytest.raises(SystemExit) as exit_info:
         bench.main(["--doubles", "10"])
     assert exit_info.value.code == 2
+
+
+def test_bench_checkpoint_removes_its_folder_when_a_write_fails(tmp_path, monkeypatch, capsys):
+    """A checkpoint write that failed (here a full disk) ended bench_checkpoint.py in a
+    traceback and left its bench_ckpt_* folder with the partial files; now: exit 3, the
+    error printed, the folder removed (and removed after a run that succeeds)."""
+    import errno
+    import sys
+    sys.path.insert(0, str(ROOT / "tests"))
+    from sim_helpers import hairball_toml
+    from lc_petsc.errors import OutputError
+    bench = _script("bench_checkpoint")
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(hairball_toml(n_wisps=2, frames=2))
+    work = tmp_path / "work"
+    work.mkdir()
+    args = ["--config", str(cfg), "--repeat", "2", "--dir", str(work)]
+    assert bench.main(args) == 0
+    assert "checkpoint write: median" in capsys.readouterr().out
+    assert list(work.iterdir()) == []
+    real = bench.write_checkpoint
+    calls = []
+
+    def full_disk(d, *a, **kw):
+        calls.append(d)
+        if len(calls) == 2:         # the first written, the second runs out of space
+            (Path(d) / "checkpoint_partial.h5").write_bytes(b"\0" * 10)
+            raise OutputError(f"{d}/checkpoint_partial.h5: {errno.errorcode[errno.ENOSPC]} no space left")
+        return real(d, *a, **kw)
+    monkeypatch.setattr(bench, "write_checkpoint", full_disk)
+    assert bench.main(args) == 3
+    err = capsys.readouterr().err
+    assert f"bench_checkpoint.py: error: {calls[1]}/checkpoint_partial.h5: ENOSPC no space left" in err, err
+    assert len(calls) == 2 and list(work.iterdir()) == []

@@ -202,6 +202,8 @@ def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view=
         sheet = sorted(set(held[np.linspace(0, len(held) - 1, min(contact_panels, len(held)))
                                 .round().astype(int)].tolist())) if contact_panels > 0 else []
         needed = sorted(set(rows) | set(sheet))
+        if not needed:      # output.preview_frames = [] and contact_sheet = 0: nothing to draw
+            return []
         X = {r: frame_row(f, r) for r in needed}
     discs = [head(times[r]) for r in needed] if head is not None else []
     limits = _limits(list(X.values()), view, discs)

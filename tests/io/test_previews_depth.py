@@ -85,6 +85,25 @@ def test_rendered_previews_not_blank(tmp_path):
         assert len(colours) > 200           # shaded head and strands, not a flat plot
 
 
+def test_no_preview_frames_and_no_contact_sheet_render_nothing(tmp_path):
+    """``output.preview_frames = []`` with ``output.contact_sheet = 0`` asks for no image:
+    the frame limits were taken over no frame (numpy's min of an empty list), and a
+    finished run ended in "output error: previews ...: zero-size array" with exit
+    status 3."""
+    import h5py
+    from lc_petsc.scene import geometry
+    x = np.concatenate([geometry.wisp4c(40, root=(2.0 * w, 15.0, 0.0), spin=w) for w in range(2)])
+    with h5py.File(tmp_path / "frames.h5", "w") as f:
+        f["positions"] = np.stack([x, x + [0.5, 0, 0]])
+        f["time"] = [0.0, 0.1]
+        f["wisp_offsets"] = np.arange(3) * 40
+    assert render_previews(tmp_path / "frames.h5", tmp_path, [], contact_panels=0) == []
+    assert not (tmp_path / "previews").exists() and not (tmp_path / "contact_sheet.png").exists()
+    # one panel of either kind still draws
+    assert [p.rsplit("/", 1)[1] for p in render_previews(tmp_path / "frames.h5", tmp_path, [], 1)] \
+        == ["contact_sheet.png"]
+
+
 def test_a_preview_that_fails_mid_write_leaves_no_partial_png(tmp_path, monkeypatch):
     """A PNG is written aside and renamed when complete: a failure mid-write (a full
     disk) left the first bytes of the image at the preview's name, which a viewer showed

@@ -104,9 +104,11 @@ class RootRotation:
                                              + [np.zeros((0, 1), int)], axis=None)).astype(np.int64)
         self.across = {name: compiled.element_arrays(name, np.searchsorted(self.near, s), rest, stiff)
                        for name, (s, rest, stiff, _) in across.items()}
-        # their vertices in ``near`` and their wisps, for their energies (share_change)
-        self.across_wisp = {name: (s[:, None] + np.arange(stencils[name]), self.wisp[self.near[s]])
-                            for name, (s, _, _) in self.across.items()}
+        # their vertices in ``near``, their wisps, and their rest values and stiffnesses
+        # twice, for their energies before and after a turn in one NumPy call (share_change)
+        self.across_twice = {name: (s[:, None] + np.arange(stencils[name]), self.wisp[self.near[s]],
+                                    np.concatenate([r, r]), np.concatenate([k, k]))
+                             for name, (s, r, k) in self.across.items()}
         # and six copies of them, one per turn and sign, for one kernel call (copy j's
         # vertices after the j - 1 before it)
         n = len(self.near)
@@ -114,6 +116,11 @@ class RootRotation:
                                                       np.concatenate([r] * 6), np.concatenate([k] * 6))
                         for name, (s, r, k) in self.across.items()}
         self.near_moved = self.moved[self.near]
+        # the six turns of the central differences (+-ANGLE_STEP about each axis) as
+        # matrices acting on row vectors: one product instead of six Rodrigues turns
+        eye = np.eye(3)
+        self.turns6 = np.stack([rotate(eye, np.broadcast_to(sign * ANGLE_STEP * e, (3, 3)))
+                                for sign in (1, -1) for e in eye])
         self.turned = 0          # wisps turned by the last step
         self.reduced = 0         # ... of them with their turn halved or dropped (share_change)
 
@@ -158,8 +165,8 @@ class RootRotation:
         # the elements across the root: central differences of their gradients, the six
         # turns in one kernel call
         pn, rn, wn = x[pivot_of[self.near]], r[self.near], self.wisp[self.near]
-        turned = np.concatenate([np.where(self.near_moved[:, None], pn + rotate(
-            xs - pn, np.broadcast_to(sign * ANGLE_STEP * e, xs.shape)), xs) for sign in (1, -1) for e in eye])
+        turned = np.where(self.near_moved[None, :, None], pn + np.einsum("nl,jlk->jnk", xs - pn, self.turns6),
+                          xs).reshape(-1, 3)
         g6 = np.zeros_like(turned)
         compiled.add_gradient(self.across6, turned, g6)
         g6 = g6.reshape(2, 3, -1, 3)
@@ -183,11 +190,10 @@ class RootRotation:
         :meth:`Integrator.wisp_potentials` without evaluating the wisps' elements."""
         d = self._sums(change(x, y) * self.mask)
         xs, ys = x[self.near], y[self.near]
-        for name, (start, rest, stiffness) in self.across.items():
-            if len(start):
-                vertices, wisp = self.across_wisp[name]
-                e = _ENERGY[name](ys[vertices], rest, stiffness) - _ENERGY[name](xs[vertices], rest, stiffness)
-                d += np.bincount(wisp, e, minlength=len(d))
+        for name, (vertices, wisp, rest, stiffness) in self.across_twice.items():
+            if len(wisp):
+                e = _ENERGY[name](np.concatenate([ys[vertices], xs[vertices]]), rest, stiffness)
+                d += np.bincount(wisp, e[:len(wisp)] - e[len(wisp):], minlength=len(d))
         return d
 
     def step(self, x, terms, unit, change=None):

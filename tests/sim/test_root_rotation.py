@@ -145,6 +145,39 @@ def test_the_share_change_is_the_change_of_the_wisps_potentials():
         sim.close()
 
 
+def test_the_share_change_takes_one_energy_call_per_term(monkeypatch):
+    """share_change evaluates the across elements before and after the turn in one
+    NumPy kernel call per term (the fixed per-call cost weighed on the 10-wisp hairball:
+    docs/newton.md "Seventeenth round"), with the values of two calls; the six
+    central-difference turns of ``model`` are Rodrigues turns of the same angles."""
+    from lc_petsc import root_rotation
+    sim, turner, x, unit = _far_turned_start(("stretch", "bend", "twist", "gravity", "head_collision"), 2.5)
+    try:
+        it = sim.integrator
+        y = turner.step(x, it._turn_terms, unit)
+        calls = []
+        kernels = dict(root_rotation._ENERGY)
+        for name, fn in kernels.items():
+            monkeypatch.setitem(root_rotation._ENERGY, name,
+                                lambda v, r, k, fn=fn, name=name: calls.append(name) or fn(v, r, k))
+        cheap = turner.share_change(x, y, it._turn_change)
+        assert sorted(calls) == ["bend", "stretch", "twist"]
+        two = turner._sums(it._turn_change(x, y) * turner.mask)
+        xs, ys = x[turner.near], y[turner.near]
+        for name, (vertices, wisp, rest, stiffness) in turner.across_twice.items():
+            n = len(wisp)
+            e = kernels[name](ys[vertices], rest[:n], stiffness[:n]) - kernels[name](xs[vertices], rest[:n],
+                                                                                   stiffness[:n])
+            two += np.bincount(wisp, e, minlength=len(two))
+        assert np.abs(cheap - two).max() <= 1e-12 * np.abs(two).max()
+        v = np.random.default_rng(0).standard_normal((4, 3))
+        for j, (sign, e) in enumerate((s, e) for s in (1, -1) for e in np.eye(3)):
+            theta = np.broadcast_to(sign * root_rotation.ANGLE_STEP * e, v.shape)
+            assert np.abs(v @ turner.turns6[j] - root_rotation.rotate(v, theta)).max() <= 1e-15
+    finally:
+        sim.close()
+
+
 def test_a_turn_that_raises_a_wisps_share_of_G_is_cut():
     """With the inertial target 2.5 rad away G along a turn is far from its quadratic
     model at x (a cosine, not a parabola): the model's turn raises two of the three

@@ -138,7 +138,8 @@ class RootRotation:
         gradient of G along the three turns (the torque of grad G about the pivot), A
         G's curvature along them (its Hessian in the angles of the turn), P the turn's
         inertia about the pivot over dt^2.  ``terms``: x -> (grad G without the elastic
-        terms, the head's active vertices and their Hessians or None); ``unit``: per
+        terms, the head's active vertices and their Hessians or None, per vertex the
+        terms of one vertex of G (not used here: :meth:`step`'s guard)); ``unit``: per
         vertex the mass over dt^2.
 
         An element whose vertices all turn exerts no torque about the pivot and turns its
@@ -150,8 +151,11 @@ class RootRotation:
         hairball10 7.3e-3 against 5.0e-3, the demo cut to 10 wisps 1.37e-2 against
         9.6e-3, docs/newton.md "Fourteenth round"), plus the across elements' and the
         head's curvature.  The elastic gradient's large, cancelling terms never enter."""
+        return self._model(x, *terms(x)[:2], unit)
+
+    def _model(self, x, outer, head, unit):
+        """:meth:`model` from the terms at x."""
         held = self.pivot >= 0
-        outer, head = terms(x)
         pivot_of = np.where(held, self.pivot, 0)[self.wisp]
         r = (x - x[pivot_of]) * self.mask[:, None]
         eye = np.eye(3)
@@ -196,21 +200,23 @@ class RootRotation:
                 d += np.bincount(wisp, e[:len(wisp)] - e[len(wisp):], minlength=len(d))
         return d
 
-    def step(self, x, terms, unit, change=None):
+    def step(self, x, terms, unit, potentials=None):
         """x after the root turn (a new array).  Per held wisp the turn theta solves
         A theta = -b (:meth:`model`) by three conjugate-gradient steps preconditioned by
         P (exact where A is positive definite); a direction of curvature that is not
         positive ends a wisp's iteration, keeping its turn so far (on hairball10 that
         gives 4.5e-3 against 5.0e-3 for the Newton step in the span of A's positive
-        eigenvalues).  With ``change`` (:meth:`share_change`) a wisp whose share of G
-        the turn raised has it halved, up to :data:`HALVINGS` times, then dropped: the
-        model is G's along the turn at x only, and a large turn or the head's contact
-        switching on or off over it can make the step climb."""
+        eigenvalues).  With ``potentials`` (y -> per vertex the terms of one vertex of G,
+        as ``terms``' last at x) a wisp whose share of G the turn raised
+        (:meth:`share_change`) has it halved, up to :data:`HALVINGS` times, then
+        dropped: the model is G's along the turn at x only, and a large turn or the
+        head's contact switching on or off over it can make the step climb."""
         held = self.pivot >= 0
         self.turned = self.reduced = 0
         if not held.any():
             return x.copy()
-        b, A, P = self.model(x, terms, unit)
+        outer, head, at_x = terms(x)
+        b, A, P = self._model(x, outer, head, unit)
         eye = np.eye(3)
         P[~held] = eye
         theta = np.zeros((len(held), 3))
@@ -236,8 +242,8 @@ class RootRotation:
         moving = np.any(theta != 0.0, axis=1)
         self.turned = int(np.count_nonzero(moving))
         reduced = np.zeros(len(held), bool)
-        for halving in range(HALVINGS + 1) if change is not None else ():
-            rose = moving & (self.share_change(x, y, change) > 0.0)
+        for halving in range(HALVINGS + 1) if potentials is not None else ():
+            rose = moving & (self.share_change(x, y, lambda _, y: potentials(y) - at_x) > 0.0)
             if not rose.any():
                 break
             reduced |= rose

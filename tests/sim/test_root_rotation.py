@@ -130,6 +130,11 @@ def _far_turned_start(terms, angle):
     return sim, turner, x, np.where(it.free, it.scene.mass / it.dt ** 2, 0.0)
 
 
+def _change(it):
+    """Per vertex the change of the terms of one vertex of G from x to y."""
+    return lambda x, y: it._vertex_potentials(y) - it._vertex_potentials(x)
+
+
 def test_the_share_change_is_the_change_of_the_wisps_potentials():
     """RootRotation.share_change (the vertex terms and the elements across the root)
     equals the change of Integrator.wisp_potentials (every element) over a turn."""
@@ -138,7 +143,7 @@ def test_the_share_change_is_the_change_of_the_wisps_potentials():
         it = sim.integrator
         y = turner.step(x, it._turn_terms, unit)
         exact = it.wisp_potentials(y) - it.wisp_potentials(x)
-        cheap = turner.share_change(x, y, it._turn_change)
+        cheap = turner.share_change(x, y, _change(it))
         assert np.abs(exact).min() > 1.0          # a real change on every wisp
         assert np.abs(cheap - exact).max() <= 1e-9 * np.abs(it.wisp_potentials(x)).max()
     finally:
@@ -160,9 +165,9 @@ def test_the_share_change_takes_one_energy_call_per_term(monkeypatch):
         for name, fn in kernels.items():
             monkeypatch.setitem(root_rotation._ENERGY, name,
                                 lambda v, r, k, fn=fn, name=name: calls.append(name) or fn(v, r, k))
-        cheap = turner.share_change(x, y, it._turn_change)
+        cheap = turner.share_change(x, y, _change(it))
         assert sorted(calls) == ["bend", "stretch", "twist"]
-        two = turner._sums(it._turn_change(x, y) * turner.mask)
+        two = turner._sums(_change(it)(x, y) * turner.mask)
         xs, ys = x[turner.near], y[turner.near]
         for name, (vertices, wisp, rest, stiffness) in turner.across_twice.items():
             n = len(wisp)
@@ -174,6 +179,36 @@ def test_the_share_change_takes_one_energy_call_per_term(monkeypatch):
         for j, (sign, e) in enumerate((s, e) for s in (1, -1) for e in np.eye(3)):
             theta = np.broadcast_to(sign * root_rotation.ANGLE_STEP * e, v.shape)
             assert np.abs(v @ turner.turns6[j] - root_rotation.rotate(v, theta)).max() <= 1e-15
+    finally:
+        sim.close()
+
+
+def test_a_turn_evaluates_the_heads_penalty_twice(monkeypatch):
+    """One root turn (model and guard, nothing halved) evaluates the head's penalty at x
+    once for the model's gradient, Hessians and the guard's start, and once at the turned
+    positions (three times before: the guard took x's again); the turned positions are
+    those of a guard given fresh potentials at x."""
+    sim, turner = _settled(("stretch", "bend", "twist", "gravity", "head_collision"))
+    try:
+        it = sim.integrator
+        x = it.x + 0.001 * np.random.default_rng(1).standard_normal(it.x.shape) * it.free[:, None]
+        # each wisp's first free vertex pressed into the head (its penalty active)
+        c = it.head.sphere_center(it.t_next)
+        first = turner.pivot + 1
+        out = x[first] - c
+        x[first] = c + out * (0.995 * (it.head.radius + it.cfg.physics.head_margin)
+                              / np.linalg.norm(out, axis=1))[:, None]
+        unit = np.where(it.free, it.scene.mass / it.dt ** 2, 0.0)
+        assert len(it._contact_terms(x, False)[1]) > 0           # the head touches wisps
+        fresh = turner.step(x, it._turn_terms, unit, it._vertex_potentials)
+        assert turner.reduced == 0 and turner.turned == 3
+        calls = []
+        real = it._contact_terms
+        monkeypatch.setattr(it, "_contact_terms", lambda *a, **k: calls.append(1) or real(*a, **k))
+        it.root_turn = turner
+        y = it._last_turn(it.cfg.time.newton_iterations - 1, x)
+        assert len(calls) == 2
+        assert np.array_equal(y, fresh)
     finally:
         sim.close()
 
@@ -190,7 +225,7 @@ def test_a_turn_that_raises_a_wisps_share_of_G_is_cut():
         W0 = it.wisp_potentials(x)
         unguarded = it.wisp_potentials(turner.step(x, it._turn_terms, unit)) - W0
         assert turner.reduced == 0
-        guarded = it.wisp_potentials(turner.step(x, it._turn_terms, unit, it._turn_change)) - W0
+        guarded = it.wisp_potentials(turner.step(x, it._turn_terms, unit, it._vertex_potentials)) - W0
         print(f"\nshare change per wisp: unguarded {unguarded}, guarded {guarded}")
         rose = unguarded > 1e3
         assert rose.tolist() == [False, True, True]

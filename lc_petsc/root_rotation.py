@@ -219,6 +219,12 @@ class RootRotation:
         b, A, P = self._model(x, outer, head, unit)
         eye = np.eye(3)
         P[~held] = eye
+        # a wisp on one line (hanging straight) has no inertia about that line: P is
+        # singular there (np.linalg.solve raised).  A turn about the line moves nothing, so
+        # a small multiple of P's trace there only keeps the preconditioner invertible
+        tr = np.einsum("wkk->w", P)
+        line = np.linalg.det(P) <= 1e-12 * tr ** 3
+        P[line] += (1e-6 * tr[line])[:, None, None] * eye
         theta = np.zeros((len(held), 3))
         res = -b
         z = np.linalg.solve(P, res[:, :, None])[:, :, 0]

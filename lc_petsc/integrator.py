@@ -728,7 +728,7 @@ class Integrator:
         if self.root_turn is None or it != self.cfg.time.newton_iterations - 1:
             return x
         unit = self._mass_unit()
-        y = self.root_turn.step(x, self._turn_terms, unit, self._turn_change)
+        y = self.root_turn.step(x, self._turn_terms, unit, self._vertex_potentials)
         # every rank turns at the same iteration (a fixed count): the counts summed over all
         turned, reduced = global_reduce(self.comm, [self.root_turn.turned, self.root_turn.reduced], "sum")
         self._counts["root_turns_reduced"] += int(reduced)
@@ -737,27 +737,25 @@ class Integrator:
                       f"dropped), largest move {self.increments(y - x)[0]:.3e} wisp lengths")
         return y
 
-    def _vertex_potentials(self, x):
+    def _vertex_potentials(self, x, head=None):
         """Per vertex its inertia, gravity and head-penalty terms of G at x (zero on
-        pinned vertices)."""
+        pinned vertices); ``head`` reuses the head's per-vertex energies and their
+        vertices at x (:meth:`_contact_terms` with ``per_vertex``, its first two)."""
         d = x - self.xhat
         per = np.where(self.free, 0.5 / self.dt ** 2 * self.scene.mass * np.sum(d * d, axis=1)
                        - np.sum(self.f_ext * x, axis=1), 0.0)
-        e, idx, _ = self._contact_terms(x, False, per_vertex=True)
+        e, idx = self._contact_terms(x, False, per_vertex=True)[:2] if head is None else head
         if idx is not None and len(idx):
             per[idx] += e
         return per
 
-    def _turn_change(self, x, y):
-        """Per vertex the change of :meth:`_vertex_potentials` from x to y (the root
-        turn's guard, RootRotation.share_change)."""
-        return self._vertex_potentials(y) - self._vertex_potentials(x)
-
     def _turn_terms(self, x):
         """(grad G without the elastic terms, the head's active vertices and their
-        Hessians or None) at x, for the root turn."""
-        _, idx, head = self._contact_terms(x, True)
-        return self.gradient(x, np.zeros_like(x), (idx, head)), None if head is None else (idx, head[1])
+        Hessians or None, :meth:`_vertex_potentials`) at x, for the root turn: one pass
+        of the head's penalty for all three (the turn's guard starts from the last)."""
+        e, idx, head = self._contact_terms(x, True, per_vertex=True)
+        return (self.gradient(x, np.zeros_like(x), (idx, head)), None if head is None else (idx, head[1]),
+                self._vertex_potentials(x, (e, idx)))
 
     def _collision_free_frame_path(self, x_frame, t_frame, last):
         """ccd mode after step cutback: the frame's own path x_n -> x_{n+1}, the chord of

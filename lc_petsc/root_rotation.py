@@ -104,9 +104,11 @@ class RootRotation:
                                              + [np.zeros((0, 1), int)], axis=None)).astype(np.int64)
         self.across = {name: compiled.element_arrays(name, np.searchsorted(self.near, s), rest, stiff)
                        for name, (s, rest, stiff, _) in across.items()}
-        # their vertices in ``near`` and their wisps, for their energies (share_change)
-        self.across_wisp = {name: (s[:, None] + np.arange(stencils[name]), self.wisp[self.near[s]])
-                            for name, (s, _, _) in self.across.items()}
+        # their vertices in ``near``, their wisps, and their rest values and stiffnesses
+        # twice, for their energies before and after a turn in one NumPy call (share_change)
+        self.across_twice = {name: (s[:, None] + np.arange(stencils[name]), self.wisp[self.near[s]],
+                                    np.concatenate([r, r]), np.concatenate([k, k]))
+                             for name, (s, r, k) in self.across.items()}
         # and six copies of them, one per turn and sign, for one kernel call (copy j's
         # vertices after the j - 1 before it)
         n = len(self.near)
@@ -114,6 +116,11 @@ class RootRotation:
                                                       np.concatenate([r] * 6), np.concatenate([k] * 6))
                         for name, (s, r, k) in self.across.items()}
         self.near_moved = self.moved[self.near]
+        # the six turns of the central differences (+-ANGLE_STEP about each axis) as
+        # matrices acting on row vectors: one product instead of six Rodrigues turns
+        eye = np.eye(3)
+        self.turns6 = np.stack([rotate(eye, np.broadcast_to(sign * ANGLE_STEP * e, (3, 3)))
+                                for sign in (1, -1) for e in eye])
         self.turned = 0          # wisps turned by the last step
         self.reduced = 0         # ... of them with their turn halved or dropped (share_change)
 
@@ -131,7 +138,8 @@ class RootRotation:
         gradient of G along the three turns (the torque of grad G about the pivot), A
         G's curvature along them (its Hessian in the angles of the turn), P the turn's
         inertia about the pivot over dt^2.  ``terms``: x -> (grad G without the elastic
-        terms, the head's active vertices and their Hessians or None); ``unit``: per
+        terms, the head's active vertices and their Hessians or None, per vertex the
+        terms of one vertex of G (not used here: :meth:`step`'s guard)); ``unit``: per
         vertex the mass over dt^2.
 
         An element whose vertices all turn exerts no torque about the pivot and turns its
@@ -143,8 +151,11 @@ class RootRotation:
         hairball10 7.3e-3 against 5.0e-3, the demo cut to 10 wisps 1.37e-2 against
         9.6e-3, docs/newton.md "Fourteenth round"), plus the across elements' and the
         head's curvature.  The elastic gradient's large, cancelling terms never enter."""
+        return self._model(x, *terms(x)[:2], unit)
+
+    def _model(self, x, outer, head, unit):
+        """:meth:`model` from the terms at x."""
         held = self.pivot >= 0
-        outer, head = terms(x)
         pivot_of = np.where(held, self.pivot, 0)[self.wisp]
         r = (x - x[pivot_of]) * self.mask[:, None]
         eye = np.eye(3)
@@ -158,8 +169,8 @@ class RootRotation:
         # the elements across the root: central differences of their gradients, the six
         # turns in one kernel call
         pn, rn, wn = x[pivot_of[self.near]], r[self.near], self.wisp[self.near]
-        turned = np.concatenate([np.where(self.near_moved[:, None], pn + rotate(
-            xs - pn, np.broadcast_to(sign * ANGLE_STEP * e, xs.shape)), xs) for sign in (1, -1) for e in eye])
+        turned = np.where(self.near_moved[None, :, None], pn + np.einsum("nl,jlk->jnk", xs - pn, self.turns6),
+                          xs).reshape(-1, 3)
         g6 = np.zeros_like(turned)
         compiled.add_gradient(self.across6, turned, g6)
         g6 = g6.reshape(2, 3, -1, 3)
@@ -183,30 +194,37 @@ class RootRotation:
         :meth:`Integrator.wisp_potentials` without evaluating the wisps' elements."""
         d = self._sums(change(x, y) * self.mask)
         xs, ys = x[self.near], y[self.near]
-        for name, (start, rest, stiffness) in self.across.items():
-            if len(start):
-                vertices, wisp = self.across_wisp[name]
-                e = _ENERGY[name](ys[vertices], rest, stiffness) - _ENERGY[name](xs[vertices], rest, stiffness)
-                d += np.bincount(wisp, e, minlength=len(d))
+        for name, (vertices, wisp, rest, stiffness) in self.across_twice.items():
+            if len(wisp):
+                e = _ENERGY[name](np.concatenate([ys[vertices], xs[vertices]]), rest, stiffness)
+                d += np.bincount(wisp, e[:len(wisp)] - e[len(wisp):], minlength=len(d))
         return d
 
-    def step(self, x, terms, unit, change=None):
+    def step(self, x, terms, unit, potentials=None):
         """x after the root turn (a new array).  Per held wisp the turn theta solves
         A theta = -b (:meth:`model`) by three conjugate-gradient steps preconditioned by
         P (exact where A is positive definite); a direction of curvature that is not
         positive ends a wisp's iteration, keeping its turn so far (on hairball10 that
         gives 4.5e-3 against 5.0e-3 for the Newton step in the span of A's positive
-        eigenvalues).  With ``change`` (:meth:`share_change`) a wisp whose share of G
-        the turn raised has it halved, up to :data:`HALVINGS` times, then dropped: the
-        model is G's along the turn at x only, and a large turn or the head's contact
-        switching on or off over it can make the step climb."""
+        eigenvalues).  With ``potentials`` (y -> per vertex the terms of one vertex of G,
+        as ``terms``' last at x) a wisp whose share of G the turn raised
+        (:meth:`share_change`) has it halved, up to :data:`HALVINGS` times, then
+        dropped: the model is G's along the turn at x only, and a large turn or the
+        head's contact switching on or off over it can make the step climb."""
         held = self.pivot >= 0
         self.turned = self.reduced = 0
         if not held.any():
             return x.copy()
-        b, A, P = self.model(x, terms, unit)
+        outer, head, at_x = terms(x)
+        b, A, P = self._model(x, outer, head, unit)
         eye = np.eye(3)
         P[~held] = eye
+        # a wisp on one line (hanging straight) has no inertia about that line: P is
+        # singular there (np.linalg.solve raised).  A turn about the line moves nothing, so
+        # a small multiple of P's trace there only keeps the preconditioner invertible
+        tr = np.einsum("wkk->w", P)
+        line = np.linalg.det(P) <= 1e-12 * tr ** 3
+        P[line] += (1e-6 * tr[line])[:, None, None] * eye
         theta = np.zeros((len(held), 3))
         res = -b
         z = np.linalg.solve(P, res[:, :, None])[:, :, 0]
@@ -230,8 +248,8 @@ class RootRotation:
         moving = np.any(theta != 0.0, axis=1)
         self.turned = int(np.count_nonzero(moving))
         reduced = np.zeros(len(held), bool)
-        for halving in range(HALVINGS + 1) if change is not None else ():
-            rose = moving & (self.share_change(x, y, change) > 0.0)
+        for halving in range(HALVINGS + 1) if potentials is not None else ():
+            rose = moving & (self.share_change(x, y, lambda _, y: potentials(y) - at_x) > 0.0)
             if not rose.any():
                 break
             reduced |= rose

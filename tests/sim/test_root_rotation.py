@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lc_petsc.config import ConfigError, TimeConfig
+from lc_petsc.config import ConfigError, MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig
 from lc_petsc.root_rotation import root_pivots, turn
 from lc_petsc.simulator import build_simulator
 from tests.sim_helpers import run_positions, small_hairball_config
@@ -108,6 +108,28 @@ def test_the_root_turn_brings_a_fixed_count_near_the_converged_run():
     assert e_turned < 0.55 * e_plain
 
 
+def test_a_wisp_hanging_straight_is_turned_without_error():
+    """A wisp on one line has no inertia about it (the turn's preconditioner P is
+    singular: np.linalg.solve raised LinAlgError in frame 0).  Hanging straight under
+    gravity it is at rest: 40 frames with the turn keep it within 1e-9 cm of the run
+    without, straight and finite."""
+    def run(turn):
+        cfg = SimConfig(scene=SceneConfig(kind="wisp4c", n_vertices=20, perturbation="straighten"),
+                        material=MaterialConfig(youngs_modulus=1e9, root_radius=0.1, tip_radius=0.05),
+                        physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity")),
+                        time=TimeConfig(frames=40, root_rotation=turn))
+        sim = build_simulator(cfg.validate(), comm=SELF)
+        try:
+            sim.run()
+            return sim.integrator.x.copy(), sim.integrator.root_turn
+        finally:
+            sim.close()
+    plain, _ = run(False)
+    turned, turner = run(True)
+    assert turner is not None and np.all(np.isfinite(turned))
+    assert np.abs(turned - plain).max() <= 1e-9
+
+
 def test_the_root_turn_needs_a_fixed_count():
     with pytest.raises(ConfigError, match="time.root_rotation"):
         TimeConfig(root_rotation=True, newton_increment_tol=1e-6).validate()
@@ -130,6 +152,11 @@ def _far_turned_start(terms, angle):
     return sim, turner, x, np.where(it.free, it.scene.mass / it.dt ** 2, 0.0)
 
 
+def _change(it):
+    """Per vertex the change of the terms of one vertex of G from x to y."""
+    return lambda x, y: it._vertex_potentials(y) - it._vertex_potentials(x)
+
+
 def test_the_share_change_is_the_change_of_the_wisps_potentials():
     """RootRotation.share_change (the vertex terms and the elements across the root)
     equals the change of Integrator.wisp_potentials (every element) over a turn."""
@@ -138,9 +165,72 @@ def test_the_share_change_is_the_change_of_the_wisps_potentials():
         it = sim.integrator
         y = turner.step(x, it._turn_terms, unit)
         exact = it.wisp_potentials(y) - it.wisp_potentials(x)
-        cheap = turner.share_change(x, y, it._turn_change)
+        cheap = turner.share_change(x, y, _change(it))
         assert np.abs(exact).min() > 1.0          # a real change on every wisp
         assert np.abs(cheap - exact).max() <= 1e-9 * np.abs(it.wisp_potentials(x)).max()
+    finally:
+        sim.close()
+
+
+def test_the_share_change_takes_one_energy_call_per_term(monkeypatch):
+    """share_change evaluates the across elements before and after the turn in one
+    NumPy kernel call per term (the fixed per-call cost weighed on the 10-wisp hairball:
+    docs/newton.md "Seventeenth round"), with the values of two calls; the six
+    central-difference turns of ``model`` are Rodrigues turns of the same angles."""
+    from lc_petsc import root_rotation
+    sim, turner, x, unit = _far_turned_start(("stretch", "bend", "twist", "gravity", "head_collision"), 2.5)
+    try:
+        it = sim.integrator
+        y = turner.step(x, it._turn_terms, unit)
+        calls = []
+        kernels = dict(root_rotation._ENERGY)
+        for name, fn in kernels.items():
+            monkeypatch.setitem(root_rotation._ENERGY, name,
+                                lambda v, r, k, fn=fn, name=name: calls.append(name) or fn(v, r, k))
+        cheap = turner.share_change(x, y, _change(it))
+        assert sorted(calls) == ["bend", "stretch", "twist"]
+        two = turner._sums(_change(it)(x, y) * turner.mask)
+        xs, ys = x[turner.near], y[turner.near]
+        for name, (vertices, wisp, rest, stiffness) in turner.across_twice.items():
+            n = len(wisp)
+            e = kernels[name](ys[vertices], rest[:n], stiffness[:n]) - kernels[name](xs[vertices], rest[:n],
+                                                                                   stiffness[:n])
+            two += np.bincount(wisp, e, minlength=len(two))
+        assert np.abs(cheap - two).max() <= 1e-12 * np.abs(two).max()
+        v = np.random.default_rng(0).standard_normal((4, 3))
+        for j, (sign, e) in enumerate((s, e) for s in (1, -1) for e in np.eye(3)):
+            theta = np.broadcast_to(sign * root_rotation.ANGLE_STEP * e, v.shape)
+            assert np.abs(v @ turner.turns6[j] - root_rotation.rotate(v, theta)).max() <= 1e-15
+    finally:
+        sim.close()
+
+
+def test_a_turn_evaluates_the_heads_penalty_twice(monkeypatch):
+    """One root turn (model and guard, nothing halved) evaluates the head's penalty at x
+    once for the model's gradient, Hessians and the guard's start, and once at the turned
+    positions (three times before: the guard took x's again); the turned positions are
+    those of a guard given fresh potentials at x."""
+    sim, turner = _settled(("stretch", "bend", "twist", "gravity", "head_collision"))
+    try:
+        it = sim.integrator
+        x = it.x + 0.001 * np.random.default_rng(1).standard_normal(it.x.shape) * it.free[:, None]
+        # each wisp's first free vertex pressed into the head (its penalty active)
+        c = it.head.sphere_center(it.t_next)
+        first = turner.pivot + 1
+        out = x[first] - c
+        x[first] = c + out * (0.995 * (it.head.radius + it.cfg.physics.head_margin)
+                              / np.linalg.norm(out, axis=1))[:, None]
+        unit = np.where(it.free, it.scene.mass / it.dt ** 2, 0.0)
+        assert len(it._contact_terms(x, False)[1]) > 0           # the head touches wisps
+        fresh = turner.step(x, it._turn_terms, unit, it._vertex_potentials)
+        assert turner.reduced == 0 and turner.turned == 3
+        calls = []
+        real = it._contact_terms
+        monkeypatch.setattr(it, "_contact_terms", lambda *a, **k: calls.append(1) or real(*a, **k))
+        it.root_turn = turner
+        y = it._last_turn(it.cfg.time.newton_iterations - 1, x)
+        assert len(calls) == 2
+        assert np.array_equal(y, fresh)
     finally:
         sim.close()
 
@@ -157,7 +247,7 @@ def test_a_turn_that_raises_a_wisps_share_of_G_is_cut():
         W0 = it.wisp_potentials(x)
         unguarded = it.wisp_potentials(turner.step(x, it._turn_terms, unit)) - W0
         assert turner.reduced == 0
-        guarded = it.wisp_potentials(turner.step(x, it._turn_terms, unit, it._turn_change)) - W0
+        guarded = it.wisp_potentials(turner.step(x, it._turn_terms, unit, it._vertex_potentials)) - W0
         print(f"\nshare change per wisp: unguarded {unguarded}, guarded {guarded}")
         rose = unguarded > 1e3
         assert rose.tolist() == [False, True, True]

@@ -38,8 +38,9 @@ C couples into **clusters** and solves each cluster's block of A + C exactly:
    the band is not positive definite (an exact Hessian's negative curvature) the set-up
    takes PETSc's LU instead, and says so in ``stats["band_factor"]``.
 3. **Clusters**: each cluster is factored by one rank, the rank holding most of its
-   vertices, then moved to balance the ranks' cluster rows (:func:`cluster_owners`:
-   the contact of a frame often falls on one side of the head, i.e. one rank).  Every
+   vertices, then moved to balance the rows each rank solves, per-wisp and cluster
+   rows together (:func:`cluster_owners`: the contact of a frame often falls on one
+   side of the head, i.e. one rank).  Every
    rank sends the blocks of A (band) and C (inside a cluster) of its rows to the rank
    factoring their cluster (one ``alltoall`` each), which puts them into one sequential
    BAIJ matrix holding every cluster's block of A + C (clusters
@@ -50,9 +51,10 @@ C couples into **clusters** and solves each cluster's block of A + C exactly:
    1.1-1.4x qmd's but its set-up (ordering + factorisation) takes 0.4-0.6x qmd's
    (qmd's ordering alone is superlinear; docs/contact_solver.md, "Where the 2K frame
    goes" and "Clusters across ranks").
-4. **Apply**: the per-wisp solves of the rank's rows, then the cluster rows: gathered
-   from their ranks (one ``VecScatter``), solved by their cluster's rank, scattered
-   back over the per-wisp values.
+4. **Apply**: the per-wisp solves of the rank's rows (the Cholesky skips the clustered
+   wisps: their rows are overwritten), then the cluster rows: gathered from their
+   ranks (one ``VecScatter``), solved by their cluster's rank, scattered back over the
+   per-wisp values.
 
 The preconditioning matrix is therefore P = A + (the cross blocks of C inside a
 cluster): every dropped block belongs to a whole contact pair's cross block, and a
@@ -180,20 +182,24 @@ def cluster_labels(n_wisps, pairs, weights, counts, max_wisps=MAX_WISPS, max_blo
                                           int(max_wisps), int(max_blocks), inner)
 
 
-def cluster_owners(held):
+def cluster_owners(held, base=None):
     """The rank that factors each cluster, from ``held`` (clusters, ranks): the vertices
-    of each cluster on each rank (rows without any: not a cluster).  First the rank
-    holding most of it (ties: the lower rank); then, for balance (a cluster's LU and
-    solves cost about its size, and the contact often falls on one rank's side of the
-    head), the clusters of ranks loaded above the mean move, largest first (ties: the
-    lower cluster), to the least-loaded rank as long as it stays at or below the mean.
-    Deterministic: every rank computes the same owners.  Returns (clusters,)."""
+    of each cluster on each rank (rows without any: not a cluster), and ``base`` (ranks,)
+    the vertices each rank solves outside the clusters (its per-wisp blocks; default
+    none).  First the rank holding most of it (ties: the lower rank); then, for balance
+    (a cluster's LU and solves cost about its size, a per-wisp block about its, and the
+    contact often falls on one rank's side of the head), the clusters of ranks loaded
+    above the mean (base + clusters) move, largest first (ties: the lower cluster), to
+    the least-loaded rank as long as it stays at or below the mean.  Deterministic:
+    every rank computes the same owners.  Returns (clusters,)."""
     size = held.sum(axis=1)
     owner = np.argmax(held, axis=1)
     n_ranks = held.shape[1]
     if n_ranks == 1:
         return owner
     load = np.bincount(owner, weights=size, minlength=n_ranks)
+    if base is not None:
+        load = load + np.asarray(base, float)
     mean = load.sum() / n_ranks
     for c in np.lexsort((np.arange(len(size)), -size)):
         if size[c] == 0 or load[owner[c]] <= mean:
@@ -275,6 +281,9 @@ class ClusterPC:
         self.ordering, self.span = ordering, span
         self.band = self.cluster = self.cluster_mat = self.scatter = None
         self.dofs = np.zeros(0, np.int64)
+        #: the local wisps the per-wisp Cholesky solves (None: every one); the clustered
+        #: wisps' rows come from their cluster's LU, which overwrites them
+        self.band_wisps: np.ndarray | None = None
         self._x = self._y = self._cx = self._cy = None
         self.layout: GlobalLayout | None = None
         self.stats: dict = {}
@@ -400,8 +409,10 @@ class ClusterPC:
         stats = {"clusters": 0, "wisps": 0, "largest": 0, "rows": 0, "fill": 0.0,
                  "couplings": 0, "couplings_left_out": 0, "captured": 1.0, "fallback": False,
                  "cross_rank_couplings": 0, "cross_rank_weight": 0.0, "cross_rank_clusters": 0,
-                 "moved_rows": 0, "self_contact_wisps": 0, "most_blocks": 0}
+                 "moved_rows": 0, "self_contact_wisps": 0, "most_blocks": 0,
+                 "band_rows": 3 * int(self.offsets[-1])}
         self.stats = stats
+        self.band_wisps = None
         if C is None:
             return
         (pairs, weights, counts), c_blocks, alone, own = self._couplings(C)
@@ -438,7 +449,16 @@ class ClusterPC:
         held = np.zeros((lay.n_wisps, lay.comm.size))     # vertices per (cluster, rank)
         np.add.at(held, (label[clustered], lay.wisp_rank[clustered]), lay.sizes[clustered])
         stats["cross_rank_clusters"] = int(((held > 0).sum(axis=1) > 1).sum())
-        owner = cluster_owners(held)
+        # per rank, the vertices its per-wisp blocks solve: the clustered wisps' are
+        # skipped by the Cholesky (their cluster's LU overwrites them), so a rank keeps
+        # its own clusters unless that leaves it above the mean (no rows cross ranks then)
+        base = np.bincount(lay.wisp_rank, weights=lay.sizes, minlength=lay.comm.size)
+        if self.use_cholesky:
+            base -= held.sum(axis=0)
+            local = lay.first_wisp + np.arange(len(self.offsets) - 1)
+            self.band_wisps = np.flatnonzero(~factored[label[local]]).astype(np.int64)
+            stats["band_rows"] = 3 * int(np.sum(lay.sizes[local[self.band_wisps]]))
+        owner = cluster_owners(held, base)
         stats["moved_rows"] = int(3 * (held.sum(axis=1) - held[np.arange(lay.n_wisps), owner]).sum())
         # this rank's clusters, their wisps grouped by cluster, in wisp order inside one
         wisps = clustered[owner[label[clustered]] == lay.comm.rank]
@@ -517,7 +537,7 @@ class ClusterPC:
         xa = x.getArray(readonly=True)
         ya = y.getArray()
         if self.use_cholesky:
-            self.cholesky.apply(xa, ya)
+            self.cholesky.apply(xa, ya, self.band_wisps)
         else:
             self._x.placeArray(xa)
             self._y.placeArray(ya)

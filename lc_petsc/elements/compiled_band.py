@@ -111,10 +111,11 @@ def band_cholesky(values, pos, offsets, b, F):
 
 
 @_jit
-def band_solve(F, offsets, b, x, y):
-    """y = A^-1 x (x, y (3 n,), distinct) from the factor of :func:`band_cholesky`: per
-    wisp, L z = x, then L^T y = z."""
-    for w in range(len(offsets) - 1):
+def band_solve(F, offsets, b, x, y, wisps):
+    """y = A^-1 x (x, y (3 n,), distinct) from the factor of :func:`band_cholesky` on the
+    rows of the wisps ``wisps`` (the other rows of y are left as they are): per wisp,
+    L z = x, then L^T y = z."""
+    for w in wisps:
         s, e = offsets[w], offsets[w + 1]
         for i in range(s, e):
             z0 = x[3 * i]
@@ -160,6 +161,7 @@ class BandCholesky:
         self.offsets = np.asarray(offsets, np.int64)
         self.pattern = None             # (block rows, block columns) the layout is for
         self.b, self.pos, self.inside, self.F = 0, None, False, None
+        self.every_wisp = np.arange(len(self.offsets) - 1, dtype=np.int64)
 
     def factor(self, indptr, indices, values):
         """Factor A given by its block CSR (``values`` (9 k,) column-major blocks)."""
@@ -177,9 +179,10 @@ class BandCholesky:
             return f"not positive definite (block row {row})"
         return None
 
-    def apply(self, x, y):
-        """y = A^-1 x (arrays (3 n,))."""
-        band_solve(self.F, self.offsets, self.b, x, y)
+    def apply(self, x, y, wisps=None):
+        """y = A^-1 x (arrays (3 n,)) on the rows of ``wisps`` (int64 wisp indices; default
+        every wisp; y's other rows are left as they are)."""
+        band_solve(self.F, self.offsets, self.b, x, y, self.every_wisp if wisps is None else wisps)
 
 
 def warm_up():

@@ -95,6 +95,8 @@ def test_clusters_across_ranks_are_the_exact_inverse():
     assert sum(f[0] for f in figures) == 3, figures
     assert all(f[1] == (0 if comm.size == 1 else 3 if comm.size == 3 else 2) for f in figures), figures
     assert stats["cross_rank_couplings"] == figures[0][1]
+    # the per-wisp Cholesky solves only wisp 6 (2 vertices), the one wisp in no cluster
+    assert sum(comm.tompi4py().allgather(stats["band_rows"])) == 6
 
 
 @pytest.mark.mpi
@@ -124,6 +126,18 @@ def test_cluster_owners_balance_the_factorisations():
     load = np.bincount(owner[:5], weights=held[:5].sum(axis=1), minlength=2)
     np.testing.assert_array_equal(load, [50, 60])
     np.testing.assert_array_equal(cluster_owners(held[:, :1]), np.zeros(6, int))   # one rank
+
+
+def test_cluster_owners_count_the_per_wisp_rows():
+    """Each rank's per-wisp solves count in its load: the clustered wisps' rows are
+    skipped there, so two ranks of 100 vertices each, rank 1 with its clusters of 40
+    and 20 of them, are balanced as they are (100 / 100), where the cluster rows alone
+    (0 / 60) sent the 20 to rank 0 (a VecScatter across ranks at every application)."""
+    held = np.array([[0, 40], [0, 20]], float)
+    np.testing.assert_array_equal(cluster_owners(held), [1, 0])
+    np.testing.assert_array_equal(cluster_owners(held, base=[100, 40]), [1, 1])
+    # rank 1 holding more per-wisp rows as well (loads 60 / 140): its 40 moves (100 / 100)
+    np.testing.assert_array_equal(cluster_owners(held, base=[60, 80]), [0, 1])
 
 
 def _sum_product(A, C, comm, mat_type="baij"):

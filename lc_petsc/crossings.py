@@ -96,7 +96,7 @@ def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
     if len(k):
         S, E = np.asarray(S, float)[k], np.asarray(E, float)[k]
         scale = np.abs(np.concatenate([S, E], axis=1)).reshape(len(k), -1).max(axis=1) + 1.0
-        clear = safe_fraction(S, E, CLEAR_DISTANCE * scale, max_steps=CLEAR_STEPS) >= 1.0
+        clear = safe_fraction(S, E, CLEAR_DISTANCE * scale, max_steps=CLEAR_STEPS, exact=True) >= 1.0
         hit[k[clear]] = False
     return hit
 

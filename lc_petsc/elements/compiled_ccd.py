@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from lc_petsc.elements.compiled import _jit, _vdot, _vnorm, _vsub
+from lc_petsc.elements.compiled import _jit, _vcross, _vdot, _vnorm, _vsub
 from lc_petsc.elements.segment_contact import PARALLEL_TOL
 
 #: steps of conservative advancement per pair (and per call)
@@ -82,10 +82,45 @@ def _vdistance(x0, x1, x2, x3):
 
 
 @_jit
-def _vpair_distance(S, E, p, t):
-    """Distance of the pair of points p (4,) of the path S -> E at time t."""
-    return _vdistance(_vlerp(S, E, p[0], t), _vlerp(S, E, p[1], t), _vlerp(S, E, p[2], t),
-                      _vlerp(S, E, p[3], t))
+def _vpoint_segment(x, a, d):
+    """Distance of point x from the segment a + s d, s in [0, 1]."""
+    r = _vsub(x, a)
+    dd = _vdot(d, d)
+    s = _vclip01(_vdot(r, d) / dd) if dd > 0.0 else 0.0
+    return _vnorm((r[0] - s * d[0], r[1] - s * d[1], r[2] - s * d[2]))
+
+
+@_jit
+def _vdistance_exact(x0, x1, x2, x3):
+    """Segment-segment distance, exact also for nearly parallel pairs: :func:`_vdistance`
+    (the same bits) where the clamped algorithm solves its 2x2 system; where it takes the
+    parallel rule (s = 0, an upper bound: nearly parallel segments crossing at their
+    middles, 1e-6 rad apart, gave 1e-6 instead of 0, and the crossing counter missed
+    their crossing) the least of it, the four endpoint-to-segment distances and the
+    interior solution along n = d1 x d2 (no cancellation in n, unlike a e - b^2)."""
+    d = _vdistance(x0, x1, x2, x3)
+    d1, d2 = _vsub(x1, x0), _vsub(x3, x2)
+    a, e, b = _vdot(d1, d1), _vdot(d2, d2), _vdot(d1, d2)
+    if not max(a * e - b * b, 0.0) <= PARALLEL_TOL * a * e:
+        return d
+    d = min(d, _vpoint_segment(x0, x2, d2), _vpoint_segment(x1, x2, d2),
+            _vpoint_segment(x2, x0, d1), _vpoint_segment(x3, x0, d1))
+    n = _vcross(d1, d2)
+    nn = _vdot(n, n)
+    if nn > 0.0:
+        r = _vsub(x2, x0)
+        s, u = _vdot(_vcross(r, d2), n) / nn, _vdot(_vcross(r, d1), n) / nn
+        if 0.0 <= s <= 1.0 and 0.0 <= u <= 1.0:
+            d = min(d, abs(_vdot(r, n)) / math.sqrt(nn))
+    return d
+
+
+@_jit
+def _vpair_distance(S, E, p, t, exact=False):
+    """Distance of the pair of points p (4,) of the path S -> E at time t
+    (:func:`_vdistance`; with ``exact`` :func:`_vdistance_exact`: the crossing counter's)."""
+    x0, x1, x2, x3 = _vlerp(S, E, p[0], t), _vlerp(S, E, p[1], t), _vlerp(S, E, p[2], t), _vlerp(S, E, p[3], t)
+    return _vdistance_exact(x0, x1, x2, x3) if exact else _vdistance(x0, x1, x2, x3)
 
 
 @_jit
@@ -102,10 +137,10 @@ def _vrel(S, E, p):
 
 
 @_jit
-def _vadvance(S, E, p, m, d_start, rel, max_steps, rtol):
+def _vadvance(S, E, p, m, d_start, rel, max_steps, rtol, exact=False):
     """Conservative advancement of pair p at min distance m from its distance d_start
     at t = 0: the largest t in [0, 1] reached with d >= m on [0, t] (see
-    segment_ccd.safe_fraction)."""
+    segment_ccd.safe_fraction; ``exact``: :func:`_vpair_distance`'s)."""
     gap = d_start - m
     if gap >= rel:
         return 1.0
@@ -118,18 +153,18 @@ def _vadvance(S, E, p, m, d_start, rel, max_steps, rtol):
         if t_new >= 1.0:
             return 1.0
         t = t_new
-        gap = _vpair_distance(S, E, p, t) - m
+        gap = _vpair_distance(S, E, p, t, exact) - m
         if not gap > tol:
             break
     return t
 
 
 @_jit
-def _safe_fraction(S, E, inv, m, max_steps, rtol, out):
+def _safe_fraction(S, E, inv, m, max_steps, rtol, exact, out):
     for k in range(inv.shape[0]):
         p = inv[k]
-        d = _vpair_distance(S, E, p, 0.0)
-        out[k] = _vadvance(S, E, p, m[k], d, _vrel(S, E, p), max_steps, rtol)
+        d = _vpair_distance(S, E, p, 0.0, exact)
+        out[k] = _vadvance(S, E, p, m[k], d, _vrel(S, E, p), max_steps, rtol, exact)
 
 
 @_jit
@@ -182,10 +217,11 @@ def _limit_pairs(S, E, inv, redo, md, scale, max_steps, rtol, tau, factor, start
             factor[k] = _vadvance(S, E, p, m, d, rel, max_steps, rtol) if scale else 0.0
 
 
-def safe_fraction(start, end, min_distance, max_steps=MAX_STEPS, rtol=1e-3):
+def safe_fraction(start, end, min_distance, max_steps=MAX_STEPS, rtol=1e-3, exact=False):
     """t (n,): the safe path fractions of :func:`segment_ccd.safe_fraction` for pairs
     ``start``, ``end`` (n, 4, 3) at ``min_distance`` (scalar or (n,)), with up to
-    ``max_steps`` steps per pair."""
+    ``max_steps`` steps per pair; ``exact``: on :func:`_vdistance_exact` (the crossing
+    counter's proof that a pair stays apart)."""
     S = np.ascontiguousarray(start, np.float64).reshape(-1, 3)
     E = np.ascontiguousarray(end, np.float64).reshape(-1, 3)
     if S.shape != E.shape or S.shape[0] % 4:
@@ -193,7 +229,8 @@ def safe_fraction(start, end, min_distance, max_steps=MAX_STEPS, rtol=1e-3):
     n = S.shape[0] // 4
     m = np.ascontiguousarray(np.broadcast_to(np.asarray(min_distance, np.float64), (n,)))
     out = np.empty(n)
-    _safe_fraction(S, E, np.arange(4 * n, dtype=np.int64).reshape(n, 4), m, int(max_steps), float(rtol), out)
+    _safe_fraction(S, E, np.arange(4 * n, dtype=np.int64).reshape(n, 4), m, int(max_steps), float(rtol), bool(exact),
+                   out)
     return out
 
 
@@ -334,7 +371,7 @@ SCREEN_STEPS = 64
 def _screen_paths(S, E, a, b, keep, d_end):
     for k in range(len(a)):
         p = (a[k], a[k] + 1, b[k], b[k] + 1)
-        d_end[k] = _vpair_distance(S, E, p, 1.0)
+        d_end[k] = _vpair_distance(S, E, p, 1.0, True)
         scale = 0.0
         for q in range(4):
             for c in range(3):
@@ -345,7 +382,7 @@ def _screen_paths(S, E, a, b, keep, d_end):
         # straight paths, so a pair whose steps reach t = 1 never touches; each step is a
         # hair shorter than the bound allows, and a pair that gets within the floor or
         # runs out of steps goes to Tight-Inclusion, which decides
-        t, d, keep[k] = 0.0, _vpair_distance(S, E, p, 0.0), True
+        t, d, keep[k] = 0.0, _vpair_distance(S, E, p, 0.0, True), True
         for _ in range(SCREEN_STEPS):
             if d <= floor:
                 break
@@ -353,7 +390,7 @@ def _screen_paths(S, E, a, b, keep, d_end):
                 keep[k] = False
                 break
             t += d / rel * (1.0 - 1e-9)
-            d = _vpair_distance(S, E, p, t)
+            d = _vpair_distance(S, E, p, t, True)
 
 
 def screen_paths(start, end, pairs):

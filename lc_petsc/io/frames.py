@@ -707,7 +707,8 @@ class FramesWriter:
 
 def read_frames(path, frames=None):
     """Read ``frames.h5`` (serially) into a dict of arrays; ``frames`` selects rows of
-    ``/positions``, ``/time`` and ``frame_valid`` (:func:`valid_rows`; default: all).  Each
+    ``/positions``, ``/time`` and ``frame_valid`` (:func:`valid_rows`; default: all): row
+    indices, or one row index (its positions (1, n, 3), its time and validity numbers).  Each
     row that holds a frame is read by :func:`frame_row` (checked against its digest); a
     damaged one is a ValueError naming the file, the dataset and the row."""
     h5py = h5py_module()
@@ -722,9 +723,10 @@ def _read_rows(f, valid, frames):
     out = {k: read_dataset(f, k) for k in ("wisp_offsets", "rest_positions", "pinned")}
     ks = np.arange(len(valid))[slice(None) if frames is None else np.asarray(frames)]
     times = row_table(f)[0]
-    out["time"], out["frame_valid"] = times[ks], valid[ks]
+    out["time"], out["frame_valid"] = times[ks], valid[ks]     # (numbers for one row given as one)
     pos = f["positions"]
-    out["positions"] = np.stack([frame_row(f, k) if valid[k] else pos[k] for k in ks.tolist()]) \
-        if len(ks) else np.zeros((0,) + pos.shape[1:])
+    rows = np.atleast_1d(ks).tolist()
+    out["positions"] = np.stack([frame_row(f, k) if valid[k] else pos[k] for k in rows]) \
+        if rows else np.zeros((0,) + pos.shape[1:])
     out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     return out

@@ -97,18 +97,24 @@ def row_digest(parts, row, t) -> int:
     return int(_mix(total ^ _mix(tb ^ _mix(np.array([row], np.uint64) * _GOLDEN)))[0])
 
 
-def digest_problem(f, k, x, t=None, digest=None):
+def digest_problem(f, k, x, t=None):
     """Why row ``k`` of the open ``frames.h5`` ``f``, read as ``x``, is not the row written
     (its ``/row_digest`` entry differs), else None; a file without ``/row_digest`` (written
-    before it) is not checked.  ``t``, ``digest``: the row's ``/time`` and ``/row_digest``
-    entries where the caller has read them (default: :func:`row_table`'s, read once per
-    open file; a damaged one is a ValueError naming it)."""
+    before it) is not checked.  ``t``: the row's ``/time`` entry where the caller has read
+    it.  The entries come from :func:`row_table` (read once per open file); where a chunk
+    of it fails its checksum, from the row's own entries (a restart keeps, a recovery
+    salvages the rows of the intact chunks), and a row whose own entries cannot be read
+    is a ValueError naming the damaged chunk."""
     if "row_digest" not in f:
         return None
-    if t is None or digest is None:
+    try:
         times, digests = row_table(f)
-        t = times[k] if t is None else t
-        digest = digests[k] if digest is None else digest
+        t, digest = times[k] if t is None else t, digests[k]
+    except ValueError as damaged:
+        try:
+            t, digest = f["time"][k] if t is None else t, f["row_digest"][k]
+        except (OSError, ValueError):
+            raise damaged from None
     t, stored = float(t), int(digest)
     if stored == row_digest([vertex_digest(x, 0)], k, t):
         return None
@@ -408,14 +414,19 @@ def _damaged(what, rows_before=False) -> NoReturn:
 def row_table(f):
     """(``/time``, ``/row_digest`` or None) of the open ``frames.h5`` ``f``, read once per
     open file and kept while ``f`` lives (readers do not write).  A chunk failing its
-    checksum is a ValueError naming the dataset and its rows."""
+    checksum is a ValueError naming the dataset and its rows (kept too, raised again)."""
     key = id(f)
     got = _ROW_TABLES.get(key)
     if got is None or got[0]() is not f:
-        got = _ROW_TABLES[key] = (weakref.ref(f, lambda _, key=key: _ROW_TABLES.pop(key, None)),
-                                  np.asarray(read_dataset(f, "time"), float),
-                                  read_dataset(f, "row_digest") if "row_digest" in f else None)
-    return got[1], got[2]
+        try:
+            table = (np.asarray(read_dataset(f, "time"), float),
+                     read_dataset(f, "row_digest") if "row_digest" in f else None)
+        except ValueError as e:     # kept too (its text): finding the damaged chunk reads every chunk
+            table = str(e)
+        got = _ROW_TABLES[key] = (weakref.ref(f, lambda _, key=key: _ROW_TABLES.pop(key, None)), table)
+    if isinstance(got[1], str):
+        raise ValueError(got[1])
+    return got[1]
 
 
 def frame_times(f):
@@ -696,7 +707,8 @@ class FramesWriter:
 
 def read_frames(path, frames=None):
     """Read ``frames.h5`` (serially) into a dict of arrays; ``frames`` selects rows of
-    ``/positions``, ``/time`` and ``frame_valid`` (:func:`valid_rows`; default: all).  Each
+    ``/positions``, ``/time`` and ``frame_valid`` (:func:`valid_rows`; default: all): row
+    indices, or one row index (its positions (1, n, 3), its time and validity numbers).  Each
     row that holds a frame is read by :func:`frame_row` (checked against its digest); a
     damaged one is a ValueError naming the file, the dataset and the row."""
     h5py = h5py_module()
@@ -711,9 +723,10 @@ def _read_rows(f, valid, frames):
     out = {k: read_dataset(f, k) for k in ("wisp_offsets", "rest_positions", "pinned")}
     ks = np.arange(len(valid))[slice(None) if frames is None else np.asarray(frames)]
     times = row_table(f)[0]
-    out["time"], out["frame_valid"] = times[ks], valid[ks]
+    out["time"], out["frame_valid"] = times[ks], valid[ks]     # (numbers for one row given as one)
     pos = f["positions"]
-    out["positions"] = np.stack([frame_row(f, k) if valid[k] else pos[k] for k in ks.tolist()]) \
-        if len(ks) else np.zeros((0,) + pos.shape[1:])
+    rows = np.atleast_1d(ks).tolist()
+    out["positions"] = np.stack([frame_row(f, k) if valid[k] else pos[k] for k in rows]) \
+        if rows else np.zeros((0,) + pos.shape[1:])
     out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     return out

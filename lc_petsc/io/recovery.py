@@ -162,12 +162,12 @@ def _readable_rows(f, offsets, rows, dt, every, vouched):
     for k in range(min(rows, len(valid), f["time"].shape[0])):
         try:
             x, t = f["positions"][k], f["time"][k]
-        except OSError:
+            if k in vouched:
+                agree[k] = np.array_equal(x, vouched[k])
+            elif valid[k] and np.isfinite(t) and np.isfinite(x).all() and not digest_problem(f, k, x, t):
+                found.append(k)     # (a row failing its digest: another row's values, lost)
+        except (OSError, ValueError):   # its positions, time or digest in a damaged chunk: lost
             continue
-        if k in vouched:
-            agree[k] = np.array_equal(x, vouched[k])
-        elif valid[k] and np.isfinite(t) and np.isfinite(x).all() and not digest_problem(f, k, x, t):
-            found.append(k)     # (a row failing its digest: another row's values, lost)
     if agree and not any(agree.values()):
         return [], (f"its rows at the checkpoints' frames ({frames_text(agree, every)}) differ from "
                     f"the checkpoints: another run's file, or corrupt there")

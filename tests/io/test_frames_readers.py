@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import h5py
+import numpy as np
 import pytest
 
 from lc_petsc.batch import main
@@ -123,3 +124,16 @@ def test_a_run_folder_given_for_its_frames_file_says_which_file(run, tmp_path, c
     assert capsys.readouterr().err == f"to_usd.py: error: {out}: cannot open the frames file ({want}\n"
     assert count_crossings.main([str(tmp_path)]) == 2      # a folder without one: no hint
     assert capsys.readouterr().err.rstrip().endswith("(a folder, not a frames.h5 file)")
+
+
+def test_read_frames_reads_one_row_given_as_a_number(run):
+    """``read_frames(path, frames=2)`` read row 2 (positions (1, n, 3), its time and
+    validity as numbers) until fault56 moved the row reads into a loop over the rows
+    asked for, which ended in "TypeError: 'int' object is not iterable"."""
+    path = run / "out" / "frames.h5"
+    every = read_frames(path)
+    one = read_frames(path, frames=2)
+    assert one["positions"].shape == (1,) + every["positions"].shape[1:]
+    assert np.array_equal(one["positions"][0], every["positions"][2])
+    assert one["time"] == every["time"][2] and np.ndim(one["time"]) == 0 and one["frame_valid"] == True  # noqa: E712
+    assert np.array_equal(read_frames(path, frames=[2, 4])["positions"], every["positions"][[2, 4]])

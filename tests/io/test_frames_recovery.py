@@ -488,3 +488,51 @@ def test_a_frames_file_from_before_the_row_digests_still_reads_and_restarts(tmp_
     with h5py.File(out / "frames.h5", "r") as f:
         assert "row_digest" not in f
     assert [r["step"] for r in count_frames(out / "frames.h5")[0]] == list(range(8))
+
+
+def _damage_chunk(path, name, row):
+    """One byte of the chunk of /``name`` holding row ``row`` flipped (its Fletcher-32
+    checksum then fails)."""
+    with h5py.File(path, "r") as f:
+        at = f[name].id.get_chunk_info_by_coord((row,)).byte_offset
+    with open(path, "r+b") as fh:
+        fh.seek(at + 3)
+        b = fh.read(1)[0]
+        fh.seek(at + 3)
+        fh.write(bytes([b ^ 0xFF]))
+
+
+@pytest.mark.parametrize("name", ["time", "row_digest"])
+def test_a_damaged_chunk_after_the_kept_rows_leaves_the_restart_and_the_recovery_alone(tmp_path, straight,
+                                                                                     capsys, name):
+    """A run continued by a restart keeps its first run's chunks of /time and /row_digest
+    (5 rows here: run to frame 4, then to 8), so a damaged chunk can hold only rows after
+    a checkpoint.  Each row's digest check had read the whole of /time and /row_digest
+    (fault56's once-per-file table): the restart from checkpoint 4, which keeps the
+    intact rows 0-4 only, was refused (exit 2), and --force recovered no row of the file
+    (frames 0-4 lost besides the damaged chunk's; so were they with a damaged /row_digest
+    chunk before).  A row's check now reads that row's entries when the whole table cannot be
+    read, and the recovery leaves out a row whose digest cannot be read, not the file."""
+    cfg = _config(tmp_path, kept=10)
+    out = tmp_path / "out"
+    assert _run(cfg, out, "--frames", "4") == 0                             # rows 0-4
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 0      # rows 5-8: a second chunk
+    with h5py.File(out / "frames.h5", "r") as f:
+        assert f[name].chunks == (5,) and f[name].shape == (9,)
+    _damage_chunk(out / "frames.h5", name, 5)
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    capsys.readouterr()
+    # the restart from checkpoint 4 keeps rows 0-4 and rewrites the damaged ones
+    assert _run(cfg, out, "--frames", "8", "--restart", str(out / "checkpoints" / "checkpoint_000004.h5")) == 0, \
+        capsys.readouterr().err
+    _check_rows(out, straight, recovered=[], lost=[], upto=8)
+    # from checkpoint 8 the damaged rows are kept rows: refused, then --force recovers the others
+    assert _run(cfg, copy, "--frames", "9", "--restart", "latest") == 2
+    assert f"/{name} rows 0-8 cannot be read (data error detected by Fletcher32" in capsys.readouterr().err
+    assert _run(cfg, copy, "--frames", "9", "--restart", "latest", "--force") == 0
+    _check_rows(copy, straight, recovered=[0, 1, 2, 3, 4, 6, 8], lost=[5, 7], upto=9)
+    rec = json.loads((copy / "summary.json").read_text())["frames_recovery"]
+    # (checkpoints 2 and 4 are of the first run's config, --frames 4: not used)
+    assert rec["from_frames_file"] == [[0, 4]] and rec["from_checkpoints"] == [6, 8]
+    assert rec["missing_frames"] == [[5, 5], [7, 7]]

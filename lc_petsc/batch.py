@@ -73,6 +73,9 @@ def parse_command_line(argv):
     if "-h" in argv or "--help" in argv:
         return argparse.Namespace(help=True), []
     args, extra = make_parser().parse_known_args(argv)
+    # `--` (end of our options) is no PETSc option: passed on, PETSc warned that an
+    # option "-" was never used and summary.json recorded an empty option name
+    extra = [t for t in extra if t != "--"]
     if args.help:
         return args, []
     if args.frames is not None and args.frames < 0:

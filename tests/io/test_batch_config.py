@@ -136,6 +136,19 @@ def test_bad_command_line(tmp_path, capsys, argv, part):
     assert code == 2 and part in err and "Traceback" not in err and not (tmp_path / "o").exists(), err
 
 
+@pytest.mark.parametrize("argv", [
+    ["c.toml", "--frames", "3", "--", "-ksp_rtol", "1e-3"],
+    ["c.toml", "--", "-ksp_rtol", "1e-3"],
+    ["c.toml", "-ksp_rtol", "1e-3", "--frames", "3"],
+])
+def test_double_dash_before_petsc_options_is_not_an_option(argv):
+    """``simulate.py CONFIG -- -ksp_rtol 1e-3`` (the usage DESIGN.md gives): the ``--``
+    was passed on to PETSc as an option named "-", which it reported as never used."""
+    from lc_petsc.batch import parse_command_line
+    args, petsc_argv = parse_command_line(argv)
+    assert args.config == "c.toml" and petsc_argv == ["-ksp_rtol", "1e-3"]
+
+
 def test_problems_found_while_building_are_reported_once(tmp_path, capsys):
     """A strands file without /wisp_offsets and a solver that refuses the matrix type
     are found after the TOML checks, still before any output."""

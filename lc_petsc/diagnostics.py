@@ -244,20 +244,25 @@ def groom_edge_warnings(sim):
     n_short, n_long = int(comm.allreduce(n_short)), int(comm.allreduce(n_long))
     out = []
     if n_short:
-        ratio, wisp, j, length, med = min(comm.allgather(worst))
-        out.append(f"{cfg.scene.path}: {n_short} wisp(s) have an edge shorter than {SHORT_EDGE:g} of their "
-                   f"wisp's median edge; the shortest: wisp {wisp}, edge {j} (vertices {j}, {j + 1}), rest "
-                   f"length {length:.3g} cm against a median of {med:.3g} cm: a near-duplicate vertex, which "
-                   "makes the Newton matrix so ill-conditioned that its linear solves can fail; remove the "
-                   "vertex or resample the wisp")
+        out.append(_edge_note(cfg.scene.path, n_short, f"shorter than {SHORT_EDGE:g} of their wisp's median edge",
+                              "shortest", min(comm.allgather(worst)),
+                              ": a near-duplicate vertex, which makes the Newton matrix so ill-conditioned that "
+                              "its linear solves can fail; remove the vertex or resample the wisp"))
     if n_long:
-        ratio, wisp, j, length, med = max(comm.allgather(longest))
-        out.append(f"{cfg.scene.path}: {n_long} wisp(s) have an edge {DISPLACED:g} or more times their wisp's "
-                   f"median edge; the longest: wisp {-wisp}, edge {j} (vertices {j}, {j + 1}), rest length "
-                   f"{length:.3g} cm against a median of {med:.3g} cm ({ratio:.3g} times): a displaced vertex "
-                   "(a damaged file, e.g. a flipped bit) or a gap in the wisp, not hair's even sampling; "
-                   "check that vertex, or resample the wisp")
+        found = max(comm.allgather(longest))
+        out.append(_edge_note(cfg.scene.path, n_long, f"{DISPLACED:g} or more times their wisp's median edge",
+                              "longest", found[:1] + (-found[1],) + found[2:],
+                              f" ({found[0]:.3g} times): a displaced vertex (a damaged file, e.g. a flipped bit) or "
+                              "a gap in the wisp, not hair's even sampling; check that vertex, or resample the wisp"))
     return out
+
+
+def _edge_note(path, n, what, which, found, why):
+    """The warning about ``n`` wisps of the groom ``path`` with an edge ``what``, naming
+    the ``which`` one ``found`` = (ratio, wisp, edge, length, median), then ``why``."""
+    _, wisp, j, length, med = found
+    return (f"{path}: {n} wisp(s) have an edge {what}; the {which}: wisp {wisp}, edge {j} (vertices {j}, "
+            f"{j + 1}), rest length {length:.3g} cm against a median of {med:.3g} cm{why}")
 
 
 def _rest_edges(sc, w):

@@ -220,28 +220,49 @@ def groom_edge_warnings(sim):
     (:data:`SHORT_EDGE`), naming the file, the shortest one (wisp, edge, length) and how
     many wisps have one: near-duplicate vertices (the exactly coincident ones are an
     error of the rest state) leave the Newton matrix so ill-conditioned that its solves
-    fail."""
+    fail.  And edges far longer (:data:`lc_petsc.scene.outliers.DISPLACED`), the longest
+    named: a displaced end vertex or a gap in the wisp (a displaced interior vertex is an
+    error of the build)."""
+    from lc_petsc.scene.outliers import DISPLACED
     cfg, sc, comm = sim.config, sim.scene, sim.comm
     if cfg.scene.kind not in ("file", "usd"):
         return []
     worst, n_short = (np.inf, 0, 0, 0.0, 0.0), 0
+    longest, n_long = (-np.inf, 0, 0, 0.0, 0.0), 0
     for w in range(sc.n_wisps):
         L = _rest_edges(sc, w)
         med = float(np.median(L))
+        wisp = int(sim.wisp_order[sc.first_wisp + w])
         j = int(np.argmin(L))
         if L[j] < SHORT_EDGE * med:
             n_short += 1
-            wisp = int(sim.wisp_order[sc.first_wisp + w])
             worst = min(worst, (float(L[j] / med), wisp, j, float(L[j]), med))
-    n_short = int(comm.allreduce(n_short))
-    if not n_short:
-        return []
-    ratio, wisp, j, length, med = min(comm.allgather(worst))
-    return [f"{cfg.scene.path}: {n_short} wisp(s) have an edge shorter than {SHORT_EDGE:g} of their "
-            f"wisp's median edge; the shortest: wisp {wisp}, edge {j} (vertices {j}, {j + 1}), rest "
-            f"length {length:.3g} cm against a median of {med:.3g} cm: a near-duplicate vertex, which "
-            "makes the Newton matrix so ill-conditioned that its linear solves can fail; remove the "
-            "vertex or resample the wisp"]
+        j = int(np.argmax(L))
+        if L[j] >= DISPLACED * med:
+            n_long += 1
+            longest = max(longest, (float(L[j] / med), -wisp, j, float(L[j]), med))
+    n_short, n_long = int(comm.allreduce(n_short)), int(comm.allreduce(n_long))
+    out = []
+    if n_short:
+        out.append(_edge_note(cfg.scene.path, n_short, f"shorter than {SHORT_EDGE:g} of their wisp's median edge",
+                              "shortest", min(comm.allgather(worst)),
+                              ": a near-duplicate vertex, which makes the Newton matrix so ill-conditioned that "
+                              "its linear solves can fail; remove the vertex or resample the wisp"))
+    if n_long:
+        found = max(comm.allgather(longest))
+        out.append(_edge_note(cfg.scene.path, n_long, f"{DISPLACED:g} or more times their wisp's median edge",
+                              "longest", found[:1] + (-found[1],) + found[2:],
+                              f" ({found[0]:.3g} times): a displaced vertex (a damaged file, e.g. a flipped bit) or "
+                              "a gap in the wisp, not hair's even sampling; check that vertex, or resample the wisp"))
+    return out
+
+
+def _edge_note(path, n, what, which, found, why):
+    """The warning about ``n`` wisps of the groom ``path`` with an edge ``what``, naming
+    the ``which`` one ``found`` = (ratio, wisp, edge, length, median), then ``why``."""
+    _, wisp, j, length, med = found
+    return (f"{path}: {n} wisp(s) have an edge {what}; the {which}: wisp {wisp}, edge {j} (vertices {j}, "
+            f"{j + 1}), rest length {length:.3g} cm against a median of {med:.3g} cm{why}")
 
 
 def _rest_edges(sc, w):

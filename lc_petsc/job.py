@@ -48,6 +48,7 @@ from lc_petsc.io import hdf5
 from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
 from lc_petsc.parallel import global_max, global_wisp_offsets, on_root
 from lc_petsc.newton_stop import unconfirmed_note
+from lc_petsc.options import diagnostic_option
 
 EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
 EXIT_PREEMPTED = 75         # EX_TEMPFAIL: stopped by a signal after a checkpoint; restart
@@ -105,12 +106,6 @@ def output_dir(args, cfg):
 def petsc_options_used(sim, command_line):
     """Options in effect: code defaults < sub-solver defaults < config < command line."""
     return sim.plan.options_used(command_line, sim.assembler.mat_type)
-
-
-def _diagnostic_option(key):
-    """Whether PETSc option ``key`` (no dash) only reports (monitors, views, logs): it
-    does not change the run's numbers (docs/newton.md: -lc_newton_monitor is bit for bit)."""
-    return bool(re.search(r"(^|_)(monitor|view|log)(_|$)|converged_reason|^options_left$|^malloc", key))
 
 
 def _options_string(d):
@@ -389,6 +384,7 @@ class Job:
         """Steps 1 and 2.  None when the run goes on, else the exit status, the folder as
         it was: 2 refused, 75 stopped by a signal (which stops the build at once)."""
         from lc_petsc.simulator import build_simulator
+        from lc_petsc.solver_check import check_solver
         from petsc4py import PETSc
         comm, outcome, t_setup = self.comm, SETUP_DONE, time.perf_counter()
         try:
@@ -396,6 +392,7 @@ class Job:
             with self.preemption.setup():
                 try:
                     self.sim = build_simulator(self.cfg, comm=comm)
+                    check_solver(self.sim, self.command_line)
                 except (ValueError, SolverError) as e:
                     raise Refused(str(e)) from None
                 except PETSc.Error as e:
@@ -555,7 +552,7 @@ class Job:
                        f"{_differences_text(diff, saved, cfg.to_dict())}")
         before, now = ck["attrs"].get("petsc_options") or {}, petsc_options_used(sim, self.command_line)
         changed = [k for k in sorted(set(before) | set(now))
-                   if str(before.get(k)) != str(now.get(k)) and not _diagnostic_option(k)]
+                   if str(before.get(k)) != str(now.get(k)) and not diagnostic_option(k)]
         if changed:
             def shown(d, k):
                 return "unset" if k not in d else (str(d[k]) or "set")

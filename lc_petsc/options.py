@@ -1,8 +1,11 @@
-"""PETSc option tokens -> (key, value) pairs, without importing PETSc.
+"""PETSc option tokens -> (key, value) pairs, and which options only report, without
+importing PETSc.
 
 The main job parses its command line before ``petsc4py.init`` has seen it, so this must
 not import ``petsc4py.PETSc``.
 """
+
+import re
 
 
 def option_pairs(tokens, what="PETSc options"):
@@ -23,6 +26,12 @@ def option_pairs(tokens, what="PETSc options"):
         out.append((tok.lstrip("-"), value))
         i += 1
     return out
+
+
+def diagnostic_option(key):
+    """Whether PETSc option ``key`` (no dash) only reports (monitors, views, logs): it
+    does not change the run's numbers (docs/newton.md: -lc_newton_monitor is bit for bit)."""
+    return bool(re.search(r"(^|_)(monitor|view|log)(_|$)|converged_reason|^options_left$|^malloc", key))
 
 
 def _is_option(tok):

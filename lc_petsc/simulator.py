@@ -18,6 +18,7 @@ from lc_petsc.integrator import FRAME_COUNTS, Integrator
 from lc_petsc.errors import RestPoseOverlapError
 from lc_petsc.rest_pose import check_rest_pose
 from lc_petsc.scene.kinematics import HeadMotion
+from lc_petsc.scene.outliers import displaced_vertex_problems
 from lc_petsc.scene.perturbation import apply_perturbation
 from lc_petsc.scene.sources import source_from_config
 from lc_petsc.scene.state import LocalScene
@@ -96,6 +97,8 @@ class Simulator:
         terms = [t for t in cfg.physics.terms if t in ELASTIC_TERMS]
         scene, problems = LocalScene.build(batch, cfg.material, terms, source.n_wisps,
                                            int(voff[w0]), self.n_vertices)
+        if not problems and source.description:    # a groom file: damage, not hair
+            problems = displaced_vertex_problems(batch)
         parallel.collective_raise(comm, [named_by(source, p) for p in problems])
         self.scene = scene
         # outputs in the scene's wisp order (parallel.UserLayout)

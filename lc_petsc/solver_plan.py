@@ -85,6 +85,11 @@ CONTACT_PC_MODES = ("coupled", "strands", "clusters")
 ELEMENT_KERNELS = ("compiled", "numpy")
 #: operator types the assembler can fill
 SUPPORTED_MAT_TYPES = ("baij", "sbaij", "aij")
+#: lc_petsc's own options (read by the plan from the same database)
+LC_OPTIONS = ("lc_wisp_blocks", "lc_pmat_type", "lc_contact_pc", "lc_cluster_max_wisps",
+              "lc_cluster_max_blocks", "lc_cluster_min_captured", "lc_cluster_ordering",
+              "lc_cluster_span", "lc_band_factor", "lc_element_kernels", "lc_wisp_order",
+              "lc_newton_monitor")
 
 
 def base_type(mat_type: str) -> str:

@@ -222,3 +222,49 @@ def test_rest_state_errors_name_the_usd_file(tmp_path, capsys):
     stage.GetRootLayer().Save()
     err = _run_err(capsys, _toml(tmp_path, tmp_path / "dup.usda", kind="usd"), tmp_path / "o")
     assert f"error: USD file {tmp_path / 'dup.usda'}: wisp 0, edge 7: rest length 0.0 is zero" in err
+
+
+FRINGE = Path(__file__).resolve().parents[2] / "configs" / "data" / "fringe.h5"
+
+
+def _flipped(tmp_path, vertex, axis, bit):
+    """A copy of the shipped fringe with bit ``bit`` of one coordinate flipped (a damaged
+    file: HDF5 has no checksum on a groom's datasets unless its writer asked for one)."""
+    with h5py.File(FRINGE) as f:
+        data = {k: f[k][...] for k in f}
+    pos = data["positions"]
+    word = pos[vertex:vertex + 1, axis].view(np.uint64)
+    word ^= np.uint64(1) << np.uint64(bit)
+    path = tmp_path / f"flip_{vertex}_{axis}_{bit}.h5"
+    with h5py.File(path, "w") as f:
+        for k, v in data.items():
+            f[k] = v
+    return path, data["wisp_offsets"]
+
+
+def test_a_displaced_vertex_is_refused_naming_wisp_and_vertex(tmp_path, capsys):
+    """One flipped exponent bit in fringe.h5 ran without an error (its crossings exempted
+    as rest overlaps); a vertex far from both of its neighbours is now refused."""
+    with h5py.File(FRINGE) as f:
+        off = f["wisp_offsets"][...]
+    v = int(off[5]) + 20                     # wisp 5, its vertex 20
+    path, _ = _flipped(tmp_path, v, 1, 53)   # y (about -4 cm) x 4
+    err = _run_err(capsys, _toml(tmp_path, path), tmp_path / "o")
+    assert f"error: strands file {path}: wisp 5, vertex 20: it lies " in err, err
+    assert "times the wisp's median edge" in err and "a displaced vertex (a damaged file" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_displaced_end_vertex_is_warned_about(tmp_path, capsys):
+    """A wisp's last vertex has one neighbour: its long edge is a warning naming it."""
+    with h5py.File(FRINGE) as f:
+        off = f["wisp_offsets"][...]
+    v = int(off[3]) - 1                      # wisp 2's tip
+    path, _ = _flipped(tmp_path, v, 1, 53)
+    cfg = _toml(tmp_path, path)
+    capsys.readouterr()
+    assert main([cfg, "--out", str(tmp_path / "o"), "--quiet", "--frames", "0"]) == 0
+    err = capsys.readouterr().err
+    n = int(off[3] - off[2])
+    assert (f"{path}: 1 wisp(s) have an edge 5 or more times their wisp's median edge; the longest: "
+            f"wisp 2, edge {n - 2} (vertices {n - 2}, {n - 1})") in err, err

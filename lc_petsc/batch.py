@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 from pathlib import Path
 
-from lc_petsc.errors import UsageError
+from lc_petsc.errors import ConfigError, UsageError
 from lc_petsc.options import option_pairs
 
 from lc_petsc.job import (EXIT_OK, EXIT_PREEMPTED, EXIT_RUN_FAILED, EXIT_USAGE,  # noqa: F401
@@ -122,9 +123,8 @@ def main(argv=None, comm=None):
             cfg_text = Path(args.config).read_text()
         except (OSError, UnicodeDecodeError):
             cfg_text = ""
+        petsc_argv = expand_options_files(petsc_argv)
         command_line = dict(_petsc_options(petsc_argv))
-        if "options_file" in command_line:
-            check_options_file("-options_file", command_line["options_file"])
     except (UsageError, ConfigError) as e:
         return _fail(comm, str(e))
 
@@ -169,6 +169,33 @@ def check_options_file(key, path):
         raise UsageError(f"{key} {path}: no such file (a file of PETSc options is expected)")
     if not os.access(path, os.R_OK):
         raise UsageError(f"{key} {path}: the file is not readable")
+
+
+def expand_options_files(tokens):
+    """``tokens`` with each ``-options_file FILE`` replaced in place by the file's options,
+    read as ``solver.options_file`` reads it (several options per line, ``#`` comments).
+    PETSc 3.18's own reader takes one option per line: it refused the shipped
+    configs/solvers/*.opts ("extra token") on one rank, and mpiexec hung with the other
+    ranks waiting in PetscInitialize."""
+    from lc_petsc.config import read_options_file
+    out, i = [], 0
+    while i < len(tokens):
+        if tokens[i].lstrip("-") != "options_file" or not tokens[i].startswith("-"):
+            out.append(tokens[i])
+            i += 1
+            continue
+        path = tokens[i + 1] if i + 1 < len(tokens) and not tokens[i + 1].startswith("-") else ""
+        check_options_file("-options_file", path)
+        try:
+            text = read_options_file(path, where="-options_file ")
+        except ConfigError as e:
+            raise UsageError(str(e)) from None
+        try:
+            out += shlex.split(text)
+        except ValueError as e:
+            raise UsageError(f"-options_file {path}: cannot parse its options: {e}") from None
+        i += 2
+    return out
 
 
 def exit_process(code):

@@ -2,6 +2,7 @@
 once, names key, value and what is allowed, exits non-zero, dumps no traceback and
 writes nothing."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +13,7 @@ import pytest
 from mpi4py import MPI
 
 from lc_petsc.batch import main
+from lc_petsc.errors import UsageError
 from lc_petsc.config import ConfigError, SimConfig, load_config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -147,6 +149,38 @@ def test_double_dash_before_petsc_options_is_not_an_option(argv):
     from lc_petsc.batch import parse_command_line
     args, petsc_argv = parse_command_line(argv)
     assert args.config == "c.toml" and petsc_argv == ["-ksp_rtol", "1e-3"]
+
+
+def test_options_file_on_the_command_line_is_read_like_the_configs(tmp_path):
+    """``-options_file FILE`` is replaced in place by the file's options, read as
+    ``solver.options_file`` is (several per line, comments): PETSc 3.18's reader takes
+    one option per line and refused the shipped configs/solvers/*.opts."""
+    from lc_petsc.batch import expand_options_files
+    (tmp_path / "x.opts").write_text("# two per line\n-ksp_type cg -ksp_rtol 1e-6  # tight\n-pc_type jacobi\n")
+    assert expand_options_files(["-ksp_rtol", "1e-3", "-options_file", str(tmp_path / "x.opts"),
+                                 "-ksp_max_it", "7"]) == \
+        ["-ksp_rtol", "1e-3", "-ksp_type", "cg", "-ksp_rtol", "1e-6", "-pc_type", "jacobi", "-ksp_max_it", "7"]
+    with pytest.raises(UsageError, match="-options_file needs a file name"):
+        expand_options_files(["-options_file", "-ksp_rtol", "1e-3"])
+    (tmp_path / "b.opts").write_bytes(b"-ksp_type \xff\n")
+    with pytest.raises(UsageError, match="b.opts.*not a text file"):
+        expand_options_files(["-options_file", str(tmp_path / "b.opts")])
+
+
+def test_shipped_options_file_on_the_command_line_under_mpiexec(tmp_path):
+    """The real CLI on 2 ranks with ``-options_file configs/solvers/bjacobi_rank.opts``:
+    PETSc's own reader failed on one rank ("extra token") and mpiexec hung."""
+    (tmp_path / "c.toml").write_text('[scene]\nkind = "hairball"\nn_wisps = 3\nseed = 5\n[physics]\n'
+                                     'terms = ["stretch", "bend", "twist", "gravity"]\n[time]\nframes = 2\n'
+                                     '[output]\npreviews = false\nusd = false\n')
+    cmd = ["mpiexec", "--oversubscribe", "-n", "2", sys.executable, str(ROOT / "drivers" / "simulate.py"),
+           str(tmp_path / "c.toml"), "--out", str(tmp_path / "o"), "--quiet", "--frames", "1",
+           "-options_file", str(ROOT / "configs" / "solvers" / "bjacobi_rank.opts")]
+    p = subprocess.run(cmd, capture_output=True, text=True, env=MPI_ENV, timeout=120, cwd=tmp_path,
+                       stdin=subprocess.DEVNULL)
+    assert p.returncode == 0, p.stderr
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["petsc_options_command_line"]["pc_type"] == "bjacobi", s["petsc_options_command_line"]
 
 
 def test_problems_found_while_building_are_reported_once(tmp_path, capsys):

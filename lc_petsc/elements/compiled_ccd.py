@@ -381,12 +381,14 @@ def _screen_paths(S, E, a, b, keep, d_end):
         # conservative advancement at distance 0: d(t') >= d(t) - rel (t' - t) on the
         # straight paths, so a pair whose steps reach t = 1 never touches; each step is a
         # hair shorter than the bound allows, and a pair that gets within the floor or
-        # runs out of steps goes to Tight-Inclusion, which decides
+        # runs out of steps goes to Tight-Inclusion, which decides; the floor in the proof
+        # covers d's round-off near t = 1, where rel (1 - t) is as small (a vertex arriving
+        # head-on at the other segment's vertex at t = 1 was dropped)
         t, d, keep[k] = 0.0, _vpair_distance(S, E, p, 0.0, True), True
         for _ in range(SCREEN_STEPS):
             if d <= floor:
                 break
-            if d >= rel * (1.0 - t) * (1.0 + 1e-9):
+            if d - floor >= rel * (1.0 - t) * (1.0 + 1e-9):
                 keep[k] = False
                 break
             t += d / rel * (1.0 - 1e-9)

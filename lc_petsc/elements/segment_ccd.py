@@ -134,7 +134,8 @@ def tight_inclusion_toi(start, end, min_distance, tolerance=1e-6, max_iterations
     that close at the start hit at t = 0 (Tight-Inclusion was measured to hang on
     touching pairs); pairs the motion bound shows never come that close are not passed
     to ipctk.  Tight-Inclusion's time is a lower bound, also when it stops after
-    ``max_iterations`` interval splits (then it reports a hit: conservative; ipctk's
+    ``max_iterations`` interval splits, which bounds each pair's time (then it reports a
+    hit, often at t = 0: conservative; ipctk's
     default of 1e7 took seconds for single grazing pairs and ran out of memory on one
     degenerate pair; 2,000 ran out of memory too, on pairs of tests/test_ccd.py that
     10,000 settles in milliseconds)."""
@@ -150,12 +151,18 @@ def tight_inclusion_toi(start, end, min_distance, tolerance=1e-6, max_iterations
     d_start = exact_distance(S)       # the parallel rule's upper bound skipped crossings
     touch = d_start <= m + 1e-12 * scale
     hit[touch], out[touch] = True, 0.0
-    maybe = np.flatnonzero(~touch & (d_start - m <= relative_motion(S, E)))
-    ccd = ipctk.TightInclusionCCD(tolerance=tolerance, max_iterations=max_iterations,
-                                  conservative_rescaling=1.0)
+    # the floor also here: a pair arriving head-on, touching at t = 1, has d_start = rel
+    # up to round-off
+    maybe = np.flatnonzero(~touch & (d_start - m <= relative_motion(S, E) + 1e-12 * scale))
     for k in maybe:
         a, b = S[k], E[k]
-        h, toi = ccd.edge_edge_ccd(a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3], float(m[k]), 1.0)
+        # Tight-Inclusion's own entry with ipctk.TightInclusionCCD's tolerance (at most
+        # half the start distance), not that class: after an answer t < 1e-6 (the
+        # undecided answer is often t = 0) the class runs it again with no iteration
+        # limit, and a pair coinciding along its length at t = 1/2 kept that busy for minutes
+        h, toi, _ = ipctk.tight_inclusion.edge_edge_ccd(
+            a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3], min_distance=float(m[k]), tmax=1.0,
+            tolerance=min(0.5 * float(d_start[k]), tolerance), max_iterations=max_iterations, no_zero_toi=False)
         if h:
             hit[k], out[k] = True, toi
     return hit, out

@@ -5,20 +5,10 @@ and its clear-path proof on it missed crossings of such pairs."""
 
 import numpy as np
 
+from ccd_reference import lstsq_distances
 from lc_petsc.crossings import count_crossings, crossing_pairs
 from lc_petsc.elements import compiled_ccd
 from lc_petsc.elements.segment_ccd import exact_distance
-
-
-def _lstsq_distance(x0, x1, x2, x3):
-    """Independent segment distance: interior by least squares, else endpoint to segment."""
-    d1, d2 = x1 - x0, x3 - x2
-    (s, u), *_ = np.linalg.lstsq(np.stack([d1, -d2], axis=1), x2 - x0, rcond=None)
-    best = np.linalg.norm(x0 + s * d1 - x2 - u * d2) if 0 <= s <= 1 and 0 <= u <= 1 else np.inf
-    for p, a, d in ((x0, x2, d2), (x1, x2, d2), (x2, x0, d1), (x3, x0, d1)):
-        t = np.clip((p - a) @ d / (d @ d), 0.0, 1.0)
-        best = min(best, np.linalg.norm(p - a - t * d))
-    return best
 
 
 def _through(angle, h, go):
@@ -38,7 +28,7 @@ def test_nearly_parallel_crossing_segments_are_counted():
     Tight-Inclusion's first test and the clear-path proof all took 1e-6 for the
     distance); stopping half way it is none."""
     X0, _ = _through(1e-6, 0.0, 0.0)
-    assert _lstsq_distance(*X0) < 1e-15
+    assert lstsq_distances(X0[None])[0] < 1e-15
     assert exact_distance(X0[None])[0] < 1e-15
     for angle, h in ((1e-6, 1e-7), (1e-6, 3e-7), (1e-6, 1e-6), (3e-6, 1e-6), (1e-5, 2e-6)):
         X0, X1 = _through(angle, h, 2.0)
@@ -67,7 +57,7 @@ def test_exact_distance_against_least_squares_on_nearly_parallel_pairs():
         mid = 0.5 * (a0 + a1) + rng.uniform(-0.7, 0.7) * u
         b = (np.stack([a0, a1]) - 0.5 * (a0 + a1)) @ R.T + mid + rng.normal(size=3) * 10 ** rng.uniform(-9, -2)
         P[k] = [a0, a1, b[0], b[1]]
-    ref = np.array([_lstsq_distance(*p) for p in P])
+    ref = lstsq_distances(P)
     np.testing.assert_allclose(exact_distance(P), ref, rtol=1e-6, atol=1e-9)
     X = P.reshape(-1, 3)
     pairs = np.stack([np.arange(0, 4 * n, 4), np.arange(2, 4 * n, 4)], axis=1)

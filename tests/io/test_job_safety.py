@@ -625,17 +625,19 @@ def test_second_ctrl_c_stops_at_once(tmp_path):
 def test_unused_option_and_unchecked_solve_are_reported(tmp_path, capsys):
     cfg = _smash(tmp_path, frames=3, ce=0)
     out = tmp_path / "out"
-    assert main([cfg, "--out", str(out), "--quiet", "-ksp_rtoll", "1e-3"]) == 0
+    # a real option the chosen solver never reads (a misspelt one is refused up front:
+    # tests/io/test_solver_check.py)
+    assert main([cfg, "--out", str(out), "--quiet", "-pc_hypre_boomeramg_strong_threshold", "0.5"]) == 0
     cap = capsys.readouterr()
-    assert "PETSc option -ksp_rtoll was given but never used" in cap.err
+    assert "PETSc option -pc_hypre_boomeramg_strong_threshold was given but never used" in cap.err
     s = json.loads((out / "summary.json").read_text())
-    assert s["petsc_options_unused"] == ["ksp_rtoll"] and s["converged"] is True
-    assert any("-ksp_rtoll" in w for w in s["warnings"])
+    assert s["petsc_options_unused"] == ["pc_hypre_boomeramg_strong_threshold"] and s["converged"] is True
+    assert any("-pc_hypre_boomeramg_strong_threshold" in w for w in s["warnings"])
     # config options are tracked as well; used ones are not reported
     cfg2 = _smash(tmp_path, name="o.toml", frames=2, ce=0,
-                  extra='[solver]\noptions = "-ksp_rtol 1e-8 -pc_bjacobi_blokcs 2"\n')
+                  extra='[solver]\noptions = "-ksp_rtol 1e-8 -pc_hypre_boomeramg_max_iter 2"\n')
     assert main([cfg2, "--out", str(out), "--quiet"]) == 0
-    assert json.loads((out / "summary.json").read_text())["petsc_options_unused"] == ["pc_bjacobi_blokcs"]
+    assert json.loads((out / "summary.json").read_text())["petsc_options_unused"] == ["pc_hypre_boomeramg_max_iter"]
     capsys.readouterr()
     assert main([cfg, "--out", str(out), "--quiet", "-ksp_type", "preonly", "-pc_type", "jacobi"]) == 0
     cap = capsys.readouterr()

@@ -43,8 +43,9 @@ C couples into **clusters** and solves each cluster's block of A + C exactly:
    side of the head, i.e. one rank).  Every
    rank sends the blocks of A (band) and C (inside a cluster) of its rows to the rank
    factoring their cluster (one ``alltoall`` each), which puts them into one sequential
-   BAIJ matrix holding every cluster's block of A + C (clusters
-   contiguous, so the matrix is block diagonal by cluster), factored by PETSc's LU
+   matrix holding every cluster's block of A + C (clusters
+   contiguous, so the matrix is block diagonal by cluster; AIJ, not BAIJ: see
+   :func:`factor_cluster_matrix`), factored by PETSc's LU
    with the reverse Cuthill-McKee ordering (``-lc_cluster_ordering rcm``, the default;
    ``qmd`` (quotient minimum degree), ``nd`` accepted; an ordering never mixes the
    clusters).  On the 2K hairball's cluster matrices (28k-303k rows) RCM's fill is
@@ -118,6 +119,31 @@ def block_rows(M, rows=None):
     with value_array(M, 9 * len(ja)) as v:
         blocks = v.reshape(-1, 3, 3)[idx].transpose(0, 2, 1)
     return np.repeat(np.arange(len(rows)), counts), ja[idx], blocks
+
+
+def factor_cluster_matrix(indptr, cols, blocks, ordering=ORDERING):
+    """(matrix, LU PC) of the clusters' block CSR (``indptr``, ``cols``: 3x3 ``blocks``
+    (k, 3, 3) row-major), factored by PETSc's LU with ``ordering``.
+
+    The factor is of the point (AIJ) copy, not of the BAIJ matrix: PETSc's BAIJ (and
+    SBAIJ) factorisations invert each 3x3 pivot block explicitly, and a vertex held by a
+    stiff stretch and a stiff contact in two directions with only its mass term in the
+    third has a pivot block of condition 1e9 (a stretch/bend stiffness ratio of 1e8 with
+    contact): the BAIJ LU of such an SPD matrix (condition 3.5e9) solved it with a relative
+    error of 0.3-3, non-symmetric and indefinite, and CG stopped with
+    DIVERGED_INDEFINITE_PC; the AIJ LU of the same matrix errs by 1e-7
+    (docs/contact_solver.md, "Clusters")."""
+    m = 3 * (len(indptr) - 1)
+    B = PETSc.Mat().createBAIJ(size=(m, m), bsize=3, comm=PETSc.COMM_SELF,
+                               csr=(np.asarray(indptr).astype(PETSc.IntType), np.asarray(cols).astype(PETSc.IntType),
+                                    np.ascontiguousarray(blocks, np.float64).ravel()))
+    M = B.convert(PETSc.Mat.Type.SEQAIJ)           # in place (petsc4py: no ``out``)
+    pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
+    pc.setType(PETSc.PC.Type.LU)
+    pc.setFactorOrdering(ordering)
+    pc.setOperators(M, M)
+    pc.setUp()
+    return M, pc
 
 
 def local_block(M):
@@ -500,17 +526,9 @@ class ClusterPC:
         if len(first) < len(rows):
             rows, cols, vals = rows[first], cols[first], np.add.reduceat(vals, first, axis=0)
         indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=len(verts)))])
-        M = PETSc.Mat().createBAIJ(size=(m, m), bsize=3, comm=PETSc.COMM_SELF,
-                                   csr=(indptr.astype(PETSc.IntType), cols.astype(PETSc.IntType),
-                                        np.ascontiguousarray(vals).ravel()))
-        self.cluster_mat = M
-        self.cluster = PETSc.PC().create(comm=PETSc.COMM_SELF)
-        self.cluster.setType(PETSc.PC.Type.LU)
-        self.cluster.setFactorOrdering(self.ordering)
-        self.cluster.setOperators(M, M)
-        self.cluster.setUp()
+        self.cluster_mat, self.cluster = factor_cluster_matrix(indptr, cols, vals, self.ordering)
         self.stats["fill"] = float(self.cluster.getFactorMatrix().getInfo()["nz_used"]
-                                   / M.getInfo()["nz_used"])
+                                   / self.cluster_mat.getInfo()["nz_used"])
 
     def left_out(self):
         """For a failed solve's message: the contact couplings between wisps the last

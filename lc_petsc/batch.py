@@ -180,7 +180,7 @@ def expand_options_files(tokens):
     from lc_petsc.config import read_options_file
     out, i = [], 0
     while i < len(tokens):
-        if tokens[i].lstrip("-") != "options_file" or not tokens[i].startswith("-"):
+        if tokens[i] != "-options_file":
             out.append(tokens[i])
             i += 1
             continue

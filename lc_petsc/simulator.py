@@ -97,7 +97,7 @@ class Simulator:
         terms = [t for t in cfg.physics.terms if t in ELASTIC_TERMS]
         scene, problems = LocalScene.build(batch, cfg.material, terms, source.n_wisps,
                                            int(voff[w0]), self.n_vertices)
-        if not problems and source.description:    # a groom file: damage, not hair
+        if not problems and cfg.scene.kind in ("file", "usd"):    # a groom file: damage, not hair
             problems = displaced_vertex_problems(batch)
         parallel.collective_raise(comm, [named_by(source, p) for p in problems])
         self.scene = scene

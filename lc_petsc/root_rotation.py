@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.elements import bend, compiled, stretch, twist
+from lc_petsc.elements import compiled
 from lc_petsc.elements.angle import cross3
 
 #: the angle (rad) of the central differences of the root elements' gradients along the
@@ -31,10 +31,6 @@ ANGLE_STEP = 1e-4
 #: a wisp whose share of G a turn raised has its turn halved this many times, then
 #: dropped (:meth:`RootRotation.step`)
 HALVINGS = 2
-
-#: the NumPy kernels' per-element energies of the elements across a root
-_ENERGY = {"stretch": stretch.energy, "bend": bend.energy, "twist": twist.energy}
-
 
 def root_pivots(offsets, pinned):
     """(n_wisps,) the last pinned vertex of each wisp whose pinned vertices are its first
@@ -104,17 +100,15 @@ class RootRotation:
                                              + [np.zeros((0, 1), int)], axis=None)).astype(np.int64)
         self.across = {name: compiled.element_arrays(name, np.searchsorted(self.near, s), rest, stiff)
                        for name, (s, rest, stiff, _) in across.items()}
-        # their vertices in ``near``, their wisps, and their rest values and stiffnesses
-        # twice, for their energies before and after a turn in one NumPy call (share_change)
-        self.across_twice = {name: (s[:, None] + np.arange(stencils[name]), self.wisp[self.near[s]],
-                                    np.concatenate([r, r]), np.concatenate([k, k]))
-                             for name, (s, r, k) in self.across.items()}
-        # and six copies of them, one per turn and sign, for one kernel call (copy j's
-        # vertices after the j - 1 before it)
+        # copies of them for one kernel call each (copy j's vertices after the j - 1
+        # before it): two, after and before a turn (share_change); six, one per turn and
+        # sign of the central differences (_model)
         n = len(self.near)
-        self.across6 = {name: compiled.element_arrays(name, np.concatenate([s + j * n for j in range(6)]),
-                                                      np.concatenate([r] * 6), np.concatenate([k] * 6))
-                        for name, (s, r, k) in self.across.items()}
+        self.across2, self.across6 = (
+            {name: compiled.element_arrays(name, np.concatenate([s + j * n for j in range(c)]),
+                                           np.concatenate([r] * c), np.concatenate([k] * c))
+             for name, (s, r, k) in self.across.items()} for c in (2, 6))
+        self.near_wisp = self.wisp[self.near]
         self.near_moved = self.moved[self.near]
         # the six turns of the central differences (+-ANGLE_STEP about each axis) as
         # matrices acting on row vectors: one product instead of six Rodrigues turns
@@ -168,7 +162,7 @@ class RootRotation:
         A = np.einsum("wkk->w", T)[:, None, None] * eye - 0.5 * (T + T.transpose(0, 2, 1))
         # the elements across the root: central differences of their gradients, the six
         # turns in one kernel call
-        pn, rn, wn = x[pivot_of[self.near]], r[self.near], self.wisp[self.near]
+        pn, rn, wn = x[pivot_of[self.near]], r[self.near], self.near_wisp
         turned = np.where(self.near_moved[None, :, None], pn + np.einsum("nl,jlk->jnk", xs - pn, self.turns6),
                           xs).reshape(-1, 3)
         g6 = np.zeros_like(turned)
@@ -193,12 +187,12 @@ class RootRotation:
         twist depend on lengths and angles only), so this is the change of
         :meth:`Integrator.wisp_potentials` without evaluating the wisps' elements."""
         d = self._sums(change(x, y) * self.mask)
-        xs, ys = x[self.near], y[self.near]
-        for name, (vertices, wisp, rest, stiffness) in self.across_twice.items():
-            if len(wisp):
-                e = _ENERGY[name](np.concatenate([ys[vertices], xs[vertices]]), rest, stiffness)
-                d += np.bincount(wisp, e[:len(wisp)] - e[len(wisp):], minlength=len(d))
-        return d
+        # all terms' elements after and before in one compiled pass (the NumPy kernels'
+        # three calls were a quarter of the turn's time on hairball10), each element's
+        # energy at its first vertex
+        e = compiled.vertex_energy(self.across2, np.concatenate([y[self.near], x[self.near]]))
+        n = len(self.near)
+        return d + np.bincount(self.near_wisp, e[:n] - e[n:], minlength=len(d))
 
     def step(self, x, terms, unit, potentials=None):
         """x after the root turn (a new array).  Per held wisp the turn theta solves

@@ -138,6 +138,33 @@ def test_the_root_turn_needs_a_fixed_count():
     TimeConfig(root_rotation=True).validate()
 
 
+@pytest.mark.parametrize("terms", [("stretch", "bend", "twist", "gravity"),
+                                   ("stretch", "bend", "twist", "gravity", "head_collision")])
+def test_the_compiled_model_and_turn_are_numpys_bit_for_bit(terms):
+    """The model's sums compiled (the default) or in NumPy (RootRotation's ``kernels``):
+    the same b, A, P and turned positions, bit for bit, on the settled hairball pushed
+    off its step's target; an unknown kernels name is a ValueError."""
+    from lc_petsc.root_rotation import RootRotation
+    sim, turner = _settled(terms)
+    try:
+        it = sim.integrator
+        assert turner._turn_sums.__name__ == "turn_sums"
+        stencils = {n: t.k for n, t in it.scene.terms.items()}
+        ref = RootRotation(it.scene.offsets, it.scene.pinned, it.asm.elements, stencils, kernels="numpy")
+        x = it.x + 0.01 * np.random.default_rng(2).standard_normal(it.x.shape) * it.free[:, None]
+        unit = np.where(it.free, it.scene.mass / it.dt ** 2, 0.0)
+        for got, want in zip(turner.model(x, it._turn_terms, unit), ref.model(x, it._turn_terms, unit)):
+            assert np.abs(want).max() > 0.0
+            np.testing.assert_array_equal(got, want)
+        y = turner.step(x, it._turn_terms, unit, it._vertex_potentials)
+        assert turner.turned == 3 and np.abs(y - x).max() > 1e-6
+        np.testing.assert_array_equal(y, ref.step(x, it._turn_terms, unit, it._vertex_potentials))
+        with pytest.raises(ValueError, match="kernels 'fortran': use one of compiled, numpy"):
+            RootRotation(it.scene.offsets, it.scene.pinned, it.asm.elements, stencils, kernels="fortran")
+    finally:
+        sim.close()
+
+
 def _far_turned_start(terms, angle):
     """The settled 3-wisp hairball with the step's inertial target xhat its own wisps
     turned by ``angle`` (rad) about their pivots: the turn G wants is far beyond where

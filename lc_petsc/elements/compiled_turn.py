@@ -254,3 +254,14 @@ def turn_vertices(x, idx, pivot, axis, c, s):
     y = x.copy()
     _turn_vertices(x, idx, pivot, axis, c, s, y)
     return y
+
+
+def warm_up():
+    """Compile (or load from the cache) the turn's kernels (:func:`lc_petsc.elements.
+    compiled.warm_up` runs this: in turn over the ranks, before the first frame)."""
+    layout = turn_layout(np.array([0.0, 1.0]), np.zeros(2, np.int64), np.array([0, 2]), np.arange(2),
+                         np.array([0.0, 1.0]))
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    turn_sums(layout, x, x, np.ones(2), x)
+    turn_pcg(np.eye(3)[None], np.eye(3)[None], np.ones((1, 3)), np.ones(1, bool))
+    turn_vertices(x, np.array([1]), np.array([0]), np.array([[0.0, 0.0, 1.0]]), np.ones(1), np.zeros(1))

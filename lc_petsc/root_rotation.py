@@ -36,10 +36,12 @@ def _turn_numpy(x, idx, pivot, axis, c, s):
 
 
 #: the turn's fixed per-frame work (:mod:`lc_petsc.elements.compiled_turn`): the model's
-#: per-vertex sums, the conjugate gradients, the turn of the vertices; compiled (the
+#: per-vertex sums and curvature, the conjugate gradients, the turn of the vertices; compiled (the
 #: default) or the NumPy references (the same bits)
-KERNELS = {"compiled": (compiled_turn.turn_sums, compiled_turn.turn_pcg, compiled_turn.turn_vertices),
-           "numpy": (compiled_turn.turn_sums_numpy, compiled_turn.turn_pcg_numpy, _turn_numpy)}
+KERNELS = {"compiled": (compiled_turn.turn_sums, compiled_turn.turn_curvature, compiled_turn.turn_pcg,
+                        compiled_turn.turn_vertices),
+           "numpy": (compiled_turn.turn_sums_numpy, compiled_turn.turn_curvature_numpy, compiled_turn.turn_pcg_numpy,
+                     _turn_numpy)}
 
 #: a wisp whose share of G a turn raised has its turn halved this many times, then
 #: dropped (:meth:`RootRotation.step`)
@@ -104,7 +106,7 @@ class RootRotation:
     def __init__(self, offsets, pinned, elements, stencils, kernels="compiled"):
         if kernels not in KERNELS:
             raise ValueError(f"root turn: kernels {kernels!r}: use one of {', '.join(KERNELS)}")
-        self._turn_sums, self._pcg, self._turn_vertices = KERNELS[kernels]
+        self._turn_sums, self._curvature, self._pcg, self._turn_vertices = KERNELS[kernels]
         self.offsets = np.asarray(offsets)
         self.pivot = root_pivots(self.offsets, np.asarray(pinned, bool))
         sizes = np.diff(self.offsets)
@@ -178,28 +180,26 @@ class RootRotation:
 
     def _model(self, x, outer, head, unit):
         """:meth:`model` from the terms at x."""
-        eye = np.eye(3)
         xs = x[self.near]
         # b = sum r x q: d G / d theta_k = sum (e_k x r) . g; T = sum r (m r - q)^T, M =
         # sum (m r) r^T (one compiled pass, NumPy's sums bit for bit)
         r, b, T, M = self._turn_sums(self.layout, x, outer, unit, self._across_gradient(xs))
-        A = np.einsum("wkk->w", T)[:, None, None] * eye - 0.5 * (T + T.transpose(0, 2, 1))
         # the elements across the root: central differences of their gradients, the six
         # turns in one kernel call
-        pn, rn, wn = x[self.pivot_of[self.near]], r[self.near], self.near_wisp
+        pn = x[self.pivot_of[self.near]]
         turned = np.where(self.near_moved[None, :, None], pn + np.einsum("nl,jlk->jnk", xs - pn, self.turns6),
                           xs).reshape(-1, 3)
         g6 = np.zeros_like(turned)
         compiled.add_gradient(self.across6, turned, g6)
         g6 = g6.reshape(2, 3, -1, 3)
         HJ = (g6[0] - g6[1]) / (2 * ANGLE_STEP)          # (turn k, vertex, 3)
-        np.add.at(A, wn, np.stack([cross(rn, HJ[k]) for k in range(3)], axis=2))
+        # A = tr(T) I - sym(T) + the across elements' sum r x HJ; P = tr(M) I - M
+        A, P = self._curvature(T, M, HJ, r[self.near], self.near_wisp)
         if head is not None:                     # the head's penalty: sum [r]x^T H [r]x
             hidx, H = head
             S = skew(r[hidx])
             np.add.at(A, self.wisp[hidx], np.einsum("nji,njk,nkl->nil", S, H, S))
         A = 0.5 * (A + A.transpose(0, 2, 1))
-        P = np.einsum("wkk->w", M)[:, None, None] * eye - M
         return b, A, P
 
     def share_change(self, x, y, change):

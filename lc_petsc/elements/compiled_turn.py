@@ -1,6 +1,7 @@
 """The root turn's fixed per-frame work compiled (Numba): its model's per-vertex sums
-(:func:`turn_sums`), its preconditioned conjugate gradients per wisp (:func:`turn_pcg`)
-and the Rodrigues turn of its vertices (:func:`turn_vertices`), for
+(:func:`turn_sums`) and curvature (:func:`turn_curvature`), its preconditioned conjugate
+gradients per wisp (:func:`turn_pcg`) and the Rodrigues turn of its vertices
+(:func:`turn_vertices`), for
 :class:`lc_petsc.root_rotation.RootRotation`.
 
 In NumPy these were ~80 operations on small per-vertex and per-wisp arrays each frame, a
@@ -155,6 +156,58 @@ def turn_sums_numpy(layout, x, outer, unit, gnear):
 
 
 @_jit
+def _turn_curvature(T, M, HJ, rn, wn, A, P):
+    for w in range(T.shape[0]):
+        trT = (T[w, 0, 0] + T[w, 1, 1]) + T[w, 2, 2]
+        trM = (M[w, 0, 0] + M[w, 1, 1]) + M[w, 2, 2]
+        for k in range(3):
+            for col in range(3):
+                e = 1.0 if k == col else 0.0
+                A[w, k, col] = trT * e - 0.5 * (T[w, k, col] + T[w, col, k])
+                P[w, k, col] = trM * e - M[w, k, col]
+    for j in range(wn.shape[0]):
+        w = wn[j]
+        r0, r1, r2 = rn[j, 0], rn[j, 1], rn[j, 2]
+        for k in range(3):
+            h0, h1, h2 = HJ[k, j, 0], HJ[k, j, 1], HJ[k, j, 2]
+            A[w, 0, k] += r1 * h2 - r2 * h1
+            A[w, 1, k] += r2 * h0 - r0 * h2
+            A[w, 2, k] += r0 * h1 - r1 * h0
+
+
+def _curvature_arrays(T, M, HJ, rn, wn):
+    T, M, HJ, rn = (np.ascontiguousarray(a, np.float64) for a in (T, M, HJ, rn))
+    wn = np.ascontiguousarray(wn, np.int64)
+    n, k = len(T), len(wn)
+    if T.shape != (n, 3, 3) or M.shape != (n, 3, 3) or HJ.shape != (3, k, 3) or rn.shape != (k, 3) or (
+            k and (wn.min() < 0 or wn.max() >= n)):
+        raise ValueError(f"root turn: T, M (n, 3, 3), HJ (3, k, 3), rn (k, 3) and wn (k,) indexing the n wisps "
+                         f"must match, got {T.shape}, {M.shape}, {HJ.shape}, {rn.shape}, {wn.shape}")
+    return T, M, HJ, rn, wn
+
+
+def turn_curvature(T, M, HJ, rn, wn):
+    """(A, P) (n, 3, 3) of the turn's model from :func:`turn_sums`' T and M: A = tr(T) I
+    - sym(T) plus, per vertex j of the elements across the roots (its wisp ``wn``[j],
+    its arm ``rn``[j] (k, 3)), column k += rn[j] x ``HJ``[k, j] (the central difference
+    of their gradient along turn k, (3, k, 3)); P = tr(M) I - M.
+    :func:`turn_curvature_numpy` bit for bit."""
+    T, M, HJ, rn, wn = _curvature_arrays(T, M, HJ, rn, wn)
+    A, P = np.empty_like(T), np.empty_like(M)
+    _turn_curvature(T, M, HJ, rn, wn, A, P)
+    return A, P
+
+
+def turn_curvature_numpy(T, M, HJ, rn, wn):
+    """:func:`turn_curvature` in NumPy (the reference)."""
+    T, M, HJ, rn, wn = _curvature_arrays(T, M, HJ, rn, wn)
+    eye = np.eye(3)
+    A = np.einsum("wkk->w", T)[:, None, None] * eye - 0.5 * (T + T.transpose(0, 2, 1))
+    np.add.at(A, wn, np.stack([cross3(rn.T, HJ[k].T).T for k in range(3)], axis=2))
+    return A, np.einsum("wkk->w", M)[:, None, None] * eye - M
+
+
+@_jit
 def _turn_pcg(A, P, b, held, theta):
     for w in range(A.shape[0]):
         theta[w, 0] = theta[w, 1] = theta[w, 2] = 0.0
@@ -263,5 +316,6 @@ def warm_up():
                          np.array([0.0, 1.0]))
     x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     turn_sums(layout, x, x, np.ones(2), x)
+    turn_curvature(np.eye(3)[None], np.eye(3)[None], np.ones((3, 1, 3)), np.ones((1, 3)), np.zeros(1, np.int64))
     turn_pcg(np.eye(3)[None], np.eye(3)[None], np.ones((1, 3)), np.ones(1, bool))
     turn_vertices(x, np.array([1]), np.array([0]), np.array([[0.0, 0.0, 1.0]]), np.ones(1), np.zeros(1))

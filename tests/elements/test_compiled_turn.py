@@ -65,6 +65,26 @@ def test_sums_per_wisp_are_plain_sums_to_round_off(sizes):
             assert np.abs(got[w].ravel() - want).max() <= 1e-13 * max(np.abs(seg).max(), 1e-300)
 
 
+@pytest.mark.parametrize("seed", range(30))
+def test_compiled_curvature_is_numpys_bit_for_bit(seed):
+    """A and P from T and M (traces of either sign: signed zeros off the diagonal kept)
+    and the across vertices' r x HJ summed into their wisps' columns in order."""
+    rng = np.random.default_rng(seed)
+    nw, k = 1 + seed % 7, 3 * seed
+    T = rng.normal(size=(nw, 3, 3)) * 10 ** rng.uniform(-5, 5, (nw, 1, 1))
+    T[0] = -np.abs(T[0])
+    M = rng.normal(size=(nw, 3, 3))
+    args = (T, M, rng.normal(size=(3, k, 3)) * 1e4, rng.normal(size=(k, 3)), np.sort(rng.integers(0, nw, k)))
+    for got, want in zip(compiled_turn.turn_curvature(*args), compiled_turn.turn_curvature_numpy(*args)):
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(want))
+    A, _ = compiled_turn.turn_curvature(T, M, *args[2:])
+    want = np.trace(T, axis1=1, axis2=2)[:, None, None] * np.eye(3) - 0.5 * (T + T.transpose(0, 2, 1))
+    for j, w in enumerate(args[4]):
+        want[w] += np.stack([np.cross(args[3][j], args[2][c, j]) for c in range(3)], axis=1)
+    assert np.abs(A - want).max() <= 1e-12 * np.abs(want).max()
+
+
 def _systems(seed, n):
     """Per wisp an SPD P and an A (a third indefinite), b over six decades, 80% held."""
     rng = np.random.default_rng(seed)
@@ -143,5 +163,8 @@ def test_no_wisps_and_bad_arguments():
         compiled_turn.turn_sums(layout, x[:-1], outer, unit, gnear)
     with pytest.raises(ValueError, match="A, P .* must match"):
         compiled_turn.turn_pcg(np.zeros((2, 3, 3)), np.zeros((2, 3, 3)), np.zeros((2, 3)), np.ones(3, bool))
+    with pytest.raises(ValueError, match=r"T, M .* must match"):
+        compiled_turn.turn_curvature(np.zeros((2, 3, 3)), np.zeros((2, 3, 3)), np.zeros((3, 1, 3)), np.zeros((1, 3)),
+                                     [2])
     with pytest.raises(ValueError, match="idx, pivot"):
         compiled_turn.turn_vertices(x, [0, 11], [0, 0], np.zeros((2, 3)), np.ones(2), np.zeros(2))

@@ -391,7 +391,7 @@ class Job:
             self._lock()
             with self.preemption.setup():
                 try:
-                    self.sim = build_simulator(self.cfg, comm=comm)
+                    self.sim = build_simulator(self.cfg, comm=comm, check_start=self.args.restart is None)
                     check_solver(self.sim, self.command_line)
                 except (ValueError, SolverError) as e:
                     raise Refused(str(e)) from None

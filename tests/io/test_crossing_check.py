@@ -350,7 +350,8 @@ def test_check_is_not_counted_in_the_frame_loops_wall_time(tmp_path, monkeypatch
 def test_count_crossings_screens_in_chunks_and_stops_between_them(monkeypatch):
     """The screen of the candidate pairs (43 s for the 68M of a scrambled 200-wisp step)
     was one compiled call a signal could not stop: it now goes SCREEN_CHUNK pairs at a
-    time, looking at ``stop`` before each; the counts are the same in any chunking."""
+    time, looking at ``stop`` before each (and the Tight-Inclusion pairs CROSSING_CHUNK at
+    a time); the counts are the same in any chunking."""
     import lc_petsc.crossings as crossings
     rng = np.random.default_rng(3)
     X0 = np.concatenate([bar(0.1 * k, k % 3) for k in range(8)]) + 0.05 * rng.standard_normal((8 * N, 3))
@@ -365,7 +366,10 @@ def test_count_crossings_screens_in_chunks_and_stops_between_them(monkeypatch):
     broad = len(looks)                  # the broad phase's parts (box_pairs)
     looks.clear()
     chunked = crossings.count_crossings(X0, X1, off, self_contact=True, stop=lambda: looks.append(1) and False)
-    assert len(looks) == broad + -(-n_pairs // 7)
+    # and every CROSSING_CHUNK of the pairs the screen leaves to Tight-Inclusion
+    n_near = int(crossings.screen_paths(X0, X1, crossings.candidate_pairs(X0, X1, off, True))[0].sum())
+    assert n_near > 0
+    assert len(looks) == broad + -(-n_pairs // 7) + -(-n_near // crossings.CROSSING_CHUNK)
     assert chunked["crossings"] == whole["crossings"] and np.array_equal(chunked["pairs"], whole["pairs"])
     looks.clear()
     stop_at = broad + 2

@@ -298,7 +298,8 @@ def check_run(path, comm, self_contact=False, rest_exempt=None, stop=None):
     (:func:`rest_exempt_pairs`), else None; ``largest_strain``
     (the largest |edge length / rest length - 1| over the rows that end a step),
     ``largest_strain_row`` and ``rows_over_strain`` (rows with an edge beyond
-    :data:`STRAIN_WARN`); ``head``: how deep the hair sinks into the head sphere
+    :data:`STRAIN_WARN`); ``initial_strain``: the same measure of row 0, the initial
+    state (None when its step is not checked); ``head``: how deep the hair sinks into the head sphere
     (:func:`lc_petsc.head_check.summarize`; None when the scene has no head sphere).
     ``{"error": message}`` when the file cannot be read.
 
@@ -336,6 +337,7 @@ def check_run(path, comm, self_contact=False, rest_exempt=None, stop=None):
             "within_exempt": sum(r[5] for r in rows) if rest_exempt is not None and self_contact else None,
             "largest_strain": worst[3] if worst else None,
             "largest_strain_row": worst[0] + 1 if worst else None,
+            "initial_strain": next((r[7] for r in rows if r[0] == 0), None),
             "rows_over_strain": sum(r[3] > STRAIN_WARN for r in rows),
             "head": summarize([(r[0], r[6]) for r in rows if r[6] is not None])}
 
@@ -362,7 +364,7 @@ def _count_share(path, rank, size, self_contact, rest_exempt=None, stop=None):
     """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps, up
     to a signal (``stop``); a row is (step, between, within, strain, exempt between,
     exempt within, head figures (:func:`lc_petsc.head_check.step_depths`, None without a
-    head sphere))."""
+    head sphere), row 0's strain (step 0 only, else None))."""
     import h5py
     from lc_petsc.head_check import file_head, step_depths
     from lc_petsc.io.frames import frame_times, valid_rows
@@ -381,9 +383,11 @@ def _count_share(path, rank, size, self_contact, rest_exempt=None, stop=None):
             sunk = None if head is None else step_depths(head[0], prev, cur, times[k], times[k + 1], off,
                                                          head[1], head[2])
             strain = float(np.abs(edge_strain(cur, rest, off)).max(initial=0.0))
+            # the initial state's own strain (a perturbation's), not judged but told apart
+            start = float(np.abs(edge_strain(prev, rest, off)).max(initial=0.0)) if k == 0 else None
             ex_between = ex_within = 0
             if rest_exempt is not None and r["crossings"]:
                 exempt, same = rest_exempt_pairs(rest, r["pairs"], rest_exempt), r["same_wisp"]
                 ex_between, ex_within = int(np.sum(exempt & ~same)), int(np.sum(exempt & same))
-            rows.append((k, r["crossings"] - r["within"], r["within"], strain, ex_between, ex_within, sunk))
+            rows.append((k, r["crossings"] - r["within"], r["within"], strain, ex_between, ex_within, sunk, start))
     return rows, len(steps)

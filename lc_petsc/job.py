@@ -265,6 +265,12 @@ def crossing_warnings(check, cfg):
         fix = ("raise time.newton_iterations or lower time.dt" if cfg.time.length_projection else
                "set time.length_projection = true (each frame projected onto the rest lengths), or "
                "raise time.newton_iterations or lower time.dt")
+        start = check.get("initial_strain")
+        if start is not None and start > STRAIN_WARN:
+            # the run did not tear them: the initial state came so (a perturbation)
+            fix = (f"the initial state (frame 0, scene.perturbation = \"{cfg.scene.perturbation}\") already has "
+                   f"edges {100 * start:.1f}% off their rest length, and the first frames carry what is left of "
+                   f"it; if it stays, {fix}")
         out.append(f"edges stretch or compress by up to {100 * check['largest_strain']:.1f}% of their rest "
                    f"length (frame {check['largest_strain_row'] * every}; beyond "
                    f"{100 * STRAIN_WARN:.0f}% in {check['rows_over_strain']} of the frames written; "

@@ -99,9 +99,18 @@ class StartReport:
     made_by: str = ""                # what made the start: the perturbation and its size
     smaller: str = "make the perturbation smaller"
 
-    def message(self) -> str:
-        """The report for a person: count, the closest pair, what to change."""
+    def message(self, exempt=False) -> str:
+        """The report for a person: count, the closest pair, what to change (``exempt``:
+        the run goes on, with ``physics.strand_rest_overlap = "exempt"``)."""
         wa, va, wb, vb = self.worst
+        fix = (f"{self.smaller}, run the scene without strand contact (remove \"strand_collision\" from "
+               f"physics.terms, as the SPEC's smash, jitter and straighten scenes do), or set "
+               f"physics.strand_rest_overlap = \"exempt\" to run it anyway (these pairs are not "
+               f"exempt: the contact holds them where the initial state put them)")
+        if exempt:
+            fix = (f"run anyway (physics.strand_rest_overlap = \"exempt\"; these pairs are not exempt: the "
+                   f"contact holds them where the initial state put them); {self.smaller} or run the "
+                   f"scene without strand contact to avoid it")
         which = "of different wisps or of one wisp" if self.self_contact else "of different wisps"
         return (f"the initial state ({self.made_by}) is tangled: {self.pairs} pair(s) of segments {which}, "
                 f"at least the contact thickness {self.thickness:g} cm apart in the rest pose, pass "
@@ -110,10 +119,7 @@ class StartReport:
                 f"segment (vertices {vb}, {vb + 1}), {self.min_distance:.3g} cm apart (global vertex "
                 f"indices).  Strand contact in \"ccd\" mode lets no pair pass through another from the "
                 f"start on, so such pairs stay on the side the initial state put them (a tangle held "
-                f"over the run: strands through strands, edges stretched): {self.smaller}, or run the "
-                f"scene without strand contact (remove "
-                f"\"strand_collision\" from physics.terms, as the SPEC's smash, jitter and straighten "
-                f"scenes do)")
+                f"over the run: strands through strands, edges stretched): {fix}")
 
 
 def check_start_pose(strand, x0, made_by="", smaller=None) -> StartReport:

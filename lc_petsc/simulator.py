@@ -320,8 +320,11 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user, sourc
             if start.pairs:
                 if user is not None:
                     start.worst = user.scene_numbers(start.worst)
-                strand.destroy()
-                raise StartOverlapError(named_by(source, start.message()))
+                if cfg.physics.strand_rest_overlap == "exempt":     # the user's choice: a warning
+                    strand.start_warning = named_by(source, start.message(exempt=True))
+                else:
+                    strand.destroy()
+                    raise StartOverlapError(named_by(source, start.message()))
     return strand
 
 

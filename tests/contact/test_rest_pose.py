@@ -153,7 +153,18 @@ def test_a_tangled_initial_state_is_refused_on_every_rank(monkeypatch):
     assert float(m.group(4)) == pytest.approx(d, rel=1e-2)
     # a restart continues from its checkpoint's state: the initial one is not judged
     sim = simmod.build_simulator(start_config(), comm=comm, check_start=False)
+    assert sim.strand.start_warning is None
     sim.close()
+    # strand_rest_overlap = "exempt": the user runs it anyway, warned with the same finding
+    from lc_petsc.diagnostics import term_warnings
+    cfg = start_config()
+    cfg.physics.strand_rest_overlap = "exempt"
+    sim = simmod.build_simulator(cfg, comm=comm)
+    try:
+        (w,) = [m for m in term_warnings(sim) if "initial state" in m]
+        assert w.startswith(msg.split(".  ")[0]) and "run anyway" in w
+    finally:
+        sim.close()
     # the same pose as a groom's rest is that groom's own shape (0.133 cm apart): it builds
     monkeypatch.setattr(simmod, "source_from_config",
                         lambda *a: ArraySource(S, np.arange(0, 40 * len(ROW) + 1, 40), n_pinned=3))

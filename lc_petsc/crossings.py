@@ -82,7 +82,14 @@ CLEAR_DISTANCE = 1e-9
 CLEAR_STEPS = 100000
 
 
-def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
+#: pairs given to Tight-Inclusion (and the clear-path proof) between two looks at
+#: ``stop`` in :func:`crossing_pairs`: each pair is bounded (1e5 splits, 0.09 s, and two
+#: proofs of 1e5 steps), so a signal waits for this many at most, not for a wild step's
+#: thousands of undecided pairs
+CROSSING_CHUNK = 32
+
+
+def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000, stop=None):
     """Boolean (k,): whether each pair (start S, end E, (k, 4, 3)) meets on its linear
     path: :func:`segment_ccd.tight_inclusion_toi` at min distance 0 (pairs touching at
     the start count as meeting; a pair still undecided after ``max_iterations``
@@ -90,11 +97,26 @@ def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
     advancement proves to stay CLEAR_DISTANCE (relative) apart: Tight-Inclusion's
     undecided answer is a hit, and a pair of a 60-wisp hairball step 4.45e-6 cm apart on
     its whole path was one (with 1e5 splits; 1e4 and 1e6 answer no), a crossing the
-    ccd limiter had not let through in the end-of-run check."""
+    ccd limiter had not let through in the end-of-run check.  ``stop``: callable, looked
+    at every :data:`CROSSING_CHUNK` pairs; None is returned once it is true."""
+    S, E = np.asarray(S, float), np.asarray(E, float)
+    if stop is None:
+        return _meets(S, E, tolerance, max_iterations)
+    hit = np.zeros(len(S), bool)
+    for a in range(0, len(S), CROSSING_CHUNK):
+        if stop():
+            return None
+        hit[a:a + CROSSING_CHUNK] = _meets(S[a:a + CROSSING_CHUNK], E[a:a + CROSSING_CHUNK], tolerance,
+                                           max_iterations)
+    return hit
+
+
+def _meets(S, E, tolerance, max_iterations):
+    """:func:`crossing_pairs` of the pairs S, E (k, 4, 3), without looks at a stop."""
     hit = tight_inclusion_toi(S, E, 0.0, tolerance=tolerance, max_iterations=max_iterations)[0]
     k = np.flatnonzero(hit)
     if len(k):
-        S, E = np.asarray(S, float)[k], np.asarray(E, float)[k]
+        S, E = S[k], E[k]
         scale = np.abs(np.concatenate([S, E], axis=1)).reshape(len(k), -1).max(axis=1) + 1.0
         clear = safe_fraction(S, E, CLEAR_DISTANCE * scale, max_steps=CLEAR_STEPS, exact=True) >= 1.0
         r = np.flatnonzero(~clear)
@@ -132,8 +154,9 @@ def count_crossings(X0, X1, offsets, self_contact=False, stop=None):
     dict with ``crossings`` (number of segment pairs that meet), ``pairs`` (k, 2) of
     their first global vertices, ``same_wisp`` (k,) whether each is of one wisp,
     ``within`` (how many are).  ``stop``: callable, looked at between parts
-    of the broad phase (:data:`compiled_ccd.BOX_TESTS` box tests) and every SCREEN_CHUNK
-    candidate pairs; None is returned once it is true."""
+    of the broad phase (:data:`compiled_ccd.BOX_TESTS` box tests), every SCREEN_CHUNK
+    candidate pairs and every :data:`CROSSING_CHUNK` pairs left for Tight-Inclusion;
+    None is returned once it is true."""
     X0, X1 = np.asarray(X0, float), np.asarray(X1, float)
     if X0.shape != X1.shape or X0.ndim != 2 or X0.shape[1] != 3:
         raise ValueError(f"count_crossings: positions must both be (n_vertices, 3), got "
@@ -147,7 +170,9 @@ def count_crossings(X0, X1, offsets, self_contact=False, stop=None):
             return None
         may_meet[a:a + SCREEN_CHUNK] = screen_paths(X0, X1, pairs[a:a + SCREEN_CHUNK])[0]
     near = pairs[may_meet]
-    hit = crossing_pairs(pair_positions(X0, near), pair_positions(X1, near))
+    hit = crossing_pairs(pair_positions(X0, near), pair_positions(X1, near), stop=stop)
+    if hit is None:
+        return None
     seg, wisp = segments(offsets)
     wid = np.full(len(X0), -1, np.int64)
     wid[seg] = wisp
@@ -273,7 +298,8 @@ def check_run(path, comm, self_contact=False, rest_exempt=None, stop=None):
     (:func:`rest_exempt_pairs`), else None; ``largest_strain``
     (the largest |edge length / rest length - 1| over the rows that end a step),
     ``largest_strain_row`` and ``rows_over_strain`` (rows with an edge beyond
-    :data:`STRAIN_WARN`); ``head``: how deep the hair sinks into the head sphere
+    :data:`STRAIN_WARN`); ``initial_strain``: the same measure of row 0, the initial
+    state (None when its step is not checked); ``head``: how deep the hair sinks into the head sphere
     (:func:`lc_petsc.head_check.summarize`; None when the scene has no head sphere).
     ``{"error": message}`` when the file cannot be read.
 
@@ -311,6 +337,7 @@ def check_run(path, comm, self_contact=False, rest_exempt=None, stop=None):
             "within_exempt": sum(r[5] for r in rows) if rest_exempt is not None and self_contact else None,
             "largest_strain": worst[3] if worst else None,
             "largest_strain_row": worst[0] + 1 if worst else None,
+            "initial_strain": next((r[7] for r in rows if r[0] == 0), None),
             "rows_over_strain": sum(r[3] > STRAIN_WARN for r in rows),
             "head": summarize([(r[0], r[6]) for r in rows if r[6] is not None])}
 
@@ -337,7 +364,7 @@ def _count_share(path, rank, size, self_contact, rest_exempt=None, stop=None):
     """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps, up
     to a signal (``stop``); a row is (step, between, within, strain, exempt between,
     exempt within, head figures (:func:`lc_petsc.head_check.step_depths`, None without a
-    head sphere))."""
+    head sphere), row 0's strain (step 0 only, else None))."""
     import h5py
     from lc_petsc.head_check import file_head, step_depths
     from lc_petsc.io.frames import frame_times, valid_rows
@@ -356,9 +383,11 @@ def _count_share(path, rank, size, self_contact, rest_exempt=None, stop=None):
             sunk = None if head is None else step_depths(head[0], prev, cur, times[k], times[k + 1], off,
                                                          head[1], head[2])
             strain = float(np.abs(edge_strain(cur, rest, off)).max(initial=0.0))
+            # the initial state's own strain (a perturbation's), not judged but told apart
+            start = float(np.abs(edge_strain(prev, rest, off)).max(initial=0.0)) if k == 0 else None
             ex_between = ex_within = 0
             if rest_exempt is not None and r["crossings"]:
                 exempt, same = rest_exempt_pairs(rest, r["pairs"], rest_exempt), r["same_wisp"]
                 ex_between, ex_within = int(np.sum(exempt & ~same)), int(np.sum(exempt & same))
-            rows.append((k, r["crossings"] - r["within"], r["within"], strain, ex_between, ex_within, sunk))
+            rows.append((k, r["crossings"] - r["within"], r["within"], strain, ex_between, ex_within, sunk, start))
     return rows, len(steps)

@@ -64,7 +64,8 @@ def main(argv=None):
     else:
         print(f"{a.frames}: deepest free vertex {s['vertex_depth']:.4g} cm (row {s['vertex_row']}), deepest "
               f"edge point {s['edge_depth']:.4g} cm (row {s['edge_row']}), {s['ratio']:.3g} strand radii at most; "
-              f"rows with a strand entirely inside the head: {s['rows_sunk']}; paths through the head "
+              f"rows with a strand entirely inside the head: {s['rows_sunk']} ({s['rows_sunk_by_chords']} only along "
+              f"edges between vertices no deeper than their radius); paths through the head "
               f"between frames: {s['paths_through']} in {s['steps_through']} steps (deepest path point "
               f"{s['path_depth']:.4g} cm)")
     if a.json:

@@ -276,6 +276,11 @@ class Simulator:
             self.strand.destroy()
 
 
+#: perturbations whose initial state is reached from the rest pose along the straight way
+#: (so the start check's crossings on that way are a tangle the perturbation made)
+STRAIGHT_WAY_PERTURBATIONS = ("jitter", "smash")
+
+
 def perturbation_text(scene_cfg):
     """(``scene.perturbation`` and its size, how to make it smaller), for messages about
     the initial state."""
@@ -313,8 +318,11 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user, sourc
             strand.destroy()
             raise RestPoseOverlapError(named_by(source, report.message()))
         # the initial state, checked as the rest pose is (pairs the rest check let
-        # through, exempt ones, stay exempt): a perturbation can tangle what the groom had apart
-        if x0 is not None and cfg.scene.perturbation != "none":
+        # through, exempt ones, stay exempt): a perturbation can tangle what the groom had apart.
+        # Only where the straight way from rest is the perturbation's own path (a jitter's
+        # displacement, a smash's scaling); a straightened coil unwinds about its axis, and the
+        # straight way would pass its turns through each other where the start has none
+        if x0 is not None and cfg.scene.perturbation in STRAIGHT_WAY_PERTURBATIONS:
             made_by, smaller = perturbation_text(cfg.scene)
             start = check_start_pose(strand, x0, made_by=made_by, smaller=smaller)
             if start.pairs:

@@ -197,3 +197,29 @@ def test_real_perturbations_of_an_untangled_start_run(monkeypatch):
     with pytest.raises(StartOverlapError, match=r"smash_factor = 0.4\) is tangled: .*raise "
                                                 r"scene.smash_factor towards 1"):
         simmod.build_simulator(start_config("smash", self_contact=True), comm=MPI.COMM_SELF)
+
+
+
+def test_a_straightened_start_is_not_judged_on_the_straight_way():
+    """``straighten`` unwinds each coil onto a line: the straight way from the coiled rest
+    pose passes a hairball wisp's turns through each other (19 pairs for one wisp, which
+    the start check counted and refused) where the straight start itself has no tangle.
+    Such a start is built and runs a frame in ccd mode with self-contact, with 0 crossings;
+    the same wisp jittered by 0.5 cm is still judged (the straight way is the jitter's path)."""
+    from lc_petsc.crossings import count_crossings
+    cfg = SimConfig(scene=SceneConfig(kind="hairball", n_wisps=1, seed=1, n_pinned=4, perturbation="straighten"),
+                    material=MaterialConfig(youngs_modulus=2.5e8),
+                    physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity", "strand_collision"),
+                                          strand_contact_mode="ccd", strand_self_contact=True),
+                    time=TimeConfig(frames=1))
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        x0 = sim.x.copy()
+        assert np.abs(x0 - sim.scene.x_rest).max() > 1.0        # the coil really was unwound
+        sim.run(1)
+        assert count_crossings(x0, sim.x, sim.scene.offsets, self_contact=True)["crossings"] == 0
+    finally:
+        sim.close()
+    cfg.scene.perturbation, cfg.scene.jitter = "jitter", 0.5
+    with pytest.raises(StartOverlapError, match="scene.jitter = 0.5 cm"):
+        simmod.build_simulator(cfg, comm=MPI.COMM_SELF)

@@ -140,7 +140,7 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     and last row written).  ``progress``: callable(done, total) or None.  Returns a dict
     of what was written and how long it took (seconds)."""
     from pxr import Gf, Sdf, Usd, UsdGeom, Vt
-    from lc_petsc.io.frames import frame_row, frame_times, naming, open_frames, read_dataset, valid_rows
+    from lc_petsc.io.frames_read import FramesReader, naming
     from lc_petsc.io.render_hairs import RenderHairs, root_normals
     from lc_petsc.scene.kinematics import HeadMotion
 
@@ -152,23 +152,24 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
         raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
     try:
-        f = open_frames(frames_path)
+        r = FramesReader(frames_path)
     except (OSError, ValueError) as e:
         raise ValueError(f"{frames_path}: cannot open the frames file ({e})") from None
-    with f:
+    with r:
+        f = r.f
         for key in ("positions", "time", "wisp_offsets", "rest_positions", "pinned"):
             if key not in f:
                 raise ValueError(f"{frames_path}: not an lc_petsc frames file (no /{key})")
         if "config" not in f.attrs or "dt" not in f.attrs:
             raise ValueError(f"{frames_path}: has no 'config'/'dt' attributes (not written by the main job)")
         # the chunk index first: a damaged /time entry crashed libhdf5 on the read below
-        held = valid_rows(f)
+        held = r.valid
         config_dict = json.loads(f.attrs["config"])
         tables = config_tables(config_dict)
         dt, every = float(f.attrs["dt"]), int(f.attrs.get("every", 1))
         with naming(frames_path):
-            static = {k: read_dataset(f, k) for k in ("wisp_offsets", "rest_positions", "pinned", "radius") if k in f}
-            times = frame_times(f)
+            static = {k: r.dataset(k) for k in ("wisp_offsets", "rest_positions", "pinned", "radius") if k in f}
+            times = r.times
         offsets = np.asarray(static["wisp_offsets"], np.int64)
         sizes = np.diff(offsets)
         rest = np.asarray(static["rest_positions"], float)
@@ -246,29 +247,28 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
             stage.Save()
 
             t_hairs = 0.0
-            for done, k in enumerate(rows):
-                with naming(frames_path):
-                    world = frame_row(f, k)
-                origin = local_origin(world)
-                x = world - origin          # the render hairs follow a translation exactly
-                p32 = x.astype(np.float32)
-                for op in moves:
-                    op.Set(Gf.Vec3d(*origin.tolist()), float(k))
-                pts_attr.Set(Vt.Vec3fArray.FromNumpy(p32), float(k))
-                ext_attr.Set(Vt.Vec3fArray.FromNumpy(_extent(p32, half_w)), float(k))
-                if head is not None:
-                    head_op.Set(Gf.Matrix4d(head_matrix(motion, times[k]).tolist()), float(k))
-                if hairs is not None:
-                    t0 = time.perf_counter()
-                    R = motion.transform(times[k])[0]
-                    hairs.points(x, normal_rest @ R.T, out=hair_buf)
-                    t_hairs += time.perf_counter() - t0
-                    hair_attr.Set(Vt.Vec3fArray.FromNumpy(hair_buf), float(k))
-                    hair_ext.Set(Vt.Vec3fArray.FromNumpy(_extent(hair_buf, half_w)), float(k))
-                if incremental:
-                    stage.Save()         # appends this frame's samples to the file, frees them
-                if progress is not None:
-                    progress(done + 1, len(rows))
+            with naming(frames_path):       # (a damaged row read in the loop names the file)
+                for done, (k, world) in enumerate(r.rows(rows)):
+                    origin = local_origin(world)
+                    x = world - origin          # the render hairs follow a translation exactly
+                    p32 = x.astype(np.float32)
+                    for op in moves:
+                        op.Set(Gf.Vec3d(*origin.tolist()), float(k))
+                    pts_attr.Set(Vt.Vec3fArray.FromNumpy(p32), float(k))
+                    ext_attr.Set(Vt.Vec3fArray.FromNumpy(_extent(p32, half_w)), float(k))
+                    if head is not None:
+                        head_op.Set(Gf.Matrix4d(head_matrix(motion, times[k]).tolist()), float(k))
+                    if hairs is not None:
+                        t0 = time.perf_counter()
+                        R = motion.transform(times[k])[0]
+                        hairs.points(x, normal_rest @ R.T, out=hair_buf)
+                        t_hairs += time.perf_counter() - t0
+                        hair_attr.Set(Vt.Vec3fArray.FromNumpy(hair_buf), float(k))
+                        hair_ext.Set(Vt.Vec3fArray.FromNumpy(_extent(hair_buf, half_w)), float(k))
+                    if incremental:
+                        stage.Save()         # appends this frame's samples to the file, frees them
+                    if progress is not None:
+                        progress(done + 1, len(rows))
             stage.Save()
             del stage
     return {"path": str(usd_path), "frames": len(rows), "wisps": int(len(sizes)),

@@ -204,26 +204,20 @@ def edge_strain(x, rest, offsets):
 def frames_layout(r, with_rest=False):
     """``/wisp_offsets`` of frames.h5 open in the
     :class:`lc_petsc.io.frames_read.FramesReader` ``r`` (and with ``with_rest`` its
-    ``/rest_positions``), after checking that ``/positions`` is (frames, n_vertices, 3)
-    and the rest positions (n_vertices, 3), n_vertices the offsets' last: a ValueError
-    names a file that is not a run's frames (a strands file, say); a KeyError a missing
+    ``/rest_positions``), after checking the datasets' shapes
+    (:func:`lc_petsc.io.frames_read.layout_problem`) and the offsets: a ValueError names a
+    file that is not a run's frames (a strands file, say); a KeyError a missing
     dataset."""
     from lc_petsc.io.frames import offsets_problem
+    r.valid                 # (the shapes: its error names them)
     off = np.asarray(r.dataset("wisp_offsets"), np.int64)
     shape = r.f["positions"].shape
-    if len(shape) != 3 or shape[2] != 3:
-        n = f"{int(off[-1])} vertices" if off.ndim == 1 and len(off) else "n_vertices"
-        raise ValueError(f"/positions has shape {shape}, a frames.h5 has (frames, "
-                         f"{n}, 3) (a strands file is a groom, not a run)")
     problem = offsets_problem(off, shape[1])
     if problem:             # a damaged one made the check allocate wisps of 2**60 vertices
         raise ValueError(problem)
     if not with_rest:
         return off
-    rest = np.asarray(r.dataset("rest_positions"), float)
-    if rest.shape != (off[-1], 3):
-        raise ValueError(f"/rest_positions has shape {rest.shape}, a frames.h5 has ({int(off[-1])}, 3)")
-    return off, rest
+    return off, np.asarray(r.dataset("rest_positions"), float)
 
 
 def count_frames(path, self_contact=False, progress=None):

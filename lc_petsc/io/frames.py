@@ -173,9 +173,13 @@ def _layout_problem(f, path, n_wisps, n_vertices, rows, dt, every):
                 f"{pos.shape}, the scene {n_wisps} wisps and {n_vertices} vertices")
     if pos.maxshape[0] is not None or f["time"].maxshape[0] is not None:
         return f"{path}: /positions or /time is not extendable, cannot append to it"
-    if pos.shape[0] < rows or f["time"].shape[0] < rows:
+    if pos.shape[0] < rows:
         return (f"{path}: holds {pos.shape[0]} frame row(s), the checkpoint needs the first "
                 f"{rows}; it does not belong to this checkpoint's run")
+    from lc_petsc.io.frames_read import layout_problem
+    problem = layout_problem(f, rows)       # the kept rows' time and digest, the rest positions
+    if problem:
+        return f"{path}: {problem}"
     for key, want in (("dt", dt), ("every", every)):
         have = f.attrs.get(key)
         if want is not None and have is not None and float(have) != float(want):
@@ -233,7 +237,7 @@ def _kept_problem(r, path, rows, offsets):
     value failing its checksum, a damaged chunk index) names the dataset and the rows of
     the chunk, before the restart changes anything (it failed in the frame loop, after the
     outputs were removed, on every try; or it kept a damaged row and appended to it)."""
-    from lc_petsc.io.frames_read import FramesDamage
+    from lc_petsc.io.frames_read import FramesDamage, order_problem
     f = r.f
     try:        # the restart rewrites the attributes: damaged storage failed it there (exit 3)
         for obj in [f] + [f[k] for k in f]:
@@ -253,6 +257,9 @@ def _kept_problem(r, path, rows, offsets):
             a = r.dataset(name, None if name in static else rows)
             if _holds_fill(a, valid[:rows] if name in frame_dsets else None):
                 return f"{path}: " + fill.format(f"/{name}" + (f" rows 0-{rows - 1}" if name in frame_dsets else ""))
+            problem = name == "time" and order_problem(a, valid, r.every)
+            if problem:
+                return f"{path}: {problem}"
             problem = name == "wisp_offsets" and _offsets_differ(a, f["positions"].shape[1], offsets)
             if problem:
                 return f"{path}: {problem}"

@@ -43,6 +43,52 @@ def _damaged(what, rows_before=False) -> NoReturn:
     raise FramesDamage(what, rows_before)
 
 
+def layout_problem(f, rows=None):
+    """Why the datasets of the open ``frames.h5`` ``f`` do not have a frames file's shapes
+    (a frame dataset shorter than ``/positions``: a row with no time or digest), else
+    None; ``rows``: only the first ``rows`` rows must be in every frame dataset (a
+    restart keeps those and cuts the others).  Shapes only, no frame dataset is read.  A
+    missing ``/positions`` is a KeyError (``/time``: where a reader needs it)."""
+    pos, every = f["positions"], int(f.attrs.get("every", 1))
+    if pos.ndim != 3 or pos.shape[2] != 3:
+        off = f.get("wisp_offsets")
+        nv = f"{int(off[-1])} vertices" if off is not None and off.ndim == 1 and len(off) else "n_vertices"
+        return (f"/positions has shape {pos.shape}, a frames.h5 has (frames, {nv}, 3) (a strands file is a "
+                "groom, not a run)")
+    n, nv = pos.shape[:2]
+    for name in _FRAME_DATASETS[1:]:
+        d = f.get(name)
+        if d is not None and (d.ndim != 1 or (len(d) != n if rows is None else len(d) < rows)):
+            n = n if rows is None else rows
+            lacking = f": {rows_text(len(d), n - 1, every)} no /{name} entry" if d.ndim == 1 and len(d) < n else ""
+            return f"/{name} has shape {d.shape}, /positions {n} rows{lacking}: the file is damaged"
+    for name, shape in (("rest_positions", (nv, 3)), ("pinned", (nv,)), ("radius", (nv,))):
+        if name in f and f[name].shape != shape:
+            return f"/{name} has shape {f[name].shape}, a frames.h5 of {nv} vertices has {shape}: the file is damaged"
+    return None
+
+
+def rows_text(a, b, every):
+    """'row 5 (frame 10) has' or 'rows 5-8 (frames 10-16) have'."""
+    if a == b:
+        return f"row {a} (frame {a * every}) has"
+    return f"rows {a}-{b} (frames {a * every}-{b * every}) have"
+
+
+def order_problem(times, valid, every):
+    """Why ``/time`` read as ``times`` is not increasing over the rows that hold a frame
+    (``valid``), else None: the readers take a row's time for its frame's (the head's
+    motion, the USD time samples)."""
+    rows = np.flatnonzero(np.asarray(valid, bool)[:len(times)])
+    t = np.asarray(times, float)[rows]
+    bad = np.flatnonzero(~(np.diff(t) > 0))
+    if not len(bad):
+        return None
+    a, b = rows[bad[0]], rows[bad[0] + 1]
+    return (f"/time rows {a} and {b} (frames {a * every}, {b * every}) are not increasing ({t[bad[0]]:.9g} s, "
+            f"then {t[bad[0] + 1]:.9g} s): not the times the run wrote, the file is damaged")
+
+
 class FramesReader:
     """``frames.h5`` at ``path`` opened read-only, for reading (a context manager; ``f``:
     the h5py ``File``).  A folder (a run's output folder given for its ``frames.h5``) is a
@@ -61,6 +107,7 @@ class FramesReader:
         self._index: tuple | None = None      # (index_problem's answer,)
         self._valid = None
         self._table: tuple | str | None = None
+        self._order = None          # order_problem of /time
 
     def close(self):
         """Close the file."""
@@ -87,12 +134,16 @@ class FramesReader:
     def valid(self):
         """Which rows hold a frame (bool (n_frames,), :func:`lc_petsc.io.frames.valid_rows`);
         the first access checks the chunk index (a ValueError naming the file and the
-        damage), before any row is read."""
+        damage) and the datasets' shapes (:func:`layout_problem`, a ValueError naming the
+        dataset), before any row is read."""
         if self._valid is None:
             problem = self.index_problem()
             if problem:
-                raise ValueError(f"{self.f.filename}: {problem}; the rows before it may still be read, "
-                                 "or rerun from a checkpoint")
+                raise ValueError(f"{self.f.filename}: {problem}; the rows before it may still be read, or rerun "
+                                 "from a checkpoint")
+            problem = layout_problem(self.f)
+            if problem:
+                raise ValueError(problem)
             self._valid = valid_rows(self.f, check=False)
         return self._valid
 
@@ -123,20 +174,26 @@ class FramesReader:
         check).  A chunk failing its checksum is a :class:`FramesDamage` naming the
         dataset and its rows (kept, raised again: finding the chunk reads every chunk)."""
         if self._table is None:
-            self.valid
+            valid = self.valid
             try:
                 self._table = (np.asarray(self.dataset("time"), float),
                                self.dataset("row_digest") if "row_digest" in self.f else None)
             except FramesDamage as e:
                 self._table = e.what
+            else:
+                self._order = order_problem(self._table[0], valid, self.every)
         if isinstance(self._table, str):
             raise FramesDamage(self._table)
         return self._table
 
     @property
     def times(self):
-        """``/time`` (s, one per row), :meth:`table`."""
-        return self.table()[0]
+        """``/time`` (s, one per row), :meth:`table`; a ValueError where it is not
+        increasing over the rows that hold a frame (:func:`order_problem`)."""
+        times = self.table()[0]
+        if self._order:
+            raise ValueError(f"{self._order}; rerun from a checkpoint")
+        return times
 
     def entries(self, k):
         """(time, digest or None) of row ``k``: from :meth:`table`, or, where a chunk of it
@@ -189,6 +246,11 @@ class FramesReader:
         a frame (:attr:`valid`) is checked (:meth:`check`); a row that holds none is as
         stored (NaN)."""
         valid = self.valid
+        if check and "time" in self.f:
+            try:
+                self.times      # (increasing)
+            except FramesDamage:
+                pass            # a chunk of /time: each row's own entries (entries)
         for a, b in self._blocks(ks):
             block = self._read(a, b)
             for k in range(a, b):
@@ -229,10 +291,12 @@ class FramesReader:
 @contextmanager
 def naming(path):
     """Reads of the frames file at ``path`` inside: a damaged value's ValueError starts
-    with the path."""
+    with the path (once)."""
     try:
         yield
     except ValueError as e:
+        if str(e).startswith(f"{path}: "):
+            raise
         raise ValueError(f"{path}: {e}") from None
 
 
@@ -243,15 +307,14 @@ def read_frames(path, frames=None):
     validity numbers).  The rows are read in blocks and each that holds a frame is checked
     against its digest (:meth:`FramesReader.rows`); a damaged one is a ValueError naming
     the file, the dataset and the row."""
-    with FramesReader(path) as r:
-        valid = r.valid             # (its error names the file)
-        with naming(r.f.filename):
-            out = {k: r.dataset(k) for k in ("wisp_offsets", "rest_positions", "pinned")}
-            ks = np.arange(len(valid))[slice(None) if frames is None else np.asarray(frames)]
-            out["time"], out["frame_valid"] = r.times[ks], valid[ks]     # (numbers for one row given as one)
-            got = dict(r.rows(ks))
-            shape = r.f["positions"].shape[1:]
-            out["positions"] = np.stack([got[k] for k in np.atleast_1d(ks).tolist()]) if got \
-                else np.zeros((0,) + shape)
+    with FramesReader(path) as r, naming(r.f.filename):
+        valid = r.valid
+        out = {k: r.dataset(k) for k in ("wisp_offsets", "rest_positions", "pinned")}
+        ks = np.arange(len(valid))[slice(None) if frames is None else np.asarray(frames)]
+        out["time"], out["frame_valid"] = r.times[ks], valid[ks]     # (numbers for one row given as one)
+        got = dict(r.rows(ks))
+        shape = r.f["positions"].shape[1:]
+        out["positions"] = np.stack([got[k] for k in np.atleast_1d(ks).tolist()]) if got \
+            else np.zeros((0,) + shape)
         out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in r.f.attrs.items()}
     return out

@@ -194,3 +194,75 @@ def test_read_frames_reads_one_row_given_as_a_number(run):
     assert np.array_equal(one["positions"][0], every["positions"][2])
     assert one["time"] == every["time"][2] and np.ndim(one["time"]) == 0 and one["frame_valid"] == True  # noqa: E712
     assert np.array_equal(read_frames(path, frames=[2, 4])["positions"], every["positions"][[2, 4]])
+
+
+def _shortened(name):
+    def cut(f):
+        f[name].resize(f[name].shape[0] - 1, axis=0)
+    return cut
+
+
+def _time_not_increasing(f):
+    """Row 5's time set to row 3's, its digest recomputed (so only the order is wrong)."""
+    from lc_petsc.io.frames import row_digest, vertex_digest
+    t = f["time"][...]
+    t[5] = t[3]
+    f["time"][...] = t
+    f["row_digest"][5] = row_digest([vertex_digest(f["positions"][5], 0)], 5, float(t[5]))
+
+
+def _rest_short(f):
+    x = f["rest_positions"][...]
+    del f["rest_positions"]
+    f["rest_positions"] = x[:-3]
+
+
+def _positions_flat(f):
+    x = f["positions"][...]
+    del f["positions"]
+    f["positions"] = x.reshape(x.shape[0], -1)
+
+
+@pytest.mark.parametrize("damage, want", [
+    (_shortened("row_digest"), "/row_digest has shape (6,), /positions 7 rows: row 6 (frame 6) has no /row_digest "
+                               "entry: the file is damaged"),
+    (_shortened("time"), "/time has shape (6,), /positions 7 rows: row 6 (frame 6) has no /time entry: the file "
+                         "is damaged"),
+    (_time_not_increasing, "/time rows 4 and 5 (frames 4, 5) are not increasing ("),
+    (_rest_short, "/rest_positions has shape (N-3, 3), a frames.h5 of N vertices has (N, 3): the file is damaged"),
+    (_positions_flat, "/positions has shape (7, 3N), a frames.h5 has (frames, N vertices, 3)")],
+    ids=["digest_short", "time_short", "time_not_increasing", "rest_short", "positions_flat"])
+def test_a_frames_file_of_other_shapes_or_times_is_refused_naming_dataset_and_rows(run, tmp_path, capsys, damage,
+                                                                                     want):
+    """A /row_digest or /time one row shorter than /positions ended every reader in an
+    IndexError traceback (to_usd.py with a short /time wrote the export without the last
+    row, exit 0; the restart's message said the file had too few rows); /time not
+    increasing (digests consistent) was read by every reader and kept by a restart; a
+    /rest_positions of another length was read by all but edge_strain (the USD's rest
+    pose and the restart kept it); a flat /positions ended to_usd in a TypeError.  Now
+    each reader and the restart refuse, naming the file, the dataset and the rows."""
+    path = tmp_path / "frames.h5"
+    shutil.copy(run / "out" / "frames.h5", path)
+    with h5py.File(path, "r") as f:
+        n_wisps, nv = f["wisp_offsets"].shape[0] - 1, f["positions"].shape[1]
+    with h5py.File(path, "r+") as f:
+        damage(f)
+    want = want.replace("3N", str(3 * nv)).replace("N-3", str(nv - 3)).replace("N", str(nv))
+    for tool in (count_crossings, edge_strain, head_depth):
+        capsys.readouterr()
+        assert tool.main([str(path)]) == 2
+        err = capsys.readouterr().err
+        assert f"error: {path}: not a readable frames.h5 of lc_petsc" in err and want in err and \
+            err.count("\n") == 1, (tool, err)
+    assert to_usd.main([str(path), "--out", str(tmp_path / "x.usdc"), "--quiet"]) == 2
+    assert capsys.readouterr().err.startswith(f"to_usd.py: error: {path}: {want}")
+    assert not (tmp_path / "x.usdc").exists()
+    with pytest.raises(ValueError) as e:
+        read_frames(path)
+    assert str(e.value).startswith(f"{path}: {want}"), e.value
+    problem = resumable_problem(path, n_wisps, nv, 7)
+    if damage is _positions_flat:   # (the restart's own shape check says it first)
+        assert problem == f"{path}: has {n_wisps} wisps and /positions (7, {3 * nv}), the scene {n_wisps} wisps " \
+                          f"and {nv} vertices"
+    else:
+        assert problem.startswith(f"{path}: {want}"), problem

@@ -226,28 +226,23 @@ def edge_strain(x, rest, offsets):
     return length / np.linalg.norm(np.diff(rest, axis=0), axis=1)[inner] - 1.0
 
 
-def frames_layout(f, with_rest=False):
-    """``/wisp_offsets`` of the open frames.h5 ``f`` (and with ``with_rest`` its
-    ``/rest_positions``), after checking that ``/positions`` is (frames, n_vertices, 3)
-    and the rest positions (n_vertices, 3), n_vertices the offsets' last: a ValueError
-    names a file that is not a run's frames (a strands file, say); a KeyError a missing
+def frames_layout(r, with_rest=False):
+    """``/wisp_offsets`` of frames.h5 open in the
+    :class:`lc_petsc.io.frames_read.FramesReader` ``r`` (and with ``with_rest`` its
+    ``/rest_positions``), after checking the datasets' shapes
+    (:func:`lc_petsc.io.frames_read.layout_problem`) and the offsets: a ValueError names a
+    file that is not a run's frames (a strands file, say); a KeyError a missing
     dataset."""
     from lc_petsc.io.frames import offsets_problem
-    off = np.asarray(f["wisp_offsets"][...], np.int64)
-    shape = f["positions"].shape
-    if len(shape) != 3 or shape[2] != 3:
-        n = f"{int(off[-1])} vertices" if off.ndim == 1 and len(off) else "n_vertices"
-        raise ValueError(f"/positions has shape {shape}, a frames.h5 has (frames, "
-                         f"{n}, 3) (a strands file is a groom, not a run)")
+    r.valid                 # (the shapes: its error names them)
+    off = np.asarray(r.dataset("wisp_offsets"), np.int64)
+    shape = r.f["positions"].shape
     problem = offsets_problem(off, shape[1])
     if problem:             # a damaged one made the check allocate wisps of 2**60 vertices
         raise ValueError(problem)
     if not with_rest:
         return off
-    rest = np.asarray(f["rest_positions"][...], float)
-    if rest.shape != (off[-1], 3):
-        raise ValueError(f"/rest_positions has shape {rest.shape}, a frames.h5 has ({int(off[-1])}, 3)")
-    return off, rest
+    return off, np.asarray(r.dataset("rest_positions"), float)
 
 
 def count_frames(path, self_contact=False, progress=None):
@@ -259,16 +254,16 @@ def count_frames(path, self_contact=False, progress=None):
     min_distance); steps from or to a row that holds no frame (lost in a recovery,
     ``/frame_valid``) are left out.  ``progress(dict)`` is called per step."""
     import json
-    from lc_petsc.io.frames import open_frames, valid_rows
-    with open_frames(path) as f:
-        off = frames_layout(f)
-        every = int(f.attrs.get("every", 1))       # row k is simulation frame k * every
-        cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
+    from lc_petsc.io.frames_read import FramesReader
+    with FramesReader(path) as r:
+        off = frames_layout(r)
+        every = r.every                            # row k is simulation frame k * every
+        cfg = json.loads(r.f.attrs["config"]) if "config" in r.f.attrs else {}
         d0 = float((cfg.get("physics") or {}).get("strand_thickness") or 0.0)
         out = []
-        for k, prev, cur in step_rows(f, valid_steps(valid_rows(f))):
-            r = count_crossings(prev, cur, off, self_contact)
-            out.append({"step": k, "frames": (k * every, (k + 1) * every), "crossings": r["crossings"],
+        for k, prev, cur in step_rows(r, valid_steps(r.valid)):
+            c = count_crossings(prev, cur, off, self_contact)
+            out.append({"step": k, "frames": (k * every, (k + 1) * every), "crossings": c["crossings"],
                         "min_distance": min_distance(cur, off, reach=d0)})
             if progress is not None:
                 progress(out[-1])
@@ -348,16 +343,17 @@ def valid_steps(held):
     return [k for k in range(len(held) - 1) if held[k] and held[k + 1]]
 
 
-def step_rows(f, steps):
+def step_rows(r, steps):
     """(k, positions of row k, of row k + 1) for each step k of ``steps`` (ascending) of
-    the open frames.h5 ``f``; each row is read once where steps follow each other (a
-    damaged row is a ValueError, :func:`lc_petsc.io.frames.frame_row`)."""
-    from lc_petsc.io.frames import frame_row
+    frames.h5 open in the :class:`lc_petsc.io.frames_read.FramesReader` ``r``; each row is
+    read once, in blocks of consecutive rows (a damaged row is a ValueError,
+    :meth:`~lc_petsc.io.frames_read.FramesReader.rows`)."""
+    wanted = set(steps)
     last = None                                  # (row, its positions)
-    for k in steps:
-        prev = last[1] if last is not None and last[0] == k else frame_row(f, k)
-        last = (k + 1, frame_row(f, k + 1))
-        yield k, prev, last[1]
+    for k, x in r.rows(sorted(wanted | {k + 1 for k in wanted})):
+        if last is not None and last[0] == k - 1 and k - 1 in wanted:
+            yield k - 1, last[1], x
+        last = (k, x)
 
 
 def _count_share(path, rank, size, self_contact, rest_exempt=None, stop=None):
@@ -365,14 +361,13 @@ def _count_share(path, rank, size, self_contact, rest_exempt=None, stop=None):
     to a signal (``stop``); a row is (step, between, within, strain, exempt between,
     exempt within, head figures (:func:`lc_petsc.head_check.step_depths`, None without a
     head sphere), row 0's strain (step 0 only, else None))."""
-    import h5py
     from lc_petsc.head_check import file_head, step_depths
-    from lc_petsc.io.frames import frame_times, valid_rows
-    with h5py.File(path, "r") as f:
+    from lc_petsc.io.frames_read import FramesReader
+    with FramesReader(path) as f:
         off, rest = frames_layout(f, with_rest=True)
-        steps = valid_steps(valid_rows(f))
+        steps = valid_steps(f.valid)
         head = file_head(f)
-        times = frame_times(f) if head is not None else None
+        times = f.times if head is not None else None
         rows = []
         for k, prev, cur in step_rows(f, steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]):
             if stop is not None and stop.requested():

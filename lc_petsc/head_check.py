@@ -135,21 +135,23 @@ def path_depths(x0, x1, c0, c1, radius, pinned, strand_radius):
             "through": int(np.sum((depth > lim) & (ends <= lim)))}
 
 
-def file_head(f):
-    """(HeadMotion, strand radius (n,), pinned (n,)) of the open frames.h5 ``f`` from its
+def file_head(r):
+    """(HeadMotion, strand radius (n,), pinned (n,)) of frames.h5 open in the
+    :class:`lc_petsc.io.frames_read.FramesReader` ``r``, from its
     ``config`` attribute, ``/radius`` and ``/pinned`` (radius rebuilt from the scene when
     the file has none), or None when the run's scene has no head sphere (no
     ``head_collision`` and not a hairball: the same rule as the previews and USD)."""
     import json
     from lc_petsc.io.usd import config_tables, has_head_sphere, scene_radius
     from lc_petsc.scene.kinematics import HeadMotion
+    f = r.f
     tables = config_tables(json.loads(f.attrs["config"]) if "config" in f.attrs else {})
     if not has_head_sphere(tables["physics"], tables["scene"]):
         return None
-    off = np.asarray(f["wisp_offsets"][...], np.int64)
-    rad = (np.asarray(f["radius"][...], float) if "radius" in f else
+    off = np.asarray(r.dataset("wisp_offsets"), np.int64)
+    rad = (np.asarray(r.dataset("radius"), float) if "radius" in f else
            scene_radius(tables, np.diff(off)))
-    pinned = np.asarray(f["pinned"][...], bool) if "pinned" in f else np.zeros(int(off[-1]), bool)
+    pinned = np.asarray(r.dataset("pinned"), bool) if "pinned" in f else np.zeros(int(off[-1]), bool)
     return HeadMotion(tables["physics"]), rad, pinned
 
 

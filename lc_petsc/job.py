@@ -1106,6 +1106,7 @@ class Job:
                 problems.append(f"previews in {out}: {getattr(e, 'strerror', None) or e}")
         t_prev = time.perf_counter() - t0
         t_usd = 0.0
+        usd_error: list = []        # USD's own text of a failed export (a line per C++ error)
 
         def usd_warning(text):
             # on stderr and in summary.json: a pipeline reading the summary must learn
@@ -1128,14 +1129,15 @@ class Job:
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_failed, export_run
             try:
-                usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop, warn=usd_warning)
+                usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop, warn=usd_warning,
+                                              detail=usd_error.append)
                 files += usd_files
             except Stopped:
                 self.skipped_outputs.append("frames.usdc")
             except Exception as e:  # noqa: BLE001 - like a preview, never worth the summary
                 usd_warning(export_failed(h5_path, f"{type(e).__name__}: {e}"))
         return {"files": files, "not_written": problems, "xdmf_s": t_xdmf, "previews_s": t_prev,
-                "usd_s": t_usd}
+                "usd_s": t_usd, "usd_error": usd_error[0] if usd_error else None}
 
     def _write_summary(self, summary, exports):
         """Rank 0: summary.json (with the exports' ``output`` figures) and the report."""
@@ -1149,7 +1151,8 @@ class Job:
                              "frames_written": writer.written if writer is not None else 0,
                              "files": exports["files"] + ["summary.json"], "xdmf_s": exports["xdmf_s"],
                              "previews_s": exports["previews_s"], "usd_s": exports["usd_s"],
-                             "not_written": problems, "skipped": self.skipped_outputs}
+                             "not_written": problems, "skipped": self.skipped_outputs,
+                             "usd_error": exports.get("usd_error")}
         try:
             write_summary(out / "summary.json", summary)
         except OSError as e:

@@ -3,7 +3,7 @@ tolerances, bigger steps, a cheaper filter or a line search cost in accuracy.
 
   mpiexec -n P python drivers/tradeoff.py [--scene hairball|smash|jitter|CONFIG.toml]
       [--wisps 10] [--duration 1.0] [--axes newton ksp_rtol dt filter line_search newton_update
-      cutback trust_region corotational carry_with_head root_rotation wisp_trust]
+      cutback trust_region corotational carry_with_head root_rotation newton_extend wisp_trust]
       [--ref-dt 0.008333] [--ref-tol 1e-9] [--ref converged|base]
       [--ref-method exact_or_analytic|unfiltered] [--rtols 1e-2 1e-4 ...]
       [--set NAME] [--cost wall_per_sim_s|cpu_per_sim_s] [--no-ref-check] [--out out/tradeoff]
@@ -24,7 +24,9 @@ cutback: exact_or_analytic to 1e-3 and 1e-6 with a cap of 30 without step cutbac
 "trust_region" against exact_or_analytic to 1e-3 and 1e-6 with a cap of 30, and the
 trust region at 2, 3, 4 iterations; root_rotation: 2, 3, 4 iterations with and without
 the root turn (time.root_rotation), inertial and follow-the-leader first iterates, and
-the paper's setting (linear update, uncarried) with each; wisp_trust: the recommended
+the paper's setting (linear update, uncarried) with each; newton_extend: the fixed count
+extended on frames whose last increment is above 3e-2, 1e-2, 3e-3 wisp lengths
+(time.newton_extend_above, cap 12) with and without the root turn; wisp_trust: the recommended
 path (exact_or_analytic, corotational, shifted fallback, exact_stay, cap 30) to 1e-3 and
 1e-6 with and without solver.wisp_trust),
 all from the base setting dt 1/30, 3 Newton iterations, rtol 1e-6, analytic filter, no
@@ -122,7 +124,7 @@ def main(argv=None):
     ap.add_argument("--axes", nargs="+", default=None,
                     choices=["newton", "ksp_rtol", "dt", "filter", "line_search", "newton_update", "cutback",
                              "trust_region", "corotational", "carry_with_head", "root_rotation",
-                             "wisp_trust"])
+                             "newton_extend", "wisp_trust"])
     ap.add_argument("--ref-dt", type=positive_number, default=1.0 / 120.0)
     ap.add_argument("--ref-tol", type=positive_number, default=1e-9)
     ap.add_argument("--ref", default="converged", choices=["converged", "base"],

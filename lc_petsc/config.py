@@ -344,6 +344,10 @@ class TimeConfig:
     turned rigidly about its last pinned vertex by the Newton step of G over the turn's
     three angles, a turn that raises its wisp's share of G halved, at most twice, then
     dropped (lc_petsc/root_rotation.py; docs/newton.md "Fourteenth round", "Sixteenth round").
+    ``newton_extend_above`` (a fixed count only; None: off): a frame whose last increment
+    (largest vertex move / wisp length) after ``newton_iterations`` is still above it takes
+    more iterations, until one is at or below it or the frame has taken
+    ``newton_extend_cap``; the root turn follows the last (docs/newton.md "Eighteenth round").
 
     Step cutback (only with a tolerance): a frame whose Newton misses it within the cap
     is redone as 2 steps of dt / 2, each cut again if it fails, up to ``max_substeps``
@@ -364,6 +368,8 @@ class TimeConfig:
     newton_stop: str = "increment"
     length_projection: bool = False
     root_rotation: bool = False
+    newton_extend_above: Optional[float] = None
+    newton_extend_cap: int = 12
     max_substeps: int = 8
     unconverged: str = "accept"
 
@@ -422,6 +428,7 @@ class TimeConfig:
                               "iterations; with time.newton_tol or time.newton_increment_tol set Newton "
                               "converges the frame itself: set time.root_rotation = false or drop the "
                               "tolerance")
+        self._validate_extension()
         _int_at_least("time.max_substeps", self.max_substeps, 1)
         if self.max_substeps & (self.max_substeps - 1) or self.max_substeps > MAX_SUBSTEPS:
             raise ConfigError(f"time.max_substeps must be a power of 2 (1, 2, 4, ... {MAX_SUBSTEPS}; "
@@ -432,6 +439,21 @@ class TimeConfig:
                               f"below {MIN_DT:g} s; use a smaller time.max_substeps")
         if self.unconverged not in UNCONVERGED:
             raise ConfigError(f"time.unconverged must be one of {UNCONVERGED}, got {self.unconverged!r}")
+
+    def _validate_extension(self) -> None:
+        """``newton_extend_above`` / ``newton_extend_cap`` (:meth:`validate`)."""
+        _int_at_least("time.newton_extend_cap", self.newton_extend_cap, 1)
+        if self.newton_extend_above is None:
+            return
+        _positive("time.newton_extend_above", self.newton_extend_above)
+        if self.newton_converges:
+            raise ConfigError("time.newton_extend_above extends a fixed count of Newton iterations; with "
+                              "time.newton_tol or time.newton_increment_tol set Newton already iterates to "
+                              "that tolerance (time.newton_iterations is its cap): drop one of them")
+        if self.newton_extend_cap <= self.newton_iterations:
+            raise ConfigError(f"time.newton_extend_cap = {self.newton_extend_cap} is the most iterations an "
+                              f"extended frame takes: it must be above time.newton_iterations = "
+                              f"{self.newton_iterations} (or leave time.newton_extend_above unset)")
 
 
 @dataclass

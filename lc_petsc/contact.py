@@ -402,6 +402,9 @@ class StrandContact:
         # self-contact: rest arc length along the wisp at both ends of each segment (a
         # wisp lives on one rank, so ghosts never pair with a segment of their own wisp)
         self.self_contact = bool(self_contact)
+        #: the start check's finding a run goes on with (strand_rest_overlap = "exempt"), for
+        #: the job's warnings (lc_petsc.diagnostics.term_warnings); None: none
+        self.start_warning = None
         self.neighbour_gap = NEIGHBOUR_GAP * self.d0
         edge = np.linalg.norm(self.P_rest[:, 1] - self.P_rest[:, 0], axis=1)
         first = np.r_[True, self.seg_wisp[1:] != self.seg_wisp[:-1]]

@@ -82,7 +82,14 @@ CLEAR_DISTANCE = 1e-9
 CLEAR_STEPS = 100000
 
 
-def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
+#: pairs given to Tight-Inclusion (and the clear-path proof) between two looks at
+#: ``stop`` in :func:`crossing_pairs`: each pair is bounded (1e5 splits, 0.09 s, and two
+#: proofs of 1e5 steps), so a signal waits for this many at most, not for a wild step's
+#: thousands of undecided pairs
+CROSSING_CHUNK = 32
+
+
+def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000, stop=None):
     """Boolean (k,): whether each pair (start S, end E, (k, 4, 3)) meets on its linear
     path: :func:`segment_ccd.tight_inclusion_toi` at min distance 0 (pairs touching at
     the start count as meeting; a pair still undecided after ``max_iterations``
@@ -90,11 +97,26 @@ def crossing_pairs(S, E, tolerance=1e-6, max_iterations=100000):
     advancement proves to stay CLEAR_DISTANCE (relative) apart: Tight-Inclusion's
     undecided answer is a hit, and a pair of a 60-wisp hairball step 4.45e-6 cm apart on
     its whole path was one (with 1e5 splits; 1e4 and 1e6 answer no), a crossing the
-    ccd limiter had not let through in the end-of-run check."""
+    ccd limiter had not let through in the end-of-run check.  ``stop``: callable, looked
+    at every :data:`CROSSING_CHUNK` pairs; None is returned once it is true."""
+    S, E = np.asarray(S, float), np.asarray(E, float)
+    if stop is None:
+        return _meets(S, E, tolerance, max_iterations)
+    hit = np.zeros(len(S), bool)
+    for a in range(0, len(S), CROSSING_CHUNK):
+        if stop():
+            return None
+        hit[a:a + CROSSING_CHUNK] = _meets(S[a:a + CROSSING_CHUNK], E[a:a + CROSSING_CHUNK], tolerance,
+                                           max_iterations)
+    return hit
+
+
+def _meets(S, E, tolerance, max_iterations):
+    """:func:`crossing_pairs` of the pairs S, E (k, 4, 3), without looks at a stop."""
     hit = tight_inclusion_toi(S, E, 0.0, tolerance=tolerance, max_iterations=max_iterations)[0]
     k = np.flatnonzero(hit)
     if len(k):
-        S, E = np.asarray(S, float)[k], np.asarray(E, float)[k]
+        S, E = S[k], E[k]
         scale = np.abs(np.concatenate([S, E], axis=1)).reshape(len(k), -1).max(axis=1) + 1.0
         clear = safe_fraction(S, E, CLEAR_DISTANCE * scale, max_steps=CLEAR_STEPS, exact=True) >= 1.0
         r = np.flatnonzero(~clear)
@@ -132,8 +154,9 @@ def count_crossings(X0, X1, offsets, self_contact=False, stop=None):
     dict with ``crossings`` (number of segment pairs that meet), ``pairs`` (k, 2) of
     their first global vertices, ``same_wisp`` (k,) whether each is of one wisp,
     ``within`` (how many are).  ``stop``: callable, looked at between parts
-    of the broad phase (:data:`compiled_ccd.BOX_TESTS` box tests) and every SCREEN_CHUNK
-    candidate pairs; None is returned once it is true."""
+    of the broad phase (:data:`compiled_ccd.BOX_TESTS` box tests), every SCREEN_CHUNK
+    candidate pairs and every :data:`CROSSING_CHUNK` pairs left for Tight-Inclusion;
+    None is returned once it is true."""
     X0, X1 = np.asarray(X0, float), np.asarray(X1, float)
     if X0.shape != X1.shape or X0.ndim != 2 or X0.shape[1] != 3:
         raise ValueError(f"count_crossings: positions must both be (n_vertices, 3), got "
@@ -147,7 +170,9 @@ def count_crossings(X0, X1, offsets, self_contact=False, stop=None):
             return None
         may_meet[a:a + SCREEN_CHUNK] = screen_paths(X0, X1, pairs[a:a + SCREEN_CHUNK])[0]
     near = pairs[may_meet]
-    hit = crossing_pairs(pair_positions(X0, near), pair_positions(X1, near))
+    hit = crossing_pairs(pair_positions(X0, near), pair_positions(X1, near), stop=stop)
+    if hit is None:
+        return None
     seg, wisp = segments(offsets)
     wid = np.full(len(X0), -1, np.int64)
     wid[seg] = wisp
@@ -201,28 +226,23 @@ def edge_strain(x, rest, offsets):
     return length / np.linalg.norm(np.diff(rest, axis=0), axis=1)[inner] - 1.0
 
 
-def frames_layout(f, with_rest=False):
-    """``/wisp_offsets`` of the open frames.h5 ``f`` (and with ``with_rest`` its
-    ``/rest_positions``), after checking that ``/positions`` is (frames, n_vertices, 3)
-    and the rest positions (n_vertices, 3), n_vertices the offsets' last: a ValueError
-    names a file that is not a run's frames (a strands file, say); a KeyError a missing
+def frames_layout(r, with_rest=False):
+    """``/wisp_offsets`` of frames.h5 open in the
+    :class:`lc_petsc.io.frames_read.FramesReader` ``r`` (and with ``with_rest`` its
+    ``/rest_positions``), after checking the datasets' shapes
+    (:func:`lc_petsc.io.frames_read.layout_problem`) and the offsets: a ValueError names a
+    file that is not a run's frames (a strands file, say); a KeyError a missing
     dataset."""
     from lc_petsc.io.frames import offsets_problem
-    off = np.asarray(f["wisp_offsets"][...], np.int64)
-    shape = f["positions"].shape
-    if len(shape) != 3 or shape[2] != 3:
-        n = f"{int(off[-1])} vertices" if off.ndim == 1 and len(off) else "n_vertices"
-        raise ValueError(f"/positions has shape {shape}, a frames.h5 has (frames, "
-                         f"{n}, 3) (a strands file is a groom, not a run)")
+    r.valid                 # (the shapes: its error names them)
+    off = np.asarray(r.dataset("wisp_offsets"), np.int64)
+    shape = r.f["positions"].shape
     problem = offsets_problem(off, shape[1])
     if problem:             # a damaged one made the check allocate wisps of 2**60 vertices
         raise ValueError(problem)
     if not with_rest:
         return off
-    rest = np.asarray(f["rest_positions"][...], float)
-    if rest.shape != (off[-1], 3):
-        raise ValueError(f"/rest_positions has shape {rest.shape}, a frames.h5 has ({int(off[-1])}, 3)")
-    return off, rest
+    return off, np.asarray(r.dataset("rest_positions"), float)
 
 
 def count_frames(path, self_contact=False, progress=None):
@@ -234,16 +254,16 @@ def count_frames(path, self_contact=False, progress=None):
     min_distance); steps from or to a row that holds no frame (lost in a recovery,
     ``/frame_valid``) are left out.  ``progress(dict)`` is called per step."""
     import json
-    from lc_petsc.io.frames import open_frames, valid_rows
-    with open_frames(path) as f:
-        off = frames_layout(f)
-        every = int(f.attrs.get("every", 1))       # row k is simulation frame k * every
-        cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
+    from lc_petsc.io.frames_read import FramesReader
+    with FramesReader(path) as r:
+        off = frames_layout(r)
+        every = r.every                            # row k is simulation frame k * every
+        cfg = json.loads(r.f.attrs["config"]) if "config" in r.f.attrs else {}
         d0 = float((cfg.get("physics") or {}).get("strand_thickness") or 0.0)
         out = []
-        for k, prev, cur in step_rows(f, valid_steps(valid_rows(f))):
-            r = count_crossings(prev, cur, off, self_contact)
-            out.append({"step": k, "frames": (k * every, (k + 1) * every), "crossings": r["crossings"],
+        for k, prev, cur in step_rows(r, valid_steps(r.valid)):
+            c = count_crossings(prev, cur, off, self_contact)
+            out.append({"step": k, "frames": (k * every, (k + 1) * every), "crossings": c["crossings"],
                         "min_distance": min_distance(cur, off, reach=d0)})
             if progress is not None:
                 progress(out[-1])
@@ -273,7 +293,8 @@ def check_run(path, comm, self_contact=False, rest_exempt=None, stop=None):
     (:func:`rest_exempt_pairs`), else None; ``largest_strain``
     (the largest |edge length / rest length - 1| over the rows that end a step),
     ``largest_strain_row`` and ``rows_over_strain`` (rows with an edge beyond
-    :data:`STRAIN_WARN`); ``head``: how deep the hair sinks into the head sphere
+    :data:`STRAIN_WARN`); ``initial_strain``: the same measure of row 0, the initial
+    state (None when its step is not checked); ``head``: how deep the hair sinks into the head sphere
     (:func:`lc_petsc.head_check.summarize`; None when the scene has no head sphere).
     ``{"error": message}`` when the file cannot be read.
 
@@ -311,6 +332,7 @@ def check_run(path, comm, self_contact=False, rest_exempt=None, stop=None):
             "within_exempt": sum(r[5] for r in rows) if rest_exempt is not None and self_contact else None,
             "largest_strain": worst[3] if worst else None,
             "largest_strain_row": worst[0] + 1 if worst else None,
+            "initial_strain": next((r[7] for r in rows if r[0] == 0), None),
             "rows_over_strain": sum(r[3] > STRAIN_WARN for r in rows),
             "head": summarize([(r[0], r[6]) for r in rows if r[6] is not None])}
 
@@ -321,31 +343,31 @@ def valid_steps(held):
     return [k for k in range(len(held) - 1) if held[k] and held[k + 1]]
 
 
-def step_rows(f, steps):
+def step_rows(r, steps):
     """(k, positions of row k, of row k + 1) for each step k of ``steps`` (ascending) of
-    the open frames.h5 ``f``; each row is read once where steps follow each other (a
-    damaged row is a ValueError, :func:`lc_petsc.io.frames.frame_row`)."""
-    from lc_petsc.io.frames import frame_row
+    frames.h5 open in the :class:`lc_petsc.io.frames_read.FramesReader` ``r``; each row is
+    read once, in blocks of consecutive rows (a damaged row is a ValueError,
+    :meth:`~lc_petsc.io.frames_read.FramesReader.rows`)."""
+    wanted = set(steps)
     last = None                                  # (row, its positions)
-    for k in steps:
-        prev = last[1] if last is not None and last[0] == k else frame_row(f, k)
-        last = (k + 1, frame_row(f, k + 1))
-        yield k, prev, last[1]
+    for k, x in r.rows(sorted(wanted | {k + 1 for k in wanted})):
+        if last is not None and last[0] == k - 1 and k - 1 in wanted:
+            yield k - 1, last[1], x
+        last = (k, x)
 
 
 def _count_share(path, rank, size, self_contact, rest_exempt=None, stop=None):
     """(rows, steps) for :func:`check_run`: this rank's contiguous share of the steps, up
     to a signal (``stop``); a row is (step, between, within, strain, exempt between,
     exempt within, head figures (:func:`lc_petsc.head_check.step_depths`, None without a
-    head sphere))."""
-    import h5py
+    head sphere), row 0's strain (step 0 only, else None))."""
     from lc_petsc.head_check import file_head, step_depths
-    from lc_petsc.io.frames import frame_times, valid_rows
-    with h5py.File(path, "r") as f:
+    from lc_petsc.io.frames_read import FramesReader
+    with FramesReader(path) as f:
         off, rest = frames_layout(f, with_rest=True)
-        steps = valid_steps(valid_rows(f))
+        steps = valid_steps(f.valid)
         head = file_head(f)
-        times = frame_times(f) if head is not None else None
+        times = f.times if head is not None else None
         rows = []
         for k, prev, cur in step_rows(f, steps[len(steps) * rank // size:len(steps) * (rank + 1) // size]):
             if stop is not None and stop.requested():
@@ -356,9 +378,11 @@ def _count_share(path, rank, size, self_contact, rest_exempt=None, stop=None):
             sunk = None if head is None else step_depths(head[0], prev, cur, times[k], times[k + 1], off,
                                                          head[1], head[2])
             strain = float(np.abs(edge_strain(cur, rest, off)).max(initial=0.0))
+            # the initial state's own strain (a perturbation's), not judged but told apart
+            start = float(np.abs(edge_strain(prev, rest, off)).max(initial=0.0)) if k == 0 else None
             ex_between = ex_within = 0
             if rest_exempt is not None and r["crossings"]:
                 exempt, same = rest_exempt_pairs(rest, r["pairs"], rest_exempt), r["same_wisp"]
                 ex_between, ex_within = int(np.sum(exempt & ~same)), int(np.sum(exempt & same))
-            rows.append((k, r["crossings"] - r["within"], r["within"], strain, ex_between, ex_within, sunk))
+            rows.append((k, r["crossings"] - r["within"], r["within"], strain, ex_between, ex_within, sunk, start))
     return rows, len(steps)

@@ -103,12 +103,15 @@ def newton_warnings(cfg):
 
 
 def term_warnings(sim):
-    """Messages for terms (and head settings) that are on but can have no effect, and for
-    ccd contact with the inertial first iterate (torn strands)."""
+    """Messages for terms (and head settings) that are on but can have no effect, for
+    ccd contact with the inertial first iterate (torn strands), and for a tangled initial
+    state run with ``strand_rest_overlap = "exempt"``."""
     cfg, sc, comm = sim.config, sim.scene, sim.comm
     phys = cfg.physics
     terms = set(phys.terms)
     out = []
+    if sim.strand is not None and sim.strand.start_warning:      # the same on every rank
+        out.append(sim.strand.start_warning)
     n_free = int(comm.allreduce(int((~sc.pinned).sum())))
     if n_free == 0:
         # name the setting that pins them: the bare message left the user to guess

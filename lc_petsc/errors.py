@@ -8,9 +8,10 @@ modules that raise them import them from here too.  Two families:
   exits with status 2 (nothing written).  :class:`ConfigError` (config keys and PETSc
   options), :class:`SceneError` (strands and USD files), :class:`ElementError` (bad
   element-kernel input), :class:`RestPoseOverlapError` (a groom whose wisps start in
-  contact), :class:`CheckpointError` (a restart checkpoint that cannot be used); and,
-  for the main job, :class:`UsageError` (a bad command line) and :class:`FolderBusy`
-  (another run holds the output folder).
+  contact) and :class:`StartOverlapError` (a perturbed start tangled),
+  :class:`CheckpointError` (a restart checkpoint that cannot be used); and, for the
+  main job, :class:`UsageError` (a bad command line) and :class:`FolderBusy` (another
+  run holds the output folder).
 * **run failures** (``RuntimeError`` subclasses): the run went wrong part-way; the main
   job keeps what was written and exits with status 3.  :class:`SolverError` (a linear
   solve diverged; carries PETSc's converged reason), :class:`SimulationError` (a
@@ -26,7 +27,7 @@ stay private to lc_petsc/studies.  This module imports nothing, so the element k
 from __future__ import annotations
 
 __all__ = ["ConfigError", "SceneError", "ElementError", "RestPoseOverlapError",
-           "CheckpointError", "UsageError", "FolderBusy", "SolverError", "SimulationError",
+           "StartOverlapError", "CheckpointError", "UsageError", "FolderBusy", "SolverError", "SimulationError",
            "OutputError", "PetscCallError"]
 
 
@@ -46,6 +47,11 @@ class ElementError(ValueError):
 
 class RestPoseOverlapError(ValueError):
     """The groom has pairs of different wisps closer than the contact thickness."""
+
+
+class StartOverlapError(RestPoseOverlapError):
+    """The initial state made by ``scene.perturbation`` has pairs of segments closer than
+    the contact thickness, or passed through each other on the way from the rest pose."""
 
 
 class CheckpointError(ValueError):

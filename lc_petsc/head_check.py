@@ -80,8 +80,11 @@ def frame_depths(x, center, radius, offsets, pinned, strand_radius):
     (its index, -1 when none is inside), ``edge`` (deepest point of an edge with a free
     vertex, less the depth of a pinned end), ``edge_at`` (its first vertex, -1), ``ratio``
     (the largest depth over the strand radius at the same point, over free vertices and
-    every point of those edges) and ``sunk`` (edges with a point deeper than :data:`SUNK`
-    strand radii: the strand entirely inside the head there)."""
+    every point of those edges), ``sunk`` (edges with a point deeper than :data:`SUNK`
+    strand radii: the strand entirely inside the head there), ``sunk_chords`` (how many
+    of those have no vertex that deep: their straight chord dips under the curved scalp)
+    and ``chord_length``, ``chord_radius`` (the deepest such chord's length and strand
+    radius; 0 without one)."""
     x = np.asarray(x, float)
     p = x - np.asarray(center, float)
     free = ~np.asarray(pinned, bool)
@@ -100,9 +103,18 @@ def frame_depths(x, center, radius, offsets, pinned, strand_radius):
     ratio = max(float(np.max(vd / rad, initial=0.0)), float(np.max(er, initial=0.0)))
     iv = int(np.argmax(vd)) if len(vd) and vd.max() > 0 else -1
     ie = int(np.argmax(ed)) if len(ed) and ed.max() > 0 else -1
+    # a sunk edge whose two vertices are not (a pinned one is held by the groom): its
+    # straight chord dips under the curved scalp between them, up to the sagitta L^2 / (8 R)
+    # of its length L with both ends on the sphere; the head contact holds vertices only
+    out_v = np.where(free, depth <= SUNK * rad, True)
+    chord = (er > SUNK) & out_v[a] & out_v[a + 1]
+    k = int(np.argmax(np.where(chord, er, -np.inf))) if chord.any() else -1
     return {"vertex": max(float(vd[iv]), 0.0) if iv >= 0 else 0.0, "vertex_at": iv,
             "edge": float(ed[ie]) if ie >= 0 else 0.0, "edge_at": int(a[ie]) if ie >= 0 else -1,
-            "ratio": ratio, "sunk": int(np.sum(er > SUNK))}
+            "ratio": ratio, "sunk": int(np.sum(er > SUNK)), "sunk_chords": int(chord.sum()),
+            # the deepest (in strand radii) of those chords: its length, its strand radius
+            "chord_length": float(np.linalg.norm(p[a[k] + 1] - p[a[k]])) if k >= 0 else 0.0,
+            "chord_radius": float(0.5 * (rad[a[k]] + rad[a[k] + 1])) if k >= 0 else 0.0}
 
 
 def path_depths(x0, x1, c0, c1, radius, pinned, strand_radius):
@@ -123,21 +135,23 @@ def path_depths(x0, x1, c0, c1, radius, pinned, strand_radius):
             "through": int(np.sum((depth > lim) & (ends <= lim)))}
 
 
-def file_head(f):
-    """(HeadMotion, strand radius (n,), pinned (n,)) of the open frames.h5 ``f`` from its
+def file_head(r):
+    """(HeadMotion, strand radius (n,), pinned (n,)) of frames.h5 open in the
+    :class:`lc_petsc.io.frames_read.FramesReader` ``r``, from its
     ``config`` attribute, ``/radius`` and ``/pinned`` (radius rebuilt from the scene when
     the file has none), or None when the run's scene has no head sphere (no
     ``head_collision`` and not a hairball: the same rule as the previews and USD)."""
     import json
     from lc_petsc.io.usd import config_tables, has_head_sphere, scene_radius
     from lc_petsc.scene.kinematics import HeadMotion
+    f = r.f
     tables = config_tables(json.loads(f.attrs["config"]) if "config" in f.attrs else {})
     if not has_head_sphere(tables["physics"], tables["scene"]):
         return None
-    off = np.asarray(f["wisp_offsets"][...], np.int64)
-    rad = (np.asarray(f["radius"][...], float) if "radius" in f else
+    off = np.asarray(r.dataset("wisp_offsets"), np.int64)
+    rad = (np.asarray(r.dataset("radius"), float) if "radius" in f else
            scene_radius(tables, np.diff(off)))
-    pinned = np.asarray(f["pinned"][...], bool) if "pinned" in f else np.zeros(int(off[-1]), bool)
+    pinned = np.asarray(r.dataset("pinned"), bool) if "pinned" in f else np.zeros(int(off[-1]), bool)
     return HeadMotion(tables["physics"]), rad, pinned
 
 
@@ -157,8 +171,11 @@ def summarize(steps):
     k -> k + 1) over every step checked: the deepest free vertex and edge point
     (``vertex_depth``, ``edge_depth``, cm, and their rows), the largest depth over the
     strand radius (``ratio``, its row), ``rows_sunk`` (rows with a strand deeper than
-    :data:`SUNK` radii, ``first_sunk_row``), the deepest point of a vertex's path between
-    frames (``path_depth``), the most a path goes beyond its two ends (``path_beyond``),
+    :data:`SUNK` radii, ``first_sunk_row``), ``rows_sunk_by_chords`` (those of them in
+    which only edges between vertices no deeper than that are, the straight chord under
+    the curved scalp) with the longest such chord's ``chord_length`` and
+    ``chord_radius``, the deepest point of a vertex's path between frames
+    (``path_depth``), the most a path goes beyond its two ends (``path_beyond``),
     ``paths_through`` (vertex paths through the head between frames, over all steps) with
     ``steps_through`` and ``first_through`` (step), and ``depth_per_row``: per row after
     the first (row 0 is the user's initial state), the deeper of its vertex and edge
@@ -176,9 +193,14 @@ def summarize(steps):
         per_row[k] = max(r["vertex"], r["edge"])
     (vd, vrow), (ed, erow), (ratio, rrow) = worst("vertex"), worst("edge"), worst("ratio")
     sunk = [k + 1 for k, r in steps if r["sunk"]]
+    chords = [r for _, r in steps if r["sunk"] and r["sunk"] == r.get("sunk_chords", 0)]
+    longest = max(chords, key=lambda r: r["chord_length"], default=None)
     through = [k for k, r in steps if r["path_through"]]
     return {"vertex_depth": vd, "vertex_row": vrow, "edge_depth": ed, "edge_row": erow,
             "ratio": ratio, "ratio_row": rrow, "rows_sunk": len(sunk),
+            "rows_sunk_by_chords": len(chords),
+            "chord_length": longest["chord_length"] if longest else None,
+            "chord_radius": longest["chord_radius"] if longest else None,
             "first_sunk_row": sunk[0] if sunk else None,
             "path_depth": max(r["path_depth"] for _, r in steps),
             "path_beyond": max(r["path_beyond"] for _, r in steps),

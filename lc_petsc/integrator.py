@@ -450,15 +450,19 @@ class Integrator:
                     Region() if self.trust is not None else None)
         self._wisp_mu = np.zeros(len(self.scene.offsets) - 1)
         self._kept_exact = False
-        for it in range(cfg.time.newton_iterations):
+        extend = cfg.time.newton_extend_above is not None
+        for it in range(cfg.time.newton_extend_cap if extend else cfg.time.newton_iterations):
             s.n_it += 1
             s.unconfirmed = s.off_model = s.saddle = False
             if s.region is not None and it > 0:     # after a filtered first step: lc_petsc/trust_region.py
                 self._trust_iteration(s, it)
             else:
                 self._newton_iteration(s, it)
-            if s.converged or s.saddle:
+            if s.converged or s.saddle or s.last:
                 break
+        if extend and self.monitor is not None and s.n_it > cfg.time.newton_iterations:
+            self._say(f"  frame {self.frame} (dt {self.dt:.4g}): fixed count extended to {s.n_it} iteration(s) "
+                      f"(time.newton_extend_above = {cfg.time.newton_extend_above:g})")
         if self.monitor is not None and s.converged is not None:
             self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {'converged' if s.converged else 'NOT converged'} "
                       f"after {s.n_it} iteration(s), measure {s.reported:.3e}"
@@ -472,7 +476,9 @@ class Integrator:
         first) and its stop test, on the state ``s``."""
         region = s.region
         g, dx, exact = self._trust_region_step(s.x, it, region)
-        x_prev, s.x = s.x, self._last_turn(it, self.update(s.x, dx))
+        y = self.update(s.x, dx)
+        s.last = self._ends_count(it, s.x, y)
+        x_prev, s.x = s.x, self._last_turn(s.last, y)
         s.increment, absolute = self.increments(s.x - x_prev)
         s.steps.append(StepRecord(s.increment, region.interior, False, True))   # a boundary step is a cut one
         s.reported = s.increment
@@ -506,7 +512,7 @@ class Integrator:
         if cfg.time.line_search and not exact:
             alpha = self._line_search(s.x, g, dx, 20, give_up=False)
         x_prev = s.x
-        s.x, s.increment, measure, absolute = self._take_step(it, s.x, dx, alpha, exact, rejected)
+        s.x, s.increment, measure, absolute = self._take_step(s, it, s.x, dx, alpha, exact, rejected)
         s.reported = measure
         if self.history is not None:
             self._record_iteration(it, x_prev, s.x, g, s.increment, alpha, exact)
@@ -590,11 +596,14 @@ class Integrator:
                 break
         return g, dx, alpha, rejected
 
-    def _take_step(self, it, x, dx, alpha, exact, rejected):
+    def _take_step(self, s, it, x, dx, alpha, exact, rejected):
         """The iterate after the step dx at ``alpha`` from x (in ccd mode limited) and the
         step's measures: (iterate, relative increment of the step taken, the stop's
-        measure, its absolute size in cm).  Collective."""
-        y = self._last_turn(it, self.update(x, self._scaled(alpha, dx), exact))
+        measure, its absolute size in cm); ``s.last``: whether a fixed count ends here
+        (:meth:`_ends_count`).  Collective."""
+        y = self.update(x, self._scaled(alpha, dx), exact)
+        s.last = self._ends_count(it, x, y)
+        y = self._last_turn(s.last, y)
         if self.strand is not None:         # ccd mode: per vertex, collision-free path
             nonlinear = self.retract or (exact and self.turn_exact)
             y = self.strand.limit_step(x, y, x + alpha * dx if nonlinear else None)
@@ -719,13 +728,27 @@ class Integrator:
             return x, lifted, None
         return self.frame_end.strand_end(x_old, x, motion, self.t, lifted)
 
-    def _last_turn(self, it, x):
-        """``time.root_rotation``: after the last iteration's update x, each root-held wisp
-        turned about its root by the Newton step of G over the turn's angles
+    def _ends_count(self, it, x, y):
+        """Whether iteration ``it``, whose update takes x to y (before the root turn and
+        the ccd limiter), is the last of a fixed count: the ``time.newton_iterations``-th,
+        or with ``time.newton_extend_above`` the first from there whose relative
+        increment is at or below it, at most the ``time.newton_extend_cap``-th (a jolt
+        frame left 3 iterations from its solution injects momentum that a free mode
+        keeps: docs/newton.md "Eighteenth round").  Collective from the count on."""
+        cfg = self.cfg.time
+        if it < cfg.newton_iterations - 1:
+            return False
+        if cfg.newton_extend_above is None or it >= cfg.newton_extend_cap - 1:
+            return True
+        return self.increments(y - x)[0] <= cfg.newton_extend_above
+
+    def _last_turn(self, last, x):
+        """``time.root_rotation``: after the last iteration's update x (``last``), each
+        root-held wisp turned about its root by the Newton step of G over the turn's angles
         (lc_petsc/root_rotation.py); in ccd mode the step's limiter then takes the update
         and the turn together (a limiter call of its own cost the 60-wisp demo 1.2-1.4x
         its collision time).  Other iterations: x."""
-        if self.root_turn is None or it != self.cfg.time.newton_iterations - 1:
+        if self.root_turn is None or not last:
             return x
         unit = self._mass_unit()
         y = self.root_turn.step(x, self._turn_terms, unit, self._vertex_potentials)

@@ -265,6 +265,12 @@ def crossing_warnings(check, cfg):
         fix = ("raise time.newton_iterations or lower time.dt" if cfg.time.length_projection else
                "set time.length_projection = true (each frame projected onto the rest lengths), or "
                "raise time.newton_iterations or lower time.dt")
+        start = check.get("initial_strain")
+        if start is not None and start > STRAIN_WARN:
+            # the run did not tear them: the initial state came so (a perturbation)
+            fix = (f"the initial state (frame 0, scene.perturbation = \"{cfg.scene.perturbation}\") already has "
+                   f"edges {100 * start:.1f}% off their rest length, and the first frames carry what is left of "
+                   f"it; if it stays, {fix}")
         out.append(f"edges stretch or compress by up to {100 * check['largest_strain']:.1f}% of their rest "
                    f"length (frame {check['largest_strain_row'] * every}; beyond "
                    f"{100 * STRAIN_WARN:.0f}% in {check['rows_over_strain']} of the frames written; "
@@ -293,8 +299,12 @@ def head_warnings(head, cfg):
                 f"{phys.head_stiffness:g} dyn/cm: a resting vertex sinks by its load over it); "
                 f"physics.head_margin keeps hair that far outside the sphere drawn")
     out = []
-    if head["rows_sunk"]:
-        out.append(f"hair sinks into the head: strands lie entirely inside the head sphere (deeper than their "
+    by_chords = head.get("rows_sunk_by_chords") or 0
+    if by_chords:
+        out.append(chord_warning(head, phys.head_radius, every))
+    if head["rows_sunk"] > by_chords:
+        more = f" ({head['rows_sunk'] - by_chords} with a vertex that deep)" if by_chords else ""
+        out.append(f"hair sinks into the head{more}: strands lie entirely inside the head sphere (deeper than their "
                    f"radius) in {head['rows_sunk']} of the frames written (first: frame "
                    f"{head['first_sunk_row'] * every}; deepest free vertex {head['vertex_depth']:.3g} cm, edge "
                    f"point {head['edge_depth']:.3g} cm, {head['ratio']:.3g} strand radii; scripts/head_depth.py "
@@ -308,6 +318,27 @@ def head_warnings(head, cfg):
                    f"head or through the moving one; frames written closer together (time.dt, output.every) "
                    f"shorten those paths")
     return out
+
+
+def chord_warning(head, radius, every):
+    """The warning for frames in which strands lie inside the head sphere only along
+    straight edges between vertices that rest on it (``head["rows_sunk_by_chords"]``): the
+    chord of an edge of length L between two points of a sphere of ``radius`` R dips
+    R - sqrt(R^2 - L^2 / 4) (about L^2 / 8R) under it, deeper than a thin strand's radius r
+    unless L < 2 sqrt(2 R r - r^2); only finer edges change that."""
+    from math import sqrt
+    L, r = head["chord_length"], head["chord_radius"]
+    sag = radius - sqrt(max(radius ** 2 - 0.25 * L ** 2, 0.0))
+    fit = 2.0 * sqrt(max(2.0 * radius * r - r * r, 0.0))
+    return (f"strands lie inside the head sphere along straight edges between vertices resting on it, in "
+            f"{head['rows_sunk_by_chords']} of the frames written (no vertex deeper than its strand radius "
+            f"there; deepest edge point {head['edge_depth']:.3g} cm, {head['ratio']:.3g} strand radii; "
+            f"scripts/head_depth.py lists them per frame): an edge of {L:.3g} cm between two points of the "
+            f"{radius:g} cm head sphere dips {sag:.3g} cm under it, {sag / r:.3g} times the strand radius "
+            f"{r:.3g} cm, and the head contact holds vertices, not the edges between them; only edges shorter "
+            f"than {fit:.3g} cm keep such a strand out along its length (a groom resampled finer, or "
+            f"scene.n_vertices with shorter segments); Newton iterations, dt and physics.head_stiffness "
+            f"cannot change it")
 
 
 def output_estimate(cfg, n_wisps, n_vertices, rows_kept=0):
@@ -391,7 +422,7 @@ class Job:
             self._lock()
             with self.preemption.setup():
                 try:
-                    self.sim = build_simulator(self.cfg, comm=comm)
+                    self.sim = build_simulator(self.cfg, comm=comm, check_start=self.args.restart is None)
                     check_solver(self.sim, self.command_line)
                 except (ValueError, SolverError) as e:
                     raise Refused(str(e)) from None
@@ -1075,6 +1106,7 @@ class Job:
                 problems.append(f"previews in {out}: {getattr(e, 'strerror', None) or e}")
         t_prev = time.perf_counter() - t0
         t_usd = 0.0
+        usd_error: list = []        # USD's own text of a failed export (a line per C++ error)
 
         def usd_warning(text):
             # on stderr and in summary.json: a pipeline reading the summary must learn
@@ -1097,14 +1129,15 @@ class Job:
             # USD export for DCC tools (frames.usdc), from the closed frames.h5
             from lc_petsc.io.usd import export_failed, export_run
             try:
-                usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop, warn=usd_warning)
+                usd_files, t_usd = export_run(cfg.output, h5_path, out, stop=self._stop, warn=usd_warning,
+                                              detail=usd_error.append)
                 files += usd_files
             except Stopped:
                 self.skipped_outputs.append("frames.usdc")
             except Exception as e:  # noqa: BLE001 - like a preview, never worth the summary
                 usd_warning(export_failed(h5_path, f"{type(e).__name__}: {e}"))
         return {"files": files, "not_written": problems, "xdmf_s": t_xdmf, "previews_s": t_prev,
-                "usd_s": t_usd}
+                "usd_s": t_usd, "usd_error": usd_error[0] if usd_error else None}
 
     def _write_summary(self, summary, exports):
         """Rank 0: summary.json (with the exports' ``output`` figures) and the report."""
@@ -1118,7 +1151,8 @@ class Job:
                              "frames_written": writer.written if writer is not None else 0,
                              "files": exports["files"] + ["summary.json"], "xdmf_s": exports["xdmf_s"],
                              "previews_s": exports["previews_s"], "usd_s": exports["usd_s"],
-                             "not_written": problems, "skipped": self.skipped_outputs}
+                             "not_written": problems, "skipped": self.skipped_outputs,
+                             "usd_error": exports.get("usd_error")}
         try:
             write_summary(out / "summary.json", summary)
         except OSError as e:

@@ -70,6 +70,7 @@ class NewtonState:
         self.off_model = False          # this iteration's stop was refused (_loose_verdict)
         self.saddle = False             # this iteration's stop is on a saddle (_at_saddle)
         self.pending = None             # a refused stop's verifying exact step (_verify_stop)
+        self.last = False               # a fixed count (or its extension) ends here (_ends_count)
 
     def settle(self, claim, step, confirmed, refused):
         """After an iteration's stop test: its claim and step become the last ones."""

@@ -80,25 +80,27 @@ def census_frames(path, thickness=None, stiffness=None, every=1, progress=None):
     default, twice the smallest vertex radius; k: ``stiffness``, else the run's
     ``physics.strand_stiffness``.  Rows that hold no frame (lost in a recovery,
     ``/frame_valid``) are left out.  ``progress(dict)`` is called per frame."""
-    import h5py
-    from lc_petsc.io.frames import frame_row, valid_rows
+    from lc_petsc.io.frames_read import FramesReader
     if every < 1:
         raise ValueError(f"every = {every}: give a frame stride of at least 1")
-    with h5py.File(path, "r") as f:
+    with FramesReader(path) as fr:
+        f = fr.f
         cfg = json.loads(f.attrs["config"]) if "config" in f.attrs else {}
         phys = cfg.get("physics") or {}
-        d0 = float(thickness or phys.get("strand_thickness") or 2.0 * float(np.min(f["radius"][...])))
+        d0 = float(thickness or phys.get("strand_thickness") or 2.0 * float(np.min(fr.dataset("radius"))))
         k = float(stiffness or phys.get("strand_stiffness") or 1.0e5)
-        off, rest = frames_layout(f, with_rest=True)
+        off, rest = frames_layout(fr, with_rest=True)
         seg, wisp = segments(off)
         wid = np.repeat(np.arange(len(off) - 1), np.diff(off))
         rows, age = [], {}
-        held = valid_rows(f)
-        for t in range(0, len(held), every):
+        held = fr.valid
+        picked = range(0, len(held), every)
+        frames = fr.rows([t for t in picked if held[t]])
+        for t in picked:
             if not held[t]:            # lost in a recovery: no census, ages start again
                 age = {}
                 continue
-            X = frame_row(f, t)
+            X = next(frames)[1]
             r, age = frame_census(X, rest, seg, wisp, wid, d0, k, age if every == 1 else {})
             r["frame"] = t
             rows.append(r)

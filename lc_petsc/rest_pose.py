@@ -8,6 +8,11 @@ start in which every pair is at least d0 apart.  :func:`check_rest_pose` finds t
 with the contact's own ghost exchange and broad phase (collective), and the simulator
 builder stops with :class:`RestPoseOverlapError` unless ``physics.strand_rest_overlap =
 "exempt"`` (those pairs then never interact, as in penalty mode; docs/contact.md).
+
+The initial state a ``scene.perturbation`` makes is checked too
+(:func:`check_start_pose`, :class:`StartOverlapError`): pairs apart at rest that pass
+through each other on the straight way from the rest pose to it are a tangle the ccd
+limiter would then hold.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lc_petsc.elements import segment_contact
-from lc_petsc.errors import RestPoseOverlapError  # noqa: F401 - re-exported: the check's error type
+from lc_petsc.errors import RestPoseOverlapError, StartOverlapError  # noqa: F401 - re-exported: the checks' error types
 
 
 @dataclass
@@ -50,6 +55,20 @@ class RestPoseReport:
                 f"these pairs pass through each other{fold}")
 
 
+def _closest(comm, d, i, j, gv, wisp):
+    """(distance, wisp A, first vertex A, wisp B, first vertex B) of the closest of the
+    pairs (i, j) at distances ``d`` over all ranks (the segment with the smaller global
+    vertex first; inf and -1 where no rank has one): the same on every rank."""
+    if len(d):
+        k = int(np.argmin(d))
+        a, b = (i[k], j[k]) if gv[i[k]] < gv[j[k]] else (j[k], i[k])
+        mine = (float(d[k]), int(gv[a]), int(gv[b]), int(wisp[a]), int(wisp[b]))
+    else:
+        mine = (np.inf, -1, -1, -1, -1)
+    dmin, va, vb, wa, wb = min(comm.allgather(mine))
+    return dmin, wa, va, wb, vb
+
+
 def check_rest_pose(strand) -> RestPoseReport:
     """Pairs closer than the thickness in the rest pose of a
     :class:`lc_petsc.contact.StrandContact`'s scene, over all ranks.  Collective."""
@@ -58,16 +77,76 @@ def check_rest_pose(strand) -> RestPoseReport:
     ij = strand.candidates(P, wisp, n_local, d0, **strand.self_pairs(len(P)))
     i, j = ij[:, 0], ij[:, 1]
     d = segment_contact.distance(np.concatenate([P[i], P[j]], axis=1)) if len(ij) else np.zeros(0)
-    close = d < d0
-    n = comm.allreduce(int(close.sum()))
-    k = int(np.argmin(d)) if len(d) else -1
-    mine = (float(d[k]), int(min(gv[i[k]], gv[j[k]])), int(max(gv[i[k]], gv[j[k]]))) if k >= 0 \
-        else (np.inf, -1, -1)
-    local_worst = (mine[0], mine[1], mine[2],
-                   int(wisp[i[k]] if gv[i[k]] < gv[j[k]] else wisp[j[k]]) if k >= 0 else -1,
-                   int(wisp[j[k]] if gv[i[k]] < gv[j[k]] else wisp[i[k]]) if k >= 0 else -1)
-    best = min(comm.allgather(local_worst))          # the same on every rank
-    dmin, va, vb, wa, wb = best
+    n = comm.allreduce(int((d < d0).sum()))
+    dmin, wa, va, wb, vb = _closest(comm, d, i, j, gv, wisp)
     return RestPoseReport(thickness=d0, pairs=n, min_distance=float(dmin),
                           worst=(wa, va, wb, vb) if np.isfinite(dmin) else (),
                           self_contact=strand.self_contact)
+
+
+@dataclass
+class StartReport:
+    """What the start-state check found: pairs of segments (of different wisps, with
+    self-contact also of one wisp) at least the thickness apart at rest that pass through
+    each other (or touch) on the straight way from the rest pose to the initial state,
+    and the closest of them in the initial state."""
+
+    thickness: float
+    pairs: int
+    min_distance: float
+    worst: tuple = ()                # as RestPoseReport.worst
+    self_contact: bool = False
+    made_by: str = ""                # what made the start: the perturbation and its size
+    smaller: str = "make the perturbation smaller"
+
+    def message(self, exempt=False) -> str:
+        """The report for a person: count, the closest pair, what to change (``exempt``:
+        the run goes on, with ``physics.strand_rest_overlap = "exempt"``)."""
+        wa, va, wb, vb = self.worst
+        fix = (f"{self.smaller}, run the scene without strand contact (remove \"strand_collision\" from "
+               f"physics.terms, as the SPEC's smash, jitter and straighten scenes do), or set "
+               f"physics.strand_rest_overlap = \"exempt\" to run it anyway (these pairs are not "
+               f"exempt: the contact holds them where the initial state put them)")
+        if exempt:
+            fix = (f"run anyway (physics.strand_rest_overlap = \"exempt\"; these pairs are not exempt: the "
+                   f"contact holds them where the initial state put them); {self.smaller} or run the "
+                   f"scene without strand contact to avoid it")
+        which = "of different wisps or of one wisp" if self.self_contact else "of different wisps"
+        return (f"the initial state ({self.made_by}) is tangled: {self.pairs} pair(s) of segments {which}, "
+                f"at least the contact thickness {self.thickness:g} cm apart in the rest pose, pass "
+                f"through each other (or touch) on the straight way from the rest pose to the initial "
+                f"state; the closest there: wisp {wa} segment (vertices {va}, {va + 1}) and wisp {wb} "
+                f"segment (vertices {vb}, {vb + 1}), {self.min_distance:.3g} cm apart (global vertex "
+                f"indices).  Strand contact in \"ccd\" mode lets no pair pass through another from the "
+                f"start on, so such pairs stay on the side the initial state put them (a tangle held "
+                f"over the run: strands through strands, edges stretched): {fix}")
+
+
+def check_start_pose(strand, x0, made_by="", smaller=None) -> StartReport:
+    """Pairs of segments of a :class:`lc_petsc.contact.StrandContact`'s scene that are at
+    least the thickness d0 apart at rest (closer ones are the rest check's: refused or
+    exempt) and meet on the straight way from the rest pose to this rank's initial
+    positions ``x0`` (nv, 3) (Tight-Inclusion at distance 0,
+    :func:`lc_petsc.crossings.crossing_pairs`; a pair touching in ``x0`` meets).  Pairs
+    merely closer than d0 in ``x0`` are no tangle: the contact pushes them apart towards
+    the rest pose.  Collective: the contact's ghost exchange over both poses, each pair
+    judged on one rank."""
+    from lc_petsc.crossings import crossing_pairs
+    comm, d0 = strand.comm, strand.d0
+    (R, S), _, gv, wisp, _, _, n_local = strand._gather_segments(strand.scene.x_rest, extra=(x0,))
+    # the boxes swept from the rest pose to the start: every pair that meets on the way
+    RS = np.concatenate([R, S], axis=1)
+    ij = strand.candidates(np.stack([RS.min(axis=1), RS.max(axis=1)], axis=1), wisp, n_local, d0,
+                           **strand.self_pairs(len(R)))
+    i, j = ij[:, 0], ij[:, 1]
+    XR, XS = np.concatenate([R[i], R[j]], axis=1), np.concatenate([S[i], S[j]], axis=1)
+    judged = segment_contact.distance(XR) >= d0 if len(ij) else np.zeros(0, bool)
+    i, j, XR, XS = i[judged], j[judged], XR[judged], XS[judged]
+    crossed = crossing_pairs(XR, XS) if len(i) else np.zeros(0, bool)
+    d = segment_contact.distance(XS[crossed]) if crossed.any() else np.zeros(0)
+    n = comm.allreduce(int(crossed.sum()))
+    dmin, wa, va, wb, vb = _closest(comm, d, i[crossed], j[crossed], gv, wisp)
+    return StartReport(thickness=d0, pairs=n, min_distance=float(dmin),
+                       worst=(wa, va, wb, vb) if np.isfinite(dmin) else (),
+                       self_contact=strand.self_contact, made_by=made_by,
+                       **({"smaller": smaller} if smaller else {}))

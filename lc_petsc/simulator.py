@@ -15,8 +15,8 @@ from lc_petsc import parallel
 from lc_petsc.assembly import Assembler
 from lc_petsc.config import ELASTIC_TERMS, OTHER_TERMS, ConfigError, SimConfig
 from lc_petsc.integrator import FRAME_COUNTS, Integrator
-from lc_petsc.errors import RestPoseOverlapError
-from lc_petsc.rest_pose import check_rest_pose
+from lc_petsc.errors import RestPoseOverlapError, StartOverlapError
+from lc_petsc.rest_pose import check_rest_pose, check_start_pose
 from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.outliers import displaced_vertex_problems
 from lc_petsc.scene.perturbation import apply_perturbation
@@ -74,7 +74,7 @@ def named_by(source, message):
 class Simulator:
     """One simulation on a communicator: scene, solver plan, assembler, linear solver, integrator."""
 
-    def __init__(self, config: SimConfig, comm=None):
+    def __init__(self, config: SimConfig, comm=None, check_start=True):
         self.config = config.validate()
         parallel.limit_blas_threads()
         self.comm = comm = _mpi_comm(comm)
@@ -112,7 +112,8 @@ class Simulator:
         self.strand = None
         if plan.contact_pc is not None:
             self.strand = _strand_contact(scene, comm, self.pcomm, self.timers, cfg, plan,
-                                          self.assembler.mat_type, user=self.user, source=source)
+                                          self.assembler.mat_type, user=self.user, source=source,
+                                          x0=x0 if check_start else None)
         self.solver = LinearSolver(self.assembler.mat, 3 * np.diff(scene.offsets), plan,
                                    P=self.assembler.pmat)
         self.trust = None
@@ -275,10 +276,28 @@ class Simulator:
             self.strand.destroy()
 
 
-def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user, source):
+#: perturbations whose initial state is reached from the rest pose along the straight way
+#: (so the start check's crossings on that way are a tangle the perturbation made)
+STRAIGHT_WAY_PERTURBATIONS = ("jitter", "smash")
+
+
+def perturbation_text(scene_cfg):
+    """(``scene.perturbation`` and its size, how to make it smaller), for messages about
+    the initial state."""
+    kind = scene_cfg.perturbation
+    size, smaller = {"smash": (f", scene.smash_factor = {scene_cfg.smash_factor:g}",
+                               "raise scene.smash_factor towards 1"),
+                     "jitter": (f", scene.jitter = {scene_cfg.jitter:g} cm", "lower scene.jitter")
+                     }.get(kind, ("", f"use another scene.perturbation than \"{kind}\""))
+    return f"scene.perturbation = \"{kind}\"{size}", smaller
+
+
+def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user, source, x0=None):
     """The strand-strand contact of ``cfg`` (docs/contact.md); thickness default: twice
     the smallest vertex radius of the scene; the preconditioner is built from the whole
-    Newton matrix or the strand matrix alone as ``plan.contact_pc`` says."""
+    Newton matrix or the strand matrix alone as ``plan.contact_pc`` says.  In ``ccd``
+    mode the rest pose is checked, and the initial positions ``x0`` (None: a restart,
+    whose state is the checkpoint's) when a perturbation made them."""
     from lc_petsc.contact import StrandContact
     d0 = cfg.physics.strand_thickness
     if d0 is None:
@@ -298,9 +317,27 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user, sourc
                 report.worst = user.scene_numbers(report.worst)
             strand.destroy()
             raise RestPoseOverlapError(named_by(source, report.message()))
+        # the initial state, checked as the rest pose is (pairs the rest check let
+        # through, exempt ones, stay exempt): a perturbation can tangle what the groom had apart.
+        # Only where the straight way from rest is the perturbation's own path (a jitter's
+        # displacement, a smash's scaling); a straightened coil unwinds about its axis, and the
+        # straight way would pass its turns through each other where the start has none
+        if x0 is not None and cfg.scene.perturbation in STRAIGHT_WAY_PERTURBATIONS:
+            made_by, smaller = perturbation_text(cfg.scene)
+            start = check_start_pose(strand, x0, made_by=made_by, smaller=smaller)
+            if start.pairs:
+                if user is not None:
+                    start.worst = user.scene_numbers(start.worst)
+                if cfg.physics.strand_rest_overlap == "exempt":     # the user's choice: a warning
+                    strand.start_warning = named_by(source, start.message(exempt=True))
+                else:
+                    strand.destroy()
+                    raise StartOverlapError(named_by(source, start.message()))
     return strand
 
 
-def build_simulator(config: SimConfig, comm=None) -> Simulator:
-    """Build the simulator of ``config`` on ``comm`` (mpi4py; default COMM_WORLD)."""
-    return Simulator(config, comm)
+def build_simulator(config: SimConfig, comm=None, check_start=True) -> Simulator:
+    """Build the simulator of ``config`` on ``comm`` (mpi4py; default COMM_WORLD).
+    ``check_start``: check the initial state a perturbation makes (off for a restart,
+    which continues from its checkpoint's state, not from the initial one)."""
+    return Simulator(config, comm, check_start=check_start)

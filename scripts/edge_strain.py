@@ -21,13 +21,12 @@ def frame_rows(path):
     """Per row of ``path`` that holds a frame (rows lost in a recovery are left out): (row,
     max, min, median, p99 strain, edges > +10 %, < -10 %, median root-to-tip distance /
     rest)."""
-    from lc_petsc.io.frames import frame_row, open_frames, valid_rows
+    from lc_petsc.io.frames_read import FramesReader
     rows = []
-    with open_frames(path) as f:
+    with FramesReader(path) as f:
         off, rest = frames_layout(f, with_rest=True)
         reach0 = np.linalg.norm(rest[off[1:] - 1] - rest[off[:-1]], axis=1)
-        for k in np.flatnonzero(valid_rows(f)):
-            x = frame_row(f, k)
+        for k, x in f.rows(np.flatnonzero(f.valid)):
             s = edge_strain(x, rest, off)
             reach = np.linalg.norm(x[off[1:] - 1] - x[off[:-1]], axis=1) / reach0
             rows.append((int(k), s.max(), s.min(), np.median(s), np.percentile(s, 99), int((s > 0.1).sum()),

@@ -24,14 +24,14 @@ def head_rows(path, progress=None):
     """(head radius, [(step k, :func:`step_depths` dict of rows k -> k + 1)]) of the
     frames.h5 at ``path``; ValueError when its scene has no head sphere.  ``progress(k,
     dict, head radius)`` is called per step."""
-    from lc_petsc.io.frames import frame_times, open_frames, valid_rows
-    with open_frames(path) as f:
+    from lc_petsc.io.frames_read import FramesReader
+    with FramesReader(path) as f:
         off = frames_layout(f)
         head = file_head(f)
         if head is None:
             raise ValueError("the run's scene has no head sphere (no head_collision, not a hairball)")
-        steps = valid_steps(valid_rows(f))     # the chunk index first: a damaged /time entry crashed libhdf5
-        times = frame_times(f)
+        steps = valid_steps(f.valid)     # the chunk index first: a damaged /time entry crashed libhdf5
+        times = f.times
         out = []
         for k, prev, cur in step_rows(f, steps):
             out.append((k, step_depths(head[0], prev, cur, times[k], times[k + 1], off, head[1], head[2])))
@@ -64,7 +64,8 @@ def main(argv=None):
     else:
         print(f"{a.frames}: deepest free vertex {s['vertex_depth']:.4g} cm (row {s['vertex_row']}), deepest "
               f"edge point {s['edge_depth']:.4g} cm (row {s['edge_row']}), {s['ratio']:.3g} strand radii at most; "
-              f"rows with a strand entirely inside the head: {s['rows_sunk']}; paths through the head "
+              f"rows with a strand entirely inside the head: {s['rows_sunk']} ({s['rows_sunk_by_chords']} only along "
+              f"edges between vertices no deeper than their radius); paths through the head "
               f"between frames: {s['paths_through']} in {s['steps_through']} steps (deepest path point "
               f"{s['path_depth']:.4g} cm)")
     if a.json:

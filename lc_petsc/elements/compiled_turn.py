@@ -6,7 +6,7 @@ gradients per wisp (:func:`turn_pcg`) and the Rodrigues turn of its vertices
 
 In NumPy these were ~80 operations on small per-vertex and per-wisp arrays each frame, a
 fixed cost that weighed on small scenes (hairball10: ~12% of a step, docs/newton.md
-"Eighteenth round").  Each kernel does NumPy's arithmetic in NumPy's order (strict IEEE,
+"Nineteenth round").  Each kernel does NumPy's arithmetic in NumPy's order (strict IEEE,
 :func:`lc_petsc.elements.compiled._jit`), so the results equal the NumPy references
 (``*_numpy`` here, the tested reference) bit for bit and no trajectory changes
 (``tests/elements/test_compiled_turn.py``, ``tests/sim/test_root_rotation.py``): a

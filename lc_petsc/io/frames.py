@@ -12,8 +12,8 @@ Layout (plain h5py reads it):
   which ``frames.xdmf`` points at;
 * ``/row_digest`` uint64 (n_frames,): each row's digest (:func:`row_digest`, over its
   positions' bits, its row number and its time), written with the row and checked by
-  every read of a row (:func:`frame_row`) and by a restart; files written before it
-  (2026-12-07) have none and are read unchecked;
+  every read of a row (:meth:`lc_petsc.io.frames_read.FramesReader.rows`) and by a
+  restart; files written before it (2026-12-07) have none and are read unchecked;
 * ``/frame_valid`` bool (n_frames,), only in a file that continued a run whose own
   ``frames.h5`` was lost (``--restart ... --force``, :mod:`lc_petsc.io.recovery`):
   False marks a row that could not be recovered, its ``/positions`` and ``/time`` are
@@ -49,9 +49,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import weakref
-from contextlib import contextmanager
-from typing import NoReturn
 
 import numpy as np
 
@@ -95,32 +92,6 @@ def row_digest(parts, row, t) -> int:
     total = np.array([sum(parts) % (1 << 64)], np.uint64)
     tb = np.array([t], np.float64).view(np.uint64)
     return int(_mix(total ^ _mix(tb ^ _mix(np.array([row], np.uint64) * _GOLDEN)))[0])
-
-
-def digest_problem(f, k, x, t=None):
-    """Why row ``k`` of the open ``frames.h5`` ``f``, read as ``x``, is not the row written
-    (its ``/row_digest`` entry differs), else None; a file without ``/row_digest`` (written
-    before it) is not checked.  ``t``: the row's ``/time`` entry where the caller has read
-    it.  The entries come from :func:`row_table` (read once per open file); where a chunk
-    of it fails its checksum, from the row's own entries (a restart keeps, a recovery
-    salvages the rows of the intact chunks), and a row whose own entries cannot be read
-    is a ValueError naming the damaged chunk."""
-    if "row_digest" not in f:
-        return None
-    try:
-        times, digests = row_table(f)
-        t, digest = times[k] if t is None else t, digests[k]
-    except ValueError as damaged:
-        try:
-            t, digest = f["time"][k] if t is None else t, f["row_digest"][k]
-        except (OSError, ValueError):
-            raise damaged from None
-    t, stored = float(t), int(digest)
-    if stored == row_digest([vertex_digest(x, 0)], k, t):
-        return None
-    every = int(f.attrs.get("every", 1))
-    return (f"/positions row {k} (frame {k * every}) does not match its /row_digest: another row's "
-            "values (a damaged chunk index), or its time in /time is another row's; the file is damaged")
 
 
 def write_rows(dset, start, data, dxpl):
@@ -180,10 +151,11 @@ def resumable_problem(path, n_wisps, n_vertices, rows, dt=None, every=None, chec
         return f"{path}: the run's frames file is missing, --restart appends to it"
     if not h5py.is_hdf5(path):
         return f"{path}: not an HDF5 file, cannot append the restarted frames to it"
+    from lc_petsc.io.frames_read import FramesReader
     try:
-        with h5py.File(path, "r") as f:
-            return _layout_problem(f, path, n_wisps, n_vertices, rows, dt, every) or \
-                _kept_problem(f, path, rows, offsets) or _row_problem(f, path, checkpoint_row)
+        with FramesReader(path) as r:
+            return _layout_problem(r.f, path, n_wisps, n_vertices, rows, dt, every) or \
+                _kept_problem(r, path, rows, offsets) or _row_problem(r.f, path, checkpoint_row)
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
         # whatever h5py raises on a damaged file (a damaged datatype: ValueError)
         return f"{path}: unreadable, truncated or damaged HDF5 file ({_why(e)})"
@@ -201,9 +173,13 @@ def _layout_problem(f, path, n_wisps, n_vertices, rows, dt, every):
                 f"{pos.shape}, the scene {n_wisps} wisps and {n_vertices} vertices")
     if pos.maxshape[0] is not None or f["time"].maxshape[0] is not None:
         return f"{path}: /positions or /time is not extendable, cannot append to it"
-    if pos.shape[0] < rows or f["time"].shape[0] < rows:
+    if pos.shape[0] < rows:
         return (f"{path}: holds {pos.shape[0]} frame row(s), the checkpoint needs the first "
                 f"{rows}; it does not belong to this checkpoint's run")
+    from lc_petsc.io.frames_read import layout_problem
+    problem = layout_problem(f, rows)       # the kept rows' time and digest, the rest positions
+    if problem:
+        return f"{path}: {problem}"
     for key, want in (("dt", dt), ("every", every)):
         have = f.attrs.get(key)
         if want is not None and have is not None and float(have) != float(want):
@@ -254,46 +230,58 @@ def _holds_fill(a, valid=None):
         else False
 
 
-def _kept_problem(f, path, rows, offsets):
-    """:func:`resumable_problem`'s read-back of every value the restart keeps: the static
-    datasets and the first ``rows`` rows of the frame datasets.  A read error (a value
-    failing its checksum, a damaged chunk index) names the dataset and the row, before
-    the restart changes anything (it failed in the frame loop, after the outputs were
-    removed, on every try; or it kept a damaged row and appended to it)."""
+def _kept_problem(r, path, rows, offsets):
+    """:func:`resumable_problem`'s read-back (``r``: the file's
+    :class:`lc_petsc.io.frames_read.FramesReader`) of every value the restart keeps: the
+    static datasets and the first ``rows`` rows of the frame datasets.  A read error (a
+    value failing its checksum, a damaged chunk index) names the dataset and the rows of
+    the chunk, before the restart changes anything (it failed in the frame loop, after the
+    outputs were removed, on every try; or it kept a damaged row and appended to it)."""
+    from lc_petsc.io.frames_read import FramesDamage, order_problem
+    f = r.f
     try:        # the restart rewrites the attributes: damaged storage failed it there (exit 3)
         for obj in [f] + [f[k] for k in f]:
             dict(obj.attrs)
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
         return f"{path}: its attributes cannot be read ({_why(e)}): the file is damaged"
-    problem = index_problem(f)      # before a read: a damaged chunk size crashed libhdf5
+    problem = r.index_problem()      # before a read: a damaged chunk size crashed libhdf5
     if problem:
         return f"{path}: {problem}"
     frame_dsets = [k for k in _FRAME_DATASETS if k in f]
     static = [k for k in ("wisp_offsets", "rest_positions", "pinned", "polylines", "radius") if k in f]
-    every = int(f.attrs.get("every", 1))
-    valid = valid_rows(f, check=False)
-    for name, sel in [(k, Ellipsis) for k in static] + [(k, np.s_[:rows]) for k in frame_dsets[1:]] + \
-            [("positions", k) for k in range(rows)]:
-        where = f" row {sel} (frame {sel * every})" if isinstance(sel, int) else \
-            f" rows 0-{rows - 1}" if sel is not Ellipsis else ""
-        try:
-            a = f[name][sel]
-        except (OSError, ValueError) as e:
-            return f"{path}: /{name}{where} cannot be read ({_why(e)}): the file is damaged"
-        if _holds_fill(a, valid[sel] if name in frame_dsets else None):
-            return (f"{path}: /{name}{where}: read as the fill value (NaN or -1), its chunk missing "
-                    "from the chunk index (which has no checksum): the file is damaged")
-        problem = name == "positions" and valid[sel] and digest_problem(f, sel, a)
-        if problem:
-            return f"{path}: {problem}"
-        if name == "wisp_offsets":
-            problem = offsets_problem(a, f["positions"].shape[1])
-            if problem is None and offsets is not None and not np.array_equal(a, offsets):
-                problem = ("/wisp_offsets differs from the scene's wisp sizes: the file is damaged, "
-                           "or another scene's with the same counts")
+    valid = r.valid
+    fill = ("{}: read as the fill value (NaN or -1), its chunk missing from the chunk index (which has "
+            "no checksum): the file is damaged")
+    try:
+        for name in static + frame_dsets[1:]:
+            a = r.dataset(name, None if name in static else rows)
+            if _holds_fill(a, valid[:rows] if name in frame_dsets else None):
+                return f"{path}: " + fill.format(f"/{name}" + (f" rows 0-{rows - 1}" if name in frame_dsets else ""))
+            problem = name == "time" and order_problem(a, valid, r.every)
             if problem:
                 return f"{path}: {problem}"
+            problem = name == "wisp_offsets" and _offsets_differ(a, f["positions"].shape[1], offsets)
+            if problem:
+                return f"{path}: {problem}"
+        for k, x in r.rows(range(rows), check=False):      # in blocks, each row checked here
+            if _holds_fill(x, valid[k]):
+                return f"{path}: " + fill.format(f"/positions row {k} (frame {k * r.every})")
+            problem = valid[k] and r.digest_problem(k, x)
+            if problem:
+                return f"{path}: {problem}"
+    except FramesDamage as e:
+        return f"{path}: {e.what}: the file is damaged"
     return None
+
+
+def _offsets_differ(a, n_vertices, offsets):
+    """Why ``/wisp_offsets`` read as ``a`` is damaged or not the scene's ``offsets``
+    (None: not checked), else None."""
+    problem = offsets_problem(a, n_vertices)
+    if problem is None and offsets is not None and not np.array_equal(a, offsets):
+        problem = ("/wisp_offsets differs from the scene's wisp sizes: the file is damaged, "
+                   "or another scene's with the same counts")
+    return problem
 
 
 def _row_problem(f, path, checkpoint_row):
@@ -324,7 +312,7 @@ def index_problem(f):
     of the offset along the vertex axis, below one chunk, are dropped) changes nothing
     and is not seen (docs/design_notes.md, "Checksums").  Two entries exchanged (each
     row then has one chunk, another row's) pass here: the rows' ``/row_digest`` finds
-    them when a row is read (:func:`digest_problem`)."""
+    them when a row is read (:meth:`lc_petsc.io.frames_read.FramesReader.check`)."""
     import itertools
     size = f.id.get_filesize()
     every = int(f.attrs.get("every", 1))
@@ -368,104 +356,6 @@ def valid_rows(f, check=True):
     if "frame_valid" in f:
         return np.asarray(f["frame_valid"][:n], bool)
     return np.ones(n, bool)
-
-
-def open_frames(path):
-    """The ``frames.h5`` at ``path`` opened read-only (an h5py ``File``).  A folder (a run's
-    output folder given for its ``frames.h5``) is a ValueError saying which file to give:
-    libhdf5's own error was a multi-line dump ending in 'Is a directory'."""
-    if os.path.isdir(path):
-        inside = os.path.join(path, "frames.h5")
-        hint = f"; give {inside}" if os.path.isfile(inside) else ""
-        raise ValueError(f"a folder, not a frames.h5 file{hint}")
-    return h5py_module().File(str(path), "r")
-
-
-#: per open frames.h5 (id of the h5py File object): its /time and /row_digest, read once
-#: (a row's read checks its digest: two more small reads per row had doubled the reads)
-_ROW_TABLES: dict = {}
-
-
-def read_dataset(f, name):
-    """Dataset ``name`` of the open ``frames.h5`` ``f``, whole; one that cannot be read (a
-    chunk failing its checksum) is a ValueError naming the dataset and, for a frame
-    dataset, the rows of the damaged chunk."""
-    d = f[name]
-    try:
-        return d[...]
-    except (OSError, ValueError) as e:
-        why = _why(e)
-    if d.chunks and name in _FRAME_DATASETS:
-        every, step = int(f.attrs.get("every", 1)), d.chunks[0]
-        for a in range(0, len(d), step):            # which chunk: the rows it holds
-            try:
-                d[a:a + step]
-            except (OSError, ValueError):
-                b = min(a + step, len(d)) - 1
-                _damaged(f"/{name} rows {a}-{b} (frames {a * every}-{b * every}) cannot be read ({why})")
-    _damaged(f"/{name} cannot be read ({why})")
-
-
-def _damaged(what, rows_before=False) -> NoReturn:
-    more = "the rows before it may still be read, or rerun" if rows_before else "rerun"
-    raise ValueError(f"{what}: the file is damaged; {more} from a checkpoint")
-
-
-def row_table(f):
-    """(``/time``, ``/row_digest`` or None) of the open ``frames.h5`` ``f``, read once per
-    open file and kept while ``f`` lives (readers do not write).  A chunk failing its
-    checksum is a ValueError naming the dataset and its rows (kept too, raised again)."""
-    key = id(f)
-    got = _ROW_TABLES.get(key)
-    if got is None or got[0]() is not f:
-        try:
-            table = (np.asarray(read_dataset(f, "time"), float),
-                     read_dataset(f, "row_digest") if "row_digest" in f else None)
-        except ValueError as e:     # kept too (its text): finding the damaged chunk reads every chunk
-            table = str(e)
-        got = _ROW_TABLES[key] = (weakref.ref(f, lambda _, key=key: _ROW_TABLES.pop(key, None)), table)
-    if isinstance(got[1], str):
-        raise ValueError(got[1])
-    return got[1]
-
-
-def frame_times(f):
-    """``/time`` of the open ``frames.h5`` ``f`` (s, one per row), read once per open file
-    (:func:`row_table`)."""
-    return row_table(f)[0]
-
-
-@contextmanager
-def naming(path):
-    """Reads of the frames file at ``path`` inside: a damaged value's ValueError
-    (:func:`frame_row`, :func:`read_dataset`) starts with the path."""
-    try:
-        yield
-    except ValueError as e:
-        raise ValueError(f"{path}: {e}") from None
-
-
-def frame_row(f, k):
-    """Row ``k`` of ``/positions`` (n_vertices, 3) of the open ``frames.h5`` ``f``, for a
-    row that holds a frame (:func:`valid_rows`).  Such a row is finite as written (the
-    integrator stops on a non-finite position), so a non-finite value is damage: a chunk
-    missing from a damaged chunk index reads as the fill value NaN without any error from
-    libhdf5 (the crossing check had ended in a LinAlgError and to_usd had written the NaN
-    frame).  Raises ValueError naming the row and the frame."""
-    every = int(f.attrs.get("every", 1))
-    try:
-        x = np.asarray(f["positions"][k], float)
-    except (OSError, ValueError) as e:
-        _damaged(f"/positions row {k} (frame {k * every}) cannot be read ({_why(e)})", rows_before=True)
-    if not np.isfinite(x).all():
-        raise ValueError(f"/positions row {k} (frame {k * every}) reads as NaN or inf at "
-                         f"{int((~np.isfinite(x).all(axis=1)).sum())} vertices: the file is "
-                         "damaged (a chunk missing from its index reads as NaN); the rows "
-                         "before it may still be read, or rerun from a checkpoint")
-    problem = digest_problem(f, k, x)
-    if problem:
-        raise ValueError(f"{problem}; the rows before it may still be read, or rerun from a checkpoint")
-    return x
 
 
 class FramesWriter:
@@ -703,30 +593,3 @@ class FramesWriter:
 
     def __exit__(self, *exc):
         self.close()
-
-
-def read_frames(path, frames=None):
-    """Read ``frames.h5`` (serially) into a dict of arrays; ``frames`` selects rows of
-    ``/positions``, ``/time`` and ``frame_valid`` (:func:`valid_rows`; default: all): row
-    indices, or one row index (its positions (1, n, 3), its time and validity numbers).  Each
-    row that holds a frame is read by :func:`frame_row` (checked against its digest); a
-    damaged one is a ValueError naming the file, the dataset and the row."""
-    h5py = h5py_module()
-    with h5py.File(path, "r") as f:
-        valid = valid_rows(f)       # (its error names the file)
-        with naming(f.filename):
-            return _read_rows(f, valid, frames)
-
-
-def _read_rows(f, valid, frames):
-    """:func:`read_frames`' reads of the open ``f``."""
-    out = {k: read_dataset(f, k) for k in ("wisp_offsets", "rest_positions", "pinned")}
-    ks = np.arange(len(valid))[slice(None) if frames is None else np.asarray(frames)]
-    times = row_table(f)[0]
-    out["time"], out["frame_valid"] = times[ks], valid[ks]     # (numbers for one row given as one)
-    pos = f["positions"]
-    rows = np.atleast_1d(ks).tolist()
-    out["positions"] = np.stack([frame_row(f, k) if valid[k] else pos[k] for k in rows]) \
-        if rows else np.zeros((0,) + pos.shape[1:])
-    out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
-    return out

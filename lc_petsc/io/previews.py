@@ -188,23 +188,22 @@ def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view=
     drawn: a lost row's preview is the nearest valid row's.  ``head``: callable t ->
     (centre, radius) or None.  ``stop``: called before each image (the main job's raises
     :class:`lc_petsc.stop_notice.Stopped` on a signal), or None.  Returns the paths written."""
-    import h5py
-    from lc_petsc.io.frames import frame_row, frame_times, valid_rows
+    from lc_petsc.io.frames_read import FramesReader
     plt = _pyplot()
-    with h5py.File(frames_path, "r") as f:
-        n = f["positions"].shape[0]
-        held = np.flatnonzero(valid_rows(f))
+    with FramesReader(frames_path) as f:
+        n = f.f["positions"].shape[0]
+        held = np.flatnonzero(f.valid)
         if len(held) == 0:
             return []
-        offsets = f["wisp_offsets"][...]
-        times = frame_times(f)
+        offsets = f.dataset("wisp_offsets")
+        times = f.times
         rows = sorted({int(held[np.abs(held - int(r) % n).argmin()]) for r in preview_rows})
         sheet = sorted(set(held[np.linspace(0, len(held) - 1, min(contact_panels, len(held)))
                                 .round().astype(int)].tolist())) if contact_panels > 0 else []
         needed = sorted(set(rows) | set(sheet))
         if not needed:          # output.preview_frames = [] and contact_sheet = 0: nothing to draw
             return []
-        X = {r: frame_row(f, r) for r in needed}
+        X = dict(f.rows(needed))
     discs = [head(times[r]) for r in needed] if head is not None else []
     limits = _limits(list(X.values()), view, discs)
     xl, yl = VIEW_AXES[view][2:]

@@ -135,20 +135,22 @@ def _checkpoint_rows(checkpoint, checkpoints, offsets, rows, every):
 def _file_rows(path, offsets, rows, dt, every, vouched):
     """(rows of the old file that can be recovered, why none can or ""); ``vouched``:
     {row: a checkpoint's positions} the file's rows must equal."""
-    h5py = h5py_module()
+    from lc_petsc.io.frames_read import FramesReader
     if not os.path.isfile(path):
         return [], ""
-    if not h5py.is_hdf5(str(path)):
+    if not h5py_module().is_hdf5(str(path)):
         return [], "not an HDF5 file"
     try:
-        with h5py.File(str(path), "r") as f:
-            return _readable_rows(f, offsets, rows, dt, every, vouched)
+        with FramesReader(path) as r:
+            return _readable_rows(r, offsets, rows, dt, every, vouched)
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:   # whatever a damaged file raises
         return [], f"unreadable ({str(e).split(' (')[0]})"
 
 
-def _readable_rows(f, offsets, rows, dt, every, vouched):
-    from lc_petsc.io.frames import digest_problem, offsets_problem, valid_rows
+def _readable_rows(r, offsets, rows, dt, every, vouched):
+    """:func:`_file_rows` of the open :class:`lc_petsc.io.frames_read.FramesReader` ``r``."""
+    from lc_petsc.io.frames import offsets_problem
+    f = r.f
     if not np.array_equal(f["wisp_offsets"][...], offsets) or f["positions"].shape[1:] != (offsets[-1], 3):
         # a damaged /wisp_offsets is not another scene's: say which it is
         return [], (offsets_problem(f["wisp_offsets"][...], f["positions"].shape[1])
@@ -157,14 +159,14 @@ def _readable_rows(f, offsets, rows, dt, every, vouched):
         have = f.attrs.get(key)
         if have is None or float(have) != want:
             return [], f"it was written with {key} = {have}, the checkpoint with {want:g}"
-    valid = valid_rows(f)
+    valid = r.valid
     found, agree = [], {}
     for k in range(min(rows, len(valid), f["time"].shape[0])):
-        try:
-            x, t = f["positions"][k], f["time"][k]
+        try:        # (row by row: a row that cannot be read is lost, the others are kept)
+            x, t = f["positions"][k], r.entries(k)[0]
             if k in vouched:
                 agree[k] = np.array_equal(x, vouched[k])
-            elif valid[k] and np.isfinite(t) and np.isfinite(x).all() and not digest_problem(f, k, x, t):
+            elif valid[k] and np.isfinite(t) and np.isfinite(x).all() and not r.digest_problem(k, x):
                 found.append(k)     # (a row failing its digest: another row's values, lost)
         except (OSError, ValueError):   # its positions, time or digest in a damaged chunk: lost
             continue

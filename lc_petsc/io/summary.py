@@ -121,7 +121,8 @@ def format_report(s) -> str:
     if head:
         lines.append(f"  hair inside the head: deepest free vertex {head['vertex_depth']:.3g} cm, edge point "
                      f"{head['edge_depth']:.3g} cm ({head['ratio']:.3g} strand radii); frames with a strand "
-                     f"entirely inside {head['rows_sunk']}; vertex paths through it {head['paths_through']}")
+                     f"entirely inside {head['rows_sunk']} ({head.get('rows_sunk_by_chords', 0)} only along edges "
+                     f"between vertices resting on it); vertex paths through it {head['paths_through']}")
     for w in s.get("warnings", []):
         lines.append(f"  warning: {w}")
     out = s.get("output", {})

@@ -38,6 +38,7 @@ is saved once at the end and held in memory until then).  The file is written as
 from __future__ import annotations
 
 import json
+import re
 import sys
 import time
 from dataclasses import fields
@@ -140,7 +141,8 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     and last row written).  ``progress``: callable(done, total) or None.  Returns a dict
     of what was written and how long it took (seconds)."""
     from pxr import Gf, Sdf, Usd, UsdGeom, Vt
-    from lc_petsc.io.frames import frame_row, frame_times, naming, open_frames, read_dataset, valid_rows
+    from lc_petsc.io.frames import offsets_problem
+    from lc_petsc.io.frames_read import FramesReader, naming
     from lc_petsc.io.render_hairs import RenderHairs, root_normals
     from lc_petsc.scene.kinematics import HeadMotion
 
@@ -152,24 +154,28 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
         raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
     try:
-        f = open_frames(frames_path)
+        r = FramesReader(frames_path)
     except (OSError, ValueError) as e:
         raise ValueError(f"{frames_path}: cannot open the frames file ({e})") from None
-    with f:
+    with r:
+        f = r.f
         for key in ("positions", "time", "wisp_offsets", "rest_positions", "pinned"):
             if key not in f:
                 raise ValueError(f"{frames_path}: not an lc_petsc frames file (no /{key})")
         if "config" not in f.attrs or "dt" not in f.attrs:
             raise ValueError(f"{frames_path}: has no 'config'/'dt' attributes (not written by the main job)")
-        # the chunk index first: a damaged /time entry crashed libhdf5 on the read below
-        held = valid_rows(f)
+        with naming(frames_path):     # the chunk index first: a damaged /time entry crashed libhdf5
+            held = r.valid
         config_dict = json.loads(f.attrs["config"])
         tables = config_tables(config_dict)
         dt, every = float(f.attrs["dt"]), int(f.attrs.get("every", 1))
         with naming(frames_path):
-            static = {k: read_dataset(f, k) for k in ("wisp_offsets", "rest_positions", "pinned", "radius") if k in f}
-            times = frame_times(f)
+            static = {k: r.dataset(k) for k in ("wisp_offsets", "rest_positions", "pinned", "radius") if k in f}
+            times = r.times
         offsets = np.asarray(static["wisp_offsets"], np.int64)
+        problem = offsets_problem(offsets, f["positions"].shape[1])
+        if problem:
+            raise ValueError(f"{frames_path}: {problem}")
         sizes = np.diff(offsets)
         rest = np.asarray(static["rest_positions"], float)
         pinned = np.asarray(static["pinned"], bool)
@@ -246,29 +252,28 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
             stage.Save()
 
             t_hairs = 0.0
-            for done, k in enumerate(rows):
-                with naming(frames_path):
-                    world = frame_row(f, k)
-                origin = local_origin(world)
-                x = world - origin          # the render hairs follow a translation exactly
-                p32 = x.astype(np.float32)
-                for op in moves:
-                    op.Set(Gf.Vec3d(*origin.tolist()), float(k))
-                pts_attr.Set(Vt.Vec3fArray.FromNumpy(p32), float(k))
-                ext_attr.Set(Vt.Vec3fArray.FromNumpy(_extent(p32, half_w)), float(k))
-                if head is not None:
-                    head_op.Set(Gf.Matrix4d(head_matrix(motion, times[k]).tolist()), float(k))
-                if hairs is not None:
-                    t0 = time.perf_counter()
-                    R = motion.transform(times[k])[0]
-                    hairs.points(x, normal_rest @ R.T, out=hair_buf)
-                    t_hairs += time.perf_counter() - t0
-                    hair_attr.Set(Vt.Vec3fArray.FromNumpy(hair_buf), float(k))
-                    hair_ext.Set(Vt.Vec3fArray.FromNumpy(_extent(hair_buf, half_w)), float(k))
-                if incremental:
-                    stage.Save()         # appends this frame's samples to the file, frees them
-                if progress is not None:
-                    progress(done + 1, len(rows))
+            with naming(frames_path):       # (a damaged row read in the loop names the file)
+                for done, (k, world) in enumerate(r.rows(rows)):
+                    origin = local_origin(world)
+                    x = world - origin          # the render hairs follow a translation exactly
+                    p32 = x.astype(np.float32)
+                    for op in moves:
+                        op.Set(Gf.Vec3d(*origin.tolist()), float(k))
+                    pts_attr.Set(Vt.Vec3fArray.FromNumpy(p32), float(k))
+                    ext_attr.Set(Vt.Vec3fArray.FromNumpy(_extent(p32, half_w)), float(k))
+                    if head is not None:
+                        head_op.Set(Gf.Matrix4d(head_matrix(motion, times[k]).tolist()), float(k))
+                    if hairs is not None:
+                        t0 = time.perf_counter()
+                        R = motion.transform(times[k])[0]
+                        hairs.points(x, normal_rest @ R.T, out=hair_buf)
+                        t_hairs += time.perf_counter() - t0
+                        hair_attr.Set(Vt.Vec3fArray.FromNumpy(hair_buf), float(k))
+                        hair_ext.Set(Vt.Vec3fArray.FromNumpy(_extent(hair_buf, half_w)), float(k))
+                    if incremental:
+                        stage.Save()         # appends this frame's samples to the file, frees them
+                    if progress is not None:
+                        progress(done + 1, len(rows))
             stage.Save()
             del stage
     return {"path": str(usd_path), "frames": len(rows), "wisps": int(len(sizes)),
@@ -278,21 +283,45 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
             "seconds": time.perf_counter() - t_start, "render_hair_seconds": t_hairs}
 
 
-def export_failed(frames_path, error):
-    """The warning of a failed export: frames.h5 is intact, and the command that writes
-    the export later; or, where frames.h5 itself is gone (the output folder removed
-    mid-run), that there is nothing to export from."""
+def usd_reasons(error):
+    """The reasons in the text of a USD error (pxr's ``Tf.ErrorException``: one line
+    "Error in '<C++ function>' at line N in file <source> : '<reason>'" per error, the
+    most specific first), without the C++ places; another error's text as one reason."""
+    text = str(error).strip()
+    reasons = [re.sub(r"pxrInternal_\w+::", "", line.rsplit(" : ", 1)[-1].strip().strip("'").strip())
+               for line in text.split("\n\tError in ") if " : " in line]
+    return [r for r in reasons if r] or [" ".join(text.split())]
+
+
+def usd_failure(error, more_at):
+    """One line for a USD error: its first (most specific) reason, and how many more USD
+    gave and where they are (``more_at``: "summary.json's output.usd_error", say); pxr's
+    text is a line per C++ error (a full disk gave 7, the crate file's unpacking errors
+    after the write's)."""
+    reasons = usd_reasons(error)
+    more = f" ({len(reasons) - 1} more from USD: {more_at})" if len(reasons) > 1 else ""
+    return reasons[0] + more
+
+
+def export_failed(frames_path, error, target=None, more_at="summary.json's output.usd_error"):
+    """The warning of a failed export of ``frames_path`` (to ``target``), one line: what
+    failed (:func:`usd_failure`), that frames.h5 is intact, and the command that writes the
+    export later; or, where frames.h5 itself is gone (the output folder removed mid-run),
+    that there is nothing to export from."""
+    why = (f"{target}: " if target is not None else "") + usd_failure(error, more_at)
     if not Path(frames_path).is_file():
         return (f"USD export failed: {frames_path} is missing (the output folder was changed during "
-                f"the run?), so there is nothing to write it from: {error}")
-    return f"USD export failed, frames.h5 is intact (write it later with drivers/to_usd.py {frames_path}): {error}"
+                f"the run?), so there is nothing to write it from: {why}")
+    return f"USD export failed, frames.h5 is intact (write it later with drivers/to_usd.py {frames_path}): {why}"
 
 
-def export_run(output, frames_path, out_dir, stop=None, warn=None):
+def export_run(output, frames_path, out_dir, stop=None, warn=None, detail=None):
     """The main job's USD export (rank 0, after ``frames.h5`` is closed): writes
     ``out_dir/frames.usdc`` when ``output.usd`` is on, else removes a stale one.  A
     failure is a warning, given to ``warn`` (the main job's records it in summary.json;
-    None: printed on stderr); the run's other outputs are unaffected.
+    None: printed on stderr) in one line, USD's own text (a line per C++ error) to
+    ``detail`` (the main job keeps it in summary.json; None: dropped); the run's other
+    outputs are unaffected.
     Returns (files written relative to ``out_dir``, seconds).  ``stop``: called after
     each frame (the main job's raises :class:`lc_petsc.stop_notice.Stopped` on a signal:
     the temporary file is removed, no frames.usdc written), or None."""
@@ -313,6 +342,8 @@ def export_run(output, frames_path, out_dir, stop=None, warn=None):
     try:
         write_usd(frames_path, target, progress=None if stop is None else lambda done, total: stop())
     except failures as e:
-        warn(export_failed(frames_path, e))
+        warn(export_failed(frames_path, e, target))
+        if detail is not None:
+            detail(str(e).strip())
         return [], time.perf_counter() - t0
     return [USD_NAME], time.perf_counter() - t0

@@ -41,8 +41,6 @@ second) and keeps its own wisps' slices.
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 
 from lc_petsc.errors import SceneError
@@ -285,9 +283,8 @@ def _stage_curves(path, prim_path):
         # USD's text is "Error in '<C++ function>' at line N in file <source> : '<reason>'",
         # one per line, the most specific first (a truncated .usda: its parse error, then
         # only "Failed to open layer", which was all the message said)
-        reasons = [re.sub(r"pxrInternal_\w+::", "", line.rsplit(" : ", 1)[-1].strip().strip("'").strip())
-                   for line in str(e).strip().split("\n\tError in ") if " : " in line]
-        reason = "; ".join(r for r in reasons if r) or str(e).strip()
+        from lc_petsc.io.usd import usd_reasons
+        reason = "; ".join(usd_reasons(e))
         raise SceneError(f"{where}: cannot open it as USD ({reason}): damaged, truncated or not USD; "
                          "scene.path must be a .usd, .usda or .usdc file") from None
     if stage is None:

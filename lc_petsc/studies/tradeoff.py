@@ -52,6 +52,9 @@ class Settings:
     max_substeps: int = TimeConfig.max_substeps     # step cutback (with a tolerance only)
     newton: str = TimeConfig.newton                 # filtered or trust_region
     root_rotation: bool = TimeConfig.root_rotation  # the root turn after a fixed count
+    # a fixed count extended on frames whose last increment is above this (None: off)
+    newton_extend_above: Optional[float] = TimeConfig.newton_extend_above
+    newton_extend_cap: int = TimeConfig.newton_extend_cap
     exact_fallback: str = SolverConfig.exact_fallback   # with exact_or_analytic only
     exact_stay: bool = SolverConfig.exact_stay
     wisp_trust: bool = SolverConfig.wisp_trust      # with the shifted fallback only
@@ -89,6 +92,8 @@ class Settings:
             parts.append("projected")
         if self.root_rotation:
             parts.append("root turn")
+        if self.newton_extend_above is not None:
+            parts.append(f"extend>{self.newton_extend_above:g} cap {self.newton_extend_cap}")
         if self.exact_fallback != SolverConfig.exact_fallback:
             parts.append(f"{self.exact_fallback} fallback")
         if self.exact_stay:
@@ -181,6 +186,12 @@ def default_variants(base: Settings = BASE, axes=None, ksp_rtols=KSP_RTOLS, conf
         + [(f"paper setting{' ftl' if f else ''}",
             replace(base, newton_update="linear", carry_with_head=False,
                     initial_guess="follow_the_leader" if f else base.initial_guess)) for f in (False, True)],
+        # the fixed count extended on frames far from converged, with and without the
+        # root turn (docs/newton.md, "Eighteenth round")
+        "newton_extend": [(f"{'root turn ' if t else ''}extend>{b:g}",
+                           replace(base, root_rotation=t, newton_extend_above=b))
+                          for t in (False, True) for b in (3e-2, 1e-2, 3e-3)]
+        + [("root turn, not extended", replace(base, root_rotation=True))],
         # a trust region per wisp on the shifted fallback's exact steps (docs/newton.md "A
         # trust region per wisp"), against the recommended path without it
         "wisp_trust": [(f"{'wisp trust' if w else 'shifted'} inc<{t:g}",
@@ -208,7 +219,8 @@ def configured_settings(cfg, options=""):
                     newton_update=t.newton_update, initial_guess=t.initial_guess,
                     carry_with_head=t.carry_with_head, newton_increment_tol=t.newton_increment_tol,
                     length_projection=t.length_projection, max_substeps=t.max_substeps, newton=t.newton,
-                    root_rotation=t.root_rotation, exact_fallback=cfg.solver.exact_fallback,
+                    root_rotation=t.root_rotation, newton_extend_above=t.newton_extend_above,
+                    newton_extend_cap=t.newton_extend_cap, exact_fallback=cfg.solver.exact_fallback,
                     exact_stay=cfg.solver.exact_stay, wisp_trust=cfg.solver.wisp_trust)
 
 
@@ -288,6 +300,9 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.max_substeps = s.max_substeps
     cfg.time.newton = s.newton
     cfg.time.root_rotation = s.root_rotation
+    # the scene file's own extension would be refused with the reference's tolerance
+    cfg.time.newton_extend_above = s.newton_extend_above
+    cfg.time.newton_extend_cap = s.newton_extend_cap
     cfg.solver.filter = s.filter
     cfg.solver.exact_fallback = s.exact_fallback
     cfg.solver.exact_stay = s.exact_stay

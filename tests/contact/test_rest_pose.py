@@ -10,7 +10,7 @@ import lc_petsc.simulator as simmod
 from lc_petsc.config import (MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig)
 from lc_petsc.contact import StrandContact
 from lc_petsc.elements.segment_contact import distance
-from lc_petsc.errors import RestPoseOverlapError
+from lc_petsc.errors import RestPoseOverlapError, StartOverlapError
 from lc_petsc.scene import geometry
 from lc_petsc.scene.sources import ArraySource, GeneratedSource
 
@@ -86,3 +86,140 @@ def test_rest_overlap_config_is_checked():
         PhysicsConfig(strand_contact_mode="ipc").validate()
     with pytest.raises(ConfigError, match="strand_min_separation"):
         PhysicsConfig(strand_min_separation=1.5).validate()
+
+
+# ---------------------------------------------------------------- the initial state
+#: a row of 6 coils 3 cm apart; wisps 4 and 5 only 0.8 cm apart, in phase (0.171 cm apart at rest)
+ROW = [0.0, 3.0, 6.0, 9.0, 12.0, 12.8]
+
+
+def row_source(n_pinned=3):
+    return ArraySource(np.concatenate([geometry.wisp4c(40, root=(x, 16.0, 0.0)) for x in ROW]),
+                       np.arange(0, 40 * len(ROW) + 1, 40), n_pinned=n_pinned)
+
+
+def spun_last_wisp(batch, scene_cfg):
+    """A perturbation that turns the last wisp's coil by 2.5 rad about its axis (its
+    stem, the pinned vertices, stays): interlocked with wisp 4 (test_interlocked_...)."""
+    x = batch.positions.copy()
+    for w, sid in enumerate(batch.ids()):
+        if sid == len(ROW) - 1:
+            a, b = int(batch.offsets[w]), int(batch.offsets[w + 1])
+            x[a:b] = geometry.wisp4c(40, root=(ROW[-1], 16.0, 0.0), spin=2.5)
+    return x
+
+
+def start_config(perturbation="jitter", jitter=0.5, self_contact=False):
+    cfg = interlocked_config()
+    cfg.scene.perturbation, cfg.scene.jitter = perturbation, jitter
+    cfg.physics.strand_self_contact = self_contact
+    return cfg
+
+
+@pytest.mark.mpi
+def test_a_tangled_initial_state_is_refused_on_every_rank(monkeypatch):
+    """Rest pose clear (the rest check passes), the initial state tangled by a
+    perturbation: refused on every rank with the same message naming the pair, also
+    when the tangled wisps are one rank's only (no hang); the same pose as a groom
+    (rest = start) is refused by the rest check.  A restart (check_start=False) is not
+    judged on the initial state."""
+    comm = MPI.COMM_WORLD
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: row_source())
+    monkeypatch.setattr(simmod, "apply_perturbation", spun_last_wisp)
+    with pytest.raises(StartOverlapError) as err:
+        simmod.build_simulator(start_config(), comm=comm)
+    msg = str(err.value)
+    assert "initial state (scene.perturbation = \"jitter\", scene.jitter = 0.5 cm) is tangled" in msg
+    assert "lower scene.jitter" in msg and "strand_collision" in msg
+    import re
+    m = re.search(r"(\d+) pair\(s\).*wisp 4 segment \(vertices (\d+), \d+\) and wisp 5 segment \(vertices "
+                  r"(\d+), \d+\), ([0-9.e-]+) cm apart", msg)
+    assert m, msg
+    assert 160 <= int(m.group(2)) < 199 and 200 <= int(m.group(3)) < 239
+    # the same verdict on every rank
+    assert comm.allgather(msg) == [msg] * comm.size
+    # the count against a brute force over the pairs of wisps 4 and 5 (the only ones
+    # that come near): Tight-Inclusion on every pair of their segments, rest -> start
+    from lc_petsc.crossings import crossing_pairs
+    R = row_source().positions
+    S = R.copy()
+    S[200:240] = geometry.wisp4c(40, root=(ROW[-1], 16.0, 0.0), spin=2.5)
+    a, b = (g.ravel() for g in np.meshgrid(np.arange(160, 199), np.arange(200, 239), indexing="ij"))
+    quad = lambda X: np.stack([X[a], X[a + 1], X[b], X[b + 1]], 1)      # noqa: E731
+    assert distance(quad(R)).min() >= 0.1
+    crossed = crossing_pairs(quad(R), quad(S))
+    assert int(m.group(1)) == int(crossed.sum()) > 0
+    d = distance(quad(S))[crossed].min()
+    assert float(m.group(4)) == pytest.approx(d, rel=1e-2)
+    # a restart continues from its checkpoint's state: the initial one is not judged
+    sim = simmod.build_simulator(start_config(), comm=comm, check_start=False)
+    assert sim.strand.start_warning is None
+    sim.close()
+    # strand_rest_overlap = "exempt": the user runs it anyway, warned with the same finding
+    from lc_petsc.diagnostics import term_warnings
+    cfg = start_config()
+    cfg.physics.strand_rest_overlap = "exempt"
+    sim = simmod.build_simulator(cfg, comm=comm)
+    try:
+        (w,) = [m for m in term_warnings(sim) if "initial state" in m]
+        assert w.startswith(msg.split(".  ")[0]) and "run anyway" in w
+    finally:
+        sim.close()
+    # the same pose as a groom's rest is that groom's own shape (0.133 cm apart): it builds
+    monkeypatch.setattr(simmod, "source_from_config",
+                        lambda *a: ArraySource(S, np.arange(0, 40 * len(ROW) + 1, 40), n_pinned=3))
+    assert distance(quad(S)).min() > 0.1
+    simmod.build_simulator(start_config(perturbation="none"), comm=comm).close()
+
+
+def test_real_perturbations_of_an_untangled_start_run(monkeypatch):
+    """A jitter that tangles nothing (0.05 cm) and a smash by 0.9 build and run a frame
+    with 0 crossings.  Refused: a jitter of 0.5 cm, which tangles the coils with
+    themselves (self-contact), and a smash by 0.4, which squeezes the coils' free turns
+    through each other (built without the check: 60 crossings in the first step, then 5
+    in every step to frame 10, the tangle held)."""
+    from lc_petsc.crossings import count_crossings
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: row_source(4))
+    smash = start_config("smash", self_contact=True)
+    smash.scene.smash_factor = 0.9
+    for cfg in (start_config(jitter=0.05, self_contact=True), smash):
+        sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+        try:
+            x0 = sim.x.copy()
+            assert np.abs(x0 - sim.scene.x_rest).max() > 0.04
+            sim.run(1)
+            assert count_crossings(x0, sim.x, sim.scene.offsets, self_contact=True)["crossings"] == 0
+        finally:
+            sim.close()
+    with pytest.raises(StartOverlapError, match=r"of different wisps or of one wisp.*wisp (\d) segment .* "
+                                                r"and wisp \1 segment.*lower scene.jitter"):
+        simmod.build_simulator(start_config(jitter=0.5, self_contact=True), comm=MPI.COMM_SELF)
+    with pytest.raises(StartOverlapError, match=r"smash_factor = 0.4\) is tangled: .*raise "
+                                                r"scene.smash_factor towards 1"):
+        simmod.build_simulator(start_config("smash", self_contact=True), comm=MPI.COMM_SELF)
+
+
+
+def test_a_straightened_start_is_not_judged_on_the_straight_way():
+    """``straighten`` unwinds each coil onto a line: the straight way from the coiled rest
+    pose passes a hairball wisp's turns through each other (19 pairs for one wisp, which
+    the start check counted and refused) where the straight start itself has no tangle.
+    Such a start is built and runs a frame in ccd mode with self-contact, with 0 crossings;
+    the same wisp jittered by 0.5 cm is still judged (the straight way is the jitter's path)."""
+    from lc_petsc.crossings import count_crossings
+    cfg = SimConfig(scene=SceneConfig(kind="hairball", n_wisps=1, seed=1, n_pinned=4, perturbation="straighten"),
+                    material=MaterialConfig(youngs_modulus=2.5e8),
+                    physics=PhysicsConfig(terms=("stretch", "bend", "twist", "gravity", "strand_collision"),
+                                          strand_contact_mode="ccd", strand_self_contact=True),
+                    time=TimeConfig(frames=1))
+    sim = simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    try:
+        x0 = sim.x.copy()
+        assert np.abs(x0 - sim.scene.x_rest).max() > 1.0        # the coil really was unwound
+        sim.run(1)
+        assert count_crossings(x0, sim.x, sim.scene.offsets, self_contact=True)["crossings"] == 0
+    finally:
+        sim.close()
+    cfg.scene.perturbation, cfg.scene.jitter = "jitter", 0.5
+    with pytest.raises(StartOverlapError, match="scene.jitter = 0.5 cm"):
+        simmod.build_simulator(cfg, comm=MPI.COMM_SELF)

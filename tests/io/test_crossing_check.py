@@ -13,7 +13,7 @@ import pytest
 from mpi4py import MPI
 
 from lc_petsc.batch import main
-from lc_petsc.crossings import check_run
+from lc_petsc.crossings import check_run, edge_strain
 
 comm = MPI.COMM_WORLD
 N = 10                  # vertices per wisp (even: crossings fall inside segments)
@@ -60,7 +60,7 @@ def test_check_counts_each_step_once_on_any_rank_count(tmp_path):
     offsets = [0, N, 2 * N, 2 * N + 6]
     write_frames(path, frames, offsets)
     r = check_run(path, comm, self_contact=False)
-    strain = {k: r.pop(k) for k in ("largest_strain", "largest_strain_row", "rows_over_strain")}
+    strain = {k: r.pop(k) for k in ("largest_strain", "largest_strain_row", "rows_over_strain", "initial_strain")}
     assert r.pop("head") is None            # no config: no head sphere (tests/io/test_head_check.py)
     assert r == {"steps": 5, "between_wisps": 2, "steps_between": 2, "first_between": 1,
                  "within_wisps": None, "steps_within": None, "first_within": None,
@@ -68,7 +68,7 @@ def test_check_counts_each_step_once_on_any_rank_count(tmp_path):
     # C's fold edge (vertices 2-3) has rest length 0.3; through the fold it is 0.3 as well,
     # but row 4 stretches A's first edge by 25%
     assert strain == {"largest_strain": pytest.approx(0.25), "largest_strain_row": 4,
-                      "rows_over_strain": 1}, strain
+                      "rows_over_strain": 1, "initial_strain": 0.0}, strain
     r = check_run(path, comm, self_contact=True)
     assert (r["between_wisps"], r["first_between"]) == (2, 1)
     assert r["within_wisps"] >= 1 and r["steps_within"] == 1 and r["first_within"] == 1, r
@@ -268,6 +268,14 @@ def test_strained_edges_are_reported(tmp_path):
     assert c["largest_strain"] > 0.15 and c["largest_strain_row"] == 1 and c["rows_over_strain"] >= 1, c
     w = [m for m in s["warnings"] if m.startswith("edges stretch or compress by up to")]
     assert len(w) == 1 and "(frame 1;" in w[0] and "time.length_projection = true" in w[0], s["warnings"]
+    # the scramble is the initial state's: measured apart, and the warning says so (it
+    # blamed Newton and dt alone, start57)
+    with h5py.File(tmp_path / "j" / "frames.h5", "r") as f:
+        x0, rest, off = f["positions"][0], f["rest_positions"][...], f["wisp_offsets"][...]
+    start = float(np.abs(edge_strain(x0, rest, off)).max())
+    assert c["initial_strain"] == pytest.approx(start, rel=1e-12) and start > c["largest_strain"] > 0.1
+    assert f"the initial state (frame 0, scene.perturbation = \"jitter\") already has edges {100 * start:.1f}%" \
+        in w[0]
 
 
 def _two_bar_file(tmp_path, name="g.h5"):
@@ -350,7 +358,8 @@ def test_check_is_not_counted_in_the_frame_loops_wall_time(tmp_path, monkeypatch
 def test_count_crossings_screens_in_chunks_and_stops_between_them(monkeypatch):
     """The screen of the candidate pairs (43 s for the 68M of a scrambled 200-wisp step)
     was one compiled call a signal could not stop: it now goes SCREEN_CHUNK pairs at a
-    time, looking at ``stop`` before each; the counts are the same in any chunking."""
+    time, looking at ``stop`` before each (and the Tight-Inclusion pairs CROSSING_CHUNK at
+    a time); the counts are the same in any chunking."""
     import lc_petsc.crossings as crossings
     rng = np.random.default_rng(3)
     X0 = np.concatenate([bar(0.1 * k, k % 3) for k in range(8)]) + 0.05 * rng.standard_normal((8 * N, 3))
@@ -365,7 +374,10 @@ def test_count_crossings_screens_in_chunks_and_stops_between_them(monkeypatch):
     broad = len(looks)                  # the broad phase's parts (box_pairs)
     looks.clear()
     chunked = crossings.count_crossings(X0, X1, off, self_contact=True, stop=lambda: looks.append(1) and False)
-    assert len(looks) == broad + -(-n_pairs // 7)
+    # and every CROSSING_CHUNK of the pairs the screen leaves to Tight-Inclusion
+    n_near = int(crossings.screen_paths(X0, X1, crossings.candidate_pairs(X0, X1, off, True))[0].sum())
+    assert n_near > 0
+    assert len(looks) == broad + -(-n_pairs // 7) + -(-n_near // crossings.CROSSING_CHUNK)
     assert chunked["crossings"] == whole["crossings"] and np.array_equal(chunked["pairs"], whole["pairs"])
     looks.clear()
     stop_at = broad + 2

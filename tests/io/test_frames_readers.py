@@ -1,6 +1,7 @@
 """Every reader of frames.h5 (count_crossings, edge_strain, head_depth, to_usd,
 read_frames, a restart) names the dataset and the rows of a chunk failing its checksum,
-and reads /time and /row_digest once per file, not once per row."""
+reads /time and /row_digest once per file, not once per row, and /positions in blocks of
+consecutive rows, one read per block."""
 
 import collections
 import shutil
@@ -12,7 +13,10 @@ import numpy as np
 import pytest
 
 from lc_petsc.batch import main
-from lc_petsc.io.frames import frame_row, read_frames, resumable_problem, valid_rows
+from lc_petsc.crossings import count_frames
+from lc_petsc.io import read_frames
+from lc_petsc.io.frames import resumable_problem
+from lc_petsc.io.frames_read import FramesReader
 
 from sim_helpers import hairball_toml  # noqa: E402
 
@@ -80,32 +84,85 @@ def test_a_damaged_chunk_is_named_by_every_reader(run, tmp_path, capsys, name, r
     # a restart keeping the damaged row names it too, before it changes anything
     with h5py.File(path, "r") as f:
         n_wisps, n_vertices = f["wisp_offsets"].shape[0] - 1, f["positions"].shape[1]
-    kept = "row 4 (frame 4)" if name == "positions" else "rows 0-5"
+    # (the damaged chunk's rows, as the other readers: "rows 0-5", every kept row, before)
+    kept = "row 4 (frame 4)" if name == "positions" else "rows 0-6 (frames 0-6)"
     assert resumable_problem(path, n_wisps, n_vertices, 6) == f"{path}: /{name} {kept} {WHY}"
 
 
-def test_rows_are_read_with_one_read_each(run, monkeypatch):
-    """Reading every row of a 7-row file read /positions, /time and /row_digest once per
-    row (each row's digest check read its time and digest): 21 reads.  Now /time and
-    /row_digest are read once per open file: 7 + 2; the end-of-run check (count_frames)
-    and to_usd likewise."""
-    reads = collections.Counter()
+@pytest.fixture
+def reads(monkeypatch):
+    """h5py's dataset reads, counted per dataset."""
+    counter = collections.Counter()
     real = h5py.Dataset.__getitem__
 
     def counted(self, sel):
-        reads[self.name] += 1
+        counter[self.name] += 1
         return real(self, sel)
     monkeypatch.setattr(h5py.Dataset, "__getitem__", counted)
-    with h5py.File(run / "out" / "frames.h5", "r") as f:
-        n = len(valid_rows(f))
+    return counter
+
+
+def test_rows_are_read_in_blocks_with_one_read_each(run, tmp_path, reads):
+    """Reading every row of a 7-row file read /positions row by row, one read per row
+    (fault56 had cut the reads of /time and /row_digest to one per open file; before,
+    every row read all three).  Now consecutive rows are one read: read_frames, the
+    end-of-run check (count_frames), to_usd, the restart's read-back and a reader
+    object's rows take one read of /positions for the whole file, and the digests of
+    every row are checked from the block."""
+    path = run / "out" / "frames.h5"
+    with FramesReader(path) as r:
+        n = len(r.valid)
         reads.clear()
-        rows = [frame_row(f, k) for k in range(n)]
-        assert n == 7 and len(rows) == 7
-        assert dict(reads) == {"/positions": 7, "/time": 1, "/row_digest": 1}
-    with h5py.File(run / "out" / "frames.h5", "r") as f:     # a new file object reads them again
-        reads.clear()
-        frame_row(f, 3)
+        rows = dict(r.rows(range(n)))
+        assert n == 7 and sorted(rows) == list(range(7))
         assert dict(reads) == {"/positions": 1, "/time": 1, "/row_digest": 1}
+        reads.clear()
+        assert np.array_equal(r.row(3), rows[3])        # the table is kept: one read of the row
+        assert dict(reads) == {"/positions": 1}
+    with FramesReader(path) as r:       # a new reader reads the table again
+        reads.clear()
+        r.row(3)
+        assert dict(reads) == {"/positions": 1, "/time": 1, "/row_digest": 1}
+    reads.clear()
+    got = read_frames(path)
+    assert got["positions"].shape[0] == 7 and reads["/positions"] == 1, reads
+    assert np.array_equal(got["positions"][3], rows[3])
+    reads.clear()
+    assert len(count_frames(path)[0]) == 6 and reads["/positions"] == 1 and reads["/time"] == 1, reads
+    reads.clear()
+    assert to_usd.main([str(path), "--out", str(tmp_path / "x.usdc"), "--quiet"]) == 0
+    assert reads["/positions"] == 1 and reads["/time"] == 1 and reads["/row_digest"] == 1, reads
+    reads.clear()
+    with h5py.File(path, "r") as f:
+        n_wisps, n_vertices = f["wisp_offsets"].shape[0] - 1, f["positions"].shape[1]
+    assert resumable_problem(path, n_wisps, n_vertices, 7) is None
+    assert reads["/positions"] == 1 and reads["/row_digest"] == 2, reads     # (read back, then the table)
+
+
+def test_blocks_of_rows_are_bounded_and_a_damaged_row_in_one_is_named(run, tmp_path, reads, monkeypatch):
+    """Blocks hold at most READ_BLOCK_BYTES of /positions (the USD export and the
+    crossing check stream a run of any length), rows given out of order, twice or with
+    gaps are read once each in ascending order, and a row failing its checksum inside a
+    block is named (the block read again row by row)."""
+    from lc_petsc.io import frames_read
+    path = run / "out" / "frames.h5"
+    with FramesReader(path) as r:
+        row_bytes = 24 * r.f["positions"].shape[1]
+        monkeypatch.setattr(frames_read, "READ_BLOCK_BYTES", 3 * row_bytes)
+        reads.clear()
+        got = list(r.rows([6, 0, 1, 2, 3, 4, 5, 1]))
+        assert [k for k, _ in got] == list(range(7))
+        assert reads["/positions"] == 3, reads          # rows 0-2, 3-5, 6
+        reads.clear()
+        assert [k for k, _ in r.rows([5, 0, 2, 1])] == [0, 1, 2, 5] and reads["/positions"] == 2
+        with pytest.raises(IndexError, match="row 7 of /positions: the file has rows 0-6"):
+            list(r.rows([7]))
+    damaged = _damaged_copy(run, tmp_path, "positions", 4)
+    with FramesReader(damaged) as r, pytest.raises(ValueError) as e:
+        dict(r.rows(range(7)))
+    assert str(e.value) == ("/positions row 4 (frame 4) cannot be read (data error detected by Fletcher32 "
+                            "checksum): the file is damaged; the rows before it may still be read, or rerun "
+                            "from a checkpoint")
 
 
 def test_a_run_folder_given_for_its_frames_file_says_which_file(run, tmp_path, capsys):
@@ -137,3 +194,75 @@ def test_read_frames_reads_one_row_given_as_a_number(run):
     assert np.array_equal(one["positions"][0], every["positions"][2])
     assert one["time"] == every["time"][2] and np.ndim(one["time"]) == 0 and one["frame_valid"] == True  # noqa: E712
     assert np.array_equal(read_frames(path, frames=[2, 4])["positions"], every["positions"][[2, 4]])
+
+
+def _shortened(name):
+    def cut(f):
+        f[name].resize(f[name].shape[0] - 1, axis=0)
+    return cut
+
+
+def _time_not_increasing(f):
+    """Row 5's time set to row 3's, its digest recomputed (so only the order is wrong)."""
+    from lc_petsc.io.frames import row_digest, vertex_digest
+    t = f["time"][...]
+    t[5] = t[3]
+    f["time"][...] = t
+    f["row_digest"][5] = row_digest([vertex_digest(f["positions"][5], 0)], 5, float(t[5]))
+
+
+def _rest_short(f):
+    x = f["rest_positions"][...]
+    del f["rest_positions"]
+    f["rest_positions"] = x[:-3]
+
+
+def _positions_flat(f):
+    x = f["positions"][...]
+    del f["positions"]
+    f["positions"] = x.reshape(x.shape[0], -1)
+
+
+@pytest.mark.parametrize("damage, want", [
+    (_shortened("row_digest"), "/row_digest has shape (6,), /positions 7 rows: row 6 (frame 6) has no /row_digest "
+                               "entry: the file is damaged"),
+    (_shortened("time"), "/time has shape (6,), /positions 7 rows: row 6 (frame 6) has no /time entry: the file "
+                         "is damaged"),
+    (_time_not_increasing, "/time rows 4 and 5 (frames 4, 5) are not increasing ("),
+    (_rest_short, "/rest_positions has shape (N-3, 3), a frames.h5 of N vertices has (N, 3): the file is damaged"),
+    (_positions_flat, "/positions has shape (7, 3N), a frames.h5 has (frames, N vertices, 3)")],
+    ids=["digest_short", "time_short", "time_not_increasing", "rest_short", "positions_flat"])
+def test_a_frames_file_of_other_shapes_or_times_is_refused_naming_dataset_and_rows(run, tmp_path, capsys, damage,
+                                                                                     want):
+    """A /row_digest or /time one row shorter than /positions ended every reader in an
+    IndexError traceback (to_usd.py with a short /time wrote the export without the last
+    row, exit 0; the restart's message said the file had too few rows); /time not
+    increasing (digests consistent) was read by every reader and kept by a restart; a
+    /rest_positions of another length was read by all but edge_strain (the USD's rest
+    pose and the restart kept it); a flat /positions ended to_usd in a TypeError.  Now
+    each reader and the restart refuse, naming the file, the dataset and the rows."""
+    path = tmp_path / "frames.h5"
+    shutil.copy(run / "out" / "frames.h5", path)
+    with h5py.File(path, "r") as f:
+        n_wisps, nv = f["wisp_offsets"].shape[0] - 1, f["positions"].shape[1]
+    with h5py.File(path, "r+") as f:
+        damage(f)
+    want = want.replace("3N", str(3 * nv)).replace("N-3", str(nv - 3)).replace("N", str(nv))
+    for tool in (count_crossings, edge_strain, head_depth):
+        capsys.readouterr()
+        assert tool.main([str(path)]) == 2
+        err = capsys.readouterr().err
+        assert f"error: {path}: not a readable frames.h5 of lc_petsc" in err and want in err and \
+            err.count("\n") == 1, (tool, err)
+    assert to_usd.main([str(path), "--out", str(tmp_path / "x.usdc"), "--quiet"]) == 2
+    assert capsys.readouterr().err.startswith(f"to_usd.py: error: {path}: {want}")
+    assert not (tmp_path / "x.usdc").exists()
+    with pytest.raises(ValueError) as e:
+        read_frames(path)
+    assert str(e.value).startswith(f"{path}: {want}"), e.value
+    problem = resumable_problem(path, n_wisps, nv, 7)
+    if damage is _positions_flat:   # (the restart's own shape check says it first)
+        assert problem == f"{path}: has {n_wisps} wisps and /positions (7, {3 * nv}), the scene {n_wisps} wisps " \
+                          f"and {nv} vertices"
+    else:
+        assert problem.startswith(f"{path}: {want}"), problem

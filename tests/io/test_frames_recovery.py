@@ -19,7 +19,7 @@ import pytest
 
 from lc_petsc.batch import main
 from lc_petsc.crossings import count_frames
-from lc_petsc.io.frames import read_frames
+from lc_petsc.io import read_frames
 
 from sim_helpers import hairball_toml  # noqa: E402
 
@@ -434,7 +434,8 @@ def test_two_rows_exchanged_in_the_chunk_index_fail_their_digests(tmp_path, stra
     has); a restart keeping rows 0-2 kept the wrong row.  Now every row has a digest in
     /row_digest (over its values, its row number and its time), checked by every read of
     a row and by the restart."""
-    from lc_petsc.io.frames import frame_row, index_problem, resumable_problem
+    from lc_petsc.io.frames import index_problem, resumable_problem
+    from lc_petsc.io.frames_read import FramesReader
     cfg, out = _config(tmp_path), tmp_path / "out"
     assert _run(cfg, out) == 0
     path = out / "frames.h5"
@@ -448,13 +449,14 @@ def test_two_rows_exchanged_in_the_chunk_index_fail_their_digests(tmp_path, stra
         else:                            # (the keys out of order: rows 3 and 4 are not found)
             assert np.isnan(f["positions"][4]).all() and np.isnan(f["positions"][3]).all()
         assert index_problem(f) is None
+    with FramesReader(path) as r:
         with pytest.raises(ValueError, match=r"^/positions row 2 \(frame 2\) does not match its "
                                              r"/row_digest: another row's values \(a damaged chunk index\)"):
-            frame_row(f, 2)
+            r.row(2)
         with pytest.raises(ValueError, match=r"/positions row 4 \(frame 4\) " + (
                 "does not match its /row_digest" if row_4 == "row 2" else "reads as NaN")):
-            frame_row(f, 4)
-        assert np.array_equal(frame_row(f, 1), straight[0][1])
+            r.row(4)
+        assert np.array_equal(r.row(1), straight[0][1])
     assert resumable_problem(path, n_wisps, n_vertices, 3) == (
         f"{path}: /positions row 2 (frame 2) does not match its /row_digest: another row's values (a damaged "
         "chunk index), or its time in /time is another row's; the file is damaged")
@@ -529,7 +531,9 @@ def test_a_damaged_chunk_after_the_kept_rows_leaves_the_restart_and_the_recovery
     _check_rows(out, straight, recovered=[], lost=[], upto=8)
     # from checkpoint 8 the damaged rows are kept rows: refused, then --force recovers the others
     assert _run(cfg, copy, "--frames", "9", "--restart", "latest") == 2
-    assert f"/{name} rows 0-8 cannot be read (data error detected by Fletcher32" in capsys.readouterr().err
+    # (the damaged chunk's rows, not every kept row: rows 0-8 before)
+    assert f"/{name} rows 5-8 (frames 5-8) cannot be read (data error detected by Fletcher32" in \
+        capsys.readouterr().err
     assert _run(cfg, copy, "--frames", "9", "--restart", "latest", "--force") == 0
     _check_rows(copy, straight, recovered=[0, 1, 2, 3, 4, 6, 8], lost=[5, 7], upto=9)
     rec = json.loads((copy / "summary.json").read_text())["frames_recovery"]

@@ -93,6 +93,44 @@ def test_a_chord_through_the_head_with_both_ends_outside():
     assert got["edge"] == pytest.approx(0.0236, abs=1e-4)      # not the 0.3 of the root
 
 
+def test_thin_strand_resting_on_the_scalp_warns_of_its_chords_not_newton():
+    """A strand of radius 1e-3 cm lying on the scalp, its 0.596 cm edges' vertices on the
+    sphere: every edge's chord dips L^2 / 8R = 0.00291 cm (2.91 radii) under it, no vertex
+    does.  Counted as sunk by chords; the warning names the chord, the radius and the
+    edge length that fits (2 sqrt(2 R r - r^2) = 0.349 cm), not Newton iterations or dt
+    (scenes56's thin run: 19 of 20 frames advised them).  A vertex sunk 2 radii deep is
+    still the Newton/dt warning."""
+    from lc_petsc.config import PhysicsConfig, SimConfig
+    from lc_petsc.job import head_warnings
+    L, r, n = 0.596, 1e-3, 12
+    ang = L / R * np.arange(n)            # vertices on the sphere, chords about L long
+    x = R * np.stack([np.sin(ang), np.cos(ang), np.zeros(n)], axis=1)
+    pinned = np.zeros(n, bool)
+    pinned[0] = True
+    got = frame_depths(x, np.zeros(3), R, np.array([0, n]), pinned, np.full(n, r))
+    chord = 2 * R * np.sin(L / (2 * R))
+    sag = R - np.sqrt(R ** 2 - chord ** 2 / 4)
+    assert sag == pytest.approx(0.00291, abs=1e-5)
+    assert got["vertex"] == pytest.approx(0.0, abs=1e-12) and got["edge"] == pytest.approx(sag, rel=1e-9)
+    assert got["sunk"] == got["sunk_chords"] == n - 1
+    assert got["chord_length"] == pytest.approx(chord) and got["chord_radius"] == r
+    head = summarize([(0, dict(got, path_depth=0.0, path_beyond=0.0, path_through=0))])
+    assert head["rows_sunk"] == head["rows_sunk_by_chords"] == 1
+    cfg = SimConfig(physics=PhysicsConfig(terms=("stretch", "bend", "gravity", "head_collision")))
+    (m,) = head_warnings(head, cfg)
+    assert "dips 0.00291 cm under it, 2.91 times the strand radius 0.001 cm" in m, m
+    assert "edges shorter than 0.349 cm" in m and "cannot change it" in m
+    assert "raise time.newton_iterations" not in m
+    # one vertex 2 radii under the sphere: a sink, not a chord
+    x[5] *= (R - 2 * r) / R
+    got = frame_depths(x, np.zeros(3), R, np.array([0, n]), pinned, np.full(n, r))
+    assert got["sunk"] > got["sunk_chords"] == n - 3
+    head = summarize([(0, dict(got, path_depth=0.0, path_beyond=0.0, path_through=0))])
+    assert head["rows_sunk"] == 1 and head["rows_sunk_by_chords"] == 0
+    (m,) = head_warnings(head, cfg)
+    assert m.startswith("hair sinks into the head") and "raise time.newton_iterations" in m
+
+
 def test_a_vertex_passing_through_a_moving_head_between_frames():
     """The head moves 40 cm along x in a step; a vertex at rest 2 cm above its centre's
     path is outside at both frames, yet the head passes through it: relative to the
@@ -120,7 +158,8 @@ def test_summarize_names_rows_and_steps():
     s = summarize([(2, step(0.2, 0.3, 2.0, 3, 0.4, 0)), (0, step(0.0, 0.0, 0.0, 0, 0.0, 0)),
                    (3, step(0.1, 0.1, 0.5, 0, 1.0, 2))])
     assert s == {"vertex_depth": 0.2, "vertex_row": 3, "edge_depth": 0.3, "edge_row": 3, "ratio": 2.0,
-                 "ratio_row": 3, "rows_sunk": 1, "first_sunk_row": 3, "path_depth": 1.0, "path_beyond": 0.5,
+                 "ratio_row": 3, "rows_sunk": 1, "rows_sunk_by_chords": 0, "chord_length": None,
+                 "chord_radius": None, "first_sunk_row": 3, "path_depth": 1.0, "path_beyond": 0.5,
                  "paths_through": 2, "steps_through": 1, "first_through": 3,
                  "depth_per_row": [0.0, None, 0.3, 0.1]}
     assert summarize([]) is None

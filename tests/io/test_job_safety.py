@@ -502,11 +502,30 @@ def test_usd_export_on_a_full_disk_leaves_no_temporary_file(tmp_path, small_volu
     before = sorted(p.name for p in out.iterdir())
     _fill(small_volume, 0)
     capsys.readouterr()
-    files, _ = export_run(OutputConfig(), out / "frames.h5", out)
+    detail = []
+    files, _ = export_run(OutputConfig(), out / "frames.h5", out, detail=detail.append)
     assert files == []
     err = capsys.readouterr().err
     assert "USD export failed, frames.h5 is intact" in err, err
     assert f"write it later with drivers/to_usd.py {out / 'frames.h5'}" in err, err
+    assert sorted(p.name for p in out.iterdir()) == before
+    # one line (pxr's text was 7, each with its C++ function and source file): what failed,
+    # the file, the first reason; USD's own text goes to ``detail`` (the main job's summary.json)
+    assert err.count("\n") == 1 and "Error in '" not in err and "pxrInternal" not in err, err
+    assert f"{out / 'frames.usdc'}: " in err and "No space left on device" in err, err
+    assert len(detail) == 1 and detail[0].count("Error in '") >= 2 and "No space left on device" in detail[0]
+    more = detail[0].count("Error in '") - 1
+    assert err.rstrip().endswith(f"({more} more from USD: summary.json's output.usd_error)"), err
+    # to_usd.py the same, USD's text with --verbose
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "drivers"))
+    import to_usd
+    assert to_usd.main([str(out / "frames.h5"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"to_usd.py: error: USD could not write {out / 'frames.usdc'}: ") and \
+        err.count("\n") == 1 and "No space left on device" in err and "to_usd.py --verbose" in err, err
+    assert to_usd.main([str(out / "frames.h5"), "--quiet", "--verbose"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("Error in '") >= 2 and err.splitlines()[1] == "to_usd.py: USD's text:", err
     assert sorted(p.name for p in out.iterdir()) == before
 
 
@@ -528,6 +547,7 @@ def test_a_failed_usd_export_is_a_warning_in_summary_json(tmp_path, monkeypatch,
     assert len(said) == 1 and "No space left on device" in said[0], s["warnings"]
     assert f"drivers/to_usd.py {out / 'frames.h5'}" in said[0], said
     assert "frames.usdc" not in s["output"]["files"] and not (out / "frames.usdc").exists()
+    assert s["output"]["usd_error"] == "[Errno 28] No space left on device"     # the error's own text
     assert cap.err.count("USD export failed") == 1, cap.err       # once on stderr
     assert "warning: USD export failed" in cap.out, cap.out       # and in the report
 

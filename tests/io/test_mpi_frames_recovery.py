@@ -11,7 +11,7 @@ import pytest
 from mpi4py import MPI
 
 from lc_petsc.batch import main
-from lc_petsc.io.frames import read_frames
+from lc_petsc.io import read_frames
 
 from sim_helpers import hairball_toml, shared_scene_dir  # noqa: E402
 

@@ -202,7 +202,7 @@ def test_the_share_change_is_the_change_of_the_wisps_potentials():
 def test_the_share_change_takes_one_compiled_energy_call(monkeypatch):
     """share_change evaluates every term's across elements before and after the turn in
     one compiled pass (compiled.vertex_energy; three NumPy kernel calls before: the fixed
-    per-call cost weighed on the 10-wisp hairball, docs/newton.md "Eighteenth round"),
+    per-call cost weighed on the 10-wisp hairball, docs/newton.md "Nineteenth round"),
     within round-off of the NumPy kernels' energies; the six central-difference turns of
     ``model`` are Rodrigues turns of the same angles."""
     from lc_petsc import root_rotation
@@ -259,7 +259,7 @@ def test_a_turn_evaluates_the_heads_penalty_twice(monkeypatch):
         real = it._contact_terms
         monkeypatch.setattr(it, "_contact_terms", lambda *a, **k: calls.append(1) or real(*a, **k))
         it.root_turn = turner
-        y = it._last_turn(it.cfg.time.newton_iterations - 1, x)
+        y = it._last_turn(True, x)
         assert len(calls) == 2
         assert np.array_equal(y, fresh)
     finally:

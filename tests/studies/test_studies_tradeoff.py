@@ -553,3 +553,23 @@ def test_a_reference_cut_back_or_unconverged_is_reported_loudly(tmp_path):
         "the reference is not the converged solution of every step: 2 frame(s) not converged to "
         "its tolerance. Errors against it include its own deviation there; raise --ref-tol or use "
         "a smaller --ref-dt")
+
+
+def test_a_scene_file_with_the_extension_gets_a_converged_reference():
+    """A scene file that sets time.newton_extend_above: the study reads it as configured
+    and the reference (a tolerance) runs without it; the extension's settings would
+    otherwise stay in the copied config and be refused with the reference's tolerance
+    (ConfigError).  The newton_extend axis has the three bounds with and without the turn."""
+    from lc_petsc.studies.tradeoff import configured_settings
+    cfg = small_hairball_config(n_wisps=2, newton_extend_above=3e-3, newton_extend_cap=8)
+    mine = configured_settings(cfg)
+    assert (mine.newton_extend_above, mine.newton_extend_cap) == (3e-3, 8)
+    assert "extend>0.003 cap 8" in mine.label()
+    ref = configure(cfg, reference_settings(dt=1 / 30), 0.1)
+    ref.validate()
+    assert ref.time.newton_extend_above is None and ref.time.newton_tol == 1e-9
+    again = configure(small_hairball_config(n_wisps=2), mine, 0.1)
+    assert (again.time.newton_extend_above, again.time.newton_extend_cap) == (3e-3, 8)
+    rows = {n: s for a, n, s in default_variants(BASE, ["newton_extend"]) if a == "newton_extend"}
+    assert {(s.root_rotation, s.newton_extend_above) for s in rows.values()} == \
+        {(t, b) for t in (False, True) for b in (3e-2, 1e-2, 3e-3)} | {(True, None)}

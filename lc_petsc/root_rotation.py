@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lc_petsc.elements import bend, compiled, stretch, twist
+from lc_petsc.elements import compiled, compiled_turn
 from lc_petsc.elements.angle import cross3
 
 #: the angle (rad) of the central differences of the root elements' gradients along the
@@ -28,13 +28,24 @@ from lc_petsc.elements.angle import cross3
 #: 1e-13 without the turn)
 ANGLE_STEP = 1e-4
 
+def _turn_numpy(x, idx, pivot, axis, c, s):
+    """:func:`compiled_turn.turn_vertices` by :func:`rotate`'s arithmetic (the reference)."""
+    y = x.copy()
+    y[idx] = x[pivot] + _rodrigues(x[idx] - x[pivot], axis, c, s)
+    return y
+
+
+#: the turn's fixed per-frame work (:mod:`lc_petsc.elements.compiled_turn`): the model's
+#: per-vertex sums and curvature, the conjugate gradients, the turn of the vertices; compiled (the
+#: default) or the NumPy references (the same bits)
+KERNELS = {"compiled": (compiled_turn.turn_sums, compiled_turn.turn_curvature, compiled_turn.turn_pcg,
+                        compiled_turn.turn_vertices),
+           "numpy": (compiled_turn.turn_sums_numpy, compiled_turn.turn_curvature_numpy, compiled_turn.turn_pcg_numpy,
+                     _turn_numpy)}
+
 #: a wisp whose share of G a turn raised has its turn halved this many times, then
 #: dropped (:meth:`RootRotation.step`)
 HALVINGS = 2
-
-#: the NumPy kernels' per-element energies of the elements across a root
-_ENERGY = {"stretch": stretch.energy, "bend": bend.energy, "twist": twist.energy}
-
 
 def root_pivots(offsets, pinned):
     """(n_wisps,) the last pinned vertex of each wisp whose pinned vertices are its first
@@ -48,11 +59,21 @@ def root_pivots(offsets, pinned):
     return out
 
 
+def axis_angle(theta):
+    """(unit axis (n, 3) (0 for no turn), cos, sin (n,)) of rotation vectors (n, 3)."""
+    angle = np.linalg.norm(theta, axis=1)
+    return theta / np.where(angle > 0.0, angle, 1.0)[:, None], np.cos(angle), np.sin(angle)
+
+
 def rotate(v, theta):
     """The vectors v (n, 3) turned by the rotation vectors ``theta`` (n, 3) (Rodrigues)."""
-    angle = np.linalg.norm(theta, axis=1)
-    axis = theta / np.where(angle > 0.0, angle, 1.0)[:, None]
-    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    return _rodrigues(v, *axis_angle(theta))
+
+
+def _rodrigues(v, axis, c, s):
+    """v (n, 3) turned about the unit ``axis`` (n, 3) by the angles of cosines ``c`` and
+    sines ``s`` (n,)."""
+    c, s = c[:, None], s[:, None]
     return v * c + cross(axis, v) * s + axis * (np.sum(axis * v, axis=1)[:, None] * (1.0 - c))
 
 
@@ -73,21 +94,24 @@ def skew(v):
 def turn(x, theta, pivot, idx):
     """x with the vertices ``idx`` turned about the vertices ``pivot`` (one per index) by
     the rotation vectors ``theta`` (one per index)."""
-    y = x.copy()
-    y[idx] = x[pivot] + rotate(x[idx] - x[pivot], theta)
-    return y
+    return _turn_numpy(x, idx, pivot, *axis_angle(theta))
 
 
 class RootRotation:
     """The root turn of one rank's wisps (:meth:`step`).  ``elements``: the compiled
     kernels' element arrays per term (:func:`lc_petsc.elements.compiled.element_arrays`),
-    ``stencils``: each term's vertices per element."""
+    ``stencils``: each term's vertices per element; ``kernels``: the turn's fixed work
+    compiled or in NumPy (:data:`KERNELS`)."""
 
-    def __init__(self, offsets, pinned, elements, stencils):
+    def __init__(self, offsets, pinned, elements, stencils, kernels="compiled"):
+        if kernels not in KERNELS:
+            raise ValueError(f"root turn: kernels {kernels!r}: use one of {', '.join(KERNELS)}")
+        self._turn_sums, self._curvature, self._pcg, self._turn_vertices = KERNELS[kernels]
         self.offsets = np.asarray(offsets)
         self.pivot = root_pivots(self.offsets, np.asarray(pinned, bool))
         sizes = np.diff(self.offsets)
         self.wisp = np.repeat(np.arange(len(sizes)), sizes)
+        self.pivot_of = np.where(self.pivot >= 0, self.pivot, 0)[self.wisp]     # 0: not turned
         vertex = np.arange(len(self.wisp))
         self.moved = (self.pivot[self.wisp] >= 0) & (vertex > self.pivot[self.wisp])
         self.idx = np.flatnonzero(self.moved)
@@ -104,18 +128,19 @@ class RootRotation:
                                              + [np.zeros((0, 1), int)], axis=None)).astype(np.int64)
         self.across = {name: compiled.element_arrays(name, np.searchsorted(self.near, s), rest, stiff)
                        for name, (s, rest, stiff, _) in across.items()}
-        # their vertices in ``near``, their wisps, and their rest values and stiffnesses
-        # twice, for their energies before and after a turn in one NumPy call (share_change)
-        self.across_twice = {name: (s[:, None] + np.arange(stencils[name]), self.wisp[self.near[s]],
-                                    np.concatenate([r, r]), np.concatenate([k, k]))
-                             for name, (s, r, k) in self.across.items()}
-        # and six copies of them, one per turn and sign, for one kernel call (copy j's
-        # vertices after the j - 1 before it)
+        # copies of them for one kernel call each (copy j's vertices after the j - 1
+        # before it): two, after and before a turn (share_change); six, one per turn and
+        # sign of the central differences (_model)
         n = len(self.near)
-        self.across6 = {name: compiled.element_arrays(name, np.concatenate([s + j * n for j in range(6)]),
-                                                      np.concatenate([r] * 6), np.concatenate([k] * 6))
-                        for name, (s, r, k) in self.across.items()}
+        self.across2, self.across6 = (
+            {name: compiled.element_arrays(name, np.concatenate([s + j * n for j in range(c)]),
+                                           np.concatenate([r] * c), np.concatenate([k] * c))
+             for name, (s, r, k) in self.across.items()} for c in (2, 6))
+        self.near_wisp = self.wisp[self.near]
         self.near_moved = self.moved[self.near]
+        self.layout = compiled_turn.turn_layout(self.mask, self.pivot_of, self.offsets, self.near,
+                                                self.near_moved)
+        self.idx_wisp, self.idx_pivot = self.wisp[self.idx], self.pivot_of[self.idx]
         # the six turns of the central differences (+-ANGLE_STEP about each axis) as
         # matrices acting on row vectors: one product instead of six Rodrigues turns
         eye = np.eye(3)
@@ -155,34 +180,26 @@ class RootRotation:
 
     def _model(self, x, outer, head, unit):
         """:meth:`model` from the terms at x."""
-        held = self.pivot >= 0
-        pivot_of = np.where(held, self.pivot, 0)[self.wisp]
-        r = (x - x[pivot_of]) * self.mask[:, None]
-        eye = np.eye(3)
         xs = x[self.near]
-        q = outer * self.mask[:, None]
-        q[self.near] += self._across_gradient(xs) * self.near_moved[:, None]
-        b = self._sums(cross(r, q))             # d G / d theta_k = sum (e_k x r) . g
-        mr = (unit * self.mask)[:, None] * r
-        T = self._sums(r[:, :, None] * (mr - q)[:, None, :])
-        A = np.einsum("wkk->w", T)[:, None, None] * eye - 0.5 * (T + T.transpose(0, 2, 1))
+        # b = sum r x q: d G / d theta_k = sum (e_k x r) . g; T = sum r (m r - q)^T, M =
+        # sum (m r) r^T (one compiled pass, NumPy's sums bit for bit)
+        r, b, T, M = self._turn_sums(self.layout, x, outer, unit, self._across_gradient(xs))
         # the elements across the root: central differences of their gradients, the six
         # turns in one kernel call
-        pn, rn, wn = x[pivot_of[self.near]], r[self.near], self.wisp[self.near]
+        pn = x[self.pivot_of[self.near]]
         turned = np.where(self.near_moved[None, :, None], pn + np.einsum("nl,jlk->jnk", xs - pn, self.turns6),
                           xs).reshape(-1, 3)
         g6 = np.zeros_like(turned)
         compiled.add_gradient(self.across6, turned, g6)
         g6 = g6.reshape(2, 3, -1, 3)
         HJ = (g6[0] - g6[1]) / (2 * ANGLE_STEP)          # (turn k, vertex, 3)
-        np.add.at(A, wn, np.stack([cross(rn, HJ[k]) for k in range(3)], axis=2))
+        # A = tr(T) I - sym(T) + the across elements' sum r x HJ; P = tr(M) I - M
+        A, P = self._curvature(T, M, HJ, r[self.near], self.near_wisp)
         if head is not None:                     # the head's penalty: sum [r]x^T H [r]x
             hidx, H = head
             S = skew(r[hidx])
             np.add.at(A, self.wisp[hidx], np.einsum("nji,njk,nkl->nil", S, H, S))
         A = 0.5 * (A + A.transpose(0, 2, 1))
-        M = self._sums(mr[:, :, None] * r[:, None, :])
-        P = np.einsum("wkk->w", M)[:, None, None] * eye - M
         return b, A, P
 
     def share_change(self, x, y, change):
@@ -193,12 +210,19 @@ class RootRotation:
         twist depend on lengths and angles only), so this is the change of
         :meth:`Integrator.wisp_potentials` without evaluating the wisps' elements."""
         d = self._sums(change(x, y) * self.mask)
-        xs, ys = x[self.near], y[self.near]
-        for name, (vertices, wisp, rest, stiffness) in self.across_twice.items():
-            if len(wisp):
-                e = _ENERGY[name](np.concatenate([ys[vertices], xs[vertices]]), rest, stiffness)
-                d += np.bincount(wisp, e[:len(wisp)] - e[len(wisp):], minlength=len(d))
-        return d
+        # all terms' elements after and before in one compiled pass (the NumPy kernels'
+        # three calls were a quarter of the turn's time on hairball10), each element's
+        # energy at its first vertex
+        e = compiled.vertex_energy(self.across2, np.concatenate([y[self.near], x[self.near]]))
+        n = len(self.near)
+        return d + np.bincount(self.near_wisp, e[:n] - e[n:], minlength=len(d))
+
+    def _turned(self, x, theta):
+        """x with each held wisp turned about its pivot by its rotation vector ``theta``
+        (n_wisps, 3) (:func:`turn`'s arithmetic)."""
+        axis, c, s = axis_angle(theta)
+        w = self.idx_wisp
+        return self._turn_vertices(x, self.idx, self.idx_pivot, axis[w], c[w], s[w])
 
     def step(self, x, terms, unit, potentials=None):
         """x after the root turn (a new array).  Per held wisp the turn theta solves
@@ -225,26 +249,8 @@ class RootRotation:
         tr = np.einsum("wkk->w", P)
         line = np.linalg.det(P) <= 1e-12 * tr ** 3
         P[line] += (1e-6 * tr[line])[:, None, None] * eye
-        theta = np.zeros((len(held), 3))
-        res = -b
-        z = np.linalg.solve(P, res[:, :, None])[:, :, 0]
-        d = z.copy()
-        active = held.copy()
-        for _ in range(3):
-            Ad = np.einsum("wkl,wl->wk", A, d)
-            dAd = np.sum(d * Ad, axis=1)
-            active &= dAd > 0.0
-            if not active.any():
-                break
-            rz = np.sum(res * z, axis=1)
-            alpha = np.where(active, rz / np.where(active, dAd, 1.0), 0.0)
-            theta += alpha[:, None] * d
-            res = res - alpha[:, None] * Ad
-            z = np.linalg.solve(P, res[:, :, None])[:, :, 0]
-            beta = np.sum(res * z, axis=1) / np.where(rz != 0.0, rz, 1.0)
-            d = z + beta[:, None] * d
-        pivot = self.pivot[self.wisp[self.idx]]
-        y = turn(x, theta[self.wisp[self.idx]], pivot, self.idx)
+        theta = self._pcg(A, P, b, held)
+        y = self._turned(x, theta)
         moving = np.any(theta != 0.0, axis=1)
         self.turned = int(np.count_nonzero(moving))
         reduced = np.zeros(len(held), bool)
@@ -255,6 +261,6 @@ class RootRotation:
             reduced |= rose
             theta[rose] *= 0.5 if halving < HALVINGS else 0.0
             moving &= np.any(theta != 0.0, axis=1)
-            y = turn(x, theta[self.wisp[self.idx]], pivot, self.idx)
+            y = self._turned(x, theta)
         self.reduced = int(np.count_nonzero(reduced))
         return y

@@ -36,6 +36,14 @@ def energy(term, x, rest, stiffness):
                      for e in range(n)])
 
 
+def vertex_energy(term, x, rest, stiffness):
+    """Per element its energy from one :func:`compiled.vertex_energy` pass over all
+    elements (each element's energy at its first vertex, k e)."""
+    k, n, xv, start = _layout(term, x)
+    rest, stiffness = _per_element(term, rest, stiffness, n)
+    return compiled.vertex_energy({term: (start, rest, stiffness)}, xv)[start]
+
+
 def gradient(term, x, rest, stiffness):
     k, n, xv, start = _layout(term, x)
     rest, stiffness = _per_element(term, rest, stiffness, n)

@@ -921,9 +921,11 @@ def _twist_batch(x, start, rest, stiff, lo, hi, mode, exact, tw, hh, u, v, w):
 
 @_jit
 def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
-           mode, g, vals, base, b, upper, exact, diag):
+           mode, g, vals, base, b, upper, exact, diag, per_vertex):
     """All terms in one pass over the vertices (elements in order of their first
-    vertex), so each block row is written while it is in cache; with HESSIAN the
+    vertex), so each block row is written while it is in cache; with ENERGY and a
+    ``per_vertex`` (nv,) (or empty) each element's energy is also added to its first
+    vertex's entry there (:func:`vertex_energy`); with HESSIAN the
     stored blocks of each row are zeroed on the way (row v + b just before the elements
     starting at v, the first to touch it), and without ``upper`` its blocks below the
     diagonal copied from the transposed upper ones once the row is complete, and
@@ -955,6 +957,8 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
             if bad:
                 return energy, 0, ps
             energy += en
+            if len(per_vertex):
+                per_vertex[vtx] += en
             ps += 1
         while pb < b_start.shape[0] and b_start[pb] == vtx:
             if pb == b_hi:
@@ -965,6 +969,8 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
                 return energy, 1, pb
             if mode == ENERGY:
                 energy += _vat(tb, _B_EN, j)
+                if len(per_vertex):
+                    per_vertex[vtx] += _vat(tb, _B_EN, j)
             else:
                 _v_put(g, vals, base, b, mode, vtx, j, tb, _B_G, hb, 3)
             pb += 1
@@ -979,6 +985,8 @@ def _terms(x, s_start, s_rest, s_k, b_start, b_rest, b_k, t_start, t_rest, t_k,
             if flag == 0.0:
                 if mode == ENERGY:
                     energy += _vat(tw, _T_EN, j)
+                    if len(per_vertex):
+                        per_vertex[vtx] += _vat(tw, _T_EN, j)
                 else:
                     _v_put(g, vals, base, b, mode, vtx, j, tw, _T_G, hh, 4)
             pt += 1
@@ -1044,7 +1052,7 @@ class BlockLayout:
 _NO_LAYOUT = BlockLayout(np.zeros((0, 1), np.int64), 0, 0, 0)
 
 
-def _run(terms, x, mode, g, values, layout, upper, exact=False, diag=_NO_VALUES):
+def _run(terms, x, mode, g, values, layout, upper, exact=False, diag=_NO_VALUES, per_vertex=_NO_VALUES):
     """Run the fused pass over ``terms`` (name -> :func:`element_arrays`)."""
     x = np.ascontiguousarray(x, np.float64)
     for name, (start, _, _) in terms.items():
@@ -1055,7 +1063,7 @@ def _run(terms, x, mode, g, values, layout, upper, exact=False, diag=_NO_VALUES)
             raise ValueError(f"{name}: a half bandwidth of {layout.b} cannot hold {k}-vertex elements")
     arrays = [terms.get(name, _NO_ELEMENTS) for name in TERMS]
     energy, term, bad = _terms(x, *arrays[0], *arrays[1], *arrays[2], mode, g, values,
-                               layout.base, layout.b, upper, exact, diag)
+                               layout.base, layout.b, upper, exact, diag, per_vertex)
     if bad >= 0:
         # The NumPy kernel names the problem (ElementError); it must raise here.
         name = TERMS[term]
@@ -1069,6 +1077,16 @@ def _run(terms, x, mode, g, values, layout, upper, exact=False, diag=_NO_VALUES)
 def energy(terms, x):
     """Summed energy of ``terms`` (name -> :func:`element_arrays`) at positions x (nv, 3)."""
     return _run(terms, x, ENERGY, _NO_G, _NO_VALUES, _NO_LAYOUT, False)
+
+
+def vertex_energy(terms, x):
+    """Per vertex (nv,) the energy of the elements of ``terms`` starting there (a wisp's
+    sum of it is its elastic energy): :meth:`lc_petsc.assembly.Assembler.vertex_energy`
+    in one compiled pass, each element's energy that of :func:`energy` (within round-off
+    of the NumPy kernels')."""
+    out = np.zeros(len(x))
+    _run(terms, x, ENERGY, _NO_G, _NO_VALUES, _NO_LAYOUT, False, per_vertex=out)
+    return out
 
 
 def add_gradient(terms, x, g):
@@ -1455,7 +1473,8 @@ def corotate(x, dx, free, offsets, mass):
 
 
 def warm_up():
-    """Compile (or load from the cache) every kernel; returns the seconds it took."""
+    """Compile (or load from the cache) every kernel, the root turn's too
+    (:mod:`compiled_turn`); returns the seconds it took."""
     t0 = time.perf_counter()
     x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
     one = (np.zeros(1, np.int64), np.ones(1), np.ones(1))
@@ -1464,7 +1483,8 @@ def warm_up():
     layout = BlockLayout.block_csr(np.ones((4, 7)), 3)
     for mode in (ENERGY, GRADIENT, HESSIAN):
         for exact in (False, True):
-            _terms(x, *one, *one, *one, mode, g, np.zeros(9 * 28), layout.base, 3, False, exact, _NO_VALUES)
+            _terms(x, *one, *one, *one, mode, g, np.zeros(9 * 28), layout.base, 3, False, exact, _NO_VALUES,
+                   _NO_VALUES)
     _gather_blocks(band, one[0], one[0], np.zeros(9), True)
     add_diagonal(np.zeros(9), np.zeros((1, 3), np.int64), np.ones(1))
     add_segment_blocks(np.zeros(54), np.arange(6, dtype=np.int64).reshape(2, 3), np.zeros(1, np.int64), 1,
@@ -1473,4 +1493,6 @@ def warm_up():
     edge_lengths(x, g, None, np.ones(4, bool), off, np.ones(4))
     edge_lengths(x, None, np.ones(3), np.ones(4, bool), off, None)
     corotate(x, g, np.ones(4, bool), off, np.ones(4))
+    from lc_petsc.elements import compiled_turn     # it imports _jit from here
+    compiled_turn.warm_up()
     return time.perf_counter() - t0

@@ -29,9 +29,12 @@ def _geometry(x, center, radius):
 
 
 def active(x, center, radius):
-    """Boolean mask (n,) of vertices strictly inside the sphere."""
-    depth, _ = _geometry(x, center, radius)
-    return depth > 0
+    """Boolean mask (n,) of vertices strictly inside the sphere: depth > 0 as
+    :func:`_geometry` measures it (radius - dist > 0 is radius > dist in floating point),
+    without the normals it would build for every vertex (run on all of them by every
+    head pass, which the root turn's fixed cost on small scenes felt)."""
+    y = np.asarray(x, float) - np.asarray(center, float)
+    return np.sqrt(np.einsum("ij,ij->i", y, y)) < radius
 
 
 def energy(x, center, radius, stiffness):

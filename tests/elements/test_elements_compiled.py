@@ -36,6 +36,8 @@ def _compare(term, x, rest, k, filter, rtol=RTOL):
     e0 = ref.energy(x, rest, k)
     g0, h0 = ref.gradient_hessian(x, rest, k, filter=filter)
     e1 = ce.energy(term, x, rest, k)
+    # the per-vertex pass writes each element's energy as the summed pass returns it
+    assert np.array_equal(ce.vertex_energy(term, x, rest, k), e1)
     g1, h1 = ce.gradient_hessian(term, x, rest, k, filter=filter)
     n = len(x)
     # Reference magnitudes from the element's Hessian (H ~ k / L^2): near rest the energy
@@ -327,6 +329,33 @@ def test_mass_in_the_pass_is_added_once_on_the_diagonal(nv):
             for r in range(3):
                 want[layout.base[i, b] + 4 * r] += diag[i]
         np.testing.assert_array_equal(with_mass, want)
+
+
+def test_vertex_energy_of_wisps_matches_numpy():
+    """compiled.vertex_energy on two wisps of 150 and 3 vertices (all three terms sharing
+    vertices, bend and twist past one batch, a straight run whose twists are degenerate)
+    is the NumPy kernels' per-element energies summed at each element's first vertex, to
+    round-off; its sum is compiled.energy's; bad elements raise the NumPy error."""
+    rng = np.random.default_rng(11)
+    x = np.concatenate([eh.helix_wisp(150) + rng.normal(scale=0.05, size=(150, 3)), eh.helix_wisp(3)])
+    x[40:46] = x[40] + np.arange(6)[:, None] * np.array([0.3, 0.1, -0.2])    # straight: degenerate twists
+    offsets = [0, 150, 153]
+    arrays, want = {}, np.zeros(len(x))
+    for term, kv in eh.NVERT.items():
+        start = np.concatenate([np.arange(a, b - kv + 1) for a, b in zip(offsets[:-1], offsets[1:])])
+        rest = rng.uniform(0.3, 1.2, len(start)) if term == "stretch" else rng.uniform(-3, 3, len(start))
+        arrays[term] = compiled.element_arrays(term, start, rest, rng.uniform(0.5, 2.0, len(start)))
+        want += np.bincount(start, MODULES[term].energy(x[start[:, None] + np.arange(kv)], *arrays[term][1:]),
+                            minlength=len(x))
+    assert len(arrays["twist"][0]) > 2 * compiled.BATCH
+    got = compiled.vertex_energy(arrays, x)
+    assert got.shape == (len(x),) and np.all(want[np.r_[0:149, 150:152]] != 0.0)     # not the tips
+    assert got[149] == got[152] == 0.0
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14 * np.abs(want).max())
+    assert got.sum() == pytest.approx(compiled.energy(arrays, x), rel=1e-13)
+    x[60] = np.nan
+    with pytest.raises(ElementError):
+        compiled.vertex_energy(arrays, x)
 
 
 @pytest.mark.parametrize("term", eh.TERMS)

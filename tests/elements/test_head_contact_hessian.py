@@ -31,6 +31,23 @@ def test_exact_head_hessian_matches_finite_differences():
     assert np.array_equal(H[~inside], np.zeros((int((~inside).sum()), 3, 3)))
 
 
+def test_active_is_a_positive_depth_bit_for_bit(monkeypatch):
+    """active (no normals built: not through _geometry) is the depth > 0 of the
+    penalty's geometry on random points, points at the sphere's radius to an ulp, the
+    centre, NaN and infinity."""
+    x, c, R, _ = _points()
+    u = np.array([0.6, 0.0, -0.8])
+    edge = [c + u * np.nextafter(R, s) for s in (0.0, np.inf)] + [c + u * R, c, c + 1e-300 * u,
+                                                                  np.full(3, np.nan), np.full(3, np.inf)]
+    x = np.concatenate([x, edge])
+    with np.errstate(invalid="ignore"):         # the normals of NaN and infinity
+        want = head_contact._geometry(x, c, R)[0] > 0
+    monkeypatch.setattr(head_contact, "_geometry", None)
+    got = head_contact.active(x, c, R)
+    assert got.dtype == bool and np.array_equal(got, want)
+    assert 5 < want.sum() < len(x) - 5 and want[-4] and want[-3] and not want[-2] and not want[-1]
+
+
 def test_filtered_head_hessian_is_the_psd_part_of_the_exact_one():
     x, c, R, k = _points()
     exact = np.linalg.eigh(head_contact.hessian(x, c, R, k, filter="none"))

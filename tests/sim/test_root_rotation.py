@@ -138,6 +138,33 @@ def test_the_root_turn_needs_a_fixed_count():
     TimeConfig(root_rotation=True).validate()
 
 
+@pytest.mark.parametrize("terms", [("stretch", "bend", "twist", "gravity"),
+                                   ("stretch", "bend", "twist", "gravity", "head_collision")])
+def test_the_compiled_model_and_turn_are_numpys_bit_for_bit(terms):
+    """The model's sums compiled (the default) or in NumPy (RootRotation's ``kernels``):
+    the same b, A, P and turned positions, bit for bit, on the settled hairball pushed
+    off its step's target; an unknown kernels name is a ValueError."""
+    from lc_petsc.root_rotation import RootRotation
+    sim, turner = _settled(terms)
+    try:
+        it = sim.integrator
+        assert turner._turn_sums.__name__ == "turn_sums"
+        stencils = {n: t.k for n, t in it.scene.terms.items()}
+        ref = RootRotation(it.scene.offsets, it.scene.pinned, it.asm.elements, stencils, kernels="numpy")
+        x = it.x + 0.01 * np.random.default_rng(2).standard_normal(it.x.shape) * it.free[:, None]
+        unit = np.where(it.free, it.scene.mass / it.dt ** 2, 0.0)
+        for got, want in zip(turner.model(x, it._turn_terms, unit), ref.model(x, it._turn_terms, unit)):
+            assert np.abs(want).max() > 0.0
+            np.testing.assert_array_equal(got, want)
+        y = turner.step(x, it._turn_terms, unit, it._vertex_potentials)
+        assert turner.turned == 3 and np.abs(y - x).max() > 1e-6
+        np.testing.assert_array_equal(y, ref.step(x, it._turn_terms, unit, it._vertex_potentials))
+        with pytest.raises(ValueError, match="kernels 'fortran': use one of compiled, numpy"):
+            RootRotation(it.scene.offsets, it.scene.pinned, it.asm.elements, stencils, kernels="fortran")
+    finally:
+        sim.close()
+
+
 def _far_turned_start(terms, angle):
     """The settled 3-wisp hairball with the step's inertial target xhat its own wisps
     turned by ``angle`` (rad) about their pivots: the turn G wants is far beyond where
@@ -172,31 +199,35 @@ def test_the_share_change_is_the_change_of_the_wisps_potentials():
         sim.close()
 
 
-def test_the_share_change_takes_one_energy_call_per_term(monkeypatch):
-    """share_change evaluates the across elements before and after the turn in one
-    NumPy kernel call per term (the fixed per-call cost weighed on the 10-wisp hairball:
-    docs/newton.md "Seventeenth round"), with the values of two calls; the six
-    central-difference turns of ``model`` are Rodrigues turns of the same angles."""
+def test_the_share_change_takes_one_compiled_energy_call(monkeypatch):
+    """share_change evaluates every term's across elements before and after the turn in
+    one compiled pass (compiled.vertex_energy; three NumPy kernel calls before: the fixed
+    per-call cost weighed on the 10-wisp hairball, docs/newton.md "Nineteenth round"),
+    within round-off of the NumPy kernels' energies; the six central-difference turns of
+    ``model`` are Rodrigues turns of the same angles."""
     from lc_petsc import root_rotation
+    from lc_petsc.elements import bend, compiled, stretch, twist
     sim, turner, x, unit = _far_turned_start(("stretch", "bend", "twist", "gravity", "head_collision"), 2.5)
     try:
         it = sim.integrator
         y = turner.step(x, it._turn_terms, unit)
         calls = []
-        kernels = dict(root_rotation._ENERGY)
-        for name, fn in kernels.items():
-            monkeypatch.setitem(root_rotation._ENERGY, name,
-                                lambda v, r, k, fn=fn, name=name: calls.append(name) or fn(v, r, k))
+        real = compiled.vertex_energy
+        monkeypatch.setattr(compiled, "vertex_energy", lambda *a: calls.append(1) or real(*a))
         cheap = turner.share_change(x, y, _change(it))
-        assert sorted(calls) == ["bend", "stretch", "twist"]
-        two = turner._sums(_change(it)(x, y) * turner.mask)
-        xs, ys = x[turner.near], y[turner.near]
-        for name, (vertices, wisp, rest, stiffness) in turner.across_twice.items():
-            n = len(wisp)
-            e = kernels[name](ys[vertices], rest[:n], stiffness[:n]) - kernels[name](xs[vertices], rest[:n],
-                                                                                   stiffness[:n])
-            two += np.bincount(wisp, e, minlength=len(two))
-        assert np.abs(cheap - two).max() <= 1e-12 * np.abs(two).max()
+        assert len(calls) == 1
+        # the reference: the NumPy kernels, each term's elements at y and at x
+        ref = turner._sums(_change(it)(x, y) * turner.mask)
+        kernels = {"stretch": stretch.energy, "bend": bend.energy, "twist": twist.energy}
+        n = len(turner.near)
+        assert set(turner.across) == set(kernels)
+        for name, (start, rest, stiffness) in turner.across.items():
+            assert len(start) >= len(turner.offsets) - 1      # at least one per wisp and term
+            vertices = turner.near[start[:, None] + np.arange(compiled._K[name])]
+            e = kernels[name](y[vertices], rest, stiffness) - kernels[name](x[vertices], rest, stiffness)
+            ref += np.bincount(turner.wisp[vertices[:, 0]], e, minlength=len(ref))
+            assert np.array_equal(turner.across2[name][0], np.concatenate([start, start + n]))
+        assert np.abs(cheap - ref).max() <= 1e-12 * np.abs(ref).max()
         v = np.random.default_rng(0).standard_normal((4, 3))
         for j, (sign, e) in enumerate((s, e) for s in (1, -1) for e in np.eye(3)):
             theta = np.broadcast_to(sign * root_rotation.ANGLE_STEP * e, v.shape)

@@ -192,7 +192,8 @@ class Integrator:
         self.rest_edge = np.linalg.norm(np.diff(scene.x_rest, axis=0), axis=1)
         #: time.root_rotation: each root-held wisp turned after a fixed count (_last_turn)
         self.root_turn = RootRotation(scene.offsets, scene.pinned, assembler.elements,
-                                      {n: t.k for n, t in scene.terms.items()}) \
+                                      {n: t.k for n, t in scene.terms.items()},
+                                      kernels=assembler.kernels) \
             if config.time.root_rotation else None
         #: the step's end: head push-out and path lift, strand separation, ccd frame path
         self.frame_end = FrameEnd(comm, head, strand, self.free, scene.offsets, scene.mass, scene.radius,

@@ -386,6 +386,11 @@ class TimeConfig:
             raise ConfigError(f"time.frames = {self.frames!r} is more than {MAX_FRAMES:,} frames "
                               f"({MAX_FRAMES * float(self.dt) / 86400:.3g} days of simulated time at "
                               f"time.dt = {self.dt:g} s); run fewer frames")
+        if not math.isfinite(float(self.dt) * max(self.frames, 1)):
+            # the head's motion and the frame times at t = k dt overflowed: a traceback
+            raise ConfigError(f"time.dt = {self.dt!r} s times time.frames = {self.frames} is beyond the "
+                              "largest float: the frame times cannot be represented; steps are in "
+                              "seconds (1/30 is a video frame)")
         _int_at_least("time.newton_iterations", self.newton_iterations, 1)
         if self.newton_tol is not None:
             _positive("time.newton_tol", self.newton_tol)

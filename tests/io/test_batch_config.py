@@ -99,6 +99,9 @@ BAD = [
     # replaced a finished run's outputs in --out
     ("empty file", "", ["the config file is empty (0 bytes, no key)", "[scene]"]),
     ("comments only", "# cut here\n\n", ["the config file is empty (12 bytes, no key)"]),
+    # the frame times k dt overflowed: an OverflowError traceback in the head's motion, exit 1
+    ("dt times frames overflows", GOOD.replace("frames = 2", "frames = 2\ndt = 1e308"),
+     ["time.dt = 1e+308 s times time.frames = 2 is beyond the largest float"]),
 ]
 
 

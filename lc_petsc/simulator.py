@@ -45,23 +45,36 @@ def check_head_turn(cfg):
     limiter's fallback cannot hold wisps apart along the frame paths (measured: dt 0.1
     with head_amplitude 1.0 on the demo, 15 crossings in 30 frames and root edges
     stretched 8x, with no error)."""
+    from lc_petsc.config import MIN_DT
     from lc_petsc.contact import MAX_RIGID_DEGREES
     ph, tc = cfg.physics, cfg.time
     if "strand_collision" not in ph.terms or ph.strand_contact_mode != "ccd":
         return
     head = HeadMotion(ph)
-    turn, step = head.largest_turn(tc.dt, tc.frames)
+    # no step can turn by more than the head's top speed times dt: nothing to scan then
+    # (a scan of time.frames = 1e8 steps held the set-up for hours)
+    speed = np.degrees(head.max_angular_speed())
+    if speed * tc.dt <= MAX_RIGID_DEGREES:
+        return
+    turn, step = head.largest_turn(tc.dt, tc.frames, above=MAX_RIGID_DEGREES)
     if turn <= MAX_RIGID_DEGREES:
         return
     duration = tc.frames * tc.dt
     dt = tc.dt * MAX_RIGID_DEGREES / turn
-    while head.largest_turn(dt, int(np.ceil(duration / dt)))[0] > MAX_RIGID_DEGREES:
+    # below `safe` the speed bound holds; below MIN_DT no config can go (the search ran
+    # for ever for physics.head_amplitude = 1e308)
+    safe = MAX_RIGID_DEGREES / speed
+    while dt > max(safe, MIN_DT) and head.largest_turn(
+            dt, int(np.ceil(duration / dt)), above=MAX_RIGID_DEGREES)[0] > MAX_RIGID_DEGREES:
         dt *= 0.95
+    advice = (f"use time.dt <= {dt:.3g}, or a slower head" if dt >= MIN_DT else
+              f"no time.dt >= {MIN_DT:g} s keeps it within that: slow the head (physics.head_amplitude "
+              f"in rad, physics.head_period in s)")
     raise ConfigError(
         f"the head turns by {turn:.1f} degrees in step {step} (time.dt = {tc.dt:g}, "
         f"physics.head_amplitude = {ph.head_amplitude:g}, head_period = {ph.head_period:g}); "
         f"strand contact in \"ccd\" mode keeps wisps from passing through each other only up to "
-        f"{MAX_RIGID_DEGREES:.2f} degrees per step: use time.dt <= {dt:.3g}, or a slower head "
+        f"{MAX_RIGID_DEGREES:.2f} degrees per step: {advice} "
         f"(docs/contact.md, \"The head's turn per step\")")
 
 

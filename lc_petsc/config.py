@@ -136,6 +136,10 @@ class SceneConfig:
             raise ConfigError(f"scene.perturbation must be one of {PERTURBATIONS}, got {self.perturbation!r}")
         _positive("scene.smash_factor", self.smash_factor)
         _positive("scene.jitter", self.jitter, allow_zero=True)
+        if not math.isfinite(2.0 * float(self.jitter)):
+            # numpy's uniform(-jitter, jitter) raised OverflowError: a traceback, exit 1
+            raise ConfigError(f"scene.jitter = {self.jitter!r} cm is beyond half the largest float; "
+                              "the offsets are in cm (a wisp is a few cm to tens of cm long)")
 
 
 @dataclass

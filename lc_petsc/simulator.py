@@ -19,7 +19,7 @@ from lc_petsc.errors import RestPoseOverlapError
 from lc_petsc.rest_pose import check_rest_pose
 from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.outliers import displaced_vertex_problems
-from lc_petsc.scene.perturbation import apply_perturbation
+from lc_petsc.scene.perturbation import apply_perturbation, perturbation_problems
 from lc_petsc.scene.sources import source_from_config
 from lc_petsc.scene.state import LocalScene
 from lc_petsc.solver import LinearSolver
@@ -116,7 +116,9 @@ class Simulator:
         self.scene = scene
         # outputs in the scene's wisp order (parallel.UserLayout)
         self.user = parallel.UserLayout(comm, self.wisp_order, user_sizes, self.ranges, scene)
-        x0 = apply_perturbation(batch, cfg.scene)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):   # checked next
+            x0 = apply_perturbation(batch, cfg.scene)
+        parallel.collective_raise(comm, perturbation_problems(batch, x0, cfg.scene))
         with plan.active():
             self.assembler = Assembler(scene, self.pcomm, self.timers,
                                        filter=element_filter(cfg.solver.filter),

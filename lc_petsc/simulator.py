@@ -108,10 +108,11 @@ class Simulator:
         self.n_vertices = int(voff[-1])
         batch = source.load(w0, w1)
         terms = [t for t in cfg.physics.terms if t in ELASTIC_TERMS]
-        scene, problems = LocalScene.build(batch, cfg.material, terms, source.n_wisps,
-                                           int(voff[w0]), self.n_vertices)
-        if not problems and cfg.scene.kind in ("file", "usd"):    # a groom file: damage, not hair
-            problems = displaced_vertex_problems(batch)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):     # checked there
+            scene, problems = LocalScene.build(batch, cfg.material, terms, source.n_wisps,
+                                               int(voff[w0]), self.n_vertices)
+            if not problems and cfg.scene.kind in ("file", "usd"):    # a groom file: damage, not hair
+                problems = displaced_vertex_problems(batch)
         parallel.collective_raise(comm, [named_by(source, p) for p in problems])
         self.scene = scene
         # outputs in the scene's wisp order (parallel.UserLayout)

@@ -323,6 +323,9 @@ NEWTON_STOPS = ("increment", "quadratic_estimate", "chord_estimate")
 UNCONVERGED = ("accept", "error")
 #: time.max_substeps above this is refused (dt / 1024 is a millisecond at 1/30 s)
 MAX_SUBSTEPS = 1024
+#: time.newton_iterations above this is refused: without a tolerance every one of them
+#: runs (1e18 ran until killed); the scenes and studies use at most 100
+MAX_NEWTON_ITERATIONS = 10_000
 
 
 @dataclass
@@ -396,6 +399,11 @@ class TimeConfig:
                               "largest float: the frame times cannot be represented; steps are in "
                               "seconds (1/30 is a video frame)")
         _int_at_least("time.newton_iterations", self.newton_iterations, 1)
+        if self.newton_iterations > MAX_NEWTON_ITERATIONS:
+            raise ConfigError(f"time.newton_iterations = {self.newton_iterations!r} is more than "
+                              f"{MAX_NEWTON_ITERATIONS:,} Newton iterations per frame (without a "
+                              "tolerance each frame runs every one of them; 3 is the paper's count, "
+                              "30 a cap with time.newton_increment_tol)")
         if self.newton_tol is not None:
             _positive("time.newton_tol", self.newton_tol)
         if self.newton_increment_tol is not None:

@@ -103,6 +103,9 @@ BAD = [
     # the frame times k dt overflowed: an OverflowError traceback in the head's motion, exit 1
     ("dt times frames overflows", GOOD.replace("frames = 2", "frames = 2\ndt = 1e308"),
      ["time.dt = 1e+308 s times time.frames = 2 is beyond the largest float"]),
+    # a fixed count of 1e18 iterations per frame ran until killed
+    ("Newton count 1e18", GOOD.replace("frames = 2", "frames = 2\nnewton_iterations = 1000000000000000000"),
+     ["time.newton_iterations = 1000000000000000000 is more than 10,000 Newton iterations per frame"]),
     # numpy's uniform(-jitter, jitter) raised OverflowError: a traceback, exit 1
     ("jitter beyond half the largest float", GOOD.replace("n_vertices = 12", 'n_vertices = 12\nperturbation = "jitter"\njitter = 1e308'),
      ["scene.jitter = 1e+308 cm is beyond half the largest float"]),

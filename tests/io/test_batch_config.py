@@ -107,7 +107,8 @@ BAD = [
     ("Newton count 1e18", GOOD.replace("frames = 2", "frames = 2\nnewton_iterations = 1000000000000000000"),
      ["time.newton_iterations = 1000000000000000000 is more than 10,000 Newton iterations per frame"]),
     # numpy's uniform(-jitter, jitter) raised OverflowError: a traceback, exit 1
-    ("jitter beyond half the largest float", GOOD.replace("n_vertices = 12", 'n_vertices = 12\nperturbation = "jitter"\njitter = 1e308'),
+    ("jitter beyond half the largest float",
+     GOOD.replace("n_vertices = 12", 'n_vertices = 12\nperturbation = "jitter"\njitter = 1e308'),
      ["scene.jitter = 1e+308 cm is beyond half the largest float"]),
 ]
 
@@ -316,7 +317,8 @@ def test_a_binary_options_file_is_named(tmp_path, capsys):
 def test_a_smash_factor_that_overflows_the_positions_is_refused_before_anything_is_written(tmp_path, capsys):
     """smash_factor = 1e308 ran, wrote frame 0 and failed there (non-finite positions, exit 3)."""
     from sim_helpers import hairball_toml
-    text = hairball_toml(n_wisps=3, frames=2).replace("[material]", 'perturbation = "smash"\nsmash_factor = 1e308\n[material]')
+    text = hairball_toml(n_wisps=3, frames=2).replace(
+        "[material]", 'perturbation = "smash"\nsmash_factor = 1e308\n[material]')
     (tmp_path / "s.toml").write_text(text)
     code, out, err = _run_main(capsys, [str(tmp_path / "s.toml"), "--out", str(tmp_path / "o"), "--quiet"])
     assert code == 2, err

@@ -137,6 +137,18 @@ def test_full_disk_stops_every_rank(shared_dir, monkeypatch):
             subprocess.run(["umount", "-l", vol], check=True)
 
 
+def _refused(cfg, d, capsys, said):
+    """Run the job of ``cfg`` into ``d``/o on every rank: exit 2 on every rank, ``said``
+    printed once, by rank 0, no traceback, nothing written; returns the stderr."""
+    code = main([cfg, "--out", os.path.join(d, "o"), "--quiet"], comm=comm)
+    assert comm.allgather(code) == [2] * comm.size
+    err = capsys.readouterr().err
+    assert comm.allgather(err.count(said)) == [1] + [0] * LAST, err
+    assert "Traceback" not in err
+    assert not os.path.exists(os.path.join(d, "o"))
+    return err
+
+
 def test_bad_strands_file_reported_once(shared_dir, capsys):
     d, _ = shared_dir
     g = os.path.join(d, "g.h5")
@@ -218,13 +230,7 @@ def test_a_wisp_too_large_for_floats_on_one_rank_is_refused_on_every_rank(shared
         with open(cfg, "w") as fh:
             fh.write(f'[scene]\nkind = "file"\npath = "{g}"\n[physics]\nterms = ["stretch", "bend", "twist"]\n')
     comm.Barrier()
-    code = main([cfg, "--out", os.path.join(d, "o"), "--quiet"], comm=comm)
-    assert comm.allgather(code) == [2] * comm.size
-    err = capsys.readouterr().err
-    said = "error: strands file " + g + ": wisp 3, edge 0: rest length overflows to inf"
-    assert comm.allgather(err.count(said)) == [1] + [0] * LAST, err
-    assert "Traceback" not in err
-    assert not os.path.exists(os.path.join(d, "o"))
+    _refused(cfg, d, capsys, "error: strands file " + g + ": wisp 3, edge 0: rest length overflows to inf")
 
 
 def test_a_refusal_on_one_rank_only_is_reported_by_rank_0(shared_dir, capsys, monkeypatch):
@@ -240,8 +246,4 @@ def test_a_refusal_on_one_rank_only_is_reported_by_rank_0(shared_dir, capsys, mo
         if comm.rank == LAST:
             raise Refused(f"rank {LAST}'s own refusal")
     monkeypatch.setattr(Job, "_check_disk", refused_on_the_last_rank)
-    code = main([cfg, "--out", os.path.join(d, "o"), "--quiet"], comm=comm)
-    assert comm.allgather(code) == [2] * comm.size
-    err = capsys.readouterr().err
-    assert comm.allgather(err.count(f"error: rank {LAST}'s own refusal")) == [1] + [0] * LAST, err
-    assert not os.path.exists(os.path.join(d, "o"))
+    _refused(cfg, d, capsys, f"error: rank {LAST}'s own refusal")

@@ -136,6 +136,10 @@ class SceneConfig:
             raise ConfigError(f"scene.perturbation must be one of {PERTURBATIONS}, got {self.perturbation!r}")
         _positive("scene.smash_factor", self.smash_factor)
         _positive("scene.jitter", self.jitter, allow_zero=True)
+        if not math.isfinite(2.0 * float(self.jitter)):
+            # numpy's uniform(-jitter, jitter) raised OverflowError: a traceback, exit 1
+            raise ConfigError(f"scene.jitter = {self.jitter!r} cm is beyond half the largest float; "
+                              "the offsets are in cm (a wisp is a few cm to tens of cm long)")
 
 
 @dataclass
@@ -319,6 +323,9 @@ NEWTON_STOPS = ("increment", "quadratic_estimate", "chord_estimate")
 UNCONVERGED = ("accept", "error")
 #: time.max_substeps above this is refused (dt / 1024 is a millisecond at 1/30 s)
 MAX_SUBSTEPS = 1024
+#: time.newton_iterations above this is refused: without a tolerance every one of them
+#: runs (1e18 ran until killed); the scenes and studies use at most 100
+MAX_NEWTON_ITERATIONS = 10_000
 
 
 @dataclass
@@ -392,7 +399,17 @@ class TimeConfig:
             raise ConfigError(f"time.frames = {self.frames!r} is more than {MAX_FRAMES:,} frames "
                               f"({MAX_FRAMES * float(self.dt) / 86400:.3g} days of simulated time at "
                               f"time.dt = {self.dt:g} s); run fewer frames")
+        if not math.isfinite(float(self.dt) * max(self.frames, 1)):
+            # the head's motion and the frame times at t = k dt overflowed: a traceback
+            raise ConfigError(f"time.dt = {self.dt!r} s times time.frames = {self.frames} is beyond the "
+                              "largest float: the frame times cannot be represented; steps are in "
+                              "seconds (1/30 is a video frame)")
         _int_at_least("time.newton_iterations", self.newton_iterations, 1)
+        if self.newton_iterations > MAX_NEWTON_ITERATIONS:
+            raise ConfigError(f"time.newton_iterations = {self.newton_iterations!r} is more than "
+                              f"{MAX_NEWTON_ITERATIONS:,} Newton iterations per frame (without a "
+                              "tolerance each frame runs every one of them; 3 is the paper's count, "
+                              "30 a cap with time.newton_increment_tol)")
         if self.newton_tol is not None:
             _positive("time.newton_tol", self.newton_tol)
         if self.newton_increment_tol is not None:

@@ -418,6 +418,7 @@ class Job:
         from lc_petsc.solver_check import check_solver
         from petsc4py import PETSc
         comm, outcome, t_setup = self.comm, SETUP_DONE, time.perf_counter()
+        refusal = None
         try:
             self._lock()
             with self.preemption.setup():
@@ -431,15 +432,23 @@ class Job:
                 self._validate()
         except Refused as e:
             say(comm, f"{PROG}: error: {e}", sys.stderr)
-            outcome = SETUP_REFUSED
+            outcome, refusal = SETUP_REFUSED, str(e)
         except SetupInterrupted:
             outcome = SETUP_INTERRUPTED
         if outcome == SETUP_INTERRUPTED or self.preemption.flag:
             self._drop_lock()       # now: mpiexec kills the ranks a second after a SIGTERM
-        ends = self.preemption.end_setup(outcome, built=self.sim is not None)
+        ends = self.preemption.end_setup(outcome, built=self.sim is not None, refusal=refusal)
         if ends is None:
+            if outcome == SETUP_REFUSED:
+                self._abort_refused(refusal)    # does not return
             self._abort_setup()         # does not return
         verdict = max(e[0] for e in ends)
+        if verdict == SETUP_REFUSED:
+            # a refusal of some ranks only (an element error in rank 1's wisps) was
+            # printed by no one: rank 0 prints the first refused rank's
+            first = self.preemption.refusals[0] if self.preemption.refusals else None
+            if outcome != SETUP_REFUSED and first is not None:
+                say(comm, f"{PROG}: error: {first}", sys.stderr)
         if verdict == SETUP_DONE:
             self.setup_time = global_max(comm, time.perf_counter() - t_setup)
             return None
@@ -476,6 +485,21 @@ class Job:
               f"aborting the job (exit status {EXIT_PREEMPTED}); nothing was written, run the same "
               "command again", file=sys.stderr, flush=True)
         self.comm.Abort(EXIT_PREEMPTED)
+
+    def _abort_refused(self, refusal):
+        """This rank refused the run during the set-up and the others did not reach its
+        end within :attr:`Preemption.REFUSED_WAIT` s: they wait in a collective call the
+        refusal made this rank skip (before, mpiexec hung for ever).  The refusal is
+        printed here (rank 0, if it is waiting, never heard it), the lock dropped and
+        the job aborted with exit status 2; nothing was written."""
+        self._drop_lock()
+        if self.comm.rank != 0:
+            print(f"{PROG}: error: {refusal}", file=sys.stderr, flush=True)
+        print(f"{PROG}: rank {self.comm.rank} refused the run during the set-up (above) and the other ranks "
+              f"did not stop within {self.preemption.REFUSED_WAIT:g} s (waiting in a collective call it "
+              f"skipped): aborting the job (exit status {EXIT_USAGE}); nothing was written",
+              file=sys.stderr, flush=True)
+        self.comm.Abort(EXIT_USAGE)
 
     def _lock(self):
         """Step 1: rank 0 locks the output folder (collective verdict)."""
@@ -1297,6 +1321,10 @@ class Preemption:
 
     SIGNALS = ("SIGTERM", "SIGUSR1", "SIGINT")
     SETUP_WAIT = 5.0
+    #: how long a rank that refused the run waits for the others at the set-up's end
+    #: (a refusal on every rank meets there at once; on some ranks only, the others may
+    #: wait in a collective call it skipped)
+    REFUSED_WAIT = 20.0
 
     def __init__(self, comm):
         import signal
@@ -1306,6 +1334,7 @@ class Preemption:
         self.signum, self.raising, self.setup_over = 0, False, False
         self.in_outputs = False     # after the frame loop (the handler's SIGINT note)
         self.setup_comm = comm.Dup() if comm.size > 1 else None
+        self.refusals = []      # end_setup: the refused ranks' messages, by rank
         if threading.current_thread() is threading.main_thread():
             for name in self.SIGNALS:
                 sig = getattr(signal, name)
@@ -1339,26 +1368,33 @@ class Preemption:
         finally:
             self.raising = False
 
-    def end_setup(self, outcome, built):
+    def end_setup(self, outcome, built, refusal=None):
         """Collective: ``(outcome, signal number, built)`` of every rank, by rank (a signal
         after the set-up counts as one during it: nothing has changed yet); None on a rank
-        stopped by a signal whose ranks did not all answer within SETUP_WAIT s."""
+        stopped by a signal, or that refused the run, whose ranks did not all answer
+        within SETUP_WAIT (REFUSED_WAIT) s.  When some rank refused, :attr:`refusals`
+        holds the refused ranks' messages (``refusal``), by rank."""
         self.raising, self.setup_over = False, True
         if self.flag:
             outcome = SETUP_INTERRUPTED
         mine = np.array([outcome, self.signum, built], np.intc)
         if self.setup_comm is None:
+            self.refusals = [refusal] if outcome == SETUP_REFUSED else []
             return [tuple(int(v) for v in mine)]
         every = np.empty((self.comm.size, 3), np.intc)
         req = self.setup_comm.Iallgather(mine, every)
-        if outcome == SETUP_INTERRUPTED:
-            deadline = time.monotonic() + self.SETUP_WAIT
+        if outcome in (SETUP_INTERRUPTED, SETUP_REFUSED):
+            wait = self.SETUP_WAIT if outcome == SETUP_INTERRUPTED else self.REFUSED_WAIT
+            deadline = time.monotonic() + wait
             while not req.Test():
                 if time.monotonic() > deadline:
                     return None
                 time.sleep(0.01)
         else:
             req.Wait()
+        if any(row[0] == SETUP_REFUSED for row in every):     # every rank is here: no one waits
+            self.refusals = [m for m in self.setup_comm.allgather(
+                refusal if outcome == SETUP_REFUSED else None) if m is not None]
         self.setup_comm.Free()
         self.setup_comm = None
         return [tuple(int(v) for v in row) for row in every]

@@ -19,7 +19,7 @@ from lc_petsc.errors import RestPoseOverlapError, StartOverlapError
 from lc_petsc.rest_pose import check_rest_pose, check_start_pose
 from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.outliers import displaced_vertex_problems
-from lc_petsc.scene.perturbation import apply_perturbation
+from lc_petsc.scene.perturbation import apply_perturbation, perturbation_problems
 from lc_petsc.scene.sources import source_from_config
 from lc_petsc.scene.state import LocalScene
 from lc_petsc.solver import LinearSolver
@@ -45,23 +45,36 @@ def check_head_turn(cfg):
     limiter's fallback cannot hold wisps apart along the frame paths (measured: dt 0.1
     with head_amplitude 1.0 on the demo, 15 crossings in 30 frames and root edges
     stretched 8x, with no error)."""
+    from lc_petsc.config import MIN_DT
     from lc_petsc.contact import MAX_RIGID_DEGREES
     ph, tc = cfg.physics, cfg.time
     if "strand_collision" not in ph.terms or ph.strand_contact_mode != "ccd":
         return
     head = HeadMotion(ph)
-    turn, step = head.largest_turn(tc.dt, tc.frames)
+    # no step can turn by more than the head's top speed times dt: nothing to scan then
+    # (a scan of time.frames = 1e8 steps held the set-up for hours)
+    speed = np.degrees(head.max_angular_speed())
+    if speed * tc.dt <= MAX_RIGID_DEGREES:
+        return
+    turn, step = head.largest_turn(tc.dt, tc.frames, above=MAX_RIGID_DEGREES)
     if turn <= MAX_RIGID_DEGREES:
         return
     duration = tc.frames * tc.dt
     dt = tc.dt * MAX_RIGID_DEGREES / turn
-    while head.largest_turn(dt, int(np.ceil(duration / dt)))[0] > MAX_RIGID_DEGREES:
+    # below `safe` the speed bound holds; below MIN_DT no config can go (the search ran
+    # for ever for physics.head_amplitude = 1e308)
+    safe = MAX_RIGID_DEGREES / speed
+    while dt > max(safe, MIN_DT) and head.largest_turn(
+            dt, int(np.ceil(duration / dt)), above=MAX_RIGID_DEGREES)[0] > MAX_RIGID_DEGREES:
         dt *= 0.95
+    advice = (f"use time.dt <= {dt:.3g}, or a slower head" if dt >= MIN_DT else
+              f"no time.dt >= {MIN_DT:g} s keeps it within that: slow the head (physics.head_amplitude "
+              f"in rad, physics.head_period in s)")
     raise ConfigError(
         f"the head turns by {turn:.1f} degrees in step {step} (time.dt = {tc.dt:g}, "
         f"physics.head_amplitude = {ph.head_amplitude:g}, head_period = {ph.head_period:g}); "
         f"strand contact in \"ccd\" mode keeps wisps from passing through each other only up to "
-        f"{MAX_RIGID_DEGREES:.2f} degrees per step: use time.dt <= {dt:.3g}, or a slower head "
+        f"{MAX_RIGID_DEGREES:.2f} degrees per step: {advice} "
         f"(docs/contact.md, \"The head's turn per step\")")
 
 
@@ -95,15 +108,18 @@ class Simulator:
         self.n_vertices = int(voff[-1])
         batch = source.load(w0, w1)
         terms = [t for t in cfg.physics.terms if t in ELASTIC_TERMS]
-        scene, problems = LocalScene.build(batch, cfg.material, terms, source.n_wisps,
-                                           int(voff[w0]), self.n_vertices)
-        if not problems and cfg.scene.kind in ("file", "usd"):    # a groom file: damage, not hair
-            problems = displaced_vertex_problems(batch)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):     # checked there
+            scene, problems = LocalScene.build(batch, cfg.material, terms, source.n_wisps,
+                                               int(voff[w0]), self.n_vertices)
+            if not problems and cfg.scene.kind in ("file", "usd"):    # a groom file: damage, not hair
+                problems = displaced_vertex_problems(batch)
         parallel.collective_raise(comm, [named_by(source, p) for p in problems])
         self.scene = scene
         # outputs in the scene's wisp order (parallel.UserLayout)
         self.user = parallel.UserLayout(comm, self.wisp_order, user_sizes, self.ranges, scene)
-        x0 = apply_perturbation(batch, cfg.scene)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):   # checked next
+            x0 = apply_perturbation(batch, cfg.scene)
+        parallel.collective_raise(comm, perturbation_problems(batch, x0, cfg.scene))
         with plan.active():
             self.assembler = Assembler(scene, self.pcomm, self.timers,
                                        filter=element_filter(cfg.solver.filter),

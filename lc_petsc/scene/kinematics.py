@@ -54,15 +54,51 @@ class HeadMotion:
             return np.eye(3), self.velocity * t
         return np.eye(3), np.zeros(3)
 
-    def largest_turn(self, dt, frames):
+    def max_angular_speed(self):
+        """An upper bound of the head's angular speed (rad/s).  Each axis's angle is 0 at
+        its period's ends, so a step across a change of axis turns by at most this times
+        the step too (its two rotations' angles add up to at most that)."""
+        if self.kind != "shake":
+            return 0.0
+        # d/dtau sin(2 pi tau) sin(pi tau) = 2 pi cos(2 pi tau) sin(pi tau) + pi sin(2 pi tau)
+        # cos(pi tau), at most 3 pi
+        peak = 3.0 * np.pi / SMOOTH_PEAK if self.smooth else 2.0 * np.pi
+        return peak * abs(self.amplitude) / self.period
+
+    def _rotations(self, t):
+        """The rotations (n, 3, 3) of :meth:`transform` at the times ``t`` (n,), shake only."""
+        k = np.floor(t / self.period)
+        if self.smooth:
+            tau = t / self.period - k
+            ang = self.amplitude * np.sin(2.0 * np.pi * tau) * np.sin(np.pi * tau) / SMOOTH_PEAK
+        else:
+            ang = self.amplitude * np.sin(2.0 * np.pi * t / self.period)
+        axes = np.array(_AXES)[np.fmod(k, 3).astype(int)]
+        K = np.zeros((len(t), 3, 3))
+        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -axes[:, 2], axes[:, 1], -axes[:, 0]
+        K -= K.transpose(0, 2, 1)
+        return np.eye(3) + np.sin(ang)[:, None, None] * K + (1.0 - np.cos(ang))[:, None, None] * (K @ K)
+
+    def largest_turn(self, dt, frames, above=None, chunk=1 << 14):
         """(degrees, step): the largest rotation of the head over one step of ``dt`` among
-        the first ``frames`` steps from t = 0, and the first step that turns by it."""
+        the first ``frames`` steps from t = 0, and the first step that turns by it.  With
+        ``above``: the steps are looked at in chunks (of ``chunk``, in time order) and the
+        largest of those up to the first chunk holding a turn beyond ``above`` degrees is
+        returned (the steps were a Python list of every rotation: time.frames = 1e8 hung
+        the set-up)."""
         if self.kind != "shake" or frames <= 0:
             return 0.0, 0
-        R = [self.transform(k * dt)[0] for k in range(frames + 1)]
-        cos = [(np.trace(R[k + 1] @ R[k].T) - 1.0) / 2.0 for k in range(frames)]
-        k = int(np.argmin(cos))
-        return float(np.degrees(np.arccos(np.clip(cos[k], -1.0, 1.0)))), k
+        best, where = 1.0, 0          # the cosine of the largest turn, and its step
+        for k0 in range(0, frames, chunk):
+            k = np.arange(k0, min(k0 + chunk, frames) + 1, dtype=float)
+            R = self._rotations(k * dt)
+            cos = (np.einsum("nij,nij->n", R[1:], R[:-1]) - 1.0) / 2.0
+            j = int(np.argmin(cos))
+            if cos[j] < best:
+                best, where = float(cos[j]), k0 + j
+            if above is not None and np.degrees(np.arccos(np.clip(best, -1.0, 1.0))) > above:
+                break
+        return float(np.degrees(np.arccos(np.clip(best, -1.0, 1.0)))), where
 
     def pinned_positions(self, x_rest, t):
         """Positions (n, 3) of pinned vertices at rest positions ``x_rest`` carried by the head to time ``t``."""

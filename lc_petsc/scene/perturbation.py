@@ -39,3 +39,28 @@ def apply_perturbation(batch, scene_cfg):
                 xw[i] = xw[i - 1] + np.array([0.0, -L[i - 1], 0.0])
         x[a:b] = xw
     return x
+
+
+def perturbation_problems(batch, x, scene_cfg):
+    """Messages naming the first wisp of ``batch`` whose perturbed positions ``x`` (from
+    :func:`apply_perturbation`) or edge lengths are not finite, with the key that did it
+    (``smash_factor = 1e308`` went on to frame 0 and failed there, exit 3; a wisp whose
+    last vertex is its root has no smash axis)."""
+    if scene_cfg.perturbation == "none":
+        return []
+    with np.errstate(over="ignore", invalid="ignore"):
+        edges = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    off = batch.offsets
+    ids = batch.ids()
+    for w in range(batch.n_wisps):
+        a, b = int(off[w]), int(off[w + 1])
+        bad = ~np.isfinite(x[a:b]).all(axis=1)
+        bad[1:] |= ~np.isfinite(edges[a:b - 1])
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            key = {"smash": "scene.smash_factor", "jitter": "scene.jitter"}.get(scene_cfg.perturbation)
+            size = f" ({key} = {getattr(scene_cfg, key.split('.')[1])!r})" if key else ""
+            return [f"scene.perturbation = {scene_cfg.perturbation!r}{size} moves wisp {ids[w]}, vertex {i} "
+                    f"to {x[a + i].tolist()}, whose position or edge length is not a finite number; use a "
+                    f"smaller value (cm for jitter, a factor for smash)"]
+    return []

@@ -150,6 +150,16 @@ class LocalScene:
                             f"{Lbar[j]!r} is zero (coincident vertices{far}); remove the "
                             "duplicate vertex from the groom")
             return None, problems
+        huge = ~np.isfinite(Lbar)
+        if huge.any():
+            # the assembler's check of the same raised on this rank alone: the others
+            # waited for it in a collective call (mpiexec hung)
+            j = int(np.flatnonzero(huge)[0])
+            w = int(wid[es[j]])
+            problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length overflows to {Lbar[j]!r} "
+                            f"(vertices at coordinates up to {scale[j]:.3g}): the groom's positions are "
+                            "not in cm (or the file is damaged); scale the wisp to hair size")
+            return None, problems
         r_e = 0.5 * (batch.radius[es] + batch.radius[es + 1])
         A_e = np.pi * r_e ** 2
         m_e = 0.5 * rho[wid[es]] * A_e * Lbar
@@ -184,6 +194,13 @@ class LocalScene:
                 w = int(wid[t.start[j]])
                 problems.append(f"wisp {ids[w]}: {t.name} stiffness "
                                 f"{t.stiffness[j]!r} of element {t.start[j] - off[w]} is invalid")
+            badr = ~np.isfinite(t.rest)
+            if badr.any():      # (the assembler raised it on this rank alone, as above)
+                j = int(np.flatnonzero(badr)[0])
+                w = int(wid[t.start[j]])
+                problems.append(f"wisp {ids[w]}: the rest {'length' if t.name == 'stretch' else 'angle'} "
+                                f"of {t.name} element {t.start[j] - off[w]} is {t.rest[j]!r} (vertices at "
+                                f"{np.abs(t.gather(x)[j]).max():.3g} cm): not a hair shape in cm")
         if problems:
             return None, problems
         return cls(first_wisp=batch.first_wisp, n_wisps_global=n_wisps_global,

@@ -114,3 +114,49 @@ def test_pairs_the_limiter_left_unresolved_are_reported(tmp_path, monkeypatch):
     assert stuck[1] > 0 and stuck[0] == stuck[2] == 0, stuck
     w = [m for m in s["warnings"] if "could not resolve" in m]
     assert len(w) == 1 and f"in 1 frame(s) (first: 1; {stuck[1]} over its calls" in w[0], w
+
+
+def _no_step_by_step_scan(monkeypatch, limit=10_000):
+    """HeadMotion.transform raising after ``limit`` calls: a scan of every step's
+    rotation one by one (which held the set-up for hours) fails the test instead."""
+    calls = [0]
+    transform = HeadMotion.transform
+
+    def counted(self, t):
+        calls[0] += 1
+        if calls[0] > limit:
+            raise RuntimeError(f"more than {limit} head rotations computed one by one")
+        return transform(self, t)
+    monkeypatch.setattr(HeadMotion, "transform", counted)
+
+
+def test_a_long_run_of_a_slow_head_is_checked_without_scanning_its_steps(monkeypatch):
+    """time.frames = 1e8 of the demo's head: its top speed times dt is within the limit."""
+    _no_step_by_step_scan(monkeypatch)
+    cfg = _demo(1.0 / 30.0, amplitude=0.5, frames=10 ** 8)
+    head = HeadMotion(cfg.physics)
+    assert np.degrees(head.max_angular_speed()) / 30.0 == pytest.approx(6.0)     # 2 pi 0.5 rad/s
+    check_head_turn(cfg)
+
+
+@pytest.mark.parametrize("amplitude, period", [(1e308, 1.0), (0.5, 1e-300), (1e6, 1.0)])
+def test_a_head_too_fast_for_any_dt_is_refused_saying_so(monkeypatch, amplitude, period):
+    """The dt search used to shrink dt for ever (head_amplitude = 1e308: a hung set-up)."""
+    _no_step_by_step_scan(monkeypatch)
+    cfg = _demo(1.0 / 30.0, amplitude=amplitude, period=period, frames=90)
+    with pytest.raises(ConfigError) as e:
+        check_head_turn(cfg)
+    assert "no time.dt >= 1e-06 s keeps it within that: slow the head" in str(e.value), e.value
+
+
+def test_the_chunked_scan_matches_the_step_by_step_rotations():
+    cfg = _demo(0.07, amplitude=0.9, period=0.8, frames=200)
+    for smooth in (False, True):
+        cfg.physics.head_smooth = smooth
+        head = HeadMotion(cfg.physics)
+        R = np.array([head.transform(0.07 * k)[0] for k in range(201)])
+        cos = (np.einsum("nij,nij->n", R[1:], R[:-1]) - 1.0) / 2.0
+        turns = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        turn, step = head.largest_turn(0.07, 200, chunk=16)
+        assert turn == pytest.approx(turns.max(), rel=1e-12) and step == int(np.argmax(turns))
+        assert turns.max() <= np.degrees(head.max_angular_speed()) * 0.07       # the bound holds

@@ -3,6 +3,7 @@ once, names key, value and what is allowed, exits non-zero, dumps no traceback a
 writes nothing."""
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -99,6 +100,16 @@ BAD = [
     # replaced a finished run's outputs in --out
     ("empty file", "", ["the config file is empty (0 bytes, no key)", "[scene]"]),
     ("comments only", "# cut here\n\n", ["the config file is empty (12 bytes, no key)"]),
+    # the frame times k dt overflowed: an OverflowError traceback in the head's motion, exit 1
+    ("dt times frames overflows", GOOD.replace("frames = 2", "frames = 2\ndt = 1e308"),
+     ["time.dt = 1e+308 s times time.frames = 2 is beyond the largest float"]),
+    # a fixed count of 1e18 iterations per frame ran until killed
+    ("Newton count 1e18", GOOD.replace("frames = 2", "frames = 2\nnewton_iterations = 1000000000000000000"),
+     ["time.newton_iterations = 1000000000000000000 is more than 10,000 Newton iterations per frame"]),
+    # numpy's uniform(-jitter, jitter) raised OverflowError: a traceback, exit 1
+    ("jitter beyond half the largest float",
+     GOOD.replace("n_vertices = 12", 'n_vertices = 12\nperturbation = "jitter"\njitter = 1e308'),
+     ["scene.jitter = 1e+308 cm is beyond half the largest float"]),
 ]
 
 
@@ -301,3 +312,17 @@ def test_a_binary_options_file_is_named(tmp_path, capsys):
     assert err.strip() == (f"simulate.py: error: {cfg}: solver.options_file = '{tmp_path / 'x.opts'}': not a "
                            "text file of PETSc options (invalid start byte at byte 15)"), err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_smash_factor_that_overflows_the_positions_is_refused_before_anything_is_written(tmp_path, capsys):
+    """smash_factor = 1e308 ran, wrote frame 0 and failed there (non-finite positions, exit 3)."""
+    from sim_helpers import hairball_toml
+    text = hairball_toml(n_wisps=3, frames=2).replace(
+        "[material]", 'perturbation = "smash"\nsmash_factor = 1e308\n[material]')
+    (tmp_path / "s.toml").write_text(text)
+    code, out, err = _run_main(capsys, [str(tmp_path / "s.toml"), "--out", str(tmp_path / "o"), "--quiet"])
+    assert code == 2, err
+    assert err.count("error:") == 1 and "Traceback" not in err, err
+    assert re.search(r"scene\.perturbation = 'smash' \(scene\.smash_factor = 1e\+308\) moves wisp \d, vertex 4 "
+                     r"to \[-?inf, ", err), err
+    assert "not a finite number" in err and not (tmp_path / "o").exists()

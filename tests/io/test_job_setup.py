@@ -230,3 +230,50 @@ def test_generated_scene_memory_estimate(monkeypatch):
         sources.GeneratedSource("straight", n_vertices=300_000)
     monkeypatch.setattr(sources, "job_nodes", lambda: 2)
     assert sources.GeneratedSource("hairball", n_wisps=3000).n_wisps == 3000
+
+
+# a ValueError on rank 1 alone before the set-up's first matrix (rank 0 waits for it in
+# the collective creation): the model of any rank-local refusal inside a collective section
+ONE_RANK_DRIVER = '''
+import sys
+from mpi4py import MPI
+import lc_petsc.assembly as assembly
+import lc_petsc.job as job
+from lc_petsc.batch import exit_process, main
+
+job.Preemption.REFUSED_WAIT = 3.0
+init = assembly.Assembler.__init__
+
+
+def refused_on_rank_1(self, *args, **kw):
+    if MPI.COMM_WORLD.rank == 1:
+        raise ValueError("rank 1's element check failed")
+    init(self, *args, **kw)
+
+
+assembly.Assembler.__init__ = refused_on_rank_1
+exit_process(main())
+'''
+
+
+def test_a_refusal_on_one_rank_inside_a_collective_call_aborts_with_exit_2(tmp_path):
+    """mpiexec hung for ever: rank 1 refused the run and waited at the set-up's end while
+    rank 0 waited for rank 1 in the matrix creation.  Now rank 1 prints its refusal,
+    drops the lock and aborts the job after Preemption.REFUSED_WAIT s: exit 2, the
+    folder as it was."""
+    driver = tmp_path / "one_rank.py"
+    driver.write_text(ONE_RANK_DRIVER)
+    out = tmp_path / "out"
+    cmd = ["mpiexec", "--oversubscribe", "-n", "2", sys.executable, str(driver), _config(tmp_path),
+           "--out", str(out), "--quiet"]
+    try:
+        p = subprocess.run(cmd, env=MPI_ENV, stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                           timeout=90)
+    except subprocess.TimeoutExpired as e:
+        pytest.fail(f"mpiexec hung: {e.stderr[-2000:] if e.stderr else ''}")
+    assert p.returncode == EXIT_USAGE, p.stderr[-2000:]
+    assert p.stderr.count("simulate.py: error: rank 1's element check failed") == 1, p.stderr
+    assert "rank 1 refused the run during the set-up (above) and the other ranks did not stop within 3 s" \
+        in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+    assert not out.exists()

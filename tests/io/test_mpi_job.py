@@ -137,6 +137,18 @@ def test_full_disk_stops_every_rank(shared_dir, monkeypatch):
             subprocess.run(["umount", "-l", vol], check=True)
 
 
+def _refused(cfg, d, capsys, said):
+    """Run the job of ``cfg`` into ``d``/o on every rank: exit 2 on every rank, ``said``
+    printed once, by rank 0, no traceback, nothing written; returns the stderr."""
+    code = main([cfg, "--out", os.path.join(d, "o"), "--quiet"], comm=comm)
+    assert comm.allgather(code) == [2] * comm.size
+    err = capsys.readouterr().err
+    assert comm.allgather(err.count(said)) == [1] + [0] * LAST, err
+    assert "Traceback" not in err
+    assert not os.path.exists(os.path.join(d, "o"))
+    return err
+
+
 def test_bad_strands_file_reported_once(shared_dir, capsys):
     d, _ = shared_dir
     g = os.path.join(d, "g.h5")
@@ -197,3 +209,41 @@ def test_a_signal_on_one_rank_during_the_crossing_check_stops_every_rank(shared_
         assert s["frames_this_run"] == 0 and s["crossings"]["steps"] == 8 and s["output"]["skipped"] == []
         assert os.path.exists(os.path.join(out, "frames.usdc"))
     _on_root(complete)
+
+
+def test_a_wisp_too_large_for_floats_on_one_rank_is_refused_on_every_rank(shared_dir, capsys):
+    """A groom whose last wisp is scaled by 1e160 (its rest lengths overflow): the
+    assembler's element check raised on the rank owning it alone, and the others waited
+    for it in the matrix creation: mpiexec hung (2 and 3 ranks).  Now the rest state
+    refuses it on every rank, once, naming the wisp."""
+    from lc_petsc.scene import geometry
+    d, _ = shared_dir
+    g = os.path.join(d, "big.h5")
+    cfg = os.path.join(d, "big.toml")
+    if comm.rank == 0:
+        n = 30
+        pos = [geometry.wisp4c(n, root=(2.0 * w, 0.0, 0.0)) for w in range(4)]
+        pos[3] = pos[3] * 1e160
+        with h5py.File(g, "w") as f:
+            f["positions"] = np.concatenate(pos)
+            f["wisp_offsets"] = np.arange(5, dtype=np.int64) * n
+        with open(cfg, "w") as fh:
+            fh.write(f'[scene]\nkind = "file"\npath = "{g}"\n[physics]\nterms = ["stretch", "bend", "twist"]\n')
+    comm.Barrier()
+    _refused(cfg, d, capsys, "error: strands file " + g + ": wisp 3, edge 0: rest length overflows to inf")
+
+
+def test_a_refusal_on_one_rank_only_is_reported_by_rank_0(shared_dir, capsys, monkeypatch):
+    """A refusal on the last rank alone after the set-up's collective calls (here injected
+    after the disk check, the set-up's last step): every rank exits 2, and rank 0 prints
+    that rank's message once (it printed only its own, so nobody printed it)."""
+    from lc_petsc.job import Job, Refused
+    d, cfg = shared_dir
+    check = Job._check_disk
+
+    def refused_on_the_last_rank(self, rows_kept):
+        check(self, rows_kept)
+        if comm.rank == LAST:
+            raise Refused(f"rank {LAST}'s own refusal")
+    monkeypatch.setattr(Job, "_check_disk", refused_on_the_last_rank)
+    _refused(cfg, d, capsys, f"error: rank {LAST}'s own refusal")

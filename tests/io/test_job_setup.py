@@ -35,7 +35,7 @@ from lc_petsc.batch import exit_process, main
 build = simulator.build_simulator
 
 
-def slow_build(cfg, comm=None):
+def slow_build(cfg, comm=None, **kw):
     with open(os.environ["SETUP_MARKER"] + f".{comm.rank}", "w") as f:
         f.write(str(os.getpid()))
     slow = os.environ.get("SLOW_RANK")
@@ -44,7 +44,7 @@ def slow_build(cfg, comm=None):
         while time.monotonic() < t_end:
             sum(range(1000))
     comm.Barrier()
-    return build(cfg, comm)
+    return build(cfg, comm, **kw)
 
 
 simulator.build_simulator = slow_build

@@ -141,7 +141,8 @@ def _file_rows(path, offsets, rows, dt, every, vouched):
     if not h5py_module().is_hdf5(str(path)):
         return [], "not an HDF5 file"
     try:
-        with FramesReader(path) as r:
+        # (its /pinned, /radius, /rest_positions not needed: the new file has the scene's)
+        with FramesReader(path, statics=False) as r:
             return _readable_rows(r, offsets, rows, dt, every, vouched)
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:   # whatever a damaged file raises
         return [], f"unreadable ({str(e).split(' (')[0]})"

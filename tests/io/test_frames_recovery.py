@@ -540,3 +540,41 @@ def test_a_damaged_chunk_after_the_kept_rows_leaves_the_restart_and_the_recovery
     # (checkpoints 2 and 4 are of the first run's config, --frames 4: not used)
     assert rec["from_frames_file"] == [[0, 4]] and rec["from_checkpoints"] == [6, 8]
     assert rec["missing_frames"] == [[5, 5], [7, 7]]
+
+
+def _unopenable(dataset):
+    def damage(path):
+        """The object header of ``dataset`` broken (its version byte): h5py cannot open it."""
+        with h5py.File(path, "r") as f:
+            addr = f.userblock_size + h5py.h5o.get_info(f[dataset].id).addr
+        with open(path, "r+b") as fh:
+            fh.seek(addr)
+            fh.write(b"\x07")
+    return damage
+
+
+def _pinned_of_another_shape(path):
+    with h5py.File(path, "r+") as f:
+        n = len(f["pinned"])
+        del f["pinned"]
+        f.create_dataset("pinned", data=np.zeros(n + 3, bool))
+
+
+@pytest.mark.parametrize("damage", [_unopenable("pinned"), _unopenable("radius"), _pinned_of_another_shape])
+def test_a_damaged_dataset_the_rows_do_not_need_leaves_them_recovered(tmp_path, straight, capsys, damage):
+    """--force recovers the rows of a frames.h5 whose /pinned or /radius is damaged (the
+    new file takes them from the scene): the recovery read them before io57, which then
+    checked every dataset's shape when the file was opened and recovered no row
+    ("unreadable (/pinned has shape ...)"; fault51's damaged headers, /tmp/s51/f51/sw_metaa)."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0                       # 6 frames, checkpoints 2, 4, 6
+    damage(out / "frames.h5")
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2      # cannot be appended to
+    err = capsys.readouterr().err
+    assert "frame(s) 0-1, 3, 5 from the old frames.h5" in err and "no frame lost" in err, err
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest", "--force") == 0
+    _check_rows(out, straight, recovered=[0, 1, 2, 3, 4, 5, 6], lost=[], upto=8)
+    rec = json.loads((out / "summary.json").read_text())["frames_recovery"]
+    assert rec["from_frames_file"] == [[0, 1], [3, 3], [5, 5]] and rec["from_checkpoints"] == [2, 4, 6]

@@ -18,7 +18,7 @@ from lc_petsc.io import read_frames
 from lc_petsc.io.frames import resumable_problem
 from lc_petsc.io.frames_read import FramesReader
 
-from sim_helpers import hairball_toml  # noqa: E402
+from sim_helpers import break_header, hairball_toml  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "scripts"))
@@ -269,15 +269,10 @@ def test_a_frames_file_of_other_shapes_or_times_is_refused_naming_dataset_and_ro
 
 
 def _unopenable_copy(run, tmp_path, name):
-    """A copy of the run's frames.h5 whose /``name`` object header is broken (its version
-    byte): h5py raises a KeyError opening it."""
+    """A copy of the run's frames.h5 whose /``name`` cannot be opened (a broken header)."""
     path = tmp_path / "frames.h5"
     shutil.copy(run / "out" / "frames.h5", path)
-    with h5py.File(path, "r") as f:
-        addr = f.userblock_size + h5py.h5o.get_info(f[name].id).addr
-    with open(path, "r+b") as fh:
-        fh.seek(addr)
-        fh.write(b"\x07")
+    break_header(path, name)
     return path
 
 

@@ -21,7 +21,7 @@ from lc_petsc.batch import main
 from lc_petsc.crossings import count_frames
 from lc_petsc.io import read_frames
 
-from sim_helpers import hairball_toml  # noqa: E402
+from sim_helpers import break_header, hairball_toml  # noqa: E402
 
 SCENE = hairball_toml(frames="{frames}",
                       output="checkpoint_every = 2\ncheckpoints_kept = {kept}\ncontact_sheet = 4")
@@ -543,14 +543,7 @@ def test_a_damaged_chunk_after_the_kept_rows_leaves_the_restart_and_the_recovery
 
 
 def _unopenable(dataset):
-    def damage(path):
-        """The object header of ``dataset`` broken (its version byte): h5py cannot open it."""
-        with h5py.File(path, "r") as f:
-            addr = f.userblock_size + h5py.h5o.get_info(f[dataset].id).addr
-        with open(path, "r+b") as fh:
-            fh.seek(addr)
-            fh.write(b"\x07")
-    return damage
+    return lambda path: break_header(path, dataset)
 
 
 def _pinned_of_another_shape(path):

@@ -47,7 +47,8 @@ def layout_problem(f, rows=None, statics=True):
     """Why the datasets of the open ``frames.h5`` ``f`` do not have a frames file's shapes
     (a frame dataset shorter than ``/positions``: a row with no time or digest), else
     None; ``rows``: only the first ``rows`` rows must be in every frame dataset (a
-    restart keeps those and cuts the others); ``statics``: also the datasets of one entry
+    restart keeps those and cuts the others; 0: no length checked, the recovery takes
+    the rows each holds); ``statics``: also the datasets of one entry
     per vertex (the recovery reads the rows only).  Shapes only, no frame dataset is
     read.  A missing ``/positions`` is a KeyError (``/time``: where a reader needs it); a
     dataset whose object header cannot be read is left to the reader that opens it
@@ -100,9 +101,10 @@ class FramesReader:
     in 'Is a directory'.  Errors of :meth:`dataset`, :meth:`rows` and :meth:`table` do not
     name the file (the caller does, :func:`naming`); :attr:`valid`'s does.  ``statics``:
     :attr:`valid` checks the shapes of ``/rest_positions``, ``/pinned`` and ``/radius``
-    too (off for a reader of the rows alone)."""
+    too (off for a reader of the rows alone); ``rows``: only the first ``rows`` rows
+    must be in every frame dataset (:func:`layout_problem`)."""
 
-    def __init__(self, path, statics=True):
+    def __init__(self, path, statics=True, rows=None):
         path = str(path)
         if os.path.isdir(path):
             inside = os.path.join(path, "frames.h5")
@@ -117,6 +119,7 @@ class FramesReader:
         # the static datasets' shapes checked too (the recovery salvages the rows of a
         # file whose /pinned or /radius is damaged: the new file takes them from the scene)
         self.statics = statics
+        self.kept = rows            # layout_problem's rows: a restart's kept rows
 
     def close(self):
         """Close the file."""
@@ -150,7 +153,7 @@ class FramesReader:
             if problem:
                 raise ValueError(f"{self.f.filename}: {problem}; the rows before it may still be read, or rerun "
                                  "from a checkpoint")
-            problem = layout_problem(self.f, statics=self.statics)
+            problem = layout_problem(self.f, self.kept, statics=self.statics)
             if problem:
                 raise ValueError(problem)
             self._valid = valid_rows(self.f, check=False)

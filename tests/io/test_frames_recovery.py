@@ -571,3 +571,43 @@ def test_a_damaged_dataset_the_rows_do_not_need_leaves_them_recovered(tmp_path, 
     _check_rows(out, straight, recovered=[0, 1, 2, 3, 4, 5, 6], lost=[], upto=8)
     rec = json.loads((out / "summary.json").read_text())["frames_recovery"]
     assert rec["from_frames_file"] == [[0, 1], [3, 3], [5, 5]] and rec["from_checkpoints"] == [2, 4, 6]
+
+
+def _short_last_time(path):
+    with h5py.File(path, "r+") as f:
+        f["time"].resize(f["time"].shape[0] - 1, axis=0)
+
+
+def test_a_frame_dataset_short_after_the_kept_rows_leaves_the_restart_and_the_recovery_alone(tmp_path, straight,
+                                                                                           capsys):
+    """/time one row shorter than /positions (its last row, frame 6, has no time): the
+    restart from checkpoint 4 keeps rows 0-4 and rewrites the others, as it did before
+    io57, which refused it ("unreadable, truncated or damaged HDF5 file (/time has shape
+    (6,) ...)") although its own check asks only the kept rows to be in every frame
+    dataset; from checkpoint 6 the rows kept need row 6's time (refused) and --force
+    recovers rows 0-5 of the file (io57: none)."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0                       # 6 frames, checkpoints 2, 4, 6
+    # a /row_digest short of the last row: the recovery takes the rows it holds (it ended
+    # in an IndexError traceback before io57, and took none after)
+    from lc_petsc.io.recovery import _file_rows
+    short = tmp_path / "short_digest.h5"
+    shutil.copy(out / "frames.h5", short)
+    with h5py.File(short, "r+") as f:
+        f["row_digest"].resize(6, axis=0)
+        offsets, dt = f["wisp_offsets"][...], float(f.attrs["dt"])
+    assert _file_rows(short, offsets, 7, dt, 1, {}) == (list(range(6)), "")
+    _short_last_time(out / "frames.h5")
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", str(out / "checkpoints" / "checkpoint_000004.h5")) == 0, \
+        capsys.readouterr().err
+    _check_rows(out, straight, recovered=[], lost=[], upto=8)
+    assert _run(cfg, copy, "--frames", "8", "--restart", "latest") == 2
+    assert "/time has shape (6,), /positions 7 rows: row 6 (frame 6) has no /time entry" in capsys.readouterr().err
+    assert _run(cfg, copy, "--frames", "8", "--restart", "latest", "--force") == 0
+    _check_rows(copy, straight, recovered=list(range(7)), lost=[], upto=8)
+    rec = json.loads((copy / "summary.json").read_text())["frames_recovery"]
+    assert rec["from_frames_file"] == [[0, 1], [3, 3], [5, 5]] and rec["from_checkpoints"] == [2, 4, 6]

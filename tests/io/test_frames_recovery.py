@@ -504,6 +504,18 @@ def _damage_chunk(path, name, row):
         fh.write(bytes([b ^ 0xFF]))
 
 
+def _restarted_from_checkpoint_4(cfg, out, tmp_path, straight, capsys):
+    """A copy of the run folder ``out`` (returned as it was), then ``out`` restarted from
+    checkpoint 4 to frame 8: it keeps rows 0-4 and rewrites the others (the straight run's)."""
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", str(out / "checkpoints" / "checkpoint_000004.h5")) == 0, \
+        capsys.readouterr().err
+    _check_rows(out, straight, recovered=[], lost=[], upto=8)
+    return copy
+
+
 @pytest.mark.parametrize("name", ["time", "row_digest"])
 def test_a_damaged_chunk_after_the_kept_rows_leaves_the_restart_and_the_recovery_alone(tmp_path, straight,
                                                                                      capsys, name):
@@ -522,13 +534,7 @@ def test_a_damaged_chunk_after_the_kept_rows_leaves_the_restart_and_the_recovery
     with h5py.File(out / "frames.h5", "r") as f:
         assert f[name].chunks == (5,) and f[name].shape == (9,)
     _damage_chunk(out / "frames.h5", name, 5)
-    copy = tmp_path / "copy"
-    shutil.copytree(out, copy)
-    capsys.readouterr()
-    # the restart from checkpoint 4 keeps rows 0-4 and rewrites the damaged ones
-    assert _run(cfg, out, "--frames", "8", "--restart", str(out / "checkpoints" / "checkpoint_000004.h5")) == 0, \
-        capsys.readouterr().err
-    _check_rows(out, straight, recovered=[], lost=[], upto=8)
+    copy = _restarted_from_checkpoint_4(cfg, out, tmp_path, straight, capsys)
     # from checkpoint 8 the damaged rows are kept rows: refused, then --force recovers the others
     assert _run(cfg, copy, "--frames", "9", "--restart", "latest") == 2
     # (the damaged chunk's rows, not every kept row: rows 0-8 before)
@@ -599,12 +605,7 @@ def test_a_frame_dataset_short_after_the_kept_rows_leaves_the_restart_and_the_re
         offsets, dt = f["wisp_offsets"][...], float(f.attrs["dt"])
     assert _file_rows(short, offsets, 7, dt, 1, {}) == (list(range(6)), "")
     _short_last_time(out / "frames.h5")
-    copy = tmp_path / "copy"
-    shutil.copytree(out, copy)
-    capsys.readouterr()
-    assert _run(cfg, out, "--frames", "8", "--restart", str(out / "checkpoints" / "checkpoint_000004.h5")) == 0, \
-        capsys.readouterr().err
-    _check_rows(out, straight, recovered=[], lost=[], upto=8)
+    copy = _restarted_from_checkpoint_4(cfg, out, tmp_path, straight, capsys)
     assert _run(cfg, copy, "--frames", "8", "--restart", "latest") == 2
     assert "/time has shape (6,), /positions 7 rows: row 6 (frame 6) has no /time entry" in capsys.readouterr().err
     assert _run(cfg, copy, "--frames", "8", "--restart", "latest", "--force") == 0

@@ -301,7 +301,7 @@ def head_warnings(head, cfg):
     out = []
     by_chords = head.get("rows_sunk_by_chords") or 0
     if by_chords:
-        out.append(chord_warning(head, phys.head_radius, every))
+        out.append(chord_warning(head, phys.head_radius))
     if head["rows_sunk"] > by_chords:
         more = f" ({head['rows_sunk'] - by_chords} with a vertex that deep)" if by_chords else ""
         out.append(f"hair sinks into the head{more}: strands lie entirely inside the head sphere (deeper than their "
@@ -320,7 +320,7 @@ def head_warnings(head, cfg):
     return out
 
 
-def chord_warning(head, radius, every):
+def chord_warning(head, radius):
     """The warning for frames in which strands lie inside the head sphere only along
     straight edges between vertices that rest on it (``head["rows_sunk_by_chords"]``): the
     chord of an edge of length L between two points of a sphere of ``radius`` R dips

@@ -153,7 +153,7 @@ def resumable_problem(path, n_wisps, n_vertices, rows, dt=None, every=None, chec
         return f"{path}: not an HDF5 file, cannot append the restarted frames to it"
     from lc_petsc.io.frames_read import FramesReader
     try:
-        with FramesReader(path) as r:
+        with FramesReader(path, rows=rows) as r:     # (the rows after the kept ones are rewritten)
             return _layout_problem(r.f, path, n_wisps, n_vertices, rows, dt, every) or \
                 _kept_problem(r, path, rows, offsets) or _row_problem(r.f, path, checkpoint_row)
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:

@@ -43,12 +43,16 @@ def _damaged(what, rows_before=False) -> NoReturn:
     raise FramesDamage(what, rows_before)
 
 
-def layout_problem(f, rows=None):
+def layout_problem(f, rows=None, statics=True):
     """Why the datasets of the open ``frames.h5`` ``f`` do not have a frames file's shapes
     (a frame dataset shorter than ``/positions``: a row with no time or digest), else
     None; ``rows``: only the first ``rows`` rows must be in every frame dataset (a
-    restart keeps those and cuts the others).  Shapes only, no frame dataset is read.  A
-    missing ``/positions`` is a KeyError (``/time``: where a reader needs it)."""
+    restart keeps those and cuts the others; 0: no length checked, the recovery takes
+    the rows each holds); ``statics``: also the datasets of one entry
+    per vertex (the recovery reads the rows only).  Shapes only, no frame dataset is
+    read.  A missing ``/positions`` is a KeyError (``/time``: where a reader needs it); a
+    dataset whose object header cannot be read is left to the reader that opens it
+    (:meth:`FramesReader.dataset` names it)."""
     pos, every = f["positions"], int(f.attrs.get("every", 1))
     if pos.ndim != 3 or pos.shape[2] != 3:
         off = f.get("wisp_offsets")
@@ -62,9 +66,10 @@ def layout_problem(f, rows=None):
             n = n if rows is None else rows
             lacking = f": {rows_text(len(d), n - 1, every)} no /{name} entry" if d.ndim == 1 and len(d) < n else ""
             return f"/{name} has shape {d.shape}, /positions {n} rows{lacking}: the file is damaged"
-    for name, shape in (("rest_positions", (nv, 3)), ("pinned", (nv,)), ("radius", (nv,))):
-        if name in f and f[name].shape != shape:
-            return f"/{name} has shape {f[name].shape}, a frames.h5 of {nv} vertices has {shape}: the file is damaged"
+    for name, shape in (("rest_positions", (nv, 3)), ("pinned", (nv,)), ("radius", (nv,))) if statics else ():
+        d = f.get(name)         # (None too where its header cannot be read)
+        if d is not None and d.shape != shape:
+            return f"/{name} has shape {d.shape}, a frames.h5 of {nv} vertices has {shape}: the file is damaged"
     return None
 
 
@@ -94,9 +99,12 @@ class FramesReader:
     the h5py ``File``).  A folder (a run's output folder given for its ``frames.h5``) is a
     ValueError saying which file to give: libhdf5's own error was a multi-line dump ending
     in 'Is a directory'.  Errors of :meth:`dataset`, :meth:`rows` and :meth:`table` do not
-    name the file (the caller does, :func:`naming`); :attr:`valid`'s does."""
+    name the file (the caller does, :func:`naming`); :attr:`valid`'s does.  ``statics``:
+    :attr:`valid` checks the shapes of ``/rest_positions``, ``/pinned`` and ``/radius``
+    too (off for a reader of the rows alone); ``rows``: only the first ``rows`` rows
+    must be in every frame dataset (:func:`layout_problem`)."""
 
-    def __init__(self, path):
+    def __init__(self, path, statics=True, rows=None):
         path = str(path)
         if os.path.isdir(path):
             inside = os.path.join(path, "frames.h5")
@@ -108,6 +116,10 @@ class FramesReader:
         self._valid = None
         self._table: tuple | str | None = None
         self._order = None          # order_problem of /time
+        # the static datasets' shapes checked too (the recovery salvages the rows of a
+        # file whose /pinned or /radius is damaged: the new file takes them from the scene)
+        self.statics = statics
+        self.kept = rows            # layout_problem's rows: a restart's kept rows
 
     def close(self):
         """Close the file."""
@@ -141,7 +153,7 @@ class FramesReader:
             if problem:
                 raise ValueError(f"{self.f.filename}: {problem}; the rows before it may still be read, or rerun "
                                  "from a checkpoint")
-            problem = layout_problem(self.f)
+            problem = layout_problem(self.f, self.kept, statics=self.statics)
             if problem:
                 raise ValueError(problem)
             self._valid = valid_rows(self.f, check=False)
@@ -151,7 +163,12 @@ class FramesReader:
         """Dataset ``name``, whole, or its first ``rows`` rows; one that cannot be read (a
         chunk failing its checksum) is a :class:`FramesDamage` naming the dataset and,
         for a frame dataset, the rows of the damaged chunk."""
-        d = self.f[name]
+        try:
+            d = self.f[name]
+        except KeyError as e:       # h5py's error for a damaged object header too
+            if name not in self.f:
+                raise
+            _damaged(f"/{name} cannot be opened ({_why(e.args[0] if e.args else e)})")
         sel = np.s_[...] if rows is None else np.s_[:rows]
         try:
             return d[sel]

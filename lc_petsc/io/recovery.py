@@ -141,7 +141,9 @@ def _file_rows(path, offsets, rows, dt, every, vouched):
     if not h5py_module().is_hdf5(str(path)):
         return [], "not an HDF5 file"
     try:
-        with FramesReader(path) as r:
+        # (its /pinned, /radius, /rest_positions not needed: the new file has the scene's;
+        # a frame dataset shorter than /positions: the rows all of them hold)
+        with FramesReader(path, statics=False, rows=0) as r:
             return _readable_rows(r, offsets, rows, dt, every, vouched)
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:   # whatever a damaged file raises
         return [], f"unreadable ({str(e).split(' (')[0]})"
@@ -168,7 +170,7 @@ def _readable_rows(r, offsets, rows, dt, every, vouched):
                 agree[k] = np.array_equal(x, vouched[k])
             elif valid[k] and np.isfinite(t) and np.isfinite(x).all() and not r.digest_problem(k, x):
                 found.append(k)     # (a row failing its digest: another row's values, lost)
-        except (OSError, ValueError):   # its positions, time or digest in a damaged chunk: lost
+        except (OSError, ValueError, IndexError):   # its positions, time or digest damaged or missing: lost
             continue
     if agree and not any(agree.values()):
         return [], (f"its rows at the checkpoints' frames ({frames_text(agree, every)}) differ from "

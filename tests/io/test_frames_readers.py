@@ -18,7 +18,7 @@ from lc_petsc.io import read_frames
 from lc_petsc.io.frames import resumable_problem
 from lc_petsc.io.frames_read import FramesReader
 
-from sim_helpers import hairball_toml  # noqa: E402
+from sim_helpers import break_header, hairball_toml  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "scripts"))
@@ -266,3 +266,35 @@ def test_a_frames_file_of_other_shapes_or_times_is_refused_naming_dataset_and_ro
                           f"and {nv} vertices"
     else:
         assert problem.startswith(f"{path}: {want}"), problem
+
+
+def _unopenable_copy(run, tmp_path, name):
+    """A copy of the run's frames.h5 whose /``name`` cannot be opened (a broken header)."""
+    path = tmp_path / "frames.h5"
+    shutil.copy(run / "out" / "frames.h5", path)
+    break_header(path, name)
+    return path
+
+
+def test_a_dataset_that_cannot_be_opened_is_named_and_only_its_readers_refuse(run, tmp_path, capsys):
+    """A broken /radius header (fault51's damaged metadata, /tmp/s51/f51/sw_metaa/s104)
+    ended read_frames in a bare KeyError without the file or the dataset (read_frames
+    needs no /radius and read the file before io57's shape check), and count_crossings
+    and edge_strain refused it; a broken /pinned, which read_frames returns, was the same
+    KeyError.  Now the readers that do not need the dataset read the file, and one that
+    does names the file and the dataset."""
+    path = _unopenable_copy(run, tmp_path, "radius")
+    whole = read_frames(run / "out" / "frames.h5")
+    got = read_frames(path)
+    assert np.array_equal(got["positions"], whole["positions"]) and np.array_equal(got["pinned"], whole["pinned"])
+    for tool in (count_crossings, edge_strain):
+        assert tool.main([str(path)]) == 0
+    capsys.readouterr()
+    assert head_depth.main([str(path)]) == 2        # (the strand radius: /radius)
+    assert "/radius cannot be opened (bad object header version number): the file is damaged" in \
+        capsys.readouterr().err
+    path = _unopenable_copy(run, tmp_path, "pinned")
+    with pytest.raises(ValueError) as e:
+        read_frames(path)
+    assert str(e.value).startswith(f"{path}: /pinned cannot be opened (bad object header version number): the "
+                                   "file is damaged"), e.value

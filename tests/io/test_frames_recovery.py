@@ -21,7 +21,7 @@ from lc_petsc.batch import main
 from lc_petsc.crossings import count_frames
 from lc_petsc.io import read_frames
 
-from sim_helpers import hairball_toml  # noqa: E402
+from sim_helpers import break_header, hairball_toml  # noqa: E402
 
 SCENE = hairball_toml(frames="{frames}",
                       output="checkpoint_every = 2\ncheckpoints_kept = {kept}\ncontact_sheet = 4")
@@ -504,6 +504,18 @@ def _damage_chunk(path, name, row):
         fh.write(bytes([b ^ 0xFF]))
 
 
+def _restarted_from_checkpoint_4(cfg, out, tmp_path, straight, capsys):
+    """A copy of the run folder ``out`` (returned as it was), then ``out`` restarted from
+    checkpoint 4 to frame 8: it keeps rows 0-4 and rewrites the others (the straight run's)."""
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", str(out / "checkpoints" / "checkpoint_000004.h5")) == 0, \
+        capsys.readouterr().err
+    _check_rows(out, straight, recovered=[], lost=[], upto=8)
+    return copy
+
+
 @pytest.mark.parametrize("name", ["time", "row_digest"])
 def test_a_damaged_chunk_after_the_kept_rows_leaves_the_restart_and_the_recovery_alone(tmp_path, straight,
                                                                                      capsys, name):
@@ -522,13 +534,7 @@ def test_a_damaged_chunk_after_the_kept_rows_leaves_the_restart_and_the_recovery
     with h5py.File(out / "frames.h5", "r") as f:
         assert f[name].chunks == (5,) and f[name].shape == (9,)
     _damage_chunk(out / "frames.h5", name, 5)
-    copy = tmp_path / "copy"
-    shutil.copytree(out, copy)
-    capsys.readouterr()
-    # the restart from checkpoint 4 keeps rows 0-4 and rewrites the damaged ones
-    assert _run(cfg, out, "--frames", "8", "--restart", str(out / "checkpoints" / "checkpoint_000004.h5")) == 0, \
-        capsys.readouterr().err
-    _check_rows(out, straight, recovered=[], lost=[], upto=8)
+    copy = _restarted_from_checkpoint_4(cfg, out, tmp_path, straight, capsys)
     # from checkpoint 8 the damaged rows are kept rows: refused, then --force recovers the others
     assert _run(cfg, copy, "--frames", "9", "--restart", "latest") == 2
     # (the damaged chunk's rows, not every kept row: rows 0-8 before)
@@ -540,3 +546,69 @@ def test_a_damaged_chunk_after_the_kept_rows_leaves_the_restart_and_the_recovery
     # (checkpoints 2 and 4 are of the first run's config, --frames 4: not used)
     assert rec["from_frames_file"] == [[0, 4]] and rec["from_checkpoints"] == [6, 8]
     assert rec["missing_frames"] == [[5, 5], [7, 7]]
+
+
+def _unopenable(dataset):
+    return lambda path: break_header(path, dataset)
+
+
+def _pinned_of_another_shape(path):
+    with h5py.File(path, "r+") as f:
+        n = len(f["pinned"])
+        del f["pinned"]
+        f.create_dataset("pinned", data=np.zeros(n + 3, bool))
+
+
+@pytest.mark.parametrize("damage", [_unopenable("pinned"), _unopenable("radius"), _pinned_of_another_shape])
+def test_a_damaged_dataset_the_rows_do_not_need_leaves_them_recovered(tmp_path, straight, capsys, damage):
+    """--force recovers the rows of a frames.h5 whose /pinned or /radius is damaged (the
+    new file takes them from the scene): the recovery read them before io57, which then
+    checked every dataset's shape when the file was opened and recovered no row
+    ("unreadable (/pinned has shape ...)"; fault51's damaged headers, /tmp/s51/f51/sw_metaa)."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0                       # 6 frames, checkpoints 2, 4, 6
+    damage(out / "frames.h5")
+    capsys.readouterr()
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2      # cannot be appended to
+    err = capsys.readouterr().err
+    assert "frame(s) 0-1, 3, 5 from the old frames.h5" in err and "no frame lost" in err, err
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest", "--force") == 0
+    _check_rows(out, straight, recovered=[0, 1, 2, 3, 4, 5, 6], lost=[], upto=8)
+    rec = json.loads((out / "summary.json").read_text())["frames_recovery"]
+    assert rec["from_frames_file"] == [[0, 1], [3, 3], [5, 5]] and rec["from_checkpoints"] == [2, 4, 6]
+
+
+def _short_last_time(path):
+    with h5py.File(path, "r+") as f:
+        f["time"].resize(f["time"].shape[0] - 1, axis=0)
+
+
+def test_a_frame_dataset_short_after_the_kept_rows_leaves_the_restart_and_the_recovery_alone(tmp_path, straight,
+                                                                                           capsys):
+    """/time one row shorter than /positions (its last row, frame 6, has no time): the
+    restart from checkpoint 4 keeps rows 0-4 and rewrites the others, as it did before
+    io57, which refused it ("unreadable, truncated or damaged HDF5 file (/time has shape
+    (6,) ...)") although its own check asks only the kept rows to be in every frame
+    dataset; from checkpoint 6 the rows kept need row 6's time (refused) and --force
+    recovers rows 0-5 of the file (io57: none)."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    assert _run(cfg, out) == 0                       # 6 frames, checkpoints 2, 4, 6
+    # a /row_digest short of the last row: the recovery takes the rows it holds (it ended
+    # in an IndexError traceback before io57, and took none after)
+    from lc_petsc.io.recovery import _file_rows
+    short = tmp_path / "short_digest.h5"
+    shutil.copy(out / "frames.h5", short)
+    with h5py.File(short, "r+") as f:
+        f["row_digest"].resize(6, axis=0)
+        offsets, dt = f["wisp_offsets"][...], float(f.attrs["dt"])
+    assert _file_rows(short, offsets, 7, dt, 1, {}) == (list(range(6)), "")
+    _short_last_time(out / "frames.h5")
+    copy = _restarted_from_checkpoint_4(cfg, out, tmp_path, straight, capsys)
+    assert _run(cfg, copy, "--frames", "8", "--restart", "latest") == 2
+    assert "/time has shape (6,), /positions 7 rows: row 6 (frame 6) has no /time entry" in capsys.readouterr().err
+    assert _run(cfg, copy, "--frames", "8", "--restart", "latest", "--force") == 0
+    _check_rows(copy, straight, recovered=list(range(7)), lost=[], upto=8)
+    rec = json.loads((copy / "summary.json").read_text())["frames_recovery"]
+    assert rec["from_frames_file"] == [[0, 1], [3, 3], [5, 5]] and rec["from_checkpoints"] == [2, 4, 6]

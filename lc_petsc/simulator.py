@@ -300,11 +300,10 @@ STRAIGHT_WAY_PERTURBATIONS = ("jitter", "smash")
 def perturbation_text(scene_cfg):
     """(``scene.perturbation`` and its size, how to make it smaller), for messages about
     the initial state."""
-    kind = scene_cfg.perturbation
+    kind = scene_cfg.perturbation           # one of STRAIGHT_WAY_PERTURBATIONS
     size, smaller = {"smash": (f", scene.smash_factor = {scene_cfg.smash_factor:g}",
                                "raise scene.smash_factor towards 1"),
-                     "jitter": (f", scene.jitter = {scene_cfg.jitter:g} cm", "lower scene.jitter")
-                     }.get(kind, ("", f"use another scene.perturbation than \"{kind}\""))
+                     "jitter": (f", scene.jitter = {scene_cfg.jitter:g} cm", "lower scene.jitter")}[kind]
     return f"scene.perturbation = \"{kind}\"{size}", smaller
 
 

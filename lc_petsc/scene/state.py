@@ -23,6 +23,7 @@ from typing import Dict
 
 import numpy as np
 
+from lc_petsc.config import MAX_MODULUS, MIN_LENGTH
 from lc_petsc.elements import bend, twist, weights
 
 TERM_K = {"stretch": 2, "bend": 3, "twist": 4}
@@ -121,6 +122,13 @@ class LocalScene:
             w = int(wid[i])
             problems.append(f"wisp {ids[w]}, vertex {i - off[w]}: radius "
                             f"{batch.radius[i]!r} must be finite and positive")
+        elif (batch.radius < MIN_LENGTH).any():
+            # a radius of 1e-300 made the wisp's masses 0: exit 3 in frame 0
+            i = int(np.flatnonzero(batch.radius < MIN_LENGTH)[0])
+            w = int(wid[i])
+            problems.append(f"wisp {ids[w]}, vertex {i - off[w]}: radius {batch.radius[i]!r} cm is below "
+                            f"{MIN_LENGTH:g} cm (an atom's size): no strand is that thin; the radii are in "
+                            "cm (or the file is damaged)")
         E = np.full(nw, float(material.youngs_modulus))
         if batch.youngs_modulus is not None:
             E = np.asarray(batch.youngs_modulus, float)
@@ -133,6 +141,11 @@ class LocalScene:
             if badw.any():
                 w = int(np.flatnonzero(badw)[0])
                 problems.append(f"wisp {ids[w]}: {name} {arr[w]!r} must be finite and positive")
+        if batch.youngs_modulus is not None and (E > MAX_MODULUS).any():
+            # the config's bound (1e300 overflowed the Hessians in frame 0)
+            w = int(np.flatnonzero(E > MAX_MODULUS)[0])
+            problems.append(f"wisp {ids[w]}: Young's modulus {E[w]!r} dyn/cm^2 is beyond {MAX_MODULUS:g} (steel "
+                            "is 2e12; hair keratin about 4e10): give the moduli in dyn/cm^2 (CGS)")
         if problems:
             return None, problems
 
@@ -158,6 +171,16 @@ class LocalScene:
             w = int(wid[es[j]])
             problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length overflows to {Lbar[j]!r} "
                             f"(vertices at coordinates up to {scale[j]:.3g}): the groom's positions are "
+                            "not in cm (or the file is damaged); scale the wisp to hair size")
+            return None, problems
+        short = Lbar < MIN_LENGTH
+        if short.any():
+            # a wisp shrunk to 1e-10 cm passed (its edges above round-off) and its
+            # stiffnesses, 1e27 times its mass term, failed the solve in frame 0
+            j = int(np.flatnonzero(short)[0])
+            w = int(wid[es[j]])
+            problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length {Lbar[j]:.3g} cm is below "
+                            f"{MIN_LENGTH:g} cm (an atom's size): no hair shape; the groom's positions are "
                             "not in cm (or the file is damaged); scale the wisp to hair size")
             return None, problems
         r_e = 0.5 * (batch.radius[es] + batch.radius[es + 1])
@@ -207,3 +230,28 @@ class LocalScene:
                    first_vertex=first_vertex, n_vertices_global=n_vertices_global,
                    offsets=off.copy(), x_rest=x.copy(), radius=batch.radius.copy(),
                    pinned=batch.pinned.copy(), mass=mass, terms=td), []
+
+
+def inertia_problems(scene, batch, cfg):
+    """Messages naming the first wisp of this rank whose lumped masses, mass term M/dt^2
+    (at the smallest substep, dt / time.max_substeps) or weight M g are not finite
+    positive normal floats: ``material.density = 1e308`` passed every check, overflowed
+    M/dt^2 and failed frame 0 after writing it.  ``batch``: the scene's WispBatch (its
+    per-wisp densities name the file's, else the key)."""
+    dt = float(cfg.time.dt) / cfg.time.max_substeps
+    g = float(np.max(np.abs(cfg.physics.gravity))) if "gravity" in cfg.physics.terms else 0.0
+    m = scene.mass
+    tiny = np.finfo(float).tiny
+    with np.errstate(over="ignore", under="ignore"):
+        term, weight = m / dt ** 2, m * g
+    bad = ~((m >= tiny) & np.isfinite(term) & (term >= tiny) & np.isfinite(weight))
+    if not bad.any():
+        return []
+    i = int(np.flatnonzero(bad)[0])
+    w = int(np.searchsorted(scene.offsets, i, side="right") - 1)
+    rho = (f"its density {float(batch.density[w])!r} g/cm^3 (the file's /density)" if batch.density is not None
+           else f"material.density = {cfg.material.density!r} g/cm^3")
+    return [f"wisp {batch.ids()[w]}, vertex {i - scene.offsets[w]}: mass {m[i]!r} g from {rho}, radius "
+            f"{scene.radius[i]!r} cm gives a mass term M/dt^2 (dt / time.max_substeps = {dt:g} s) or weight "
+            f"M g of {term[i]!r}, {weight[i]!r}: beyond double precision; hair is about 1.3 g/cm^3 "
+            "(the units are g and cm)"]

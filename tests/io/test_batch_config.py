@@ -110,6 +110,13 @@ BAD = [
     ("jitter beyond half the largest float",
      GOOD.replace("n_vertices = 12", 'n_vertices = 12\nperturbation = "jitter"\njitter = 1e308'),
      ["scene.jitter = 1e+308 cm is beyond half the largest float"]),
+    # these three passed the config and failed in frame 0 (exit 3), after writing it
+    ("head radius beyond double precision", GOOD.replace("[physics]\n", "[physics]\nhead_radius = 1e308\n"),
+     ["physics.head_radius + head_margin = 1e+308 cm is beyond 4.5e+07 cm"]),
+    ("head margin beyond double precision", GOOD.replace("[physics]\n", "[physics]\nhead_margin = 1e308\n"),
+     ["physics.head_radius + head_margin = 1e+308 cm is beyond 4.5e+07 cm"]),
+    ("radius below an atom", GOOD.replace("[physics]\n", "[material]\ntip_radius = 1e-300\n[physics]\n"),
+     ["material.tip_radius = 1e-300 cm is below 1e-08 cm"]),
 ]
 
 

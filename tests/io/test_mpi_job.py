@@ -233,6 +233,56 @@ def test_a_wisp_too_large_for_floats_on_one_rank_is_refused_on_every_rank(shared
     _refused(cfg, d, capsys, "error: strands file " + g + ": wisp 3, edge 0: rest length overflows to inf")
 
 
+@pytest.mark.parametrize("damage, said", [
+    ("radius", "wisp 3, vertex 0: radius 1e-300 cm is below 1e-08 cm"),
+    ("youngs_modulus", "wisp 3: Young's modulus 1e+300 dyn/cm^2 is beyond 1e+15"),
+    ("shrunk", "wisp 3, edge 0: rest length 6e-11 cm is below 1e-08 cm"),
+])
+def test_a_wisp_beyond_double_precision_on_one_rank_is_refused_before_frame_0(shared_dir, capsys, damage,
+                                                                             said):
+    """A groom whose last wisp has radius 1e-300 (masses 0), Young's modulus 1e300, or
+    is shrunk by 1e-10 (stiffnesses 1e27 times its mass term) passed the groom's checks
+    and failed the solve in frame 0, exit 3, after writing it.  Now refused on every
+    rank, exit 2, once, naming file, wisp and value; nothing written."""
+    from lc_petsc.scene import geometry
+    d, _ = shared_dir
+    g = os.path.join(d, "bad.h5")
+    cfg = os.path.join(d, "bad.toml")
+    if comm.rank == 0:
+        n = 30
+        pos = [geometry.wisp4c(n, root=(2.0 * w, 0.0, 0.0)) for w in range(4)]
+        radius = np.full(4 * n, 0.05)
+        youngs = np.full(4, 1e10)
+        if damage == "shrunk":      # about the root: its first edge is 0.6 cm
+            pos[3] = pos[3][0] + (pos[3] - pos[3][0]) * 1e-10
+        elif damage == "radius":
+            radius[3 * n:] = 1e-300
+        else:
+            youngs[3] = 1e300
+        with h5py.File(g, "w") as f:
+            f["positions"] = np.concatenate(pos)
+            f["wisp_offsets"] = np.arange(5, dtype=np.int64) * n
+            f["radius"] = radius
+            f["youngs_modulus"] = youngs
+        with open(cfg, "w") as fh:
+            fh.write(f'[scene]\nkind = "file"\npath = "{g}"\n[physics]\nterms = ["stretch", "bend", "twist"]\n')
+    comm.Barrier()
+    _refused(cfg, d, capsys, "error: strands file " + g + ": " + said)
+
+
+def test_a_density_whose_mass_term_overflows_is_refused_before_frame_0(shared_dir, capsys):
+    """material.density = 1e308: M/dt^2 overflowed and the solve failed in frame 0, exit
+    3, after writing it; now refused on every rank, naming the key."""
+    d, _ = shared_dir
+    cfg = os.path.join(d, "heavy.toml")
+    if comm.rank == 0:
+        with open(cfg, "w") as fh:
+            fh.write(SCENE.replace("[material]\n", "[material]\ndensity = 1e308\n"))
+    comm.Barrier()
+    err = _refused(cfg, d, capsys, "from material.density = 1e+308 g/cm^3")
+    assert comm.rank != 0 or "mass term M/dt^2" in err
+
+
 def test_a_refusal_on_one_rank_only_is_reported_by_rank_0(shared_dir, capsys, monkeypatch):
     """A refusal on the last rank alone after the set-up's collective calls (here injected
     after the disk check, the set-up's last step): every rank exits 2, and rank 0 prints

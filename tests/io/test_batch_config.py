@@ -149,6 +149,11 @@ def test_bad_config_is_reported_once_without_traceback_or_output(tmp_path, capsy
     (["--frames", "two"], "invalid int value: 'two'"),
     (["stray"], "unexpected argument 'stray'"),
     (["--restart", "latest"], "--restart latest: no valid checkpoint in"),
+    # an unknown double-dash flag went to PETSc and was refused as its option -bogus
+    (["--bogus"], "--bogus is not a flag of simulate.py (usage: mpiexec -n P python drivers/simulate.py "
+                  "CONFIG.toml [--frames N]"),
+    (["--fram", "3"], "--fram is not a flag of simulate.py (did you mean --frames?"),
+    (["--ksp_rtol", "1e-3"], "a PETSc option takes one dash: -ksp_rtol"),
 ])
 def test_bad_command_line(tmp_path, capsys, argv, part):
     (tmp_path / "c.toml").write_text(GOOD)

@@ -249,9 +249,9 @@ def inertia_problems(scene, batch, cfg):
         return []
     i = int(np.flatnonzero(bad)[0])
     w = int(np.searchsorted(scene.offsets, i, side="right") - 1)
-    rho = (f"its density {float(batch.density[w])!r} g/cm^3 (the file's /density)" if batch.density is not None
-           else f"material.density = {cfg.material.density!r} g/cm^3")
-    return [f"wisp {batch.ids()[w]}, vertex {i - scene.offsets[w]}: mass {m[i]!r} g from {rho}, radius "
-            f"{scene.radius[i]!r} cm gives a mass term M/dt^2 (dt / time.max_substeps = {dt:g} s) or weight "
-            f"M g of {term[i]!r}, {weight[i]!r}: beyond double precision; hair is about 1.3 g/cm^3 "
-            "(the units are g and cm)"]
+    rho = (f"the file's /density {float(batch.density[w])!r} g/cm^3 of wisp {batch.ids()[w]}"
+           if batch.density is not None else f"material.density = {cfg.material.density!r} g/cm^3")
+    return [f"{rho} gives wisp {batch.ids()[w]}, vertex {i - scene.offsets[w]} (radius {scene.radius[i]!r} cm) "
+            f"a mass of {m[i]!r} g, a mass term M/dt^2 of {term[i]!r} (dt / time.max_substeps = {dt:g} s) "
+            f"and a weight M g of {weight[i]!r}: not all finite positive numbers in double precision; hair is "
+            "about 1.3 g/cm^3 (the units are g and cm)"]

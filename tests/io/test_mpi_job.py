@@ -237,11 +237,13 @@ def test_a_wisp_too_large_for_floats_on_one_rank_is_refused_on_every_rank(shared
     ("radius", "wisp 3, vertex 0: radius 1e-300 cm is below 1e-08 cm"),
     ("youngs_modulus", "wisp 3: Young's modulus 1e+300 dyn/cm^2 is beyond 1e+15"),
     ("shrunk", "wisp 3, edge 0: rest length 6e-11 cm is below 1e-08 cm"),
+    ("density", "the file's /density 1e+308 g/cm^3 of wisp 3 gives wisp 3, vertex 0 (radius 0.05 cm)"),
 ])
 def test_a_wisp_beyond_double_precision_on_one_rank_is_refused_before_frame_0(shared_dir, capsys, damage,
                                                                              said):
-    """A groom whose last wisp has radius 1e-300 (masses 0), Young's modulus 1e300, or
-    is shrunk by 1e-10 (stiffnesses 1e27 times its mass term) passed the groom's checks
+    """A groom whose last wisp has radius 1e-300 (masses 0), Young's modulus 1e300,
+    density 1e308 (M/dt^2 inf) or is shrunk by 1e-10 (stiffnesses 1e27 times its mass
+    term) passed the groom's checks
     and failed the solve in frame 0, exit 3, after writing it.  Now refused on every
     rank, exit 2, once, naming file, wisp and value; nothing written."""
     from lc_petsc.scene import geometry
@@ -252,11 +254,13 @@ def test_a_wisp_beyond_double_precision_on_one_rank_is_refused_before_frame_0(sh
         n = 30
         pos = [geometry.wisp4c(n, root=(2.0 * w, 0.0, 0.0)) for w in range(4)]
         radius = np.full(4 * n, 0.05)
-        youngs = np.full(4, 1e10)
+        youngs, density = np.full(4, 1e10), np.full(4, 1.3)
         if damage == "shrunk":      # about the root: its first edge is 0.6 cm
             pos[3] = pos[3][0] + (pos[3] - pos[3][0]) * 1e-10
         elif damage == "radius":
             radius[3 * n:] = 1e-300
+        elif damage == "density":
+            density[3] = 1e308
         else:
             youngs[3] = 1e300
         with h5py.File(g, "w") as f:
@@ -264,6 +268,7 @@ def test_a_wisp_beyond_double_precision_on_one_rank_is_refused_before_frame_0(sh
             f["wisp_offsets"] = np.arange(5, dtype=np.int64) * n
             f["radius"] = radius
             f["youngs_modulus"] = youngs
+            f["density"] = density
         with open(cfg, "w") as fh:
             fh.write(f'[scene]\nkind = "file"\npath = "{g}"\n[physics]\nterms = ["stretch", "bend", "twist"]\n')
     comm.Barrier()
@@ -279,8 +284,8 @@ def test_a_density_whose_mass_term_overflows_is_refused_before_frame_0(shared_di
         with open(cfg, "w") as fh:
             fh.write(SCENE.replace("[material]\n", "[material]\ndensity = 1e308\n"))
     comm.Barrier()
-    err = _refused(cfg, d, capsys, "from material.density = 1e+308 g/cm^3")
-    assert comm.rank != 0 or "mass term M/dt^2" in err
+    err = _refused(cfg, d, capsys, "error: material.density = 1e+308 g/cm^3 gives wisp ")
+    assert comm.rank != 0 or "a mass term M/dt^2 of inf" in err, err
 
 
 def test_a_refusal_on_one_rank_only_is_reported_by_rank_0(shared_dir, capsys, monkeypatch):

@@ -43,6 +43,12 @@ def vertex_wisp_length(rest, offsets):
     """Rest length of each vertex's wisp (n_vertices,)."""
     return np.repeat(wisp_lengths(rest, offsets), np.diff(offsets))
 
+def _first(mask, wisp_of):
+    """(index, wisp) of the first True of ``mask``; ``wisp_of``: each entry's local wisp."""
+    j = int(np.flatnonzero(mask)[0])
+    return j, int(wisp_of[j])
+
+
 @dataclass
 class TermData:
     """One elastic term's elements on this rank: first vertices, rest values, stiffnesses."""
@@ -163,26 +169,19 @@ class LocalScene:
                             f"{Lbar[j]!r} is zero (coincident vertices{far}); remove the "
                             "duplicate vertex from the groom")
             return None, problems
-        huge = ~np.isfinite(Lbar)
-        if huge.any():
-            # the assembler's check of the same raised on this rank alone: the others
-            # waited for it in a collective call (mpiexec hung)
-            j = int(np.flatnonzero(huge)[0])
-            w = int(wid[es[j]])
-            problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length overflows to {Lbar[j]!r} "
-                            f"(vertices at coordinates up to {scale[j]:.3g}): the groom's positions are "
-                            "not in cm (or the file is damaged); scale the wisp to hair size")
-            return None, problems
-        short = Lbar < MIN_LENGTH
-        if short.any():
-            # a wisp shrunk to 1e-10 cm passed (its edges above round-off) and its
-            # stiffnesses, 1e27 times its mass term, failed the solve in frame 0
-            j = int(np.flatnonzero(short)[0])
-            w = int(wid[es[j]])
-            problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length {Lbar[j]:.3g} cm is below "
-                            f"{MIN_LENGTH:g} cm (an atom's size): no hair shape; the groom's positions are "
-                            "not in cm (or the file is damaged); scale the wisp to hair size")
-            return None, problems
+        # an overflowing rest length: the assembler's check of the same raised on this rank
+        # alone, the others waited for it in a collective call (mpiexec hung); one below an
+        # atom (a wisp shrunk to 1e-10 cm passed, its edges above round-off, and its
+        # stiffnesses, 1e27 times its mass term, failed the solve in frame 0)
+        for bad, what in ((~np.isfinite(Lbar), lambda j: f"overflows to {Lbar[j]!r} (vertices at "
+                                                         f"coordinates up to {scale[j]:.3g})"),
+                          (Lbar < MIN_LENGTH, lambda j: f"{Lbar[j]:.3g} cm is below {MIN_LENGTH:g} cm (an "
+                                                        "atom's size): no hair shape")):
+            if bad.any():
+                j, w = _first(bad, wid[es])
+                problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length {what(j)}: the groom's "
+                                "positions are not in cm (or the file is damaged); scale the wisp to hair size")
+                return None, problems
         r_e = 0.5 * (batch.radius[es] + batch.radius[es + 1])
         A_e = np.pi * r_e ** 2
         m_e = 0.5 * rho[wid[es]] * A_e * Lbar

@@ -17,6 +17,7 @@ its module doc says what each step leaves behind when it fails).
 from __future__ import annotations
 
 import argparse
+import difflib
 import os
 import shlex
 import sys
@@ -84,6 +85,17 @@ def parse_command_line(argv):
     if args.out is not None and not args.out.strip():
         raise UsageError(f"--out {args.out!r}: give the output folder (a path), or leave --out "
                          "out to use output.dir / out/<config name>")
+    # PETSc's options take one dash: `--bogus` was passed on and reported as the PETSc
+    # option -bogus, never as a mistyped flag of this program
+    flag = next((t for t in extra if t.startswith("--")), None)
+    if flag is not None:
+        parser = make_parser()
+        ours = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+        close = difflib.get_close_matches(flag.split("=")[0], ours, n=1, cutoff=0.75)
+        hint = f"did you mean {close[0]}? " if close else ""
+        usage = parser.format_usage().replace("usage: ", "", 1).strip()
+        raise UsageError(f"{flag} is not a flag of {PROG} ({hint}usage: {usage}); a PETSc option "
+                         f"takes one dash: -{flag.lstrip('-')}")
     if extra and not extra[0].startswith("-"):
         hint = ""
         if str(args.config).startswith("-") or not str(args.config).endswith(".toml"):

@@ -50,6 +50,14 @@ MAX_FRAMES = 10 ** 9
 MIN_DT = 1.0e-6
 #: moduli above this are refused (steel is 2e12 dyn/cm^2; 1e300 overflows the Hessians)
 MAX_MODULUS = 1.0e15
+#: radii, rest edges and segment lengths below this (an atom's size, 1 angstrom, in cm) are
+#: refused: no strand is that thin or finely sampled (a groom's radius of 1e-300 made every
+#: mass 0, a wisp shrunk to 1e-10 cm stiffnesses 1e27 times its mass term: both failed
+#: in frame 0, after it was written)
+MIN_LENGTH = 1.0e-8
+#: head_radius + head_margin above this are refused: double precision then places the
+#: sphere's surface no closer than MIN_LENGTH (1e308 made the head's depths inf in frame 0)
+MAX_HEAD_EXTENT = MIN_LENGTH / 2.220446049250313e-16
 
 
 def _positive(name: str, value, allow_zero: bool = False) -> None:
@@ -63,6 +71,13 @@ def _positive(name: str, value, allow_zero: bool = False) -> None:
     if not ok:
         kind = "non-negative" if allow_zero else "positive"
         raise ConfigError(f"{name} must be a finite {kind} number, got {value!r}")
+
+
+def _at_least_length(name: str, value) -> None:
+    """A length (cm) below :data:`MIN_LENGTH` is refused (checked after :func:`_positive`)."""
+    if float(value) < MIN_LENGTH:
+        raise ConfigError(f"{name} = {value!r} cm is below {MIN_LENGTH:g} cm (an atom's size): no strand "
+                          "is that thin or finely sampled; lc_petsc's lengths are in cm")
 
 
 def _int_at_least(name: str, value, lo: int) -> None:
@@ -109,6 +124,7 @@ class SceneConfig:
         _int_at_least("scene.seed", self.seed, 0)
         _int_at_least("scene.n_pinned", self.n_pinned, 0)
         _positive("scene.segment_length", self.segment_length)
+        _at_least_length("scene.segment_length", self.segment_length)
         if self.kind == "file":
             if not self.path:
                 raise ConfigError("scene.path must name an HDF5 strands file when scene.kind = 'file'")
@@ -177,6 +193,8 @@ class MaterialConfig:
         _positive("material.density", self.density)
         _positive("material.root_radius", self.root_radius)
         _positive("material.tip_radius", self.tip_radius)
+        _at_least_length("material.root_radius", self.root_radius)
+        _at_least_length("material.tip_radius", self.tip_radius)
         sine = self.twist_rest_sine
         if isinstance(sine, bool) or not isinstance(sine, (int, float)) or not 0.0 <= sine < 1.0:
             raise ConfigError(f"material.twist_rest_sine must be a number in [0, 1) (the sine of the "
@@ -266,6 +284,11 @@ class PhysicsConfig:
         _positive("physics.head_radius", self.head_radius)
         _positive("physics.head_margin", self.head_margin, allow_zero=True)
         _positive("physics.head_stiffness", self.head_stiffness)
+        extent = float(self.head_radius) + float(self.head_margin)
+        if extent > MAX_HEAD_EXTENT:
+            raise ConfigError(f"physics.head_radius + head_margin = {extent:g} cm is beyond {MAX_HEAD_EXTENT:.3g} "
+                              f"cm: double precision places a sphere that large no closer than "
+                              f"{MIN_LENGTH:g} cm to its surface (a head is about 15 cm); give them in cm")
         if self.head_motion not in HEAD_MOTIONS:
             raise ConfigError(f"physics.head_motion must be one of {HEAD_MOTIONS}, got {self.head_motion!r}")
         _positive("physics.head_amplitude", self.head_amplitude, allow_zero=True)

@@ -21,7 +21,7 @@ from lc_petsc.scene.kinematics import HeadMotion
 from lc_petsc.scene.outliers import displaced_vertex_problems
 from lc_petsc.scene.perturbation import apply_perturbation, perturbation_problems
 from lc_petsc.scene.sources import source_from_config
-from lc_petsc.scene.state import LocalScene
+from lc_petsc.scene.state import LocalScene, inertia_problems
 from lc_petsc.solver import LinearSolver
 from lc_petsc.solver_plan import SolverPlan
 from lc_petsc.trust_region import TrustRegionSolver
@@ -113,6 +113,8 @@ class Simulator:
                                                int(voff[w0]), self.n_vertices)
             if not problems and cfg.scene.kind in ("file", "usd"):    # a groom file: damage, not hair
                 problems = displaced_vertex_problems(batch)
+            if not problems:
+                problems = inertia_problems(scene, batch, cfg)
         parallel.collective_raise(comm, [named_by(source, p) for p in problems])
         self.scene = scene
         # outputs in the scene's wisp order (parallel.UserLayout)

@@ -55,6 +55,10 @@ def format_report(s) -> str:
     if run_frames:
         lines.append("  phases (max over ranks): " + ", ".join(
             f"{k} {_fmt_s(v)} ({100 * v / max(wall, 1e-300):.0f}%)" for k, v in tim.items() if v > 0))
+    elif s.get("error"):    # its first step failed: "the outputs only" read as if none was due
+        spent = ", ".join(f"{k} {_fmt_s(v)}" for k, v in tim.items() if v > 0)
+        lines.append("  phases: no frame completed in this run: its first step failed (the error below)"
+                     + (f"; the failed step's phases (max over ranks): {spent}" if spent else ""))
     else:       # a restart that only wrote the outputs: the set-up's work over no frame time
         lines.append("  phases: no frame ran in this run (the outputs only)")
     newton = s.get("newton_iterations", [])

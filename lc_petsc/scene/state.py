@@ -23,6 +23,7 @@ from typing import Dict
 
 import numpy as np
 
+from lc_petsc.config import MAX_MODULUS, MIN_LENGTH
 from lc_petsc.elements import bend, twist, weights
 
 TERM_K = {"stretch": 2, "bend": 3, "twist": 4}
@@ -41,6 +42,12 @@ def wisp_lengths(rest, offsets):
 def vertex_wisp_length(rest, offsets):
     """Rest length of each vertex's wisp (n_vertices,)."""
     return np.repeat(wisp_lengths(rest, offsets), np.diff(offsets))
+
+def _first(mask, wisp_of):
+    """(index, wisp) of the first True of ``mask``; ``wisp_of``: each entry's local wisp."""
+    j = int(np.flatnonzero(mask)[0])
+    return j, int(wisp_of[j])
+
 
 @dataclass
 class TermData:
@@ -121,6 +128,13 @@ class LocalScene:
             w = int(wid[i])
             problems.append(f"wisp {ids[w]}, vertex {i - off[w]}: radius "
                             f"{batch.radius[i]!r} must be finite and positive")
+        elif (batch.radius < MIN_LENGTH).any():
+            # a radius of 1e-300 made the wisp's masses 0: exit 3 in frame 0
+            i = int(np.flatnonzero(batch.radius < MIN_LENGTH)[0])
+            w = int(wid[i])
+            problems.append(f"wisp {ids[w]}, vertex {i - off[w]}: radius {batch.radius[i]!r} cm is below "
+                            f"{MIN_LENGTH:g} cm (an atom's size): no strand is that thin; the radii are in "
+                            "cm (or the file is damaged)")
         E = np.full(nw, float(material.youngs_modulus))
         if batch.youngs_modulus is not None:
             E = np.asarray(batch.youngs_modulus, float)
@@ -133,6 +147,11 @@ class LocalScene:
             if badw.any():
                 w = int(np.flatnonzero(badw)[0])
                 problems.append(f"wisp {ids[w]}: {name} {arr[w]!r} must be finite and positive")
+        if batch.youngs_modulus is not None and (E > MAX_MODULUS).any():
+            # the config's bound (1e300 overflowed the Hessians in frame 0)
+            w = int(np.flatnonzero(E > MAX_MODULUS)[0])
+            problems.append(f"wisp {ids[w]}: Young's modulus {E[w]!r} dyn/cm^2 is beyond {MAX_MODULUS:g} (steel "
+                            "is 2e12; hair keratin about 4e10): give the moduli in dyn/cm^2 (CGS)")
         if problems:
             return None, problems
 
@@ -150,16 +169,19 @@ class LocalScene:
                             f"{Lbar[j]!r} is zero (coincident vertices{far}); remove the "
                             "duplicate vertex from the groom")
             return None, problems
-        huge = ~np.isfinite(Lbar)
-        if huge.any():
-            # the assembler's check of the same raised on this rank alone: the others
-            # waited for it in a collective call (mpiexec hung)
-            j = int(np.flatnonzero(huge)[0])
-            w = int(wid[es[j]])
-            problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length overflows to {Lbar[j]!r} "
-                            f"(vertices at coordinates up to {scale[j]:.3g}): the groom's positions are "
-                            "not in cm (or the file is damaged); scale the wisp to hair size")
-            return None, problems
+        # an overflowing rest length: the assembler's check of the same raised on this rank
+        # alone, the others waited for it in a collective call (mpiexec hung); one below an
+        # atom (a wisp shrunk to 1e-10 cm passed, its edges above round-off, and its
+        # stiffnesses, 1e27 times its mass term, failed the solve in frame 0)
+        for bad, what in ((~np.isfinite(Lbar), lambda j: f"overflows to {Lbar[j]!r} (vertices at "
+                                                         f"coordinates up to {scale[j]:.3g})"),
+                          (Lbar < MIN_LENGTH, lambda j: f"{Lbar[j]:.3g} cm is below {MIN_LENGTH:g} cm (an "
+                                                        "atom's size): no hair shape")):
+            if bad.any():
+                j, w = _first(bad, wid[es])
+                problems.append(f"wisp {ids[w]}, edge {es[j] - off[w]}: rest length {what(j)}: the groom's "
+                                "positions are not in cm (or the file is damaged); scale the wisp to hair size")
+                return None, problems
         r_e = 0.5 * (batch.radius[es] + batch.radius[es + 1])
         A_e = np.pi * r_e ** 2
         m_e = 0.5 * rho[wid[es]] * A_e * Lbar
@@ -207,3 +229,28 @@ class LocalScene:
                    first_vertex=first_vertex, n_vertices_global=n_vertices_global,
                    offsets=off.copy(), x_rest=x.copy(), radius=batch.radius.copy(),
                    pinned=batch.pinned.copy(), mass=mass, terms=td), []
+
+
+def inertia_problems(scene, batch, cfg):
+    """Messages naming the first wisp of this rank whose lumped masses, mass term M/dt^2
+    (at the smallest substep, dt / time.max_substeps) or weight M g are not finite
+    positive normal floats: ``material.density = 1e308`` passed every check, overflowed
+    M/dt^2 and failed frame 0 after writing it.  ``batch``: the scene's WispBatch (its
+    per-wisp densities name the file's, else the key)."""
+    dt = float(cfg.time.dt) / cfg.time.max_substeps
+    g = float(np.max(np.abs(cfg.physics.gravity))) if "gravity" in cfg.physics.terms else 0.0
+    m = scene.mass
+    tiny = np.finfo(float).tiny
+    with np.errstate(over="ignore", under="ignore"):
+        term, weight = m / dt ** 2, m * g
+    bad = ~((m >= tiny) & np.isfinite(term) & (term >= tiny) & np.isfinite(weight))
+    if not bad.any():
+        return []
+    i = int(np.flatnonzero(bad)[0])
+    w = int(np.searchsorted(scene.offsets, i, side="right") - 1)
+    rho = (f"the file's /density {float(batch.density[w])!r} g/cm^3 of wisp {batch.ids()[w]}"
+           if batch.density is not None else f"material.density = {cfg.material.density!r} g/cm^3")
+    return [f"{rho} gives wisp {batch.ids()[w]}, vertex {i - scene.offsets[w]} (radius {scene.radius[i]!r} cm) "
+            f"a mass of {m[i]!r} g, a mass term M/dt^2 of {term[i]!r} (dt / time.max_substeps = {dt:g} s) "
+            f"and a weight M g of {weight[i]!r}: not all finite positive numbers in double precision; hair is "
+            "about 1.3 g/cm^3 (the units are g and cm)"]

@@ -110,6 +110,13 @@ BAD = [
     ("jitter beyond half the largest float",
      GOOD.replace("n_vertices = 12", 'n_vertices = 12\nperturbation = "jitter"\njitter = 1e308'),
      ["scene.jitter = 1e+308 cm is beyond half the largest float"]),
+    # these three passed the config and failed in frame 0 (exit 3), after writing it
+    ("head radius beyond double precision", GOOD.replace("[physics]\n", "[physics]\nhead_radius = 1e308\n"),
+     ["physics.head_radius + head_margin = 1e+308 cm is beyond 4.5e+07 cm"]),
+    ("head margin beyond double precision", GOOD.replace("[physics]\n", "[physics]\nhead_margin = 1e308\n"),
+     ["physics.head_radius + head_margin = 1e+308 cm is beyond 4.5e+07 cm"]),
+    ("radius below an atom", GOOD.replace("[physics]\n", "[material]\ntip_radius = 1e-300\n[physics]\n"),
+     ["material.tip_radius = 1e-300 cm is below 1e-08 cm"]),
 ]
 
 
@@ -142,6 +149,11 @@ def test_bad_config_is_reported_once_without_traceback_or_output(tmp_path, capsy
     (["--frames", "two"], "invalid int value: 'two'"),
     (["stray"], "unexpected argument 'stray'"),
     (["--restart", "latest"], "--restart latest: no valid checkpoint in"),
+    # an unknown double-dash flag went to PETSc and was refused as its option -bogus
+    (["--bogus"], "--bogus is not a flag of simulate.py (usage: mpiexec -n P python drivers/simulate.py "
+                  "CONFIG.toml [--frames N]"),
+    (["--fram", "3"], "--fram is not a flag of simulate.py (did you mean --frames?"),
+    (["--ksp_rtol", "1e-3"], "a PETSc option takes one dash: -ksp_rtol"),
 ])
 def test_bad_command_line(tmp_path, capsys, argv, part):
     (tmp_path / "c.toml").write_text(GOOD)

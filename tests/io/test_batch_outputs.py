@@ -222,6 +222,19 @@ def test_report_of_a_restart_that_only_wrote_the_outputs_has_no_phase_shares():
     assert "assembly 0.8 ms (400%)" in format_report(s)
 
 
+def test_report_of_a_run_whose_first_step_failed_says_so():
+    """A run that failed in its first step (frame 0 -> 1, exit 3) was reported as "no
+    frame ran in this run (the outputs only)", as if it had nothing to do."""
+    from lc_petsc.io.summary import format_report
+    s = {"frames": 0, "frames_this_run": 0, "wall_time_s": 0.0, "wisps": 2, "dofs": 6, "ranks": 2,
+         "config": {"time": {"dt": 1.0 / 30.0}}, "timings_s": {"solve": 1.3e-3, "filter": 0.0},
+         "error": "linear solve failed at frame 0, Newton iteration 0: DIVERGED_NANORINF"}
+    report = format_report(s)
+    assert ("phases: no frame completed in this run: its first step failed (the error below); the failed "
+            "step's phases (max over ranks): solve 1.3 ms\n") in report
+    assert "the outputs only" not in report and "%)" not in report
+
+
 def test_report_counts_chord_checks_only_when_there_are_some():
     """The report says how many chord checks (time.newton_stop = "chord_estimate") the run
     solved and in how many frames; a run without any says nothing about them."""

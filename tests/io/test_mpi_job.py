@@ -216,21 +216,71 @@ def test_a_wisp_too_large_for_floats_on_one_rank_is_refused_on_every_rank(shared
     assembler's element check raised on the rank owning it alone, and the others waited
     for it in the matrix creation: mpiexec hung (2 and 3 ranks).  Now the rest state
     refuses it on every rank, once, naming the wisp."""
-    from lc_petsc.scene import geometry
     d, _ = shared_dir
-    g = os.path.join(d, "big.h5")
-    cfg = os.path.join(d, "big.toml")
+    g, cfg = _four_wisp_groom(d, lambda pos: pos * 1e160)
+    _refused(cfg, d, capsys, "error: strands file " + g + ": wisp 3, edge 0: rest length overflows to inf")
+
+
+def _four_wisp_groom(d, last_wisp=None, **datasets):
+    """(groom, config) in ``d``: four 30-vertex 4C wisps 2 cm apart, the last one's
+    positions passed through ``last_wisp``, the ``datasets`` added (rank 0 writes)."""
+    from lc_petsc.scene import geometry
+    g, cfg = os.path.join(d, "g.h5"), os.path.join(d, "g.toml")
     if comm.rank == 0:
         n = 30
         pos = [geometry.wisp4c(n, root=(2.0 * w, 0.0, 0.0)) for w in range(4)]
-        pos[3] = pos[3] * 1e160
+        if last_wisp is not None:
+            pos[3] = last_wisp(pos[3])
         with h5py.File(g, "w") as f:
             f["positions"] = np.concatenate(pos)
             f["wisp_offsets"] = np.arange(5, dtype=np.int64) * n
+            for k, v in datasets.items():
+                f[k] = v
         with open(cfg, "w") as fh:
             fh.write(f'[scene]\nkind = "file"\npath = "{g}"\n[physics]\nterms = ["stretch", "bend", "twist"]\n')
     comm.Barrier()
-    _refused(cfg, d, capsys, "error: strands file " + g + ": wisp 3, edge 0: rest length overflows to inf")
+    return g, cfg
+
+
+@pytest.mark.parametrize("damage, said", [
+    ("radius", "wisp 3, vertex 0: radius 1e-300 cm is below 1e-08 cm"),
+    ("youngs_modulus", "wisp 3: Young's modulus 1e+300 dyn/cm^2 is beyond 1e+15"),
+    ("shrunk", "wisp 3, edge 0: rest length 6e-11 cm is below 1e-08 cm"),
+    ("density", "the file's /density 1e+308 g/cm^3 of wisp 3 gives wisp 3, vertex 0 (radius 0.05 cm)"),
+])
+def test_a_wisp_beyond_double_precision_on_one_rank_is_refused_before_frame_0(shared_dir, capsys, damage,
+                                                                             said):
+    """A groom whose last wisp has radius 1e-300 (masses 0), Young's modulus 1e300,
+    density 1e308 (M/dt^2 inf) or is shrunk by 1e-10 (stiffnesses 1e27 times its mass
+    term) passed the groom's checks and failed the solve in frame 0, exit 3, after
+    writing it.  Now refused on every rank, exit 2, once, naming file, wisp and value;
+    nothing written."""
+    d, _ = shared_dir
+    radius, youngs, density = np.full(4 * 30, 0.05), np.full(4, 1e10), np.full(4, 1.3)
+    shrink = None
+    if damage == "shrunk":      # about the root: its first edge is 0.6 cm
+        shrink = lambda pos: pos[0] + (pos - pos[0]) * 1e-10    # noqa: E731
+    elif damage == "radius":
+        radius[3 * 30:] = 1e-300
+    elif damage == "density":
+        density[3] = 1e308
+    else:
+        youngs[3] = 1e300
+    g, cfg = _four_wisp_groom(d, shrink, radius=radius, youngs_modulus=youngs, density=density)
+    _refused(cfg, d, capsys, "error: strands file " + g + ": " + said)
+
+
+def test_a_density_whose_mass_term_overflows_is_refused_before_frame_0(shared_dir, capsys):
+    """material.density = 1e308: M/dt^2 overflowed and the solve failed in frame 0, exit
+    3, after writing it; now refused on every rank, naming the key."""
+    d, _ = shared_dir
+    cfg = os.path.join(d, "heavy.toml")
+    if comm.rank == 0:
+        with open(cfg, "w") as fh:
+            fh.write(SCENE.replace("[material]\n", "[material]\ndensity = 1e308\n"))
+    comm.Barrier()
+    err = _refused(cfg, d, capsys, "error: material.density = 1e+308 g/cm^3 gives wisp ")
+    assert comm.rank != 0 or "a mass term M/dt^2 of inf" in err, err
 
 
 def test_a_refusal_on_one_rank_only_is_reported_by_rank_0(shared_dir, capsys, monkeypatch):

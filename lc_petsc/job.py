@@ -48,6 +48,7 @@ from lc_petsc.io import hdf5
 from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
 from lc_petsc.parallel import global_max, global_wisp_offsets, on_root
 from lc_petsc.newton_stop import unconfirmed_note
+from lc_petsc.timing import peak_rss_mib
 from lc_petsc.options import diagnostic_option
 
 EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
@@ -1051,6 +1052,9 @@ class Job:
         summary["wall_time_s"] = loop_time
         # CPU time measures the work on a shared machine, where wall time also holds waits
         summary["cpu_time_s"] = comm.allreduce(time.process_time() - self.c_loop)
+        # the job's memory as a batch system sees it: each rank's peak resident set
+        peak = peak_rss_mib()
+        summary["peak_memory_mib"] = {"max_rank": global_max(comm, peak), "sum_ranks": comm.allreduce(peak)}
         used = petsc_options_used(sim, self.command_line)
         unused = sim.plan.unused_options(self.command_line)
         for k in unused:

@@ -8,6 +8,7 @@ also holds the time the process waited for a core.
 
 from __future__ import annotations
 
+import resource
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -97,3 +98,9 @@ def timed_frame(sim):
     [KSP iterations of the frame's linear solves])."""
     f = frame_timing(sim)
     return f.wall, f.phases, f.ksp
+
+
+def peak_rss_mib() -> float:
+    """Peak resident set size of this process over its whole life (MiB; Linux reports
+    ``ru_maxrss`` in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -49,8 +49,11 @@ def format_report(s) -> str:
     this_run = f" ({run_frames} in this run)" if run_frames != frames else ""
     cpu = s.get("cpu_time_s")
     cpu_t = f", CPU {_fmt_s(cpu)} over {s['ranks']} rank(s)" if cpu is not None else ""
+    peak = s.get("peak_memory_mib")
+    mem_t = (f"; peak memory {peak['max_rank'] / 1024:.2f} GiB on the largest rank, "
+             f"{peak['sum_ranks'] / 1024:.2f} GiB summed") if peak else ""
     lines.append(f"  frames: {frames}{sim_t}{this_run}; wall time {_fmt_s(wall)} "
-                 f"({_fmt_s(per)} per frame{cpu_t}); setup {_fmt_s(s.get('setup_time_s', 0.0))}")
+                 f"({_fmt_s(per)} per frame{cpu_t}); setup {_fmt_s(s.get('setup_time_s', 0.0))}{mem_t}")
     tim = s.get("timings_s", {})
     if run_frames:
         lines.append("  phases (max over ranks): " + ", ".join(

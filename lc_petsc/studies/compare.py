@@ -14,8 +14,8 @@ import numpy as np
 
 from lc_petsc.simulator import build_simulator
 from lc_petsc.studies import report
-from lc_petsc.studies.systems import (SystemRecorder, destroy_systems, direct_solutions,
-                                      peak_rss_mib, replay)
+from lc_petsc.studies.systems import SystemRecorder, destroy_systems, direct_solutions, replay
+from lc_petsc.timing import peak_rss_mib
 
 ROW_COLUMNS = ["wisps", "dofs", "ranks", "set", "repeat", "system", "frame", "newton_it", "status",
                "setup_s", "solve_s", "total_s", "iterations", "reason", "true_rel_residual",

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import ctypes
 import os
-import resource
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -129,11 +128,6 @@ def current_rss_mib() -> float:
         return pages * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
     except OSError:   # pragma: no cover - non-Linux
         return float("nan")
-
-
-def peak_rss_mib() -> float:
-    """Peak resident set size of this process over its whole life (MiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def start_memory_window() -> bool:

@@ -65,6 +65,10 @@ def test_demo_end_to_end(demo):
     assert set(s["cpu_timings_s"]) == set(s["timings_s"]) and s["cpu_timings_s"]["solve"] > 0
     assert s["cpu_time_s"] >= max(s["cpu_timings_s"].values()) > 0
     assert f" over {s['ranks']} rank(s))" in p.stdout
+    # each rank's peak resident set: a Python process with PETSc and the demo holds 100 MiB to 4 GiB
+    peak = s["peak_memory_mib"]
+    assert 100 < peak["max_rank"] < 4096 and peak["max_rank"] < peak["sum_ranks"] <= 2 * peak["max_rank"]
+    assert f"peak memory {peak['max_rank'] / 1024:.2f} GiB on the largest rank" in p.stdout
     # report on stdout, once
     assert p.stdout.count("lc_petsc: ") == 1 and "converged: yes" in p.stdout
     assert "per frame" in p.stdout and "phases" in p.stdout

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import resource
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from petsc4py import PETSc
@@ -36,14 +37,19 @@ class Timers:
         self.totals = {p: 0.0 for p in PHASES}
         self.cpu = {p: 0.0 for p in PHASES}
 
+    @contextmanager
     def __call__(self, phase):
         """Time the block as ``phase`` (wall clock, CPU time and PETSc log event)."""
-        return _Phase(self, phase)
-
-    def add(self, phase, wall, cpu):
-        """Adds ``wall`` and ``cpu`` seconds to ``phase``."""
-        self.totals[phase] = self.totals.get(phase, 0.0) + wall
-        self.cpu[phase] = self.cpu.get(phase, 0.0) + cpu
+        ev = _event(phase)
+        ev.begin()
+        c0 = time.process_time()
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.totals[phase] = self.totals.get(phase, 0.0) + time.perf_counter() - t0
+            self.cpu[phase] = self.cpu.get(phase, 0.0) + time.process_time() - c0
+            ev.end()
 
     def as_dict(self):
         """{phase: wall seconds so far} (a copy)."""
@@ -52,27 +58,6 @@ class Timers:
     def cpu_dict(self):
         """{phase: CPU seconds so far} (a copy)."""
         return dict(self.cpu)
-
-
-class _Phase:
-    """One entry of a :class:`Timers` phase: a plain context manager, without the
-    generator and wrapper a ``contextlib.contextmanager`` makes per entry (the head's
-    small penalty passes enter one each, docs/newton.md "Twentieth round")."""
-
-    __slots__ = ("timers", "phase", "event", "c0", "t0")
-
-    def __init__(self, timers, phase):
-        self.timers, self.phase, self.event = timers, phase, _event(phase)
-
-    def __enter__(self):
-        self.event.begin()
-        self.c0 = time.process_time()
-        self.t0 = time.perf_counter()
-
-    def __exit__(self, *exc):
-        self.timers.add(self.phase, time.perf_counter() - self.t0, time.process_time() - self.c0)
-        self.event.end()
-        return False
 
 
 @dataclass

@@ -757,8 +757,8 @@ class Integrator:
             return x
         unit = self._mass_unit()
         # one phase entry for the whole turn, its head passes untimed inside: a timer
-        # entry per pass had been most of those small passes' samples (docs/newton.md
-        # "Twentieth round")
+        # entry per pass had been a fifth to a quarter of those small passes' samples
+        # (docs/newton.md "Twentieth round")
         with self.timers("update"):
             y = self.root_turn.step(x, self._turn_terms, unit, self._turn_potentials)
         # every rank turns at the same iteration (a fixed count): the counts summed over all

@@ -256,21 +256,25 @@ class Integrator:
         if not self.contact:
             return 0.0, None, None
         with self.timers("collision"):
-            c = self.head.sphere_center(self.t_next)
-            R = self.head.radius + self.cfg.physics.head_margin
-            k = self.cfg.physics.head_stiffness
-            idx = np.flatnonzero(self.free & head_contact.active(x, c, R))
-            if len(idx) == 0:
-                return 0.0, idx, None
-            xi = x[idx]
-            e = head_contact.energy(xi, c, R, k)
-            e = e if per_vertex else float(e.sum())
-            g = head_contact.gradient(xi, c, R, k)
-            # the exact Newton matrix needs the exact head Hessian too (its negative
-            # curvature is what lets a sliding vertex converge quadratically)
-            H = head_contact.hessian(xi, c, R, k, filter="none" if self.asm.filter == "none"
-                                     else "analytic") if need_hessian else None
-            return e, idx, (g, H)
+            return self._head_terms(x, need_hessian, per_vertex)
+
+    def _head_terms(self, x, need_hessian, per_vertex=False):
+        """:meth:`_contact_terms` with head collision on, untimed (the root turn times
+        its passes with the turn, :meth:`_last_turn`)."""
+        c = self.head.sphere_center(self.t_next)      # kept per time by the HeadMotion
+        R, k = self.head.radius + self.cfg.physics.head_margin, self.cfg.physics.head_stiffness
+        idx = np.flatnonzero(self.free & head_contact.active(x, c, R))
+        if len(idx) == 0:
+            return 0.0, idx, None
+        xi = x[idx]
+        e = head_contact.energy(xi, c, R, k)
+        e = e if per_vertex else float(e.sum())
+        g = head_contact.gradient(xi, c, R, k)
+        # the exact Newton matrix needs the exact head Hessian too (its negative
+        # curvature is what lets a sliding vertex converge quadratically)
+        H = head_contact.hessian(xi, c, R, k, filter="none" if self.asm.filter == "none"
+                                 else "analytic") if need_hessian else None
+        return e, idx, (g, H)
 
     def incremental_potential(self, x):
         """G(x), summed over all ranks."""
@@ -752,7 +756,11 @@ class Integrator:
         if self.root_turn is None or not last:
             return x
         unit = self._mass_unit()
-        y = self.root_turn.step(x, self._turn_terms, unit, self._vertex_potentials)
+        # one phase entry for the whole turn, its head passes untimed inside: a timer
+        # entry per pass had been a fifth to a quarter of those small passes' samples
+        # (docs/newton.md "Twentieth round")
+        with self.timers("update"):
+            y = self.root_turn.step(x, self._turn_terms, unit, self._turn_potentials)
         # every rank turns at the same iteration (a fixed count): the counts summed over all
         turned, reduced = global_reduce(self.comm, [self.root_turn.turned, self.root_turn.reduced], "sum")
         self._counts["root_turns_reduced"] += int(reduced)
@@ -776,10 +784,17 @@ class Integrator:
     def _turn_terms(self, x):
         """(grad G without the elastic terms, the head's active vertices and their
         Hessians or None, :meth:`_vertex_potentials`) at x, for the root turn: one pass
-        of the head's penalty for all three (the turn's guard starts from the last)."""
-        e, idx, head = self._contact_terms(x, True, per_vertex=True)
+        of the head's penalty for all three (the turn's guard starts from the last),
+        timed with the turn."""
+        e, idx, head = self._head_terms(x, True, per_vertex=True) if self.contact else (0.0, None, None)
         return (self.gradient(x, np.zeros_like(x), (idx, head)), None if head is None else (idx, head[1]),
                 self._vertex_potentials(x, (e, idx)))
+
+    def _turn_potentials(self, y):
+        """:meth:`_vertex_potentials` at y for the root turn's guard, its head pass timed
+        with the turn."""
+        return self._vertex_potentials(y, self._head_terms(y, False, per_vertex=True)[:2]
+                                       if self.contact else (0.0, None))
 
     def _collision_free_frame_path(self, x_frame, t_frame, last):
         """ccd mode after step cutback: the frame's own path x_n -> x_{n+1}, the chord of

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 from petsc4py import PETSc
 
 #: ``update``: the Newton update after the solve (``Integrator.update``: the edge
-#: retraction) and the final rest-length projection.
+#: retraction), the root turn (``time.root_rotation``, its head passes included) and the
+#: final rest-length projection.
 PHASES = ("elements", "filter", "assembly", "solve", "collision", "update", "io")
 _EVENTS: dict[str, PETSc.Log.Event] = {}
 

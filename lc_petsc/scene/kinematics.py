@@ -20,6 +20,9 @@ _AXES = (np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.
 
 #: max over tau of sin(2 pi tau) sin(pi tau) = 2 s^2 c at c = cos(pi tau) = 1 / sqrt(3)
 SMOOTH_PEAK = 4.0 / (3.0 * np.sqrt(3.0))
+#: how many times' transforms and sphere centres a HeadMotion keeps (a step's start, end,
+#: the step before it, and a cut-back step's midpoint)
+TIMES_KEPT = 4
 
 
 def _rotation(axis, angle):
@@ -38,9 +41,23 @@ class HeadMotion:
         self.period = float(physics.head_period)
         self.smooth = bool(physics.head_smooth)
         self.velocity = np.asarray(physics.head_velocity, float)
+        # {t: (R, T)} and {t: centre} of the last few times asked (:meth:`transform`)
+        self._transforms: dict = {}
+        self._centres: dict = {}
 
     def transform(self, t):
-        """The head's rotation (3, 3) and translation (3,) at time ``t``."""
+        """The head's rotation (3, 3) and translation (3,) at time ``t`` (read-only
+        arrays).  A step asks for the same few times (its start, its end, the step before)
+        a dozen times over (the Newton iterations' head passes, the first iterate, the
+        frame end), so the last :data:`TIMES_KEPT` times' are kept."""
+        known = self._transforms.get(t)
+        if known is None:
+            known = tuple(_read_only(a) for a in self._transform(t))
+            _keep(self._transforms, t, known)
+        return known
+
+    def _transform(self, t):
+        """:meth:`transform` computed."""
         if self.kind == "shake":
             k = np.floor(t / self.period)
             axis = _AXES[int(k) % 3]
@@ -121,5 +138,24 @@ class HeadMotion:
         return Q, self.center + T1 - (self.center + T0) @ Q.T
 
     def sphere_center(self, t):
-        """Centre (3,) of the head sphere at time ``t``."""
-        return self.center + self.transform(t)[1]
+        """Centre (3,) of the head sphere at time ``t`` (a read-only array, kept for the
+        last :data:`TIMES_KEPT` times as :meth:`transform`)."""
+        c = self._centres.get(t)
+        if c is None:
+            c = _read_only(self.center + self.transform(t)[1])
+            _keep(self._centres, t, c)
+        return c
+
+
+def _read_only(a):
+    """``a`` (a new array) made read-only: a kept result is shared by its callers."""
+    a.flags.writeable = False
+    return a
+
+
+def _keep(kept, t, value):
+    """Keeps ``value`` as ``kept[t]``, the oldest dropped beyond :data:`TIMES_KEPT` (dicts
+    keep their insertion order)."""
+    if len(kept) >= TIMES_KEPT:
+        del kept[next(iter(kept))]
+    kept[t] = value

@@ -73,3 +73,36 @@ def test_head_smooth_must_be_a_boolean():
     from lc_petsc.config import ConfigError
     with pytest.raises(ConfigError, match="physics.head_smooth must be true or false, got 'false'"):
         PhysicsConfig(head_motion="shake", head_smooth="false").validate()
+
+
+def test_a_time_asked_again_is_not_computed_again(monkeypatch):
+    """A step asks the head for the same few times a dozen times (hairball10: 20 rotations
+    computed per frame); the last four times' transforms and sphere centres are kept:
+    each time's rotation is computed once, the kept arrays are read-only and equal to
+    fresh ones, and a fifth time drops the oldest."""
+    from lc_petsc.scene import kinematics
+    head = HeadMotion(PhysicsConfig(head_motion="shake", head_amplitude=A, head_period=T,
+                                    head_center=(0.5, -1.0, 2.0)))
+    fresh = HeadMotion(PhysicsConfig(head_motion="shake", head_amplitude=A, head_period=T,
+                                     head_center=(0.5, -1.0, 2.0)))
+    expected = {t: fresh.transform(t) for t in TIMES[:5]}
+    calls = []
+    real = kinematics._rotation
+    monkeypatch.setattr(kinematics, "_rotation", lambda *a: calls.append(a) or real(*a))
+    for _ in range(3):
+        for t in TIMES[:4]:
+            R, Tr = head.transform(t)
+            c = head.sphere_center(t)
+            assert np.array_equal(R, expected[t][0]) and np.array_equal(Tr, expected[t][1])
+            assert np.array_equal(c, head.center + expected[t][1])
+    assert len(calls) == 4
+    R, Tr = head.transform(TIMES[0])
+    with pytest.raises(ValueError, match="read-only"):
+        R[0, 0] = 2.0
+    with pytest.raises(ValueError, match="read-only"):
+        head.sphere_center(TIMES[0])[0] = 2.0
+    head.transform(TIMES[4])                 # a fifth time: TIMES[0] is dropped
+    head.transform(TIMES[1])
+    assert len(calls) == 5
+    assert np.array_equal(head.transform(TIMES[0])[0], expected[TIMES[0]][0])
+    assert len(calls) == 6

@@ -6,6 +6,7 @@ import pytest
 from mpi4py import MPI
 
 from lc_petsc.config import ConfigError, MaterialConfig, PhysicsConfig, SceneConfig, SimConfig, TimeConfig
+from lc_petsc.elements import head_contact
 from lc_petsc.root_rotation import root_pivots, turn
 from lc_petsc.simulator import build_simulator
 from tests.sim_helpers import run_positions, small_hairball_config
@@ -256,8 +257,8 @@ def test_a_turn_evaluates_the_heads_penalty_twice(monkeypatch):
         fresh = turner.step(x, it._turn_terms, unit, it._vertex_potentials)
         assert turner.reduced == 0 and turner.turned == 3
         calls = []
-        real = it._contact_terms
-        monkeypatch.setattr(it, "_contact_terms", lambda *a, **k: calls.append(1) or real(*a, **k))
+        real = head_contact.active          # one call per pass of the head's penalty
+        monkeypatch.setattr(head_contact, "active", lambda *a, **k: calls.append(1) or real(*a, **k))
         it.root_turn = turner
         y = it._last_turn(True, x)
         assert len(calls) == 2
@@ -307,3 +308,51 @@ def test_the_numpy_element_kernels_option_reaches_the_turn():
         finally:
             sim.close()
     np.testing.assert_allclose(out["numpy"], out["compiled"], rtol=0, atol=1e-9)
+
+
+def test_a_turned_frame_times_the_turn_once_and_computes_the_head_once_per_time(monkeypatch):
+    """The turn's two head passes (at x and at the turned positions) are timed with the
+    turn as one ``update`` entry, not one ``collision`` entry each (the timer had been
+    most of those small passes' samples), and the head's rotation is computed once per
+    time asked (20 per frame before: every head pass, the first iterate and the frame
+    end asked again).  The phases stay the run's: the turn's time is in ``update``."""
+    from lc_petsc import timing
+    from lc_petsc.scene import kinematics
+    frames = 4
+    cfg = small_hairball_config(n_wisps=3, frames=frames, root_rotation=True)
+    sim = build_simulator(cfg.validate(), comm=SELF)
+    try:
+        it = sim.integrator
+        entries, in_turn, rotations = [], [False], []
+        real_call, real_rotation, real_step = timing.Timers.__call__, kinematics._rotation, it.root_turn.step
+        monkeypatch.setattr(timing.Timers, "__call__",
+                            lambda self, phase: entries.append((in_turn[0], phase)) or real_call(self, phase))
+        monkeypatch.setattr(kinematics, "_rotation", lambda *a: rotations.append(a) or real_rotation(*a))
+
+        def step(*a):
+            in_turn[0] = True
+            try:
+                return real_step(*a)
+            finally:
+                in_turn[0] = False
+        monkeypatch.setattr(it.root_turn, "step", step)
+        heads = []
+        real_active = head_contact.active   # one call per pass of the head's penalty
+        monkeypatch.setattr(head_contact, "active", lambda *a: heads.append(in_turn[0]) or real_active(*a))
+        update_before = sim.timers.cpu_dict()["update"]
+        sim.run()
+        assert it.frame == frames and it.cfg.time.newton_iterations == 3
+        # per frame: the turn's two head passes (nothing halved), timed by no entry of their own
+        assert sum(heads) == 2 * frames and it.root_turns_reduced == [0] * frames
+        assert [p for inside, p in entries if inside] == []
+        # the turn is one update entry per frame, besides the three iterations' updates
+        assert sum(p == "update" for _, p in entries) == 4 * frames
+        assert sum(p == "collision" for _, p in entries) == 2 * 3 * frames
+        assert sim.timers.cpu_dict()["update"] > update_before
+        # the times asked: 0 and each frame's end, once each, and the last frame's
+        # t - dt (the step before's, for the carry with the head) 3 dt - dt, which is
+        # not 2 dt to the bit (0.22294344764321833 against ...27)
+        angles = sorted(float(angle) for _, angle in rotations)
+        assert len(rotations) == frames + 2 and angles[2] != angles[3] and np.isclose(angles[2], angles[3])
+    finally:
+        sim.close()

@@ -215,6 +215,7 @@ class Integrator:
         self.newton_stops_refused = []      # claimed stops refused by any rule
         self.newton_coupled_unknown = []    # coupled-saddle checks whose Lanczos did not converge
         self.root_turns_reduced = []    # wisps whose root turn raised their share of G (RootRotation.step)
+        self.newton_extend_capped = []  # solves time.newton_extend_cap ended above newton_extend_above
         self._counts = dict.fromkeys(FRAME_COUNTS, 0)   # the frame's so far
         self.verifications = []         # every verification: (frame, iteration, verdict, step length)
         self._saddle_wisps = []         # the last saddle's wisps (the scene's numbers; for the monitor)
@@ -743,9 +744,14 @@ class Integrator:
         cfg = self.cfg.time
         if it < cfg.newton_iterations - 1:
             return False
-        if cfg.newton_extend_above is None or it >= cfg.newton_extend_cap - 1:
+        if cfg.newton_extend_above is None:
             return True
-        return self.increments(y - x)[0] <= cfg.newton_extend_above
+        below = self.increments(y - x)[0] <= cfg.newton_extend_above
+        if it >= cfg.newton_extend_cap - 1:
+            # the cap ends the frame still above the bound: counted, warned at the end
+            self._counts["newton_extend_capped"] += not below
+            return True
+        return below
 
     def _last_turn(self, last, x):
         """``time.root_rotation``: after the last iteration's update x (``last``), each
@@ -1443,7 +1449,7 @@ class Integrator:
 VERIFY_FROM = 1e-3
 #: the per-frame counts of the stop's checks (Integrator attributes, summary.json keys)
 FRAME_COUNTS = ("newton_verified", "newton_verify_refused", "newton_stops_refused",
-                "newton_coupled_unknown", "root_turns_reduced")
+                "newton_coupled_unknown", "root_turns_reduced", "newton_extend_capped")
 
 
 #: ``solver.exact_fallback = "shifted"``: the shifts tau of the exact Hessian + tau M/dt^2

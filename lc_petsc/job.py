@@ -193,6 +193,15 @@ def outcome_warnings(summary, start, time_config):
                    f"frames written are the projection's, not the Newton solution the tolerance "
                    f"certifies (length_projection_move in summary.json); set "
                    f"time.length_projection = false for frames within the tolerance")
+    capped = [i for i, n in enumerate(summary.get("newton_extend_capped") or []) if n]
+    if capped:
+        out.append(f"the extended Newton count reached time.newton_extend_cap = {time_config.newton_extend_cap} "
+                   f"with the increment still above time.newton_extend_above = "
+                   f"{time_config.newton_extend_above:g} in {len(capped)} frame(s) ({_frame_list(capped, start)}; "
+                   f"newton_extend_capped and newton_increment in summary.json): those frames are as far from "
+                   f"their solution as the bound was meant to prevent; raise time.newton_extend_cap, or lower "
+                   f"time.dt (with strand contact in ccd mode the bound measures the step before the limiter's "
+                   f"cut, which can stay large: docs/newton.md \"Eighteenth round\")")
     missed = [i for i, c in enumerate(summary["newton_converged"]) if c is False]
     if missed:
         worst = max(summary["newton_increment"][i] or 0.0 for i in missed)

@@ -82,7 +82,9 @@ def format_report(s) -> str:
                       ("newton_coupled_unknown", "stops whose curvature over contact-coupled wisps is unknown "
                                                  "(Lanczos unconverged, kept): {}"),
                       ("root_turns_reduced", "root turns halved or dropped (they raised a wisp's share of "
-                                             "G, time.root_rotation): {} wisp turns")):
+                                             "G, time.root_rotation): {} wisp turns"),
+                      ("newton_extend_capped", "extended counts ended by time.newton_extend_cap above "
+                                               "time.newton_extend_above: {} solves")):
         counts = s.get(key, [])
         if sum(counts):
             lines.append(f"  {what.format(sum(counts))} in {sum(n > 0 for n in counts)} frames")

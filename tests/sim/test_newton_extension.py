@@ -73,11 +73,20 @@ def test_calm_frames_are_unchanged_bit_for_bit(turn):
 
 
 def test_the_cap_ends_an_extended_frame():
-    """A bound no iteration reaches (1e-12): every frame takes exactly the cap."""
+    """A bound no iteration reaches (1e-12): every frame takes exactly the cap, each is
+    counted as ended by it (``newton_extend_capped``), and the run's warning names the
+    frames and the keys; a bound every frame reaches counts none."""
+    from lc_petsc.job import outcome_warnings
     cfg = _jolt_config(newton_extend_above=1e-12, newton_extend_cap=5)
     summ = run_positions(cfg, comm=MPI.COMM_SELF)[1]
     assert summ["newton_iterations"] == [5, 5, 5]
     assert min(summ["newton_increment"]) > 1e-12
+    assert summ["newton_extend_capped"] == [1, 1, 1]
+    warned = [w for w in outcome_warnings(summ, 0, cfg.time) if "newton_extend_cap = 5" in w]
+    assert len(warned) == 1 and "in 3 frame(s)" in warned[0] and "newton_extend_above = 1e-12" in warned[0]
+    calm = run_positions(_jolt_config(newton_extend_above=1e-1, newton_extend_cap=5), comm=MPI.COMM_SELF)[1]
+    assert calm["newton_extend_capped"] == [0, 0, 0]
+    assert not [w for w in outcome_warnings(calm, 0, cfg.time) if "newton_extend_cap" in w]
 
 
 @pytest.mark.parametrize("fields, words", [

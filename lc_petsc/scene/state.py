@@ -43,6 +43,7 @@ def vertex_wisp_length(rest, offsets):
     """Rest length of each vertex's wisp (n_vertices,)."""
     return np.repeat(wisp_lengths(rest, offsets), np.diff(offsets))
 
+
 def _first(mask, wisp_of):
     """(index, wisp) of the first True of ``mask``; ``wisp_of``: each entry's local wisp."""
     j = int(np.flatnonzero(mask)[0])
@@ -130,8 +131,7 @@ class LocalScene:
                             f"{batch.radius[i]!r} must be finite and positive")
         elif (batch.radius < MIN_LENGTH).any():
             # a radius of 1e-300 made the wisp's masses 0: exit 3 in frame 0
-            i = int(np.flatnonzero(batch.radius < MIN_LENGTH)[0])
-            w = int(wid[i])
+            i, w = _first(batch.radius < MIN_LENGTH, wid)
             problems.append(f"wisp {ids[w]}, vertex {i - off[w]}: radius {batch.radius[i]!r} cm is below "
                             f"{MIN_LENGTH:g} cm (an atom's size): no strand is that thin; the radii are in "
                             "cm (or the file is damaged)")
@@ -218,8 +218,7 @@ class LocalScene:
                                 f"{t.stiffness[j]!r} of element {t.start[j] - off[w]} is invalid")
             badr = ~np.isfinite(t.rest)
             if badr.any():      # (the assembler raised it on this rank alone, as above)
-                j = int(np.flatnonzero(badr)[0])
-                w = int(wid[t.start[j]])
+                j, w = _first(badr, wid[t.start])
                 problems.append(f"wisp {ids[w]}: the rest {'length' if t.name == 'stretch' else 'angle'} "
                                 f"of {t.name} element {t.start[j] - off[w]} is {t.rest[j]!r} (vertices at "
                                 f"{np.abs(t.gather(x)[j]).max():.3g} cm): not a hair shape in cm")

@@ -20,7 +20,8 @@ from typing import NoReturn
 
 import numpy as np
 
-from lc_petsc.io.frames import _FRAME_DATASETS, _why, index_problem, row_digest, valid_rows, vertex_digest
+from lc_petsc.io.frames import (_FRAME_DATASETS, _why, index_problem, offsets_problem, row_digest, valid_rows,
+                                vertex_digest)
 from lc_petsc.io.hdf5 import h5py_module
 
 #: the most bytes of ``/positions`` one read takes (a few rows of a 200K-vertex groom,
@@ -116,6 +117,7 @@ class FramesReader:
         self._valid = None
         self._table: tuple | str | None = None
         self._order = None          # order_problem of /time
+        self._offsets = None
         # the static datasets' shapes checked too (the recovery salvages the rows of a
         # file whose /pinned or /radius is damaged: the new file takes them from the scene)
         self.statics = statics
@@ -185,6 +187,25 @@ class FramesReader:
                     _damaged(f"/{name} rows {a}-{b} (frames {a * self.every}-{b * self.every}) "
                              f"cannot be read ({why})")
         _damaged(f"/{name} cannot be read ({why})")
+
+    @property
+    def offsets(self):
+        """``/wisp_offsets`` (int64 (n_wisps + 1,)), read once and checked
+        (:func:`lc_petsc.io.frames.offsets_problem`: integers, 0, increasing, ...,
+        the vertex count of ``/positions``, and the wisps of ``/polylines`` where the
+        file has it): a damaged one is a ValueError naming the dataset and its first bad
+        entry or wisp (read as it was, one made the crossing check allocate wisps of
+        2**60 vertices, one moved between its neighbours split the wisps elsewhere in
+        every reader's strains, crossings and USD curves)."""
+        if self._offsets is None:
+            self.valid          # (the shapes first: their error names them)
+            off = self.dataset("wisp_offsets")
+            problem = offsets_problem(off, self.f["positions"].shape[1],
+                                      self.dataset("polylines") if "polylines" in self.f else None)
+            if problem:
+                raise ValueError(problem)
+            self._offsets = np.asarray(off, np.int64)
+        return self._offsets
 
     def table(self):
         """(``/time`` float, ``/row_digest`` or None), read once (after the chunk index
@@ -326,7 +347,7 @@ def read_frames(path, frames=None):
     the file, the dataset and the row."""
     with FramesReader(path) as r, naming(r.f.filename):
         valid = r.valid
-        out = {k: r.dataset(k) for k in ("wisp_offsets", "rest_positions", "pinned")}
+        out = {"wisp_offsets": r.offsets} | {k: r.dataset(k) for k in ("rest_positions", "pinned")}
         ks = np.arange(len(valid))[slice(None) if frames is None else np.asarray(frames)]
         out["time"], out["frame_valid"] = r.times[ks], valid[ks]     # (numbers for one row given as one)
         got = dict(r.rows(ks))

@@ -309,22 +309,17 @@ def perturbation_text(scene_cfg):
     starts j'/j of the way to j's start, a smash by f' > f at (1 - f') / (1 - f) of the way
     to f's (the same offsets scaled): so a jitter below ``first`` j, a smash above 1 -
     ``first`` (1 - f) meets no pair on its way (rounded inwards to 3 digits)."""
-    kind = scene_cfg.perturbation           # one of STRAIGHT_WAY_PERTURBATIONS
-    if kind == "smash":
-        f = scene_cfg.smash_factor
-
-        def smaller(first):
-            return (f"raise scene.smash_factor above {_rounded(1.0 - first * (1.0 - f), up=True):g} (towards 1; "
-                    f"{100 * first:.3g}% of the way from the rest pose to this start is tangle-free)"
-                    if 0.0 < first < 1.0 else "raise scene.smash_factor towards 1")
-        return f"scene.perturbation = \"smash\", scene.smash_factor = {f:g}", smaller
-    j = scene_cfg.jitter
+    smash = scene_cfg.perturbation == "smash"       # else "jitter": STRAIGHT_WAY_PERTURBATIONS
+    key, now, unit = ("smash_factor", scene_cfg.smash_factor, "") if smash else ("jitter", scene_cfg.jitter, " cm")
 
     def smaller(first):
-        return (f"lower scene.jitter below {_rounded(first * j, up=False):g} cm (the same seed: "
-                f"{100 * first:.3g}% of the way from the rest pose to this start is tangle-free)"
-                if 0.0 < first < 1.0 else "lower scene.jitter")
-    return f"scene.perturbation = \"jitter\", scene.jitter = {j:g} cm", smaller
+        if not 0.0 < first < 1.0:
+            return "raise scene.smash_factor towards 1" if smash else "lower scene.jitter"
+        bound = _rounded(1.0 - first * (1.0 - now), up=True) if smash else _rounded(first * now, up=False)
+        return (f"{'raise' if smash else 'lower'} scene.{key} {'above' if smash else 'below'} {bound:g}{unit} "
+                f"({'towards 1' if smash else 'the same seed'}: {100 * first:.3g}% of the way from the rest pose "
+                "to this start is tangle-free)")
+    return f"scene.perturbation = \"{scene_cfg.perturbation}\", scene.{key} = {now:g}{unit}", smaller
 
 
 def _rounded(value, up):

@@ -201,7 +201,7 @@ def test_real_perturbations_of_an_untangled_start_run(monkeypatch):
     # each start lies on the straight way to the refused one, which meets its first pair there
     import re
     jitter = float(re.search(r"lower scene.jitter below ([0-9.e-]+) cm \(the same seed: ", str(e.value)).group(1))
-    factor = float(re.search(r"raise scene.smash_factor above ([0-9.e-]+) \(towards 1; ", str(f.value)).group(1))
+    factor = float(re.search(r"raise scene.smash_factor above ([0-9.e-]+) \(towards 1: ", str(f.value)).group(1))
     assert 0.05 < jitter < 0.5 and 0.4 < factor < 0.9, (jitter, factor)
     smash = start_config("smash", self_contact=True)
     for cfg, key, ok, bad in ((start_config(self_contact=True), "jitter", jitter, 1.02 * jitter),

@@ -193,10 +193,9 @@ def test_rest_exempt_crossings_are_not_blamed_on_the_limiter(tmp_path):
     assert c["between_wisps"] == 1 and c["between_exempt"] == 1 and c["within_exempt"] is None, c
 
 
-def test_single_wisp_checked_within_and_switch_off(tmp_path):
-    """A smashed curl (one wisp, no contact) crosses itself when it springs back: counted
-    within the wisp, with self-contact as the fix; ``check_crossings = false`` skips it."""
-    toml = """
+#: one smashed 4C curl, 2 frames (``terms``: the physics.terms list's items; ``contact``:
+#: more [physics] lines)
+SMASHED_CURL = """
 [scene]
 kind = "wisp4c"
 n_vertices = 101
@@ -204,13 +203,20 @@ perturbation = "smash"
 [material]
 youngs_modulus = 3.9e9
 [physics]
-terms = ["stretch", "bend", "twist"]
+terms = [{terms}]
+{contact}
 [time]
 frames = 2
 [output]
 previews = false
 usd = false
 """
+
+
+def test_single_wisp_checked_within_and_switch_off(tmp_path):
+    """A smashed curl (one wisp, no contact) crosses itself when it springs back: counted
+    within the wisp, with self-contact as the fix; ``check_crossings = false`` skips it."""
+    toml = SMASHED_CURL.format(terms='"stretch", "bend", "twist"', contact="")
     p = tmp_path / "s.toml"
     p.write_text(toml)
     assert main([str(p), "--out", str(tmp_path / "a"), "--quiet"]) == 0
@@ -266,23 +272,8 @@ def test_a_fold_without_self_contact_is_not_called_exempt(tmp_path):
     a wisp at all.  Now they are counted as within-wisp crossings only, and the warning
     names self-contact."""
     p = tmp_path / "s.toml"
-    p.write_text("""
-[scene]
-kind = "wisp4c"
-n_vertices = 101
-perturbation = "smash"
-[material]
-youngs_modulus = 3.9e9
-[physics]
-terms = ["stretch", "bend", "twist", "strand_collision"]
-strand_contact_mode = "ccd"
-strand_thickness = 2.0
-[time]
-frames = 2
-[output]
-previews = false
-usd = false
-""")
+    p.write_text(SMASHED_CURL.format(terms='"stretch", "bend", "twist", "strand_collision"',
+                                     contact='strand_contact_mode = "ccd"\nstrand_thickness = 2.0'))
     assert main([str(p), "--out", str(tmp_path / "a"), "--quiet"]) == 0
     s = json.loads((tmp_path / "a" / "summary.json").read_text())
     c = s["crossings"]

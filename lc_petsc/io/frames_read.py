@@ -51,9 +51,13 @@ def layout_problem(f, rows=None, statics=True):
     restart keeps those and cuts the others; 0: no length checked, the recovery takes
     the rows each holds); ``statics``: also the datasets of one entry
     per vertex (the recovery reads the rows only).  Shapes only, no frame dataset is
-    read.  A missing ``/positions`` is a KeyError (``/time``: where a reader needs it); a
+    read; the attributes ``every`` and ``dt`` first (:func:`attrs_problem`).  A missing
+    ``/positions`` is a KeyError (``/time``: where a reader needs it); a
     dataset whose object header cannot be read is left to the reader that opens it
     (:meth:`FramesReader.dataset` names it)."""
+    problem = attrs_problem(f)
+    if problem:
+        return problem
     pos, every = f["positions"], int(f.attrs.get("every", 1))
     if pos.ndim != 3 or pos.shape[2] != 3:
         off = f.get("wisp_offsets")
@@ -71,6 +75,21 @@ def layout_problem(f, rows=None, statics=True):
         d = f.get(name)         # (None too where its header cannot be read)
         if d is not None and d.shape != shape:
             return f"/{name} has shape {d.shape}, a frames.h5 of {nv} vertices has {shape}: the file is damaged"
+    return None
+
+
+def attrs_problem(f):
+    """Why the root attributes ``every`` and ``dt`` of the open ``frames.h5`` ``f`` are not
+    a run's (an integer >= 1, a finite number > 0; a file may lack either), else None:
+    every reader numbers its frames by ``every``, the USD export's frame rate is 1 / (dt
+    every) (0 ended it in a ZeroDivisionError traceback)."""
+    every, dt = f.attrs.get("every"), f.attrs.get("dt")
+    if every is not None and not (np.ndim(every) == 0 and np.issubdtype(np.asarray(every).dtype, np.integer)
+                                  and every >= 1):
+        return f"the attribute every = {every!r} is not an integer >= 1 (row k is frame k * every): the file is damaged"
+    if dt is not None and not (np.ndim(dt) == 0 and np.asarray(dt).dtype.kind in "iuf" and np.isfinite(dt)
+                               and dt > 0):
+        return f"the attribute dt = {dt!r} is not a finite number > 0 (the time step, s): the file is damaged"
     return None
 
 

@@ -230,8 +230,12 @@ def _positions_flat(f):
                          "is damaged"),
     (_time_not_increasing, "/time rows 4 and 5 (frames 4, 5) are not increasing ("),
     (_rest_short, "/rest_positions has shape (N-3, 3), a frames.h5 of N vertices has (N, 3): the file is damaged"),
-    (_positions_flat, "/positions has shape (7, 3N), a frames.h5 has (frames, N vertices, 3)")],
-    ids=["digest_short", "time_short", "time_not_increasing", "rest_short", "positions_flat"])
+    (_positions_flat, "/positions has shape (7, 3N), a frames.h5 has (frames, N vertices, 3)"),
+    (lambda f: f.attrs.__setitem__("every", 0), "the attribute every = 0 is not an integer >= 1 (row k is frame "
+                                               "k * every): the file is damaged"),
+    (lambda f: f.attrs.__setitem__("dt", -1.0 / 30), "the attribute dt = -0.03333333333333333 is not a finite "
+                                                     "number > 0 (the time step, s): the file is damaged")],
+    ids=["digest_short", "time_short", "time_not_increasing", "rest_short", "positions_flat", "every_0", "dt_negative"])
 def test_a_frames_file_of_other_shapes_or_times_is_refused_naming_dataset_and_rows(run, tmp_path, capsys, damage,
                                                                                      want):
     """A /row_digest or /time one row shorter than /positions ended every reader in an
@@ -239,8 +243,10 @@ def test_a_frames_file_of_other_shapes_or_times_is_refused_naming_dataset_and_ro
     row, exit 0; the restart's message said the file had too few rows); /time not
     increasing (digests consistent) was read by every reader and kept by a restart; a
     /rest_positions of another length was read by all but edge_strain (the USD's rest
-    pose and the restart kept it); a flat /positions ended to_usd in a TypeError.  Now
-    each reader and the restart refuse, naming the file, the dataset and the rows."""
+    pose and the restart kept it); a flat /positions ended to_usd in a TypeError; an
+    attribute every = 0 ended to_usd in a ZeroDivisionError traceback (and numbered every
+    row frame 0 elsewhere), a negative dt wrote a USD of negative frame rate.  Now each
+    reader and the restart refuse, naming the file, the dataset (attribute) and the rows."""
     path = tmp_path / "frames.h5"
     shutil.copy(run / "out" / "frames.h5", path)
     with h5py.File(path, "r") as f:

@@ -230,16 +230,11 @@ def frames_layout(r, with_rest=False):
     """``/wisp_offsets`` of frames.h5 open in the
     :class:`lc_petsc.io.frames_read.FramesReader` ``r`` (and with ``with_rest`` its
     ``/rest_positions``), after checking the datasets' shapes
-    (:func:`lc_petsc.io.frames_read.layout_problem`) and the offsets: a ValueError names a
+    (:func:`lc_petsc.io.frames_read.layout_problem`) and the offsets
+    (:attr:`lc_petsc.io.frames_read.FramesReader.offsets`): a ValueError names a
     file that is not a run's frames (a strands file, say); a KeyError a missing
     dataset."""
-    from lc_petsc.io.frames import offsets_problem
-    r.valid                 # (the shapes: its error names them)
-    off = np.asarray(r.dataset("wisp_offsets"), np.int64)
-    shape = r.f["positions"].shape
-    problem = offsets_problem(off, shape[1])
-    if problem:             # a damaged one made the check allocate wisps of 2**60 vertices
-        raise ValueError(problem)
+    off = r.offsets         # (checked, after the shapes)
     if not with_rest:
         return off
     return off, np.asarray(r.dataset("rest_positions"), float)
@@ -275,7 +270,7 @@ def count_frames(path, self_contact=False, progress=None):
 STRAIN_WARN = 0.10
 
 
-def check_run(path, comm, self_contact=False, rest_exempt=None, stop=None):
+def check_run(path, comm, self_contact=False, rest_exempt=None, stop=None, contact_within=True):
     """The crossings along the straight paths between consecutive frames of the closed
     ``frames.h5`` at ``path`` (what a viewer interpolating the frames shows), and the
     edges' strain in the frames after the first, for the run's end-of-run check.
@@ -290,7 +285,10 @@ def check_run(path, comm, self_contact=False, rest_exempt=None, stop=None):
     (segments of one wisp sharing no vertex), else those are None; with ``rest_exempt``
     (the run's contact thickness d0) ``between_exempt`` and ``within_exempt``: how many of
     those crossings are of pairs closer than d0 at rest, which the contact exempts
-    (:func:`rest_exempt_pairs`), else None; ``largest_strain``
+    (:func:`rest_exempt_pairs`), else None; ``within_exempt`` is None too where the run's
+    contact does not act within a wisp (``contact_within`` False: no
+    ``physics.strand_self_contact``, so a wisp's crossings of itself are no exemption's,
+    however close its segments were at rest); ``largest_strain``
     (the largest |edge length / rest length - 1| over the rows that end a step),
     ``largest_strain_row`` and ``rows_over_strain`` (rows with an edge beyond
     :data:`STRAIN_WARN`); ``initial_strain``: the same measure of row 0, the initial
@@ -329,7 +327,8 @@ def check_run(path, comm, self_contact=False, rest_exempt=None, stop=None):
             "steps_within": len(within) if self_contact else None,
             "first_within": (within[0][0] if within else None) if self_contact else None,
             "between_exempt": sum(r[4] for r in rows) if rest_exempt is not None else None,
-            "within_exempt": sum(r[5] for r in rows) if rest_exempt is not None and self_contact else None,
+            "within_exempt": (sum(r[5] for r in rows) if rest_exempt is not None and self_contact and contact_within
+                              else None),
             "largest_strain": worst[3] if worst else None,
             "largest_strain_row": worst[0] + 1 if worst else None,
             "initial_strain": next((r[7] for r in rows if r[0] == 0), None),

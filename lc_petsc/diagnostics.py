@@ -190,7 +190,32 @@ def term_warnings(sim):
     if "gravity" in terms and np.any(phys.gravity) and not has_pins and "head_collision" not in terms:
         out.append("no vertex is pinned and head_collision is off: gravity makes every wisp fall "
                    "freely; pin the roots (scene.n_pinned, or /pinned or primvars:pinned in a groom file)")
-    return out + groom_radius_warnings(sim) + groom_edge_warnings(sim) + groom_scale_warnings(sim)
+    return out + sim.material_warnings + groom_radius_warnings(sim) + groom_edge_warnings(sim) + \
+        groom_scale_warnings(sim)
+
+
+def groom_material_warnings(comm, batch, where):
+    """The per-wisp ``/youngs_modulus`` and ``/density`` of a strands file (``batch``:
+    this rank's wisps; ``where``: the file, for the message) outside the plausible range
+    for hair (:data:`lc_petsc.config.PLAUSIBLE_RANGES`, as ``material.youngs_modulus``
+    and ``material.density``), naming how many wisps, the first (the scene's numbering)
+    and its value: the config's keys were warned about, a file's values (a groom written
+    in Pa or kg/m^3) were not.  Collective (every rank the same warnings)."""
+    from lc_petsc.config import PLAUSIBLE_RANGES
+    out = []
+    for name, key, values in (("/youngs_modulus", "youngs_modulus", batch.youngs_modulus),
+                              ("/density", "density", batch.density)):
+        lo, hi, unit, below, above = PLAUSIBLE_RANGES[("material", key)]
+        bad = np.zeros(0, int) if values is None else np.flatnonzero((values < lo) | (values > hi))
+        n = int(comm.allreduce(len(bad)))
+        if not n:
+            continue
+        w, v = min(comm.allgather((int(batch.ids()[bad[0]]), float(values[bad[0]])) if len(bad) else
+                                  (np.iinfo(np.int64).max, 0.0)))
+        out.append(f"{where}: {n} wisp(s) have a {name} outside the plausible range for hair, {lo:g} to {hi:g} "
+                   f"{unit}; the first: wisp {w}, {v:g} {unit}: {below if v < lo else above}; lc_petsc's units "
+                   "are cm, g, s")
+    return out
 
 
 def groom_radius_warnings(sim):

@@ -148,7 +148,7 @@ def file_head(r):
     tables = config_tables(json.loads(f.attrs["config"]) if "config" in f.attrs else {})
     if not has_head_sphere(tables["physics"], tables["scene"]):
         return None
-    off = np.asarray(r.dataset("wisp_offsets"), np.int64)
+    off = r.offsets
     rad = (np.asarray(r.dataset("radius"), float) if "radius" in f else
            scene_radius(tables, np.diff(off)))
     pinned = np.asarray(r.dataset("pinned"), bool) if "pinned" in f else np.zeros(int(off[-1]), bool)

@@ -854,15 +854,20 @@ class Integrator:
                 self.strand.filter = filter
         try:
             with collectively(self.comm, f"frame {self.frame}, Newton iteration {it}"):
-                g = self.gradient(x, elastic=asm.assemble(x, None if keep else mass))
+                elastic = asm.assemble(x, None if keep else mass)
                 if keep:
                     diagonal = asm.diagonal_blocks()
                     with self.timers("assembly"):
                         asm.add_mass(mass)
-                _, idx, cg = self._contact_terms(x, True)
-                if cg is not None:
+                # one head pass for the gradient and the matrix, one phase entry with its
+                # blocks (the gradient had its own pass: the same values, twice the work)
+                idx, cg = None, None
+                if self.contact:
                     with self.timers("collision"):
-                        asm.add_diagonal(idx, cg[1])
+                        _, idx, cg = self._head_terms(x, True)
+                        if cg is not None:
+                            asm.add_diagonal(idx, cg[1])
+                g = self.gradient(x, elastic=elastic, head=(idx, cg))
             if self.strand is not None:
                 g += self.strand.assemble(x, asm)
         finally:

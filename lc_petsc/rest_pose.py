@@ -42,7 +42,8 @@ class RestPoseReport:
         """The report for a person: count, closest pair (wisps, vertices), distance."""
         wa, va, wb, vb = self.worst
         which, fold = ("of different wisps or of one wisp (not neighbours along it)",
-                       " or physics.strand_self_contact = false (for a wisp folded onto itself)") \
+                       ", or physics.strand_self_contact = false for a wisp folded onto itself (its segments then "
+                       "do not touch each other at all: it may pass through itself anywhere, not only there)") \
             if self.self_contact else ("of different wisps", "")
         why = (" (physics.strand_thickness is not set: twice the scene's smallest vertex "
                "radius)") if self.thickness_default else ""
@@ -98,6 +99,7 @@ class StartReport:
     self_contact: bool = False
     made_by: str = ""                # what made the start: the perturbation and its size
     smaller: str = "make the perturbation smaller"
+    first: float = 1.0               # the fraction of the way at which the first pair meets
 
     def message(self, exempt=False) -> str:
         """The report for a person: count, the closest pair, what to change (``exempt``:
@@ -108,9 +110,9 @@ class StartReport:
                f"physics.strand_rest_overlap = \"exempt\" to run it anyway (these pairs are not "
                f"exempt: the contact holds them where the initial state put them)")
         if exempt:
-            fix = (f"run anyway (physics.strand_rest_overlap = \"exempt\"; these pairs are not exempt: the "
-                   f"contact holds them where the initial state put them); {self.smaller} or run the "
-                   f"scene without strand contact to avoid it")
+            fix = (f"run anyway, as physics.strand_rest_overlap = \"exempt\" asks (it exempts pairs closer than "
+                   f"the contact thickness at rest, not these: the contact holds them where the initial state put "
+                   f"them); {self.smaller}, or run the scene without strand contact, to avoid it")
         which = "of different wisps or of one wisp" if self.self_contact else "of different wisps"
         return (f"the initial state ({self.made_by}) is tangled: {self.pairs} pair(s) of segments {which}, "
                 f"at least the contact thickness {self.thickness:g} cm apart in the rest pose, pass "
@@ -127,11 +129,17 @@ def check_start_pose(strand, x0, made_by="", smaller=None) -> StartReport:
     least the thickness d0 apart at rest (closer ones are the rest check's: refused or
     exempt) and meet on the straight way from the rest pose to this rank's initial
     positions ``x0`` (nv, 3) (Tight-Inclusion at distance 0,
-    :func:`lc_petsc.crossings.crossing_pairs`; a pair touching in ``x0`` meets).  Pairs
-    merely closer than d0 in ``x0`` are no tangle: the contact pushes them apart towards
-    the rest pose.  Collective: the contact's ghost exchange over both poses, each pair
-    judged on one rank."""
+    :func:`lc_petsc.crossings.crossing_pairs`; a pair touching in ``x0`` meets), and
+    the fraction of the way at which the first of them meets (``first``, Tight-Inclusion's
+    time: a lower bound).  Pairs merely closer than d0 in ``x0`` are no tangle: the
+    contact pushes them apart towards the rest pose.  ``smaller``: what to change, or a
+    callable of ``first`` giving it (a jitter's and a smash's starts lie on the straight
+    way to a larger one, so the way's first meeting gives the largest that passes).
+    Collective: the contact's ghost exchange over both poses, each pair judged on one
+    rank."""
     from lc_petsc.crossings import crossing_pairs
+    from lc_petsc.elements.segment_ccd import tight_inclusion_toi
+    from lc_petsc.parallel import global_min
     comm, d0 = strand.comm, strand.d0
     (R, S), _, gv, wisp, _, _, n_local = strand._gather_segments(strand.scene.x_rest, extra=(x0,))
     # the boxes swept from the rest pose to the start: every pair that meets on the way
@@ -146,7 +154,11 @@ def check_start_pose(strand, x0, made_by="", smaller=None) -> StartReport:
     d = segment_contact.distance(XS[crossed]) if crossed.any() else np.zeros(0)
     n = comm.allreduce(int(crossed.sum()))
     dmin, wa, va, wb, vb = _closest(comm, d, i[crossed], j[crossed], gv, wisp)
+    t = tight_inclusion_toi(XR[crossed], XS[crossed], 0.0)[1] if crossed.any() else np.ones(0)
+    first = global_min(comm, float(t.min(initial=1.0)))
+    if callable(smaller):
+        smaller = smaller(first)
     return StartReport(thickness=d0, pairs=n, min_distance=float(dmin),
                        worst=(wa, va, wb, vb) if np.isfinite(dmin) else (),
-                       self_contact=strand.self_contact, made_by=made_by,
+                       self_contact=strand.self_contact, made_by=made_by, first=first,
                        **({"smaller": smaller} if smaller else {}))

@@ -14,6 +14,7 @@ from petsc4py import PETSc
 from lc_petsc import parallel
 from lc_petsc.assembly import Assembler
 from lc_petsc.config import ELASTIC_TERMS, OTHER_TERMS, ConfigError, SimConfig
+from lc_petsc.diagnostics import groom_material_warnings
 from lc_petsc.integrator import FRAME_COUNTS, Integrator
 from lc_petsc.errors import RestPoseOverlapError, StartOverlapError
 from lc_petsc.rest_pose import check_rest_pose, check_start_pose
@@ -117,6 +118,8 @@ class Simulator:
                 problems = inertia_problems(scene, batch, cfg)
         parallel.collective_raise(comm, [named_by(source, p) for p in problems])
         self.scene = scene
+        # a strands file's moduli and densities a hair has not (warned, as the config's keys)
+        self.material_warnings = groom_material_warnings(comm, batch, source.description)
         # outputs in the scene's wisp order (parallel.UserLayout)
         self.user = parallel.UserLayout(comm, self.wisp_order, user_sizes, self.ranges, scene)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):   # checked next
@@ -300,13 +303,29 @@ STRAIGHT_WAY_PERTURBATIONS = ("jitter", "smash")
 
 
 def perturbation_text(scene_cfg):
-    """(``scene.perturbation`` and its size, how to make it smaller), for messages about
-    the initial state."""
-    kind = scene_cfg.perturbation           # one of STRAIGHT_WAY_PERTURBATIONS
-    size, smaller = {"smash": (f", scene.smash_factor = {scene_cfg.smash_factor:g}",
-                               "raise scene.smash_factor towards 1"),
-                     "jitter": (f", scene.jitter = {scene_cfg.jitter:g} cm", "lower scene.jitter")}[kind]
-    return f"scene.perturbation = \"{kind}\"{size}", smaller
+    """(``scene.perturbation`` and its size, how to make it smaller: a callable of the
+    fraction ``first`` of the straight way from the rest pose at which the first tangled
+    pair meets), for messages about the initial state.  A jitter of j' < j (the same seed)
+    starts j'/j of the way to j's start, a smash by f' > f at (1 - f') / (1 - f) of the way
+    to f's (the same offsets scaled): so a jitter below ``first`` j, a smash above 1 -
+    ``first`` (1 - f) meets no pair on its way (rounded inwards to 3 digits)."""
+    smash = scene_cfg.perturbation == "smash"       # else "jitter": STRAIGHT_WAY_PERTURBATIONS
+    key, now, unit = ("smash_factor", scene_cfg.smash_factor, "") if smash else ("jitter", scene_cfg.jitter, " cm")
+
+    def smaller(first):
+        if not 0.0 < first < 1.0:
+            return "raise scene.smash_factor towards 1" if smash else "lower scene.jitter"
+        bound = _rounded(1.0 - first * (1.0 - now), up=True) if smash else _rounded(first * now, up=False)
+        return (f"{'raise' if smash else 'lower'} scene.{key} {'above' if smash else 'below'} {bound:g}{unit} "
+                f"({'towards 1' if smash else 'the same seed'}: {100 * first:.3g}% of the way from the rest pose "
+                "to this start is tangle-free)")
+    return f"scene.perturbation = \"{scene_cfg.perturbation}\", scene.{key} = {now:g}{unit}", smaller
+
+
+def _rounded(value, up):
+    """``value`` > 0 rounded to 3 significant digits, up or down (a bound stays one)."""
+    unit = 10.0 ** (np.floor(np.log10(value)) - 2)
+    return float((np.ceil if up else np.floor)(value / unit) * unit)
 
 
 def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user, source, x0=None):

@@ -195,13 +195,37 @@ def has_checksums(path) -> bool:
         return bool(f["positions"].fletcher32)
 
 
-def offsets_problem(off, n_vertices):
-    """Why ``off`` is not a valid ``/wisp_offsets`` for ``n_vertices`` vertices (0 first,
-    increasing, ``n_vertices`` last), or None."""
+def offsets_problem(off, n_vertices, polylines=None):
+    """Why ``off`` is not a valid ``/wisp_offsets`` for ``n_vertices`` vertices (integers,
+    0 first, increasing, ``n_vertices`` last; the first entry that is not named), or None.
+    ``polylines``: the file's ``/polylines`` as read (written with the offsets: per wisp
+    2, its vertex count, its vertex indices), whose wisps the offsets must give (an offset
+    moved within its neighbours is still increasing)."""
     off = np.asarray(off)
-    if off.ndim != 1 or len(off) < 2 or off[0] != 0 or off[-1] != n_vertices or np.any(np.diff(off) <= 0):
-        return (f"/wisp_offsets is not 0, increasing, ..., {n_vertices} (the vertex count of "
-                f"/positions): the file is damaged")
+    want = f"0, increasing, ..., {n_vertices} (the vertex count of /positions)"
+    if off.ndim != 1 or len(off) < 2 or off.dtype.kind not in "iu":
+        return f"/wisp_offsets has shape {off.shape} and type {off.dtype}, a frames.h5 has {want}: the file is damaged"
+    bad = np.flatnonzero(np.diff(off) <= 0)
+    for wrong, what in ((off[0] != 0, f"entry 0 is {off[0]}"),
+                        (len(bad), lambda: f"entry {bad[0] + 1} is {off[bad[0] + 1]} after {off[bad[0]]}"),
+                        (off[-1] != n_vertices, f"the last entry is {off[-1]}")):
+        if wrong:
+            return f"/wisp_offsets is not {want}: {what if isinstance(what, str) else what()}; the file is damaged"
+    if polylines is None:
+        return None
+    poly, sizes = np.asarray(polylines), np.diff(off)
+    heads = off[:-1] + 2 * np.arange(len(sizes))        # each wisp's entry 2 in /polylines
+    if poly.shape != (2 * len(sizes) + n_vertices,):
+        return (f"/polylines has shape {poly.shape}, the {len(sizes)} wisps of /wisp_offsets and {n_vertices} "
+                f"vertices have ({2 * len(sizes) + n_vertices},): the file is damaged")
+    vertex = np.ones(len(poly), bool)
+    vertex[heads] = vertex[heads + 1] = False
+    differ = (poly[heads] != 2) | (poly[heads + 1] != sizes)
+    if differ.any() or not np.array_equal(poly[vertex], np.arange(n_vertices)):
+        w = int(np.flatnonzero(differ)[0]) if differ.any() else \
+            int(np.searchsorted(off, np.flatnonzero(poly[vertex] != np.arange(n_vertices))[0], side="right") - 1)
+        return (f"/wisp_offsets gives wisp {w} vertices {off[w]}-{off[w + 1] - 1}, /polylines (the wisps written "
+                f"with it) does not: the file is damaged")
     return None
 
 
@@ -260,7 +284,8 @@ def _kept_problem(r, path, rows, offsets):
             problem = name == "time" and order_problem(a, valid, r.every)
             if problem:
                 return f"{path}: {problem}"
-            problem = name == "wisp_offsets" and _offsets_differ(a, f["positions"].shape[1], offsets)
+            problem = name == "wisp_offsets" and _offsets_differ(
+                a, f["positions"].shape[1], offsets, r.dataset("polylines") if "polylines" in f else None)
             if problem:
                 return f"{path}: {problem}"
         for k, x in r.rows(range(rows), check=False):      # in blocks, each row checked here
@@ -274,10 +299,11 @@ def _kept_problem(r, path, rows, offsets):
     return None
 
 
-def _offsets_differ(a, n_vertices, offsets):
-    """Why ``/wisp_offsets`` read as ``a`` is damaged or not the scene's ``offsets``
-    (None: not checked), else None."""
-    problem = offsets_problem(a, n_vertices)
+def _offsets_differ(a, n_vertices, offsets, polylines=None):
+    """Why ``/wisp_offsets`` read as ``a`` is damaged (``polylines``: the file's
+    ``/polylines``, :func:`offsets_problem`) or not the scene's ``offsets`` (None: not
+    checked), else None."""
+    problem = offsets_problem(a, n_vertices, polylines)
     if problem is None and offsets is not None and not np.array_equal(a, offsets):
         problem = ("/wisp_offsets differs from the scene's wisp sizes: the file is damaged, "
                    "or another scene's with the same counts")

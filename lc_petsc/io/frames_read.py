@@ -20,7 +20,8 @@ from typing import NoReturn
 
 import numpy as np
 
-from lc_petsc.io.frames import _FRAME_DATASETS, _why, index_problem, row_digest, valid_rows, vertex_digest
+from lc_petsc.io.frames import (_FRAME_DATASETS, _why, index_problem, offsets_problem, row_digest, valid_rows,
+                                vertex_digest)
 from lc_petsc.io.hdf5 import h5py_module
 
 #: the most bytes of ``/positions`` one read takes (a few rows of a 200K-vertex groom,
@@ -50,9 +51,13 @@ def layout_problem(f, rows=None, statics=True):
     restart keeps those and cuts the others; 0: no length checked, the recovery takes
     the rows each holds); ``statics``: also the datasets of one entry
     per vertex (the recovery reads the rows only).  Shapes only, no frame dataset is
-    read.  A missing ``/positions`` is a KeyError (``/time``: where a reader needs it); a
+    read; the attributes ``every`` and ``dt`` first (:func:`attrs_problem`).  A missing
+    ``/positions`` is a KeyError (``/time``: where a reader needs it); a
     dataset whose object header cannot be read is left to the reader that opens it
     (:meth:`FramesReader.dataset` names it)."""
+    problem = attrs_problem(f)
+    if problem:
+        return problem
     pos, every = f["positions"], int(f.attrs.get("every", 1))
     if pos.ndim != 3 or pos.shape[2] != 3:
         off = f.get("wisp_offsets")
@@ -70,6 +75,21 @@ def layout_problem(f, rows=None, statics=True):
         d = f.get(name)         # (None too where its header cannot be read)
         if d is not None and d.shape != shape:
             return f"/{name} has shape {d.shape}, a frames.h5 of {nv} vertices has {shape}: the file is damaged"
+    return None
+
+
+def attrs_problem(f):
+    """Why the root attributes ``every`` and ``dt`` of the open ``frames.h5`` ``f`` are not
+    a run's (an integer >= 1, a finite number > 0; a file may lack either), else None:
+    every reader numbers its frames by ``every``, the USD export's frame rate is 1 / (dt
+    every) (0 ended it in a ZeroDivisionError traceback)."""
+    every, dt = f.attrs.get("every"), f.attrs.get("dt")
+    if every is not None and not (np.ndim(every) == 0 and np.issubdtype(np.asarray(every).dtype, np.integer)
+                                  and every >= 1):
+        return f"the attribute every = {every!r} is not an integer >= 1 (row k is frame k * every): the file is damaged"
+    if dt is not None and not (np.ndim(dt) == 0 and np.asarray(dt).dtype.kind in "iuf" and np.isfinite(dt)
+                               and dt > 0):
+        return f"the attribute dt = {dt!r} is not a finite number > 0 (the time step, s): the file is damaged"
     return None
 
 
@@ -116,6 +136,7 @@ class FramesReader:
         self._valid = None
         self._table: tuple | str | None = None
         self._order = None          # order_problem of /time
+        self._offsets = None
         # the static datasets' shapes checked too (the recovery salvages the rows of a
         # file whose /pinned or /radius is damaged: the new file takes them from the scene)
         self.statics = statics
@@ -185,6 +206,25 @@ class FramesReader:
                     _damaged(f"/{name} rows {a}-{b} (frames {a * self.every}-{b * self.every}) "
                              f"cannot be read ({why})")
         _damaged(f"/{name} cannot be read ({why})")
+
+    @property
+    def offsets(self):
+        """``/wisp_offsets`` (int64 (n_wisps + 1,)), read once and checked
+        (:func:`lc_petsc.io.frames.offsets_problem`: integers, 0, increasing, ...,
+        the vertex count of ``/positions``, and the wisps of ``/polylines`` where the
+        file has it): a damaged one is a ValueError naming the dataset and its first bad
+        entry or wisp (read as it was, one made the crossing check allocate wisps of
+        2**60 vertices, one moved between its neighbours split the wisps elsewhere in
+        every reader's strains, crossings and USD curves)."""
+        if self._offsets is None:
+            self.valid          # (the shapes first: their error names them)
+            off = self.dataset("wisp_offsets")
+            problem = offsets_problem(off, self.f["positions"].shape[1],
+                                      self.dataset("polylines") if "polylines" in self.f else None)
+            if problem:
+                raise ValueError(problem)
+            self._offsets = np.asarray(off, np.int64)
+        return self._offsets
 
     def table(self):
         """(``/time`` float, ``/row_digest`` or None), read once (after the chunk index
@@ -326,7 +366,7 @@ def read_frames(path, frames=None):
     the file, the dataset and the row."""
     with FramesReader(path) as r, naming(r.f.filename):
         valid = r.valid
-        out = {k: r.dataset(k) for k in ("wisp_offsets", "rest_positions", "pinned")}
+        out = {"wisp_offsets": r.offsets} | {k: r.dataset(k) for k in ("rest_positions", "pinned")}
         ks = np.arange(len(valid))[slice(None) if frames is None else np.asarray(frames)]
         out["time"], out["frame_valid"] = r.times[ks], valid[ks]     # (numbers for one row given as one)
         got = dict(r.rows(ks))

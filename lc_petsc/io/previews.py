@@ -195,7 +195,7 @@ def render_previews(frames_path, out_dir, preview_rows, contact_panels=12, view=
         held = np.flatnonzero(f.valid)
         if len(held) == 0:
             return []
-        offsets = f.dataset("wisp_offsets")
+        offsets = f.offsets
         times = f.times
         rows = sorted({int(held[np.abs(held - int(r) % n).argmin()]) for r in preview_rows})
         sheet = sorted(set(held[np.linspace(0, len(held) - 1, min(contact_panels, len(held)))

@@ -141,7 +141,6 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
     and last row written).  ``progress``: callable(done, total) or None.  Returns a dict
     of what was written and how long it took (seconds)."""
     from pxr import Gf, Sdf, Usd, UsdGeom, Vt
-    from lc_petsc.io.frames import offsets_problem
     from lc_petsc.io.frames_read import FramesReader, naming
     from lc_petsc.io.render_hairs import RenderHairs, root_normals
     from lc_petsc.scene.kinematics import HeadMotion
@@ -170,12 +169,9 @@ def write_usd(frames_path, usd_path=None, *, render_hairs=None, render_hair_seed
         tables = config_tables(config_dict)
         dt, every = float(f.attrs["dt"]), int(f.attrs.get("every", 1))
         with naming(frames_path):
-            static = {k: r.dataset(k) for k in ("wisp_offsets", "rest_positions", "pinned", "radius") if k in f}
+            static = {k: r.dataset(k) for k in ("rest_positions", "pinned", "radius") if k in f}
             times = r.times
-        offsets = np.asarray(static["wisp_offsets"], np.int64)
-        problem = offsets_problem(offsets, f["positions"].shape[1])
-        if problem:
-            raise ValueError(f"{frames_path}: {problem}")
+            offsets = r.offsets
         sizes = np.diff(offsets)
         rest = np.asarray(static["rest_positions"], float)
         pinned = np.asarray(static["pinned"], bool)

@@ -44,6 +44,7 @@ class HeadMotion:
         # {t: (R, T)} and {t: centre} of the last few times asked (:meth:`transform`)
         self._transforms: dict = {}
         self._centres: dict = {}
+        self._motions: dict = {}        # {(t0, t1): (Q, q)}, :meth:`rigid_motion`
 
     def transform(self, t):
         """The head's rotation (3, 3) and translation (3,) at time ``t`` (read-only
@@ -131,11 +132,18 @@ class HeadMotion:
 
     def rigid_motion(self, t0, t1):
         """(Q (3, 3), q (3,)): the head's rigid motion from t0 to t1 as x -> Q x + q, so
-        that :meth:`carry` is ``x @ Q.T + q`` (to round-off)."""
-        R0, T0 = self.transform(t0)
-        R1, T1 = self.transform(t1)
-        Q = R1 @ R0.T
-        return Q, self.center + T1 - (self.center + T0) @ Q.T
+        that :meth:`carry` is ``x @ Q.T + q`` (to round-off).  Read-only arrays, kept for
+        the last :data:`TIMES_KEPT` pairs of times (a step asks for its own three times:
+        the first iterate's carry, the limiter's field, the frame end; and the next step
+        for the one before it)."""
+        known = self._motions.get((t0, t1))
+        if known is None:
+            R0, T0 = self.transform(t0)
+            R1, T1 = self.transform(t1)
+            Q = R1 @ R0.T
+            known = (_read_only(Q), _read_only(self.center + T1 - (self.center + T0) @ Q.T))
+            _keep(self._motions, (t0, t1), known)
+        return known
 
     def sphere_center(self, t):
         """Centre (3,) of the head sphere at time ``t`` (a read-only array, kept for the
@@ -154,8 +162,8 @@ def _read_only(a):
 
 
 def _keep(kept, t, value):
-    """Keeps ``value`` as ``kept[t]``, the oldest dropped beyond :data:`TIMES_KEPT` (dicts
-    keep their insertion order)."""
+    """Keeps ``value`` as ``kept[t]`` (``t``: a time or a pair of times), the oldest
+    dropped beyond :data:`TIMES_KEPT` (dicts keep their insertion order)."""
     if len(kept) >= TIMES_KEPT:
         del kept[next(iter(kept))]
     kept[t] = value

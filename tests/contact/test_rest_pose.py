@@ -192,11 +192,25 @@ def test_real_perturbations_of_an_untangled_start_run(monkeypatch):
         finally:
             sim.close()
     with pytest.raises(StartOverlapError, match=r"of different wisps or of one wisp.*wisp (\d) segment .* "
-                                                r"and wisp \1 segment.*lower scene.jitter"):
+                                                r"and wisp \1 segment.*lower scene.jitter below") as e:
         simmod.build_simulator(start_config(jitter=0.5, self_contact=True), comm=MPI.COMM_SELF)
     with pytest.raises(StartOverlapError, match=r"smash_factor = 0.4\) is tangled: .*raise "
-                                                r"scene.smash_factor towards 1"):
+                                                r"scene.smash_factor above") as f:
         simmod.build_simulator(start_config("smash", self_contact=True), comm=MPI.COMM_SELF)
+    # the values the messages give start untangled (the same seed), and a little beyond them not:
+    # each start lies on the straight way to the refused one, which meets its first pair there
+    import re
+    jitter = float(re.search(r"lower scene.jitter below ([0-9.e-]+) cm \(the same seed: ", str(e.value)).group(1))
+    factor = float(re.search(r"raise scene.smash_factor above ([0-9.e-]+) \(towards 1: ", str(f.value)).group(1))
+    assert 0.05 < jitter < 0.5 and 0.4 < factor < 0.9, (jitter, factor)
+    smash = start_config("smash", self_contact=True)
+    for cfg, key, ok, bad in ((start_config(self_contact=True), "jitter", jitter, 1.02 * jitter),
+                              (smash, "smash_factor", factor, factor - 0.02 * (1.0 - factor))):
+        setattr(cfg.scene, key, ok)
+        simmod.build_simulator(cfg, comm=MPI.COMM_SELF).close()
+        setattr(cfg.scene, key, bad)
+        with pytest.raises(StartOverlapError):
+            simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
 
 
 

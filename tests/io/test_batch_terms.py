@@ -304,34 +304,59 @@ def test_groom_file_radii_outside_the_hair_range_are_warned_about(tmp_path, radi
         sim.close()
 
 
+def _groom_warnings(name, needle, datasets):
+    """(path, the warnings containing ``needle``) of a strands file of ``datasets`` built
+    on every rank (collective; the file is removed after the build)."""
+    import os
+    import h5py
+    from sim_helpers import shared_scene_dir
+    comm = MPI.COMM_WORLD
+    with shared_scene_dir(comm, name, "") as (d, _):
+        path = os.path.join(d, "g.h5")
+        if comm.rank == 0:
+            with h5py.File(path, "w") as f:
+                for k, v in datasets.items():
+                    f[k] = v
+        comm.Barrier()
+        sim = build_simulator(SimConfig(scene=SceneConfig(kind="file", path=path)), comm=comm)
+        try:
+            return path, [m for m in term_warnings(sim) if needle in m]
+        finally:
+            sim.close()
+
+
+@pytest.mark.mpi
+def test_groom_file_moduli_and_densities_outside_the_hair_range_are_warned_about():
+    """A strands file's per-wisp /density in kg/m^3 (1300) or /youngs_modulus in Pa ran
+    without a word, where material.density = 1300 or youngs_modulus = 4e9 in the config is
+    warned about (the plausible ranges); now the same warning names the file, how many
+    wisps, the first and its value, the same on every rank (3 wisps over 1-3 ranks)."""
+    from lc_petsc.scene import geometry
+    path, w = _groom_warnings("material", "plausible range", {
+        "positions": np.concatenate([geometry.wisp4c(12, root=(2.0 * w, 0.0, 0.0)) for w in range(3)]),
+        "wisp_offsets": np.array([0, 12, 24, 36]), "density": np.array([1.3, 1300.0, 1250.0]),
+        "youngs_modulus": np.array([4.0e9, 4.0e10, 3.0e5])})
+    assert w == [f"strands file {path}: 1 wisp(s) have a /youngs_modulus outside the plausible range for hair, "
+                 "1e+06 to 1e+12 dyn/cm^2; the first: wisp 2, 300000 dyn/cm^2: it looks like MPa or GPa (hair "
+                 "keratin: about 4 GPa = 4e10 dyn/cm^2; 1 Pa = 10 dyn/cm^2); lc_petsc's units are cm, g, s",
+                 f"strands file {path}: 2 wisp(s) have a /density outside the plausible range for hair, 0.1 to 10 "
+                 "g/cm^3; the first: wisp 1, 1300 g/cm^3: it looks like kg/m^3 (hair: 1300 kg/m^3 = 1.3 g/cm^3); "
+                 "lc_petsc's units are cm, g, s"], w
+
+
 @pytest.mark.mpi
 def test_groom_edges_far_shorter_than_their_wisp_are_warned_about():
     """A near-duplicate vertex in a groom file (an edge of 1e-3 cm among 0.6 cm ones)
     ran without a word until a linear solve failed (DIVERGED_INDEFINITE_PC), with advice
     about solvers; now a warning names the file, the shortest edge and how many wisps
     have one, the same on any rank count (wisps in the scene's numbering)."""
-    import os
-    import h5py
     from lc_petsc.scene import geometry
-    from sim_helpers import shared_scene_dir
-    comm = MPI.COMM_WORLD
-    with shared_scene_dir(comm, "short_edge", "") as (d, _):
-        path = os.path.join(d, "g.h5")
-        x = np.concatenate([geometry.wisp4c(12, root=(3.0 * w, 0.0, 0.0)) for w in range(4)])
-        L = float(np.linalg.norm(x[1] - x[0]))
-        for v, length in ((12 + 5, 1e-4 * L), (36 + 7, 3e-3 * L)):      # wisp 1 edge 4, wisp 3 edge 6
-            e = x[v] - x[v - 1]
-            x[v] = x[v - 1] + length * e / np.linalg.norm(e)
-        if comm.rank == 0:
-            with h5py.File(path, "w") as f:
-                f["positions"] = x
-                f["wisp_offsets"] = np.arange(0, 49, 12)
-        comm.Barrier()
-        sim = build_simulator(SimConfig(scene=SceneConfig(kind="file", path=path)), comm=comm)
-        try:
-            w = [m for m in term_warnings(sim) if "median edge" in m]
-        finally:
-            sim.close()
+    x = np.concatenate([geometry.wisp4c(12, root=(3.0 * w, 0.0, 0.0)) for w in range(4)])
+    L = float(np.linalg.norm(x[1] - x[0]))
+    for v, length in ((12 + 5, 1e-4 * L), (36 + 7, 3e-3 * L)):      # wisp 1 edge 4, wisp 3 edge 6
+        e = x[v] - x[v - 1]
+        x[v] = x[v - 1] + length * e / np.linalg.norm(e)
+    path, w = _groom_warnings("short_edge", "median edge", {"positions": x, "wisp_offsets": np.arange(0, 49, 12)})
     assert len(w) == 1, w
     med = np.median(np.linalg.norm(np.diff(x[12:24], axis=0), axis=1))
     assert w[0].startswith(f"{path}: 2 wisp(s) have an edge shorter than 0.01 of their wisp's median "

@@ -189,13 +189,13 @@ def test_rest_exempt_crossings_are_not_blamed_on_the_limiter(tmp_path):
     assert len(w) == 1 and "report" not in w[0] and "should have" not in w[0], w
     assert "all by pairs of segments closer than the contact thickness" in w[0] and "strand_rest_overlap" in w[0]
     c = s["crossings"]
-    assert c["between_wisps"] == 1 and c["between_exempt"] == 1 and c["within_exempt"] == 0, c
+    # (no self-contact: a wisp's crossings of itself, if any, would be no exemption's)
+    assert c["between_wisps"] == 1 and c["between_exempt"] == 1 and c["within_exempt"] is None, c
 
 
-def test_single_wisp_checked_within_and_switch_off(tmp_path):
-    """A smashed curl (one wisp, no contact) crosses itself when it springs back: counted
-    within the wisp, with self-contact as the fix; ``check_crossings = false`` skips it."""
-    toml = """
+#: one smashed 4C curl, 2 frames (``terms``: the physics.terms list's items; ``contact``:
+#: more [physics] lines)
+SMASHED_CURL = """
 [scene]
 kind = "wisp4c"
 n_vertices = 101
@@ -203,13 +203,20 @@ perturbation = "smash"
 [material]
 youngs_modulus = 3.9e9
 [physics]
-terms = ["stretch", "bend", "twist"]
+terms = [{terms}]
+{contact}
 [time]
 frames = 2
 [output]
 previews = false
 usd = false
 """
+
+
+def test_single_wisp_checked_within_and_switch_off(tmp_path):
+    """A smashed curl (one wisp, no contact) crosses itself when it springs back: counted
+    within the wisp, with self-contact as the fix; ``check_crossings = false`` skips it."""
+    toml = SMASHED_CURL.format(terms='"stretch", "bend", "twist"', contact="")
     p = tmp_path / "s.toml"
     p.write_text(toml)
     assert main([str(p), "--out", str(tmp_path / "a"), "--quiet"]) == 0
@@ -249,10 +256,33 @@ def test_warning_names_the_cause_for_the_run_setup():
     assert crossing_warnings(dict(check, between_wisps=0, within_wisps=None), cfg) == []
     # crossings of rest-exempt pairs are the exemption's, the others the limiter's
     cfg = load_config(root / "configs" / "hairball_demo.toml")         # ccd, every 1
+    cfg.physics.strand_self_contact = True      # (without it check_run counts no exemption within)
     between, within = crossing_warnings(dict(check, between_exempt=7, within_exempt=1), cfg)
     assert "all by pairs of segments closer than the contact thickness in the rest pose" in between
     assert "should have prevented" not in between and "report" not in between
-    assert "1 of them by pairs of segments closer" in within and "the other 2: model self-contact" in within
+    assert "1 of them by pairs of segments closer" in within and "the other 2: the ccd limiter should" in within
+
+
+def test_a_fold_without_self_contact_is_not_called_exempt(tmp_path):
+    """A smashed curl springing back through itself, in ccd mode without self-contact and
+    a contact thickness (2 cm) its neighbouring turns are closer than at rest: its
+    crossings of itself were reported as "of pairs exempt at rest" and the warning put them
+    down to strand_rest_overlap = "exempt", advising to untangle the groom or lower
+    strand_thickness, neither of which changes anything: the contact does not act within
+    a wisp at all.  Now they are counted as within-wisp crossings only, and the warning
+    names self-contact."""
+    p = tmp_path / "s.toml"
+    p.write_text(SMASHED_CURL.format(terms='"stretch", "bend", "twist", "strand_collision"',
+                                     contact='strand_contact_mode = "ccd"\nstrand_thickness = 2.0'))
+    assert main([str(p), "--out", str(tmp_path / "a"), "--quiet"]) == 0
+    s = json.loads((tmp_path / "a" / "summary.json").read_text())
+    c = s["crossings"]
+    assert c["within_wisps"] > 0 and c["between_wisps"] == 0 and c["within_exempt"] is None, c
+    (w,) = [m for m in s["warnings"] if "within a wisp" in m]
+    assert "strand_self_contact = true" in w and "exempt" not in w, w
+    # (its crossing pairs are closer than the thickness at rest: what was called exempt)
+    assert check_run(tmp_path / "a" / "frames.h5", MPI.COMM_SELF, self_contact=True,
+                     rest_exempt=2.0)["within_exempt"] == c["within_wisps"]
 
 
 def test_strained_edges_are_reported(tmp_path):

@@ -230,8 +230,12 @@ def _positions_flat(f):
                          "is damaged"),
     (_time_not_increasing, "/time rows 4 and 5 (frames 4, 5) are not increasing ("),
     (_rest_short, "/rest_positions has shape (N-3, 3), a frames.h5 of N vertices has (N, 3): the file is damaged"),
-    (_positions_flat, "/positions has shape (7, 3N), a frames.h5 has (frames, N vertices, 3)")],
-    ids=["digest_short", "time_short", "time_not_increasing", "rest_short", "positions_flat"])
+    (_positions_flat, "/positions has shape (7, 3N), a frames.h5 has (frames, N vertices, 3)"),
+    (lambda f: f.attrs.__setitem__("every", 0), "the attribute every = 0 is not an integer >= 1 (row k is frame "
+                                               "k * every): the file is damaged"),
+    (lambda f: f.attrs.__setitem__("dt", -1.0 / 30), "the attribute dt = -0.03333333333333333 is not a finite "
+                                                     "number > 0 (the time step, s): the file is damaged")],
+    ids=["digest_short", "time_short", "time_not_increasing", "rest_short", "positions_flat", "every_0", "dt_negative"])
 def test_a_frames_file_of_other_shapes_or_times_is_refused_naming_dataset_and_rows(run, tmp_path, capsys, damage,
                                                                                      want):
     """A /row_digest or /time one row shorter than /positions ended every reader in an
@@ -239,8 +243,10 @@ def test_a_frames_file_of_other_shapes_or_times_is_refused_naming_dataset_and_ro
     row, exit 0; the restart's message said the file had too few rows); /time not
     increasing (digests consistent) was read by every reader and kept by a restart; a
     /rest_positions of another length was read by all but edge_strain (the USD's rest
-    pose and the restart kept it); a flat /positions ended to_usd in a TypeError.  Now
-    each reader and the restart refuse, naming the file, the dataset and the rows."""
+    pose and the restart kept it); a flat /positions ended to_usd in a TypeError; an
+    attribute every = 0 ended to_usd in a ZeroDivisionError traceback (and numbered every
+    row frame 0 elsewhere), a negative dt wrote a USD of negative frame rate.  Now each
+    reader and the restart refuse, naming the file, the dataset (attribute) and the rows."""
     path = tmp_path / "frames.h5"
     shutil.copy(run / "out" / "frames.h5", path)
     with h5py.File(path, "r") as f:
@@ -266,6 +272,52 @@ def test_a_frames_file_of_other_shapes_or_times_is_refused_naming_dataset_and_ro
                           f"and {nv} vertices"
     else:
         assert problem.startswith(f"{path}: {want}"), problem
+
+
+def _offset_moved(f):
+    """The offset between wisps 1 and 2 moved by one vertex (still 0, increasing, ..., n)."""
+    f["wisp_offsets"][2] += 1
+
+
+def _offsets_not_increasing(f):
+    f["wisp_offsets"][2] = f["wisp_offsets"][1] - 1
+
+
+@pytest.mark.parametrize("damage, want", [
+    (_offset_moved, "/wisp_offsets gives wisp 1 vertices 101-202, /polylines (the wisps written with it) does not: "
+                    "the file is damaged"),
+    (_offsets_not_increasing, "/wisp_offsets is not 0, increasing, ..., N (the vertex count of /positions): entry "
+                              "2 is 100 after 101; the file is damaged")], ids=["moved", "not_increasing"])
+def test_damaged_wisp_offsets_are_refused_by_every_reader(run, tmp_path, capsys, damage, want):
+    """/wisp_offsets with a valid checksum but wrong values (a file written before the
+    checksums, or edited): read_frames and the previews returned and drew them as they
+    were, and one moved between its neighbours (still 0, increasing, ..., n) was read by
+    every reader: the crossing check, the strains and the USD curves split the wisps one
+    vertex off.  Now every reader and the restart refuse, naming the dataset and the entry
+    or wisp."""
+    from lc_petsc.io.previews import render_previews
+    path = tmp_path / "frames.h5"
+    shutil.copy(run / "out" / "frames.h5", path)
+    with h5py.File(path, "r+") as f:
+        n_wisps, nv = f["wisp_offsets"].shape[0] - 1, f["positions"].shape[1]
+        assert f["wisp_offsets"][1] == 101 and f["wisp_offsets"][2] == 202       # (the messages' numbers)
+        damage(f)
+    want = want.replace("N", str(nv))
+    with pytest.raises(ValueError) as e:
+        read_frames(path)
+    assert str(e.value) == f"{path}: {want}", e.value
+    for tool in (count_crossings, edge_strain, head_depth):
+        capsys.readouterr()
+        assert tool.main([str(path)]) == 2
+        err = capsys.readouterr().err
+        assert f"error: {path}: not a readable frames.h5 of lc_petsc" in err and want in err, (tool, err)
+    assert to_usd.main([str(path), "--out", str(tmp_path / "x.usdc"), "--quiet"]) == 2
+    assert capsys.readouterr().err.startswith(f"to_usd.py: error: {path}: {want}")
+    with pytest.raises(ValueError) as e:
+        render_previews(path, tmp_path / "previews", [0])
+    assert str(e.value) == want
+    assert not (tmp_path / "x.usdc").exists() and not (tmp_path / "previews").exists()
+    assert resumable_problem(path, n_wisps, nv, 7) == f"{path}: {want}"
 
 
 def _unopenable_copy(run, tmp_path, name):

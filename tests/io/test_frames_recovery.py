@@ -278,11 +278,17 @@ def test_damaged_wisp_offsets_are_named(tmp_path, capsys):
     assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
     err = capsys.readouterr().err
     assert (f"{out / 'frames.h5'}: /wisp_offsets is not 0, increasing, ..., 505 (the vertex count of "
-            "/positions): the file is damaged. With --force") in err, err
+            "/positions): entry 2 is 202 after 1152921504606846976; the file is damaged. With --force") in err, err
     with pytest.raises(ValueError, match=r"/wisp_offsets is not 0, increasing, \.\.\., 505"):
         count_frames(out / "frames.h5")
-    with h5py.File(out / "frames.h5", "r+") as f:     # valid, but not the scene's wisps
+    with h5py.File(out / "frames.h5", "r+") as f:     # increasing, but not the wisps of /polylines
         f["wisp_offsets"][1] = 100
+    assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
+    assert (f"{out / 'frames.h5'}: /wisp_offsets gives wisp 0 vertices 0-99, /polylines (the wisps written "
+            "with it) does not: the file is damaged") in capsys.readouterr().err
+    with h5py.File(out / "frames.h5", "r+") as f:     # both valid, but not the scene's wisps
+        off = f["wisp_offsets"][...]
+        f["polylines"][...] = np.concatenate([[2, b - a, *range(a, b)] for a, b in zip(off[:-1], off[1:])])
     assert _run(cfg, out, "--frames", "8", "--restart", "latest") == 2
     assert "/wisp_offsets differs from the scene's wisp sizes" in capsys.readouterr().err
 

@@ -106,3 +106,27 @@ def test_a_time_asked_again_is_not_computed_again(monkeypatch):
     assert len(calls) == 5
     assert np.array_equal(head.transform(TIMES[0])[0], expected[TIMES[0]][0])
     assert len(calls) == 6
+
+
+def test_a_pair_of_times_asked_again_is_not_computed_again():
+    """A step asks for its rigid motion (t, t + dt) three times (the first iterate's carry,
+    the limiter's field, the frame end) and the next step for it once more; the last four
+    pairs' (Q, q) are kept (hairball10: 3 computed per frame, now 1.1), read-only and equal
+    to the formula's bit for bit."""
+    head = HeadMotion(PhysicsConfig(head_motion="shake", head_amplitude=A, head_period=T,
+                                    head_center=(0.5, -1.0, 2.0)))
+    fresh = HeadMotion(PhysicsConfig(head_motion="shake", head_amplitude=A, head_period=T,
+                                     head_center=(0.5, -1.0, 2.0)))
+    pairs = [(0.1, 0.2), (0.2, 0.3), (0.0, 0.1), (0.3, 0.4)]
+    for t0, t1 in pairs * 2:
+        Q, q = head.rigid_motion(t0, t1)
+        (R0, T0), (R1, T1) = fresh.transform(t0), fresh.transform(t1)
+        assert np.array_equal(Q, R1 @ R0.T) and np.array_equal(q, fresh.center + T1 - (fresh.center + T0) @ Q.T)
+        assert head.rigid_motion(t0, t1) is head.rigid_motion(t0, t1)
+    with pytest.raises(ValueError, match="read-only"):
+        head.rigid_motion(*pairs[0])[0][0, 0] = 2.0
+    with pytest.raises(ValueError, match="read-only"):
+        head.rigid_motion(*pairs[0])[1][0] = 2.0
+    kept = head.rigid_motion(*pairs[0])
+    head.rigid_motion(0.4, 0.5)              # a fifth pair: the oldest, pairs[0], is dropped
+    assert head.rigid_motion(*pairs[0]) is not kept

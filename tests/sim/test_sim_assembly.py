@@ -336,3 +336,29 @@ def test_segment_blocks_into_sbaij_match_the_numpy_kernels():
     C, R = mats["compiled"], mats["numpy"]
     assert np.abs(C - R).max() <= 1e-12 * np.abs(R).max()
     assert np.abs(R[120:123, 123:126]).max() > 1e2 and np.array_equal(R, R.T)     # the blocks are in, symmetric
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_the_newton_system_takes_its_gradient_from_its_own_head_pass(keep):
+    """The Newton system's gradient and matrix come from one pass of the head's penalty
+    (the gradient had a pass of its own, the same values computed twice): with vertices
+    on the head, the system's gradient equals grad G computed apart bit for bit, and the
+    matrix has the head's blocks once (``keep``: the exact system that keeps its elements'
+    diagonal, the shifted fallback's)."""
+    from sim_helpers import small_hairball_config
+    sim = build_simulator(small_hairball_config(n_wisps=3, frames=4).validate(), comm=MPI.COMM_SELF)
+    try:
+        sim.run(4)
+        it = sim.integrator
+        x = it.x.copy()
+        c, R = it.head.sphere_center(it.t_next), it.head.radius + it.cfg.physics.head_margin
+        for i in np.flatnonzero(it.free)[::7]:                  # every 7th free vertex into the head
+            x[i] = c + (R - 0.05) * (x[i] - c) / np.linalg.norm(x[i] - c)
+        assert len(it._contact_terms(x, True)[1]) > 10
+        g = it._assemble_system(x, 0, filter="none", keep=keep)
+        assert np.array_equal(g, it.gradient(x))
+        A = it.asm.mat.copy()
+        it._assemble_system(x, 0, filter="none")
+        assert A.equal(it.asm.mat)
+    finally:
+        sim.close()

@@ -1102,7 +1102,9 @@ class Job:
             "shape": shape_measures(comm, sim.x, sim.scene.x_rest, sim.scene.offsets),
             "error": self.error,
         })
-        if self.error or not_reduced:
+        # a frame whose Newton missed time.newton_increment_tol / newton_tol is not converged
+        # either (main said "converged: yes" beside the warning naming the frames it missed)
+        if self.error or not_reduced or False in summary["newton_converged"]:
             summary["converged"] = False
         return summary
 

@@ -100,8 +100,13 @@ def format_report(s) -> str:
     reasons = s.get("ksp_reasons", [])
     counts = {r: reasons.count(r) for r in sorted(set(reasons))}
     conv = "yes" if s.get("converged") else "NO"
-    lines.append(f"  converged: {conv}" + (f" ({', '.join(f'{k} x{v}' for k, v in counts.items())})"
-                                            if counts else ""))
+    why = []
+    flags = s.get("newton_converged", [])
+    if False in flags:      # the frames the run kept although Newton missed its tolerance
+        why.append(f"Newton missed the tolerance in {flags.count(False)} of {len(flags)} frames")
+    if counts:
+        why.append("linear solves " + ", ".join(f"{k} x{v}" for k, v in counts.items()))
+    lines.append(f"  converged: {conv}" + (f" ({'; '.join(why)})" if why else ""))
     if s.get("error"):
         lines.append(f"  error: {s['error']}")
     shape = s.get("shape") or {}

@@ -51,6 +51,12 @@ class Timers:
             self.cpu[phase] = self.cpu.get(phase, 0.0) + time.process_time() - c0
             ev.end()
 
+    def reset(self):
+        """Every total back to zero (the main job's frame loop starts: its phases span
+        its wall time, without the set-up's)."""
+        self.totals = dict.fromkeys(PHASES, 0.0)
+        self.cpu = dict.fromkeys(PHASES, 0.0)
+
     def as_dict(self):
         """{phase: wall seconds so far} (a copy)."""
         return dict(self.totals)

@@ -367,16 +367,24 @@ def preview_warnings(cfg):
     """``output.preview_frames`` outside the run's frames (a scene's list kept when the run
     is cut with ``--frames``): such a frame is drawn as the nearest end, which used to
     happen without a word (the demo's [0, 30, 60, -1] at 20 frames drew frame 20 for 30
-    and 60)."""
+    and 60).  With ``output.every`` > 1 the frames drawn are the frames written: the last
+    is the last multiple of ``every`` (main named the run's last frame, which frames.h5
+    does not hold), and a frame between two written ones is drawn as the one before it."""
     n, out = cfg.time.frames, cfg.output
     if not out.previews:
         return []
+    every = out.every
+    last = n - n % every        # the last frame of frames.h5 (frame 0, then every every-th)
     late = [f for f in out.preview_frames if f > n]
     early = [f for f in out.preview_frames if f < -(n + 1)]
-    if not late and not early:
+    skipped = [f for f in out.preview_frames if 0 <= f <= n and f % every]
+    if not late and not early and not skipped:
         return []
-    what = ([f"{late} lie after its last frame ({n}), drawn as frame {n}"] if late else []) + \
-           ([f"{early} lie before frame 0, drawn as frame 0"] if early else [])
+    what = ([f"{late} lie after its last frame ({n}), drawn as frame {last}"] if late else []) + \
+           ([f"{early} lie before frame 0, drawn as frame 0"] if early else []) + \
+           ([f"{skipped} are not written (output.every = {every}), each drawn as the frame written "
+             f"before it"] if skipped else [])
+    ask = f"0..{n}" if every == 1 else f"0, {every}, ... {last} (the frames written)"
     return [f"output.preview_frames = {list(out.preview_frames)}: the run has frames 0 to {n} "
-            f"(time.frames / --frames), and {'; '.join(what)}; ask for frames in 0..{n} "
+            f"(time.frames / --frames), and {'; '.join(what)}; ask for frames in {ask} "
             f"(or -1 .. -{n + 1} from the end)"]

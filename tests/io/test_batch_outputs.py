@@ -301,3 +301,20 @@ def test_phase_times_lie_within_the_frame_loops_wall_time(tmp_path, capsys):
     [line] = [x for x in report.splitlines() if x.startswith("  phases (max over ranks): ")]
     assert all(int(p) <= 100 for p in re.findall(r"\((\d+)%\)", line)), line
 
+
+def test_preview_frames_with_every_name_the_frames_drawn(tmp_path):
+    """With output.every = 2 and 5 frames, frames.h5 holds frames 0, 2, 4: the warning
+    named frame 5 as the one drawn for a frame after the run (it drew frame 4), and a frame
+    between two written ones (3) was drawn as frame 2 without a word."""
+    (tmp_path / "w.toml").write_text('[scene]\nkind = "wisp4c"\nn_vertices = 12\n[time]\nframes = 5\n'
+                                     '[output]\nevery = 2\npreview_frames = [0, 3, 9, -1]\ncontact_sheet = 0\n'
+                                     'usd = false\n')
+    assert main([str(tmp_path / "w.toml"), "--out", str(tmp_path / "o"), "--quiet"], comm=MPI.COMM_SELF) == 0
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["warnings"] == [
+        "output.preview_frames = [0, 3, 9, -1]: the run has frames 0 to 5 (time.frames / --frames), and "
+        "[9] lie after its last frame (5), drawn as frame 4; [3] are not written (output.every = 2), each "
+        "drawn as the frame written before it; ask for frames in 0, 2, ... 4 (the frames written) (or "
+        "-1 .. -6 from the end)"]
+    assert sorted(q.name for q in (tmp_path / "o" / "previews").glob("*.png")) == \
+        ["frame_00000.png", "frame_00002.png", "frame_00004.png"]

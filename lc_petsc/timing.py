@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 from petsc4py import PETSc
 
+#: ``filter`` is never entered: the eigen-filters run inside the fused element kernels
+#: (timed as ``elements``); it stays for DESIGN's phase list of summary.json (always 0).
 #: ``update``: the Newton update after the solve (``Integrator.update``: the edge
 #: retraction), the root turn (``time.root_rotation``, its head passes included) and the
 #: final rest-length projection.

@@ -363,6 +363,27 @@ def groom_scale_warnings(sim):
                   "(scale that wisp)"]
 
 
+def unwritten_frames_warnings(cfg):
+    """Frames simulated after the last one written: with ``time.frames`` not a multiple of
+    ``output.every`` the run's last frames, its final state among them, are in neither
+    frames.h5 nor frames.usdc (nor in any checkpoint unless ``output.checkpoint_every``
+    divides ``time.frames``).  Main ran them without a word: smash with ``every = 5`` and
+    ``--frames 3`` simulated 3 frames and wrote frame 0 alone."""
+    n, every, ck = cfg.time.frames, cfg.output.every, cfg.output.checkpoint_every
+    tail = n % every
+    if not tail:
+        return []
+    last = n - tail
+    kept = (f"the checkpoint of frame {n} keeps its final state" if ck and n % ck == 0 else
+            "no file keeps its final state")
+    frames = f"frame {n} is" if tail == 1 else f"frames {last + 1} to {n} are"
+    files = "frames.h5 and frames.usdc end" if cfg.output.usd else "frames.h5 ends"
+    runs = f"{last + every} frames (or {last})" if last else f"{every} frames"
+    return [f"time.frames = {n} (time.frames / --frames) is not a multiple of output.every = {every}: "
+            f"{frames} simulated but not written ({files} at frame {last}; {kept}); run {runs} to "
+            f"have the run's end written"]
+
+
 def preview_warnings(cfg):
     """``output.preview_frames`` outside the run's frames (a scene's list kept when the run
     is cut with ``--frames``): such a frame is drawn as the nearest end, which used to

@@ -542,9 +542,10 @@ class Job:
 
     def _validate(self):
         """Step 2 (after the build): warnings, restart, frames.h5, disk space; raises Refused."""
-        from lc_petsc.diagnostics import newton_warnings, preview_warnings, term_warnings
+        from lc_petsc.diagnostics import (newton_warnings, preview_warnings, term_warnings,
+                                          unwritten_frames_warnings)
         for w in (self.config_warnings + newton_warnings(self.sim.config) + term_warnings(self.sim)
-                  + preview_warnings(self.cfg)):
+                  + unwritten_frames_warnings(self.cfg) + preview_warnings(self.cfg)):
             self._warn(w)
         rows_kept = 0
         if self.args.restart is not None:

@@ -388,20 +388,49 @@ def groom_scale_warnings(sim):
                   "(scale that wisp)"]
 
 
+def unwritten_frames_warnings(cfg):
+    """Frames simulated after the last one written: with ``time.frames`` not a multiple of
+    ``output.every`` the run's last frames, its final state among them, are in neither
+    frames.h5 nor frames.usdc (nor in any checkpoint unless ``output.checkpoint_every``
+    divides ``time.frames``).  Main ran them without a word: smash with ``every = 5`` and
+    ``--frames 3`` simulated 3 frames and wrote frame 0 alone."""
+    n, every, ck = cfg.time.frames, cfg.output.every, cfg.output.checkpoint_every
+    tail = n % every
+    if not tail:
+        return []
+    last = n - tail
+    kept = (f"the checkpoint of frame {n} keeps its final state" if ck and n % ck == 0 else
+            "no file keeps its final state")
+    frames = f"frame {n} is" if tail == 1 else f"frames {last + 1} to {n} are"
+    files = "frames.h5 and frames.usdc end" if cfg.output.usd else "frames.h5 ends"
+    runs = f"{last + every} frames (or {last})" if last else f"{every} frames"
+    return [f"time.frames = {n} (time.frames / --frames) is not a multiple of output.every = {every}: "
+            f"{frames} simulated but not written ({files} at frame {last}; {kept}); run {runs} to "
+            f"have the run's end written"]
+
+
 def preview_warnings(cfg):
     """``output.preview_frames`` outside the run's frames (a scene's list kept when the run
     is cut with ``--frames``): such a frame is drawn as the nearest end, which used to
     happen without a word (the demo's [0, 30, 60, -1] at 20 frames drew frame 20 for 30
-    and 60)."""
+    and 60).  With ``output.every`` > 1 the frames drawn are the frames written: the last
+    is the last multiple of ``every`` (main named the run's last frame, which frames.h5
+    does not hold), and a frame between two written ones is drawn as the one before it."""
     n, out = cfg.time.frames, cfg.output
     if not out.previews:
         return []
+    every = out.every
+    last = n - n % every        # the last frame of frames.h5 (frame 0, then every every-th)
     late = [f for f in out.preview_frames if f > n]
     early = [f for f in out.preview_frames if f < -(n + 1)]
-    if not late and not early:
+    skipped = [f for f in out.preview_frames if 0 <= f <= n and f % every]
+    if not late and not early and not skipped:
         return []
-    what = ([f"{late} lie after its last frame ({n}), drawn as frame {n}"] if late else []) + \
-           ([f"{early} lie before frame 0, drawn as frame 0"] if early else [])
+    what = ([f"{late} lie after its last frame ({n}), drawn as frame {last}"] if late else []) + \
+           ([f"{early} lie before frame 0, drawn as frame 0"] if early else []) + \
+           ([f"{skipped} are not written (output.every = {every}), each drawn as the frame written "
+             f"before it"] if skipped else [])
+    ask = f"0..{n}" if every == 1 else f"0, {every}, ... {last} (the frames written)"
     return [f"output.preview_frames = {list(out.preview_frames)}: the run has frames 0 to {n} "
-            f"(time.frames / --frames), and {'; '.join(what)}; ask for frames in 0..{n} "
+            f"(time.frames / --frames), and {'; '.join(what)}; ask for frames in {ask} "
             f"(or -1 .. -{n + 1} from the end)"]

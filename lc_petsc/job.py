@@ -542,9 +542,10 @@ class Job:
 
     def _validate(self):
         """Step 2 (after the build): warnings, restart, frames.h5, disk space; raises Refused."""
-        from lc_petsc.diagnostics import newton_warnings, preview_warnings, term_warnings
+        from lc_petsc.diagnostics import (newton_warnings, preview_warnings, term_warnings,
+                                          unwritten_frames_warnings)
         for w in (self.config_warnings + newton_warnings(self.sim.config) + term_warnings(self.sim)
-                  + preview_warnings(self.cfg)):
+                  + unwritten_frames_warnings(self.cfg) + preview_warnings(self.cfg)):
             self._warn(w)
         rows_kept = 0
         if self.args.restart is not None:
@@ -856,6 +857,11 @@ class Job:
         bar = None
         try:
             self._prepare_output()
+            # the frame loop's span (wall_time_s, cpu_time_s and the phases of summary.json)
+            # starts here: frames.h5's creation and frame 0 are its output (timed as io), the
+            # set-up's phase times are not its frames' (main: io 1421% of a frame's wall time)
+            self.t_loop, self.c_loop = time.perf_counter(), time.process_time()
+            sim.timers.reset()
             self._open_frames()
             if self.restart is not None:
                 say(comm, f"{PROG}: restarting from {self.restart['path']} at frame {start} "
@@ -866,8 +872,7 @@ class Job:
                           "end-of-run outputs the interrupted run did not finish (summary.json and "
                           "the exports from frames.h5)")
             bar = _progress(comm, self.args, cfg.time.frames - start, self.name)
-            self.t_loop = self.flushed = time.perf_counter()
-            self.c_loop = time.process_time()
+            self.flushed = time.perf_counter()
             every, ck_every = cfg.output.every, cfg.output.checkpoint_every
             for _ in range(cfg.time.frames - start):
                 if self.preemption.agreed():      # a signal since the set-up or in the frame before
@@ -1105,7 +1110,9 @@ class Job:
             "shape": shape_measures(comm, sim.x, sim.scene.x_rest, sim.scene.offsets),
             "error": self.error,
         })
-        if self.error or not_reduced:
+        # a frame whose Newton missed time.newton_increment_tol / newton_tol is not converged
+        # either (main said "converged: yes" beside the warning naming the frames it missed)
+        if self.error or not_reduced or False in summary["newton_converged"]:
             summary["converged"] = False
         return summary
 

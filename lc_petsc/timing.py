@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 from petsc4py import PETSc
 
+#: ``filter`` is never entered: the eigen-filters run inside the fused element kernels
+#: (timed as ``elements``); it stays for DESIGN's phase list of summary.json (always 0).
 #: ``update``: the Newton update after the solve (``Integrator.update``: the edge
 #: retraction), the root turn (``time.root_rotation``, its head passes included) and the
 #: final rest-length projection.
@@ -50,6 +52,12 @@ class Timers:
             self.totals[phase] = self.totals.get(phase, 0.0) + time.perf_counter() - t0
             self.cpu[phase] = self.cpu.get(phase, 0.0) + time.process_time() - c0
             ev.end()
+
+    def reset(self):
+        """Every total back to zero (the main job's frame loop starts: its phases span
+        its wall time, without the set-up's)."""
+        self.totals = dict.fromkeys(PHASES, 0.0)
+        self.cpu = dict.fromkeys(PHASES, 0.0)
 
     def as_dict(self):
         """{phase: wall seconds so far} (a copy)."""

@@ -28,6 +28,11 @@ def write_summary(path, summary):
         fh.write("\n")
 
 
+#: the report names the kernels' compile time in the set-up from this many seconds on
+#: (loading them from Numba's cache takes about a second)
+JIT_REPORTED_S = 5.0
+
+
 def _fmt_s(s):
     return f"{s * 1e3:.1f} ms" if s < 1.0 else f"{s:.2f} s"
 
@@ -52,8 +57,13 @@ def format_report(s) -> str:
     peak = s.get("peak_memory_mib")
     mem_t = (f"; peak memory {peak['max_rank'] / 1024:.2f} GiB on the largest rank, "
              f"{peak['sum_ranks'] / 1024:.2f} GiB summed") if peak else ""
+    # the compiled kernels' JIT (the first run on a machine: minutes, then cached) is set-up
+    # time: main's report said "setup 349.18 s" with no word of the 347 s it compiled
+    jit = (s.get("jit_compile_s") or 0.0) + ((s.get("contact") or {}).get("jit_compile_s") or 0.0)
+    jit_t = f" (of which compiling the kernels {_fmt_s(jit)}: once, cached for later runs)" \
+        if jit >= JIT_REPORTED_S else ""
     lines.append(f"  frames: {frames}{sim_t}{this_run}; wall time {_fmt_s(wall)} "
-                 f"({_fmt_s(per)} per frame{cpu_t}); setup {_fmt_s(s.get('setup_time_s', 0.0))}{mem_t}")
+                 f"({_fmt_s(per)} per frame{cpu_t}); setup {_fmt_s(s.get('setup_time_s', 0.0))}{jit_t}{mem_t}")
     tim = s.get("timings_s", {})
     if run_frames:
         lines.append("  phases (max over ranks): " + ", ".join(
@@ -100,8 +110,13 @@ def format_report(s) -> str:
     reasons = s.get("ksp_reasons", [])
     counts = {r: reasons.count(r) for r in sorted(set(reasons))}
     conv = "yes" if s.get("converged") else "NO"
-    lines.append(f"  converged: {conv}" + (f" ({', '.join(f'{k} x{v}' for k, v in counts.items())})"
-                                            if counts else ""))
+    why = []
+    flags = s.get("newton_converged", [])
+    if False in flags:      # the frames the run kept although Newton missed its tolerance
+        why.append(f"Newton missed the tolerance in {flags.count(False)} of {len(flags)} frames")
+    if counts:
+        why.append("linear solves " + ", ".join(f"{k} x{v}" for k, v in counts.items()))
+    lines.append(f"  converged: {conv}" + (f" ({'; '.join(why)})" if why else ""))
     if s.get("error"):
         lines.append(f"  error: {s['error']}")
     shape = s.get("shape") or {}

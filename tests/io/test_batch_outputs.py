@@ -281,3 +281,74 @@ def test_preview_frames_outside_the_run_are_named(tmp_path):
         "frame 0, drawn as frame 0; ask for frames in 0..3 (or -1 .. -4 from the end)"]
     assert sorted(q.name for q in (tmp_path / "o" / "previews").glob("*.png")) == \
         ["frame_00000.png", "frame_00002.png", "frame_00003.png"]
+
+
+def test_phase_times_lie_within_the_frame_loops_wall_time(tmp_path, capsys):
+    """The phases of summary.json (and the report's shares of the wall time) cover the
+    frame loop's span, frames.h5's creation and frame 0 included: main timed them as io
+    outside ``wall_time_s``, and counted the set-up's phase times too, so a 1-frame run
+    reported io 72.2 ms of a 5.1 ms wall time (1421%)."""
+    import re
+    (tmp_path / "w.toml").write_text('[scene]\nkind = "wisp4c"\nn_vertices = 12\n[time]\nframes = 1\n'
+                                     '[output]\npreviews = false\ncontact_sheet = 0\nusd = false\n')
+    capsys.readouterr()
+    assert main([str(tmp_path / "w.toml"), "--out", str(tmp_path / "o"), "--quiet"], comm=MPI.COMM_SELF) == 0
+    report = capsys.readouterr().out
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["timings_s"]["io"] > 0
+    assert all(v <= s["wall_time_s"] for v in s["timings_s"].values()), (s["timings_s"], s["wall_time_s"])
+    assert all(v <= s["cpu_time_s"] for v in s["cpu_timings_s"].values()), (s["cpu_timings_s"], s["cpu_time_s"])
+    [line] = [x for x in report.splitlines() if x.startswith("  phases (max over ranks): ")]
+    assert all(int(p) <= 100 for p in re.findall(r"\((\d+)%\)", line)), line
+
+
+def test_preview_frames_with_every_name_the_frames_drawn(tmp_path):
+    """With output.every = 2 and 5 frames, frames.h5 holds frames 0, 2, 4: the warning
+    named frame 5 as the one drawn for a frame after the run (it drew frame 4), and a frame
+    between two written ones (3) was drawn as frame 2 without a word."""
+    (tmp_path / "w.toml").write_text('[scene]\nkind = "wisp4c"\nn_vertices = 12\n[time]\nframes = 5\n'
+                                     '[output]\nevery = 2\npreview_frames = [0, 3, 9, -1]\ncontact_sheet = 0\n'
+                                     'usd = false\n')
+    assert main([str(tmp_path / "w.toml"), "--out", str(tmp_path / "o"), "--quiet"], comm=MPI.COMM_SELF) == 0
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["warnings"][1:] == [
+        "output.preview_frames = [0, 3, 9, -1]: the run has frames 0 to 5 (time.frames / --frames), and "
+        "[9] lie after its last frame (5), drawn as frame 4; [3] are not written (output.every = 2), each "
+        "drawn as the frame written before it; ask for frames in 0, 2, ... 4 (the frames written) (or "
+        "-1 .. -6 from the end)"]
+    assert sorted(q.name for q in (tmp_path / "o" / "previews").glob("*.png")) == \
+        ["frame_00000.png", "frame_00002.png", "frame_00004.png"]
+
+
+def test_report_names_the_compile_time_in_the_setup():
+    """A first run compiles the kernels (minutes, then cached): the report said "setup
+    349.18 s" without a word of the 347 s (elements 131.9 s, contact 215.3 s) it spent
+    compiling; loading them from the cache (about a second) is not named."""
+    from lc_petsc.io.summary import format_report
+    s = {"frames": 2, "wall_time_s": 4.2, "wisps": 300, "dofs": 90900, "ranks": 1, "setup_time_s": 349.18,
+         "config": {"time": {"dt": 1.0 / 30.0}}, "jit_compile_s": 131.9, "contact": {"jit_compile_s": 215.3}}
+    assert "setup 349.18 s (of which compiling the kernels 347.20 s: once, cached for later runs)" \
+        in format_report(s).splitlines()[2]
+    s.update(setup_time_s=3.1, jit_compile_s=0.4, contact={"jit_compile_s": 0.6})
+    assert format_report(s).splitlines()[2].endswith("setup 3.10 s")
+
+
+@pytest.mark.parametrize("frames, every, checkpoint_every, expected", [
+    (3, 5, 0, "frames 1 to 3 are simulated but not written (frames.h5 ends at frame 0; no file keeps its "
+              "final state); run 5 frames to have the run's end written"),
+    (7, 3, 7, "frame 7 is simulated but not written (frames.h5 ends at frame 6; the checkpoint of frame 7 "
+              "keeps its final state); run 9 frames (or 6) to have the run's end written"),
+    (6, 3, 0, None)])
+def test_frames_simulated_after_the_last_written_are_named(tmp_path, frames, every, checkpoint_every, expected):
+    """time.frames not a multiple of output.every: the run's last frames (its end state)
+    are simulated and not written, which main did without a word (every = 5 with 3 frames
+    wrote frame 0 alone)."""
+    (tmp_path / "w.toml").write_text(f'[scene]\nkind = "wisp4c"\nn_vertices = 12\n[time]\nframes = {frames}\n'
+                                     f'[output]\nevery = {every}\ncheckpoint_every = {checkpoint_every}\n'
+                                     'previews = false\ncontact_sheet = 0\nusd = false\n')
+    assert main([str(tmp_path / "w.toml"), "--out", str(tmp_path / "o"), "--quiet"], comm=MPI.COMM_SELF) == 0
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    with h5py.File(tmp_path / "o" / "frames.h5") as f:
+        assert f["positions"].shape[0] == frames // every + 1
+    lead = f"time.frames = {frames} (time.frames / --frames) is not a multiple of output.every = {every}: "
+    assert s["warnings"] == ([] if expected is None else [lead + expected]), s["warnings"]

@@ -227,16 +227,24 @@ def test_the_job_reports_the_newton_warning(tmp_path):
 # crawl never shows that (frames 1, 2 missed within 40), exact_or_analytic does once its
 # steps are exact (2, 13, 14 iterations; main stopped on filtered steps in 2, 4, 5)
 @pytest.mark.parametrize("tol, cap, missed", [(1e-12, 2, 3), (1e-1, 30, 0)])
-def test_the_job_names_the_frames_that_missed_the_tolerance(tmp_path, tol, cap, missed):
+def test_the_job_names_the_frames_that_missed_the_tolerance(tmp_path, capsys, tol, cap, missed):
     """Frames kept although Newton missed the tolerance (time.unconverged = "accept") are
-    named in a warning with what to change; none when every frame converged."""
+    named in a warning with what to change; none when every frame converged.  The run is
+    then not converged: summary.json's ``converged`` and the report's line say so (main:
+    ``true`` and "converged: yes" beside the warning)."""
     cfg = tmp_path / "s.toml"
     cfg.write_text(hairball_toml(n_wisps=2, frames=3).replace(
         "[time]\n", f"[time]\nnewton_increment_tol = {tol}\nnewton_iterations = {cap}\nmax_substeps = 1\n")
         + '\n[solver]\nfilter = "exact_or_analytic"\n')
+    capsys.readouterr()
     assert main([str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    report = capsys.readouterr().out
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["newton_converged"].count(False) == missed
+    assert summary["converged"] is (missed == 0)
+    line = next(x for x in report.splitlines() if x.startswith("  converged: "))
+    assert line.startswith("  converged: NO (Newton missed the tolerance in 3 of 3 frames; linear solves "
+                           if missed else "  converged: yes (linear solves CONVERGED_"), line
     w = [m for m in summary["warnings"] if "missed the tolerance" in m]
     assert len(w) == int(missed > 0), summary["warnings"]
     if missed:

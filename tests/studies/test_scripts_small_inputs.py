@@ -96,3 +96,27 @@ def test_bench_checkpoint_removes_its_folder_when_a_write_fails(tmp_path, monkey
     err = capsys.readouterr().err
     assert f"bench_checkpoint.py: error: {calls[1]}/checkpoint_partial.h5: ENOSPC no space left" in err, err
     assert len(calls) == 2 and list(work.iterdir()) == []
+
+
+def test_check_outputs_passes_a_run_and_names_what_disagrees(tmp_path, capsys):
+    """scripts/check_outputs.py on a small run: frames.h5, frames.usdc, frames.xdmf and the
+    previews agree with summary.json (ok, exit 0); a summary.json whose frame count no longer
+    matches frames.h5 is named (exit 1); a folder without the outputs is exit 2."""
+    import json
+    from mpi4py import MPI
+    from lc_petsc.batch import main
+    (tmp_path / "w.toml").write_text('[scene]\nkind = "wisp4c"\nn_vertices = 12\n[time]\nframes = 4\n'
+                                     '[output]\nevery = 2\npreview_frames = [0, 3, -1]\ncontact_sheet = 0\n')
+    out = tmp_path / "o"
+    assert main([str(tmp_path / "w.toml"), "--out", str(out), "--quiet"], comm=MPI.COMM_SELF) == 0
+    check = _script("check_outputs")
+    capsys.readouterr()
+    assert check.main([str(out), "--crossings"]) == 0
+    assert capsys.readouterr().out == f"{out}: ok\n"
+    s = json.loads((out / "summary.json").read_text())
+    s["frames"] = 6
+    (out / "summary.json").write_text(json.dumps(s))
+    assert check.main([str(out)]) == 1
+    assert "frames.h5 has 3 rows, summary.json's 6 frames every 2: 4" in capsys.readouterr().out
+    assert check.main([str(tmp_path)]) == 2
+    assert "not a readable output folder" in capsys.readouterr().err

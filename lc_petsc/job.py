@@ -395,6 +395,7 @@ class Job:
         self.recovery = None        # the RecoveryPlan of a frames.h5 that cannot be appended to
         self.aside = None           # where that frames.h5 was renamed to
         self.recovery_report = None     # summary.json's frames_recovery
+        self.earlier_summaries = []     # a restart's: the earlier runs' summaries set aside
         self.times = []
         self.error = None
         self.preemption = None
@@ -752,11 +753,16 @@ class Job:
         checkpoints stay; a new run removes the old checkpoints with the frames.h5 they
         belong to).  OutputError on every rank."""
         from lc_petsc.io.checkpoint import checkpoint_folder, set_aside_later
+        from lc_petsc.io.summary import remove_summaries
         out, restart = self.out, self.restart is not None
         if self.recovery is not None:
             self.aside = self._set_aside()
+        if restart:
+            self._set_summary_aside()
 
         def clean():
+            if not restart:
+                remove_summaries(out)
             for name in OUR_FILES:
                 if not (restart and name == "frames.h5"):
                     (out / name).unlink(missing_ok=True)
@@ -780,6 +786,26 @@ class Job:
             self._warn(f"restarting from frame {self.restart['frame']}: the checkpoints of later frames "
                        f"belong to the run this one replaces; renamed aside (kept, not used by --restart "
                        f"latest): " + ", ".join(f"{a.name} -> {b.name}" for a, b in moved))
+
+    def _set_summary_aside(self):
+        """Rank 0 renames the earlier run's summary.json into summaries/ (kept: this run's
+        summary describes its own frames) and lists the summaries there in
+        ``self.earlier_summaries``; a damaged one is kept under a name saying so, with a
+        warning.  OutputError on every rank when it cannot be renamed."""
+        from lc_petsc.io.summary import earlier_summaries, set_summary_aside
+        out, frame = self.out, self.restart["frame"]
+
+        def keep():
+            target, damaged = set_summary_aside(out)
+            return target, damaged, earlier_summaries(out, frame)
+        kept, problem = on_root(self.comm, keep)
+        if problem is not None:
+            raise OutputError(f"{out / 'summary.json'}: cannot set the earlier run's summary aside "
+                              f"({problem.strerror if isinstance(problem, OSError) else problem})")
+        target, damaged, self.earlier_summaries = kept
+        if damaged:
+            self._warn(f"the earlier run's {out / 'summary.json'} is damaged ({damaged}): kept as {target}; "
+                       f"its per-frame records are lost, this run's summary.json has frames {frame + 1} on")
 
     def _set_aside(self):
         """Rank 0 renames the frames.h5 that cannot be appended to aside (no run removes
@@ -1096,7 +1122,8 @@ class Job:
             "frames_this_run": summary["frames"] - start,
             "restart": None if self.restart is None else {
                 "checkpoint": str(self.restart["path"]), "frame": start,
-                "ranks_before": self.restart["attrs"]["ranks"], "skipped": self.restart["skipped"]},
+                "ranks_before": self.restart["attrs"]["ranks"], "skipped": self.restart["skipped"],
+                "earlier_summaries": self.earlier_summaries},
             **dict(zip(("checkpoints", "checkpoints_removed"), self.checkpointer.report())),
             "frames_recovery": self.recovery_report,
             "preempted": preempted,

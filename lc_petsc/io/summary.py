@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+from pathlib import Path
 
 import numpy as np
 
@@ -26,6 +28,89 @@ def write_summary(path, summary):
     with written_aside(path) as tmp, open(tmp, "w") as fh:
         json.dump(_jsonable(summary), fh, indent=1)
         fh.write("\n")
+
+
+#: the folder (in the output folder) of the summaries a restart set aside
+SUMMARIES = "summaries"
+
+
+def _frames_covered(summary):
+    """(first, last) frame of a run's summary (its per-frame lists are frames first + 1 ..
+    last), or None when it says no frame count (a run aborted in its set-up)."""
+    if not isinstance(summary, dict) or not isinstance(summary.get("frames"), int):
+        return None
+    first = (summary.get("restart") or {}).get("frame", 0)
+    return (first, summary["frames"]) if isinstance(first, int) else None
+
+
+def set_summary_aside(out):
+    """Rank 0, at a restart that was accepted (before anything is replaced): rename
+    ``out/summary.json`` (the earlier run's) into ``out/summaries/`` under a name saying
+    which frames it covers, ``summary_frames_AAAAAA-BBBBBB.json`` (``.2``, ``.3``, ... when
+    that name is taken), or ``summary_damaged.json`` when it is not a JSON object; a rename,
+    so it is whole under one name or the other.  Returns (its new path or None when there
+    was none, the reason it is damaged or None)."""
+    path = Path(out) / "summary.json"
+    if not os.path.lexists(path):
+        return None, None
+    damaged = None
+    try:
+        summary = json.loads(path.read_text())
+        if not isinstance(summary, dict):
+            damaged = f"not a JSON object but {type(summary).__name__}"
+    except OSError as e:
+        summary, damaged = None, f"unreadable: {e.strerror or e}"
+    except (UnicodeDecodeError, ValueError) as e:
+        summary, damaged = None, f"not JSON: {e}"
+    frames = None if damaged else _frames_covered(summary)
+    stem = "summary_damaged" if damaged else "summary_no_frames" if frames is None else \
+        f"summary_frames_{frames[0]:06d}-{frames[1]:06d}"
+    folder = Path(out) / SUMMARIES
+    folder.mkdir(exist_ok=True)
+    target, n = folder / f"{stem}.json", 1
+    while os.path.lexists(target):
+        n += 1
+        target = folder / f"{stem}.{n}.json"
+    os.rename(path, target)
+    return target, damaged
+
+
+def earlier_summaries(out, restart_frame):
+    """Rank 0: the summaries set aside in ``out/summaries/``, oldest first (their files'
+    times: a rename keeps them), each with the frames it covers (``frames``: [first, last],
+    null for a damaged one) and those of its frames no later run replaced (``frames_kept``:
+    [first, last], null when none: a restart from frame k re-runs the frames after k, whose
+    records are then the later summary's, never two for one frame)."""
+    folder = Path(out) / SUMMARIES
+    files = sorted(folder.glob("summary_*.json"), key=lambda p: (p.stat().st_mtime_ns, p.name)) \
+        if folder.is_dir() else []
+    found = []
+    for p in files:
+        try:
+            frames = _frames_covered(json.loads(p.read_text()))
+        except (OSError, UnicodeDecodeError, ValueError):
+            frames = None
+        found.append({"file": f"{SUMMARIES}/{p.name}", "frames": None if frames is None else list(frames)})
+    start = restart_frame           # the first frame a later run (this one included) re-ran from
+    for entry in reversed(found):
+        frames = entry["frames"]
+        kept = None if frames is None or min(frames[1], start) <= frames[0] else [frames[0], min(frames[1], start)]
+        entry["frames_kept"] = kept
+        if frames is not None:
+            start = min(start, frames[0])
+    return found
+
+
+def remove_summaries(out):
+    """Rank 0, at a new run (not a restart): the summaries an earlier run's restarts set
+    aside belong to the run it replaces (like its frames.h5 and checkpoints): removed."""
+    folder = Path(out) / SUMMARIES
+    if not folder.is_dir():
+        return
+    for p in folder.glob("summary_*.json"):
+        p.unlink()
+    if not any(folder.iterdir()):
+        folder.rmdir()
 
 
 #: the report names the kernels' compile time in the set-up from this many seconds on
@@ -147,6 +232,11 @@ def format_report(s) -> str:
                      f"{head['edge_depth']:.3g} cm ({head['ratio']:.3g} strand radii); frames with a strand "
                      f"entirely inside {head['rows_sunk']} ({head.get('rows_sunk_by_chords', 0)} only along edges "
                      f"between vertices resting on it); vertex paths through it {head['paths_through']}")
+    earlier = (s.get("restart") or {}).get("earlier_summaries")
+    if earlier:     # this summary's per-frame figures are this run's frames only
+        lines.append("  the earlier runs' summaries (set aside by the restarts): " + ", ".join(
+            e["file"] + ("" if e["frames"] is None else f" (frames {e['frames'][0] + 1}-{e['frames'][1]})")
+            for e in earlier))
     for w in s.get("warnings", []):
         lines.append(f"  warning: {w}")
     out = s.get("output", {})

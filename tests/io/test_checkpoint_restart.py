@@ -110,6 +110,11 @@ def test_two_to_three_and_three_to_one_ranks(tmp_path, straight):
     p = _mpiexec(3, [cfg, "--out", str(a), "--quiet", "--restart", "latest"], tmp_path)
     assert p.returncode == 0, p.stderr[-2000:]
     assert "written on 2 rank(s), now 3" in p.stdout
+    # rank 0 set the 2-rank run's summary aside, whole
+    kept = json.loads((a / "summaries" / "summary_frames_000000-000004.json").read_text())
+    assert (kept["ranks"], len(kept["newton_iterations"])) == (2, 4)
+    assert [e["file"] for e in json.loads((a / "summary.json").read_text())["restart"]["earlier_summaries"]] \
+        == ["summaries/summary_frames_000000-000004.json"]
     # a different rank count changes only the order of CG's global sums; the dynamics
     # amplify that round-off to 2-5e-12 over 6 frames with the default fused BAIJ
     # ILU(0) (2-4e-13 with an AIJ copy, -lc_pmat_type aij: its LU has 10x smaller
@@ -200,6 +205,12 @@ def test_sigterm_writes_final_checkpoint_that_restarts(tmp_path):
     assert main([cfg, "--out", str(ref), "--quiet"]) == 0
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
     _check_each_frame_once(out, *_frames(ref))
+    # the stopped run's summary is kept with its per-frame records (it was replaced)
+    name = f"summaries/summary_frames_000000-{k:06d}.json"
+    assert json.loads((out / "summary.json").read_text())["restart"]["earlier_summaries"] == [
+        {"file": name, "frames": [0, k], "frames_kept": [0, k]}]
+    stopped = json.loads((out / name).read_text())
+    assert (stopped["preempted"], len(stopped["newton_iterations"])) == ("SIGTERM", k)
 
 
 def _flip(path, dataset, at=100):
@@ -550,3 +561,60 @@ def test_a_restart_sets_the_later_checkpoints_aside(tmp_path, straight, capsys):
                  "--restart", str(folder / "checkpoint_000002.h5")]) == 0
     assert (folder / "checkpoint_000004.superseded-2.h5").exists()
     assert (folder / "checkpoint_000006.superseded-1.h5").exists()
+
+
+def test_a_restart_keeps_the_earlier_summaries(tmp_path, capsys):
+    """A restart used to replace summary.json with one describing its own frames only:
+    the earlier run's per-frame records (Newton, KSP, warnings) were gone.  Now the
+    earlier summary.json is renamed into summaries/ under the frames it covers, byte for
+    byte, and listed in restart.earlier_summaries with the frames no later run re-ran
+    (``frames_kept``); a second restart keeps both; a damaged one is kept under a name
+    saying so, with a warning; a new run removes them with the run they belong to."""
+    cfg = _config(tmp_path, kept=10)
+    out = tmp_path / "out"
+    folder = out / "summaries"
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "3"]) == 0     # checkpoint at 2
+    first = (out / "summary.json").read_bytes()
+    assert len(json.loads(first)["newton_iterations"]) == 3
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0    # frames 3-6
+    a = folder / "summary_frames_000000-000003.json"
+    assert a.read_bytes() == first
+    s = json.loads((out / "summary.json").read_text())
+    assert (s["restart"]["frame"], len(s["newton_iterations"])) == (2, 4)
+    assert s["restart"]["earlier_summaries"] == [
+        {"file": "summaries/summary_frames_000000-000003.json", "frames": [0, 3], "frames_kept": [0, 2]}]
+    second = (out / "summary.json").read_bytes()
+    # a second restart, from frame 4: frames 5-6 again; both earlier summaries kept
+    ck4 = str(out / "checkpoints" / "checkpoint_000004.h5")
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", ck4]) == 0
+    b = folder / "summary_frames_000002-000006.json"
+    assert a.read_bytes() == first and b.read_bytes() == second
+    s = json.loads((out / "summary.json").read_text())
+    assert s["restart"]["earlier_summaries"] == [
+        {"file": "summaries/summary_frames_000000-000003.json", "frames": [0, 3], "frames_kept": [0, 2]},
+        {"file": "summaries/summary_frames_000002-000006.json", "frames": [2, 6], "frames_kept": [2, 4]}]
+    capsys.readouterr()
+    assert main([cfg, "--out", str(out), "--restart", ck4]) == 0
+    assert "the earlier runs' summaries (set aside by the restarts): summaries/summary_frames_000000-000003.json " \
+           "(frames 1-3)" in capsys.readouterr().out
+    assert (folder / "summary_frames_000004-000006.json").is_file()
+    # a damaged summary.json does not stop the restart
+    (out / "summary.json").write_text('{"frames": 6, "newton_iter')
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", ck4]) == 0
+    err = capsys.readouterr().err
+    assert f"the earlier run's {out / 'summary.json'} is damaged (not JSON: " in err
+    assert f"kept as {folder / 'summary_damaged.json'}" in err
+    assert (folder / "summary_damaged.json").read_text() == '{"frames": 6, "newton_iter'
+    s = json.loads((out / "summary.json").read_text())
+    assert [e["file"] for e in s["restart"]["earlier_summaries"]] == [
+        f"summaries/{n}.json" for n in ("summary_frames_000000-000003", "summary_frames_000002-000006",
+                                        "summary_frames_000004-000006", "summary_damaged")]
+    assert s["restart"]["earlier_summaries"][-1]["frames"] is None
+    assert any("is damaged" in w for w in s["warnings"])
+    # the same frames set aside again get the next number
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", ck4]) == 0
+    assert (folder / "summary_frames_000004-000006.2.json").is_file()
+    # a new run replaces the run they belong to
+    assert main([cfg, "--out", str(out), "--quiet", "--force"]) == 0
+    assert not folder.exists()
+    assert json.loads((out / "summary.json").read_text())["restart"] is None

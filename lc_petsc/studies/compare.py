@@ -20,6 +20,7 @@ from lc_petsc.timing import peak_rss_mib
 ROW_COLUMNS = ["wisps", "dofs", "ranks", "set", "repeat", "system", "frame", "newton_it", "status",
                "setup_s", "solve_s", "total_s", "iterations", "reason", "true_rel_residual",
                "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib", "set_peak_mib", "memory_window",
+               "cluster_fallback", "cluster_captured", "cluster_couplings", "cluster_rows",
                "mat_type", "message",
                "options"]
 SUMMARY_COLUMNS = ["wisps", "dofs", "ranks", "set", "status", "n_systems", "n_ok", "repeats",
@@ -29,17 +30,19 @@ SUMMARY_COLUMNS = ["wisps", "dofs", "ranks", "set", "status", "n_systems", "n_ok
                    "rss_delta_mib", "set_peak_mib", "budget_s", "message"]
 
 
-def record(config, comm, frames=1, max_systems=None, skip_frames=0):
+def record(config, comm, frames=1, max_systems=None, skip_frames=0, restart=None):
     """Run ``skip_frames`` + ``frames`` frames of ``config`` with the simulator's own
-    solver, recording every Newton system of the last ``frames``.  Returns (systems,
-    wisp_rows, info)."""
-    sim = build_simulator(config, comm)
-    rec = SystemRecorder(sim, max_systems=max_systems, first_frame=skip_frames)
-    t0 = time.perf_counter()
+    solver, recording every Newton system of the last ``frames``; with ``restart`` (a
+    checkpoint of drivers/simulate.py written with ``config``) from that checkpoint's
+    state instead of frame 0.  Returns (systems, wisp_rows, info)."""
+    sim = build_simulator(config, comm, check_start=restart is None)
     try:
+        start = 0 if restart is None else restore_checkpoint(sim, config, restart)
+        rec = SystemRecorder(sim, max_systems=max_systems, first_frame=start + skip_frames)
+        t0 = time.perf_counter()
         sim.run(skip_frames + frames)
         info = {"wisps": sim.n_wisps, "dofs": 3 * sim.n_vertices, "ranks": comm.size,
-                "record_wall_s": time.perf_counter() - t0,
+                "start_frame": start, "record_wall_s": time.perf_counter() - t0,
                 "sim_ksp_iterations": list(sim.solver.iterations),
                 "strand_contact_pairs": list(getattr(sim.integrator, "contact_pairs", [])),
                 "sim_solver": sim.solver.describe()}
@@ -48,6 +51,26 @@ def record(config, comm, frames=1, max_systems=None, skip_frames=0):
     finally:
         sim.close()
     return systems, rows, info
+
+
+def restore_checkpoint(sim, config, path):
+    """Continue ``sim`` from the checkpoint ``path`` as a restart of drivers/simulate.py
+    does; returns its frame.  A checkpoint of another scene, or written with a config that
+    differs from ``config`` in a key that changes the trajectory, is refused
+    (:class:`CheckpointError`, a ValueError, on every rank) naming what differs."""
+    from lc_petsc.config import SimConfig
+    from lc_petsc.errors import CheckpointError
+    from lc_petsc.io.checkpoint import config_differences, load_checkpoint
+    from lc_petsc.job import RESTART_FREE_KEYS, _differences_text
+    ck = load_checkpoint(path, sim.comm, sim.user, sim.n_wisps, sim.n_vertices, sim.head)
+    saved, now = ck["attrs"]["config"], config.to_dict()
+    diff = config_differences(saved, now, ignore=RESTART_FREE_KEYS, defaults=SimConfig().to_dict())
+    if diff:
+        raise CheckpointError(f"{path}: the checkpoint's config differs from the study's in "
+                              f"{_differences_text(diff, saved, now)}; give --config the config the "
+                              f"checkpoint ran with (its attribute config_toml)")
+    sim.restore(dict(ck, x=sim.user.from_user(ck["x"]), v=sim.user.from_user(ck["v"])))
+    return ck["frame"]
 
 
 def summarise(rows, budget_s):
@@ -146,10 +169,10 @@ def details_table(summary):
 
 def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frames=1,
                    max_systems=None, reference=True, log=print, meta=None,
-                   skip_after_budget=False, repeats=1, skip_frames=0):
+                   skip_after_budget=False, repeats=1, skip_frames=0, restart=None):
     """The whole study: for each size, record once, replay with each set (``repeats``
     times, the sets interleaved; summaries report median times; the first
-    ``skip_frames`` frames run unrecorded); write
+    ``skip_frames`` frames run unrecorded, from the checkpoint ``restart`` if given); write
     ``rows.csv``, ``summary.csv``, ``results.json``, ``table.md`` and (with more than
     one size) ``time_vs_wisps.png`` into ``out_dir`` (rank 0).  Returns the summary."""
     out = Path(out_dir)
@@ -159,7 +182,7 @@ def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frame
     for n in sizes:
         cfg = make_config(n)
         systems, wisp_rows, info = record(cfg, comm, frames=frames, max_systems=max_systems,
-                                          skip_frames=skip_frames)
+                                          skip_frames=skip_frames, restart=restart)
         infos.append(info)
         log(f"[{n} wisps] {info['dofs']} DoFs: recorded {len(systems)} Newton systems in "
             f"{info['record_wall_s']:.2f} s (simulator's KSP iterations {info['sim_ksp_iterations']}"
@@ -194,7 +217,7 @@ def run_comparison(make_config, sizes, sets, comm, out_dir, budget_s=60.0, frame
         report.write_csv(rows, out / "rows.csv", ROW_COLUMNS)
         report.write_csv(summary, out / "summary.csv", SUMMARY_COLUMNS)
         report.write_json({"meta": dict(meta or {}, budget_s=budget_s, frames=frames,
-                                        skip_frames=skip_frames,
+                                        skip_frames=skip_frames, restart=restart,
                                         peak_rss_mib_rank0=peak_rss_mib()),
                            "scenes": infos, "summary": summary, "rows": rows},
                           out / "results.json")

@@ -324,6 +324,11 @@ def replay(systems, wisp_rows, name, options, comm, budget_s=60.0, references=No
                        iterations=int(ksp.getIterationNumber()), reason=reason_name(reason),
                        true_rel_residual=true_res)
             r.destroy()
+            if ls.clusters is not None:     # what the contact preconditioner made of this system
+                st = ls.clusters.stats
+                row.update(cluster_fallback=bool(st.get("fallback")), cluster_captured=st.get("captured"),
+                           cluster_couplings=st.get("couplings"),
+                           cluster_rows=int(comm.allreduce(st.get("rows", 0))))
             if reason <= 0:
                 row["message"] = f"{reason_name(reason)} in system {i}"
             elif status == "inaccurate":

@@ -207,6 +207,12 @@ def test_replay_with_strand_contact_mirrors_the_simulator_and_covers_clusters(mo
             assert [r["status"] for r in rows] == ["ok"] * 3, rows
             assert all(r["true_rel_residual"] < 1e-5 for r in rows), rows
             its[name] = [r["iterations"] for r in rows]
+            # the rows say what the contact preconditioner made of each system
+            if name == "strand_blocks":
+                assert all("cluster_rows" not in r for r in rows)
+            else:
+                assert all(r["cluster_couplings"] > 0 and not r["cluster_fallback"]
+                           and r["cluster_captured"] >= 0.9 and r["cluster_rows"] > 0 for r in rows), rows
         # the simulator's own CG iterations are the default's replayed (same operators;
         # round-off in the copies moves a count by 2 of 46); the default with contact is
         # the cluster preconditioner, the per-wisp strand blocks need many more
@@ -216,6 +222,59 @@ def test_replay_with_strand_contact_mirrors_the_simulator_and_covers_clusters(mo
         assert min(its["strand_blocks"]) > 10 and max(its["default"]) <= (1 if comm.size == 1 else 30), its
     finally:
         destroy_systems(systems)
+
+
+@pytest.mark.mpi
+def test_record_from_a_checkpoint_equals_recording_after_the_frames_before_it(tmp_path, monkeypatch):
+    """``record(restart=...)`` (compare_solvers.py --restart) continues from a checkpoint
+    of the main job: the systems of frame 2 recorded from frame 2's checkpoint are those
+    recorded after running frames 0-1 (bit for bit), so a late frame of a large scene is
+    recorded without running the frames before it again; a checkpoint written with
+    another config is refused naming the key."""
+    import copy
+    import lc_petsc.simulator as simmod
+    from lc_petsc.errors import CheckpointError
+    from lc_petsc.io.checkpoint import checkpoint_path, write_checkpoint
+    from lc_petsc.simulator import build_simulator
+    from sim_helpers import touching_wisps_config, touching_wisps_source
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: touching_wisps_source())
+    cfg = touching_wisps_config(3, options="")
+    out = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None))    # one folder for every rank
+    sim = build_simulator(cfg, comm)
+    try:
+        sim.run(2)
+        it = sim.integrator
+        write_checkpoint(out, comm, frame=it.frame, t=it.t, x=sim.user.to_user(it.x),
+                         v=sim.user.to_user(it.v), scene=sim.user, n_wisps=sim.n_wisps,
+                         n_vertices=sim.n_vertices, head=sim.head, dt=cfg.time.dt, every=cfg.output.every,
+                         config_dict=cfg.to_dict(), config_toml="", petsc_options={}, keep=1,
+                         version="test")
+    finally:
+        sim.close()
+    ck = checkpoint_path(out, 2)
+    ran, _, ran_info = record(cfg, comm, frames=1, skip_frames=2)
+    restarted, _, info = record(cfg, comm, frames=1, restart=ck)
+    try:
+        assert info["start_frame"] == 2 and ran_info["start_frame"] == 0
+        assert [s.frame for s in restarted] == [s.frame for s in ran] == [2, 2, 2]
+        assert all(s.coupled for s in restarted)
+        for a, b in zip(ran, restarted):
+            d = a.A.copy()
+            d.axpy(-1.0, b.A, structure=d.Structure.DIFFERENT_NONZERO_PATTERN)
+            e = a.b.copy()
+            e.axpy(-1.0, b.b)
+            assert (d.norm(), e.norm()) == (0.0, 0.0) and a.A.norm() > 0 and a.b.norm() > 0
+            d.destroy()
+            e.destroy()
+        assert info["sim_ksp_iterations"] == ran_info["sim_ksp_iterations"][-3:]
+        assert min(info["strand_contact_pairs"]) > 0
+    finally:
+        destroy_systems(ran)
+        destroy_systems(restarted)
+    other = copy.deepcopy(cfg)
+    other.time.dt = cfg.time.dt / 2
+    with pytest.raises(CheckpointError, match=r"differs from the study's in time\.dt \(checkpoint: "):
+        record(other, comm, frames=1, restart=ck)
 
 
 @pytest.mark.mpi

@@ -85,7 +85,10 @@ def test_rank_invariance_converged_newton(update, fallback, tol, min_converged, 
     if comm.rank == 0:
         assert summ["newton_iterations"] == ref_summ["newton_iterations"]
         assert summ["newton_converged"] == ref_summ["newton_converged"]
-        assert summ["newton_exact_fallbacks"] == ref_summ["newton_exact_fallbacks"]
+        # a fallback is a decision at a threshold that the partition's round-off can flip
+        # in a frame (3 ranks on an AMD EPYC without AVX-512: [20, 0, 0, 1] against 1 rank's
+        # [20, 0, 0, 0], same iterations and positions)
+        assert np.abs(np.subtract(summ["newton_exact_fallbacks"], ref_summ["newton_exact_fallbacks"])).max() <= 1
         assert summ["newton_chord_checks"] == ref_summ["newton_chord_checks"]
         assert summ["newton_saddle"] == ref_summ["newton_saddle"] == [0, 0, 0, 0]
         if stop == "chord_estimate":

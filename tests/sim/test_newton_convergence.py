@@ -416,8 +416,11 @@ def test_a_loose_tolerance_stop_is_confirmed_by_the_next_step():
     assert distance < 0.5 * 1e-4, distance                   # measured 0.0015x (main: 2.0x)
     # 49: increments 4.5e-5, 1.7e-4, 8.6e-6, 2.2e-5, 1.4e-7, 6.6e-9 from 44 on
     assert s["newton_iterations"] == [49]
-    _, tight, _ = _run_coil(_crushed_coil(1e-6))
-    assert tight["newton_converged"] == [True] and tight["newton_iterations"] == [49]
+    X_tight, tight, _ = _run_coil(_crushed_coil(1e-6))
+    # 49 (50 on an AMD EPYC without AVX-512: the round-off of 49 iterations decides
+    # whether the last confirming step is needed): never fewer than 1e-4's, and within it
+    assert tight["newton_converged"] == [True] and 49 <= tight["newton_iterations"][0] <= 51, tight
+    assert (np.linalg.norm(X_tight - Y, axis=1) / wisp_length).max() < 1e-6
 
 
 def test_a_two_step_lull_is_not_a_loose_stop():

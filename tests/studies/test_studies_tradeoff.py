@@ -508,9 +508,9 @@ def test_the_reference_solves_every_frame_whole():
     its dt per frame: on main it took the edge retraction with the analytic fallback and
     step cutback, which on the 10-wisp hairball missed 1e-9 cm in frame 0 within 100
     iterations and split it into 2 x dt/2 (docs/newton.md, "Fifteenth round").  Here the
-    shaking two-wisp hairball at dt 1/30: main's reference cuts frame 0 into 2 substeps;
+    shaking two-wisp hairball at dt 1/30: main's reference cut frame 0 into 2 substeps (on one machine);
     the recommended path (shifted fallback, exact_stay, corotational) solves every frame
-    whole to the tolerance."""
+    whole to the tolerance, on every machine."""
     cfg = small_hairball_config(n_wisps=2, frames=4)
     ref = reference_settings(dt=1 / 30)
     res, _, _ = run_trajectory(cfg, ref, 4 / 30, 1 / 30, comm)
@@ -522,11 +522,9 @@ def test_the_reference_solves_every_frame_whole():
         ("shifted", True, "corotational", 1)
     built = configure(cfg, ref, 4 / 30)
     assert (built.solver.exact_fallback, built.solver.exact_stay, built.time.max_substeps) == ("shifted", True, 1)
-    # main's reference on the same frames, for the record of what it did
-    old = replace(ref, exact_fallback="analytic", exact_stay=False, newton_update="edge_retraction",
-                  max_substeps=8)
-    res, _, _ = run_trajectory(cfg, old, 4 / 30, 1 / 30, comm)
-    assert res["newton_substeps"][0] == 2, res
+    # main's reference (analytic fallback, edge retraction, cutback) cut frame 0 into 2
+    # substeps on one machine and solved it whole on another (an AMD EPYC without
+    # AVX-512): a round-off decision, so not pinned
 
 
 def test_a_reference_cut_back_or_unconverged_is_reported_loudly(tmp_path):

@@ -99,7 +99,6 @@ class StartReport:
     self_contact: bool = False
     made_by: str = ""                # what made the start: the perturbation and its size
     smaller: str = "make the perturbation smaller"
-    first: float = 1.0               # the fraction of the way at which the first pair meets
 
     def message(self, exempt=False) -> str:
         """The report for a person: count, the closest pair, what to change (``exempt``:
@@ -129,11 +128,11 @@ def check_start_pose(strand, x0, made_by="", smaller=None) -> StartReport:
     least the thickness d0 apart at rest (closer ones are the rest check's: refused or
     exempt) and meet on the straight way from the rest pose to this rank's initial
     positions ``x0`` (nv, 3) (Tight-Inclusion at distance 0,
-    :func:`lc_petsc.crossings.crossing_pairs`; a pair touching in ``x0`` meets), and
-    the fraction of the way at which the first of them meets (``first``, Tight-Inclusion's
-    time: a lower bound).  Pairs merely closer than d0 in ``x0`` are no tangle: the
-    contact pushes them apart towards the rest pose.  ``smaller``: what to change, or a
-    callable of ``first`` giving it (a jitter's and a smash's starts lie on the straight
+    :func:`lc_petsc.crossings.crossing_pairs`; a pair touching in ``x0`` meets).
+    Pairs merely closer than d0 in ``x0`` are no tangle: the contact pushes them apart
+    towards the rest pose.  ``smaller``: what to change, or a callable of ``first``, the
+    fraction of the way at which the first of those pairs meets (Tight-Inclusion's time,
+    a lower bound; the smallest over the ranks), giving it (a jitter's and a smash's starts lie on the straight
     way to a larger one, so the way's first meeting gives the largest that passes).
     Collective: the contact's ghost exchange over both poses, each pair judged on one
     rank."""
@@ -160,5 +159,5 @@ def check_start_pose(strand, x0, made_by="", smaller=None) -> StartReport:
         smaller = smaller(first)
     return StartReport(thickness=d0, pairs=n, min_distance=float(dmin),
                        worst=(wa, va, wb, vb) if np.isfinite(dmin) else (),
-                       self_contact=strand.self_contact, made_by=made_by, first=first,
+                       self_contact=strand.self_contact, made_by=made_by,
                        **({"smaller": smaller} if smaller else {}))

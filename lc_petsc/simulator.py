@@ -306,26 +306,32 @@ def perturbation_text(scene_cfg):
     """(``scene.perturbation`` and its size, how to make it smaller: a callable of the
     fraction ``first`` of the straight way from the rest pose at which the first tangled
     pair meets), for messages about the initial state.  A jitter of j' < j (the same seed)
-    starts j'/j of the way to j's start, a smash by f' > f at (1 - f') / (1 - f) of the way
-    to f's (the same offsets scaled): so a jitter below ``first`` j, a smash above 1 -
-    ``first`` (1 - f) meets no pair on its way (rounded inwards to 3 digits)."""
+    starts j'/j of the way to j's start, a smash by f' between 1 and f at (1 - f') / (1 - f)
+    of the way to f's (the same offsets scaled; f > 1 stretches the wisps, f < 1 squeezes
+    them): so a jitter below ``first`` j, a smash within ``first`` |1 - f| of 1 meets no
+    pair on its way (that distance rounded down to 3 digits: the value given stays
+    between 1 and the bound, never 1 itself)."""
     smash = scene_cfg.perturbation == "smash"       # else "jitter": STRAIGHT_WAY_PERTURBATIONS
     key, now, unit = ("smash_factor", scene_cfg.smash_factor, "") if smash else ("jitter", scene_cfg.jitter, " cm")
+    # the way to a smaller perturbation: a jitter down, a smash towards 1 (up from a squeeze,
+    # down from a stretch)
+    change, side = ("raise", "above") if smash and now < 1.0 else ("lower", "below")
+    towards = " towards 1" if smash else ""
 
     def smaller(first):
         if not 0.0 < first < 1.0:
-            return "raise scene.smash_factor towards 1" if smash else "lower scene.jitter"
-        bound = _rounded(1.0 - first * (1.0 - now), up=True) if smash else _rounded(first * now, up=False)
-        return (f"{'raise' if smash else 'lower'} scene.{key} {'above' if smash else 'below'} {bound:g}{unit} "
-                f"({'towards 1' if smash else 'the same seed'}: {100 * first:.3g}% of the way from the rest pose "
-                "to this start is tangle-free)")
+            return f"{change} scene.{key}{towards}"
+        bound = (1.0 + np.sign(now - 1.0) * _rounded_down(first * abs(now - 1.0)) if smash
+                 else _rounded_down(first * now))
+        return (f"{change} scene.{key} {side} {bound:g}{unit} ({towards.strip() or 'the same seed'}: "
+                f"{100 * first:.3g}% of the way from the rest pose to this start is tangle-free)")
     return f"scene.perturbation = \"{scene_cfg.perturbation}\", scene.{key} = {now:g}{unit}", smaller
 
 
-def _rounded(value, up):
-    """``value`` > 0 rounded to 3 significant digits, up or down (a bound stays one)."""
+def _rounded_down(value):
+    """``value`` > 0 rounded down to 3 significant digits (a bound stays one)."""
     unit = 10.0 ** (np.floor(np.log10(value)) - 2)
-    return float((np.ceil if up else np.floor)(value / unit) * unit)
+    return float(np.floor(value / unit) * unit)
 
 
 def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user, source, x0=None):

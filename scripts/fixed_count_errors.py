@@ -142,6 +142,10 @@ def main(argv=None):
     try:
         if a.scene not in SCENES:
             raise ValueError(f"--scene {a.scene!r}: use one of {', '.join(SCENES)}")
+        if a.start is not None and a.start >= a.frames:
+            # no trajectory would start: its RMS came out 0.0, a perfect setting
+            raise ValueError(f"--from {a.start} is not below --frames {a.frames}: no frame would run from the "
+                             f"reference's state; give --from 0 to {a.frames - 1}")
         variants = {}
         for v in a.variants:
             label, eq, spec = v.partition("=")

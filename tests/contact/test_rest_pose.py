@@ -214,6 +214,37 @@ def test_real_perturbations_of_an_untangled_start_run(monkeypatch):
 
 
 
+def test_a_tangling_stretch_is_told_to_come_down_towards_1(monkeypatch):
+    """A smash_factor above 1 stretches the wisps: a coil hanging above another lying
+    across, stretched by 2, is pushed through it.  The message said "raise
+    scene.smash_factor above" a value above 1 (a larger stretch: refused again); the way
+    to a smaller perturbation is down towards 1, and the value given (the way's first
+    meeting) builds, 2% of its distance from 1 beyond it not.  A squeeze close to 1 was
+    told "raise above 1" (the bound rounded up onto a stretch); its bound stays below 1."""
+    X = np.concatenate([geometry.wisp4c(40, root=(0.0, 16.0, 0.0)),
+                        geometry.wisp4c(40, root=(-2.5, 9.0, 0.0), axis=(1.0, 0.0, 0.0))])
+    monkeypatch.setattr(simmod, "source_from_config", lambda *a: ArraySource(X, [0, 40, 80], n_pinned=3))
+    cfg = start_config("smash")
+    cfg.scene.smash_factor = 2.0
+    with pytest.raises(StartOverlapError, match=r"smash_factor = 2\) is tangled: ") as e:
+        simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+    import re
+    m = re.search(r"lower scene.smash_factor below ([0-9.e-]+) \(towards 1: ", str(e.value))
+    assert m, str(e.value)
+    factor = float(m.group(1))
+    assert 1.0 < factor < 2.0, factor
+    for value, tangled in ((factor, False), (factor + 0.02 * (factor - 1.0), True)):
+        cfg.scene.smash_factor = value
+        if tangled:
+            with pytest.raises(StartOverlapError):
+                simmod.build_simulator(cfg, comm=MPI.COMM_SELF)
+        else:
+            simmod.build_simulator(cfg, comm=MPI.COMM_SELF).close()
+    squeeze = SceneConfig(perturbation="smash", smash_factor=0.999)
+    assert simmod.perturbation_text(squeeze)[1](0.5) == ("raise scene.smash_factor above 0.9995 (towards 1: 50% of "
+                                                         "the way from the rest pose to this start is tangle-free)")
+
+
 def test_a_straightened_start_is_not_judged_on_the_straight_way():
     """``straighten`` unwinds each coil onto a line: the straight way from the coiled rest
     pose passes a hairball wisp's turns through each other (19 pairs for one wisp, which

@@ -118,6 +118,9 @@ CASES = [
      "fixed_count_errors.py: error: variant part 'root_rotation=maybe': root_rotation is true or false"),
     ("scripts/fixed_count_errors.py", ["--scene", "smash", "x=default@default"],
      "fixed_count_errors.py: error: 'x=default@default': @SPEC2 sets the first frames of --from K: give --from"),
+    ("scripts/fixed_count_errors.py", ["--frames", "1", "--from", "1", "--out", "SCRATCH/out/e.json", "x=default"],
+     "fixed_count_errors.py: error: --from 1 is not below --frames 1: no frame would run from the reference's "
+     "state; give --from 0 to 0"),
     ("scripts/fixed_count_errors.py", ["--scene", "nope", "x=default"],
      "fixed_count_errors.py: error: --scene 'nope': use one of hairball10, demo10, smash"),
     ("scripts/newton_frames.py", ["--scene", "nope", "--out", "SCRATCH/out/f.json"],

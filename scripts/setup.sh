@@ -75,6 +75,10 @@ print(f"setup: ok: lc_petsc {lc_petsc.__version__}, PETSc {'.'.join(map(str, PET
       f"petsc4py {petsc4py.__version__}, NumPy {numpy.__version__}")
 PY
 
+# Numba's kernels compiled here once (cached in the tree), not in the first run or test
+echo "setup: compiling the Numba kernels (the first time only: a few minutes; cached)"
+"$venv/bin/python" -m lc_petsc.elements.warm
+
 if [ "$demo" -eq 1 ]; then
   echo "setup: running the demo: mpiexec -n 2 drivers/simulate.py configs/hairball_demo.toml --out out/hairball_demo"
   cd "$here"

@@ -454,3 +454,14 @@ def test_kernel_cache_is_versioned_by_every_element_module(tmp_path, monkeypatch
     assert second != first
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
     assert compiled.kernel_cache_dir(tmp_path) == str(tmp_path / "cache" / Path(second).name)
+
+
+def test_setup_warms_every_kernel_and_names_a_failed_half(monkeypatch):
+    """``python -m lc_petsc.elements.warm`` (scripts/setup.sh) compiles or loads both
+    halves of the kernels; a failing child half is an error naming its exit status, not a
+    silent cold cache for the first run."""
+    from lc_petsc.elements import warm
+    assert warm.warm_all() > 0.0
+    monkeypatch.setattr(warm, "_CHILD", "raise SystemExit(3)")
+    with pytest.raises(RuntimeError, match=r"exit 3"):
+        warm.warm_all()

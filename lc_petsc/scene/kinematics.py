@@ -51,11 +51,7 @@ class HeadMotion:
         arrays).  A step asks for the same few times (its start, its end, the step before)
         a dozen times over (the Newton iterations' head passes, the first iterate, the
         frame end), so the last :data:`TIMES_KEPT` times' are kept."""
-        known = self._transforms.get(t)
-        if known is None:
-            known = tuple(_read_only(a) for a in self._transform(t))
-            _keep(self._transforms, t, known)
-        return known
+        return _kept(self._transforms, t, lambda: tuple(_read_only(a) for a in self._transform(t)))
 
     def _transform(self, t):
         """:meth:`transform` computed."""
@@ -136,23 +132,19 @@ class HeadMotion:
         the last :data:`TIMES_KEPT` pairs of times (a step asks for its own three times:
         the first iterate's carry, the limiter's field, the frame end; and the next step
         for the one before it)."""
-        known = self._motions.get((t0, t1))
-        if known is None:
-            R0, T0 = self.transform(t0)
-            R1, T1 = self.transform(t1)
-            Q = R1 @ R0.T
-            known = (_read_only(Q), _read_only(self.center + T1 - (self.center + T0) @ Q.T))
-            _keep(self._motions, (t0, t1), known)
-        return known
+        return _kept(self._motions, (t0, t1), lambda: self._rigid_motion(t0, t1))
+
+    def _rigid_motion(self, t0, t1):
+        """:meth:`rigid_motion` computed."""
+        R0, T0 = self.transform(t0)
+        R1, T1 = self.transform(t1)
+        Q = R1 @ R0.T
+        return _read_only(Q), _read_only(self.center + T1 - (self.center + T0) @ Q.T)
 
     def sphere_center(self, t):
         """Centre (3,) of the head sphere at time ``t`` (a read-only array, kept for the
         last :data:`TIMES_KEPT` times as :meth:`transform`)."""
-        c = self._centres.get(t)
-        if c is None:
-            c = _read_only(self.center + self.transform(t)[1])
-            _keep(self._centres, t, c)
-        return c
+        return _kept(self._centres, t, lambda: _read_only(self.center + self.transform(t)[1]))
 
 
 def _read_only(a):
@@ -161,9 +153,13 @@ def _read_only(a):
     return a
 
 
-def _keep(kept, t, value):
-    """Keeps ``value`` as ``kept[t]`` (``t``: a time or a pair of times), the oldest
-    dropped beyond :data:`TIMES_KEPT` (dicts keep their insertion order)."""
-    if len(kept) >= TIMES_KEPT:
-        del kept[next(iter(kept))]
-    kept[t] = value
+def _kept(kept, t, compute):
+    """``kept[t]`` (``t``: a time or a pair of times), made by ``compute()`` and kept if
+    new, the oldest dropped beyond :data:`TIMES_KEPT` (dicts keep their insertion order)."""
+    value = kept.get(t)
+    if value is None:
+        value = compute()
+        if len(kept) >= TIMES_KEPT:
+            del kept[next(iter(kept))]
+        kept[t] = value
+    return value

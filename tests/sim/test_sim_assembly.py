@@ -338,6 +338,21 @@ def test_segment_blocks_into_sbaij_match_the_numpy_kernels():
     assert np.abs(R[120:123, 123:126]).max() > 1e2 and np.array_equal(R, R.T)     # the blocks are in, symmetric
 
 
+def _vertices_in_the_head():
+    """(the simulator of a 3-wisp hairball after 4 frames, its positions with every 7th free
+    vertex moved 0.05 cm into the head, the head's centre and radius (with its margin)):
+    the hairball has no vertex on the head by itself.  The caller closes the simulator."""
+    from sim_helpers import small_hairball_config
+    sim = build_simulator(small_hairball_config(n_wisps=3, frames=4).validate(), comm=MPI.COMM_SELF)
+    sim.run(4)
+    it = sim.integrator
+    x = it.x.copy()
+    c, R = it.head.sphere_center(it.t_next), it.head.radius + it.cfg.physics.head_margin
+    for i in np.flatnonzero(it.free)[::7]:
+        x[i] = c + (R - 0.05) * (x[i] - c) / np.linalg.norm(x[i] - c)
+    return sim, x, c, R
+
+
 @pytest.mark.parametrize("keep", [False, True])
 def test_the_newton_system_takes_its_gradient_from_its_own_head_pass(keep):
     """The Newton system's gradient and matrix come from one pass of the head's penalty
@@ -345,15 +360,9 @@ def test_the_newton_system_takes_its_gradient_from_its_own_head_pass(keep):
     on the head, the system's gradient equals grad G computed apart bit for bit, and the
     matrix has the head's blocks once (``keep``: the exact system that keeps its elements'
     diagonal, the shifted fallback's)."""
-    from sim_helpers import small_hairball_config
-    sim = build_simulator(small_hairball_config(n_wisps=3, frames=4).validate(), comm=MPI.COMM_SELF)
+    sim, x, _, _ = _vertices_in_the_head()
     try:
-        sim.run(4)
         it = sim.integrator
-        x = it.x.copy()
-        c, R = it.head.sphere_center(it.t_next), it.head.radius + it.cfg.physics.head_margin
-        for i in np.flatnonzero(it.free)[::7]:                  # every 7th free vertex into the head
-            x[i] = c + (R - 0.05) * (x[i] - c) / np.linalg.norm(x[i] - c)
         assert len(it._contact_terms(x, True)[1]) > 10
         g = it._assemble_system(x, 0, filter="none", keep=keep)
         assert np.array_equal(g, it.gradient(x))
@@ -380,17 +389,10 @@ def test_the_newton_system_adds_the_heads_blocks_and_gradient_once():
     reuse at the same x with another mass shift (:meth:`Integrator._exact_assembly`).
     The gradient-and-matrix test above compares the system with itself assembled again, so
     blocks added twice by every assembly passed it."""
-    from sim_helpers import small_hairball_config
-
     from lc_petsc.elements import head_contact
-    sim = build_simulator(small_hairball_config(n_wisps=3, frames=4).validate(), comm=MPI.COMM_SELF)
+    sim, x, c, R = _vertices_in_the_head()
     try:
-        sim.run(4)
         it = sim.integrator
-        x = it.x.copy()
-        c, R = it.head.sphere_center(it.t_next), it.head.radius + it.cfg.physics.head_margin
-        for i in np.flatnonzero(it.free)[::7]:                  # every 7th free vertex into the head
-            x[i] = c + (R - 0.05) * (x[i] - c) / np.linalg.norm(x[i] - c)
         idx = np.flatnonzero(it.free & head_contact.active(x, c, R))
         assert len(idx) > 10
         k = it.cfg.physics.head_stiffness

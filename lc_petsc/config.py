@@ -50,6 +50,13 @@ MAX_FRAMES = 10 ** 9
 MIN_DT = 1.0e-6
 #: moduli above this are refused (steel is 2e12 dyn/cm^2; 1e300 overflows the Hessians)
 MAX_MODULUS = 1.0e15
+#: material.density and a groom file's /density outside this range (g/cm^3) are refused, not
+#: warned about: the motion depends on the density only through E / density (and the head's and
+#: strand contact's stiffness / density), so a density 1000 times off (1300 in kg/m^3, 0.0013 in
+#: g/mm^3) runs a scene as if 1000 times softer or stiffer, without an error: smash at 1300 looks
+#: like a slow recovery (docs/design_notes.md "Densities: refused outside 0.1-10 g/cm^3"). Hair is
+#: 1.3 g/cm^3, every shipped config says so; fibres from polypropylene (0.9) to steel (7.9) fit
+DENSITY_RANGE = (0.1, 10.0)
 #: radii, rest edges and segment lengths below this (an atom's size, 1 angstrom, in cm) are
 #: refused: no strand is that thin or finely sampled (a groom's radius of 1e-300 made every
 #: mass 0, a wisp shrunk to 1e-10 cm stiffnesses 1e27 times its mass term: both failed
@@ -71,6 +78,19 @@ def _positive(name: str, value, allow_zero: bool = False) -> None:
     if not ok:
         kind = "non-negative" if allow_zero else "positive"
         raise ConfigError(f"{name} must be a finite {kind} number, got {value!r}")
+
+
+def density_problem(name: str, value: float):
+    """The message refusing a density ``value`` (g/cm^3) outside :data:`DENSITY_RANGE`,
+    ``name`` saying whose (``material.density =``, a file's ``/density``), or None."""
+    lo, hi = DENSITY_RANGE
+    if lo <= value <= hi:
+        return None
+    likely = ("it looks like kg/cm^3 or g/mm^3 (hair: 1.3 g/cm^3 = 0.0013 g/mm^3)" if value < lo else
+              "it looks like kg/m^3 (hair: 1300 kg/m^3 = 1.3 g/cm^3)")
+    return (f"{name} {value:g} g/cm^3 is outside {lo:g} to {hi:g} g/cm^3: {likely}; a density 1000 times "
+            "off runs the scene as if 1000 times softer or stiffer, without an error; give it in g/cm^3 "
+            "(stiffness is set by the Young's modulus)")
 
 
 def _at_least_length(name: str, value) -> None:
@@ -191,6 +211,9 @@ class MaterialConfig:
                                   "2e12; hair keratin about 4e10): the element Hessians would lose all "
                                   "precision; give the modulus in dyn/cm^2 (CGS)")
         _positive("material.density", self.density)
+        problem = density_problem("material.density =", float(self.density))
+        if problem:
+            raise ConfigError(problem)
         _positive("material.root_radius", self.root_radius)
         _positive("material.tip_radius", self.tip_radius)
         _at_least_length("material.root_radius", self.root_radius)
@@ -879,8 +902,6 @@ _RADIUS_RANGE = (5.0e-4, 2.0, "cm",
 PLAUSIBLE_RANGES = {
     ("material", "youngs_modulus"): _MODULUS_RANGE,
     ("material", "shear_modulus"): _MODULUS_RANGE,
-    ("material", "density"): (0.1, 10.0, "g/cm^3", "it looks like kg/cm^3 or g/mm^3 (hair: 1.3 g/cm^3)",
-                              "it looks like kg/m^3 (hair: 1300 kg/m^3 = 1.3 g/cm^3)"),
     ("material", "root_radius"): _RADIUS_RANGE,
     ("material", "tip_radius"): _RADIUS_RANGE,
     ("time", "dt"): (MIN_DT, 1.0, "s", "",

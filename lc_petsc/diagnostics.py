@@ -195,27 +195,25 @@ def term_warnings(sim):
 
 
 def groom_material_warnings(comm, batch, where):
-    """The per-wisp ``/youngs_modulus`` and ``/density`` of a strands file (``batch``:
-    this rank's wisps; ``where``: the file, for the message) outside the plausible range
-    for hair (:data:`lc_petsc.config.PLAUSIBLE_RANGES`, as ``material.youngs_modulus``
-    and ``material.density``), naming how many wisps, the first (the scene's numbering)
-    and its value: the config's keys were warned about, a file's values (a groom written
-    in Pa or kg/m^3) were not.  Collective (every rank the same warnings)."""
+    """The per-wisp ``/youngs_modulus`` of a strands file (``batch``: this rank's wisps;
+    ``where``: the file, for the message) outside the plausible range for hair
+    (:data:`lc_petsc.config.PLAUSIBLE_RANGES`, as ``material.youngs_modulus``), naming how
+    many wisps, the first (the scene's numbering) and its value: the config's key was warned
+    about, a file's values (a groom written in Pa) were not.  (A ``/density`` outside its
+    range is refused: :data:`lc_petsc.config.DENSITY_RANGE`.)  Collective (every rank the
+    same warnings)."""
     from lc_petsc.config import PLAUSIBLE_RANGES
-    out = []
-    for name, key, values in (("/youngs_modulus", "youngs_modulus", batch.youngs_modulus),
-                              ("/density", "density", batch.density)):
-        lo, hi, unit, below, above = PLAUSIBLE_RANGES[("material", key)]
-        bad = np.zeros(0, int) if values is None else np.flatnonzero((values < lo) | (values > hi))
-        n = int(comm.allreduce(len(bad)))
-        if not n:
-            continue
-        w, v = min(comm.allgather((int(batch.ids()[bad[0]]), float(values[bad[0]])) if len(bad) else
-                                  (np.iinfo(np.int64).max, 0.0)))
-        out.append(f"{where}: {n} wisp(s) have a {name} outside the plausible range for hair, {lo:g} to {hi:g} "
-                   f"{unit}; the first: wisp {w}, {v:g} {unit}: {below if v < lo else above}; lc_petsc's units "
-                   "are cm, g, s")
-    return out
+    lo, hi, unit, below, above = PLAUSIBLE_RANGES[("material", "youngs_modulus")]
+    values = batch.youngs_modulus
+    bad = np.zeros(0, int) if values is None else np.flatnonzero((values < lo) | (values > hi))
+    n = int(comm.allreduce(len(bad)))
+    if not n:
+        return []
+    w, v = min(comm.allgather((int(batch.ids()[bad[0]]), float(values[bad[0]])) if len(bad) else
+                              (np.iinfo(np.int64).max, 0.0)))
+    return [f"{where}: {n} wisp(s) have a /youngs_modulus outside the plausible range for hair, {lo:g} to {hi:g} "
+            f"{unit}; the first: wisp {w}, {v:g} {unit}: {below if v < lo else above}; lc_petsc's units "
+            "are cm, g, s"]
 
 
 def groom_radius_warnings(sim):

@@ -2,6 +2,7 @@
 
 import contextlib
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -248,3 +249,47 @@ def break_header(path, dataset):
     with open(path, "r+b") as fh:
         fh.seek(addr)
         fh.write(b"\x07")
+
+
+#: summary.json's entries whose keys are not figures of their own (the resolved config, the
+#: phases, PETSc's option names): README names them as a whole
+OPAQUE_SUMMARY_ENTRIES = ("config", "timings_s", "cpu_timings_s", "petsc_options_used",
+                          "petsc_options_command_line")
+
+
+def _summary_keys(value, path=""):
+    """Every (key, dotted path) of a summary.json's ``value``, into its records (dicts, and
+    the dicts of a list: its items' keys are named like the list's own), the entries of
+    :data:`OPAQUE_SUMMARY_ENTRIES` not entered."""
+    if isinstance(value, list):
+        for v in value:
+            yield from _summary_keys(v, path)
+    elif isinstance(value, dict) and path not in OPAQUE_SUMMARY_ENTRIES:
+        for k, v in value.items():
+            dotted = f"{path}.{k}" if path else k
+            yield k, dotted
+            yield from _summary_keys(v, dotted)
+
+
+def _outputs_table():
+    """The rows of the README's table of the files in an output folder."""
+    readme = (CONFIGS.parent / "README.md").read_text()
+    rows = readme[readme.index("Outputs in the output folder:"):].split("\n\n")[1]
+    return rows.splitlines()
+
+
+def undocumented_summary_keys(summary):
+    """The keys of ``summary`` (a summary.json, parsed) that the README's ``summary.json``
+    row of its outputs table does not name in backticks, by name or dotted path (sorted)."""
+    row = next(line for line in _outputs_table() if line.startswith("| `summary.json` |"))
+    named = set(re.findall(r"`([^`]+)`", row))
+    return sorted({dotted for k, dotted in _summary_keys(summary) if k not in named and dotted not in named})
+
+
+def undocumented_outputs(folder):
+    """The names in the output folder ``folder`` (files and folders) that no row of the
+    README's outputs table names first (a folder's row names it with its content,
+    ``previews/frame_NNNNN.png``)."""
+    named = [re.match(r"\| `([^`/]+)", line) for line in _outputs_table()]
+    named = {m.group(1) for m in named if m}
+    return sorted(q.name for q in Path(folder).iterdir() if q.name not in named)

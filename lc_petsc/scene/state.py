@@ -23,7 +23,7 @@ from typing import Dict
 
 import numpy as np
 
-from lc_petsc.config import MAX_MODULUS, MIN_LENGTH
+from lc_petsc.config import DENSITY_RANGE, MAX_MODULUS, MIN_LENGTH, density_problem
 from lc_petsc.elements import bend, twist, weights
 
 TERM_K = {"stretch": 2, "bend": 3, "twist": 4}
@@ -147,6 +147,12 @@ class LocalScene:
             if badw.any():
                 w = int(np.flatnonzero(badw)[0])
                 problems.append(f"wisp {ids[w]}: {name} {arr[w]!r} must be finite and positive")
+        lo, hi = DENSITY_RANGE
+        outside = np.isfinite(rho) & (rho > 0) & ((rho < lo) | (rho > hi))
+        if batch.density is not None and outside.any():
+            # a wrong unit ran without an error (config.DENSITY_RANGE); the key is checked by the config
+            w = int(np.flatnonzero(outside)[0])
+            problems.append(f"wisp {ids[w]}: " + density_problem("/density", float(rho[w])))
         if batch.youngs_modulus is not None and (E > MAX_MODULUS).any():
             # the config's bound (1e300 overflowed the Hessians in frame 0)
             w = int(np.flatnonzero(E > MAX_MODULUS)[0])

@@ -18,7 +18,7 @@ from lc_petsc.batch import main
 from lc_petsc.io.frames_read import FramesReader
 
 ROOT = Path(__file__).resolve().parents[2]
-from sim_helpers import MPI_ENV, hairball_toml  # noqa: E402
+from sim_helpers import MPI_ENV, hairball_toml, undocumented_outputs, undocumented_summary_keys  # noqa: E402
 DEMO_FRAMES = 4
 
 SMALL = hairball_toml(frames=8, output="every = 2\npreview_frames = [0, -1]\ncontact_sheet = 4")
@@ -38,6 +38,24 @@ def demo(tmp_path_factory):
                      "--out", str(d / "out"), "-ksp_rtol", "1e-8"], cwd=d)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     return d / "out", p
+
+
+def test_every_summary_key_and_output_is_documented_in_the_readme(demo):
+    """Every key of the demo's summary.json (and of its records: output, shape, contact,
+    crossings and its head check, ...) is named in the README's summary.json row, and
+    every file of its output folder in the outputs table; before, 54 of its keys were not
+    (element_kernels, jit_compile_s, config_file, the contact's and the head check's
+    figures, ...).  A key added to the summary without its documentation fails here (as
+    does a restart's, tests/io/test_checkpoint_restart.py)."""
+    out, _ = demo
+    s = json.loads((out / "summary.json").read_text())
+    assert undocumented_summary_keys(s) == [] and undocumented_outputs(out) == []
+    assert {"element_kernels", "contact", "crossings"} <= set(s) and "head" in s["crossings"]
+    s["newton_bogus"] = 1
+    s["output"]["bogus_s"] = 0.0
+    s["checkpoints"] = [{"frame": 1, "bogus": 2}]
+    s["config"]["bogus"] = 3                 # the resolved config: README's config table names its keys
+    assert undocumented_summary_keys(s) == ["checkpoints.bogus", "newton_bogus", "output.bogus_s"]
 
 
 def test_demo_end_to_end(demo):

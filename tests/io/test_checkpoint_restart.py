@@ -25,7 +25,7 @@ from lc_petsc.io.checkpoint_seal import seal
 
 ROOT = Path(__file__).resolve().parents[2]
 DRIVER = str(ROOT / "drivers" / "simulate.py")
-from sim_helpers import MPI_ENV, hairball_toml  # noqa: E402
+from sim_helpers import MPI_ENV, hairball_toml, undocumented_outputs, undocumented_summary_keys  # noqa: E402
 
 SCENE = hairball_toml(frames="{frames}",
                       output="every = {every}\npreviews = false\nxdmf = false\n"
@@ -583,6 +583,9 @@ def test_a_restart_keeps_the_earlier_summaries(tmp_path, capsys):
     assert (s["restart"]["frame"], len(s["newton_iterations"])) == (2, 4)
     assert s["restart"]["earlier_summaries"] == [
         {"file": "summaries/summary_frames_000000-000003.json", "frames": [0, 3], "frames_kept": [0, 2]}]
+    # the restart's keys and its folder's checkpoints/ and summaries/ are in the README's outputs table
+    assert undocumented_summary_keys(s) == [] and undocumented_outputs(out) == []
+    assert {"checkpoints", "summaries"} <= {q.name for q in out.iterdir()}
     second = (out / "summary.json").read_bytes()
     # a second restart, from frame 4: frames 5-6 again; both earlier summaries kept
     ck4 = str(out / "checkpoints" / "checkpoint_000004.h5")

@@ -246,15 +246,16 @@ def _four_wisp_groom(d, last_wisp=None, **datasets):
     ("radius", "wisp 3, vertex 0: radius 1e-300 cm is below 1e-08 cm"),
     ("youngs_modulus", "wisp 3: Young's modulus 1e+300 dyn/cm^2 is beyond 1e+15"),
     ("shrunk", "wisp 3, edge 0: rest length 6e-11 cm is below 1e-08 cm"),
-    ("density", "the file's /density 1e+308 g/cm^3 of wisp 3 gives wisp 3, vertex 0 (radius 0.05 cm)"),
+    ("density", "wisp 3: /density 1300 g/cm^3 is outside 0.1 to 10 g/cm^3: it looks like kg/m^3 (hair: "
+                "1300 kg/m^3 = 1.3 g/cm^3); a density 1000 times off runs the scene as if 1000 times softer"),
 ])
 def test_a_wisp_beyond_double_precision_on_one_rank_is_refused_before_frame_0(shared_dir, capsys, damage,
                                                                              said):
-    """A groom whose last wisp has radius 1e-300 (masses 0), Young's modulus 1e300,
-    density 1e308 (M/dt^2 inf) or is shrunk by 1e-10 (stiffnesses 1e27 times its mass
-    term) passed the groom's checks and failed the solve in frame 0, exit 3, after
-    writing it.  Now refused on every rank, exit 2, once, naming file, wisp and value;
-    nothing written."""
+    """A groom whose last wisp has radius 1e-300 (masses 0), Young's modulus 1e300 or
+    is shrunk by 1e-10 (stiffnesses 1e27 times its mass term) passed the groom's checks
+    and failed the solve in frame 0, exit 3, after writing it; one whose density is in
+    kg/m^3 (1300) ran as if 1000 times softer, with a warning.  Now refused on every rank,
+    exit 2, once, naming file, wisp, dataset and value; nothing written."""
     d, _ = shared_dir
     radius, youngs, density = np.full(4 * 30, 0.05), np.full(4, 1e10), np.full(4, 1.3)
     shrink = None
@@ -263,24 +264,27 @@ def test_a_wisp_beyond_double_precision_on_one_rank_is_refused_before_frame_0(sh
     elif damage == "radius":
         radius[3 * 30:] = 1e-300
     elif damage == "density":
-        density[3] = 1e308
+        density[3] = 1300.0
     else:
         youngs[3] = 1e300
     g, cfg = _four_wisp_groom(d, shrink, radius=radius, youngs_modulus=youngs, density=density)
     _refused(cfg, d, capsys, "error: strands file " + g + ": " + said)
 
 
-def test_a_density_whose_mass_term_overflows_is_refused_before_frame_0(shared_dir, capsys):
-    """material.density = 1e308: M/dt^2 overflowed and the solve failed in frame 0, exit
-    3, after writing it; now refused on every rank, naming the key."""
+def test_a_mass_term_that_overflows_is_refused_before_frame_0(shared_dir, capsys):
+    """material.density = 1e308 overflowed M/dt^2 and the solve failed in frame 0, exit 3,
+    after writing it; such a density is now refused by its range (config.DENSITY_RANGE),
+    and a radius of 1e153 cm (stretch alone, soft enough for finite stiffnesses) still
+    overflows the mass term: refused on every rank, naming the density, wisp and radius."""
     d, _ = shared_dir
     cfg = os.path.join(d, "heavy.toml")
     if comm.rank == 0:
         with open(cfg, "w") as fh:
-            fh.write(SCENE.replace("[material]\n", "[material]\ndensity = 1e308\n"))
+            fh.write(SCENE.replace("youngs_modulus = 2.5e8\n", "youngs_modulus = 1e-3\nroot_radius = 1e153\n"
+                                   "tip_radius = 1e153\n").replace('"bend", "twist", ', ""))
     comm.Barrier()
-    err = _refused(cfg, d, capsys, "error: material.density = 1e+308 g/cm^3 gives wisp ")
-    assert comm.rank != 0 or "a mass term M/dt^2 of inf" in err, err
+    err = _refused(cfg, d, capsys, "error: material.density = 1.3 g/cm^3 gives wisp ")
+    assert comm.rank != 0 or "(radius 1e+153 cm) a mass of 1.2" in err and "a mass term M/dt^2 of inf" in err, err
 
 
 def test_a_refusal_on_one_rank_only_is_reported_by_rank_0(shared_dir, capsys, monkeypatch):

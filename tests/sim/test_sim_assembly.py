@@ -338,6 +338,21 @@ def test_segment_blocks_into_sbaij_match_the_numpy_kernels():
     assert np.abs(R[120:123, 123:126]).max() > 1e2 and np.array_equal(R, R.T)     # the blocks are in, symmetric
 
 
+def _vertices_in_the_head():
+    """(the simulator of a 3-wisp hairball after 4 frames, its positions with every 7th free
+    vertex moved 0.05 cm into the head, the head's centre and radius (with its margin)):
+    the hairball has no vertex on the head by itself.  The caller closes the simulator."""
+    from sim_helpers import small_hairball_config
+    sim = build_simulator(small_hairball_config(n_wisps=3, frames=4).validate(), comm=MPI.COMM_SELF)
+    sim.run(4)
+    it = sim.integrator
+    x = it.x.copy()
+    c, R = it.head.sphere_center(it.t_next), it.head.radius + it.cfg.physics.head_margin
+    for i in np.flatnonzero(it.free)[::7]:
+        x[i] = c + (R - 0.05) * (x[i] - c) / np.linalg.norm(x[i] - c)
+    return sim, x, c, R
+
+
 @pytest.mark.parametrize("keep", [False, True])
 def test_the_newton_system_takes_its_gradient_from_its_own_head_pass(keep):
     """The Newton system's gradient and matrix come from one pass of the head's penalty
@@ -345,20 +360,65 @@ def test_the_newton_system_takes_its_gradient_from_its_own_head_pass(keep):
     on the head, the system's gradient equals grad G computed apart bit for bit, and the
     matrix has the head's blocks once (``keep``: the exact system that keeps its elements'
     diagonal, the shifted fallback's)."""
-    from sim_helpers import small_hairball_config
-    sim = build_simulator(small_hairball_config(n_wisps=3, frames=4).validate(), comm=MPI.COMM_SELF)
+    sim, x, _, _ = _vertices_in_the_head()
     try:
-        sim.run(4)
         it = sim.integrator
-        x = it.x.copy()
-        c, R = it.head.sphere_center(it.t_next), it.head.radius + it.cfg.physics.head_margin
-        for i in np.flatnonzero(it.free)[::7]:                  # every 7th free vertex into the head
-            x[i] = c + (R - 0.05) * (x[i] - c) / np.linalg.norm(x[i] - c)
         assert len(it._contact_terms(x, True)[1]) > 10
         g = it._assemble_system(x, 0, filter="none", keep=keep)
         assert np.array_equal(g, it.gradient(x))
         A = it.asm.mat.copy()
         it._assemble_system(x, 0, filter="none")
         assert A.equal(it.asm.mat)
+    finally:
+        sim.close()
+
+
+def _dense(mat):
+    """The sequential matrix ``mat`` as a dense array (its own values, no product)."""
+    n = mat.getSize()[0]
+    return mat.getValues(range(n), range(n))
+
+
+def test_the_newton_system_adds_the_heads_blocks_and_gradient_once():
+    """The head's share of the Newton system against the head kernel called apart: with
+    vertices in the head, the matrix with head contact is the matrix without it plus
+    :func:`head_contact.hessian`'s blocks of the active vertices on their diagonal, and the
+    gradient the one without it plus :func:`head_contact.gradient`, bit for bit (the head's
+    terms are added last).  Held for the three places that add the blocks: the fresh
+    system, the one that keeps its elements' diagonal (the shifted fallback's) and its
+    reuse at the same x with another mass shift (:meth:`Integrator._exact_assembly`).
+    The gradient-and-matrix test above compares the system with itself assembled again, so
+    blocks added twice by every assembly passed it."""
+    from lc_petsc.elements import head_contact
+    sim, x, c, R = _vertices_in_the_head()
+    try:
+        it = sim.integrator
+        idx = np.flatnonzero(it.free & head_contact.active(x, c, R))
+        assert len(idx) > 10
+        k = it.cfg.physics.head_stiffness
+        blocks = np.zeros((3 * len(x), 3 * len(x)))
+        for v, h in zip(idx, head_contact.hessian(x[idx], c, R, k, filter="none")):
+            blocks[3 * v:3 * v + 3, 3 * v:3 * v + 3] = h
+        grad = np.zeros_like(x)
+        grad[idx] = head_contact.gradient(x[idx], c, R, k)
+        assert np.abs(blocks).max() > 1e4 and np.abs(grad).max() > 1e2       # the head's terms are not small
+
+        def systems():
+            """(grad G, matrix) fresh, kept and reused with the mass shifted by 0.5."""
+            out = [(it._assemble_system(x, 0, filter="none"), _dense(it.asm.mat))]
+            out.append((it._assemble_system(x, 0, filter="none", keep=True), _dense(it.asm.mat)))
+            out.append((it._exact_assembly(x, 0, 0.5), _dense(it.asm.mat)))
+            return out
+
+        with_head = systems()
+        it.contact = False
+        try:
+            without = systems()
+        finally:
+            it.contact = True
+        assert not np.array_equal(without[0][1], without[2][1])             # the shift changed the matrix
+        for (g, A), (g0, A0) in zip(with_head, without):
+            assert np.array_equal(A, A0 + blocks)
+            assert np.array_equal(g, g0 + grad)
     finally:
         sim.close()

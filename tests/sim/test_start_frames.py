@@ -1,0 +1,93 @@
+"""``time.start_increment_tol`` / ``time.start_frames`` / ``time.start_iterations``: the
+first frames of a fixed count solved to a relative increment tolerance on the recommended
+converging path, the later frames at the count (docs/newton.md "Twenty-second round").
+The collective test (marked ``mpi``) also runs on 2 and 3 ranks through
+tests/test_mpi_launch.py."""
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lc_petsc.config import TimeConfig
+from lc_petsc.errors import ConfigError
+from sim_helpers import rel_diff, run_positions, serial_reference, small_hairball_config
+
+comm = MPI.COMM_WORLD
+TOL = 1e-6
+
+
+def _verdict(ok, msg):
+    ok, msg = comm.bcast((ok, msg))
+    assert ok, msg
+
+
+def _config(frames=4, **time):
+    """3 wisps under a stronger shake (0.5 rad, 1 s), the linear solves tight (the
+    comparisons to 1e-10 must not depend on where CG stops)."""
+    cfg = small_hairball_config(n_wisps=3, frames=frames, options="-ksp_rtol 1e-12", **time)
+    cfg.scene.seed = 3
+    cfg.physics.head_amplitude, cfg.physics.head_period = 0.5, 1.0
+    return cfg.validate()
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("turn", [False, True])
+def test_start_frames_converge_then_the_count_resumes(turn):
+    """The plain count leaves frame 0's last increment above 1e-6 of a wisp length; with
+    ``start_increment_tol = 1e-6`` and ``start_frames = 2`` frames 0 and 1 converge below
+    it (``newton_converged`` True, ``newton_start`` True) in more iterations, and frames
+    2 and 3 take the count of 3 (``newton_converged`` None, the root turn on them only);
+    every rank count takes the same iterations and follows the serial run within
+    test_mpi_sim's 1e-10."""
+    plain = run_positions(_config(root_rotation=turn), comm=comm)[1]
+    cfg = _config(root_rotation=turn, start_increment_tol=TOL, start_frames=2)
+    X, summ = run_positions(cfg, comm=comm)
+    its, inc = summ["newton_iterations"], summ["newton_increment"]
+    ok = plain["newton_iterations"] == [3, 3, 3, 3] and plain["newton_increment"][0] > 100 * TOL
+    msg = f"plain run: iterations {plain['newton_iterations']}, increments {plain['newton_increment']}"
+    if ok:
+        ok = (summ["newton_start"] == [True, True, False, False]
+              and summ["newton_converged"] == [True, True, None, None]
+              and max(inc[:2]) < TOL and min(its[:2]) > 3 and its[2:] == [3, 3]
+              and summ["root_turns_reduced"] == [0, 0] + plain["root_turns_reduced"][2:])
+        msg = (f"{comm.size} ranks: start {summ['newton_start']}, converged {summ['newton_converged']}, "
+               f"iterations {its}, last increments {inc}, turns cut {summ['root_turns_reduced']}")
+    ref, ref_summ = serial_reference(cfg)
+    if comm.rank == 0 and ok:
+        err = rel_diff(X, ref)
+        ok = err <= 1e-10 and ref_summ["newton_iterations"] == its
+        msg = f"{comm.size} ranks: relative difference to 1 rank {err:.3e}, iterations {its}"
+        print("\n" + msg)
+    _verdict(ok, msg)
+
+
+def test_a_start_frame_is_the_converging_path_bit_for_bit():
+    """Frame 0 with the start option is the frame of a run configured by
+    :meth:`SimConfig.start_config` (the recommended path to that tolerance): the same
+    positions to the bit and the same iterations; the frame after it differs from that
+    run's (the count of 3, not the tolerance)."""
+    cfg = _config(frames=2, start_increment_tol=TOL)
+    X, summ = run_positions(cfg, comm=MPI.COMM_SELF, frames=1)
+    conv, conv_summ = run_positions(cfg.start_config().validate(), comm=MPI.COMM_SELF, frames=1)
+    assert np.array_equal(X, conv)
+    assert summ["newton_iterations"] == conv_summ["newton_iterations"]
+    assert summ["newton_converged"] == conv_summ["newton_converged"] == [True]
+    two = run_positions(cfg, comm=MPI.COMM_SELF)[1]
+    assert two["newton_iterations"][1] == 3 and two["newton_converged"] == [True, None]
+
+
+@pytest.mark.parametrize("fields, words", [
+    (dict(start_increment_tol=-1e-3), "time.start_increment_tol must be a finite positive number"),
+    (dict(start_increment_tol="1e-3"), "time.start_increment_tol must be a number"),
+    (dict(start_increment_tol=float("inf")), "time.start_increment_tol must be a finite positive"),
+    (dict(start_frames=0), "time.start_frames must be an integer >= 1"),
+    (dict(start_frames=1.5), "time.start_frames must be an integer >= 1"),
+    (dict(start_iterations=0), "time.start_iterations must be an integer >= 1"),
+    (dict(start_iterations=20000), "time.start_iterations = 20000 is more than"),
+    (dict(start_increment_tol=1e-3, newton_increment_tol=1e-4), "drop one of them"),
+    (dict(start_increment_tol=1e-3, newton_tol=1e-3), "drop one of them"),
+    (dict(start_increment_tol=1e-3, newton="trust_region"), "set time.newton = \"filtered\""),
+])
+def test_bad_start_settings_are_refused(fields, words):
+    with pytest.raises(ConfigError, match=words.replace("(", r"\(").replace(".", r"\.")):
+        TimeConfig(**fields).validate()

@@ -91,3 +91,34 @@ def test_a_start_frame_is_the_converging_path_bit_for_bit():
 def test_bad_start_settings_are_refused(fields, words):
     with pytest.raises(ConfigError, match=words.replace("(", r"\(").replace(".", r"\.")):
         TimeConfig(**fields).validate()
+
+
+def test_the_wisp_shares_take_the_compiled_energy_pass(monkeypatch):
+    """The per-wisp line searches' energies (Assembler.vertex_energy, 45% of frame 0's
+    Newton time on the converging path when it ran the NumPy kernels, docs/newton.md
+    "Twenty-second round") are one compiled pass with the compiled kernels: no NumPy
+    kernel call, within round-off of the NumPy kernels' per-vertex energies and summing
+    to the elastic energy."""
+    from lc_petsc import assembly
+    from lc_petsc.simulator import build_simulator
+    cfg = _config(frames=1)
+    sims = [build_simulator(cfg, comm=MPI.COMM_SELF)]
+    cfg_numpy = _config(frames=1)
+    cfg_numpy.solver.options += " -lc_element_kernels numpy"
+    sims.append(build_simulator(cfg_numpy, comm=MPI.COMM_SELF))
+    try:
+        sims[0].step()
+        x = sims[0].integrator.x
+        calls = []
+        for name, module in assembly.KERNELS.items():
+            real = module.energy
+            monkeypatch.setattr(module, "energy", lambda *a, real=real: calls.append(1) or real(*a))
+        fast = sims[0].assembler.vertex_energy(x)
+        assert calls == []
+        ref = sims[1].assembler.vertex_energy(x)
+        assert len(calls) == 3 and sims[1].assembler.kernels == "numpy"
+        assert np.abs(fast - ref).max() <= 1e-12 * np.abs(ref).max()
+        assert abs(fast.sum() - sims[0].assembler.energy(x)) <= 1e-12 * abs(fast.sum())
+    finally:
+        for s in sims:
+            s.close()

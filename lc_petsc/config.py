@@ -429,7 +429,7 @@ class TimeConfig:
     newton_extend_above: Optional[float] = None
     newton_extend_cap: int = 12
     start_increment_tol: Optional[float] = None
-    start_frames: int = 1
+    start_frames: int = 2
     start_iterations: int = 30
     max_substeps: int = 8
     unconverged: str = "accept"
@@ -768,16 +768,17 @@ class SimConfig:
         that relative increment tolerance, capped at ``time.start_iterations``, on the
         recommended converging path (docs/newton.md): the exact Hessian near the solution
         (``exact_or_analytic``), the shifted fallback, exact steps kept once taken
-        (``exact_stay``, ``wisp_trust`` where exact steps are searched wisp by wisp), the
-        corotational update, the increment stop; no root turn, no extension.  The scene,
-        physics, step cutback and PETSc options are the run's."""
+        (``exact_stay``), the corotational update, the increment stop; no root turn, no
+        extension.  Not ``wisp_trust``: its earlier exact steps cost hairball10's frame 0
+        1.6x the CPU for the same iterations (docs/newton.md "Twenty-second round").  The
+        scene, physics, step cutback and PETSc options are the run's."""
         t = self.time
         time = replace(t, newton_increment_tol=t.start_increment_tol, newton_tol=None,
                        newton_iterations=t.start_iterations, newton_update="corotational", line_search=False,
                        newton_stop="increment", root_rotation=False, newton_extend_above=None,
                        start_increment_tol=None)
         solver = replace(self.solver, filter="exact_or_analytic", exact_fallback="shifted", exact_stay=True,
-                         wisp_trust="strand_collision" not in self.physics.terms)
+                         wisp_trust=False)
         return replace(self, time=time, solver=solver)
 
     def to_dict(self) -> dict:

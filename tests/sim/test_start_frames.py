@@ -66,7 +66,7 @@ def test_a_start_frame_is_the_converging_path_bit_for_bit():
     :meth:`SimConfig.start_config` (the recommended path to that tolerance): the same
     positions to the bit and the same iterations; the frame after it differs from that
     run's (the count of 3, not the tolerance)."""
-    cfg = _config(frames=2, start_increment_tol=TOL)
+    cfg = _config(frames=2, start_increment_tol=TOL, start_frames=1)
     X, summ = run_positions(cfg, comm=MPI.COMM_SELF, frames=1)
     conv, conv_summ = run_positions(cfg.start_config().validate(), comm=MPI.COMM_SELF, frames=1)
     assert np.array_equal(X, conv)

@@ -209,8 +209,8 @@ class Assembler:
     def vertex_energy(self, x):
         """Elastic energy (nv,) of this rank's enabled terms per vertex: vertex v's entry
         is that of the elements starting at v (so within v's wisp; the kernels of
-        ``kernels``: the compiled one pass was 0.1x the NumPy kernels' time in the
-        per-wisp line searches of frame 0, docs/newton.md "Twenty-second round").
+        ``kernels``: the compiled one pass took hairball10's frame 0 on the converging path
+        from 82 to 56 ms, docs/newton.md "Twenty-second round").
         Rank-local: a wisp's sum of it is its own energy."""
         with self.timers("elements"):
             if self.kernels == "compiled":

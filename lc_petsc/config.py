@@ -770,7 +770,7 @@ class SimConfig:
         (``exact_or_analytic``), the shifted fallback, exact steps kept once taken
         (``exact_stay``), the corotational update, the increment stop; no root turn, no
         extension.  Not ``wisp_trust``: its earlier exact steps cost hairball10's frame 0
-        1.6x the CPU for the same iterations (docs/newton.md "Twenty-second round").  The
+        1.6x the CPU (17 iterations against 16) (docs/newton.md "Twenty-second round").  The
         scene, physics, step cutback and PETSc options are the run's."""
         t = self.time
         time = replace(t, newton_increment_tol=t.start_increment_tol, newton_tol=None,

@@ -107,3 +107,14 @@ def test_the_wisp_shares_take_the_compiled_energy_pass(monkeypatch):
     finally:
         for s in sims:
             s.close()
+
+
+def test_the_start_keys_without_a_tolerance_are_warned():
+    """``time.start_frames`` / ``start_iterations`` without ``time.start_increment_tol``
+    change nothing: the configuration says so, naming the key; with it, no warning."""
+    from lc_petsc.config import config_from_dict
+    cfg = config_from_dict({"time": {"start_frames": 3, "start_iterations": 10}})
+    assert [w.split(" is set")[0] for w in cfg.key_warnings] == ["time.start_frames", "time.start_iterations"]
+    assert all("time.start_increment_tol set" in w for w in cfg.key_warnings)
+    cfg = config_from_dict({"time": {"start_frames": 3, "start_increment_tol": 1e-3}})
+    assert cfg.key_warnings == [] and cfg.time.start_frames == 3

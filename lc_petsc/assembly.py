@@ -208,10 +208,14 @@ class Assembler:
 
     def vertex_energy(self, x):
         """Elastic energy (nv,) of this rank's enabled terms per vertex: vertex v's entry
-        is that of the elements starting at v (so within v's wisp; the NumPy kernels).
+        is that of the elements starting at v (so within v's wisp; the kernels of
+        ``kernels``: the compiled one pass took hairball10's frame 0 on the converging path
+        from 82 to 56 ms, docs/newton.md "Twenty-second round").
         Rank-local: a wisp's sum of it is its own energy."""
-        e = np.zeros(len(x))
         with self.timers("elements"):
+            if self.kernels == "compiled":
+                return compiled.vertex_energy(self.elements, x)
+            e = np.zeros(len(x))
             for name, t in self.scene.terms.items():
                 if len(t.start):
                     e += np.bincount(t.start, KERNELS[name].energy(t.gather(x), t.rest, t.stiffness), minlength=len(x))

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import os
 import shlex
-from dataclasses import dataclass, field, asdict, fields
+from dataclasses import dataclass, field, asdict, fields, replace
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -401,6 +401,11 @@ class TimeConfig:
     (largest vertex move / wisp length) after ``newton_iterations`` is still above it takes
     more iterations, until one is at or below it or the frame has taken
     ``newton_extend_cap``; the root turn follows the last (docs/newton.md "Eighteenth round").
+    ``start_increment_tol`` (a fixed count only; None: off): the first ``start_frames``
+    frames (the start from rest) run to that relative increment tolerance, at most
+    ``start_iterations`` iterations, on the recommended converging path
+    (:meth:`SimConfig.start_config`); the frames after them run the fixed count
+    (docs/newton.md "Twenty-second round").
 
     Step cutback (only with a tolerance): a frame whose Newton misses it within the cap
     is redone as 2 steps of dt / 2, each cut again if it fails, up to ``max_substeps``
@@ -423,6 +428,9 @@ class TimeConfig:
     root_rotation: bool = False
     newton_extend_above: Optional[float] = None
     newton_extend_cap: int = 12
+    start_increment_tol: Optional[float] = None
+    start_frames: int = 2
+    start_iterations: int = 30
     max_substeps: int = 8
     unconverged: str = "accept"
 
@@ -492,6 +500,7 @@ class TimeConfig:
                               "converges the frame itself: set time.root_rotation = false or drop the "
                               "tolerance")
         self._validate_extension()
+        self._validate_start()
         _int_at_least("time.max_substeps", self.max_substeps, 1)
         if self.max_substeps & (self.max_substeps - 1) or self.max_substeps > MAX_SUBSTEPS:
             raise ConfigError(f"time.max_substeps must be a power of 2 (1, 2, 4, ... {MAX_SUBSTEPS}; "
@@ -502,6 +511,26 @@ class TimeConfig:
                               f"below {MIN_DT:g} s; use a smaller time.max_substeps")
         if self.unconverged not in UNCONVERGED:
             raise ConfigError(f"time.unconverged must be one of {UNCONVERGED}, got {self.unconverged!r}")
+
+    def _validate_start(self) -> None:
+        """``start_increment_tol`` / ``start_frames`` / ``start_iterations`` (:meth:`validate`)."""
+        _int_at_least("time.start_frames", self.start_frames, 1)
+        _int_at_least("time.start_iterations", self.start_iterations, 1)
+        if self.start_iterations > MAX_NEWTON_ITERATIONS:
+            raise ConfigError(f"time.start_iterations = {self.start_iterations!r} is more than "
+                              f"{MAX_NEWTON_ITERATIONS:,} Newton iterations per start frame (30 is a cap "
+                              "that the start from rest reaches 1e-3 well within)")
+        if self.start_increment_tol is None:
+            return
+        _positive("time.start_increment_tol", self.start_increment_tol)
+        if self.newton_converges:
+            raise ConfigError("time.start_increment_tol converges the first frames of a fixed count of Newton "
+                              "iterations; with time.newton_tol or time.newton_increment_tol set every frame "
+                              "already converges: drop one of them")
+        if self.newton != "filtered":
+            raise ConfigError("time.start_increment_tol runs the start frames on the filtered path with exact "
+                              "steps (solver.filter = \"exact_or_analytic\"), not the trust region: set "
+                              "time.newton = \"filtered\" or drop time.start_increment_tol")
 
     def _validate_extension(self) -> None:
         """``newton_extend_above`` / ``newton_extend_cap`` (:meth:`validate`)."""
@@ -590,6 +619,12 @@ class SolverConfig:
         parts = [self._file_text()] if self.options_file else []
         parts.append(self.options)
         return " ".join(p for p in parts if p.strip())
+
+
+def element_filter(solver_filter):
+    """The element kernels' filter of ``solver.filter`` (``exact_or_analytic`` assembles
+    the exact Hessian first, see Integrator)."""
+    return "analytic" if solver_filter == "exact_or_analytic" else solver_filter
 
 
 def read_options_file(path, where="") -> str:
@@ -728,6 +763,24 @@ class SimConfig:
                               f"{self.scene.n_vertices} vertices (scene.n_vertices)")
         return self
 
+    def start_config(self) -> "SimConfig":
+        """The configuration of the start frames (``time.start_increment_tol``): Newton to
+        that relative increment tolerance, capped at ``time.start_iterations``, on the
+        recommended converging path (docs/newton.md): the exact Hessian near the solution
+        (``exact_or_analytic``), the shifted fallback, exact steps kept once taken
+        (``exact_stay``), the corotational update, the increment stop; no root turn, no
+        extension.  Not ``wisp_trust``: its earlier exact steps cost hairball10's frame 0
+        1.6x the CPU (17 iterations against 16) (docs/newton.md "Twenty-second round").  The
+        scene, physics, step cutback and PETSc options are the run's."""
+        t = self.time
+        time = replace(t, newton_increment_tol=t.start_increment_tol, newton_tol=None,
+                       newton_iterations=t.start_iterations, newton_update="corotational", line_search=False,
+                       newton_stop="increment", root_rotation=False, newton_extend_above=None,
+                       start_increment_tol=None)
+        solver = replace(self.solver, filter="exact_or_analytic", exact_fallback="shifted", exact_stay=True,
+                         wisp_trust=False)
+        return replace(self, time=time, solver=solver)
+
     def to_dict(self) -> dict:
         """The resolved configuration as plain dicts (summary.json's ``config``)."""
         return asdict(self)
@@ -840,6 +893,9 @@ _CONDITIONAL_KEYS = {
     ("scene", "jitter"): (lambda c: c.scene.perturbation == "jitter", "scene.perturbation = 'jitter'"),
     ("material", "radius_scale_with_count"): (lambda c: c.scene.kind == "hairball",
                                               "scene.kind = 'hairball'"),
+    ("time", "start_frames"): (lambda c: c.time.start_increment_tol is not None, "time.start_increment_tol set"),
+    ("time", "start_iterations"): (lambda c: c.time.start_increment_tol is not None,
+                                   "time.start_increment_tol set"),
     ("physics", "head_amplitude"): (lambda c: c.physics.head_motion == "shake",
                                     "physics.head_motion = 'shake'"),
     ("physics", "head_period"): (lambda c: c.physics.head_motion == "shake",

@@ -118,6 +118,7 @@ from __future__ import annotations
 import numpy as np
 
 from lc_petsc import contact_curvature, curvature, wisp_trust
+from lc_petsc.config import element_filter
 from lc_petsc.elements import head_contact
 from lc_petsc.frame_end import FrameEnd
 from lc_petsc.newton_stop import (CHORD_TRY_C, ENERGY_FLOOR, EXACT_BELOW, LOOSE_TOLERANCE, QUADRATIC_SAFETY,
@@ -126,6 +127,7 @@ from lc_petsc.newton_stop import (CHORD_TRY_C, ENERGY_FLOOR, EXACT_BELOW, LOOSE_
                                   unconfirmed_note, verify_note)
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.root_rotation import RootRotation
+from lc_petsc.solver_plan import default_ksp_rtol
 from lc_petsc.predictors import (corotational_update, follow_the_leader, head_motion_change, project_rest_lengths,
                                  retract_edge_lengths, start_carry_weight)
 from lc_petsc.scene.state import vertex_wisp_length
@@ -172,11 +174,13 @@ class Integrator:
         # the update (x, step) -> next iterate (see update); ccd mode at a fixed count:
         # linear (the limiter would cut most nonlinear updates of a large scene, and each
         # cut costs a second limiter call); the mode means nothing without strand contact
-        #: a tolerance is set (Newton runs to convergence, not a fixed count)
-        self.converging = config.time.newton_converges
-        nonlinear = self.converging or not (strand is not None and config.physics.strand_contact_mode == "ccd")
-        self.retract = nonlinear and config.time.newton_update in ("edge_retraction", "corotational")
-        self.turn_exact = nonlinear and config.time.newton_update == "corotational"
+        #: the run's configuration; with time.start_increment_tol the start frames' (step)
+        self.run_config = config
+        self.start_config = config.start_config() if config.time.start_increment_tol is not None else None
+        self._use(config)
+        # the start frames' -ksp_rtol: a converging Newton's default unless the options set one
+        given = solver.rtol != float(solver.plan.ksp_rtol)
+        self._rtols = (solver.rtol, solver.rtol if given else float(default_ksp_rtol(True)))
         self.wisp_length = vertex_wisp_length(scene.x_rest, scene.offsets)
         # the shortest wisp (all ranks): time.newton_tol (cm) alone is loose relative to it
         self.shortest_wisp = float(global_reduce(comm, [self.wisp_length.min(initial=np.inf)], "min")[0])
@@ -236,7 +240,6 @@ class Integrator:
         self._wisp_alpha = None        # per vertex: its wisp's alpha (_wisp_line_search) or None
         # solver.wisp_trust (lc_petsc/wisp_trust.py): per local wisp the shift its next exact
         # step starts from, and whether this solve has kept an exact step (then it stays exact)
-        self.wisp_trust = config.solver.wisp_trust and self._per_wisp_search()
         self._wisp_mu = np.zeros(len(scene.offsets) - 1)
         self._kept_exact = False
         self._searched = None          # the last accepted line search's (G0, G, g . dx)
@@ -248,6 +251,25 @@ class Integrator:
         self.chord_checks = []          # per frame: chord steps measured (newton_stop = "chord_estimate")
         self.length_projection_move = []    # per frame: time.length_projection's largest move / wisp length
         self._projection_move = 0.0
+        self.newton_start = []          # per frame: run to time.start_increment_tol (a start frame)
+
+    def _use(self, config):
+        """Run the next frames with ``config`` (the run's or its start frames'): it and the
+        Newton path's flags it decides.  ``converging``: a tolerance is set (Newton runs to
+        convergence, not a fixed count); ``retract`` / ``turn_exact``: the nonlinear
+        updates (ccd mode at a fixed count: linear, the limiter would cut most nonlinear
+        updates of a large scene, and each cut costs a second limiter call; the mode
+        means nothing without strand contact); ``wisp_trust``: solver.wisp_trust where
+        exact steps are searched wisp by wisp."""
+        self.cfg = config
+        self.converging = config.time.newton_converges
+        nonlinear = self.converging or not (self.strand is not None and config.physics.strand_contact_mode == "ccd")
+        self.retract = nonlinear and config.time.newton_update in ("edge_retraction", "corotational")
+        self.turn_exact = nonlinear and config.time.newton_update == "corotational"
+        self.wisp_trust = config.solver.wisp_trust and self._per_wisp_search()
+        self.asm.filter = element_filter(config.solver.filter)
+        if self.strand is not None:
+            self.strand.filter = self.asm.filter
 
     # -------------------------------------------------------------- potential
     def _contact_terms(self, x, need_hessian, per_vertex=False):
@@ -326,7 +348,26 @@ class Integrator:
         """Advance one frame (collective): one backward-Euler step of ``time.dt``, with
         step cutback when a tolerance is set (:meth:`_advance`).  Per frame: the Newton
         iterations of every attempt, the substeps kept, whether all of them converged
-        and their largest final increment."""
+        and their largest final increment.  The first ``time.start_frames`` frames run
+        with the start configuration when ``time.start_increment_tol`` is set."""
+        start = self.start_config is not None and self.frame < self.run_config.time.start_frames
+        self.newton_start.append(start)
+        if not start:
+            self._frame()
+            return
+        if self.monitor is not None:
+            self._say(f"  frame {self.frame}: a start frame, to time.start_increment_tol = "
+                      f"{self.run_config.time.start_increment_tol:g} on the converging path")
+        self._use(self.start_config)
+        self.solver.set_rtol(self._rtols[1])
+        try:
+            self._frame()
+        finally:
+            self._use(self.run_config)
+            self.solver.set_rtol(self._rtols[0])
+
+    def _frame(self):
+        """:meth:`step` with the configuration in use."""
         cfg = self.cfg
         if self.strand is not None:             # per frame: the statistics' entries
             self.strand.start_frame()
@@ -759,7 +800,7 @@ class Integrator:
         (lc_petsc/root_rotation.py); in ccd mode the step's limiter then takes the update
         and the turn together (a limiter call of its own cost the 60-wisp demo 1.2-1.4x
         its collision time).  Other iterations: x."""
-        if self.root_turn is None or not last:
+        if self.root_turn is None or not last or not self.cfg.time.root_rotation:     # not in start frames
             return x
         unit = self._mass_unit()
         # one phase entry for the whole turn, its head passes untimed inside: a timer

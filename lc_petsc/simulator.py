@@ -13,7 +13,7 @@ from petsc4py import PETSc
 
 from lc_petsc import parallel
 from lc_petsc.assembly import Assembler
-from lc_petsc.config import ELASTIC_TERMS, OTHER_TERMS, ConfigError, SimConfig
+from lc_petsc.config import ELASTIC_TERMS, OTHER_TERMS, ConfigError, SimConfig, element_filter
 from lc_petsc.diagnostics import groom_material_warnings
 from lc_petsc.integrator import FRAME_COUNTS, Integrator
 from lc_petsc.errors import RestPoseOverlapError, StartOverlapError
@@ -32,12 +32,6 @@ from lc_petsc.timing import Timers
 def _mpi_comm(comm):
     from mpi4py import MPI
     return MPI.COMM_WORLD if comm is None else comm
-
-
-def element_filter(solver_filter):
-    """The element kernels' filter of ``solver.filter`` (``exact_or_analytic`` assembles
-    the exact Hessian first, see Integrator)."""
-    return "analytic" if solver_filter == "exact_or_analytic" else solver_filter
 
 
 def check_head_turn(cfg):
@@ -221,6 +215,8 @@ class Simulator:
             "cpu_timings_s": cpu,
             "newton_iterations": list(self.integrator.newton_iterations),
             "newton_converged": list(self.integrator.newton_converged),
+            # per frame: a start frame run to time.start_increment_tol (newton_converged: whether it did)
+            "newton_start": list(self.integrator.newton_start),
             "newton_increment": [None if not np.isfinite(v) else float(v)
                                  for v in self.integrator.newton_increment],
             "newton_unconfirmed": list(self.integrator.newton_unconfirmed),

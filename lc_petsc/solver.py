@@ -145,6 +145,12 @@ class LinearSolver:
                 f"-mat_type {A.getType()} (preconditioner built from {P.getType()}) "
                 f"(options: {self.plan.effective()})")
 
+    def set_rtol(self, rtol):
+        """Solve to the relative tolerance ``rtol`` from the next solve on (the start
+        frames of ``time.start_increment_tol`` and the frames after them)."""
+        self.ksp.setTolerances(rtol=float(rtol))
+        self.rtol = float(rtol)
+
     def destroy(self):
         """Destroy the KSP (collective); the matrices belong to their owners."""
         self.ksp.destroy()

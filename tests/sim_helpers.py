@@ -36,6 +36,30 @@ def small_hairball_config(n_wisps=4, options="", terms=("stretch", "bend", "twis
         solver=SolverConfig(options=options))
 
 
+def jolt_hairball_config(frames=3, **time):
+    """3 wisps under a stronger shake (0.5 rad, 1 s), the linear solves tight (comparisons
+    to 1e-10 must not depend on where CG stops): the plain count's last increments are
+    1.8e-3, 6.1e-3, 5.3e-3 wisp lengths in frames 0-2."""
+    cfg = small_hairball_config(n_wisps=3, frames=frames, options="-ksp_rtol 1e-12", **time)
+    cfg.scene.seed = 3
+    cfg.physics.head_amplitude, cfg.physics.head_period = 0.5, 1.0
+    return cfg.validate()
+
+
+def assert_follows_serial(cfg, X, iterations, ok, msg, comm):
+    """On every rank of ``comm``: unless ``ok`` is already False (``msg`` says why), rank 0
+    checks that positions X follow the serial run of ``cfg`` within test_mpi_sim's 1e-10
+    with the same Newton ``iterations`` per frame; the verdict is broadcast and asserted."""
+    ref, ref_summ = serial_reference(cfg)
+    if comm.rank == 0 and ok:
+        err = rel_diff(X, ref)
+        ok = err <= 1e-10 and ref_summ["newton_iterations"] == iterations
+        msg = f"{comm.size} ranks: relative difference to 1 rank {err:.3e}, iterations {iterations}"
+        print("\n" + msg)
+    ok, msg = comm.bcast((ok, msg))
+    assert ok, msg
+
+
 def touching_wisps_source(n_wisps=6, n_vertices=30, spin_step=1.3, n_pinned=4):
     """Six short 4C wisps hanging from a row of roots 0.9 cm apart (coil diameter 1 cm):
     neighbours touch and interleave, so contact pairs form between wisps 1-2 and 3-4,

@@ -55,6 +55,10 @@ class Settings:
     # a fixed count extended on frames whose last increment is above this (None: off)
     newton_extend_above: Optional[float] = TimeConfig.newton_extend_above
     newton_extend_cap: int = TimeConfig.newton_extend_cap
+    # the first start_frames frames to this tolerance on the converging path (None: off)
+    start_increment_tol: Optional[float] = TimeConfig.start_increment_tol
+    start_frames: int = TimeConfig.start_frames
+    start_iterations: int = TimeConfig.start_iterations
     exact_fallback: str = SolverConfig.exact_fallback   # with exact_or_analytic only
     exact_stay: bool = SolverConfig.exact_stay
     wisp_trust: bool = SolverConfig.wisp_trust      # with the shifted fallback only
@@ -94,6 +98,8 @@ class Settings:
             parts.append("root turn")
         if self.newton_extend_above is not None:
             parts.append(f"extend>{self.newton_extend_above:g} cap {self.newton_extend_cap}")
+        if self.start_increment_tol is not None:
+            parts.append(f"start {self.start_frames} to {self.start_increment_tol:g} cap {self.start_iterations}")
         if self.exact_fallback != SolverConfig.exact_fallback:
             parts.append(f"{self.exact_fallback} fallback")
         if self.exact_stay:
@@ -303,6 +309,9 @@ def configure(base_cfg, s: Settings, duration):
     # the scene file's own extension would be refused with the reference's tolerance
     cfg.time.newton_extend_above = s.newton_extend_above
     cfg.time.newton_extend_cap = s.newton_extend_cap
+    cfg.time.start_increment_tol = s.start_increment_tol
+    cfg.time.start_frames = s.start_frames
+    cfg.time.start_iterations = s.start_iterations
     cfg.solver.filter = s.filter
     cfg.solver.exact_fallback = s.exact_fallback
     cfg.solver.exact_stay = s.exact_stay

@@ -9,23 +9,14 @@ from mpi4py import MPI
 
 from lc_petsc.config import TimeConfig
 from lc_petsc.errors import ConfigError
-from sim_helpers import rel_diff, run_positions, serial_reference, small_hairball_config
+from sim_helpers import assert_follows_serial, jolt_hairball_config, run_positions
 
 comm = MPI.COMM_WORLD
 
 
-def _verdict(ok, msg):
-    ok, msg = comm.bcast((ok, msg))
-    assert ok, msg
-
-
 def _jolt_config(**time):
-    """3 wisps, 3 frames under a stronger shake (0.5 rad, 1 s): the plain count's last
-    increments are 1.8e-3, 6.1e-3, 5.3e-3 wisp lengths."""
-    cfg = small_hairball_config(n_wisps=3, frames=3, options="-ksp_rtol 1e-12", **time)
-    cfg.scene.seed = 3
-    cfg.physics.head_amplitude, cfg.physics.head_period = 0.5, 1.0
-    return cfg.validate()
+    """3 wisps, 3 frames under a stronger shake (:func:`jolt_hairball_config`)."""
+    return jolt_hairball_config(**time)
 
 
 @pytest.mark.mpi
@@ -49,13 +40,7 @@ def test_a_jolt_frame_is_extended_until_below_the_bound(turn):
     if ok and turn:
         ok = 3 < its[0] <= 12 and len(summ["root_turns_reduced"]) == 3
         msg = f"{comm.size} ranks, turned: iterations {its}, turns cut {summ['root_turns_reduced']}"
-    ref, ref_summ = serial_reference(cfg)
-    if comm.rank == 0 and ok:
-        err = rel_diff(X, ref)
-        ok = err <= 1e-10 and ref_summ["newton_iterations"] == its
-        msg = f"{comm.size} ranks: relative difference to 1 rank {err:.3e}, iterations {its}"
-        print("\n" + msg)
-    _verdict(ok, msg)
+    assert_follows_serial(cfg, X, its, ok, msg, comm)
 
 
 @pytest.mark.parametrize("turn", [False, True])

@@ -27,9 +27,9 @@ def write_summary(path, summary):
     """Write ``summary`` as JSON atomically: through ``<path>.tmp``, synced to the disk,
     then renamed over ``path``, so a reader (or a run killed at any moment, a crash)
     never leaves or sees half a file: the old one or the new one whole."""
+    text = json.dumps(_jsonable(summary), indent=1) + "\n"     # one write: json.dump's many took 8x longer
     with written_aside(path, fsync=True) as tmp, open(tmp, "w") as fh:
-        json.dump(_jsonable(summary), fh, indent=1)
-        fh.write("\n")
+        fh.write(text)
 
 
 #: ``status`` of the summary.json a running job keeps up to date (rank 0, at each

@@ -60,12 +60,10 @@ def _records(summary, start=0):
 
 @pytest.fixture(scope="module")
 def straight(tmp_path_factory):
-    """The uninterrupted run's per-frame records (serial, no checkpoints)."""
+    """The uninterrupted run's summary (serial, no checkpoints)."""
     d = tmp_path_factory.mktemp("straight")
     assert main([_config(d, ce=0), "--out", str(d / "out"), "--quiet"]) == 0
-    s = json.loads((d / "out" / "summary.json").read_text())
-    assert (s["status"], s["output"]["progress_summaries"]["written"]) == ("finished", 0)
-    return _records(s)
+    return json.loads((d / "out" / "summary.json").read_text())
 
 
 def _wait(proc, what, timeout=120):
@@ -102,6 +100,8 @@ def test_a_killed_run_keeps_its_records_and_a_restart_sets_them_aside(tmp_path, 
     assert sorted(p.name for p in (out / "checkpoints").glob("checkpoint_*.h5")) == \
         ["checkpoint_000002.h5", "checkpoint_000004.h5"]
     killed = json.loads(running)
+    assert straight["status"] == "finished"
+    straight = _records(straight)
     assert (killed["status"], killed["frames"], killed["preempted"], killed["error"]) == ("running", 6, None, None)
     assert _records(killed) == {k: v[:6] for k, v in straight.items()}
     assert killed["output"]["frames_written"] == 7 and killed["restart"] is None
@@ -239,3 +239,28 @@ def _descendants(pid):
         found += kids
         todo += kids
     return found
+
+
+def test_a_rank_abort_keeps_the_running_records(tmp_path, capsys):
+    """An internal error on one rank of several aborts the job after writing summary.json
+    with the error: it used to replace the summary kept while the run went (its records)
+    by the error alone."""
+    from lc_petsc.config import SimConfig
+    from lc_petsc.job import Job
+
+    class Aborted(Exception):
+        pass
+
+    class TwoRanks:
+        size, rank = 2, 1
+
+        def Abort(self, code):
+            raise Aborted(code)
+    job = Job.__new__(Job)
+    job.comm, job.out, job.cfg = TwoRanks(), tmp_path, SimConfig()
+    write_summary(tmp_path / "summary.json", _summary(4, status="running"))
+    with pytest.raises(Aborted):
+        job._uncollective_failure(KeyError("x"))
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert (s["status"], s["frames"], s["newton_iterations"]) == ("error", 4, [0, 1, 2, 3])
+    assert s["aborted"] and s["error"].startswith("rank 1: KeyError: 'x' (an internal error")

@@ -156,17 +156,22 @@ def history_table(history, columns=("newton_iterations", "newton_converged", "ne
              + (" (the last still running, or killed: its summary.json says running)" if history["running"] else "")]
     for i, seg in enumerate(history["segments"]):
         a, b = seg["frames_kept"]
-        lines.append(f"  segment {i}: {seg['file']}, {seg['status']}, {seg['ranks']} rank(s), config "
+        # an earlier segment that says running was killed (a restart followed it)
+        status = "killed (running)" if seg["status"] == RUNNING and i < len(history["segments"]) - 1 \
+            else seg["status"]
+        lines.append(f"  segment {i}: {seg['file']}, {status}, {seg['ranks']} rank(s), config "
                      f"{seg['config_sha256'][:12]}, frames {a + 1}-{b} kept of {seg['frames'][0] + 1}-"
                      f"{seg['frames'][1]}")
-    shown = [c for c in columns if c in history["per_frame"]]
     pf = history["per_frame"]
-    lines.append("  " + "  ".join(f"{c.split('.')[-1]:>14}" for c in ("frame", "segment", "ranks", *shown)))
+    shown = ["frame", "segment", "ranks", *(c for c in columns if c in pf)]
+    # a list (the frame's KSP solves) is shown as its sum
+    names = {c: c.split(".")[-1] + (" (sum)" if c == "ksp_iterations" else "") for c in shown}
+    lines.append("  " + "  ".join(names[c].rjust(8) for c in shown))
 
     def cell(v):
         if isinstance(v, list):
             v = sum(v)
         return f"{v:.3g}" if isinstance(v, float) else str(v)
     for j in range(len(pf["frame"])):
-        lines.append("  " + "  ".join(f"{cell(pf[c][j]):>14}" for c in ("frame", "segment", "ranks", *shown)))
+        lines.append("  " + "  ".join(cell(pf[c][j]).rjust(max(8, len(names[c]))) for c in shown))
     return lines

@@ -124,7 +124,8 @@ def test_a_killed_run_keeps_its_records_and_a_restart_sets_them_aside(tmp_path, 
     assert s["output"]["progress_summaries"]["written"] >= 3
     capsys.readouterr()
     assert _script("join_summaries").main([str(out)]) == 0
-    assert "segment 0: summaries/summary_frames_000000-000006.json, running, 1 rank(s)" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "segment 0: summaries/summary_frames_000000-000006.json, killed (running), 1 rank(s)" in said
     h = json.loads((out / "history.json").read_text())
     pf = h["per_frame"]
     assert pf["frame"] == list(range(1, FRAMES + 1)) and pf["segment"] == [0] * 4 + [1] * 6
@@ -196,30 +197,34 @@ def test_join_refuses_a_damaged_or_inconsistent_set(tmp_path, capsys):
         join_history(out)
 
 
-def test_the_running_summary_on_every_rank_count_restarts(tmp_path):
+def test_the_running_summary_on_every_rank_count_restarts(tmp_path, straight):
     """On 2 ranks (mpiexec): the summary kept while the run goes is written collectively
-    (rank 0 writes, every rank reduces); put back as a SIGKILL after checkpoint 4 leaves
-    it, a restart on 1 rank sets it aside and the history names both rank counts."""
-    cfg = _config(tmp_path, ce=4)
+    (rank 0 writes, every rank reduces); its ranks SIGKILLed while checkpoint 4 is
+    written, a restart on 1 rank sets it aside and the history names both rank counts."""
+    cfg = _config(tmp_path, ce=2)
     out = tmp_path / "out"
-    env = dict(MPI_ENV, LC_PETSC_TEST_CHECKPOINT_PAUSE="8:120")
+    env = dict(MPI_ENV, LC_PETSC_TEST_CHECKPOINT_PAUSE="4:120")
     proc = subprocess.Popen(["mpiexec", "--oversubscribe", "-n", "2", sys.executable, DRIVER, cfg, "--out",
                              str(out), "--quiet"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, cwd=tmp_path, stdin=subprocess.DEVNULL)
     try:
-        _wait(proc, lambda: (out / "checkpoints" / ".checkpoint_000008.h5.tmp").exists())
+        _wait(proc, lambda: (out / "checkpoints" / ".checkpoint_000004.h5.tmp").exists())
         running = json.loads((out / "summary.json").read_text())
     finally:
         for pid in _descendants(proc.pid):      # the ranks, as the OOM killer or a lost node does
             os.kill(pid, signal.SIGKILL)
         proc.communicate(timeout=60)
-    assert (running["status"], running["frames"], running["ranks"]) == ("running", 8, 2)
-    assert len(running["newton_iterations"]) == len(running["contact"]["pairs_per_frame"]) == 8
+    assert (running["status"], running["frames"], running["ranks"]) == ("running", 4, 2)
+    assert len(running["newton_iterations"]) == len(running["contact"]["pairs_per_frame"]) == 4
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
     from lc_petsc.io.history import join_history
     h = join_history(out)
-    assert h["segments"][0]["frames_kept"] == [0, 4] and h["per_frame"]["ranks"] == [2] * 4 + [1] * 6
+    assert h["segments"][0]["frames_kept"] == [0, 2] and h["per_frame"]["ranks"] == [2] * 2 + [1] * 8
     assert h["per_frame"]["frame"] == list(range(1, FRAMES + 1))
+    # the counts a rank count does not change (the positions differ by round-off)
+    ref = _records(straight)
+    assert [h["per_frame"][k] for k in ("newton_iterations", "ksp_solves")] == \
+        [ref["newton_iterations"], ref["ksp_solves"]]
 
 
 def _descendants(pid):
@@ -264,3 +269,25 @@ def test_a_rank_abort_keeps_the_running_records(tmp_path, capsys):
     s = json.loads((tmp_path / "summary.json").read_text())
     assert (s["status"], s["frames"], s["newton_iterations"]) == ("error", 4, [0, 1, 2, 3])
     assert s["aborted"] and s["error"].startswith("rank 1: KeyError: 'x' (an internal error")
+
+
+def test_a_run_without_checkpoints_keeps_its_records_at_each_flush(tmp_path, monkeypatch, straight):
+    """checkpoint_every = 0: the summary is kept at each flush of frames.h5 (every
+    FRAMES_FLUSH_SECONDS; 0 here, so at every frame), each one the records so far."""
+    import lc_petsc.job as job
+    seen = []
+    record = job.Job._record_progress
+
+    def record_and_read(self):
+        record(self)
+        seen.append(json.loads((self.out / "summary.json").read_text()))
+    monkeypatch.setattr(job, "FRAMES_FLUSH_SECONDS", 0.0)
+    monkeypatch.setattr(job.Job, "_record_progress", record_and_read)
+    out = tmp_path / "out"
+    assert main([_config(tmp_path, ce=0), "--out", str(out), "--quiet", "--frames", "4"]) == 0
+    assert [(s["status"], s["frames"], s["output"]["frames_written"]) for s in seen] == \
+        [("running", k, k + 1) for k in range(1, 5)]
+    ref = _records(straight)
+    assert _records(seen[2]) == {k: v[:3] for k, v in ref.items()}
+    s = json.loads((out / "summary.json").read_text())
+    assert (s["status"], s["output"]["progress_summaries"]["written"]) == ("finished", 4)

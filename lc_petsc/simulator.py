@@ -152,6 +152,7 @@ class Simulator:
                     sim.close()
             atexit.register(close_if_alive)
         self.wall = 0.0
+        self.ksp_solves: list[int] = []     # per frame: its linear solves (its share of ksp_iterations)
 
     # ------------------------------------------------------------------ running
     @property
@@ -161,9 +162,10 @@ class Simulator:
 
     def step(self):
         """Advance one frame (one backward-Euler step), timed into ``wall``."""
-        t0 = time.perf_counter()
+        t0, solves = time.perf_counter(), len(self.solver.iterations)
         self.integrator.step()
         self.wall += time.perf_counter() - t0
+        self.ksp_solves.append(len(self.solver.iterations) - solves)
 
     def restore(self, state):
         """Continue from a saved state (a loaded checkpoint): ``state["x"]``,
@@ -203,16 +205,13 @@ class Simulator:
 
     def summary(self):
         """The run's figures for summary.json (DESIGN section 3), on every rank."""
-        tim = {k: parallel.global_max(self.comm, v) for k, v in self.timers.as_dict().items()}
-        cpu = {k: parallel.global_max(self.comm, v) for k, v in self.timers.cpu_dict().items()}
-        return {
-            "dofs": 3 * self.n_vertices,
-            "wisps": self.n_wisps,
-            "ranks": self.comm.size,
-            "frames": self.integrator.frame,
-            "wall_time_s": parallel.global_max(self.comm, self.wall),
-            "timings_s": tim,
-            "cpu_timings_s": cpu,
+        # every phase's wall and CPU seconds, max over ranks, in one reduction (one per phase
+        # made the summary kept while the run goes cost 14 collective waits)
+        wall, cpu_s = self.timers.as_dict(), self.timers.cpu_dict()
+        most = parallel.global_reduce(self.comm, [*wall.values(), *cpu_s.values()], "max")
+        tim = {k: float(v) for k, v in zip(wall, most[:len(wall)])}
+        cpu = {k: float(v) for k, v in zip(cpu_s, most[len(wall):])}
+        per_frame = {
             "newton_iterations": list(self.integrator.newton_iterations),
             "newton_converged": list(self.integrator.newton_converged),
             # per frame: a start frame run to time.start_increment_tol (newton_converged: whether it did)
@@ -229,6 +228,21 @@ class Simulator:
             "length_projection_move": list(self.integrator.length_projection_move),
             "newton_substeps": list(self.integrator.newton_substeps),
             "newton_substep_iterations": [list(v) for v in self.integrator.newton_substep_iterations],
+            "ksp_solves": list(self.ksp_solves)}
+        contact = self._contact_summary()
+        return {
+            "dofs": 3 * self.n_vertices,
+            "wisps": self.n_wisps,
+            "ranks": self.comm.size,
+            "frames": self.integrator.frame,
+            "wall_time_s": parallel.global_max(self.comm, self.wall),
+            "timings_s": tim,
+            "cpu_timings_s": cpu,
+            **per_frame,
+            # the lists above and contact's *_per_frame, one entry per frame of this run:
+            # what scripts/join_summaries.py joins over a restarted run's summaries
+            "per_frame_keys": list(per_frame) + [f"contact.{k}" for k in contact.get("contact", {})
+                                                 if k.endswith("_per_frame")],
             "ksp_iterations": list(self.solver.iterations),
             "ksp_reasons": list(self.solver.reasons),
             "converged": all(not r.startswith("DIVERGED") for r in self.solver.reasons),
@@ -238,7 +252,7 @@ class Simulator:
             "element_kernels": self.assembler.kernels,
             "jit_compile_s": parallel.global_max(self.comm, self.assembler.compile_seconds),
             "config": self.config.to_dict(),
-            **self._contact_summary(),
+            **contact,
             **self._trust_summary(),
         }
 

@@ -5,15 +5,17 @@
 For each output folder of ``drivers/simulate.py``: ``frames.h5`` read with plain h5py
 against DESIGN section 3 (datasets, dtypes, shapes) and against ``summary.json``
 (``frames`` / ``output.every`` rows, ``/time`` = row x dt x every, ``dofs``, ``wisps``,
-``output.frames_written``, one per-frame entry per frame of the run); ``frames.usdc`` read
-with pxr (centimetres, Y up, ``timeCodesPerSecond`` 1 / (dt x every), one curve per wisp,
-a time sample per row, points equal to ``frames.h5``'s to float32 after the prim's
-transform, widths twice the radii); ``frames.xdmf`` read with VTK's XDMF reader (a time
-step per row at ``/time``, the last one's points equal to the last row); a preview per
-``output.preview_frames`` entry (the frame written at or before it).  ``--crossings``
-also counts the crossings between consecutive rows (``lc_petsc.crossings``) and compares
-them with the end-of-run check in ``summary.json``.  One line per folder: ``ok`` or its
-problems; exit status 1 if any folder has one, 2 for a folder that cannot be read.
+``output.frames_written``, one per-frame entry per frame of the run; a summary.json that
+says ``running``, the one a run keeps while it goes, is reported as not finished and not
+checked further); ``frames.usdc`` read with pxr (centimetres, Y up,
+``timeCodesPerSecond`` 1 / (dt x every), one curve per wisp, a time sample per row,
+points equal to ``frames.h5``'s to float32 after the prim's transform, widths twice the
+radii); ``frames.xdmf`` read with VTK's XDMF reader (a time step per row at ``/time``,
+the last one's points equal to the last row); a preview per ``output.preview_frames``
+entry (the frame written at or before it). ``--crossings`` also counts the crossings
+between consecutive rows (``lc_petsc.crossings``) and compares them with the end-of-run
+check in ``summary.json``. One line per folder: ``ok`` or its problems; exit status 1 if
+any folder has one, 2 for a folder that cannot be read.
 
 Written for the output audit of 2026-12-07 (docs/design_notes.md, "What a user sees"):
 every shipped config on 1 and 2 ranks, restarts across 1 -> 2 -> 3 ranks and runs killed
@@ -134,6 +136,11 @@ def check(out, crossings=False):
     """The problems of the output folder ``out`` (a list of lines; empty: consistent)."""
     out = Path(out)
     s = json.loads((out / "summary.json").read_text())
+    if s.get("status") == "running":
+        # the summary a run keeps while it goes: the run is going (it holds the folder's
+        # lock) or was killed; its end-of-run outputs are not there to check
+        return [f"not finished: summary.json says running, {s.get('frames')} frames recorded (the run is "
+                "still going, or it was killed: --restart latest continues it)"]
     with h5py.File(out / "frames.h5", "r") as f:
         problems = frames_problems(f, s)
         if problems and "/positions" in problems[0]:

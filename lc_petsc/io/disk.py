@@ -75,17 +75,17 @@ def replace_atomically(tmp, path, fsync=False):
 
 
 @contextmanager
-def written_aside(path, tmp=None):
+def written_aside(path, tmp=None, fsync=False):
     """Write ``path`` through a temporary file next to it (default ``<path>.tmp``): yields
     the temporary path; when the block completes the file replaces ``path``
-    (:func:`replace_atomically`), when it raises the file is removed."""
+    (:func:`replace_atomically`, with ``fsync``), when it raises the file is removed."""
     tmp = Path(f"{path}.tmp") if tmp is None else Path(tmp)
     try:
         yield tmp
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    replace_atomically(tmp, path)
+    replace_atomically(tmp, path, fsync=fsync)
 
 
 def _fsync_path(path, directory=False):

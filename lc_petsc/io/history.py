@@ -1,0 +1,177 @@
+"""One per-frame history of a run over its restarts (``scripts/join_summaries.py``).
+
+A restarted run's per-frame records are split: each restart set the earlier run's
+``summary.json`` aside in ``summaries/`` (:func:`lc_petsc.io.summary.set_summary_aside`)
+and the folder's ``summary.json`` lists them in ``restart.earlier_summaries`` with the
+frames no later run re-ran (``frames_kept``).  :func:`join_history` takes, for every
+frame 1 .. the last, the record of the last segment that ran it (the one whose
+``frames_kept`` holds it; ``summary.json``'s own frames are all kept), and checks that
+the segments tile the frames once each; a missing, damaged or inconsistent file is a
+``ValueError`` naming it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+from lc_petsc.io.summary import RUNNING, frames_covered, run_status
+
+#: the history's columns that say where a frame's record is from (before the summaries' keys)
+SOURCE_COLUMNS = ("frame", "segment", "ranks", "config_sha256")
+
+
+def _read(path, name):
+    try:
+        s = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{name}: missing") from None
+    except OSError as e:
+        raise ValueError(f"{name}: unreadable ({e.strerror or e})") from None
+    except (UnicodeDecodeError, ValueError) as e:
+        raise ValueError(f"{name}: damaged (not JSON: {e})") from None
+    if not isinstance(s, dict):
+        raise ValueError(f"{name}: damaged (not a JSON object but {type(s).__name__})")
+    return s
+
+
+def config_digest(config):
+    """SHA-256 of a resolved config (summary.json's ``config``) without the keys a restart
+    may change (``RESTART_FREE_KEYS``: frame count, outputs): equal for segments that ran
+    the same trajectory-defining config, different after a ``--force`` restart with another."""
+    from lc_petsc.job import RESTART_FREE_KEYS
+    kept = {t: {k: v for k, v in (keys or {}).items() if f"{t}.{k}" not in RESTART_FREE_KEYS}
+            for t, keys in (config or {}).items()}
+    return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
+
+
+def _value(summary, key):
+    where = summary
+    for part in key.split("."):
+        where = where.get(part) if isinstance(where, dict) else None
+    return where
+
+
+def _per_frame_keys(summary, n):
+    """The keys of ``summary`` with one entry per frame of its run (``n``): its
+    ``per_frame_keys``; a summary written before that key (2026-12-07): its Newton lists
+    and contact's ``*_per_frame`` lists of that length."""
+    if isinstance(summary.get("per_frame_keys"), list):
+        return list(summary["per_frame_keys"])
+    keys = [k for k, v in summary.items() if isinstance(v, list) and len(v) == n
+            and (k.startswith("newton_") or k == "length_projection_move")]
+    return keys + [f"contact.{k}" for k, v in (summary.get("contact") or {}).items()
+                   if k.endswith("_per_frame") and isinstance(v, list) and len(v) == n]
+
+
+def _segments(out):
+    """[(name, summary, [first, last] frames, [first, last] kept or None)], oldest first."""
+    now = _read(Path(out) / "summary.json", "summary.json")
+    frames = frames_covered(now)
+    if frames is None:
+        raise ValueError("summary.json: no frame count (a run aborted in its set-up?): "
+                         f"{'error: ' + str(now['error']) if now.get('error') else 'nothing to join'}")
+    listed = (now.get("restart") or {}).get("earlier_summaries") or []
+    segments = []
+    for entry in listed:
+        name = entry.get("file")
+        kept = entry.get("frames_kept")
+        if entry.get("frames") is None:
+            if kept is not None:
+                raise ValueError(f"{name}: damaged, yet summary.json says its frames {kept} are kept")
+            continue            # nothing of it is kept: its frames were run again later
+        s = _read(Path(out) / name, name)
+        if list(frames_covered(s) or []) != list(entry["frames"]):
+            raise ValueError(f"{name}: covers frames {frames_covered(s)}, summary.json's "
+                             f"restart.earlier_summaries says {entry['frames']}")
+        if kept is not None:
+            segments.append((name, s, list(entry["frames"]), list(kept)))
+    segments.append(("summary.json", now, list(frames), list(frames)))
+    return segments
+
+
+def join_history(out):
+    """The per-frame history of the run in the output folder ``out`` (a dict, what
+    ``history.json`` holds): ``segments`` (each summary with kept frames, oldest first:
+    ``file``, ``status``, ``ranks``, ``config_sha256``, ``frames`` [first, last] covered,
+    ``frames_kept``), ``keys`` (the per-frame keys joined) and ``per_frame``: for frames
+    1 .. ``frames`` one entry each of ``frame``, ``segment`` (index into ``segments``),
+    ``ranks``, ``config_sha256`` and every key (null where a segment lacks it;
+    ``ksp_iterations``: the frame's solves, split by ``ksp_solves``).  ``ValueError``
+    naming the file when one is missing or damaged, or the segments do not tile the
+    frames once each."""
+    segments = _segments(out)
+    keys: list = []
+    per_frame: dict = {c: [] for c in SOURCE_COLUMNS}
+    columns = []
+    described = []
+    expected = 1
+    for i, (name, s, frames, kept) in enumerate(segments):
+        first, n = frames[0], frames[1] - frames[0]
+        if kept[0] + 1 != expected and kept[1] > kept[0]:
+            what = (f"frames {expected}-{kept[0]} have no record" if kept[0] + 1 > expected
+                    else f"frames {kept[0] + 1}-{expected - 1} are recorded twice")
+            raise ValueError(f"{name}: its kept frames start at {kept[0] + 1}; {what} (a summary missing "
+                             f"or damaged before it in restart.earlier_summaries)")
+        own = _per_frame_keys(s, n)
+        lists = {}
+        for k in own:
+            v = _value(s, k)
+            if not isinstance(v, list) or len(v) != n:
+                raise ValueError(f"{name}: {k} has {len(v) if isinstance(v, list) else 'no'} entries for "
+                                 f"its {n} frames ({first + 1}-{frames[1]})")
+            lists[k] = v
+        if "ksp_solves" in lists:
+            its, counts = s.get("ksp_iterations") or [], lists["ksp_solves"]
+            if sum(counts) != len(its):
+                raise ValueError(f"{name}: ksp_solves sum to {sum(counts)}, ksp_iterations has {len(its)} solves")
+            at = [sum(counts[:j]) for j in range(n + 1)]
+            lists["ksp_iterations"] = [its[at[j]:at[j + 1]] for j in range(n)]
+        keys += [k for k in lists if k not in keys]
+        columns.append(lists)
+        digest = config_digest(s.get("config"))
+        described.append({"file": name, "status": run_status(s), "ranks": s.get("ranks"),
+                          "config_sha256": digest, "frames": frames, "frames_kept": kept})
+        for f in range(kept[0] + 1, kept[1] + 1):
+            per_frame["frame"].append(f)
+            per_frame["segment"].append(i)
+            per_frame["ranks"].append(s.get("ranks"))
+            per_frame["config_sha256"].append(digest)
+        expected = max(expected, kept[1] + 1)
+    for k in keys:
+        per_frame[k] = [v for (_, _, frames, kept), lists in zip(segments, columns)
+                        for v in (lists[k][kept[0] - frames[0]:kept[1] - frames[0]] if k in lists
+                                  else [None] * (kept[1] - kept[0]))]
+    last = segments[-1][2][1]
+    return {"out": str(out), "frames": last, "running": segments[-1][1].get("status") == RUNNING,
+            "segments": described, "keys": keys, "per_frame": per_frame}
+
+
+def history_table(history, columns=("newton_iterations", "newton_converged", "newton_increment",
+                                    "ksp_iterations", "contact.pairs_per_frame")):
+    """Lines for a person: the segments, then a row per frame of ``columns`` (those present)."""
+    lines = [f"{history['out']}: frames 1-{history['frames']} from {len(history['segments'])} summar"
+             f"{'y' if len(history['segments']) == 1 else 'ies'}"
+             + (" (the last still running, or killed: its summary.json says running)" if history["running"] else "")]
+    for i, seg in enumerate(history["segments"]):
+        a, b = seg["frames_kept"]
+        # an earlier segment that says running was killed (a restart followed it)
+        status = "killed (running)" if seg["status"] == RUNNING and i < len(history["segments"]) - 1 \
+            else seg["status"]
+        lines.append(f"  segment {i}: {seg['file']}, {status}, {seg['ranks']} rank(s), config "
+                     f"{seg['config_sha256'][:12]}, frames {a + 1}-{b} kept of {seg['frames'][0] + 1}-"
+                     f"{seg['frames'][1]}")
+    pf = history["per_frame"]
+    shown = ["frame", "segment", "ranks", *(c for c in columns if c in pf)]
+    # a list (the frame's KSP solves) is shown as its sum
+    names = {c: c.split(".")[-1] + (" (sum)" if c == "ksp_iterations" else "") for c in shown}
+    lines.append("  " + "  ".join(names[c].rjust(8) for c in shown))
+
+    def cell(v):
+        if isinstance(v, list):
+            v = sum(v)
+        return f"{v:.3g}" if isinstance(v, float) else str(v)
+    for j in range(len(pf["frame"])):
+        lines.append("  " + "  ".join(cell(pf[c][j]).rjust(max(8, len(names[c]))) for c in shown))
+    return lines

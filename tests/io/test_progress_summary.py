@@ -1,0 +1,293 @@
+"""The summary a run keeps on disk while it goes (status ``running``) and the joined
+per-frame history of a restarted run (``scripts/join_summaries.py``).
+
+A run killed by SIGKILL (the OOM killer, a batch system's hard limit) used to leave no
+summary.json: its per-frame records were lost and a restart had nothing to set aside.
+Now rank 0 replaces summary.json (atomically, synced) before each checkpoint and after
+each flush of frames.h5; the killed run's records are set aside by the restart like any
+other, and join_summaries.py joins the segments into one record per frame."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from lc_petsc.batch import main
+from lc_petsc.io.summary import write_summary
+
+from sim_helpers import MPI_ENV, hairball_toml  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+DRIVER = str(ROOT / "drivers" / "simulate.py")
+FRAMES = 10
+#: strand contact on, so the records hold contact pairs per frame
+SCENE = hairball_toml(n_wisps=5, seed=3, frames=FRAMES,
+                      output="previews = false\nxdmf = false\nusd = false\ncheckpoint_every = {ce}\n"
+                             "checkpoints_kept = 2").replace(
+    '"head_collision"]', '"head_collision", "strand_collision"]')
+#: the keys of a frame's record that do not depend on the clock
+DETERMINISTIC = ("newton_iterations", "ksp_solves", "ksp_iterations", "newton_substeps",
+                 "contact.pairs_per_frame")
+
+
+def _config(d, ce=2):
+    p = Path(d) / "s.toml"
+    p.write_text(SCENE.format(ce=ce))
+    return str(p)
+
+
+def _script(name):
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(f"script_{name}", ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _records(summary, start=0):
+    """{key: per-frame list} of a single summary (frames start + 1 ..), ksp split per frame."""
+    out = {k: summary[k] for k in ("newton_iterations", "ksp_solves", "newton_substeps")}
+    out["contact.pairs_per_frame"] = summary["contact"]["pairs_per_frame"]
+    at = [sum(summary["ksp_solves"][:j]) for j in range(len(summary["ksp_solves"]) + 1)]
+    out["ksp_iterations"] = [summary["ksp_iterations"][a:b] for a, b in zip(at, at[1:])]
+    return out
+
+
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory):
+    """The uninterrupted run's summary (serial, no checkpoints)."""
+    d = tmp_path_factory.mktemp("straight")
+    assert main([_config(d, ce=0), "--out", str(d / "out"), "--quiet"]) == 0
+    return json.loads((d / "out" / "summary.json").read_text())
+
+
+def _wait(proc, what, timeout=120):
+    t0 = time.time()
+    while not what():
+        assert proc.poll() is None, proc.communicate()[1][-3000:]
+        assert time.time() - t0 < timeout, "timed out"
+        time.sleep(0.02)
+
+
+def test_a_killed_run_keeps_its_records_and_a_restart_sets_them_aside(tmp_path, straight, capsys):
+    """SIGKILL while checkpoint 6 is written (paused there by the test hook; checkpoint 4
+    is the newest whole one): summary.json is on disk, status running, with the records
+    of frames 1-6; a second run into the busy folder is refused by the lock and leaves it
+    alone; check_outputs.py calls it not finished; a new run is refused (a killed run),
+    ``--restart latest`` sets the killed run's summary aside with frames_kept [0, 4];
+    the joined history has every frame once, equal to the uninterrupted run's records."""
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    env = dict(MPI_ENV, LC_PETSC_TEST_CHECKPOINT_PAUSE="6:120")
+    proc = subprocess.Popen([sys.executable, DRIVER, cfg, "--out", str(out), "--quiet"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait(proc, lambda: (out / "checkpoints" / ".checkpoint_000006.h5.tmp").exists())
+        running = (out / "summary.json").read_bytes()
+        capsys.readouterr()
+        assert main([cfg, "--out", str(out), "--quiet"]) == 2     # the lock: the run is going
+        assert f"pid {proc.pid}" in capsys.readouterr().err
+        assert (out / "summary.json").read_bytes() == running
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate()
+    assert proc.returncode == -signal.SIGKILL
+    assert sorted(p.name for p in (out / "checkpoints").glob("checkpoint_*.h5")) == \
+        ["checkpoint_000002.h5", "checkpoint_000004.h5"]
+    killed = json.loads(running)
+    assert straight["status"] == "finished"
+    straight = _records(straight)
+    assert (killed["status"], killed["frames"], killed["preempted"], killed["error"]) == ("running", 6, None, None)
+    assert _records(killed) == {k: v[:6] for k, v in straight.items()}
+    assert killed["output"]["frames_written"] == 7 and killed["restart"] is None
+    # killed in the middle of writing the next one: its temporary file never replaces it
+    (out / "summary.json.tmp").write_text('{"status": "running", "frames": 8, "newton_iter')
+    assert (out / "summary.json").read_bytes() == running
+    capsys.readouterr()
+    assert _script("check_outputs").main([str(out)]) == 1
+    assert "not finished: summary.json says running, 6 frames recorded" in capsys.readouterr().out
+    assert main([cfg, "--out", str(out), "--quiet"]) == 2
+    assert "killed after frame 6 (its summary.json, kept while it ran, says running)" in capsys.readouterr().err
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    aside = out / "summaries" / "summary_frames_000000-000006.json"
+    assert aside.read_bytes() == running and not (out / "summary.json.tmp").exists()
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "finished" and s["restart"]["frame"] == 4
+    assert s["restart"]["earlier_summaries"] == [
+        {"file": "summaries/summary_frames_000000-000006.json", "frames": [0, 6], "frames_kept": [0, 4]}]
+    # before checkpoints 6, 8 and 10 (and after a frames.h5 flush, every 30 s)
+    assert s["output"]["progress_summaries"]["written"] >= 3
+    capsys.readouterr()
+    assert _script("join_summaries").main([str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "segment 0: summaries/summary_frames_000000-000006.json, killed (running), 1 rank(s)" in said
+    h = json.loads((out / "history.json").read_text())
+    pf = h["per_frame"]
+    assert pf["frame"] == list(range(1, FRAMES + 1)) and pf["segment"] == [0] * 4 + [1] * 6
+    assert {k: pf[k] for k in DETERMINISTIC} == straight
+    assert pf["config_sha256"] == [h["segments"][0]["config_sha256"]] * FRAMES
+    # the next run into the folder removes the history, which would be stale
+    assert main([cfg, "--out", str(out), "--quiet", "--force"]) == 0
+    assert not (out / "history.json").exists()
+
+
+def _summary(frames, first=0, status="finished", earlier=None, ranks=1):
+    n = frames - first
+    return {"frames": frames, "ranks": ranks, "status": status, "config": {"time": {"dt": 0.1, "frames": frames}},
+            "restart": None if not first else {"frame": first, "earlier_summaries": earlier or []},
+            "newton_iterations": [first * 10 + j for j in range(n)], "ksp_solves": [1] * n,
+            "ksp_iterations": list(range(n)), "per_frame_keys": ["newton_iterations", "ksp_solves"]}
+
+
+def _folder(tmp_path):
+    """A run of 6 frames killed after frame 4 (checkpoint 2), restarted from 2 on 2 ranks."""
+    out = tmp_path / "o"
+    (out / "summaries").mkdir(parents=True)
+    write_summary(out / "summaries" / "summary_frames_000000-000004.json", _summary(4, status="running"))
+    entry = {"file": "summaries/summary_frames_000000-000004.json", "frames": [0, 4], "frames_kept": [0, 2]}
+    write_summary(out / "summary.json", _summary(6, first=2, earlier=[entry], ranks=2))
+    return out, entry
+
+
+def test_join_takes_each_frame_from_the_last_segment_that_ran_it(tmp_path):
+    from lc_petsc.io.history import join_history
+    out, _ = _folder(tmp_path)
+    h = join_history(out)
+    pf = h["per_frame"]
+    assert pf["frame"] == [1, 2, 3, 4, 5, 6] and pf["segment"] == [0, 0, 1, 1, 1, 1]
+    assert pf["ranks"] == [1, 1, 2, 2, 2, 2]
+    assert pf["newton_iterations"] == [0, 1, 20, 21, 22, 23]
+    assert pf["ksp_iterations"] == [[0], [1], [0], [1], [2], [3]]
+    # time.frames is a key a restart may change: the same digest
+    assert h["segments"][0]["config_sha256"] == h["segments"][1]["config_sha256"]
+    assert [s["status"] for s in h["segments"]] == ["running", "finished"]
+
+
+def test_join_refuses_a_damaged_or_inconsistent_set(tmp_path, capsys):
+    from lc_petsc.io.history import join_history
+    out, entry = _folder(tmp_path)
+    aside = out / "summaries" / "summary_frames_000000-000004.json"
+    good = aside.read_text()
+    aside.write_text(good[:40])
+    with pytest.raises(ValueError, match="summaries/summary_frames_000000-000004.json: damaged"):
+        join_history(out)
+    aside.unlink()
+    capsys.readouterr()
+    assert _script("join_summaries").main([str(out)]) == 2
+    assert "summaries/summary_frames_000000-000004.json: missing; nothing written" in capsys.readouterr().err
+    assert not (out / "history.json").exists()
+    aside.write_text(good)
+    # listed as kept up to frame 1 only: frame 2 has no record
+    write_summary(out / "summary.json", _summary(6, first=2, earlier=[dict(entry, frames_kept=[0, 1])]))
+    with pytest.raises(ValueError, match="summary.json: its kept frames start at 3; frames 2-2 have no record"):
+        join_history(out)
+    # kept up to frame 3 while the restart re-ran it: recorded twice
+    write_summary(out / "summary.json", _summary(6, first=2, earlier=[dict(entry, frames_kept=[0, 3])]))
+    with pytest.raises(ValueError, match="frames 3-3 are recorded twice"):
+        join_history(out)
+    s = _summary(6, first=2, earlier=[entry])
+    s["newton_iterations"].pop()
+    write_summary(out / "summary.json", s)
+    with pytest.raises(ValueError, match="summary.json: newton_iterations has 3 entries for its 4 frames"):
+        join_history(out)
+
+
+def test_the_running_summary_on_every_rank_count_restarts(tmp_path, straight):
+    """On 2 ranks (mpiexec): the summary kept while the run goes is written collectively
+    (rank 0 writes, every rank reduces); its ranks SIGKILLed while checkpoint 4 is
+    written, a restart on 1 rank sets it aside and the history names both rank counts."""
+    cfg = _config(tmp_path, ce=2)
+    out = tmp_path / "out"
+    env = dict(MPI_ENV, LC_PETSC_TEST_CHECKPOINT_PAUSE="4:120")
+    proc = subprocess.Popen(["mpiexec", "--oversubscribe", "-n", "2", sys.executable, DRIVER, cfg, "--out",
+                             str(out), "--quiet"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=tmp_path, stdin=subprocess.DEVNULL)
+    try:
+        _wait(proc, lambda: (out / "checkpoints" / ".checkpoint_000004.h5.tmp").exists())
+        running = json.loads((out / "summary.json").read_text())
+    finally:
+        for pid in _descendants(proc.pid):      # the ranks, as the OOM killer or a lost node does
+            os.kill(pid, signal.SIGKILL)
+        proc.communicate(timeout=60)
+    assert (running["status"], running["frames"], running["ranks"]) == ("running", 4, 2)
+    assert len(running["newton_iterations"]) == len(running["contact"]["pairs_per_frame"]) == 4
+    assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
+    from lc_petsc.io.history import join_history
+    h = join_history(out)
+    assert h["segments"][0]["frames_kept"] == [0, 2] and h["per_frame"]["ranks"] == [2] * 2 + [1] * 8
+    assert h["per_frame"]["frame"] == list(range(1, FRAMES + 1))
+    # the counts a rank count does not change (the positions differ by round-off)
+    ref = _records(straight)
+    assert [h["per_frame"][k] for k in ("newton_iterations", "ksp_solves")] == \
+        [ref["newton_iterations"], ref["ksp_solves"]]
+
+
+def _descendants(pid):
+    """The processes started by ``pid`` (mpiexec's ranks), from /proc."""
+    children = {}
+    for p in Path("/proc").iterdir():
+        if not p.name.isdigit():
+            continue
+        try:
+            ppid = int((p / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        children.setdefault(ppid, []).append(int(p.name))
+    found, todo = [], [pid]
+    while todo:
+        kids = children.get(todo.pop(), [])
+        found += kids
+        todo += kids
+    return found
+
+
+def test_a_rank_abort_keeps_the_running_records(tmp_path, capsys):
+    """An internal error on one rank of several aborts the job after writing summary.json
+    with the error: it used to replace the summary kept while the run went (its records)
+    by the error alone."""
+    from lc_petsc.config import SimConfig
+    from lc_petsc.job import Job
+
+    class Aborted(Exception):
+        pass
+
+    class TwoRanks:
+        size, rank = 2, 1
+
+        def Abort(self, code):
+            raise Aborted(code)
+    job = Job.__new__(Job)
+    job.comm, job.out, job.cfg = TwoRanks(), tmp_path, SimConfig()
+    write_summary(tmp_path / "summary.json", _summary(4, status="running"))
+    with pytest.raises(Aborted):
+        job._uncollective_failure(KeyError("x"))
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert (s["status"], s["frames"], s["newton_iterations"]) == ("error", 4, [0, 1, 2, 3])
+    assert s["aborted"] and s["error"].startswith("rank 1: KeyError: 'x' (an internal error")
+
+
+def test_a_run_without_checkpoints_keeps_its_records_at_each_flush(tmp_path, monkeypatch, straight):
+    """checkpoint_every = 0: the summary is kept at each flush of frames.h5 (every
+    FRAMES_FLUSH_SECONDS; 0 here, so at every frame), each one the records so far."""
+    import lc_petsc.job as job
+    seen = []
+    record = job.Job._record_progress
+
+    def record_and_read(self):
+        record(self)
+        seen.append(json.loads((self.out / "summary.json").read_text()))
+    monkeypatch.setattr(job, "FRAMES_FLUSH_SECONDS", 0.0)
+    monkeypatch.setattr(job.Job, "_record_progress", record_and_read)
+    out = tmp_path / "out"
+    assert main([_config(tmp_path, ce=0), "--out", str(out), "--quiet", "--frames", "4"]) == 0
+    assert [(s["status"], s["frames"], s["output"]["frames_written"]) for s in seen] == \
+        [("running", k, k + 1) for k in range(1, 5)]
+    ref = _records(straight)
+    assert _records(seen[2]) == {k: v[:3] for k, v in ref.items()}
+    s = json.loads((out / "summary.json").read_text())
+    assert (s["status"], s["output"]["progress_summaries"]["written"]) == ("finished", 4)

@@ -80,7 +80,7 @@ from petsc4py import PETSc
 from lc_petsc.elements import compiled_cluster
 from lc_petsc.elements.compiled_band import BandCholesky
 from lc_petsc.parallel import global_wisp_offsets
-from lc_petsc.petsc_capi import block_pattern, value_array
+from lc_petsc.petsc_capi import block_pattern, mpibaij_blocks, value_array
 
 #: ``-lc_cluster_max_wisps`` default
 MAX_WISPS = 64
@@ -105,11 +105,11 @@ BAND_FACTORS = (BAND_FACTOR, "ilu")
 
 
 def block_rows(M, rows=None):
-    """Block rows of the sequential BAIJ (bs 3) matrix ``M``: (row of each block (k,),
-    as a position in ``rows`` (default: every row), column (k,), block (k, 3, 3)
-    row-major).  Only the selected blocks are copied out of PETSc's (column-major)
-    value array."""
-    ia, ja = M.getRowIJ(compressed=True)
+    """Block rows of the sequential BAIJ (bs 3) matrix ``M`` (a petsc4py matrix or a
+    block of an MPI one, :func:`mpibaij_blocks`): (row of each block (k,), as a position
+    in ``rows`` (default: every row), column (k,), block (k, 3, 3) row-major).  Only the
+    selected blocks are copied out of PETSc's (column-major) value array."""
+    ia, ja = block_pattern(M)
     ia, ja = ia.astype(np.int64), ja.astype(np.int64)
     if rows is None:
         rows = np.arange(len(ia) - 1)
@@ -238,19 +238,26 @@ def cluster_owners(held, base=None):
     return owner
 
 
-def local_rows(M):
-    """This rank's rows of ``M`` with global column numbers: a sequential matrix (``M``
-    itself when sequential; else a copy the caller destroys)."""
+def local_blocks(M):
+    """This rank's blocks of the BAIJ (bs 3) matrix ``M`` with global block columns, as
+    :func:`block_rows` gives them (local block row, column, block (k, 3, 3) row-major), in
+    the order of a copy of the rows (``MatCreateSubMatrices``: rows in order, each row's
+    columns ascending).  An MPI matrix's are read in place from its diagonal and
+    off-diagonal blocks: no copy of the rows and no communication (on the 2K hairball's
+    contact frames, 2 ranks: 3.2 ms CPU per set-up against 20 ms for the copy and its
+    read; docs/performance.md "C's pattern between Newton iterations")."""
     if M.getComm().getSize() == 1:
-        return M
-    r0, r1 = M.getOwnershipRange()
-    rows = PETSc.IS().createStride(r1 - r0, r0, 1, comm=PETSc.COMM_SELF)
-    cols = PETSc.IS().createStride(M.getSize()[1], 0, 1, comm=PETSc.COMM_SELF)
-    try:
-        return M.createSubMatrices(rows, cols)[0]
-    finally:
-        rows.destroy()
-        cols.destroy()
+        return block_rows(M)
+    diag, off, columns = mpibaij_blocks(M)
+    rd, cd, vd = block_rows(diag)
+    ro, co, vo = block_rows(off)
+    first = M.getOwnershipRangeColumn()[0] // 3
+    cd = cd + first
+    co = np.asarray(columns, np.int64)[co]       # the off-diagonal block's columns, ascending
+    # a row's off-diagonal columns lie before or after its diagonal block's
+    key = np.concatenate([3 * rd + 1, 3 * ro + np.where(co < first, 0, 2)])
+    order = np.argsort(key, kind="stable")
+    return tuple(np.concatenate(part)[order] for part in ((rd, ro), (cd, co), (vd, vo)))
 
 
 class GlobalLayout:
@@ -372,12 +379,7 @@ class ClusterPC:
         self-contact blocks (n_wisps,) (:func:`self_blocks`; a wisp's blocks are all on
         its rank: or-ed and summed over the ranks)."""
         lay = self.layout
-        rows = local_rows(C)
-        try:
-            rc, cc, vc = block_rows(rows)
-        finally:
-            if rows is not C:
-                rows.destroy()
+        rc, cc, vc = local_blocks(C)
         row_wisp, col_wisp = lay.first_wisp + self.vertex_wisp[rc], lay.vertex_wisp[cc]
         found = wisp_couplings(row_wisp, col_wisp, vc, lay.n_wisps)
         alone = self_coupled(row_wisp, col_wisp, vc, lay.n_wisps)

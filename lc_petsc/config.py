@@ -566,9 +566,10 @@ class SolverConfig:
     "shifted"``, without strand contact): a trust region per wisp on those wisp-by-wisp
     exact steps: each wisp's mass shift is carried from one exact step to the next
     (raised where its step was cut, dropped where its quadratic model held), exact
-    steps start at a relative increment of 1e-2 and, once one is kept, every later step
+    steps start at a relative increment of 1e-2 (not between two filtered steps that
+    undo each other: ``wisp_trust.exact_switch``) and, once one is kept, every later step
     of the solve is exact (lc_petsc/wisp_trust.py; docs/newton.md "A trust region per
-    wisp").
+    wisp", "The whole runs").
     """
 
     options: str = ""

@@ -601,7 +601,7 @@ class Integrator:
         Returns (grad G, dx, alpha, whether exact, the exact step Armijo rejected or
         None)."""
         cfg, x = self.cfg, s.x
-        exact = self._exact_hessian(s.increment, (bool(s.quadratic) and cfg.solver.exact_stay) or self._kept_exact)
+        exact = self._exact_hessian(s, (bool(s.quadratic) and cfg.solver.exact_stay) or self._kept_exact)
         self._shift, self._fallback, self._searched, self._probe = 0.0, "", None, None
         rejected = None                     # the exact step Armijo rejected
         if s.pending is not None:           # taken now: its assembly and solve are done
@@ -1038,15 +1038,22 @@ class Integrator:
         self._tried_shift = tried
         return g
 
-    def _exact_hessian(self, increment, stay=False):
+    def _exact_hessian(self, s, stay=False):
         """Whether this iteration assembles the exact Hessian: ``solver.filter =
-        "exact_or_analytic"`` once the last relative increment is below
-        :data:`EXACT_BELOW` (near the solution, where it is mostly positive definite;
-        with ``solver.wisp_trust`` :data:`~lc_petsc.wisp_trust.WISP_TRUST_BELOW`), or
-        whatever the increment when ``stay`` (``solver.exact_stay`` after a full,
-        unshifted exact step; ``solver.wisp_trust`` after any kept exact step)."""
-        below = wisp_trust.WISP_TRUST_BELOW if self.wisp_trust else EXACT_BELOW
-        return self.cfg.solver.filter == "exact_or_analytic" and (stay or increment < below)
+        "exact_or_analytic"`` once the last relative increment (of the solve ``s``) is
+        below :data:`EXACT_BELOW` (near the solution, where it is mostly positive
+        definite; with ``solver.wisp_trust`` :data:`~lc_petsc.wisp_trust.WISP_TRUST_BELOW`
+        and not between two steps that undo each other,
+        :func:`~lc_petsc.wisp_trust.exact_switch`), or whatever the increment when
+        ``stay`` (``solver.exact_stay`` after a full, unshifted exact step;
+        ``solver.wisp_trust`` after any kept exact step)."""
+        if self.cfg.solver.filter != "exact_or_analytic":
+            return False
+        if stay:
+            return True
+        if not self.wisp_trust:
+            return s.increment < EXACT_BELOW
+        return s.increment < wisp_trust.WISP_TRUST_BELOW and wisp_trust.exact_switch([r.measure for r in s.steps])
 
     def _line_search(self, x, g, dx, halvings, give_up=True, exact=False, known=None):
         """Armijo backtracking on G along update(x, alpha dx, exact): alpha halves from 1

@@ -26,6 +26,15 @@ SHIFT_FLOOR = 0.2
 #: ``solver.wisp_trust``: exact steps start once the relative increment is below this
 #: (the filter's EXACT_BELOW is 3e-3; measured side by side, docs/newton.md)
 WISP_TRUST_BELOW = 1e-2
+#: ... but right after a solve's first (filtered) step only below this (the filter's
+#: EXACT_BELOW): a frame's first two steps from the inertial first iterate undo each
+#: other, and exact steps from the iterate between them met blocks that needed shifts of
+#: 30-480 M/dt^2 and cuts to alpha 1/32 (the 300-wisp demo's slow frames, docs/newton.md
+#: "The whole runs")
+FIRST_STEP_BELOW = 3e-3
+#: ... and after two steps only if the second was at most this times the first (it did
+#: not undo it); from the third step on the increment alone decides
+UNDONE_RATIO = 0.5
 
 
 def model_ratio(decrease, slope, curvature, alpha, share, floor):
@@ -59,3 +68,15 @@ def next_shifts(tau, alpha, slope, mass_norm, rho):
     shift = np.where(np.abs(rho - 1.0) < MODEL_EXACT, 0.0, SHIFT_DECAY * tau)
     shift = np.where(cut, tau + q * (1.0 / np.where(cut, alpha, 1.0) - 1.0), shift)
     return np.where(shift < SHIFT_FLOOR, 0.0, shift)
+
+
+def exact_switch(measures):
+    """Whether exact steps may start after this solve's steps of relative increments
+    ``measures`` (in order; the last below :data:`WISP_TRUST_BELOW`): after one step
+    only below :data:`FIRST_STEP_BELOW`, after two only if the second is below
+    :data:`UNDONE_RATIO` times the first, after more always."""
+    if len(measures) == 1:
+        return measures[0] < FIRST_STEP_BELOW
+    if len(measures) == 2:
+        return measures[1] < UNDONE_RATIO * measures[0]
+    return len(measures) > 2

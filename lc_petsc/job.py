@@ -912,6 +912,7 @@ class Job:
             every, ck_every = cfg.output.every, cfg.output.checkpoint_every
             for _ in range(cfg.time.frames - start):
                 if self.preemption.agreed():      # a signal since the set-up or in the frame before
+                    self._record_progress()     # first, as below: a SIGKILL in the grace period
                     self._checkpoint()
                     break
                 sim.step()
@@ -945,10 +946,10 @@ class Job:
                 bar.close()
 
     def _record_progress(self):
-        """Collective, in the frame loop (before each checkpoint, after each flush of
-        frames.h5): rank 0 replaces summary.json by the run's summary so far, ``status``
-        ``running`` (atomically, synced), so a run killed at any moment (SIGKILL, the
-        OOM killer, a lost node) keeps the per-frame records of its frames up to its last
+        """Collective, in the frame loop (before each checkpoint, a signal's too, and after
+        each flush of frames.h5): rank 0 replaces summary.json by the run's summary so
+        far, ``status`` ``running`` (atomically, synced), so a run killed at any moment
+        (SIGKILL, the OOM killer, a lost node) keeps the per-frame records of its frames up to its last
         checkpoint, and a restart sets them aside like any summary.  Its seconds are in
         ``output.progress_summaries``; a failed write is an output error (exit 3)."""
         from lc_petsc.io.summary import RUNNING, write_summary
@@ -1085,6 +1086,7 @@ class Job:
         if p.stopped or not p.agreed() or self.error or self.writer is None:
             return
         try:
+            self._record_progress()         # first: a checkpoint on disk has its frames' records
             with self.sim.timers("io"):
                 self.checkpointer.write(it)
         except OutputError as e:

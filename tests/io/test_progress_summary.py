@@ -291,3 +291,48 @@ def test_a_run_without_checkpoints_keeps_its_records_at_each_flush(tmp_path, mon
     assert _records(seen[2]) == {k: v[:3] for k, v in ref.items()}
     s = json.loads((out / "summary.json").read_text())
     assert (s["status"], s["output"]["progress_summaries"]["written"]) == ("finished", 4)
+
+
+@pytest.mark.parametrize("when", ["frame 3", "last frame"])
+def test_a_signals_checkpoint_has_its_frames_records_on_disk(tmp_path, monkeypatch, when):
+    """SIGTERM during frame 3 (the loop's checkpoint of frame 3 before it stops) or while
+    frames.h5 is closed after the last frame 5 (the checkpoint of frame 5): when each
+    checkpoint is written, summary.json on disk already holds its frames' records, so a
+    SIGKILL in the grace period after it (a second Ctrl-C, the batch system's kill) leaves
+    no frame without a record.  main wrote these two checkpoints with summary.json at the
+    frames of the checkpoint before (2 and 4): a restart from them had frames 3 (5) with
+    no record in any summary and join_summaries.py refused the folder."""
+    import lc_petsc.job as job
+    from lc_petsc.io.frames import FramesWriter
+    from lc_petsc.simulator import Simulator
+    on_disk = []
+    write = job.Checkpointer.write
+
+    def write_and_look(self, integrator):
+        s = json.loads((tmp_path / "out" / "summary.json").read_text())
+        on_disk.append((integrator.frame, s["status"], s["frames"], len(s["newton_iterations"])))
+        return write(self, integrator)
+    monkeypatch.setattr(job.Checkpointer, "write", write_and_look)
+    if when == "frame 3":
+        step = Simulator.step
+
+        def signalled(self):
+            if self.integrator.frame == 2:
+                os.kill(os.getpid(), signal.SIGTERM)
+            return step(self)
+        monkeypatch.setattr(Simulator, "step", signalled)
+    else:
+        close = FramesWriter.close
+
+        def signalled(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+            return close(self)
+        monkeypatch.setattr(FramesWriter, "close", signalled)
+    out = tmp_path / "out"
+    assert main([_config(tmp_path, ce=2 if when == "frame 3" else 4), "--out", str(out), "--quiet",
+                 "--frames", "5"]) == 75
+    last = 3 if when == "frame 3" else 5
+    assert on_disk[-1] == (last, "running", last, last)
+    assert all(k == frames == n for k, _, frames, n in on_disk)
+    s = json.loads((out / "summary.json").read_text())
+    assert (s["status"], s["frames"], [c["frame"] for c in s["checkpoints"]][-1]) == ("preempted", last, last)

@@ -125,19 +125,24 @@ def factor_cluster_matrix(indptr, cols, blocks, ordering=ORDERING):
     """(matrix, LU PC) of the clusters' block CSR (``indptr``, ``cols``: 3x3 ``blocks``
     (k, 3, 3) row-major), factored by PETSc's LU with ``ordering``.
 
-    The factor is of the point (AIJ) copy, not of the BAIJ matrix: PETSc's BAIJ (and
+    The factor is of the point (AIJ) matrix, not of a BAIJ one: PETSc's BAIJ (and
     SBAIJ) factorisations invert each 3x3 pivot block explicitly, and a vertex held by a
     stiff stretch and a stiff contact in two directions with only its mass term in the
     third has a pivot block of condition 1e9 (a stretch/bend stiffness ratio of 1e8 with
     contact): the BAIJ LU of such an SPD matrix (condition 3.5e9) solved it with a relative
     error of 0.3-3, non-symmetric and indefinite, and CG stopped with
     DIVERGED_INDEFINITE_PC; the AIJ LU of the same matrix errs by 1e-7
-    (docs/contact_solver.md, "Clusters")."""
-    m = 3 * (len(indptr) - 1)
-    B = PETSc.Mat().createBAIJ(size=(m, m), bsize=3, comm=PETSc.COMM_SELF,
-                               csr=(np.asarray(indptr).astype(PETSc.IntType), np.asarray(cols).astype(PETSc.IntType),
-                                    np.ascontiguousarray(blocks, np.float64).ravel()))
-    M = B.convert(PETSc.Mat.Type.SEQAIJ)           # in place (petsc4py: no ``out``)
+    (docs/contact_solver.md, "Clusters").  The AIJ matrix is filled directly from the
+    blocks (compiled, ``compiled_cluster.point_csr``, into arrays the matrix keeps;
+    block size 3, as a converted BAIJ's): the same matrix as PETSc's ``MatConvert`` of the BAIJ
+    one, without building that (docs/contact_solver.md, "Where the cluster set-up
+    goes")."""
+    n, k = len(indptr) - 1, len(cols)
+    point = (np.empty(3 * n + 1, PETSc.IntType), np.empty(9 * k, PETSc.IntType), np.empty(9 * k))
+    compiled_cluster.point_csr(np.asarray(indptr, PETSc.IntType), np.asarray(cols, PETSc.IntType),
+                               np.ascontiguousarray(blocks, np.float64).reshape(k, 3, 3), *point)
+    M = PETSc.Mat().createAIJWithArrays(size=(3 * n, 3 * n), csr=point, comm=PETSc.COMM_SELF)
+    M.setBlockSizes(3, 3)                       # (createAIJWithArrays drops ``bsize``)
     pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
     pc.setType(PETSc.PC.Type.LU)
     pc.setFactorOrdering(ordering)

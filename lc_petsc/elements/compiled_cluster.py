@@ -106,7 +106,31 @@ def cluster_roots(n, pairs, counts, order, max_wisps, max_blocks, inner):
     return roots
 
 
+@_jit
+def point_csr(indptr, cols, blocks, point_indptr, point_cols, values):
+    """Fill the point (AIJ) CSR (``point_indptr`` (3 n + 1,), ``point_cols`` and
+    ``values`` (9 k,)) of the block CSR (``indptr`` (n + 1,), ``cols`` (k,): 3x3
+    ``blocks`` (k, 3, 3) row-major): each block row's three point rows hold its blocks'
+    rows in column order, explicit zeros kept, as PETSc's ``MatConvert`` of the BAIJ
+    matrix gives them (lc_petsc/contact_pc.py, ``factor_cluster_matrix``)."""
+    point_indptr[0] = 0
+    for i in range(len(indptr) - 1):
+        a, b = indptr[i], indptr[i + 1]
+        width = 3 * (b - a)
+        for r in range(3):
+            base = 9 * a + r * width
+            point_indptr[3 * i + r + 1] = base + width
+            for e in range(a, b):
+                p = base + 3 * (e - a)
+                for j in range(3):
+                    point_cols[p + j] = 3 * cols[e] + j
+                    values[p + j] = blocks[e, r, j]
+
+
 def warm_up():
-    """Compile (or load from the cache) the kernel."""
+    """Compile (or load from the cache) the kernels."""
     cluster_roots(2, np.array([[0, 1]], np.int64), np.ones(1, np.int64), np.zeros(1, np.int64),
                   2, 10, np.zeros(2, np.int64))
+    for index in (np.int32, np.int64):          # PETSc's IntType, either build
+        point_csr(np.array([0, 1], index), np.zeros(1, index), np.zeros((1, 3, 3)),
+                  np.zeros(4, index), np.zeros(9, index), np.zeros(9))

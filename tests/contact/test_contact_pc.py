@@ -280,6 +280,54 @@ def test_cluster_factor_solves_stiff_spd_blocks_accurately(seed, ordering):
         M.destroy()
 
 
+def test_cluster_matrix_is_filled_as_aij_not_converted():
+    """factor_cluster_matrix fills the point (AIJ) matrix from the blocks: the matrix
+    PETSc's conversion of the BAIJ one gives (pattern, values, explicit zeros, block size)
+    and the same LU solve, bit for bit, without a BAIJ matrix converted (MatConvert took
+    ~30-60 ms of a 2K set-up's ~220-460 ms CPU, docs/contact_solver.md, "Where the cluster
+    set-up goes")."""
+    rng = np.random.default_rng(3)
+    n = 60                                                  # block rows
+    r = np.repeat(np.arange(n), 5)
+    c = np.clip(r + np.tile(np.arange(-2, 3), n), 0, n - 1)
+    far = rng.integers(0, n, (2, 12))                       # a few contact-like couplings
+    key = np.unique(np.r_[r * n + c, far[0] * n + far[1], far[1] * n + far[0]])
+    r, c = key // n, key % n
+    blocks = rng.standard_normal((len(r), 3, 3))
+    blocks[rng.random(blocks.shape) < 0.2] = 0.0            # zeros inside blocks stay entries
+    blocks[r == c] += 20.0 * np.eye(3)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=n))])
+    PETSc.Log.begin()
+    converts = PETSc.Log.Event("MatConvert").getPerfInfo()["count"]
+    M, pc = factor_cluster_matrix(indptr, c, blocks)
+    assert PETSc.Log.Event("MatConvert").getPerfInfo()["count"] == converts
+    B = PETSc.Mat().createBAIJ(size=(3 * n, 3 * n), bsize=3, comm=PETSc.COMM_SELF,
+                               csr=(indptr.astype(PETSc.IntType), c.astype(PETSc.IntType), blocks.ravel()))
+    B = B.convert(PETSc.Mat.Type.SEQAIJ)
+    ref = PETSc.PC().create(comm=PETSc.COMM_SELF)
+    try:
+        ref.setType(PETSc.PC.Type.LU)
+        ref.setFactorOrdering("rcm")
+        ref.setOperators(B, B)
+        ref.setUp()
+        got, want = M.getValuesCSR(), B.getValuesCSR()
+        assert len(got[2]) == 9 * len(r) and (got[2] == 0.0).sum() > 0
+        for a, b in zip(got, want):
+            assert np.array_equal(a, b)
+        assert M.getType() == B.getType() and M.getBlockSizes() == B.getBlockSizes() == (3, 3)
+        x, y = M.createVecs()
+        z = y.duplicate()
+        x.array[:] = rng.standard_normal(3 * n)
+        pc.apply(x, y)
+        ref.apply(x, z)
+        assert np.array_equal(y.array, z.array) and np.abs(y.array).max() > 0
+        for v in (x, y, z):
+            v.destroy()
+    finally:
+        for obj in (ref, B, pc, M):
+            obj.destroy()
+
+
 def test_both_contact_preconditioners_same_trajectory_clusters_cut_iterations(monkeypatch):
     runs = {}
     for mode in ("strands", "clusters"):

@@ -1068,6 +1068,7 @@ class Job:
         if self.error or self.writer is None or self.outputs_only:
             return
         try:
+            self._record_progress()         # first: a checkpoint on disk has its frames' records
             with self.sim.timers("io"):
                 self.checkpointer.write(self.sim.integrator)
         except OutputError as e:

@@ -293,7 +293,7 @@ def test_a_run_without_checkpoints_keeps_its_records_at_each_flush(tmp_path, mon
     assert (s["status"], s["output"]["progress_summaries"]["written"]) == ("finished", 4)
 
 
-@pytest.mark.parametrize("when", ["frame 3", "last frame"])
+@pytest.mark.parametrize("when", ["frame 3", "last frame", "crossing check"])
 def test_a_signals_checkpoint_has_its_frames_records_on_disk(tmp_path, monkeypatch, when):
     """SIGTERM during frame 3 (the loop's checkpoint of frame 3 before it stops) or while
     frames.h5 is closed after the last frame 5 (the checkpoint of frame 5): when each
@@ -301,7 +301,9 @@ def test_a_signals_checkpoint_has_its_frames_records_on_disk(tmp_path, monkeypat
     SIGKILL in the grace period after it (a second Ctrl-C, the batch system's kill) leaves
     no frame without a record.  main wrote these two checkpoints with summary.json at the
     frames of the checkpoint before (2 and 4): a restart from them had frames 3 (5) with
-    no record in any summary and join_summaries.py refused the folder."""
+    no record in any summary and join_summaries.py refused the folder.  The same for a
+    signal during the end-of-run crossing check (the checkpoint of frame 5 that
+    ``_stopped_late`` writes before the final summary: a SIGKILL between the two)."""
     import lc_petsc.job as job
     from lc_petsc.io.frames import FramesWriter
     from lc_petsc.simulator import Simulator
@@ -321,13 +323,21 @@ def test_a_signals_checkpoint_has_its_frames_records_on_disk(tmp_path, monkeypat
                 os.kill(os.getpid(), signal.SIGTERM)
             return step(self)
         monkeypatch.setattr(Simulator, "step", signalled)
-    else:
+    elif when == "last frame":
         close = FramesWriter.close
 
         def signalled(self):
             os.kill(os.getpid(), signal.SIGTERM)
             return close(self)
         monkeypatch.setattr(FramesWriter, "close", signalled)
+    else:
+        import lc_petsc.crossings as crossings
+        count = crossings.count_crossings
+
+        def counted(*args, **kwargs):
+            os.kill(os.getpid(), signal.SIGTERM)
+            return count(*args, **kwargs)
+        monkeypatch.setattr(crossings, "count_crossings", counted)
     out = tmp_path / "out"
     assert main([_config(tmp_path, ce=2 if when == "frame 3" else 4), "--out", str(out), "--quiet",
                  "--frames", "5"]) == 75

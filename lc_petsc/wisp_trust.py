@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from lc_petsc.newton_stop import EXACT_BELOW
+
 #: an uncut step whose model ratio rho is within this of 1 (its decrease of the wisp's
 #: share of G as predicted) drops the wisp's shift: the quadratic model holds there
 MODEL_EXACT = 0.1
@@ -26,12 +28,12 @@ SHIFT_FLOOR = 0.2
 #: ``solver.wisp_trust``: exact steps start once the relative increment is below this
 #: (the filter's EXACT_BELOW is 3e-3; measured side by side, docs/newton.md)
 WISP_TRUST_BELOW = 1e-2
-#: ... but right after a solve's first (filtered) step only below this (the filter's
-#: EXACT_BELOW): a frame's first two steps from the inertial first iterate undo each
-#: other, and exact steps from the iterate between them met blocks that needed shifts of
+#: ... but right after a solve's first (filtered) step only below this (the filter's own
+#: switch, the same value by design): a frame's first two steps from the inertial first
+#: iterate undo each other, and exact steps from the iterate between them met blocks that needed shifts of
 #: 30-480 M/dt^2 and cuts to alpha 1/32 (the 300-wisp demo's slow frames, docs/newton.md
 #: "The whole runs")
-FIRST_STEP_BELOW = 3e-3
+FIRST_STEP_BELOW = EXACT_BELOW
 #: ... and after two steps only if the second was at most this times the first (it did
 #: not undo it); from the third step on the increment alone decides
 UNDONE_RATIO = 0.5

@@ -610,7 +610,7 @@ class Job:
                   and k.split(".")[1] not in saved.get(k.split(".")[0], {})]
         hint += "".join(f"; the checkpoint predates {k} and ran as {k} = {str(LEGACY_VALUES[k]).lower()}, "
                         f"set that to continue it as it ran" for k in legacy)
-        defaulted = [k for k in diff if k in cfg.solver_path_defaulted]
+        defaulted = [k for k in cfg.solver_path_defaulted if k in diff]
         if defaulted:
             # a key the checkpoint lacks ran as its default then (config_differences)
             old = SimConfig().to_dict()

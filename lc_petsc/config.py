@@ -408,8 +408,9 @@ class TimeConfig:
     (docs/newton.md "Twenty-second round").
 
     With a tolerance and a config file that does not name ``solver.filter``,
-    ``newton_update`` defaults to ``"corotational"`` (the converging path,
-    :func:`tolerance_defaults`; :class:`SolverConfig`).
+    ``newton_update`` defaults to ``"corotational"`` and, without strand contact and
+    with ``newton_increment_tol`` alone, ``newton_stop`` to ``"chord_estimate"`` (the
+    converging path, :func:`tolerance_defaults`; :class:`SolverConfig`).
 
     Step cutback (only with a tolerance): a frame whose Newton misses it within the cap
     is redone as 2 steps of dt / 2, each cut again if it fails, up to ``max_substeps``
@@ -578,7 +579,8 @@ class SolverConfig:
     The defaults here are the paper's path.  A config file that sets a tolerance
     (``time.newton_increment_tol`` / ``newton_tol``) and does not name ``filter`` runs
     the converging path instead: ``filter``, ``exact_fallback``, ``exact_stay`` and
-    ``time.newton_update`` it leaves unset take :data:`TOLERANCE_PATH`'s values
+    ``time.newton_update`` it leaves unset take :data:`TOLERANCE_PATH`'s values, and without
+    strand contact ``wisp_trust`` and ``time.newton_stop`` too
     (:func:`tolerance_defaults`, summary.json ``solver_path_defaulted``).  A config built
     in Python takes these defaults as written.
     """
@@ -738,7 +740,7 @@ class SimConfig:
     key_warnings = ()
     #: the keys :func:`tolerance_defaults` resolved to the converging path, dotted (set by
     #: config_from_dict; not a field): summary.json's ``solver_path_defaulted``
-    solver_path_defaulted: tuple = ()
+    solver_path_defaulted = ()
     scene: SceneConfig = field(default_factory=SceneConfig)
     material: MaterialConfig = field(default_factory=MaterialConfig)
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
@@ -903,24 +905,36 @@ def config_from_dict(data: dict, base_dir=None) -> SimConfig:
 #: "The default for tolerance runs"); a fixed count keeps the dataclass defaults, the paper's path
 TOLERANCE_PATH = {("solver", "filter"): "exact_or_analytic", ("solver", "exact_fallback"): "shifted",
                   ("solver", "exact_stay"): True, ("time", "newton_update"): "corotational"}
+#: added without strand contact (which refuses both): the per-wisp trust region (with the
+#: shifted fallback) and the chord stop (with ``newton_increment_tol`` alone); hairball10 30
+#: frames at 1e-6: 202 iterations, worst frame 14, against 248 and 21, the same CPU
+#: (docs/newton.md "The default for tolerance runs")
+TOLERANCE_PATH_WITHOUT_STRAND_CONTACT = {("solver", "wisp_trust"): True, ("time", "newton_stop"): "chord_estimate"}
 
 
 def tolerance_defaults(cfg: SimConfig, given) -> tuple:
     """Resolve the Newton path of a run with a tolerance (``time.newton_increment_tol`` or
     ``newton_tol``) whose file does not name ``solver.filter``: each key of
-    :data:`TOLERANCE_PATH` that is not in ``given`` (the file's (table, key) pairs) takes
-    the converging path's value, in place.  With the analytic filter the paper's path
+    :data:`TOLERANCE_PATH` (and, without strand contact, of
+    :data:`TOLERANCE_PATH_WITHOUT_STRAND_CONTACT` where its conditions hold: the shifted
+    fallback, ``newton_increment_tol`` alone) that is not in ``given`` (the file's (table,
+    key) pairs) takes the converging path's value, in place.  With the analytic filter the paper's path
     barely converges (hairball10, 90 frames at 1e-6: 28,116 iterations, every frame cut
     back, against 724; docs/newton.md "The default for tolerance runs").  A file that
     names ``solver.filter``, a fixed count and ``time.newton = "trust_region"`` keep the
     defaults as they are.  Returns the resolved keys, dotted ("solver.filter", ...)."""
     if not cfg.time.newton_converges or cfg.time.newton != "filtered" or ("solver", "filter") in given:
         return ()
+    path = dict(TOLERANCE_PATH)
+    if "strand_collision" not in cfg.physics.terms:
+        path.update(TOLERANCE_PATH_WITHOUT_STRAND_CONTACT)
     out = []
-    for (table, key), value in TOLERANCE_PATH.items():
-        if (table, key) not in given:
-            setattr(getattr(cfg, table), key, value)
-            out.append(f"{table}.{key}")
+    for (table, key), value in path.items():
+        if (table, key) in given or (key == "wisp_trust" and cfg.solver.exact_fallback != "shifted") or \
+                (key == "newton_stop" and cfg.time.newton_tol is not None):
+            continue
+        setattr(getattr(cfg, table), key, value)
+        out.append(f"{table}.{key}")
     return tuple(out)
 
 

@@ -20,7 +20,7 @@ import json
 
 import numpy as np
 
-from lc_petsc.config import TOLERANCE_PATH
+from lc_petsc.config import TOLERANCE_PATH, TOLERANCE_PATH_WITHOUT_STRAND_CONTACT
 from lc_petsc.parallel import global_max, global_min, global_reduce
 
 
@@ -94,7 +94,8 @@ def newton_warnings(cfg):
                    "frame with 3, none converged; 379-395 with 30, each frame in 8 substeps; "
                    "exact_or_analytic: 15-64 in 1-2)" if t.max_substeps > 1 else
                    "with time.max_substeps = 1 they are reported unconverged")
-        path = ", ".join(f"{table}.{key} = {json.dumps(value)}" for (table, key), value in TOLERANCE_PATH.items())
+        path, extra = (", ".join(f"{table}.{key} = {json.dumps(value)}" for (table, key), value in keys.items())
+                       for keys in (TOLERANCE_PATH, TOLERANCE_PATH_WITHOUT_STRAND_CONTACT))
         return [f"{' and '.join(asked)} with solver.filter = {filt!r}: the filtered Newton "
                 "converges linearly (about 0.97 per iteration on the demo hairball), so frames "
                 "often miss the tolerance within time.newton_iterations, and above a tolerance of "
@@ -102,7 +103,8 @@ def newton_warnings(cfg):
                 "(its steps do not decrease G as their quadratic model predicts: such stops had "
                 f"been 4-31x the tolerance from the solution); {cutback} "
                 "(docs/newton.md, \"Twelfth round\" and \"Stopping rule\"); leave solver.filter unset "
-                f"(with a tolerance the default is then the converging path: {path}; docs/newton.md "
+                f"(with a tolerance the default is then the converging path: {path}, and without strand contact "
+                f"{extra}; docs/newton.md "
                 "\"The default for tolerance runs\") to converge"
                 + (", or time.max_substeps = 1 to keep this filter without the cutback"
                    if t.max_substeps > 1 else "")]

@@ -407,6 +407,11 @@ class TimeConfig:
     (:meth:`SimConfig.start_config`); the frames after them run the fixed count
     (docs/newton.md "Twenty-second round").
 
+    With a tolerance and a config file that does not name ``solver.filter``,
+    ``newton_update`` defaults to ``"corotational"`` and, without strand contact and
+    with ``newton_increment_tol`` alone, ``newton_stop`` to ``"chord_estimate"`` (the
+    converging path, :func:`tolerance_defaults`; :class:`SolverConfig`).
+
     Step cutback (only with a tolerance): a frame whose Newton misses it within the cap
     is redone as 2 steps of dt / 2, each cut again if it fails, up to ``max_substeps``
     (a power of 2; 1: off) steps in the frame; a frame still missing it is accepted and
@@ -570,6 +575,14 @@ class SolverConfig:
     undo each other: ``wisp_trust.exact_switch``) and, once one is kept, every later step
     of the solve is exact (lc_petsc/wisp_trust.py; docs/newton.md "A trust region per
     wisp", "The whole runs").
+
+    The defaults here are the paper's path.  A config file that sets a tolerance
+    (``time.newton_increment_tol`` / ``newton_tol``) and does not name ``filter`` runs
+    the converging path instead: ``filter``, ``exact_fallback``, ``exact_stay`` and
+    ``time.newton_update`` it leaves unset take :data:`TOLERANCE_PATH`'s values, and without
+    strand contact ``wisp_trust`` and ``time.newton_stop`` too
+    (:func:`tolerance_defaults`, summary.json ``solver_path_defaulted``).  A config built
+    in Python takes these defaults as written.
     """
 
     options: str = ""
@@ -725,6 +738,9 @@ class SimConfig:
 
     #: warnings for keys of the file that have no effect (set by config_from_dict; not a field)
     key_warnings = ()
+    #: the keys :func:`tolerance_defaults` resolved to the converging path, dotted (set by
+    #: config_from_dict; not a field): summary.json's ``solver_path_defaulted``
+    solver_path_defaulted = ()
     scene: SceneConfig = field(default_factory=SceneConfig)
     material: MaterialConfig = field(default_factory=MaterialConfig)
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
@@ -875,9 +891,51 @@ def config_from_dict(data: dict, base_dir=None) -> SimConfig:
                 v = str((Path(base_dir) / os.path.expanduser(v)).resolve())
             kwargs[key] = v
         parts[table] = cls(**kwargs)
-    cfg = SimConfig(**parts).validate()
+    cfg = SimConfig(**parts)
+    given = {(table, key) for table, value in data.items() for key in value}
+    cfg.solver_path_defaulted = tolerance_defaults(cfg, given)
+    cfg.validate()
     cfg.key_warnings = keys_without_effect(cfg, data) + implausible_values(cfg, data)
     return cfg
+
+
+#: the converging path a run with a tolerance takes where its file leaves the keys unset
+#: (:func:`tolerance_defaults`): the exact Hessian once close with the analytic filter before,
+#: the shifted fallback, exact steps kept once taken, the corotational update (docs/newton.md
+#: "The default for tolerance runs"); a fixed count keeps the dataclass defaults, the paper's path
+TOLERANCE_PATH = {("solver", "filter"): "exact_or_analytic", ("solver", "exact_fallback"): "shifted",
+                  ("solver", "exact_stay"): True, ("time", "newton_update"): "corotational"}
+#: added without strand contact (which refuses both): the per-wisp trust region (with the
+#: shifted fallback) and the chord stop (with ``newton_increment_tol`` alone); hairball10 30
+#: frames at 1e-6: 202 iterations, worst frame 14, against 248 and 21, the same CPU
+#: (docs/newton.md "The default for tolerance runs")
+TOLERANCE_PATH_WITHOUT_STRAND_CONTACT = {("solver", "wisp_trust"): True, ("time", "newton_stop"): "chord_estimate"}
+
+
+def tolerance_defaults(cfg: SimConfig, given) -> tuple:
+    """Resolve the Newton path of a run with a tolerance (``time.newton_increment_tol`` or
+    ``newton_tol``) whose file does not name ``solver.filter``: each key of
+    :data:`TOLERANCE_PATH` (and, without strand contact, of
+    :data:`TOLERANCE_PATH_WITHOUT_STRAND_CONTACT` where its conditions hold: the shifted
+    fallback, ``newton_increment_tol`` alone) that is not in ``given`` (the file's (table,
+    key) pairs) takes the converging path's value, in place.  With the analytic filter the paper's path
+    barely converges (hairball10, 90 frames at 1e-6: 28,116 iterations, every frame cut
+    back, against 724; docs/newton.md "The default for tolerance runs").  A file that
+    names ``solver.filter``, a fixed count and ``time.newton = "trust_region"`` keep the
+    defaults as they are.  Returns the resolved keys, dotted ("solver.filter", ...)."""
+    if not cfg.time.newton_converges or cfg.time.newton != "filtered" or ("solver", "filter") in given:
+        return ()
+    path = dict(TOLERANCE_PATH)
+    if "strand_collision" not in cfg.physics.terms:
+        path.update(TOLERANCE_PATH_WITHOUT_STRAND_CONTACT)
+    out = []
+    for (table, key), value in path.items():
+        if (table, key) in given or (key == "wisp_trust" and cfg.solver.exact_fallback != "shifted") or \
+                (key == "newton_stop" and cfg.time.newton_tol is not None):
+            continue
+        setattr(getattr(cfg, table), key, value)
+        out.append(f"{table}.{key}")
+    return tuple(out)
 
 
 #: keys that only act for some settings: (table, key) -> (predicate on the config, when)

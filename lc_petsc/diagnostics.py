@@ -16,8 +16,11 @@ its windows.  It is invariant to rigid motion, so the head may move.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
+from lc_petsc.config import TOLERANCE_PATH, TOLERANCE_PATH_WITHOUT_STRAND_CONTACT
 from lc_petsc.parallel import global_max, global_min, global_reduce
 
 
@@ -75,7 +78,9 @@ def shape_measures(comm, x, x_rest, offsets, turn=5):
 def newton_warnings(cfg):
     """Messages for Newton settings that cannot deliver what they ask: a tolerance with a
     filtered Hessian alone (the analytic, numerical or abs filter, no exact steps), whose
-    iteration converges linearly (docs/newton.md "Twelfth round").  A loose increment
+    iteration converges linearly (docs/newton.md "Twelfth round").  A config file reaches it
+    only by naming that filter: without ``solver.filter`` a tolerance takes the converging
+    path (:func:`lc_petsc.config.tolerance_defaults`).  A loose increment
     tolerance with a step above 1/30 s is no longer warned: its stops are now checked
     against the energy's quadratic model, and every stop measured at dt 0.15-0.2 was
     within the tolerance (docs/newton.md "Stopping rule")."""
@@ -89,14 +94,18 @@ def newton_warnings(cfg):
                    "frame with 3, none converged; 379-395 with 30, each frame in 8 substeps; "
                    "exact_or_analytic: 15-64 in 1-2)" if t.max_substeps > 1 else
                    "with time.max_substeps = 1 they are reported unconverged")
+        path, extra = (", ".join(f"{table}.{key} = {json.dumps(value)}" for (table, key), value in keys.items())
+                       for keys in (TOLERANCE_PATH, TOLERANCE_PATH_WITHOUT_STRAND_CONTACT))
         return [f"{' and '.join(asked)} with solver.filter = {filt!r}: the filtered Newton "
                 "converges linearly (about 0.97 per iteration on the demo hairball), so frames "
                 "often miss the tolerance within time.newton_iterations, and above a tolerance of "
                 "1e-5 (of the shortest wisp for time.newton_tol) its stops are refused "
                 "(its steps do not decrease G as their quadratic model predicts: such stops had "
                 f"been 4-31x the tolerance from the solution); {cutback} "
-                "(docs/newton.md, \"Twelfth round\" and \"Stopping rule\"); set solver.filter = "
-                "\"exact_or_analytic\" (with time.newton_update = \"corotational\") to converge"
+                "(docs/newton.md, \"Twelfth round\" and \"Stopping rule\"); leave solver.filter unset "
+                f"(with a tolerance the default is then the converging path: {path}, and without strand contact "
+                f"{extra}; docs/newton.md "
+                "\"The default for tolerance runs\") to converge"
                 + (", or time.max_substeps = 1 to keep this filter without the cutback"
                    if t.max_substeps > 1 else "")]
     return []

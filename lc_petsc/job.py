@@ -33,6 +33,7 @@ What each step leaves behind when it fails:
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import sys
@@ -119,7 +120,6 @@ def unfinished_run(out):
     or failed (a full disk), or that it was running (the one a run keeps up to date: it
     was killed; a run still going holds the folder's lock), or none: killed), else None.
     A new run there would remove them (serial, read-only)."""
-    import json
     from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints
     from lc_petsc.io.summary import RUNNING
     found = list_checkpoints(checkpoint_folder(out))
@@ -160,7 +160,6 @@ def finished_frames(out):
     """The frame count (``frames``) of the run in the output folder ``out`` when its
     summary.json says it finished (no signal, no error, not running: a killed run's), else
     None (serial, read-only)."""
-    import json
     from lc_petsc.io.summary import run_status
     try:
         summary = json.loads((Path(out) / "summary.json").read_text())
@@ -611,6 +610,15 @@ class Job:
                   and k.split(".")[1] not in saved.get(k.split(".")[0], {})]
         hint += "".join(f"; the checkpoint predates {k} and ran as {k} = {str(LEGACY_VALUES[k]).lower()}, "
                         f"set that to continue it as it ran" for k in legacy)
+        defaulted = [k for k in cfg.solver_path_defaulted if k in diff]
+        if defaulted:
+            # a key the checkpoint lacks ran as its default then (config_differences)
+            old = SimConfig().to_dict()
+            ran = ", ".join(f"{k} = {json.dumps(saved.get(table, {}).get(key, old[table][key]))}"
+                            for k in defaulted for table, key in [k.split(".")])
+            hint += (f"; this config leaves {', '.join(defaulted)} unset, which with a tolerance now selects "
+                     f"the converging path (docs/newton.md \"The default for tolerance runs\"), and the "
+                     f"checkpoint ran with {ran}: set that in the config to continue it as it ran")
         fixed = [k for k in diff if k in RESTART_FIXED_KEYS]
         if fixed:
             raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
@@ -678,7 +686,6 @@ class Job:
         from lc_petsc.io.checkpoint import checkpoint_folder, config_differences, list_checkpoints
 
         def read():
-            import json
             import h5py
             found = list_checkpoints(checkpoint_folder(self.out)) if self.args.restart == "latest" \
                 else [Path(self.args.restart)]
@@ -996,7 +1003,6 @@ class Job:
         traceback.print_exc()
         sys.stderr.flush()
         try:
-            import json
             from lc_petsc.io.summary import RUNNING, write_summary
             path = self.out / "summary.json"
             try:        # the summary kept while the run went: its records stay
@@ -1163,6 +1169,7 @@ class Job:
         summary.update({
             "config_file": str(Path(self.args.config).resolve()),
             "description": cfg.scene.description,
+            "solver_path_defaulted": list(cfg.solver_path_defaulted),
             "lc_petsc_version": __version__,
             "setup_time_s": self.setup_time,
             "time_per_frame_s": summary["wall_time_s"] / max(summary["frames"] - start, 1),

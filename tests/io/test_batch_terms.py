@@ -216,7 +216,8 @@ def test_the_job_reports_the_newton_warning(tmp_path):
     """The main job puts it in summary.json's warnings."""
     cfg = tmp_path / "s.toml"
     cfg.write_text(hairball_toml(n_wisps=2, frames=1).replace(
-        "[time]\n", "[time]\nnewton_increment_tol = 1e-3\nnewton_iterations = 4\nmax_substeps = 1\n"))
+        "[time]\n", "[time]\nnewton_increment_tol = 1e-3\nnewton_iterations = 4\nmax_substeps = 1\n")
+        + '\n[solver]\nfilter = "analytic"\n')       # named: a tolerance alone takes the converging path
     assert main([str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     warnings = json.loads((tmp_path / "out" / "summary.json").read_text())["warnings"]
     assert any("converges linearly" in w for w in warnings), warnings
@@ -444,7 +445,8 @@ def test_the_job_says_why_a_frame_below_the_tolerance_missed_it(tmp_path):
     showed a final measure below the tolerance the frame missed)."""
     cfg = tmp_path / "s.toml"
     cfg.write_text(hairball_toml(n_wisps=2, frames=3).replace(
-        "[time]\n", "[time]\nnewton_increment_tol = 0.1\nnewton_iterations = 12\nmax_substeps = 1\n"))
+        "[time]\n", "[time]\nnewton_increment_tol = 0.1\nnewton_iterations = 12\nmax_substeps = 1\n")
+        + '\n[solver]\nfilter = "analytic"\n')       # named: a tolerance alone takes the converging path
     assert main([str(cfg), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     missed = [i for i, c in enumerate(summary["newton_converged"]) if c is False]

@@ -65,7 +65,7 @@ def running_state(out, summary):
         return "failed", (f"failed after frame {frames}: {record['ended']} (its lock file {LOCK_NAME} says so; "
                           f"summary.json is the one kept while it ran)")
     here = socket.gethostname()
-    if record and record.get("host") != here:
+    if record and record.get("host") and record["host"] != here:
         return "unknown", (f"not known after frame {frames}: {who}, another host than {here}: no process holds "
                            f"its lock {LOCK_NAME} as seen from here, but this filesystem may not share locks "
                            f"between hosts; it cannot be probed from here (killed, or still running: look on "

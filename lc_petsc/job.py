@@ -25,7 +25,9 @@ What each step leaves behind when it fails:
    permission error) ends the loop on every rank with exit status 3.
 5. **finish**: ``frames.h5`` closed (the frames so far stay readable), ``frames.xdmf``,
    previews, ``summary.json`` (with ``error``) and the report; an output that cannot be
-   written is reported (exit 3) and the others are still tried.  A signal (any rank)
+   written is reported (exit 3) and the others are still tried (a summary.json that
+   cannot be written: the lock file is left saying so, :meth:`OutputLock.leave`, so the
+   running summary on disk is not taken for a killed run's).  A signal (any rank)
    during the end-of-run check or exports stops them between two pieces, writes a
    checkpoint of the last frame and summary.json (``output.skipped``).  Exit 0, 3
    (failed), 75 (stopped by a signal after a checkpoint, or during the set-up).
@@ -114,12 +116,14 @@ def _options_string(d):
     return " ".join(f"-{k} {v}".rstrip() for k, v in d.items())
 
 
-def unfinished_run(out):
+def unfinished_run(out, ended=None):
     """Why the output folder ``out`` holds a run that did not finish and can be
     continued (its checkpoints, and a summary.json that says it was stopped by a signal
     or failed (a full disk), or that it was running (the one a run keeps up to date: it
-    was killed; a run still going holds the folder's lock), or none: killed), else None.
-    A new run there would remove them (serial, read-only)."""
+    was killed, or it failed to write its final summary, which its lock file's record
+    says: ``ended``, :attr:`OutputLock.ended`; a run still going holds the folder's
+    lock), or none: killed), else None.  A new run there would remove them (serial,
+    read-only)."""
     from lc_petsc.io.checkpoint import checkpoint_folder, list_checkpoints
     from lc_petsc.io.summary import RUNNING
     found = list_checkpoints(checkpoint_folder(out))
@@ -134,6 +138,9 @@ def unfinished_run(out):
         return f"summary.json unreadable; {newest}"
     if not isinstance(summary, dict):
         return f"summary.json is not a JSON object; {newest}"
+    if summary.get("status") == RUNNING and ended:
+        return (f"failed after frame {summary.get('frames')}: {ended} (its lock file says so; its "
+                f"summary.json is the one kept while it ran, which says {RUNNING}); {newest}")
     if summary.get("status") == RUNNING:
         return (f"killed after frame {summary.get('frames')} (its summary.json, kept while it ran, says "
                 f"{RUNNING}); {newest}")
@@ -412,6 +419,8 @@ class Job:
         self.stopped_in_loop = False    # a signal stopped the frame loop (or its last frame)
         self.frames_lost = False        # frames.h5 gone after the frame loop (folder removed)
         self.progress_seconds = []      # each _record_progress's (rank 0's clock)
+        self.progress_frame = None      # the last frame in the summary _record_progress wrote
+        self.ended = None           # rank 0: why the final summary.json is not on disk (the lock keeps it)
 
     # ------------------------------------------------------------------ the steps
     def run(self):
@@ -538,13 +547,25 @@ class Job:
             raise Refused(f"output folder {str(self.out)!r}: {why}")
         self.lock_taken = taken
         if taken["stale"]:
-            self._warn(f"{self.out}: found the lock of a run that did not finish ({taken['stale']}); it was "
-                       "killed or crashed: its outputs are as it left them, this run takes the folder over")
+            how = "it failed (its lock file says why)" if taken["ended"] else "it was killed or crashed"
+            self._warn(f"{self.out}: found the lock of a run that did not finish ({taken['stale']}); {how}: "
+                       "its outputs are as it left them, this run takes the folder over")
 
     def _unlock(self, refused=False):
-        if self.lock is not None:
+        if self.lock is None:
+            return
+        if self.ended and not refused:
+            try:
+                if self.lock.leave(self.ended):
+                    print(f"{PROG}: {self.lock.path} is left in the folder, saying why the run ended, so "
+                          "scripts/check_outputs.py, scripts/join_summaries.py and the next run do not take "
+                          "it for a killed run", file=sys.stderr, flush=True)
+            except OSError as e:
+                print(f"{PROG}: error: {self.lock.path} could not record why the run ended "
+                      f"({e.strerror or e}): the folder looks like a killed run's", file=sys.stderr, flush=True)
+        else:
             self.lock.release(remove_created_folder=refused)
-            self.lock = None
+        self.lock = None
 
     def _warn(self, text):
         self.warnings.append(text)
@@ -563,7 +584,8 @@ class Job:
             if self.recovery is None:
                 rows_kept = self.restart["frame"] // self.cfg.output.every + 1
         else:
-            unfinished = self.comm.bcast(unfinished_run(self.out) if self.comm.rank == 0 else None)
+            unfinished = self.comm.bcast(unfinished_run(self.out, self.lock_taken["ended"])
+                                         if self.comm.rank == 0 else None)
             if unfinished and not self.args.force:
                 raise Refused(f"{self.out} holds a run that did not finish ({unfinished}): continue it "
                               f"with --restart latest, or start over with --force (removes its "
@@ -657,7 +679,7 @@ class Job:
         # a checkpoint at the last frame continues a run killed during its end-of-run
         # outputs (no summary.json): they are written again, no frame is run
         self.outputs_only = cfg.time.frames == ck["frame"] and self.comm.bcast(
-            unfinished_run(self.out) is not None if self.comm.rank == 0 else None)
+            unfinished_run(self.out, self.lock_taken["ended"]) is not None if self.comm.rank == 0 else None)
         if cfg.time.frames <= ck["frame"] and not self.outputs_only:
             raise Refused(f"{ck['path']}: the checkpoint is at frame {ck['frame']}, the run ends at frame "
                           f"{cfg.time.frames} (time.frames / --frames is the total): nothing to do")
@@ -972,6 +994,7 @@ class Job:
                 raise OutputError(f"{path} (the summary of the run so far): "
                                   f"{problem.strerror if isinstance(problem, OSError) else problem}")
             self.progress_seconds.append(time.perf_counter() - t0)
+            self.progress_frame = summary["frames"]
 
     def _checkpoint(self):
         with self.sim.timers("io"):
@@ -1289,8 +1312,12 @@ class Job:
         try:
             write_summary(out / "summary.json", summary)
         except OSError as e:
-            print(f"{PROG}: error: {out / 'summary.json'} could not be written ({e.strerror or e}); "
+            left = (f"the summary.json left is the one kept while the run went (status running, up to frame "
+                    f"{self.progress_frame})" if self.progress_seconds else "no summary.json of this run is left")
+            print(f"{PROG}: error: {out / 'summary.json'} could not be written ({e.strerror or e}); {left}; "
                   "the run's figures are in the report below", file=sys.stderr, flush=True)
+            was = summary["status"] + (f": {self.error}" if self.error else "")
+            self.ended = f"its final summary.json ({was}) could not be written: {e.strerror or e}"
             self.error = self.error or f"output error: {out / 'summary.json'}: {e.strerror or e}"
             summary["output"]["files"].remove("summary.json")      # the report says what is there
             try:

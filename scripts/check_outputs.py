@@ -6,8 +6,11 @@ For each output folder of ``drivers/simulate.py``: ``frames.h5`` read with plain
 against DESIGN section 3 (datasets, dtypes, shapes) and against ``summary.json``
 (``frames`` / ``output.every`` rows, ``/time`` = row x dt x every, ``dofs``, ``wisps``,
 ``output.frames_written``, one per-frame entry per frame of the run; a summary.json that
-says ``running``, the one a run keeps while it goes, is reported as not finished and not
-checked further); ``frames.usdc`` read with pxr (centimetres, Y up,
+says ``running``, the one a run keeps while it goes, is reported as not finished, with
+what the folder's lock says (``running (pid P on host H, alive ...)``, ``killed after
+frame N (its lock ... is stale ...)`` or no lock file, ``failed after frame N: its final
+summary.json ... could not be written``, or not known for a run on another host:
+``lc_petsc.io.history.running_state``), and not checked further); ``frames.usdc`` read with pxr (centimetres, Y up,
 ``timeCodesPerSecond`` 1 / (dt x every), one curve per wisp, a time sample per row,
 points equal to ``frames.h5``'s to float32 after the prim's transform, widths twice the
 radii); ``frames.xdmf`` read with VTK's XDMF reader (a time step per row at ``/time``,
@@ -132,15 +135,20 @@ def preview_problems(out, s):
             if not (out / "previews" / f"frame_{k:05d}.png").is_file()]
 
 
-def check(out, crossings=False):
+def check(out, crossings=False, retries=1):
     """The problems of the output folder ``out`` (a list of lines; empty: consistent)."""
+    from lc_petsc.io.history import running_state
     out = Path(out)
     s = json.loads((out / "summary.json").read_text())
     if s.get("status") == "running":
         # the summary a run keeps while it goes: the run is going (it holds the folder's
-        # lock) or was killed; its end-of-run outputs are not there to check
-        return [f"not finished: summary.json says running, {s.get('frames')} frames recorded (the run is "
-                "still going, or it was killed: --restart latest continues it)"]
+        # lock), was killed, or could not write its final summary; its end-of-run
+        # outputs are not there to check
+        state, said = running_state(out, s)
+        if state == "ended" and retries > 0:
+            return check(out, crossings, retries - 1)
+        then = {"running": "", "unknown": "", "ended": ""}.get(state, "; --restart latest continues it")
+        return [f"not finished: summary.json says running, {s.get('frames')} frames recorded: {said}{then}"]
     with h5py.File(out / "frames.h5", "r") as f:
         problems = frames_problems(f, s)
         if problems and "/positions" in problems[0]:

@@ -13,7 +13,10 @@ Prints a table (the segments, then a row per frame) and writes ``OUT/history.jso
 (``--json FILE`` elsewhere; the next run into OUT removes ``OUT/history.json``, which
 would be stale).  A summary missing, damaged, or disagreeing with the others (frames
 without a record, or recorded twice) is refused naming the file: exit status 2.
-Works on a run in progress or killed too (its ``summary.json`` says ``running``).
+Works on a run in progress or killed too (its ``summary.json`` says ``running``): the
+first line then says what the folder's lock says (``lc_petsc.io.history.running_state``):
+running (pid, host, alive), killed (lock stale or absent), failed (its final summary
+could not be written) or not known (a holder on another host cannot be probed).
 """
 
 import argparse

@@ -7,13 +7,15 @@ frames no later run re-ran (``frames_kept``).  :func:`join_history` takes, for e
 frame 1 .. the last, the record of the last segment that ran it (the one whose
 ``frames_kept`` holds it; ``summary.json``'s own frames are all kept), and checks that
 the segments tile the frames once each; a missing, damaged or inconsistent file is a
-``ValueError`` naming it.
+``ValueError`` naming it.  A ``running`` summary.json is told apart by the folder's lock
+(:func:`running_state`): a run going, killed, or failed to write its final summary.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import socket
 from pathlib import Path
 
 from lc_petsc.io.summary import RUNNING, frames_covered, run_status
@@ -34,6 +36,44 @@ def _read(path, name):
     if not isinstance(s, dict):
         raise ValueError(f"{name}: damaged (not a JSON object but {type(s).__name__})")
     return s
+
+
+def running_state(out, summary):
+    """What the ``running`` summary.json of the output folder ``out`` (``summary``, as
+    read) means now, from the folder's lock (:func:`lc_petsc.io.lock.probe`, which
+    changes nothing; the test a run makes when it finds the lock, ``OutputLock.stale``):
+    (state, text).  ``running``: a live process holds the lock; ``failed``: the lock
+    file says why its run ended (its final summary.json could not be written:
+    ``OutputLock.leave``); ``killed``: the lock file is there and no process holds it
+    (stale), or there is none; ``unknown``: the lock is free but its holder was on another
+    host, whose lock this filesystem may not show here (not guessed); ``ended``: the run
+    ended while being looked at (summary.json no longer says running: read it again)."""
+    from lc_petsc.io.lock import LOCK_NAME, describe_holder, probe
+    frames = summary.get("frames")
+    state, record = probe(out)
+    who = f"pid {record.get('pid')} on host {record.get('host')}" if record else "its holder not recorded yet"
+    if state == "held":
+        return "running", (f"running ({who}, alive: it holds the folder's lock {LOCK_NAME}), {frames} frames "
+                           "recorded so far")
+    try:
+        now = json.loads((Path(out) / "summary.json").read_text())
+    except (OSError, ValueError):
+        now = None
+    if isinstance(now, dict) and now.get("status") != RUNNING:
+        return "ended", f"ended while being looked at: summary.json now says {run_status(now)}"
+    if record and record.get("ended"):
+        return "failed", (f"failed after frame {frames}: {record['ended']} (its lock file {LOCK_NAME} says so; "
+                          f"summary.json is the one kept while it ran)")
+    here = socket.gethostname()
+    if record and record.get("host") and record["host"] != here:
+        return "unknown", (f"not known after frame {frames}: {who}, another host than {here}: no process holds "
+                           f"its lock {LOCK_NAME} as seen from here, but this filesystem may not share locks "
+                           f"between hosts; it cannot be probed from here (killed, or still running: look on "
+                           f"{record.get('host')})")
+    if state == "free":
+        held = describe_holder(json.dumps(record)) if record else "an empty lock file"
+        return "killed", f"killed after frame {frames} (its lock {LOCK_NAME} is stale: {held}; no process holds it)"
+    return "killed", f"killed after frame {frames} (no lock file {LOCK_NAME}: no run holds the folder)"
 
 
 def config_digest(config):
@@ -91,7 +131,7 @@ def _segments(out):
     return segments
 
 
-def join_history(out):
+def join_history(out, retries=1):
     """The per-frame history of the run in the output folder ``out`` (a dict, what
     ``history.json`` holds): ``segments`` (each summary with kept frames, oldest first:
     ``file``, ``status``, ``ranks``, ``config_sha256``, ``frames`` [first, last] covered,
@@ -100,8 +140,13 @@ def join_history(out):
     ``ranks``, ``config_sha256`` and every key (null where a segment lacks it;
     ``ksp_iterations``: the frame's solves, split by ``ksp_solves``).  ``ValueError``
     naming the file when one is missing or damaged, or the segments do not tile the
-    frames once each."""
+    frames once each.  ``running``: summary.json says running, and ``running_state``
+    then (:func:`running_state`: ``state``, ``text``), else null; a run that ended while
+    being joined is joined again (``retries`` times)."""
     segments = _segments(out)
+    now = running_state(out, segments[-1][1]) if segments[-1][1].get("status") == RUNNING else None
+    if now is not None and now[0] == "ended" and retries > 0:
+        return join_history(out, retries - 1)
     keys: list = []
     per_frame: dict = {c: [] for c in SOURCE_COLUMNS}
     columns = []
@@ -144,7 +189,8 @@ def join_history(out):
                         for v in (lists[k][kept[0] - frames[0]:kept[1] - frames[0]] if k in lists
                                   else [None] * (kept[1] - kept[0]))]
     last = segments[-1][2][1]
-    return {"out": str(out), "frames": last, "running": segments[-1][1].get("status") == RUNNING,
+    return {"out": str(out), "frames": last, "running": now is not None,
+            "running_state": None if now is None else {"state": now[0], "text": now[1]},
             "segments": described, "keys": keys, "per_frame": per_frame}
 
 
@@ -153,12 +199,15 @@ def history_table(history, columns=("newton_iterations", "newton_converged", "ne
     """Lines for a person: the segments, then a row per frame of ``columns`` (those present)."""
     lines = [f"{history['out']}: frames 1-{history['frames']} from {len(history['segments'])} summar"
              f"{'y' if len(history['segments']) == 1 else 'ies'}"
-             + (" (the last still running, or killed: its summary.json says running)" if history["running"] else "")]
+             + (f" (the last says running: {history['running_state']['text']})" if history["running"] else "")]
+    last = len(history["segments"]) - 1
     for i, seg in enumerate(history["segments"]):
         a, b = seg["frames_kept"]
-        # an earlier segment that says running was killed (a restart followed it)
-        status = "killed (running)" if seg["status"] == RUNNING and i < len(history["segments"]) - 1 \
-            else seg["status"]
+        # an earlier segment that says running was killed (a restart followed it); the
+        # last one is what its lock says
+        status = seg["status"] if seg["status"] != RUNNING else "killed (running)" if i < last \
+            else RUNNING if history["running_state"]["state"] == RUNNING \
+            else f"{history['running_state']['state']} (running)"
         lines.append(f"  segment {i}: {seg['file']}, {status}, {seg['ranks']} rank(s), config "
                      f"{seg['config_sha256'][:12]}, frames {a + 1}-{b} kept of {seg['frames'][0] + 1}-"
                      f"{seg['frames'][1]}")

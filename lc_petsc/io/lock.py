@@ -10,6 +10,10 @@ that is present, unlocked and not empty was left by a run that did not finish, w
 the next run reports (:attr:`OutputLock.stale`).  A run refused before it changed
 anything puts the lock file back as it found it (a killed run's record, its times) or
 removes the one it created, so the folder is as it was and the next run still warns.
+A run whose final summary.json could not be written (a full disk) leaves its lock file
+with ``ended`` (why) in the record (:meth:`OutputLock.leave`), so its ``running``
+summary is not taken for a killed run's.  :func:`probe` looks at a folder's lock
+without taking it (``scripts/check_outputs.py``, ``scripts/join_summaries.py``).
 
 The file is removed only while it is locked, and a lock is only trusted if the locked
 file is still the one at the path (the inode check in :meth:`acquire`): otherwise a run
@@ -34,13 +38,25 @@ from lc_petsc.errors import FolderBusy
 LOCK_NAME = ".lc_petsc.lock"
 
 
-def describe_holder(text):
-    """'pid 123 on host h, started 2026-12-01 10:00:00 UTC (python ...)' from a lock file's text."""
+def read_record(text):
+    """The record of a lock file's text (a dict: ``pid``, ``host``, ``started``,
+    ``command``, and ``ended`` when its run noted why it ended), or None."""
     try:
         d = json.loads(text)
+    except ValueError:
+        return None
+    return d if isinstance(d, dict) else None
+
+
+def describe_holder(text):
+    """'pid 123 on host h, started 2026-12-01 10:00:00 UTC (python ...)' from a lock file's
+    text (and '; it ended: WHY' when its run noted that: :meth:`OutputLock.leave`)."""
+    d = read_record(text)
+    try:
         return (f"pid {d['pid']} on host {d['host']}, started {d['started']}"
-                + (f" ({d['command']})" if d.get("command") else ""))
-    except (ValueError, KeyError, TypeError):
+                + (f" ({d['command']})" if d.get("command") else "")
+                + (f"; it ended: {d['ended']}" if d.get("ended") else ""))
+    except (KeyError, TypeError):
         return f"unknown holder (lock file text {text[:80]!r})"
 
 
@@ -55,6 +71,7 @@ class OutputLock:
         self.created_folder = False
         self.created = []           # the folders acquire made, the deepest first
         self.stale = None           # holder description of a lock left by a killed run
+        self.ended = None           # why that run ended, when it noted it (leave)
         self.before = None          # the lock file as it was (bytes, atime_ns, mtime_ns), or None
 
     def acquire(self):
@@ -112,6 +129,7 @@ class OutputLock:
         old = _read(self.fd, raw=True)
         if old.strip():
             self.stale = describe_holder(old.decode(errors="replace"))
+            self.ended = (read_record(old.decode(errors="replace")) or {}).get("ended")
         if before is not None:
             self.before = (old, *before)
         record = {"pid": os.getpid(), "host": socket.gethostname(),
@@ -139,7 +157,7 @@ class OutputLock:
 
     def taken(self):
         """What another process of the same job needs for :func:`remove_for_holder`."""
-        return {"stale": self.stale, "inode": self.inode, "created_folder": self.created_folder,
+        return {"stale": self.stale, "ended": self.ended, "inode": self.inode, "created_folder": self.created_folder,
                 "created": [str(p) for p in self.created], "before": self.before}
 
     def release(self, remove_created_folder=False):
@@ -164,11 +182,64 @@ class OutputLock:
             os.close(self.fd)       # releases the flock
             self.fd = None
 
+    def leave(self, ended):
+        """Unlock and keep the lock file, its record with ``ended`` (why the run ended
+        without its final summary.json: a full disk), instead of removing it: an unlocked
+        lock file that is not empty is a run that did not finish (:attr:`stale`), and
+        ``ended`` tells the next run and the scripts (:func:`probe`) that it was not
+        killed.  The record is rewritten in place (the file's block is already there, so
+        a full disk does not refuse it).  Returns whether the file is left: not when it is
+        gone (the folder removed or renamed during the run: nothing to tell).  Raises the
+        OSError of a failed write (the lock file then holds its earlier record: a killed
+        run's)."""
+        if self.fd is None:
+            return False
+        try:
+            try:
+                if os.stat(self.path).st_ino != self.inode:
+                    return False
+            except FileNotFoundError:
+                return False
+            data = (json.dumps({**(read_record(_read(self.fd)) or {}), "ended": ended}) + "\n").encode()
+            os.pwrite(self.fd, data, 0)
+            os.ftruncate(self.fd, len(data))
+            os.fsync(self.fd)
+        finally:
+            os.close(self.fd)       # releases the flock
+            self.fd = None
+        return True
+
     def __enter__(self):
         return self.acquire()
 
     def __exit__(self, *exc):
         self.release()
+
+
+def probe(folder):
+    """A look at the lock of ``folder`` that changes nothing: (state, record).  state:
+    ``absent`` (no lock file), ``held`` (a live process holds the flock: a run is going)
+    or ``free`` (the file is there and unlocked: its run ended without removing it,
+    killed unless its record says ``ended``; the test :meth:`OutputLock.acquire` makes
+    for :attr:`OutputLock.stale`).  record: :func:`read_record` of the file's text.
+    The flock is tried shared and dropped at once; a run starting in that instant is
+    refused as if the folder were busy (run it again).  Whether a run on another host
+    shows as ``held`` depends on the filesystem (NFS passes flocks between hosts, a
+    ``local_lock`` mount does not): the caller compares ``record["host"]``."""
+    try:
+        fd = os.open(Path(folder) / LOCK_NAME, os.O_RDONLY)
+    except FileNotFoundError:
+        return "absent", None
+    try:
+        text = _read(fd)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            state = "free"
+        except BlockingIOError:
+            state = "held"
+    finally:
+        os.close(fd)            # releases the probe's flock
+    return state, read_record(text)
 
 
 def remove_for_holder(folder, taken):

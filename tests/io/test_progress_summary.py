@@ -7,9 +7,11 @@ Now rank 0 replaces summary.json (atomically, synced) before each checkpoint and
 each flush of frames.h5; the killed run's records are set aside by the restart like any
 other, and join_summaries.py joins the segments into one record per frame."""
 
+import errno
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -18,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from lc_petsc.batch import main
+from lc_petsc.io.history import history_table
 from lc_petsc.io.summary import write_summary
 
 from sim_helpers import MPI_ENV, hairball_toml  # noqa: E402
@@ -78,7 +81,9 @@ def test_a_killed_run_keeps_its_records_and_a_restart_sets_them_aside(tmp_path, 
     """SIGKILL while checkpoint 6 is written (paused there by the test hook; checkpoint 4
     is the newest whole one): summary.json is on disk, status running, with the records
     of frames 1-6; a second run into the busy folder is refused by the lock and leaves it
-    alone; check_outputs.py calls it not finished; a new run is refused (a killed run),
+    alone; check_outputs.py and join_summaries.py say it is running, its pid alive (it
+    holds the lock), and after the kill that it was killed (its lock stale); a new run is
+    refused (a killed run),
     ``--restart latest`` sets the killed run's summary aside with frames_kept [0, 4];
     the joined history has every frame once, equal to the uninterrupted run's records."""
     cfg = _config(tmp_path)
@@ -93,6 +98,14 @@ def test_a_killed_run_keeps_its_records_and_a_restart_sets_them_aside(tmp_path, 
         assert main([cfg, "--out", str(out), "--quiet"]) == 2     # the lock: the run is going
         assert f"pid {proc.pid}" in capsys.readouterr().err
         assert (out / "summary.json").read_bytes() == running
+        alive = (f"running (pid {proc.pid} on host {socket.gethostname()}, alive: it holds the folder's lock "
+                 ".lc_petsc.lock), 6 frames recorded so far")
+        assert _script("check_outputs").main([str(out)]) == 1
+        assert capsys.readouterr().out == \
+            f"{out}: not finished: summary.json says running, 6 frames recorded: {alive}\n"
+        assert _script("join_summaries").main([str(out), "--quiet", "--json", str(tmp_path / "h.json")]) == 0
+        said = capsys.readouterr().out
+        assert f"(the last says running: {alive})" in said and "segment 0: summary.json, running, 1 rank(s)" in said
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.communicate()
@@ -110,7 +123,15 @@ def test_a_killed_run_keeps_its_records_and_a_restart_sets_them_aside(tmp_path, 
     assert (out / "summary.json").read_bytes() == running
     capsys.readouterr()
     assert _script("check_outputs").main([str(out)]) == 1
-    assert "not finished: summary.json says running, 6 frames recorded" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert said.startswith(f"{out}: not finished: summary.json says running, 6 frames recorded: killed after frame "
+                           f"6 (its lock .lc_petsc.lock is stale: pid {proc.pid} on host {socket.gethostname()}, "
+                           "started ")
+    assert said.endswith("; no process holds it); --restart latest continues it\n")
+    assert _script("join_summaries").main([str(out), "--quiet", "--json", str(tmp_path / "h.json")]) == 0
+    said = capsys.readouterr().out
+    assert f"(the last says running: killed after frame 6 (its lock .lc_petsc.lock is stale: pid {proc.pid}" in said
+    assert "segment 0: summary.json, killed (running), 1 rank(s)" in said
     assert main([cfg, "--out", str(out), "--quiet"]) == 2
     assert "killed after frame 6 (its summary.json, kept while it ran, says running)" in capsys.readouterr().err
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
@@ -200,7 +221,9 @@ def test_join_refuses_a_damaged_or_inconsistent_set(tmp_path, capsys):
 def test_the_running_summary_on_every_rank_count_restarts(tmp_path, straight):
     """On 2 ranks (mpiexec): the summary kept while the run goes is written collectively
     (rank 0 writes, every rank reduces); its ranks SIGKILLed while checkpoint 4 is
-    written, a restart on 1 rank sets it aside and the history names both rank counts."""
+    written (the folder's lock says running, then killed), a restart on 1 rank sets it
+    aside and the history names both rank counts."""
+    from lc_petsc.io.history import join_history, running_state
     cfg = _config(tmp_path, ce=2)
     out = tmp_path / "out"
     env = dict(MPI_ENV, LC_PETSC_TEST_CHECKPOINT_PAUSE="4:120")
@@ -210,14 +233,17 @@ def test_the_running_summary_on_every_rank_count_restarts(tmp_path, straight):
     try:
         _wait(proc, lambda: (out / "checkpoints" / ".checkpoint_000004.h5.tmp").exists())
         running = json.loads((out / "summary.json").read_text())
+        ranks = _descendants(proc.pid)
+        state, said = running_state(out, running)       # rank 0 holds the lock
+        assert state == "running" and int(said.split()[2]) in ranks and "alive" in said
     finally:
         for pid in _descendants(proc.pid):      # the ranks, as the OOM killer or a lost node does
             os.kill(pid, signal.SIGKILL)
         proc.communicate(timeout=60)
+    assert running_state(out, running)[0] == "killed"
     assert (running["status"], running["frames"], running["ranks"]) == ("running", 4, 2)
     assert len(running["newton_iterations"]) == len(running["contact"]["pairs_per_frame"]) == 4
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
-    from lc_petsc.io.history import join_history
     h = join_history(out)
     assert h["segments"][0]["frames_kept"] == [0, 2] and h["per_frame"]["ranks"] == [2] * 2 + [1] * 8
     assert h["per_frame"]["frame"] == list(range(1, FRAMES + 1))
@@ -346,3 +372,91 @@ def test_a_signals_checkpoint_has_its_frames_records_on_disk(tmp_path, monkeypat
     assert all(k == frames == n for k, _, frames, n in on_disk)
     s = json.loads((out / "summary.json").read_text())
     assert (s["status"], s["frames"], [c["frame"] for c in s["checkpoints"]][-1]) == ("preempted", last, last)
+
+
+def test_the_folders_lock_tells_what_a_running_summary_means(tmp_path, monkeypatch, capsys):
+    """A summary.json that says running, read by check_outputs.py and join_summaries.py:
+    the folder's lock says whether its run is going (a process holds it: here this one),
+    was killed (no lock file, or one no process holds), could not write its final
+    summary (the lock file left saying so) or ran on another host, which cannot be
+    probed from here; a run ending while it is read is read again."""
+    import lc_petsc.io.lock as lock
+    from lc_petsc.io.history import join_history, running_state
+    out = tmp_path / "o"
+    out.mkdir()
+    write_summary(out / "summary.json", _summary(4, status="running"))
+    host = socket.gethostname()
+    assert running_state(out, _summary(4)) == \
+        ("killed", "killed after frame 4 (no lock file .lc_petsc.lock: no run holds the folder)")
+    held = lock.OutputLock(out).acquire()
+    assert running_state(out, _summary(4)) == \
+        ("running", f"running (pid {os.getpid()} on host {host}, alive: it holds the folder's lock .lc_petsc.lock), "
+                    "4 frames recorded so far")
+    held.leave("its final summary.json (finished) could not be written: No space left on device")
+    record = json.loads((out / lock.LOCK_NAME).read_text())
+    assert (record["pid"], record["host"]) == (os.getpid(), host)
+    failed = ("failed after frame 4: its final summary.json (finished) could not be written: No space left on device "
+              "(its lock file .lc_petsc.lock says so; summary.json is the one kept while it ran)")
+    assert running_state(out, _summary(4)) == ("failed", failed)
+    capsys.readouterr()
+    assert _script("check_outputs").main([str(out)]) == 1
+    assert capsys.readouterr().out == \
+        f"{out}: not finished: summary.json says running, 4 frames recorded: {failed}; --restart latest continues it\n"
+    (out / lock.LOCK_NAME).write_text(json.dumps({"pid": 4242, "host": "node-elsewhere", "started": "x"}))
+    assert running_state(out, _summary(4)) == (
+        "unknown", f"not known after frame 4: pid 4242 on host node-elsewhere, another host than {host}: no process "
+                   "holds its lock .lc_petsc.lock as seen from here, but this filesystem may not share locks between "
+                   "hosts; it cannot be probed from here (killed, or still running: look on node-elsewhere)")
+    h = join_history(out)
+    assert h["running"] and h["running_state"]["state"] == "unknown"
+    assert "segment 0: summary.json, unknown (running), 1 rank(s)" in "\n".join(history_table(h))
+    # the run writes its final summary while the folder is looked at: read again
+    probe = lock.probe
+
+    def then_finished(folder):
+        write_summary(out / "summary.json", _summary(5))
+        return probe(folder)
+    monkeypatch.setattr(lock, "probe", then_finished)
+    h = join_history(out)
+    assert (h["running"], h["frames"], h["segments"][0]["status"]) == (False, 5, "finished")
+
+
+def test_a_final_summary_that_cannot_be_written_is_not_taken_for_a_kill(tmp_path, monkeypatch, capsys):
+    """The final summary.json fails (ENOSPC) after the frames ran: the job says so on
+    stderr and exits 3, and the summary left (the one kept while it ran, which says
+    running) is not read as a killed run's: the lock file is left saying why the run
+    ended, which check_outputs.py, join_summaries.py and the next run report; --restart
+    latest (checkpoint at the last frame) writes the outputs and the summary."""
+    import lc_petsc.io.summary as summary_io
+    write = summary_io.write_summary
+
+    def full_disk(path, summary):
+        if summary.get("status") != "running":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path) + ".tmp")
+        write(path, summary)
+    monkeypatch.setattr(summary_io, "write_summary", full_disk)
+    cfg, out = _config(tmp_path, ce=2), tmp_path / "out"
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "4"]) == 3
+    err = capsys.readouterr().err
+    assert (f"error: {out / 'summary.json'} could not be written (No space left on device); the summary.json left "
+            "is the one kept while the run went (status running, up to frame 4); the run's figures are in the "
+            "report below") in err
+    assert f"error: output error: {out / 'summary.json'}: No space left on device" in err
+    assert (f"{out / '.lc_petsc.lock'} is left in the folder, saying why the run ended, so scripts/check_outputs.py, "
+            "scripts/join_summaries.py and the next run do not take it for a killed run") in err
+    monkeypatch.undo()
+    s = json.loads((out / "summary.json").read_text())
+    assert (s["status"], s["frames"], len(s["newton_iterations"])) == ("running", 4, 4)
+    ended = "its final summary.json (finished) could not be written: No space left on device"
+    assert json.loads((out / ".lc_petsc.lock").read_text())["ended"] == ended
+    assert _script("check_outputs").main([str(out)]) == 1
+    assert f"4 frames recorded: failed after frame 4: {ended} (its lock file" in capsys.readouterr().out
+    assert _script("join_summaries").main([str(out), "--quiet"]) == 0
+    assert "segment 0: summary.json, failed (running), 1 rank(s)" in capsys.readouterr().out
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "4"]) == 2
+    assert f"holds a run that did not finish (failed after frame 4: {ended} (its lock file says so;" in \
+        capsys.readouterr().err
+    assert main([cfg, "--out", str(out), "--quiet", "--frames", "4", "--restart", "latest"]) == 0
+    assert f"; it ended: {ended}); it failed (its lock file says why): its outputs are" in capsys.readouterr().err
+    assert json.loads((out / "summary.json").read_text())["status"] == "finished"
+    assert not (out / ".lc_petsc.lock").exists()

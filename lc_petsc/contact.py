@@ -16,6 +16,9 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    segment with the smaller global index: ranks own increasing vertex ranges), so rank
    r sends to every lower rank q, with one ``alltoall``, the segments whose box touches
    a cell occupied by q: only segments that can be within d0 of one of q's.
+   ``-lc_contact_work balanced`` replaces a segment's rank here by its wisp's contact
+   rank (:meth:`StrandContact.start_frame`): a rank also gets the segments of the wisps
+   whose pairs it computes for their owner, in the same ``alltoall``.
 3. **Broad phase.** :func:`compiled_ccd.box_pairs` over the local + ghost segments'
    boxes grown by d0 / 2 (:meth:`StrandContact.candidates`), which contains every pair
    closer than d0.  Rebuilt from the current positions
@@ -65,6 +68,11 @@ from lc_petsc.parallel import CONTACT_WORK, collectively, compile_in_turn, globa
 from lc_petsc.petsc_capi import block_pattern, mpibaij_blocks, value_array
 
 MODES = ("penalty", "ccd")
+#: ``-lc_contact_work balanced``: a segment's share of the broad phase and limiter work,
+#: in candidate pairs (per-rank CPU of box_pairs and order_candidates against their
+#: segments and pairs, 2K ccd frames 30-33 on 2 ranks: ~1.9e-7 s per segment, ~0.9e-7 s
+#: per candidate pair; docs/performance.md, "Contact work balanced by contact")
+SEGMENT_WORK = 2
 #: the contact energy on the pair distance: kernel module by name (same call signatures)
 POTENTIALS = {"penalty": segment_contact, "barrier": segment_barrier}
 #: limiter rounds that shrink the step fractions by the pairs' safe fractions before
@@ -937,8 +945,11 @@ class StrandContact:
         shrink = 0.5 * (reach - md) / (1.0 - L) * (1.0 - 1e-9)
         ci, cj, keep, dist = compiled_ccd.order_candidates(ij, n_local, gv, PB[:, 0], PB[:, 1], shrink, free,
                                                            hulls=hulls)
-        if self.work == "balanced":     # a pair's work is its lower wisp's (see start_frame)
+        if self.work == "balanced":
+            # the broad phase's work: its pairs (each its lower wisp's, see start_frame),
+            # and its segments, at SEGMENT_WORK pairs each
             self.wisp_work += np.bincount(np.minimum(wisp[ci], wisp[cj]), minlength=self.n_wisps_global)
+            self.wisp_work += SEGMENT_WORK * np.bincount(wisp[:n_local], minlength=self.n_wisps_global)
         # the segments' vertices: V sorted global vertices, sv (m, 2) their index in V;
         # the kept pairs (i, j) and their points inv (k, 4) in V
         V, sv = compiled_ccd.segment_vertices(gv)

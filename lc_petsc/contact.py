@@ -428,7 +428,7 @@ class StrandContact:
         self.contact_rank = np.full(len(self.seg), comm.rank, np.int64)
         self._local_arc = self.seg_arc            # the last gather's local rows' arc
         self.n_wisps_global = int(comm.allreduce(scene.n_wisps))
-        #: ``balanced``: per global wisp, the candidate pairs of the frame so far
+        #: ``balanced``: per global wisp, its contact work in the frame so far (_safe_fractions)
         self.wisp_work = np.zeros(self.n_wisps_global, np.int64)
         # an edge's index along its wisp, mod 2 (bound_edge_lengths' red-black sweeps)
         self.seg_colour = (self.seg - scene.offsets[wid[self.seg]]) % 2
@@ -609,10 +609,9 @@ class StrandContact:
         masks = [] if masks is None else masks
         if comm.size > 1:
             grid = _OccupancyGrid(lo, hi, d0, comm)
-            ranks = np.unique(crank)
             own = [] if grid.empty else [
                 (int(c), np.flatnonzero(grid.mask(grid.corner_cells(lo[crank == c] - d0, hi[crank == c] + d0)))
-                 .astype(np.int32)) for c in ranks]
+                 .astype(np.int32)) for c in np.unique(crank)]
             occ = [[] for _ in range(comm.size)]
             for parts in comm.allgather(own):
                 for c, cells in parts:
@@ -648,7 +647,7 @@ class StrandContact:
         order = np.r_[np.flatnonzero(local), np.flatnonzero(~local)]
         masks.append((mine, order))
         n_local = int(local.sum())
-        self.ghosts_received.add(len(G) - n_local + int(np.sum(crank[mine] == comm.rank)))
+        self.ghosts_received.add(len(order) - n_local)
         Pall = [np.concatenate([P[mine], G[:, 13 + 6 * k:19 + 6 * k].reshape(-1, 2, 3)])[order]
                 for k, P in enumerate(Ps)]
         Prest = np.concatenate([self.P_rest[mine], G[:, 4:10].reshape(-1, 2, 3)])[order]
@@ -1078,14 +1077,14 @@ class StrandContact:
 
     def start_frame(self):
         """A new frame: the per-frame statistics start new entries; with ``balanced``
-        contact work, the wisps' contact ranks from the last frame's candidate pairs
-        (the same on every rank: one allreduce).  Collective."""
-        if self.work == "balanced" and self.comm.size > 1:
+        contact work, the wisps' contact ranks from the last frame's work (candidate
+        pairs and segments; the same on every rank: one allreduce).  Collective."""
+        if self.work == "balanced":
             work = global_reduce(self.comm, self.wisp_work, "sum")
             self.wisp_work[:] = 0
             if work.sum() > 0:
                 # contiguous runs of wisps (a region of the head each: the internal order
-                # follows a space-filling curve of the roots) of equal candidate pairs, each
+                # follows a space-filling curve of the roots) of equal work, each candidate
                 # pair counted for its lower wisp: contact ranks do not decrease along the
                 # wisps, so the lower wisp's rank is the one computing the pair
                 ranges = partition(work.astype(np.int64), self.comm.size)

@@ -16,6 +16,9 @@ See docs/contact.md for the design and its cost.  In short, per Newton iteration
    segment with the smaller global index: ranks own increasing vertex ranges), so rank
    r sends to every lower rank q, with one ``alltoall``, the segments whose box touches
    a cell occupied by q: only segments that can be within d0 of one of q's.
+   ``-lc_contact_work balanced`` replaces a segment's rank here by its wisp's contact
+   rank (:meth:`StrandContact.start_frame`): a rank also gets the segments of the wisps
+   whose pairs it computes for their owner, in the same ``alltoall``.
 3. **Broad phase.** :func:`compiled_ccd.box_pairs` over the local + ghost segments'
    boxes grown by d0 / 2 (:meth:`StrandContact.candidates`), which contains every pair
    closer than d0.  Rebuilt from the current positions
@@ -61,10 +64,15 @@ from lc_petsc.elements import (compiled, compiled_band, compiled_ccd, compiled_c
                                segment_barrier, segment_ccd, segment_contact)
 from lc_petsc.elements.compiled_ccd import box_pairs
 from lc_petsc.contact_pc import local_block
-from lc_petsc.parallel import collectively, compile_in_turn, global_min, global_reduce
+from lc_petsc.parallel import CONTACT_WORK, collectively, compile_in_turn, global_min, global_reduce, partition
 from lc_petsc.petsc_capi import block_pattern, mpibaij_blocks, value_array
 
 MODES = ("penalty", "ccd")
+#: ``-lc_contact_work balanced``: a segment's share of the broad phase and limiter work,
+#: in candidate pairs (per-rank CPU of box_pairs and order_candidates against their
+#: segments and pairs, 2K ccd frames 30-33 on 2 ranks: ~1.9e-7 s per segment, ~0.9e-7 s
+#: per candidate pair; docs/performance.md, "Contact work balanced by contact")
+SEGMENT_WORK = 2
 #: the contact energy on the pair distance: kernel module by name (same call signatures)
 POTENTIALS = {"penalty": segment_contact, "barrier": segment_barrier}
 #: limiter rounds that shrink the step fractions by the pairs' safe fractions before
@@ -375,11 +383,12 @@ class StrandContact:
     stiffness ``barrier_stiffness``, default
     :func:`segment_barrier.penalty_matched_stiffness` of k).  ``self_contact``: also
     pairs of one wisp that are not neighbours along it (:data:`NEIGHBOUR_GAP`).
+    ``work``: which rank computes a pair (:data:`CONTACT_WORK`).
     """
 
     def __init__(self, scene, comm, pcomm, timers, thickness, stiffness, filter="analytic",
                  mat_type="baij", coupled_pc=True, mode="penalty", min_separation=0.25,
-                 potential="penalty", barrier_stiffness=None, self_contact=False):
+                 potential="penalty", barrier_stiffness=None, self_contact=False, work="owner"):
         if scene.bandwidth < 1:
             raise ValueError("strand_collision needs the stretch term (the contact blocks of a "
                              "segment live in the strand band); add 'stretch' to physics.terms")
@@ -411,6 +420,16 @@ class StrandContact:
         start = np.cumsum(edge) - edge
         start -= np.maximum.accumulate(np.where(first, start, 0.0))
         self.seg_arc = np.stack([start, start + edge], axis=1)
+        if work not in CONTACT_WORK:
+            raise ValueError(f"-lc_contact_work {work!r}: use one of {', '.join(CONTACT_WORK)}")
+        self.work = work
+        #: per local segment, the rank that computes its pairs with segments of the same or
+        #: a higher contact rank (:meth:`_gather_segments`); :meth:`start_frame` sets it
+        self.contact_rank = np.full(len(self.seg), comm.rank, np.int64)
+        self._local_arc = self.seg_arc            # the last gather's local rows' arc
+        self.n_wisps_global = int(comm.allreduce(scene.n_wisps))
+        #: ``balanced``: per global wisp, its contact work in the frame so far (_safe_fractions)
+        self.wisp_work = np.zeros(self.n_wisps_global, np.int64)
         # an edge's index along its wisp, mod 2 (bound_edge_lengths' red-black sweeps)
         self.seg_colour = (self.seg - scene.offsets[wid[self.seg]]) % 2
         #: the separation's edge-length bounds (lo, hi) (:meth:`separate`; ccd mode only:
@@ -567,7 +586,12 @@ class StrandContact:
         within ``inflate`` (default d0) of a box of the receiving rank; ``boxes`` (lo,
         hi) (m, 3) replace the segments' own boxes, and come back as a last (m, 2, 3)
         array of the list (lo, hi) for the ghosts too.  ``masks``, a list, receives the
-        segments sent to each rank (None: none), for :meth:`_exchange`."""
+        segments sent to each rank and the received rows' order, for :meth:`_exchange`.
+
+        The local segments (the first n_local) are those whose pairs this rank computes
+        (:attr:`contact_rank`: its own, and with ``-lc_contact_work balanced`` other
+        ranks' wisps it was given, whose rows come first among the received ones); the
+        ghosts are the segments of a higher contact rank near them."""
         comm = self.comm
         d0 = self.d0 if inflate is None else float(inflate)
         Ps = [compiled_ccd.segment_ends(a, self.seg) for a in (x, *extra)]
@@ -577,43 +601,61 @@ class StrandContact:
         else:
             lo, hi = boxes
             Ps.append(np.stack([lo, hi], axis=1))
-        # Occupancy (see the module doc and _OccupancyGrid): the cells touched by this
-        # rank's boxes inflated by d0, as sorted flat ids
-        send = [None]
+        # Occupancy (see the module doc and _OccupancyGrid): per contact rank, the cells
+        # touched by the boxes of its segments inflated by d0, as sorted flat ids
+        crank = self.contact_rank
+        send = [None] * comm.size
+        mine = np.ones(len(self.seg), bool)       # this rank's own rows it keeps
         masks = [] if masks is None else masks
         if comm.size > 1:
             grid = _OccupancyGrid(lo, hi, d0, comm)
-            own = np.zeros(0, np.int32) if grid.empty else \
-                np.flatnonzero(grid.mask(grid.corner_cells(lo - d0, hi + d0))).astype(np.int32)
-            occ = comm.allgather(own)
-            send = []
-            if comm.rank > 0 and not grid.empty:
+            own = [] if grid.empty else [
+                (int(c), np.flatnonzero(grid.mask(grid.corner_cells(lo[crank == c] - d0, hi[crank == c] + d0)))
+                 .astype(np.int32)) for c in np.unique(crank)]
+            occ = [[] for _ in range(comm.size)]
+            for parts in comm.allgather(own):
+                for c, cells in parts:
+                    occ[c].append(cells)
+            if not grid.empty:
                 keys = grid.corner_cells(lo, hi)
-        for q in range(comm.size if comm.size > 1 else 0):
-            if q >= comm.rank or grid.empty:
-                send.append(None)
-                masks.append(None)
-                continue
-            m = _any_column(grid.mask(occ[q])[keys])
-            masks.append(m)
-            send.append(np.concatenate([self.seg_gv[m, None], self.seg_wisp[m, None],
-                                        self.seg_free[m], self.P_rest[m].reshape(-1, 6)]
-                                       + [P[m].reshape(-1, 6) for P in Ps], axis=1))
+            for q in range(comm.size):
+                # to rank q: the segments of contact rank q, and those of a higher one
+                # near q's (their pairs are q's)
+                m = crank == q
+                if not grid.empty and occ[q] and np.any(crank > q):
+                    m |= (crank > q) & _any_column(grid.mask(np.concatenate(occ[q]))[keys])
+                if q == comm.rank:
+                    mine = m
+                    masks.append(None)
+                    continue
+                m = m if np.any(m) else None
+                masks.append(m)
+                if m is not None:
+                    send[q] = np.concatenate([self.seg_gv[m, None], self.seg_wisp[m, None],
+                                              self.seg_free[m], self.P_rest[m].reshape(-1, 6),
+                                              crank[m, None], self.seg_arc[m]]
+                                             + [P[m].reshape(-1, 6) for P in Ps], axis=1)
         recv = comm.alltoall(send) if comm.size > 1 else [None]
-        parts = [r for r in recv if r is not None and len(r)]
-        self.ghosts_received.add(int(sum(len(r) for r in parts)))
-        owner = [np.full(len(self.seg), comm.rank)]
+        owner = [np.full(int(mine.sum()), comm.rank)]
         for q, r in enumerate(recv):
             if r is not None and len(r):
                 owner.append(np.full(len(r), q))
-        G = np.concatenate(parts) if parts else np.zeros((0, 10 + 6 * len(Ps)))
-        Pall = [np.concatenate([P, G[:, 10 + 6 * k:16 + 6 * k].reshape(-1, 2, 3)])
+        parts = [r for r in recv if r is not None and len(r)]
+        G = np.concatenate(parts) if parts else np.zeros((0, 13 + 6 * len(Ps)))
+        # local rows first: this rank's own, then those it was given, in rank order
+        local = np.concatenate([crank[mine] == comm.rank, G[:, 10] == comm.rank])
+        order = np.r_[np.flatnonzero(local), np.flatnonzero(~local)]
+        masks.append((mine, order))
+        n_local = int(local.sum())
+        self.ghosts_received.add(len(order) - n_local)
+        Pall = [np.concatenate([P[mine], G[:, 13 + 6 * k:19 + 6 * k].reshape(-1, 2, 3)])[order]
                 for k, P in enumerate(Ps)]
-        Prest = np.concatenate([self.P_rest, G[:, 4:10].reshape(-1, 2, 3)])
-        gv = np.concatenate([self.seg_gv, G[:, 0].astype(np.int64)])
-        wisp = np.concatenate([self.seg_wisp, G[:, 1].astype(np.int64)])
-        free = np.concatenate([self.seg_free, G[:, 2:4].astype(bool)])
-        return Pall, Prest, gv, wisp, free, np.concatenate(owner), len(self.seg)
+        Prest = np.concatenate([self.P_rest[mine], G[:, 4:10].reshape(-1, 2, 3)])[order]
+        gv = np.concatenate([self.seg_gv[mine], G[:, 0].astype(np.int64)])[order]
+        wisp = np.concatenate([self.seg_wisp[mine], G[:, 1].astype(np.int64)])[order]
+        free = np.concatenate([self.seg_free[mine], G[:, 2:4].astype(bool)])[order]
+        self._local_arc = np.concatenate([self.seg_arc[mine], G[:, 11:13]])[order[:n_local]]
+        return Pall, Prest, gv, wisp, free, np.concatenate(owner)[order], n_local
 
     def _exchange(self, Ps, masks):
         """The arrays Ps (each (m, 2, 3), this rank's segments) with the ghosts' rows
@@ -622,11 +664,12 @@ class StrandContact:
         comm = self.comm
         if comm.size == 1:
             return Ps
+        mine, order = masks[-1]
         send = [None if m is None else np.concatenate([P[m].reshape(-1, 6) for P in Ps], axis=1)
-                for m in masks]
+                for m in masks[:-1]]
         parts = [r for r in comm.alltoall(send) if r is not None and len(r)]
         G = np.concatenate(parts) if parts else np.zeros((0, 6 * len(Ps)))
-        return [np.concatenate([P, G[:, 6 * k:6 * k + 6].reshape(-1, 2, 3)]) for k, P in enumerate(Ps)]
+        return [np.concatenate([P[mine], G[:, 6 * k:6 * k + 6].reshape(-1, 2, 3)])[order] for k, P in enumerate(Ps)]
 
     def self_pairs(self, n):
         """``box_pairs``' keywords for the first n segments of :meth:`_gather_segments`
@@ -635,7 +678,7 @@ class StrandContact:
         if not self.self_contact:
             return {}
         arc = np.zeros((n, 2))
-        arc[:len(self.seg)] = self.seg_arc
+        arc[:len(self._local_arc)] = self._local_arc
         return {"arc": arc, "min_gap": self.neighbour_gap}
 
     @staticmethod
@@ -901,6 +944,11 @@ class StrandContact:
         shrink = 0.5 * (reach - md) / (1.0 - L) * (1.0 - 1e-9)
         ci, cj, keep, dist = compiled_ccd.order_candidates(ij, n_local, gv, PB[:, 0], PB[:, 1], shrink, free,
                                                            hulls=hulls)
+        if self.work == "balanced":
+            # the broad phase's work: its pairs (each its lower wisp's, see start_frame),
+            # and its segments, at SEGMENT_WORK pairs each
+            self.wisp_work += np.bincount(np.minimum(wisp[ci], wisp[cj]), minlength=self.n_wisps_global)
+            self.wisp_work += SEGMENT_WORK * np.bincount(wisp[:n_local], minlength=self.n_wisps_global)
         # the segments' vertices: V sorted global vertices, sv (m, 2) their index in V;
         # the kept pairs (i, j) and their points inv (k, 4) in V
         V, sv = compiled_ccd.segment_vertices(gv)
@@ -1028,7 +1076,19 @@ class StrandContact:
             return self.comm.allreduce(e)
 
     def start_frame(self):
-        """A new frame: the per-frame statistics start new entries."""
+        """A new frame: the per-frame statistics start new entries; with ``balanced``
+        contact work, the wisps' contact ranks from the last frame's work (candidate
+        pairs and segments; the same on every rank: one allreduce).  Collective."""
+        if self.work == "balanced":
+            work = global_reduce(self.comm, self.wisp_work, "sum")
+            self.wisp_work[:] = 0
+            if work.sum() > 0:
+                # contiguous runs of wisps (a region of the head each: the internal order
+                # follows a space-filling curve of the roots) of equal work, each candidate
+                # pair counted for its lower wisp: contact ranks do not decrease along the
+                # wisps, so the lower wisp's rank is the one computing the pair
+                ranges = partition(work.astype(np.int64), self.comm.size)
+                self.contact_rank = np.searchsorted(ranges, self.seg_wisp, side="right") - 1
         for tally in (self.ghosts_received, self.cross_pairs, self.limited_vertices, self.limit_rounds,
                       self.frame_fixes, self.unresolved_pairs, self.limiter_candidates,
                       self.updates_replaced):

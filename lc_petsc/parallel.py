@@ -163,6 +163,12 @@ def compile_in_turn(comm, *warm_ups):
 #: ``-lc_wisp_order``: wisps numbered along a space-filling curve of their roots, or in
 #: the order of the scene (the groom file).
 WISP_ORDERS = ("spatial", "input")
+#: ``-lc_contact_work``: which rank computes a pair of segments (broad phase, limiter,
+#: narrow phase, assembly rows; lc_petsc/contact.py): ``owner``, the lower of the ranks
+#: owning its two wisps; ``balanced``, the lower of the two wisps' contact ranks, which
+#: cut the wisps into contiguous runs of equal contact work (the last frame's candidate
+#: pairs, :func:`partition`), apart from the solve's vertex-balanced ranges
+CONTACT_WORK = ("owner", "balanced")
 
 
 def hilbert_order(points, bits=10):

@@ -360,7 +360,7 @@ def _strand_contact(scene, comm, pcomm, timers, cfg, plan, mat_type, user, sourc
                            min_separation=cfg.physics.strand_min_separation,
                            potential=cfg.physics.strand_contact_potential,
                            barrier_stiffness=cfg.physics.strand_barrier_stiffness,
-                           self_contact=cfg.physics.strand_self_contact)
+                           self_contact=cfg.physics.strand_self_contact, work=plan.contact_work)
     if cfg.physics.strand_contact_mode == "ccd":
         report = check_rest_pose(strand)
         report.thickness_default = cfg.physics.strand_thickness is None

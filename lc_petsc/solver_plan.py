@@ -28,7 +28,8 @@ decides itself, before any PETSc object exists:
   unless the options say otherwise;
 * lc_petsc's own build choices read from the same database: the element kernels
   (``-lc_element_kernels compiled|numpy``), the wisp order of the partition
-  (``-lc_wisp_order spatial|input``) and the Newton monitor (``-lc_newton_monitor``).
+  (``-lc_wisp_order spatial|input``), which rank computes a contact pair
+  (``-lc_contact_work owner|balanced``) and the Newton monitor (``-lc_newton_monitor``).
 
 The plan is frozen and built once per simulator; the assembler, the linear solver, the
 strand contact and the run summary read it instead of the database.  Its config
@@ -56,7 +57,7 @@ from petsc4py import PETSc
 from lc_petsc.contact_pc import BAND_FACTORS, MAX_BLOCKS, MAX_WISPS, MIN_CAPTURED, ORDERINGS, SPANS
 from lc_petsc.errors import ConfigError
 from lc_petsc.options import option_pairs
-from lc_petsc.parallel import WISP_ORDERS
+from lc_petsc.parallel import CONTACT_WORK, WISP_ORDERS
 from lc_petsc.petsc_capi import option_used
 
 #: the paper's solver (SPEC 5): CG with one exact block-Jacobi block per wisp (its
@@ -89,7 +90,7 @@ SUPPORTED_MAT_TYPES = ("baij", "sbaij", "aij")
 LC_OPTIONS = ("lc_wisp_blocks", "lc_pmat_type", "lc_contact_pc", "lc_cluster_max_wisps",
               "lc_cluster_max_blocks", "lc_cluster_min_captured", "lc_cluster_ordering",
               "lc_cluster_span", "lc_band_factor", "lc_element_kernels", "lc_wisp_order",
-              "lc_newton_monitor")
+              "lc_contact_work", "lc_newton_monitor")
 
 
 def base_type(mat_type: str) -> str:
@@ -191,6 +192,7 @@ class SolverPlan:
     ``sub_solver``: the per-wisp blocks' default sub-solver options; ``factor``: the
     factorisation defaults (:func:`factor_defaults`);
     ``element_kernels``: ``compiled`` / ``numpy``; ``wisp_order``: ``spatial`` / ``input``;
+    ``contact_work``: ``owner`` / ``balanced`` (which rank computes a contact pair);
     ``ksp_rtol``: the code default of ``-ksp_rtol`` (the options win), by the Newton's
     stopping rule (:data:`KSP_RTOL_FIXED_COUNT`, :data:`KSP_RTOL_CONVERGING`);
     ``newton_monitor``: ``-lc_newton_monitor`` was given (a line per Newton iteration on
@@ -209,6 +211,7 @@ class SolverPlan:
     factor: Mapping[str, str]
     element_kernels: str
     wisp_order: str
+    contact_work: str
     ksp_rtol: str
     newton_monitor: bool
     _layers: _Layers = field(repr=False, compare=False)
@@ -239,6 +242,9 @@ class SolverPlan:
                    wisp_order=_choice(layers, "lc_wisp_order", WISP_ORDERS,
                                       "spatial (wisps ordered along a space-filling curve of their "
                                       "roots, the default) or input (the scene's order)"),
+                   contact_work=_choice(layers, "lc_contact_work", CONTACT_WORK,
+                                        "owner (a pair's work on the lower rank owning its wisps, "
+                                        "the default) or balanced (on ranks cut by contact work)"),
                    ksp_rtol=default_ksp_rtol(newton_converges),
                    newton_monitor=_flag(layers, "lc_newton_monitor",
                                         "a line per Newton iteration on standard output"),

@@ -377,13 +377,16 @@ class Integrator:
             self.solver.set_rtol(self._rtols[0])
 
     def _jolt(self):
-        """The change of the head's acceleration into this frame at its farthest root
-        (cm/s^2, :meth:`HeadMotion.jolt`) when it is above ``time.jolt_above``, else None
-        (also without the key or with a static head)."""
+        """The largest change of the head's acceleration at its farthest root (cm/s^2,
+        :meth:`HeadMotion.jolt`) into this frame or the ``time.jolt_frames - 1`` before it
+        when it is above ``time.jolt_above``, else None (also without the key or with a
+        static head)."""
         if self.jolt_reach is None:
             return None
-        change = self.head.jolt(self.run_config.time.dt, self.frame, self.jolt_reach)
-        return change if change > self.run_config.time.jolt_above else None
+        t = self.run_config.time
+        change = max(self.head.jolt(t.dt, f, self.jolt_reach)
+                     for f in range(self.frame - t.jolt_frames + 1, self.frame + 1))
+        return change if change > t.jolt_above else None
 
     def _frame(self):
         """:meth:`step` with the configuration in use."""

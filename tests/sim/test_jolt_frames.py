@@ -78,6 +78,18 @@ def test_jolt_frames_converge_then_the_count_resumes():
     assert_follows_serial(cfg, X, its, ok, msg, comm)
 
 
+def test_jolt_frames_widen_each_window():
+    """``time.jolt_frames = 2``: each frame above the bound and the frame after it; the
+    start's jolts (frames 0 and 1, start frames anyway) add frame 2, the switch's (6, 7)
+    add frame 8; all of them below the tolerance, the others at the count of 3."""
+    X, summ = run_positions(_config(start_increment_tol=TOL, jolt_above=JOLT, jolt_frames=2), comm=MPI.COMM_SELF)
+    windows = [2, 6, 7, 8]
+    assert summ["newton_jolt"] == [k in windows for k in range(9)]
+    assert max(summ["newton_increment"][k] for k in [0, 1] + windows) < TOL
+    assert [summ["newton_iterations"][k] for k in (3, 4, 5)] == [3, 3, 3]
+    assert min(summ["newton_iterations"][k] for k in windows) > 3
+
+
 def test_a_restart_inside_the_jolt_window_continues_bit_for_bit(tmp_path):
     """A checkpoint after frame 6, between the switch's two jolt frames: the restarted run
     converges frame 7 as the uninterrupted one did and writes its frames bit for bit."""
@@ -108,6 +120,9 @@ def test_a_restart_inside_the_jolt_window_continues_bit_for_bit(tmp_path):
     (dict(start_increment_tol=1e-3, jolt_above=float("nan")), "time.jolt_above must be a finite positive"),
     (dict(jolt_above=500.0), "time.jolt_above = 500.0 converges the frames where the head jolts to "
                              "time.start_increment_tol, which is not set"),
+    (dict(start_increment_tol=1e-3, jolt_above=500.0, jolt_frames=0), "time.jolt_frames must be an integer >= 1"),
+    (dict(start_increment_tol=1e-3, jolt_above=500.0, jolt_frames=1.5), "time.jolt_frames must be an integer >= 1"),
+    (dict(start_increment_tol=1e-3, jolt_above=500.0, jolt_frames=101), "time.jolt_frames = 101 is more than 100"),
 ])
 def test_bad_jolt_settings_are_refused(fields, words):
     with pytest.raises(ConfigError, match=words.replace("(", r"\(").replace(".", r"\.")):
@@ -115,8 +130,12 @@ def test_bad_jolt_settings_are_refused(fields, words):
 
 
 def test_the_jolt_key_with_a_still_head_is_warned():
-    """``time.jolt_above`` with a static head changes nothing: the configuration says so."""
-    time = {"start_increment_tol": 1e-3, "jolt_above": 500.0}
+    """``time.jolt_above`` with a static head, ``time.jolt_frames`` without
+    ``time.jolt_above``, change nothing: the configuration says so, naming the key."""
+    time = {"start_increment_tol": 1e-3, "jolt_above": 500.0, "jolt_frames": 2}
     cfg = config_from_dict({"time": time, "physics": {"head_motion": "static"}})
     assert [w.split(" is set")[0] for w in cfg.key_warnings] == ["time.jolt_above"]
     assert config_from_dict({"time": time, "physics": {"head_motion": "shake"}}).key_warnings == []
+    cfg = config_from_dict({"time": {"start_increment_tol": 1e-3, "jolt_frames": 2}})
+    assert [w.split(" is set")[0] for w in cfg.key_warnings] == ["time.jolt_frames"]
+    assert "time.jolt_above set" in cfg.key_warnings[0]

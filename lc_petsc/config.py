@@ -372,6 +372,9 @@ MAX_SUBSTEPS = 1024
 #: time.newton_iterations above this is refused: without a tolerance every one of them
 #: runs (1e18 ran until killed); the scenes and studies use at most 100
 MAX_NEWTON_ITERATIONS = 10_000
+#: time.jolt_frames above this is refused: every frame looks back over that many frames'
+#: head motions (a jolt's window of 100 frames is over 3 s at 1/30 s)
+MAX_JOLT_FRAMES = 100
 
 
 @dataclass
@@ -405,7 +408,11 @@ class TimeConfig:
     frames (the start from rest) run to that relative increment tolerance, at most
     ``start_iterations`` iterations, on the recommended converging path
     (:meth:`SimConfig.start_config`); the frames after them run the fixed count
-    (docs/newton.md "Twenty-second round").
+    (docs/newton.md "Twenty-second round").  ``jolt_above`` (cm/s^2, with
+    ``start_increment_tol`` only; None: off): later frames where the head's acceleration
+    at its farthest root changes from the frame before by more than this (a jolt: a
+    shake's change of axis), and the ``jolt_frames - 1`` frames after each, run like the
+    start frames (docs/newton.md "Twenty-third round").
 
     With a tolerance and a config file that does not name ``solver.filter``,
     ``newton_update`` defaults to ``"corotational"`` and, without strand contact and
@@ -436,6 +443,8 @@ class TimeConfig:
     start_increment_tol: Optional[float] = None
     start_frames: int = 2
     start_iterations: int = 30
+    jolt_above: Optional[float] = None
+    jolt_frames: int = 1
     max_substeps: int = 8
     unconverged: str = "accept"
 
@@ -525,6 +534,17 @@ class TimeConfig:
             raise ConfigError(f"time.start_iterations = {self.start_iterations!r} is more than "
                               f"{MAX_NEWTON_ITERATIONS:,} Newton iterations per start frame (30 is a cap "
                               "that the start from rest reaches 1e-3 well within)")
+        _int_at_least("time.jolt_frames", self.jolt_frames, 1)
+        if self.jolt_frames > MAX_JOLT_FRAMES:
+            raise ConfigError(f"time.jolt_frames = {self.jolt_frames!r} is more than {MAX_JOLT_FRAMES} frames "
+                              "converged after each jolt of the head (1: the jolt's own frames, 2: and the "
+                              "frame after each)")
+        if self.jolt_above is not None:
+            _positive("time.jolt_above", self.jolt_above)
+            if self.start_increment_tol is None:
+                raise ConfigError(f"time.jolt_above = {self.jolt_above!r} converges the frames where the head "
+                                  "jolts to time.start_increment_tol, which is not set: set "
+                                  "time.start_increment_tol (e.g. 1e-3) or drop time.jolt_above")
         if self.start_increment_tol is None:
             return
         _positive("time.start_increment_tol", self.start_increment_tol)
@@ -793,7 +813,7 @@ class SimConfig:
         time = replace(t, newton_increment_tol=t.start_increment_tol, newton_tol=None,
                        newton_iterations=t.start_iterations, newton_update="corotational", line_search=False,
                        newton_stop="increment", root_rotation=False, newton_extend_above=None,
-                       start_increment_tol=None)
+                       start_increment_tol=None, jolt_above=None, jolt_frames=1)
         solver = replace(self.solver, filter="exact_or_analytic", exact_fallback="shifted", exact_stay=True,
                          wisp_trust=False)
         return replace(self, time=time, solver=solver)
@@ -955,6 +975,8 @@ _CONDITIONAL_KEYS = {
     ("time", "start_frames"): (lambda c: c.time.start_increment_tol is not None, "time.start_increment_tol set"),
     ("time", "start_iterations"): (lambda c: c.time.start_increment_tol is not None,
                                    "time.start_increment_tol set"),
+    ("time", "jolt_above"): (lambda c: c.physics.head_motion != "static", "physics.head_motion is not 'static'"),
+    ("time", "jolt_frames"): (lambda c: c.time.jolt_above is not None, "time.jolt_above set"),
     ("physics", "head_amplitude"): (lambda c: c.physics.head_motion == "shake",
                                     "physics.head_motion = 'shake'"),
     ("physics", "head_period"): (lambda c: c.physics.head_motion == "shake",

@@ -178,6 +178,11 @@ class Integrator:
         self.run_config = config
         self.start_config = config.start_config() if config.time.start_increment_tol is not None else None
         self._use(config)
+        # time.jolt_above: the head's jolts measured at its farthest root (all ranks')
+        self.jolt_reach = None
+        if config.time.jolt_above is not None and head.kind != "static":
+            reach = np.linalg.norm(scene.x_rest[scene.pinned] - head.center, axis=1)
+            self.jolt_reach = float(global_reduce(comm, [reach.max(initial=0.0)], "max")[0])
         # the start frames' -ksp_rtol: a converging Newton's default unless the options set one
         given = solver.rtol != float(solver.plan.ksp_rtol)
         self._rtols = (solver.rtol, solver.rtol if given else float(default_ksp_rtol(True)))
@@ -252,6 +257,7 @@ class Integrator:
         self.length_projection_move = []    # per frame: time.length_projection's largest move / wisp length
         self._projection_move = 0.0
         self.newton_start = []          # per frame: run to time.start_increment_tol (a start frame)
+        self.newton_jolt = []           # per frame: run to it for a head jolt (time.jolt_above)
 
     def _use(self, config):
         """Run the next frames with ``config`` (the run's or its start frames'): it and the
@@ -349,14 +355,18 @@ class Integrator:
         step cutback when a tolerance is set (:meth:`_advance`).  Per frame: the Newton
         iterations of every attempt, the substeps kept, whether all of them converged
         and their largest final increment.  The first ``time.start_frames`` frames run
-        with the start configuration when ``time.start_increment_tol`` is set."""
+        with the start configuration when ``time.start_increment_tol`` is set, and so do
+        later frames where the head jolts (``time.jolt_above``, :meth:`_jolt`)."""
         start = self.start_config is not None and self.frame < self.run_config.time.start_frames
+        jolt = self.start_config is not None and not start and self._jolt() is not None
         self.newton_start.append(start)
-        if not start:
+        self.newton_jolt.append(jolt)
+        if not (start or jolt):
             self._frame()
             return
         if self.monitor is not None:
-            self._say(f"  frame {self.frame}: a start frame, to time.start_increment_tol = "
+            why = (f"a head jolt ({self._jolt():.4g} cm/s^2 > time.jolt_above)" if jolt else "a start frame")
+            self._say(f"  frame {self.frame}: {why}, to time.start_increment_tol = "
                       f"{self.run_config.time.start_increment_tol:g} on the converging path")
         self._use(self.start_config)
         self.solver.set_rtol(self._rtols[1])
@@ -365,6 +375,18 @@ class Integrator:
         finally:
             self._use(self.run_config)
             self.solver.set_rtol(self._rtols[0])
+
+    def _jolt(self):
+        """The largest change of the head's acceleration at its farthest root (cm/s^2,
+        :meth:`HeadMotion.jolt`) into this frame or the ``time.jolt_frames - 1`` before it
+        when it is above ``time.jolt_above``, else None (also without the key or with a
+        static head)."""
+        if self.jolt_reach is None:
+            return None
+        t = self.run_config.time
+        change = max(self.head.jolt(t.dt, f, self.jolt_reach)
+                     for f in range(self.frame - t.jolt_frames + 1, self.frame + 1))
+        return change if change > t.jolt_above else None
 
     def _frame(self):
         """:meth:`step` with the configuration in use."""

@@ -216,6 +216,8 @@ class Simulator:
             "newton_converged": list(self.integrator.newton_converged),
             # per frame: a start frame run to time.start_increment_tol (newton_converged: whether it did)
             "newton_start": list(self.integrator.newton_start),
+            # per frame: a later frame run to it because the head jolted (time.jolt_above)
+            "newton_jolt": list(self.integrator.newton_jolt),
             "newton_increment": [None if not np.isfinite(v) else float(v)
                                  for v in self.integrator.newton_increment],
             "newton_unconfirmed": list(self.integrator.newton_unconfirmed),

@@ -183,7 +183,8 @@ def format_report(s) -> str:
     conv_frames = [c for c in s.get("newton_converged", []) if c is not None]
     incs = [v for v in s.get("newton_increment", []) if v is not None]
     if conv_frames:
-        which = ("the start frames' time.start_increment_tol" if any(s.get("newton_start", []))
+        which = ("the start and jolt frames' time.start_increment_tol" if any(s.get("newton_jolt", []))
+                 else "the start frames' time.start_increment_tol" if any(s.get("newton_start", []))
                  else "time.newton_increment_tol / newton_tol")
         lines.append(f"  Newton converged ({which}) in {sum(conv_frames)} of {len(conv_frames)} frames")
     refused = sum(s.get("newton_verify_refused", []))

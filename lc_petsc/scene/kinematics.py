@@ -114,6 +114,24 @@ class HeadMotion:
                 break
         return float(np.degrees(np.arccos(np.clip(best, -1.0, 1.0)))), where
 
+    def jolt(self, dt, frame, reach):
+        """How much the head's acceleration changes from frame ``frame - 1`` to frame
+        ``frame`` (cm/s^2; frame k is the step from k dt to (k + 1) dt): the third difference
+        of its motion over the times (frame - 2 .. frame + 1) dt, at rest before t = 0 (a
+        run starts at rest), divided by dt^2, at its largest over the points at distance
+        ``reach`` (cm) from the centre (a bound: the translation's plus ``reach`` times the
+        rotation's spectral norm).  A pure function of the scene's motion: the same on
+        every rank and after a restart.  Frames 0 and 1 of a moving head and the frames
+        at and after a shake's change of axis are its jolts (docs/newton.md, "Twenty-third
+        round")."""
+        times = [max(frame + j, 0) * float(dt) for j in (-2, -1, 0, 1)]
+        motions = [self._transform(t) for t in times]
+        weights = (-1.0, 3.0, -3.0, 1.0)
+        d3_rot = sum(w * R for w, (R, _) in zip(weights, motions))
+        d3_shift = sum(w * T for w, (_, T) in zip(weights, motions))
+        change = np.linalg.norm(d3_shift) + float(reach) * np.linalg.norm(d3_rot, 2)
+        return float(change) / float(dt) ** 2
+
     def pinned_positions(self, x_rest, t):
         """Positions (n, 3) of pinned vertices at rest positions ``x_rest`` carried by the head to time ``t``."""
         R, T = self.transform(t)

@@ -59,6 +59,9 @@ class Settings:
     start_increment_tol: Optional[float] = TimeConfig.start_increment_tol
     start_frames: int = TimeConfig.start_frames
     start_iterations: int = TimeConfig.start_iterations
+    # later frames where the head jolts by more than this (cm/s^2) like the start frames (None: off)
+    jolt_above: Optional[float] = TimeConfig.jolt_above
+    jolt_frames: int = TimeConfig.jolt_frames
     exact_fallback: str = SolverConfig.exact_fallback   # with exact_or_analytic only
     exact_stay: bool = SolverConfig.exact_stay
     wisp_trust: bool = SolverConfig.wisp_trust      # with the shifted fallback only
@@ -100,6 +103,8 @@ class Settings:
             parts.append(f"extend>{self.newton_extend_above:g} cap {self.newton_extend_cap}")
         if self.start_increment_tol is not None:
             parts.append(f"start {self.start_frames} to {self.start_increment_tol:g} cap {self.start_iterations}")
+        if self.jolt_above is not None:
+            parts.append(f"jolts>{self.jolt_above:g} x{self.jolt_frames}")
         if self.exact_fallback != SolverConfig.exact_fallback:
             parts.append(f"{self.exact_fallback} fallback")
         if self.exact_stay:
@@ -312,6 +317,8 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.start_increment_tol = s.start_increment_tol
     cfg.time.start_frames = s.start_frames
     cfg.time.start_iterations = s.start_iterations
+    cfg.time.jolt_above = s.jolt_above
+    cfg.time.jolt_frames = s.jolt_frames
     cfg.solver.filter = s.filter
     cfg.solver.exact_fallback = s.exact_fallback
     cfg.solver.exact_stay = s.exact_stay

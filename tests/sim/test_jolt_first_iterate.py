@@ -8,41 +8,26 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
+from test_newton_convergence import _summary
+from test_wisp_trust import _hairball10
+
 from lc_petsc.config import load_config
 from lc_petsc.errors import ConfigError
 from lc_petsc.scene.kinematics import HeadMotion
-from lc_petsc.simulator import build_simulator
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 def _shaken_hairball10(jolt, frames=10):
-    """configs/hairball_demo.toml cut to 10 wisps without strand contact (hairball10 of
-    docs/newton.md), its shake shortened to a period of 0.3 s at amplitude 0.15 rad (the
-    demo's angular speed; the head changes axis at t = 0.3 s, frame 9), to 1e-6 on the
-    recommended path with ``solver.wisp_trust`` and the chord stop, inertial first iterate,
-    no cutback."""
-    cfg = load_config(CONFIGS / "hairball_demo.toml")
-    cfg.scene.n_wisps = 10
-    cfg.physics.terms = tuple(t for t in cfg.physics.terms if t != "strand_collision")
+    """hairball10 of test_wisp_trust (configs/hairball_demo.toml cut to 10 wisps without
+    strand contact, to 1e-6 on the recommended path with ``solver.wisp_trust``, inertial
+    first iterate, no cutback) with the chord stop, ``frames`` frames and its shake
+    shortened to a period of 0.3 s at amplitude 0.15 rad (the demo's angular speed; the
+    head changes axis at t = 0.3 s, frame 9)."""
+    cfg = _hairball10()
     cfg.physics.head_period, cfg.physics.head_amplitude = 0.3, 0.15
-    cfg.time.initial_guess, cfg.time.length_projection = "inertial", False
-    cfg.time.frames, cfg.time.max_substeps, cfg.time.newton_iterations = frames, 1, 30
-    cfg.time.newton_increment_tol, cfg.time.newton_stop = 1e-6, "chord_estimate"
-    cfg.solver.filter, cfg.time.newton_update = "exact_or_analytic", "corotational"
-    cfg.solver.exact_fallback, cfg.solver.exact_stay, cfg.solver.wisp_trust = "shifted", True, True
-    cfg.time.jolt_first_iterate = jolt
-    cfg.output.usd = False
+    cfg.time.frames, cfg.time.newton_stop, cfg.time.jolt_first_iterate = frames, "chord_estimate", jolt
     return cfg.validate()
-
-
-def _run(cfg, comm):
-    sim = build_simulator(cfg, comm)
-    try:
-        sim.run()
-        return sim.summary()
-    finally:
-        sim.close()
 
 
 @pytest.mark.mpi
@@ -53,7 +38,7 @@ def test_the_change_of_axis_converges_in_fewer_iterations_the_same_on_any_rank_c
     dt, the run takes fewer iterations in all (110 against 114), and the counts are the
     same on 1, 2 and 3 ranks."""
     comm = MPI.COMM_WORLD
-    old, new = _run(_shaken_hairball10(False), comm), _run(_shaken_hairball10(True), comm)
+    old, new = _summary(_shaken_hairball10(False)), _summary(_shaken_hairball10(True))
     for s in (old, new):
         assert all(s["newton_converged"]) and s["newton_substeps"] == [1] * 10
     assert new["newton_jolt_starts"] == [1] + [0] * 8 + [1] and old["newton_jolt_starts"] == [0] * 10

@@ -392,7 +392,11 @@ class TimeConfig:
     that contract, once a solve with the last exact matrix from the new iterate (a chord
     step) moves no vertex by the tolerance.
     ``newton_update``, ``initial_guess``, ``carry_with_head`` (the first iterate follows
-    the head's change of motion over the step) and
+    the head's change of motion over the step), ``jolt_first_iterate`` (a step across a
+    jump of the head's velocity, the start from rest and each change of axis of the
+    unsmoothed shake, starts from the start's first iterate: the head's change of motion
+    carried near the roots only, then follow-the-leader; summary ``newton_jolt_starts``
+    per frame; docs/newton.md "The head's jolts' first iterate") and
     ``length_projection`` (final positions onto the rest edge lengths) and ``newton``
     (``"filtered"`` steps or ``"trust_region"`` on the exact Hessian): see
     lc_petsc/integrator.py, lc_petsc/trust_region.py and docs/newton.md.
@@ -433,6 +437,7 @@ class TimeConfig:
     line_search: bool = False
     initial_guess: str = "inertial"
     carry_with_head: bool = True
+    jolt_first_iterate: bool = False
     newton_update: str = "edge_retraction"
     newton: str = "filtered"
     newton_stop: str = "increment"
@@ -503,6 +508,9 @@ class TimeConfig:
         if not isinstance(self.carry_with_head, bool):
             raise ConfigError(f"time.carry_with_head must be true or false, "
                               f"got {self.carry_with_head!r}")
+        if not isinstance(self.jolt_first_iterate, bool):
+            raise ConfigError(f"time.jolt_first_iterate must be true or false, "
+                              f"got {self.jolt_first_iterate!r}")
         if not isinstance(self.length_projection, bool):
             raise ConfigError(f"time.length_projection must be true or false, "
                               f"got {self.length_projection!r}")

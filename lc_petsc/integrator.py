@@ -225,6 +225,7 @@ class Integrator:
         self.newton_coupled_unknown = []    # coupled-saddle checks whose Lanczos did not converge
         self.root_turns_reduced = []    # wisps whose root turn raised their share of G (RootRotation.step)
         self.newton_extend_capped = []  # solves time.newton_extend_cap ended above newton_extend_above
+        self.newton_jolt_starts = []    # steps started from time.jolt_first_iterate's first iterate
         self._counts = dict.fromkeys(FRAME_COUNTS, 0)   # the frame's so far
         self.verifications = []         # every verification: (frame, iteration, verdict, step length)
         self._saddle_wisps = []         # the last saddle's wisps (the scene's numbers; for the monitor)
@@ -484,7 +485,9 @@ class Integrator:
 
     def _first_iterate(self, dt, t_next):
         """The step's set-up and Newton's first iterate: pinned vertices at ``t_next``,
-        the head's carry, follow-the-leader, in ccd mode no crossing on the path from
+        the head's carry, follow-the-leader (with ``time.jolt_first_iterate``, at a jump
+        of the head's velocity in the step: the carry near the roots only, as at the
+        start from rest, then follow-the-leader), in ccd mode no crossing on the path from
         x_n.  Returns (x_n, the first iterate, the head's rigid motion over the step)."""
         cfg, sc = self.cfg, self.scene
         self.dt = dt
@@ -496,12 +499,15 @@ class Integrator:
         pin = ~self.free
         if pin.any():
             x[pin] = self.head.pinned_positions(sc.x_rest[pin], self.t_next)
+        # time.jolt_first_iterate: at a jump of the head's velocity the start's first iterate
+        jolt = cfg.time.jolt_first_iterate and self.head.velocity_jumps(self.t, t_next)
+        self._counts["newton_jolt_starts"] += jolt
         if self.carried is not None:
             change = head_motion_change(self.head, x_old[self.carried], self.t, dt, t_next)
-            if self.t == 0.0:       # the start from rest: a velocity jump, felt near the roots
+            if self.t == 0.0 or jolt:   # a velocity jump (the start from rest): felt near the roots
                 change *= self.start_weight[self.carried, None]
             x[self.carried] += change
-        if cfg.time.initial_guess == "follow_the_leader":
+        if cfg.time.initial_guess == "follow_the_leader" or jolt:
             x = follow_the_leader(x, self.free, sc.offsets, self.rest_edge)
         # the head's rigid motion over the step: the limiter's field on the frame paths
         motion = self.head.rigid_motion(self.t, self.t_next)
@@ -1524,7 +1530,8 @@ class Integrator:
 VERIFY_FROM = 1e-3
 #: the per-frame counts of the stop's checks (Integrator attributes, summary.json keys)
 FRAME_COUNTS = ("newton_verified", "newton_verify_refused", "newton_stops_refused",
-                "newton_coupled_unknown", "root_turns_reduced", "newton_extend_capped")
+                "newton_coupled_unknown", "root_turns_reduced", "newton_extend_capped",
+                "newton_jolt_starts")
 
 
 #: ``solver.exact_fallback = "shifted"``: the shifts tau of the exact Hessian + tau M/dt^2

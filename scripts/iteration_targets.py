@@ -10,7 +10,8 @@ config file; each runs its config's frames unless --frames.  Paths: SPEC as in
 scripts/newton_history.py ("" keeps the config's own solver settings); by default main's
 recommended path for a tolerance and the opt-ins solver.wisp_trust +
 time.newton_stop = "chord_estimate", with the inertial and the follow-the-leader first
-iterate.  Prints per scene and path the iterations per frame, the median over all frames
+iterate, and with the inertial one and time.jolt_first_iterate (the start's first iterate
+at each jump of the head's velocity).  Prints per scene and path the iterations per frame, the median over all frames
 and over the first 30, the worst frame, the total, the frames converged and cut back,
 the chord checks and the CPU seconds of the steps (summed over the ranks);
 with --check-every K, every K-th frame (and the worst) is solved again from the run's own
@@ -40,6 +41,7 @@ DEFAULT_PATHS = [
     f"recommended={RECOMMENDED}",
     f"trust+chord={RECOMMENDED},trust=1,stop=chord_estimate",
     f"trust+chord+ftl={RECOMMENDED},trust=1,stop=chord_estimate,guess=follow_the_leader",
+    f"trust+chord+jolt={RECOMMENDED},trust=1,stop=chord_estimate,jolt=1",
 ]
 
 

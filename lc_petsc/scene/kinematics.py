@@ -79,6 +79,24 @@ class HeadMotion:
         peak = 3.0 * np.pi / SMOOTH_PEAK if self.smooth else 2.0 * np.pi
         return peak * abs(self.amplitude) / self.period
 
+    def velocity_jumps(self, t0, t1):
+        """Whether the head's velocity jumps at a time in [t0, t1) (the times taken to
+        round-off: a millionth of the step): the start from rest at t = 0 of a head that
+        moves at once (``shake`` without ``smooth``, ``translate`` with a velocity) and
+        each change of axis of a ``shake`` without ``smooth`` (t = k ``period``: its
+        angular velocity turns by 90 degrees).  A ``smooth`` shake starts and changes
+        axis at rest and a static head never moves: never.  A pure function of the
+        scene's motion (the same on every rank and after a restart);
+        ``time.jolt_first_iterate`` (lc_petsc/predictors.py)."""
+        slack = 1e-6 * (float(t1) - float(t0))
+        if self.kind == "translate":
+            jump_times = [0.0] if np.any(self.velocity != 0.0) else []
+        elif self.kind == "shake" and not self.smooth and self.amplitude != 0.0:
+            jump_times = [np.ceil((float(t0) - slack) / self.period) * self.period]
+        else:
+            jump_times = []
+        return any(t0 - slack <= s < t1 - slack for s in jump_times)
+
     def _rotations(self, t):
         """The rotations (n, 3, 3) of :meth:`transform` at the times ``t`` (n,), shake only."""
         k = np.floor(t / self.period)

@@ -36,6 +36,7 @@ VARIANT_KEYS: dict[str, tuple[str, str, Callable[[str], Any]]] = {
     "stop": ("time", "newton_stop", str),
     "guess": ("time", "initial_guess", str),
     "carry": ("time", "carry_with_head", _flag),
+    "jolt": ("time", "jolt_first_iterate", _flag),
     "update": ("time", "newton_update", str),
     "newton": ("time", "newton", str),
     "ls": ("time", "line_search", _flag),

@@ -15,7 +15,7 @@ from sim_helpers import hairball_toml
 
 #: the converging path's keys, dotted: with strand contact the first four
 PATH_KEYS = ["solver.filter", "solver.exact_fallback", "solver.exact_stay", "time.newton_update",
-             "solver.wisp_trust", "time.newton_stop"]
+             "solver.wisp_trust", "time.newton_stop", "time.jolt_first_iterate"]
 CONTACT_KEYS = PATH_KEYS[:4]
 
 
@@ -25,7 +25,8 @@ def resolved(cfg):
 
 OLD = resolved(SimConfig())
 NEW = {"solver.filter": "exact_or_analytic", "solver.exact_fallback": "shifted", "solver.exact_stay": True,
-       "time.newton_update": "corotational", "solver.wisp_trust": True, "time.newton_stop": "chord_estimate"}
+       "time.newton_update": "corotational", "solver.wisp_trust": True, "time.newton_stop": "chord_estimate",
+       "time.jolt_first_iterate": True}
 
 
 def test_a_tolerance_without_a_filter_resolves_to_the_converging_path():
@@ -35,11 +36,13 @@ def test_a_tolerance_without_a_filter_resolves_to_the_converging_path():
     # the chord stop estimates the relative increment: not with newton_tol
     cfg = config_from_dict({"time": {"newton_tol": 1e-5}})
     assert resolved(cfg) == {**NEW, "time.newton_stop": "increment"}
-    assert list(cfg.solver_path_defaulted) == PATH_KEYS[:5]
-    # strand contact refuses wisp_trust and chord_estimate: the first four
+    assert list(cfg.solver_path_defaulted) == PATH_KEYS[:5] + PATH_KEYS[6:]
+    # strand contact: the first four (it refuses wisp_trust and chord_estimate; the jolt's
+    # first iterate was not measured with it)
     cfg = config_from_dict({"time": {"newton_increment_tol": 1e-4},
                             "physics": {"terms": ["stretch", "bend", "gravity", "strand_collision"]}})
-    assert resolved(cfg) == {**NEW, "solver.wisp_trust": False, "time.newton_stop": "increment"}
+    assert resolved(cfg) == {**NEW, "solver.wisp_trust": False, "time.newton_stop": "increment",
+                             "time.jolt_first_iterate": False}
     assert list(cfg.solver_path_defaulted) == CONTACT_KEYS
 
 
@@ -54,7 +57,8 @@ def test_keys_the_file_sets_keep_their_values():
     # (wisp_trust carries the shifted fallback's shifts: not with the analytic one)
     assert resolved(cfg) == {**NEW, "time.newton_update": "edge_retraction", "solver.exact_fallback": "analytic",
                              "solver.wisp_trust": False}
-    assert cfg.solver_path_defaulted == ("solver.filter", "solver.exact_stay", "time.newton_stop")
+    assert cfg.solver_path_defaulted == ("solver.filter", "solver.exact_stay", "time.newton_stop",
+                                         "time.jolt_first_iterate")
     cfg = config_from_dict({"time": {"newton_increment_tol": 1e-6, "newton_stop": "increment"},
                             "solver": {"wisp_trust": False}})
     assert resolved(cfg) == {**NEW, "time.newton_stop": "increment", "solver.wisp_trust": False}
@@ -126,9 +130,10 @@ def test_the_refusal_names_the_keys_and_the_values_the_checkpoint_ran_with(tmp_p
     err = capsys.readouterr().err
     assert code != 0
     assert ("this config leaves solver.filter, solver.exact_fallback, solver.exact_stay, time.newton_update, "
-            "solver.wisp_trust, time.newton_stop unset, which with a tolerance now selects the converging path") \
+            "solver.wisp_trust, time.newton_stop, time.jolt_first_iterate unset, which with a tolerance now selects "
+            "the converging path") \
         in err, err
     assert ('the checkpoint ran with solver.filter = "analytic", solver.exact_fallback = "analytic", '
             'solver.exact_stay = false, time.newton_update = "edge_retraction", solver.wisp_trust = false, '
-            'time.newton_stop = "increment": set that in the config') in err, err
+            'time.newton_stop = "increment", time.jolt_first_iterate = false: set that in the config') in err, err
     assert "solver_path_defaulted" not in err       # a record, not a key of the config

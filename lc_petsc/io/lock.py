@@ -105,7 +105,7 @@ class OutputLock:
         for _ in range(100):
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                _lock_past_probes(fd)
             except BlockingIOError:
                 text = _read(fd)
                 os.close(fd)
@@ -216,14 +216,40 @@ class OutputLock:
         self.release()
 
 
+#: how long a run waits for :func:`probe`s (shared flocks, held for microseconds) to let go
+#: before it takes the folder for busy (a run holds the lock exclusively)
+PROBE_WAIT_S = 2.0
+
+
+def _lock_past_probes(fd):
+    """Lock ``fd`` exclusively, waiting up to :data:`PROBE_WAIT_S` while only shared
+    locks (:func:`probe`s of scripts/check_outputs.py, join_summaries.py) are in the
+    way; raises BlockingIOError at once when an exclusive holder (a run) has it."""
+    deadline = time.monotonic() + PROBE_WAIT_S
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            # a shared lock granted now means no run holds the file: a probe's is in the way
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise BlockingIOError("held by a run") from None
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            if time.monotonic() > deadline:
+                raise BlockingIOError("held by probes") from None
+            time.sleep(0.005)
+
+
 def probe(folder):
     """A look at the lock of ``folder`` that changes nothing: (state, record).  state:
     ``absent`` (no lock file), ``held`` (a live process holds the flock: a run is going)
     or ``free`` (the file is there and unlocked: its run ended without removing it,
     killed unless its record says ``ended``; the test :meth:`OutputLock.acquire` makes
     for :attr:`OutputLock.stale`).  record: :func:`read_record` of the file's text.
-    The flock is tried shared and dropped at once; a run starting in that instant is
-    refused as if the folder were busy (run it again).  Whether a run on another host
+    The flock is tried shared and dropped at once; a run starting in that instant waits
+    for it (:func:`_lock_past_probes`).  Whether a run on another host
     shows as ``held`` depends on the filesystem (NFS passes flocks between hosts, a
     ``local_lock`` mount does not): the caller compares ``record["host"]``."""
     try:

@@ -22,6 +22,7 @@ from lc_petsc.batch import EXIT_PREEMPTED, main
 from lc_petsc.integrator import Integrator
 from lc_petsc.io.disk import RESERVE
 from lc_petsc.io.frames import frame_bytes
+from lc_petsc.errors import FolderBusy
 from lc_petsc.io.lock import LOCK_NAME, OutputLock
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -96,6 +97,39 @@ def test_second_run_into_a_busy_folder_is_refused_and_changes_nothing(tmp_path, 
     after = _snapshot(out)
     assert after == before, "the refused runs changed the folder"
     assert not (out / LOCK_NAME).exists()
+
+
+def test_a_probe_of_the_lock_does_not_refuse_a_run_starting(tmp_path):
+    """scripts/check_outputs.py and join_summaries.py look at the lock with a shared flock
+    (lc_petsc.io.lock.probe); a run starting while one is held waits for it instead of
+    taking the folder for busy (before: FolderBusy). Another process holds a shared flock
+    for 0.3 s, as a probe would for two system calls; an exclusive one is still refused."""
+    folder = tmp_path / "out"
+    folder.mkdir()
+    (folder / LOCK_NAME).write_text("")
+    hold = ("import fcntl, os, sys, time; fd = os.open(sys.argv[1], os.O_RDONLY); "
+            "fcntl.flock(fd, fcntl.{} | fcntl.LOCK_NB); print('held', flush=True); time.sleep(float(sys.argv[2]))")
+    prober = subprocess.Popen([sys.executable, "-c", hold.format("LOCK_SH"), str(folder / LOCK_NAME), "0.3"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert prober.stdout.readline().strip() == "held"
+        lock = OutputLock(folder).acquire()
+        assert prober.poll() is not None, "the run took the lock while the probe's shared flock was held"
+        lock.release()
+    finally:
+        prober.wait()
+    (folder / LOCK_NAME).write_text("")
+    holder = subprocess.Popen([sys.executable, "-c", hold.format("LOCK_EX"), str(folder / LOCK_NAME), "30"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        start = time.monotonic()
+        with pytest.raises(FolderBusy, match="in use by another run"):
+            OutputLock(folder).acquire()
+        assert time.monotonic() - start < 1.0      # a run's lock is refused at once, no probe wait
+    finally:
+        holder.kill()
+        holder.wait()
 
 
 def test_two_runs_started_one_after_the_other(tmp_path, capsys):

@@ -15,7 +15,7 @@ from typing import Any, Optional
 import numpy as np
 from petsc4py import PETSc
 
-from lc_petsc.config import SolverConfig, TimeConfig
+from lc_petsc.config import SolverConfig, TimeConfig, without_tolerance_defaults
 from lc_petsc.errors import ConfigError, SimulationError, SolverError
 from lc_petsc.parallel import global_max
 from lc_petsc.simulator import build_simulator
@@ -296,8 +296,11 @@ def reference_fallback(ref: Settings) -> Settings:
 
 
 def configure(base_cfg, s: Settings, duration):
-    """A copy of ``base_cfg`` running ``duration`` seconds with the settings ``s``."""
-    cfg = copy.deepcopy(base_cfg)
+    """A copy of ``base_cfg`` running ``duration`` seconds with the settings ``s`` (a
+    file's tolerance's defaults dropped first, :func:`without_tolerance_defaults`: the
+    settings name the path, and ``time.newton_stop``, which they do not hold, stays as the
+    file set it)."""
+    cfg = without_tolerance_defaults(copy.deepcopy(base_cfg))
     cfg.time.dt = s.dt
     cfg.time.frames = int(round(duration / s.dt))
     cfg.time.newton_iterations = s.newton_iterations

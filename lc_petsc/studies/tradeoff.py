@@ -231,7 +231,9 @@ def configured_settings(cfg, options=""):
                     carry_with_head=t.carry_with_head, newton_increment_tol=t.newton_increment_tol,
                     length_projection=t.length_projection, max_substeps=t.max_substeps, newton=t.newton,
                     root_rotation=t.root_rotation, newton_extend_above=t.newton_extend_above,
-                    newton_extend_cap=t.newton_extend_cap, exact_fallback=cfg.solver.exact_fallback,
+                    newton_extend_cap=t.newton_extend_cap, start_increment_tol=t.start_increment_tol,
+                    start_frames=t.start_frames, start_iterations=t.start_iterations, jolt_above=t.jolt_above,
+                    jolt_frames=t.jolt_frames, exact_fallback=cfg.solver.exact_fallback,
                     exact_stay=cfg.solver.exact_stay, wisp_trust=cfg.solver.wisp_trust)
 
 

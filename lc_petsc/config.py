@@ -976,7 +976,8 @@ def without_tolerance_defaults(cfg: SimConfig) -> SimConfig:
     tradeoff.py ``configure``).  Otherwise the file's tolerance's defaults stayed in every
     variant: ``time.newton_stop = "chord_estimate"`` refused a fixed count or a named
     analytic filter, so such a file's study stopped on a ConfigError.  Returns ``cfg``."""
-    for name in cfg.solver_path_defaulted:
+    names: tuple[str, ...] = cfg.solver_path_defaulted
+    for name in names:
         table, key = name.split(".")
         setattr(getattr(cfg, table), key, getattr(type(getattr(cfg, table))(), key))
     cfg.solver_path_defaulted = ()

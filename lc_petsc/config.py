@@ -969,6 +969,21 @@ def tolerance_defaults(cfg: SimConfig, given) -> tuple:
     return tuple(out)
 
 
+def without_tolerance_defaults(cfg: SimConfig) -> SimConfig:
+    """``cfg`` with the keys :func:`tolerance_defaults` resolved (``solver_path_defaulted``)
+    back at their dataclass defaults, in place: for a study that sets its own tolerance or
+    fixed count and Newton path on a config file's scene (lc_petsc/studies/newton.py and
+    tradeoff.py ``configure``).  Otherwise the file's tolerance's defaults stayed in every
+    variant: ``time.newton_stop = "chord_estimate"`` refused a fixed count or a named
+    analytic filter, so such a file's study stopped on a ConfigError.  Returns ``cfg``."""
+    names: tuple[str, ...] = cfg.solver_path_defaulted
+    for name in names:
+        table, key = name.split(".")
+        setattr(getattr(cfg, table), key, getattr(type(getattr(cfg, table))(), key))
+    cfg.solver_path_defaulted = ()
+    return cfg
+
+
 #: keys that only act for some settings: (table, key) -> (predicate on the config, when)
 _CONDITIONAL_KEYS = {
     ("scene", "n_wisps"): (lambda c: c.scene.kind == "hairball", "scene.kind = 'hairball'"),

@@ -722,11 +722,24 @@ class StrandContact:
             (P,), Prest, gv, wisp, free, owner, n_local = self._gather_segments(x)
             ij = self.candidates(P, wisp, n_local, self.d0, **self.self_pairs(len(P)))
             i, j = ij[:, 0], ij[:, 1]
+            if self.mode != "ccd":      # penalty mode has no limiter: its broad phase's work
+                self._count_work(wisp, i, j, n_local)
             swap = gv[i] > gv[j]
             i, j = np.where(swap, j, i), np.where(swap, i, j)
             out, far_min = self._close_pairs(P, Prest, gv, free, owner, i, j, None, far)
         self._pairs_cache = (x.copy(), out, far_min)
         return (out, far_min) if far else out
+
+    def _count_work(self, wisp, i, j, n_local):
+        """``-lc_contact_work balanced``: add a broad phase's work to :attr:`wisp_work`,
+        its candidate pairs (i, j) (each its lower wisp's, see :meth:`start_frame`) and
+        its n_local segments, at :data:`SEGMENT_WORK` pairs each (``wisp``: the wisp of
+        each gathered segment).  ccd mode counts the limiter's broad phases, penalty mode
+        the pairs' (it has no limiter: on main a83e279 it counted nothing, and ``balanced``
+        ran the owner rule)."""
+        if self.work == "balanced":
+            self.wisp_work += np.bincount(np.minimum(wisp[i], wisp[j]), minlength=self.n_wisps_global)
+            self.wisp_work += SEGMENT_WORK * np.bincount(wisp[:n_local], minlength=self.n_wisps_global)
 
     def _close_pairs(self, P, Prest, gv, free, owner, i, j, d, far):
         """(the :meth:`_pairs` tuple, far_min) of the candidates (i, j) (gv[i] < gv[j]) of
@@ -944,11 +957,7 @@ class StrandContact:
         shrink = 0.5 * (reach - md) / (1.0 - L) * (1.0 - 1e-9)
         ci, cj, keep, dist = compiled_ccd.order_candidates(ij, n_local, gv, PB[:, 0], PB[:, 1], shrink, free,
                                                            hulls=hulls)
-        if self.work == "balanced":
-            # the broad phase's work: its pairs (each its lower wisp's, see start_frame),
-            # and its segments, at SEGMENT_WORK pairs each
-            self.wisp_work += np.bincount(np.minimum(wisp[ci], wisp[cj]), minlength=self.n_wisps_global)
-            self.wisp_work += SEGMENT_WORK * np.bincount(wisp[:n_local], minlength=self.n_wisps_global)
+        self._count_work(wisp, ci, cj, n_local)
         # the segments' vertices: V sorted global vertices, sv (m, 2) their index in V;
         # the kept pairs (i, j) and their points inv (k, 4) in V
         V, sv = compiled_ccd.segment_vertices(gv)

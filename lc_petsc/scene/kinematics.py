@@ -87,7 +87,11 @@ class HeadMotion:
         angular velocity turns by 90 degrees).  A ``smooth`` shake starts and changes
         axis at rest and a static head never moves: never.  A pure function of the
         scene's motion (the same on every rank and after a restart);
-        ``time.jolt_first_iterate`` (lc_petsc/predictors.py)."""
+        ``time.jolt_first_iterate`` (``Integrator._first_iterate``, with the start's
+        weights of lc_petsc/predictors.py ``start_carry_weight``).  Not :meth:`jolt` (a
+        change of acceleration above ``time.jolt_above``, which also finds a smooth shake's
+        changes of axis): at those the velocity is continuous and the carried first
+        iterate did as well (docs/newton.md "The head's jolts' first iterate", review60)."""
         slack = 1e-6 * (float(t1) - float(t0))
         if self.kind == "translate":
             jump_times = [0.0] if np.any(self.velocity != 0.0) else []

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lc_petsc.config import without_tolerance_defaults
 from lc_petsc.simulator import build_simulator
 from lc_petsc.studies import report
 
@@ -60,8 +61,9 @@ def parse_variant(text):
 
 def configure(base_cfg, variant: dict, iterations, frames):
     """A copy of ``base_cfg`` with the variant applied, ``iterations`` Newton iterations
-    and no tolerance (every iteration is recorded)."""
-    cfg = copy.deepcopy(base_cfg)
+    and no tolerance (every iteration is recorded): a file's tolerance's defaults are
+    dropped with it (:func:`without_tolerance_defaults`)."""
+    cfg = without_tolerance_defaults(copy.deepcopy(base_cfg))
     cfg.time.frames = frames
     cfg.time.newton_iterations = iterations
     cfg.time.newton_tol = None

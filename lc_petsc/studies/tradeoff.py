@@ -15,7 +15,7 @@ from typing import Any, Optional
 import numpy as np
 from petsc4py import PETSc
 
-from lc_petsc.config import SolverConfig, TimeConfig
+from lc_petsc.config import SolverConfig, TimeConfig, without_tolerance_defaults
 from lc_petsc.errors import ConfigError, SimulationError, SolverError
 from lc_petsc.parallel import global_max
 from lc_petsc.simulator import build_simulator
@@ -231,7 +231,9 @@ def configured_settings(cfg, options=""):
                     carry_with_head=t.carry_with_head, newton_increment_tol=t.newton_increment_tol,
                     length_projection=t.length_projection, max_substeps=t.max_substeps, newton=t.newton,
                     root_rotation=t.root_rotation, newton_extend_above=t.newton_extend_above,
-                    newton_extend_cap=t.newton_extend_cap, exact_fallback=cfg.solver.exact_fallback,
+                    newton_extend_cap=t.newton_extend_cap, start_increment_tol=t.start_increment_tol,
+                    start_frames=t.start_frames, start_iterations=t.start_iterations, jolt_above=t.jolt_above,
+                    jolt_frames=t.jolt_frames, exact_fallback=cfg.solver.exact_fallback,
                     exact_stay=cfg.solver.exact_stay, wisp_trust=cfg.solver.wisp_trust)
 
 
@@ -296,8 +298,11 @@ def reference_fallback(ref: Settings) -> Settings:
 
 
 def configure(base_cfg, s: Settings, duration):
-    """A copy of ``base_cfg`` running ``duration`` seconds with the settings ``s``."""
-    cfg = copy.deepcopy(base_cfg)
+    """A copy of ``base_cfg`` running ``duration`` seconds with the settings ``s`` (a
+    file's tolerance's defaults dropped first, :func:`without_tolerance_defaults`: the
+    settings name the path, and ``time.newton_stop``, which they do not hold, stays as the
+    file set it)."""
+    cfg = without_tolerance_defaults(copy.deepcopy(base_cfg))
     cfg.time.dt = s.dt
     cfg.time.frames = int(round(duration / s.dt))
     cfg.time.newton_iterations = s.newton_iterations

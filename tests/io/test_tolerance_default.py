@@ -4,6 +4,7 @@ runs"); a file that names its filter, a fixed count and the trust region keep th
 defaults; a checkpoint that ran the old default is not continued on the new path."""
 
 import json
+from dataclasses import replace
 
 import h5py
 import numpy as np
@@ -137,3 +138,31 @@ def test_the_refusal_names_the_keys_and_the_values_the_checkpoint_ran_with(tmp_p
             'solver.exact_stay = false, time.newton_update = "edge_retraction", solver.wisp_trust = false, '
             'time.newton_stop = "increment", time.jolt_first_iterate = false: set that in the config') in err, err
     assert "solver_path_defaulted" not in err       # a record, not a key of the config
+
+
+def test_the_studies_that_set_their_own_path_drop_the_files_tolerance_defaults():
+    """scripts/newton_history.py (a fixed count) and drivers/tradeoff.py (the settings'
+    path) on a config file with a tolerance and no filter: the file's resolved
+    ``time.newton_stop = "chord_estimate"`` stayed in every variant and refused it (on
+    main: a ConfigError for each, the study stopped before running)."""
+    from lc_petsc.studies import newton, tradeoff
+    data = {"scene": {"kind": "hairball", "n_wisps": 2}, "time": {"newton_increment_tol": 1e-6},
+            "physics": {"head_motion": "shake"}}
+    cfg = config_from_dict(data)
+    assert resolved(cfg) == NEW
+    # the newton study's base is the paper's path at a fixed count, as without the tolerance
+    plain = config_from_dict({**data, "time": {}})
+    for spec in ("", "filter=analytic,update=linear"):
+        variant = newton.parse_variant(spec)
+        assert newton.configure(cfg, variant, 30, 3).to_dict() == newton.configure(plain, variant, 30, 3).to_dict()
+    assert resolved(newton.configure(cfg, {}, 30, 3)) == OLD
+    # the trade-off study runs its settings' path; the file keeps its resolved config
+    for settings in (tradeoff.BASE, replace(tradeoff.BASE, newton_increment_tol=1e-6)):
+        run = tradeoff.configure(cfg, settings, 0.1).validate()
+        assert (run.solver.filter, run.time.newton_stop, run.solver_path_defaulted) == ("analytic", "increment", ())
+    assert resolved(cfg) == NEW and list(cfg.solver_path_defaulted) == PATH_KEYS
+    # a newton_stop the file names stays
+    named = config_from_dict({**data, "time": {"newton_increment_tol": 1e-6, "newton_stop": "quadratic_estimate"}})
+    assert tradeoff.configure(named, replace(tradeoff.BASE, filter="exact_or_analytic",
+                                                       newton_increment_tol=1e-6), 0.1).validate().time.newton_stop \
+        == "quadratic_estimate"

@@ -571,3 +571,19 @@ def test_a_scene_file_with_the_extension_gets_a_converged_reference():
     rows = {n: s for a, n, s in default_variants(BASE, ["newton_extend"]) if a == "newton_extend"}
     assert {(s.root_rotation, s.newton_extend_above) for s in rows.values()} == \
         {(t, b) for t in (False, True) for b in (3e-2, 1e-2, 3e-3)} | {(True, None)}
+
+
+def test_a_scene_file_with_start_and_jolt_frames_runs_them_as_configured():
+    """The "as configured" row of a file that sets time.start_increment_tol and
+    time.jolt_above (Settings fields since they were added) keeps them: on main a83e279
+    configured_settings did not read them and the row ran the plain count."""
+    from lc_petsc.studies.tradeoff import configured_settings
+    cfg = small_hairball_config(n_wisps=2, start_increment_tol=1e-3, start_frames=3, start_iterations=20,
+                                jolt_above=50.0, jolt_frames=2)
+    mine = configured_settings(cfg)
+    assert (mine.start_increment_tol, mine.start_frames, mine.start_iterations, mine.jolt_above,
+            mine.jolt_frames) == (1e-3, 3, 20, 50.0, 2)
+    assert "start 3 to 0.001 cap 20" in mine.label() and "jolts>50 x2" in mine.label()
+    t = configure(small_hairball_config(n_wisps=2), mine, 0.1).validate().time
+    assert (t.start_increment_tol, t.start_frames, t.start_iterations, t.jolt_above, t.jolt_frames) == \
+        (1e-3, 3, 20, 50.0, 2)

@@ -937,8 +937,10 @@ TOLERANCE_PATH = {("solver", "filter"): "exact_or_analytic", ("solver", "exact_f
 #: (with the shifted fallback) and the chord stop (with ``newton_increment_tol`` alone),
 #: hairball10 30 frames at 1e-6: 202 iterations, worst frame 14, against 248 and 21, the
 #: same CPU; and the start's first iterate at a jump of the head's velocity, the demo
-#: without strand contact 90 frames: worst frame 15 against 17, median 6 (not measured
-#: with strand contact) (docs/newton.md "The default for tolerance runs")
+#: without strand contact 90 frames: worst frame 15 against 17, median 6; with strand
+#: contact it bought nothing measurable (the demo at 1e-4 on 1, 2 and 3 ranks: 2,879
+#: iterations against 2,728, the jumps' frames 252 against 248), so not there (docs/newton.md "The default for tolerance
+#: runs", "The jolts' first iterate with strand contact and at a fixed count")
 TOLERANCE_PATH_WITHOUT_STRAND_CONTACT = {("solver", "wisp_trust"): True, ("time", "newton_stop"): "chord_estimate",
                                          ("time", "jolt_first_iterate"): True}
 

@@ -62,6 +62,8 @@ class Settings:
     # later frames where the head jolts by more than this (cm/s^2) like the start frames (None: off)
     jolt_above: Optional[float] = TimeConfig.jolt_above
     jolt_frames: int = TimeConfig.jolt_frames
+    # a step across a jump of the head's velocity starts from the start's first iterate
+    jolt_first_iterate: bool = TimeConfig.jolt_first_iterate
     exact_fallback: str = SolverConfig.exact_fallback   # with exact_or_analytic only
     exact_stay: bool = SolverConfig.exact_stay
     wisp_trust: bool = SolverConfig.wisp_trust      # with the shifted fallback only
@@ -105,6 +107,8 @@ class Settings:
             parts.append(f"start {self.start_frames} to {self.start_increment_tol:g} cap {self.start_iterations}")
         if self.jolt_above is not None:
             parts.append(f"jolts>{self.jolt_above:g} x{self.jolt_frames}")
+        if self.jolt_first_iterate:
+            parts.append("jolt first iterate")
         if self.exact_fallback != SolverConfig.exact_fallback:
             parts.append(f"{self.exact_fallback} fallback")
         if self.exact_stay:
@@ -233,7 +237,8 @@ def configured_settings(cfg, options=""):
                     root_rotation=t.root_rotation, newton_extend_above=t.newton_extend_above,
                     newton_extend_cap=t.newton_extend_cap, start_increment_tol=t.start_increment_tol,
                     start_frames=t.start_frames, start_iterations=t.start_iterations, jolt_above=t.jolt_above,
-                    jolt_frames=t.jolt_frames, exact_fallback=cfg.solver.exact_fallback,
+                    jolt_frames=t.jolt_frames, jolt_first_iterate=t.jolt_first_iterate,
+                    exact_fallback=cfg.solver.exact_fallback,
                     exact_stay=cfg.solver.exact_stay, wisp_trust=cfg.solver.wisp_trust)
 
 
@@ -324,6 +329,7 @@ def configure(base_cfg, s: Settings, duration):
     cfg.time.start_iterations = s.start_iterations
     cfg.time.jolt_above = s.jolt_above
     cfg.time.jolt_frames = s.jolt_frames
+    cfg.time.jolt_first_iterate = s.jolt_first_iterate
     cfg.solver.filter = s.filter
     cfg.solver.exact_fallback = s.exact_fallback
     cfg.solver.exact_stay = s.exact_stay

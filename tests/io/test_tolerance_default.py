@@ -39,7 +39,7 @@ def test_a_tolerance_without_a_filter_resolves_to_the_converging_path():
     assert resolved(cfg) == {**NEW, "time.newton_stop": "increment"}
     assert list(cfg.solver_path_defaulted) == PATH_KEYS[:5] + PATH_KEYS[6:]
     # strand contact: the first four (it refuses wisp_trust and chord_estimate; the jolt's
-    # first iterate was not measured with it)
+    # first iterate bought nothing measurable with it, docs/newton.md)
     cfg = config_from_dict({"time": {"newton_increment_tol": 1e-4},
                             "physics": {"terms": ["stretch", "bend", "gravity", "strand_collision"]}})
     assert resolved(cfg) == {**NEW, "solver.wisp_trust": False, "time.newton_stop": "increment",

@@ -15,7 +15,7 @@ from lc_petsc.solver_plan import KSP_RTOL_CONVERGING, KSP_RTOL_FIXED_COUNT
 from lc_petsc.studies.tradeoff import (BASE, configure, default_variants, markdown, not_newtons_error,
                                       recommend, reference_settings, run_study, run_trajectory,
                                       tighter_reference)
-from sim_helpers import small_hairball_config
+from sim_helpers import jolt_hairball_config, small_hairball_config
 
 comm = MPI.COMM_WORLD
 
@@ -126,6 +126,34 @@ def test_the_study_sweeps_wisp_trust():
     runs = {s.wisp_trust: run_trajectory(smash(0.6), s, 3 / 30, 1 / 30, comm)[0] for s in (on, off)}
     assert [(runs[w]["status"], runs[w]["newton_total"], runs[w]["newton_substeps"]) for w in (True, False)] == \
         [("ok", 23, [1, 1, 1]), ("ok", 24, [1, 1, 1])]
+
+
+def test_the_study_sets_jolt_first_iterate():
+    """``time.jolt_first_iterate`` is a field of the study's Settings (main had none:
+    scripts/fixed_count_errors.py could not measure it on fixed-count runs): its label,
+    the run's config, the config file's own row.  3 wisps shaken with a period of 0.1 s
+    (the axis changes at t = 0.1 s, frame 3) at the fixed count: the steps of frames 0
+    and 3 start from the jolt's first iterate, the count stays 3 a frame, and frame 0
+    ends 0.26 cm (largest vertex) from where it ends without the option."""
+    from lc_petsc.simulator import build_simulator
+    from lc_petsc.studies.tradeoff import configured_settings
+    on = replace(BASE, jolt_first_iterate=True)
+    assert on.label().endswith(" jolt first iterate") and "jolt" not in BASE.label()
+    shaken = jolt_hairball_config(frames=4)
+    shaken.physics.head_period = 0.1
+    cfg = configure(shaken, on, 4 / 30).validate()
+    assert cfg.time.jolt_first_iterate and configured_settings(cfg) == on
+    summaries, firsts = {}, {}
+    for s in (on, BASE):
+        sim = build_simulator(configure(shaken, s, 4 / 30), comm)
+        sim.step()
+        firsts[s.jolt_first_iterate] = comm.bcast(sim.gather_positions())
+        sim.run(3)
+        summaries[s.jolt_first_iterate] = sim.summary()
+        sim.close()
+    assert summaries[True]["newton_jolt_starts"] == [1, 0, 0, 1] and summaries[False]["newton_jolt_starts"] == [0] * 4
+    assert summaries[True]["newton_iterations"] == summaries[False]["newton_iterations"] == [3] * 4
+    assert np.abs(firsts[True] - firsts[False]).max() > 0.1      # 0.26 cm
 
 
 def test_study_outputs_and_unstable_variant(tmp_path):

@@ -834,8 +834,10 @@ class Job:
         from lc_petsc.io.summary import earlier_summaries, set_summary_aside
         out, frame = self.out, self.restart["frame"]
 
+        failed = (self.lock_taken or {}).get("ended")     # the lock file said why its run ended
+
         def keep():
-            target, damaged = set_summary_aside(out)
+            target, damaged = set_summary_aside(out, failed)
             return target, damaged, earlier_summaries(out, frame)
         kept, problem = on_root(self.comm, keep)
         if problem is not None:

@@ -176,7 +176,7 @@ def join_history(out, retries=1):
         keys += [k for k in lists if k not in keys]
         columns.append(lists)
         digest = config_digest(s.get("config"))
-        described.append({"file": name, "status": run_status(s), "ranks": s.get("ranks"),
+        described.append({"file": name, "status": run_status(s), "ended": s.get("ended"), "ranks": s.get("ranks"),
                           "config_sha256": digest, "frames": frames, "frames_kept": kept})
         for f in range(kept[0] + 1, kept[1] + 1):
             per_frame["frame"].append(f)
@@ -203,9 +203,11 @@ def history_table(history, columns=("newton_iterations", "newton_converged", "ne
     last = len(history["segments"]) - 1
     for i, seg in enumerate(history["segments"]):
         a, b = seg["frames_kept"]
-        # an earlier segment that says running was killed (a restart followed it); the
-        # last one is what its lock says
-        status = seg["status"] if seg["status"] != RUNNING else "killed (running)" if i < last \
+        # an earlier segment that says running was killed, or failed when the restart that
+        # set it aside found its lock saying why (set_summary_aside); the last one is what
+        # its lock says
+        status = seg["status"] if seg["status"] != RUNNING else \
+            f"{(seg.get('ended') or 'killed').split(':')[0]} (running)" if i < last \
             else RUNNING if history["running_state"]["state"] == RUNNING \
             else f"{history['running_state']['state']} (running)"
         lines.append(f"  segment {i}: {seg['file']}, {status}, {seg['ranks']} rank(s), config "

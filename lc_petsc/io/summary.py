@@ -59,13 +59,16 @@ def frames_covered(summary):
     return (first, summary["frames"]) if isinstance(first, int) else None
 
 
-def set_summary_aside(out):
+def set_summary_aside(out, failed=None):
     """Rank 0, at a restart that was accepted (before anything is replaced): rename
     ``out/summary.json`` (the earlier run's) into ``out/summaries/`` under a name saying
     which frames it covers, ``summary_frames_AAAAAA-BBBBBB.json`` (``.2``, ``.3``, ... when
     that name is taken), or ``summary_damaged.json`` when it is not a JSON object; a rename,
-    so it is whole under one name or the other.  Returns (its new path or None when there
-    was none, the reason it is damaged or None)."""
+    so it is whole under one name or the other.  A summary that says ``running`` then gets
+    ``ended``, what the restart found of its run: ``killed``, or ``failed: WHY`` when its
+    lock file said why (``failed``: :attr:`OutputLock.ended`); rewritten atomically after
+    the rename, so a crash in between leaves it unannotated, never half.  Returns (its new
+    path or None when there was none, the reason it is damaged or None)."""
     path = Path(out) / "summary.json"
     if not os.path.lexists(path):
         return None, None
@@ -88,6 +91,8 @@ def set_summary_aside(out):
         n += 1
         target = folder / f"{stem}.{n}.json"
     os.rename(path, target)
+    if not damaged and run_status(summary) == RUNNING:
+        write_summary(target, {**summary, "ended": f"failed: {failed}" if failed else "killed"})
     return target, damaged
 
 

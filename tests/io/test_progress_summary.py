@@ -136,7 +136,9 @@ def test_a_killed_run_keeps_its_records_and_a_restart_sets_them_aside(tmp_path, 
     assert "killed after frame 6 (its summary.json, kept while it ran, says running)" in capsys.readouterr().err
     assert main([cfg, "--out", str(out), "--quiet", "--restart", "latest"]) == 0
     aside = out / "summaries" / "summary_frames_000000-000006.json"
-    assert aside.read_bytes() == running and not (out / "summary.json.tmp").exists()
+    # set aside as it was, with what the restart found of its run (its lock stale: killed)
+    assert json.loads(aside.read_text()) == {**json.loads(running), "ended": "killed"}
+    assert not (out / "summary.json.tmp").exists() and not list((out / "summaries").glob("*.tmp"))
     s = json.loads((out / "summary.json").read_text())
     assert s["status"] == "finished" and s["restart"]["frame"] == 4
     assert s["restart"]["earlier_summaries"] == [
@@ -152,6 +154,7 @@ def test_a_killed_run_keeps_its_records_and_a_restart_sets_them_aside(tmp_path, 
     assert pf["frame"] == list(range(1, FRAMES + 1)) and pf["segment"] == [0] * 4 + [1] * 6
     assert {k: pf[k] for k in DETERMINISTIC} == straight
     assert pf["config_sha256"] == [h["segments"][0]["config_sha256"]] * FRAMES
+    assert [seg["ended"] for seg in h["segments"]] == ["killed", None]
     # the next run into the folder removes the history, which would be stale
     assert main([cfg, "--out", str(out), "--quiet", "--force"]) == 0
     assert not (out / "history.json").exists()
@@ -460,3 +463,10 @@ def test_a_final_summary_that_cannot_be_written_is_not_taken_for_a_kill(tmp_path
     assert f"; it ended: {ended}); it failed (its lock file says why): its outputs are" in capsys.readouterr().err
     assert json.loads((out / "summary.json").read_text())["status"] == "finished"
     assert not (out / ".lc_petsc.lock").exists()
+    # the summary the restart set aside keeps why its run ended: the joined history says
+    # failed, not killed (before, the lock's note was gone with the restart)
+    aside = json.loads((out / "summaries" / "summary_frames_000000-000004.json").read_text())
+    assert (aside["status"], aside["ended"]) == ("running", f"failed: {ended}")
+    assert _script("join_summaries").main([str(out), "--quiet"]) == 0
+    assert "segment 0: summaries/summary_frames_000000-000004.json, failed (running), 1 rank(s)" in \
+        capsys.readouterr().out

@@ -373,6 +373,15 @@ class SumOperator:
         self.A.getDiagonal(d)
 
 
+def _local_first(own, received, keep):
+    """This rank's rows ``own`` it keeps, then the ``received`` ones, local rows first:
+    ``keep`` = (mine, order) of :meth:`StrandContact._gather_segments`, each None when it
+    changes nothing (the owner rule: every own row kept, none given)."""
+    mine, order = keep
+    rows = np.concatenate([own if mine is None else own[mine], received])
+    return rows if order is None else rows[order]
+
+
 class StrandContact:
     """Contact between segments of different wisps, for one rank's wisps.
 
@@ -644,18 +653,20 @@ class StrandContact:
         G = np.concatenate(parts) if parts else np.zeros((0, 13 + 6 * len(Ps)))
         # local rows first: this rank's own, then those it was given, in rank order
         local = np.concatenate([crank[mine] == comm.rank, G[:, 10] == comm.rank])
-        order = np.r_[np.flatnonzero(local), np.flatnonzero(~local)]
-        masks.append((mine, order))
         n_local = int(local.sum())
-        self.ghosts_received.add(len(order) - n_local)
-        Pall = [np.concatenate([P[mine], G[:, 13 + 6 * k:19 + 6 * k].reshape(-1, 2, 3)])[order]
-                for k, P in enumerate(Ps)]
-        Prest = np.concatenate([self.P_rest[mine], G[:, 4:10].reshape(-1, 2, 3)])[order]
-        gv = np.concatenate([self.seg_gv[mine], G[:, 0].astype(np.int64)])[order]
-        wisp = np.concatenate([self.seg_wisp[mine], G[:, 1].astype(np.int64)])[order]
-        free = np.concatenate([self.seg_free[mine], G[:, 2:4].astype(bool)])[order]
-        self._local_arc = np.concatenate([self.seg_arc[mine], G[:, 11:13]])[order[:n_local]]
-        return Pall, Prest, gv, wisp, free, np.concatenate(owner)[order], n_local
+        # the owner rule (the default) keeps all its rows, already local first: no copies
+        keep = (None if mine.all() else mine,
+                None if local[:n_local].all() else np.r_[np.flatnonzero(local), np.flatnonzero(~local)])
+        masks.append(keep)
+        self.ghosts_received.add(len(local) - n_local)
+        Pall = [_local_first(P, G[:, 13 + 6 * k:19 + 6 * k].reshape(-1, 2, 3), keep) for k, P in enumerate(Ps)]
+        Prest = _local_first(self.P_rest, G[:, 4:10].reshape(-1, 2, 3), keep)
+        gv = _local_first(self.seg_gv, G[:, 0].astype(np.int64), keep)
+        wisp = _local_first(self.seg_wisp, G[:, 1].astype(np.int64), keep)
+        free = _local_first(self.seg_free, G[:, 2:4].astype(bool), keep)
+        self._local_arc = _local_first(self.seg_arc, G[:, 11:13], keep)[:n_local]
+        owner = np.concatenate(owner)       # its own rows already the kept ones
+        return Pall, Prest, gv, wisp, free, owner if keep[1] is None else owner[keep[1]], n_local
 
     def _exchange(self, Ps, masks):
         """The arrays Ps (each (m, 2, 3), this rank's segments) with the ghosts' rows
@@ -664,12 +675,11 @@ class StrandContact:
         comm = self.comm
         if comm.size == 1:
             return Ps
-        mine, order = masks[-1]
         send = [None if m is None else np.concatenate([P[m].reshape(-1, 6) for P in Ps], axis=1)
                 for m in masks[:-1]]
         parts = [r for r in comm.alltoall(send) if r is not None and len(r)]
         G = np.concatenate(parts) if parts else np.zeros((0, 6 * len(Ps)))
-        return [np.concatenate([P[mine], G[:, 6 * k:6 * k + 6].reshape(-1, 2, 3)])[order] for k, P in enumerate(Ps)]
+        return [_local_first(P, G[:, 6 * k:6 * k + 6].reshape(-1, 2, 3), masks[-1]) for k, P in enumerate(Ps)]
 
     def self_pairs(self, n):
         """``box_pairs``' keywords for the first n segments of :meth:`_gather_segments`

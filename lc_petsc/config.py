@@ -419,9 +419,10 @@ class TimeConfig:
     start frames (docs/newton.md "Twenty-third round").
 
     With a tolerance and a config file that does not name ``solver.filter``,
-    ``newton_update`` defaults to ``"corotational"`` and, without strand contact and
-    with ``newton_increment_tol`` alone, ``newton_stop`` to ``"chord_estimate"`` (the
-    converging path, :func:`tolerance_defaults`; :class:`SolverConfig`).
+    ``newton_update`` defaults to ``"corotational"`` and, without strand contact,
+    ``jolt_first_iterate`` to true and (with ``newton_increment_tol`` alone)
+    ``newton_stop`` to ``"chord_estimate"`` (the converging path,
+    :func:`tolerance_defaults`; :class:`SolverConfig`).
 
     Step cutback (only with a tolerance): a frame whose Newton misses it within the cap
     is redone as 2 steps of dt / 2, each cut again if it fails, up to ``max_substeps``
@@ -608,7 +609,7 @@ class SolverConfig:
     (``time.newton_increment_tol`` / ``newton_tol``) and does not name ``filter`` runs
     the converging path instead: ``filter``, ``exact_fallback``, ``exact_stay`` and
     ``time.newton_update`` it leaves unset take :data:`TOLERANCE_PATH`'s values, and without
-    strand contact ``wisp_trust`` and ``time.newton_stop`` too
+    strand contact ``wisp_trust``, ``time.newton_stop`` and ``time.jolt_first_iterate`` too
     (:func:`tolerance_defaults`, summary.json ``solver_path_defaulted``).  A config built
     in Python takes these defaults as written.
     """
@@ -939,8 +940,9 @@ TOLERANCE_PATH = {("solver", "filter"): "exact_or_analytic", ("solver", "exact_f
 #: same CPU; and the start's first iterate at a jump of the head's velocity, the demo
 #: without strand contact 90 frames: worst frame 15 against 17, median 6; with strand
 #: contact it bought nothing measurable (the demo at 1e-4 on 1, 2 and 3 ranks: 2,879
-#: iterations against 2,728, the jumps' frames 252 against 248), so not there (docs/newton.md "The default for tolerance
-#: runs", "The jolts' first iterate with strand contact and at a fixed count")
+#: iterations against 2,728, the jumps' frames 252 against 248), so not there
+#: (docs/newton.md "The default for tolerance runs", "The jolts' first iterate with strand
+#: contact and at a fixed count")
 TOLERANCE_PATH_WITHOUT_STRAND_CONTACT = {("solver", "wisp_trust"): True, ("time", "newton_stop"): "chord_estimate",
                                          ("time", "jolt_first_iterate"): True}
 

@@ -550,6 +550,11 @@ class TimeConfig:
                               "frame after each)")
         if self.jolt_above is not None:
             _positive("time.jolt_above", self.jolt_above)
+            if self.newton_converges:   # not "set start_increment_tol": a tolerance refuses that too
+                raise ConfigError(f"time.jolt_above = {self.jolt_above!r} converges the frames where the head "
+                                  "jolts within a fixed count of Newton iterations; with time.newton_tol or "
+                                  "time.newton_increment_tol set every frame already converges: drop "
+                                  "time.jolt_above")
             if self.start_increment_tol is None:
                 raise ConfigError(f"time.jolt_above = {self.jolt_above!r} converges the frames where the head "
                                   "jolts to time.start_increment_tol, which is not set: set "

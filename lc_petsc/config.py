@@ -1012,6 +1012,9 @@ _CONDITIONAL_KEYS = {
                                    "time.start_increment_tol set"),
     ("time", "jolt_above"): (lambda c: c.physics.head_motion != "static", "physics.head_motion is not 'static'"),
     ("time", "jolt_frames"): (lambda c: c.time.jolt_above is not None, "time.jolt_above set"),
+    ("time", "jolt_first_iterate"): (lambda c: c.physics.head_motion == "translate" or (
+        c.physics.head_motion == "shake" and not c.physics.head_smooth),
+        "a head whose velocity jumps: physics.head_motion = 'shake' without physics.head_smooth, or 'translate'"),
     ("physics", "head_amplitude"): (lambda c: c.physics.head_motion == "shake",
                                     "physics.head_motion = 'shake'"),
     ("physics", "head_period"): (lambda c: c.physics.head_motion == "shake",

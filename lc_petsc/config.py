@@ -550,6 +550,11 @@ class TimeConfig:
                               "frame after each)")
         if self.jolt_above is not None:
             _positive("time.jolt_above", self.jolt_above)
+            if self.newton_converges:   # not "set start_increment_tol": a tolerance refuses that too
+                raise ConfigError(f"time.jolt_above = {self.jolt_above!r} converges the frames where the head "
+                                  "jolts within a fixed count of Newton iterations; with time.newton_tol or "
+                                  "time.newton_increment_tol set every frame already converges: drop "
+                                  "time.jolt_above")
             if self.start_increment_tol is None:
                 raise ConfigError(f"time.jolt_above = {self.jolt_above!r} converges the frames where the head "
                                   "jolts to time.start_increment_tol, which is not set: set "
@@ -1007,6 +1012,9 @@ _CONDITIONAL_KEYS = {
                                    "time.start_increment_tol set"),
     ("time", "jolt_above"): (lambda c: c.physics.head_motion != "static", "physics.head_motion is not 'static'"),
     ("time", "jolt_frames"): (lambda c: c.time.jolt_above is not None, "time.jolt_above set"),
+    ("time", "jolt_first_iterate"): (lambda c: c.physics.head_motion == "translate" or (
+        c.physics.head_motion == "shake" and not c.physics.head_smooth),
+        "a head whose velocity jumps: physics.head_motion = 'shake' without physics.head_smooth, or 'translate'"),
     ("physics", "head_amplitude"): (lambda c: c.physics.head_motion == "shake",
                                     "physics.head_motion = 'shake'"),
     ("physics", "head_period"): (lambda c: c.physics.head_motion == "shake",

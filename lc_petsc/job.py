@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lc_petsc.config import SimConfig
+from lc_petsc.config import TOLERANCE_PATH, TOLERANCE_PATH_WITHOUT_STRAND_CONTACT, SimConfig
 from lc_petsc.io import hdf5
 from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
 from lc_petsc.parallel import global_max, global_wisp_offsets, on_root
@@ -641,6 +641,7 @@ class Job:
             hint += (f"; this config leaves {', '.join(defaulted)} unset, which with a tolerance now selects "
                      f"the converging path (docs/newton.md \"The default for tolerance runs\"), and the "
                      f"checkpoint ran with {ran}: set that in the config to continue it as it ran")
+        hint += _named_filter_hint(cfg, diff, saved)
         fixed = [k for k in diff if k in RESTART_FIXED_KEYS]
         if fixed:
             raise Refused(f"{ck['path']}: the config differs from the checkpoint's in "
@@ -1553,6 +1554,29 @@ class Preemption:
         for sig, h in self.previous.items():
             signal.signal(sig, h)
         self.previous = {}
+
+
+def _named_filter_hint(cfg, diff, saved):
+    """The refusal's hint for a checkpoint that ran the converging path a tolerance takes
+    where the config file leaves ``solver.filter`` unset (:func:`lc_petsc.config.tolerance_defaults`),
+    restarted with a file that names ``solver.filter``: that keeps the keys it leaves
+    unset at their defaults, so the keys of ``diff`` the checkpoint (``saved``) ran at
+    the path's values and ``cfg`` has at its defaults are named, with those values; or ''.
+    Without it the refusal listed them (six where the file named the very filter the
+    checkpoint ran) and did not say why they changed."""
+    # (a tolerance on the filtered path resolves nothing only where the file names solver.filter)
+    if cfg.solver_path_defaulted or not cfg.time.newton_converges or cfg.time.newton != "filtered":
+        return ""
+    ran = [(f"{table}.{key}", value) for (table, key), value in
+           {**TOLERANCE_PATH, **TOLERANCE_PATH_WITHOUT_STRAND_CONTACT}.items()
+           if f"{table}.{key}" in diff and saved.get(table, {}).get(key) == value
+           and getattr(getattr(cfg, table), key) == getattr(type(getattr(cfg, table))(), key)]
+    if not ran:
+        return ""
+    return (f"; the checkpoint ran the converging path a tolerance takes where the config file leaves "
+            f"solver.filter unset, and this config names solver.filter, which keeps the keys it leaves unset "
+            f"at their defaults (docs/newton.md \"The default for tolerance runs\"): set "
+            f"{', '.join(f'{k} = {json.dumps(v)}' for k, v in ran)} in the config to continue it as it ran")
 
 
 def _differences_text(keys, saved, now):

@@ -71,7 +71,9 @@ def running_state(out, summary):
                            f"between hosts; it cannot be probed from here (killed, or still running: look on "
                            f"{record.get('host')})")
     if state == "free":
-        held = describe_holder(json.dumps(record)) if record else "an empty lock file"
+        # no record: empty (killed before it wrote one) or damaged; it said "empty" for both
+        held = describe_holder(json.dumps(record)) if record else \
+            "a lock file without a run's record (empty or damaged)"
         return "killed", f"killed after frame {frames} (its lock {LOCK_NAME} is stale: {held}; no process holds it)"
     return "killed", f"killed after frame {frames} (no lock file {LOCK_NAME}: no run holds the folder)"
 

@@ -28,8 +28,9 @@ REFERENCE = RECOMMENDED + ",guess=inertial"
 
 
 def tolerance_config(base_cfg, spec, tol, cap, frames, max_substeps):
-    """``base_cfg`` on the path ``spec`` ("" keeps the config's own solver settings; the
-    key ``stop`` sets ``time.newton_stop``), to ``tol`` with ``cap`` iterations and up to
+    """``base_cfg`` on the path ``spec`` ("" keeps the config's own solver settings, those
+    its file's tolerance resolved included, ``solver_path_defaulted``; the key ``stop``
+    sets ``time.newton_stop``), to ``tol`` with ``cap`` iterations and up to
     ``max_substeps`` substeps of step cutback, ``frames`` frames."""
     variant = parse_variant(spec)
     stop = variant.pop("stop", "increment")
@@ -37,6 +38,13 @@ def tolerance_config(base_cfg, spec, tol, cap, frames, max_substeps):
     cfg = copy.deepcopy(cfg)
     cfg.time.newton_increment_tol = tol
     cfg.time.newton_stop = stop
+    if not spec:
+        # the config's own path is the one its file's tolerance resolved (drivers/simulate.py's),
+        # which configure drops (without_tolerance_defaults): it ran the analytic filter, 450
+        # iterations a frame where the file runs 15-29 (review61)
+        for name in base_cfg.solver_path_defaulted:
+            table, key = name.split(".")
+            setattr(getattr(cfg, table), key, getattr(getattr(base_cfg, table), key))
     cfg.time.max_substeps = max_substeps
     return cfg.validate()
 

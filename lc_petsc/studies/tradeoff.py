@@ -67,6 +67,9 @@ class Settings:
     exact_fallback: str = SolverConfig.exact_fallback   # with exact_or_analytic only
     exact_stay: bool = SolverConfig.exact_stay
     wisp_trust: bool = SolverConfig.wisp_trust      # with the shifted fallback only
+    # None: time.newton_stop as the config file names it (the dataclass default where it does
+    # not); the "as configured" row's stop where the file's tolerance defaulted it
+    newton_stop: Optional[str] = None
 
     def effective_rtol(self) -> float:
         """The Krylov tolerance the run uses: ``ksp_rtol``, or the code default for its
@@ -115,6 +118,8 @@ class Settings:
             parts.append("exact_stay")
         if self.wisp_trust:
             parts.append("wisp_trust")
+        if self.newton_stop is not None:
+            parts.append(f"stop {self.newton_stop}")
         return " ".join(parts)
 
 
@@ -239,7 +244,8 @@ def configured_settings(cfg, options=""):
                     start_frames=t.start_frames, start_iterations=t.start_iterations, jolt_above=t.jolt_above,
                     jolt_frames=t.jolt_frames, jolt_first_iterate=t.jolt_first_iterate,
                     exact_fallback=cfg.solver.exact_fallback,
-                    exact_stay=cfg.solver.exact_stay, wisp_trust=cfg.solver.wisp_trust)
+                    exact_stay=cfg.solver.exact_stay, wisp_trust=cfg.solver.wisp_trust,
+                    newton_stop=t.newton_stop if "time.newton_stop" in cfg.solver_path_defaulted else None)
 
 
 def reference_settings(dt=1.0 / 120.0, newton_tol=1e-9, max_newton=100, filter="none",
@@ -305,8 +311,9 @@ def reference_fallback(ref: Settings) -> Settings:
 def configure(base_cfg, s: Settings, duration):
     """A copy of ``base_cfg`` running ``duration`` seconds with the settings ``s`` (a
     file's tolerance's defaults dropped first, :func:`without_tolerance_defaults`: the
-    settings name the path, and ``time.newton_stop``, which they do not hold, stays as the
-    file set it)."""
+    settings name the path, and ``time.newton_stop`` stays as the file set it unless they
+    hold one: the "as configured" row of a file whose tolerance defaulted it, which ran
+    ``"increment"`` where the file runs ``"chord_estimate"`` before 2026-12-07, review61)."""
     cfg = without_tolerance_defaults(copy.deepcopy(base_cfg))
     cfg.time.dt = s.dt
     cfg.time.frames = int(round(duration / s.dt))
@@ -334,6 +341,8 @@ def configure(base_cfg, s: Settings, duration):
     cfg.solver.exact_fallback = s.exact_fallback
     cfg.solver.exact_stay = s.exact_stay
     cfg.solver.wisp_trust = s.wisp_trust
+    if s.newton_stop is not None:
+        cfg.time.newton_stop = s.newton_stop
     rtol = "" if s.ksp_rtol is None else f"-ksp_rtol {s.ksp_rtol:g}"      # else the code default
     cfg.solver.options = " ".join(x for x in (cfg.solver.options, s.options, rtol) if x)
     return cfg

@@ -470,3 +470,18 @@ def test_a_final_summary_that_cannot_be_written_is_not_taken_for_a_kill(tmp_path
     assert _script("join_summaries").main([str(out), "--quiet"]) == 0
     assert "segment 0: summaries/summary_frames_000000-000004.json, failed (running), 1 rank(s)" in \
         capsys.readouterr().out
+
+
+def test_a_stale_lock_file_without_a_record_is_not_called_empty(tmp_path):
+    """A killed run's lock file whose text is no record (cut short: '{"pid":') was
+    reported as "an empty lock file" by check_outputs.py and join_summaries.py; it says
+    the file holds no record, empty or damaged, for either."""
+    from lc_petsc.io.history import running_state
+    out = tmp_path / "o"
+    out.mkdir()
+    write_summary(out / "summary.json", _summary(4, status="running"))
+    for text in ('{"pid":', ""):
+        (out / ".lc_petsc.lock").write_text(text)
+        assert running_state(out, _summary(4)) == (
+            "killed", "killed after frame 4 (its lock .lc_petsc.lock is stale: a lock file without a run's record "
+                      "(empty or damaged); no process holds it)")

@@ -166,3 +166,30 @@ def test_the_studies_that_set_their_own_path_drop_the_files_tolerance_defaults()
     assert tradeoff.configure(named, replace(tradeoff.BASE, filter="exact_or_analytic",
                                                        newton_increment_tol=1e-6), 0.1).validate().time.newton_stop \
         == "quadratic_estimate"
+
+
+def test_a_file_naming_the_filter_is_told_the_checkpoint_ran_the_tolerance_defaults(tmp_path, capsys):
+    """The reverse of the refusal above: a checkpoint of the converging path (a tolerance,
+    no filter in the file) restarted with a file that names the very filter it ran
+    (``exact_or_analytic``) is refused over the six keys that file leaves at their
+    defaults; the refusal says why and which values continue it (on main it listed them
+    only); the file with them set continues it."""
+    out = "checkpoint_every = 1"
+    assert run(tmp_path, "s", frames=1, output=out)[0] == 0
+    capsys.readouterr()
+    named = 'filter = "exact_or_analytic"'
+    code, _ = run(tmp_path, "s", solver=named, frames=2, output=out, args=("--restart", "latest"))
+    err = capsys.readouterr().err
+    assert code != 0
+    assert ("this config names solver.filter, which keeps the keys it leaves unset at their defaults" in err
+            and 'set solver.exact_fallback = "shifted", solver.exact_stay = true, time.newton_update = '
+                '"corotational", solver.wisp_trust = true, time.newton_stop = "chord_estimate", '
+                'time.jolt_first_iterate = true in the config to continue it as it ran' in err), err
+    # the values the message names set in the file: continued
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(cfg.read_text().replace("[time]\n", '[time]\nnewton_update = "corotational"\nnewton_stop = '
+                                            '"chord_estimate"\njolt_first_iterate = true\n').replace(
+        named, named + '\nexact_fallback = "shifted"\nexact_stay = true\nwisp_trust = true'))
+    assert main([str(cfg), "--out", str(tmp_path / "out"), "--quiet", "--restart", "latest", "--frames", "2"]) == 0
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert s["restart"]["frame"] == 1 and s["solver_path_defaulted"] == [] and s["newton_converged"] == [True]

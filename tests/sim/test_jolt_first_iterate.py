@@ -80,3 +80,19 @@ def test_a_value_that_is_not_a_boolean_is_refused():
     cfg.time.jolt_first_iterate = "yes"
     with pytest.raises(ConfigError, match="time.jolt_first_iterate must be true or false, got 'yes'"):
         cfg.validate()
+
+
+@pytest.mark.parametrize("physics, warned", [
+    ({"head_motion": "static"}, True), ({"head_motion": "shake", "head_smooth": True}, True),
+    ({"head_motion": "shake"}, False), ({"head_motion": "translate", "head_velocity": [1.0, 0.0, 0.0]}, False)])
+def test_the_key_with_a_head_whose_velocity_never_jumps_is_warned(physics, warned):
+    """A file's ``time.jolt_first_iterate`` with a static head or a smooth shake (whose
+    velocity never jumps: :meth:`HeadMotion.velocity_jumps`) changes nothing: the
+    configuration says so, naming the key (on main: no warning); a tolerance's default of
+    it (not in the file) is not warned."""
+    from lc_petsc.config import config_from_dict
+    cfg = config_from_dict({"time": {"jolt_first_iterate": True}, "physics": physics})
+    assert [w.split(" is set")[0] for w in cfg.key_warnings] == (["time.jolt_first_iterate"] if warned else [])
+    assert all("physics.head_smooth" in w for w in cfg.key_warnings)
+    cfg = config_from_dict({"time": {"newton_increment_tol": 1e-4, "newton_iterations": 30}, "physics": physics})
+    assert cfg.time.jolt_first_iterate and cfg.key_warnings == []

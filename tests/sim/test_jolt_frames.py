@@ -120,6 +120,10 @@ def test_a_restart_inside_the_jolt_window_continues_bit_for_bit(tmp_path):
     (dict(start_increment_tol=1e-3, jolt_above=float("nan")), "time.jolt_above must be a finite positive"),
     (dict(jolt_above=500.0), "time.jolt_above = 500.0 converges the frames where the head jolts to "
                              "time.start_increment_tol, which is not set"),
+    # with a tolerance: drop it (setting start_increment_tol, as the message above says, is refused too)
+    (dict(newton_increment_tol=1e-4, jolt_above=500.0), "with time.newton_tol or time.newton_increment_tol set "
+                                                        "every frame already converges: drop time.jolt_above"),
+    (dict(newton_tol=1e-4, jolt_above=500.0), "already converges: drop time.jolt_above"),
     (dict(start_increment_tol=1e-3, jolt_above=500.0, jolt_frames=0), "time.jolt_frames must be an integer >= 1"),
     (dict(start_increment_tol=1e-3, jolt_above=500.0, jolt_frames=1.5), "time.jolt_frames must be an integer >= 1"),
     (dict(start_increment_tol=1e-3, jolt_above=500.0, jolt_frames=101), "time.jolt_frames = 101 is more than 100"),

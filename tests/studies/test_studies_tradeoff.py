@@ -615,3 +615,31 @@ def test_a_scene_file_with_start_and_jolt_frames_runs_them_as_configured():
     t = configure(small_hairball_config(n_wisps=2), mine, 0.1).validate().time
     assert (t.start_increment_tol, t.start_frames, t.start_iterations, t.jolt_above, t.jolt_frames) == \
         (1e-3, 3, 20, 50.0, 2)
+
+
+def test_the_configured_row_of_a_tolerance_file_runs_the_stop_the_file_runs():
+    """A file with a tolerance and no solver.filter runs ``time.newton_stop =
+    "chord_estimate"`` (its tolerance's default, lc_petsc.config.tolerance_defaults); its
+    study's "as configured" row ran ``"increment"`` (on main: ``configure`` drops the
+    file's defaults and Settings held no stop), so that row was not what
+    drivers/simulate.py runs of the file.  The other rows keep the file's named stop or
+    the dataclass default; a file that names its stop or sets none adds nothing."""
+    from lc_petsc.config import config_from_dict
+    from lc_petsc.studies.tradeoff import configured_settings
+    data = {"scene": {"kind": "hairball", "n_wisps": 2}, "physics": {"head_motion": "shake"},
+            "time": {"newton_increment_tol": 1e-4, "newton_iterations": 30}}
+    cfg = config_from_dict(data)
+    keys = [("time", "newton_stop"), ("time", "newton_update"), ("time", "jolt_first_iterate"),
+            ("solver", "filter"), ("solver", "exact_fallback"), ("solver", "exact_stay"), ("solver", "wisp_trust")]
+    mine = configured_settings(cfg)
+    run = configure(cfg, mine, 0.1).validate()
+    assert [getattr(getattr(run, t), k) for t, k in keys] == [getattr(getattr(cfg, t), k) for t, k in keys]
+    assert run.time.newton_stop == "chord_estimate" and "stop chord_estimate" in mine.label()
+    # the other rows: the study's own path with the dataclass stop, as before
+    assert configure(cfg, BASE, 0.1).validate().time.newton_stop == "increment"
+    assert configure(cfg, replace(BASE, filter="exact_or_analytic", newton_increment_tol=1e-4),
+                     0.1).validate().time.newton_stop == "increment"
+    named = config_from_dict({**data, "time": {**data["time"], "newton_stop": "quadratic_estimate"}})
+    assert configured_settings(named).newton_stop is None
+    assert configure(named, configured_settings(named), 0.1).validate().time.newton_stop == "quadratic_estimate"
+    assert configured_settings(config_from_dict({**data, "time": {}})) == BASE

@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lc_petsc.config import TOLERANCE_PATH, TOLERANCE_PATH_WITHOUT_STRAND_CONTACT, SimConfig
+from lc_petsc.config import RESTART_FREE_KEYS, TOLERANCE_PATH, TOLERANCE_PATH_WITHOUT_STRAND_CONTACT, SimConfig
 from lc_petsc.io import hdf5
 from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
 from lc_petsc.parallel import global_max, global_wisp_offsets, on_root
@@ -58,12 +58,6 @@ EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
 EXIT_PREEMPTED = 75         # EX_TEMPFAIL: stopped by a signal after a checkpoint; restart
 # how the set-up ended on a rank; the job takes the largest over the ranks
 SETUP_DONE, SETUP_REFUSED, SETUP_INTERRUPTED = 0, 1, 2
-# config keys a restart may change: they touch neither the trajectory nor frames.h5's rows
-RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.previews",
-                     "output.preview_frames", "output.contact_sheet", "output.view",
-                     "output.checkpoint_every", "output.checkpoints_kept",
-                     "output.usd", "output.render_hairs", "output.render_hair_seed",
-                     "output.render_hair_spread", "output.check_crossings", "scene.description"}
 #: keys every row of frames.h5 and frames.usdc shares (its dt and every attributes, the
 #: USD's timeCodesPerSecond): refused in a restart even with --force
 RESTART_FIXED_KEYS = ("time.dt", "output.every")

@@ -20,6 +20,7 @@ could not be written) or not known (a holder on another host cannot be probed).
 """
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -39,7 +40,10 @@ def main(argv=None):
         print(f"join_summaries.py: error: {a.out}: {e}; nothing written", file=sys.stderr)
         return 2
     lines = history_table(history)
-    print("\n".join(lines[:1 + len(history["segments"])] if a.quiet else lines))
+    try:
+        print("\n".join(lines[:1 + len(history["segments"])] if a.quiet else lines), flush=True)
+    except BrokenPipeError:     # read by `| head`: the reader has what it wanted; still write the history
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     target = Path(a.json) if a.json else Path(a.out) / "history.json"
     try:
         write_summary(target, history)

@@ -18,6 +18,7 @@ import json
 import socket
 from pathlib import Path
 
+from lc_petsc.config import RESTART_FREE_KEYS
 from lc_petsc.io.summary import RUNNING, frames_covered, run_status
 
 #: the history's columns that say where a frame's record is from (before the summaries' keys)
@@ -82,7 +83,6 @@ def config_digest(config):
     """SHA-256 of a resolved config (summary.json's ``config``) without the keys a restart
     may change (``RESTART_FREE_KEYS``: frame count, outputs): equal for segments that ran
     the same trajectory-defining config, different after a ``--force`` restart with another."""
-    from lc_petsc.job import RESTART_FREE_KEYS
     kept = {t: {k: v for k, v in (keys or {}).items() if f"{t}.{k}" not in RESTART_FREE_KEYS}
             for t, keys in (config or {}).items()}
     return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()

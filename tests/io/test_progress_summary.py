@@ -192,6 +192,24 @@ def test_join_takes_each_frame_from_the_last_segment_that_ran_it(tmp_path):
     assert [s["status"] for s in h["segments"]] == ["running", "finished"]
 
 
+def test_join_read_through_a_closed_pipe_writes_the_history_without_petsc(tmp_path):
+    """`join_summaries.py OUT | head -1`: the table's reader leaves early; the script
+    still writes history.json and exits 0 (it had loaded PETSc through lc_petsc.job, whose
+    SIGPIPE handler aborted MPI: exit 59, nothing written)."""
+    out, entry = _folder(tmp_path)
+    # a table of 3,000 rows: longer than the pipe's buffer
+    write_summary(out / "summary.json", _summary(3000, first=2, earlier=[entry], ranks=2))
+    script = Path(__file__).resolve().parents[2] / "scripts" / "join_summaries.py"
+    proc = subprocess.Popen([sys.executable, str(script), str(out)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().startswith(str(out))
+    proc.stdout.close()
+    err = proc.stderr.read()
+    assert proc.wait(timeout=60) == 0, err
+    assert "Traceback" not in err and "MPI_ABORT" not in err, err
+    assert json.loads((out / "history.json").read_text())["per_frame"]["frame"][-1] == 3000
+
+
 def test_join_refuses_a_damaged_or_inconsistent_set(tmp_path, capsys):
     from lc_petsc.io.history import join_history
     out, entry = _folder(tmp_path)

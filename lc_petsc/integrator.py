@@ -214,6 +214,7 @@ class Integrator:
             self.start_weight = start_carry_weight(self.rest_edge, scene.offsets, scene.pinned)
         self.newton_increment = []      # per frame: the last step's relative increment
         self.newton_converged = []      # per frame: met the tolerances (None: none set)
+        self.newton_capped = []         # per frame: a start/jolt frame ended by its cap (_capped)
         self.newton_unconfirmed = []    # per frame: kept steps the cap ended on an unconfirmed stop
         self.newton_refused = []        # per frame: kept steps the cap ended on a refused stop
         self.newton_saddle = []         # per frame: stops refused on a saddle of G (all attempts)
@@ -389,6 +390,17 @@ class Integrator:
                      for f in range(self.frame - t.jolt_frames + 1, self.frame + 1))
         return change if change > t.jolt_above else None
 
+    def _capped(self, converged, iterations):
+        """Whether a frame's Newton that ended after ``iterations`` (``converged`` False:
+        above its tolerance) ended by the start/jolt cap the user set: a start or jolt frame
+        (the start configuration in use) that took all of ``time.start_iterations`` with
+        ``time.max_substeps = 1`` (no cutback), i.e. a larger fixed count on the converging
+        path, not a missed tolerance (docs/newton.md "A capped start/jolt frame").  A stop
+        refused on a saddle before the cap is a miss."""
+        t = self.cfg.time
+        return (converged is False and self.cfg is self.start_config and t.max_substeps == 1
+                and iterations >= t.newton_iterations)
+
     def _frame(self):
         """:meth:`step` with the configuration in use."""
         cfg = self.cfg
@@ -412,7 +424,8 @@ class Integrator:
         unconfirmed = sum(s.unconfirmed for s in solves)
         refused = sum(s.refused for s in solves)
         saddles = sum(s.saddle for s in solves)     # kept ones (cutback discards the others)
-        if converged is False and cfg.time.unconverged == "error":
+        capped = self._capped(converged, sum(s.iterations for s in solves))
+        if converged is False and not capped and cfg.time.unconverged == "error":
             raise SimulationError(
                 f"frame {self.frame}: Newton did not reach the tolerance within time.newton_iterations = "
                 f"{cfg.time.newton_iterations} in {len(solves)} substep(s) (time.max_substeps = "
@@ -425,6 +438,7 @@ class Integrator:
         self.newton_substep_iterations.append([s.iterations for s in solves])
         self.newton_increment.append(max(s.increment for s in solves))
         self.newton_converged.append(converged)
+        self.newton_capped.append(capped)
         self.newton_unconfirmed.append(unconfirmed)
         self.newton_refused.append(refused)
         self.newton_saddle.append(self._saddles)
@@ -539,8 +553,9 @@ class Integrator:
             self._say(f"  frame {self.frame} (dt {self.dt:.4g}): fixed count extended to {s.n_it} iteration(s) "
                       f"(time.newton_extend_above = {cfg.time.newton_extend_above:g})")
         if self.monitor is not None and s.converged is not None:
-            self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {'converged' if s.converged else 'NOT converged'} "
-                      f"after {s.n_it} iteration(s), measure {s.reported:.3e}"
+            ended = (f"capped at {s.n_it} (start/jolt cap, time.start_iterations)" if self._capped(s.converged, s.n_it)
+                     else f"{'converged' if s.converged else 'NOT converged'} after {s.n_it} iteration(s)")
+            self._say(f"  frame {self.frame} (dt {self.dt:.4g}): {ended}, measure {s.reported:.3e}"
                       + (" (a stop the cap left unconfirmed)" if s.unconfirmed else "")
                       + (" (a stop refused: G's decrease off its quadratic model)" if s.off_model else "")
                       + (" (a stop refused: a saddle of G)" if s.saddle else ""))

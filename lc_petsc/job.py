@@ -48,6 +48,7 @@ import numpy as np
 
 from lc_petsc.config import RESTART_FREE_KEYS, TOLERANCE_PATH, TOLERANCE_PATH_WITHOUT_STRAND_CONTACT, SimConfig
 from lc_petsc.io import hdf5
+from lc_petsc.io.summary import missed_frames
 from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
 from lc_petsc.parallel import global_max, global_wisp_offsets, on_root
 from lc_petsc.newton_stop import unconfirmed_note
@@ -211,17 +212,20 @@ def outcome_warnings(summary, start, time_config):
                    f"their solution as the bound was meant to prevent; raise time.newton_extend_cap, or lower "
                    f"time.dt (with strand contact in ccd mode the bound measures the step before the limiter's "
                    f"cut, which can stay large: docs/newton.md \"Eighteenth round\")")
-    missed = [i for i, c in enumerate(summary["newton_converged"]) if c is False]
+    missed = missed_frames(summary)        # not the start/jolt frames ended by their cap
     if missed:
         worst = max(summary["newton_increment"][i] or 0.0 for i in missed)
+        # with time.start_increment_tol only the start/jolt frames have a tolerance (a fixed count elsewhere)
+        cap = (f"time.start_iterations (now {time_config.start_iterations})"
+               if time_config.start_increment_tol is not None
+               else f"time.newton_iterations (now {time_config.newton_iterations})")
         unconfirmed, refused, saddles = (sum(summary.get(key, [0] * (max(missed) + 1))[i] for i in missed)
                                          for key in ("newton_unconfirmed", "newton_refused", "newton_saddle"))
         out.append(f"Newton missed the tolerance in {len(missed)} of {len(summary['newton_converged'])} "
                    f"frame(s) ({_frame_list(missed, start)}; largest final measure {worst:.3g}, see "
                    f"newton_converged and newton_increment in summary.json"
                    f"{unconfirmed_note(unconfirmed, refused, saddles)}); they were kept "
-                   f"(time.unconverged = \"accept\"). Raise time.newton_iterations (now "
-                   f"{time_config.newton_iterations}) or time.max_substeps (now "
+                   f"(time.unconverged = \"accept\"). Raise {cap} or time.max_substeps (now "
                    f"{time_config.max_substeps}), or watch those frames with -lc_newton_monitor "
                    f"(docs/newton.md)")
     return out
@@ -1213,8 +1217,9 @@ class Job:
             "error": self.error,
         })
         # a frame whose Newton missed time.newton_increment_tol / newton_tol is not converged
-        # either (main said "converged: yes" beside the warning naming the frames it missed)
-        if self.error or not_reduced or False in summary["newton_converged"]:
+        # either (main said "converged: yes" beside the warning naming the frames it missed);
+        # a start/jolt frame ended by the cap asked for there (newton_capped) is no miss
+        if self.error or not_reduced or missed_frames(summary):
             summary["converged"] = False
         return summary
 

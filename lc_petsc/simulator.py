@@ -218,6 +218,9 @@ class Simulator:
             "newton_start": list(self.integrator.newton_start),
             # per frame: a later frame run to it because the head jolted (time.jolt_above)
             "newton_jolt": list(self.integrator.newton_jolt),
+            # per frame: a start/jolt frame ended by time.start_iterations with time.max_substeps = 1
+            # (newton_converged false: a cap asked for, not a missed tolerance; see missed_frames)
+            "newton_capped": list(self.integrator.newton_capped),
             "newton_increment": [None if not np.isfinite(v) else float(v)
                                  for v in self.integrator.newton_increment],
             "newton_unconfirmed": list(self.integrator.newton_unconfirmed),

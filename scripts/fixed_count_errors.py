@@ -77,6 +77,21 @@ def settings(base, spec):
     return replace(base, **changes)
 
 
+def scene_variants(name, specs):
+    """(config, {NAME: Settings}) of a ``--scene`` and NAME=SPEC arguments (scripts/setting_cost.py,
+    scripts/setting_frames.py); ValueError naming a bad one."""
+    if name not in SCENES:
+        raise ValueError(f"--scene {name!r}: use one of {', '.join(SCENES)}")
+    cfg, base = scene(name)
+    variants = {}
+    for v in specs:
+        label, eq, spec = v.partition("=")
+        if not eq:
+            raise ValueError(f"{v!r}: give NAME=SPEC")
+        variants[label] = settings(base, spec)
+    return cfg, variants
+
+
 def simulator(cfg, s, frames):
     from lc_petsc.simulator import build_simulator
     c = configure(cfg, s, frames * s.dt)

@@ -56,15 +56,7 @@ def main(argv=None):
     a = p.parse_args(argv)
     fce = _errors_script()
     try:
-        if a.scene not in fce.SCENES:
-            raise ValueError(f"--scene {a.scene!r}: use one of {', '.join(fce.SCENES)}")
-        cfg, base = fce.scene(a.scene)
-        variants = {}
-        for v in a.variants:
-            label, eq, spec = v.partition("=")
-            if not eq:
-                raise ValueError(f"{v!r}: give NAME=SPEC")
-            variants[label] = fce.settings(base, spec)
+        cfg, variants = fce.scene_variants(a.scene, a.variants)
     except ValueError as e:                     # ConfigError is a ValueError
         return bad_input(MPI.COMM_WORLD, "setting_cost.py", e)
     for s in variants.values():                 # warm-up: compiled kernels, first allocations

@@ -10,6 +10,10 @@ that is present, unlocked and not empty was left by a run that did not finish, w
 the next run reports (:attr:`OutputLock.stale`).  A run refused before it changed
 anything puts the lock file back as it found it (a killed run's record, its times) or
 removes the one it created, so the folder is as it was and the next run still warns.
+A lock file that is unlocked but records another host (and no ``ended``) is not taken
+over: from here a run killed there cannot be told from one still going on a filesystem
+that does not pass flocks between hosts (a ``local_lock`` NFS mount), so the run is
+refused, the file left as it was, until the user removes it (tests/io/test_lock_other_host.py).
 A run whose final summary.json could not be written (a full disk) leaves its lock file
 with ``ended`` (why) in the record (:meth:`OutputLock.leave`), so its ``running``
 summary is not taken for a killed run's.  :func:`probe` looks at a folder's lock
@@ -132,7 +136,15 @@ class OutputLock:
             self.ended = (read_record(old.decode(errors="replace")) or {}).get("ended")
         if before is not None:
             self.before = (old, *before)
-        record = {"pid": os.getpid(), "host": socket.gethostname(),
+        foreign = read_record(old.decode(errors="replace")) or {}
+        here = socket.gethostname()
+        if foreign.get("host") not in (None, here) and not foreign.get("ended"):
+            self._give_back()
+            raise FolderBusy(f"output folder {str(self.folder)!r} holds the lock of a run on another host, "
+                             f"{self.stale}: no process holds it as seen from {here}, but this filesystem may "
+                             f"not pass locks between hosts, so that run may still be going (it cannot be "
+                             f"probed from here); if it is not running there, remove {self.path} and run again")
+        record = {"pid": os.getpid(), "host": here,
                   "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
                   "command": " ".join(os.path.basename(a) if i == 0 else a
                                       for i, a in enumerate(sys.argv))[:300]}

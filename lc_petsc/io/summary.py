@@ -139,6 +139,21 @@ def remove_summaries(out):
 JIT_REPORTED_S = 5.0
 
 
+def missed_frames(summary):
+    """The indices of ``summary``'s frames whose Newton missed its tolerance: those with
+    ``newton_converged`` false, except the start/jolt frames ``newton_capped`` marks (ended
+    by ``time.start_iterations`` with ``time.max_substeps = 1``: the cap asked for there;
+    a summary from before the key has none)."""
+    capped = summary.get("newton_capped") or []
+    return [i for i, c in enumerate(summary.get("newton_converged", []))
+            if c is False and not (i < len(capped) and capped[i])]
+
+
+def capped_frames(summary):
+    """The indices of ``summary``'s start/jolt frames ended by their cap (``newton_capped``)."""
+    return [i for i, c in enumerate(summary.get("newton_capped") or []) if c]
+
+
 def _fmt_s(s):
     return f"{s * 1e3:.1f} ms" if s < 1.0 else f"{s:.2f} s"
 
@@ -192,6 +207,13 @@ def format_report(s) -> str:
                  else "the start frames' time.start_increment_tol" if any(s.get("newton_start", []))
                  else "time.newton_increment_tol / newton_tol")
         lines.append(f"  Newton converged ({which}) in {sum(conv_frames)} of {len(conv_frames)} frames")
+    capped = capped_frames(s)
+    if capped:
+        cap = cfg.get("time", {}).get("start_iterations")
+        worst = max(s["newton_increment"][i] or 0.0 for i in capped)
+        lines.append(f"  start/jolt frames capped at {cap} (start/jolt cap, time.start_iterations with "
+                     f"time.max_substeps = 1): {len(capped)} of them, measure up to {worst:.3g} "
+                     f"(not counted as missed: newton_capped in summary.json)")
     refused = sum(s.get("newton_verify_refused", []))
     # per-frame counts: a line where any frame has some
     for key, what in (("newton_chord_checks", "chord checks (time.newton_stop = \"chord_estimate\"): {} solves"),
@@ -219,9 +241,9 @@ def format_report(s) -> str:
     counts = {r: reasons.count(r) for r in sorted(set(reasons))}
     conv = "yes" if s.get("converged") else "NO"
     why = []
-    flags = s.get("newton_converged", [])
-    if False in flags:      # the frames the run kept although Newton missed its tolerance
-        why.append(f"Newton missed the tolerance in {flags.count(False)} of {len(flags)} frames")
+    missed = missed_frames(s)
+    if missed:      # the frames the run kept although Newton missed its tolerance
+        why.append(f"Newton missed the tolerance in {len(missed)} of {len(s['newton_converged'])} frames")
     if counts:
         why.append("linear solves " + ", ".join(f"{k} x{v}" for k, v in counts.items()))
     lines.append(f"  converged: {conv}" + (f" ({'; '.join(why)})" if why else ""))

@@ -9,6 +9,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -286,7 +287,7 @@ def test_a_lock_whose_record_cannot_be_written_leaves_the_folder_as_it_was(tmp_p
 
     def no_space(fd):
         raise OSError(errno.ENOSPC, "No space left on device")
-    stale = '{"pid": 4242, "host": "h", "started": "2026-12-06 10:00:00 UTC"}\n'
+    stale = json.dumps({"pid": 4242, "host": socket.gethostname(), "started": "2026-12-06 10:00:00 UTC"}) + "\n"
     (tmp_path / "old").mkdir()
     (tmp_path / "old" / LOCK_NAME).write_text(stale)
     monkeypatch.setattr(lock.os, "fsync", no_space)
@@ -296,7 +297,7 @@ def test_a_lock_whose_record_cannot_be_written_leaves_the_folder_as_it_was(tmp_p
     monkeypatch.undo()
     assert (tmp_path / "old" / LOCK_NAME).read_text() == stale
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
-    assert OutputLock(tmp_path / "old").acquire().stale.startswith("pid 4242 on host h")
+    assert OutputLock(tmp_path / "old").acquire().stale.startswith(f"pid 4242 on host {socket.gethostname()}")
 
 
 def test_run_that_cannot_fit_is_refused_before_frame_0(tmp_path, small_volume, capsys):
@@ -314,7 +315,9 @@ def test_a_refused_run_puts_back_a_killed_runs_lock(tmp_path, small_volume, caps
     and times, so the next run still names the killed one."""
     out = small_volume / "out"
     assert main([_smash(tmp_path, frames=4), "--out", str(out), "--quiet"]) == 0
-    stale = b'{"pid": 4242, "host": "h", "started": "2026-12-06 10:00:00 UTC"}\n'
+    # this host's: a lock recorded on another host is not taken over (test_lock_other_host.py)
+    stale = (json.dumps({"pid": 4242, "host": socket.gethostname(), "started": "2026-12-06 10:00:00 UTC"})
+             + "\n").encode()
     (out / LOCK_NAME).write_bytes(stale)
     os.utime(out / LOCK_NAME, ns=(1_000_000_000_123, 1_000_000_000_456))    # not the refused run's
     before = _snapshot(out)
@@ -322,10 +325,11 @@ def test_a_refused_run_puts_back_a_killed_runs_lock(tmp_path, small_volume, caps
         capsys.readouterr()
         assert main([_smash(tmp_path), "--out", str(out), "--quiet"] + args) == 2
         err = capsys.readouterr().err
-        assert "found the lock of a run that did not finish (pid 4242 on host h" in err, err
+        assert f"found the lock of a run that did not finish (pid 4242 on host {socket.gethostname()}" in err, err
         assert _snapshot(out) == before, args       # bytes and mtime
     assert main([_smash(tmp_path), "--out", str(out), "--quiet"]) == 0
-    assert "found the lock of a run that did not finish (pid 4242 on host h" in capsys.readouterr().err
+    said = capsys.readouterr().err
+    assert f"found the lock of a run that did not finish (pid 4242 on host {socket.gethostname()}" in said
     assert not (out / LOCK_NAME).exists()
 
 

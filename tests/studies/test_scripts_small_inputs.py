@@ -120,3 +120,27 @@ def test_check_outputs_passes_a_run_and_names_what_disagrees(tmp_path, capsys):
     assert "frames.h5 has 3 rows, summary.json's 6 frames every 2: 4" in capsys.readouterr().out
     assert check.main([str(tmp_path)]) == 2
     assert "not a readable output folder" in capsys.readouterr().err
+
+
+def test_setting_frames_counts_iterations_strain_and_a_watched_function(capsys):
+    """scripts/setting_frames.py on smash, 2 frames: the fixed count's 3 iterations a frame;
+    the start frames capped at 3 without cutback (reported capped, not missed) and run to
+    the tolerance (converged, more iterations, the shift searches watched in frame 0);
+    a bad --watch and a --frame beyond the run refused naming the flag."""
+    script = _script("setting_frames")
+    assert script.main(["--scene", "smash", "--frames", "2", "--watch", "lc_petsc.curvature.least_definite_shifts",
+                        "default=default", "cap=start_increment_tol=1e-3+start_iterations=3+max_substeps=1",
+                        "start=start_increment_tol=1e-3"]) == 0
+    out = capsys.readouterr().out
+    assert "default: 6 Newton iterations in 2 frames; largest |edge strain| over frames 1-2 " in out, out
+    assert "  start/jolt frames: 0 (start, 3 its, capped), 1 (start, 3 its, capped)\n" in out, out
+    start = out[out.index("start: "):]
+    its = [int(n) for n in start.split("iterations per frame: ")[1].split("\n")[0].split()]
+    assert min(its) > 3 and f"0 (start, {its[0]} its, converged), 1 (start, {its[1]} its, converged)" in start
+    calls = int(start.split("least_definite_shifts: ")[1].split(" calls")[0])
+    assert calls >= 1, start
+    for bad, words in ((["--watch", "lc_petsc.curvature.no_such"],
+                        "--watch 'lc_petsc.curvature.no_such': no 'no_such' in 'lc_petsc.curvature'"),
+                       (["--frame", "2"], "--frame 2 is not among the 2 frames")):
+        assert script.main(["--scene", "smash", "--frames", "2", *bad, "default=default"]) == 2
+        assert words in capsys.readouterr().err

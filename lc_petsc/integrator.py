@@ -119,7 +119,7 @@ import numpy as np
 
 from lc_petsc import contact_curvature, curvature, wisp_trust
 from lc_petsc.config import element_filter
-from lc_petsc.elements import head_contact
+from lc_petsc.elements import compiled_turn, head_contact
 from lc_petsc.frame_end import FrameEnd
 from lc_petsc.newton_stop import (CHORD_TRY_C, ENERGY_FLOOR, EXACT_BELOW, LOOSE_TOLERANCE, QUADRATIC_SAFETY,
                                   NewtonState, SolveRecord, StepRecord, chord_basis, chord_stop, confirms_stop,
@@ -863,13 +863,18 @@ class Integrator:
         """Per vertex its inertia, gravity and head-penalty terms of G at x (zero on
         pinned vertices); ``head`` reuses the head's per-vertex energies and their
         vertices at x (:meth:`_contact_terms` with ``per_vertex``, its first two)."""
-        d = x - self.xhat
-        per = np.where(self.free, 0.5 / self.dt ** 2 * self.scene.mass * np.sum(d * d, axis=1)
-                       - np.sum(self.f_ext * x, axis=1), 0.0)
+        per = self._vertex_terms(x)[0]
         e, idx = self._contact_terms(x, False, per_vertex=True)[:2] if head is None else head
         if idx is not None and len(idx):
             per[idx] += e
         return per
+
+    def _vertex_terms(self, x):
+        """Per vertex the inertia and gravity terms of G at x, (potentials (nv,), gradient
+        (nv, 3)), zero on pinned vertices, in one compiled pass
+        (:func:`compiled_turn.vertex_terms`; in NumPy with the NumPy element kernels)."""
+        terms = compiled_turn.vertex_terms if self.asm.kernels == "compiled" else compiled_turn.vertex_terms_numpy
+        return terms(x, self.xhat, self.scene.mass, self.f_ext, self.free, self.dt)
 
     def _turn_terms(self, x):
         """(grad G without the elastic terms, the head's active vertices and their
@@ -877,8 +882,11 @@ class Integrator:
         of the head's penalty for all three (the turn's guard starts from the last),
         timed with the turn."""
         e, idx, head = self._head_terms(x, True, per_vertex=True) if self.contact else (0.0, None, None)
-        return (self.gradient(x, np.zeros_like(x), (idx, head)), None if head is None else (idx, head[1]),
-                self._vertex_potentials(x, (e, idx)))
+        per, g = self._vertex_terms(x)          # :meth:`gradient`'s and :meth:`_vertex_potentials`' bits
+        if head is not None:
+            g[idx] += head[0]
+            per[idx] += e
+        return g, None if head is None else (idx, head[1]), per
 
     def _turn_potentials(self, y):
         """:meth:`_vertex_potentials` at y for the root turn's guard, its head pass timed

@@ -36,12 +36,13 @@ def _turn_numpy(x, idx, pivot, axis, c, s):
 
 
 #: the turn's fixed per-frame work (:mod:`lc_petsc.elements.compiled_turn`): the model's
-#: per-vertex sums and curvature, the conjugate gradients, the turn of the vertices; compiled (the
-#: default) or the NumPy references (the same bits)
+#: per-vertex sums and curvature, the conjugate gradients, the turn of the vertices, the
+#: central differences' turned copies; compiled (the default) or the NumPy references (the
+#: same bits)
 KERNELS = {"compiled": (compiled_turn.turn_sums, compiled_turn.turn_curvature, compiled_turn.turn_pcg,
-                        compiled_turn.turn_vertices),
+                        compiled_turn.turn_vertices, compiled_turn.turn_copies),
            "numpy": (compiled_turn.turn_sums_numpy, compiled_turn.turn_curvature_numpy, compiled_turn.turn_pcg_numpy,
-                     _turn_numpy)}
+                     _turn_numpy, compiled_turn.turn_copies_numpy)}
 
 #: a wisp whose share of G a turn raised has its turn halved this many times, then
 #: dropped (:meth:`RootRotation.step`)
@@ -106,7 +107,7 @@ class RootRotation:
     def __init__(self, offsets, pinned, elements, stencils, kernels="compiled"):
         if kernels not in KERNELS:
             raise ValueError(f"root turn: kernels {kernels!r}: use one of {', '.join(KERNELS)}")
-        self._turn_sums, self._curvature, self._pcg, self._turn_vertices = KERNELS[kernels]
+        self._turn_sums, self._curvature, self._pcg, self._turn_vertices, self._copies = KERNELS[kernels]
         self.offsets = np.asarray(offsets)
         self.pivot = root_pivots(self.offsets, np.asarray(pinned, bool))
         sizes = np.diff(self.offsets)
@@ -129,18 +130,19 @@ class RootRotation:
         self.across = {name: compiled.element_arrays(name, np.searchsorted(self.near, s), rest, stiff)
                        for name, (s, rest, stiff, _) in across.items()}
         # copies of them for one kernel call each (copy j's vertices after the j - 1
-        # before it): two, after and before a turn (share_change); six, one per turn and
-        # sign of the central differences (_model)
+        # before it): two, after and before a turn (share_change); seven, one per turn and
+        # sign of the central differences and the vertices unturned (_model)
         n = len(self.near)
-        self.across2, self.across6 = (
+        self.across2, self.across7 = (
             {name: compiled.element_arrays(name, np.concatenate([s + j * n for j in range(c)]),
                                            np.concatenate([r] * c), np.concatenate([k] * c))
-             for name, (s, r, k) in self.across.items()} for c in (2, 6))
+             for name, (s, r, k) in self.across.items()} for c in (2, 7))
         self.near_wisp = self.wisp[self.near]
         self.near_moved = self.moved[self.near]
         self.layout = compiled_turn.turn_layout(self.mask, self.pivot_of, self.offsets, self.near,
                                                 self.near_moved)
         self.idx_wisp, self.idx_pivot = self.wisp[self.idx], self.pivot_of[self.idx]
+        self.held = self.pivot >= 0
         # the six turns of the central differences (+-ANGLE_STEP about each axis) as
         # matrices acting on row vectors: one product instead of six Rodrigues turns
         eye = np.eye(3)
@@ -152,11 +154,6 @@ class RootRotation:
     def _sums(self, a):
         """Per wisp sums over the vertices of ``a`` (n, ...)."""
         return np.add.reduceat(a, self.offsets[:-1], axis=0)
-
-    def _across_gradient(self, xs):
-        g = np.zeros_like(xs)
-        compiled.add_gradient(self.across, xs, g)
-        return g
 
     def model(self, x, terms, unit):
         """(b, A, P) per wisp at x (zeros for a wisp not held at its root): b the
@@ -180,18 +177,17 @@ class RootRotation:
 
     def _model(self, x, outer, head, unit):
         """:meth:`model` from the terms at x."""
-        xs = x[self.near]
+        # the elements across the root, their gradients at x and at the six turns of the
+        # central differences in one kernel call (an element's gradient is the same bits
+        # alone or among copies: each copy has vertices of its own)
+        turned = self._copies(self.layout, x, self.turns6)
+        g7 = np.zeros_like(turned)
+        compiled.add_gradient(self.across7, turned, g7)
+        n = len(self.near)
         # b = sum r x q: d G / d theta_k = sum (e_k x r) . g; T = sum r (m r - q)^T, M =
         # sum (m r) r^T (one compiled pass, NumPy's sums bit for bit)
-        r, b, T, M = self._turn_sums(self.layout, x, outer, unit, self._across_gradient(xs))
-        # the elements across the root: central differences of their gradients, the six
-        # turns in one kernel call
-        pn = x[self.pivot_of[self.near]]
-        turned = np.where(self.near_moved[None, :, None], pn + np.einsum("nl,jlk->jnk", xs - pn, self.turns6),
-                          xs).reshape(-1, 3)
-        g6 = np.zeros_like(turned)
-        compiled.add_gradient(self.across6, turned, g6)
-        g6 = g6.reshape(2, 3, -1, 3)
+        r, b, T, M = self._turn_sums(self.layout, x, outer, unit, g7[6 * n:])
+        g6 = g7[:6 * n].reshape(2, 3, n, 3)
         HJ = (g6[0] - g6[1]) / (2 * ANGLE_STEP)          # (turn k, vertex, 3)
         # A = tr(T) I - sym(T) + the across elements' sum r x HJ; P = tr(M) I - M
         A, P = self._curvature(T, M, HJ, r[self.near], self.near_wisp)
@@ -235,7 +231,7 @@ class RootRotation:
         (:meth:`share_change`) has it halved, up to :data:`HALVINGS` times, then
         dropped: the model is G's along the turn at x only, and a large turn or the
         head's contact switching on or off over it can make the step climb."""
-        held = self.pivot >= 0
+        held = self.held
         self.turned = self.reduced = 0
         if not held.any():
             return x.copy()

@@ -156,6 +156,48 @@ def turn_sums_numpy(layout, x, outer, unit, gnear):
 
 
 @_jit
+def _turn_copies(x, pivot_of, near, near_moved, turns, out):
+    k = near.shape[0]
+    for j in range(turns.shape[0]):
+        for i in range(k):
+            v, p = near[i], pivot_of[near[i]]
+            for c in range(3):
+                if near_moved[i] != 0.0:
+                    d0, d1, d2 = x[v, 0] - x[p, 0], x[v, 1] - x[p, 1], x[v, 2] - x[p, 2]
+                    out[j * k + i, c] = x[p, c] + ((d0 * turns[j, 0, c] + d1 * turns[j, 1, c]) + d2 * turns[j, 2, c])
+                else:
+                    out[j * k + i, c] = x[v, c]
+    for i in range(k):
+        for c in range(3):
+            out[turns.shape[0] * k + i, c] = x[near[i], c]
+
+
+def turn_copies(layout, x, turns):
+    """(J + 1) copies of the vertices ``near`` of ``layout`` (:func:`turn_layout`) stacked
+    ((J + 1) k, 3): copy j < J those where ``near_moved`` turned about their pivots by the
+    matrix ``turns``[j] (J, 3, 3) acting on row vectors, the others as they are; the last
+    copy as they are (the central differences' turns and the unturned vertices, for one
+    element pass).  :func:`turn_copies_numpy` bit for bit (``np.einsum``'s order,
+    (a0 + a1) + a2)."""
+    mask, pivot_of, _, near, near_moved = layout
+    x = _vertex_array(x, len(mask), "x")
+    turns = np.ascontiguousarray(turns, np.float64)
+    if turns.ndim != 3 or turns.shape[1:] != (3, 3):
+        raise ValueError(f"root turn: turns must have shape (J, 3, 3), got {turns.shape}")
+    out = np.empty(((len(turns) + 1) * len(near), 3))
+    _turn_copies(x, pivot_of, near, near_moved, turns, out)
+    return out
+
+
+def turn_copies_numpy(layout, x, turns):
+    """:func:`turn_copies` in NumPy (the reference)."""
+    _, pivot_of, _, near, near_moved = layout
+    xs, pn = x[near], x[pivot_of[near]]
+    turned = np.where(near_moved[None, :, None] != 0.0, pn + np.einsum("nl,jlk->jnk", xs - pn, turns), xs)
+    return np.concatenate([turned.reshape(-1, 3), xs])
+
+
+@_jit
 def _turn_curvature(T, M, HJ, rn, wn, A, P):
     for w in range(T.shape[0]):
         trT = (T[w, 0, 0] + T[w, 1, 1]) + T[w, 2, 2]
@@ -309,6 +351,51 @@ def turn_vertices(x, idx, pivot, axis, c, s):
     return y
 
 
+@_jit
+def _vertex_terms(x, xhat, mass, f_ext, free, dt2, potentials, gradient):
+    scale = 0.5 / dt2
+    for v in range(x.shape[0]):
+        if not free[v]:
+            potentials[v] = 0.0
+            gradient[v, 0] = gradient[v, 1] = gradient[v, 2] = 0.0
+            continue
+        d0, d1, d2 = x[v, 0] - xhat[v, 0], x[v, 1] - xhat[v, 1], x[v, 2] - xhat[v, 2]
+        potentials[v] = (scale * mass[v]) * ((d0 * d0 + d1 * d1) + d2 * d2) - (
+            (f_ext[v, 0] * x[v, 0] + f_ext[v, 1] * x[v, 1]) + f_ext[v, 2] * x[v, 2])
+        gradient[v, 0] = ((mass[v] * d0) / dt2 + 0.0) - f_ext[v, 0]
+        gradient[v, 1] = ((mass[v] * d1) / dt2 + 0.0) - f_ext[v, 1]
+        gradient[v, 2] = ((mass[v] * d2) / dt2 + 0.0) - f_ext[v, 2]
+
+
+def vertex_terms(x, xhat, mass, f_ext, free, dt):
+    """Per vertex the terms of one vertex of G, inertia and gravity (the head's penalty
+    aside): (potentials (nv,), gradient (nv, 3)), zero on the vertices not ``free``:
+    potential (0.5 / dt^2) m |x - xhat|^2 - f_ext . x, gradient m (x - xhat) / dt^2 -
+    f_ext (with the elastic gradient 0 added, as :meth:`lc_petsc.integrator.Integrator.
+    gradient` adds it).  :func:`vertex_terms_numpy` bit for bit, in one pass (NumPy's
+    row sums ``np.sum(..., axis=1)`` on (nv, 3) arrays were the larger part of the root
+    turn's guard on hairball10)."""
+    x = np.ascontiguousarray(x, np.float64)
+    nv = len(x)
+    xhat, f_ext = _vertex_array(xhat, nv, "xhat"), _vertex_array(f_ext, nv, "f_ext")
+    mass = _vertex_array(mass, nv, "mass", 0)
+    free = np.ascontiguousarray(free, np.bool_)
+    if x.shape != (nv, 3) or free.shape != (nv,):
+        raise ValueError(f"root turn: x (nv, 3) and free (nv,) must match, got {x.shape}, {free.shape}")
+    potentials, gradient = np.empty(nv), np.empty((nv, 3))
+    _vertex_terms(x, xhat, mass, f_ext, free, float(dt) ** 2, potentials, gradient)
+    return potentials, gradient
+
+
+def vertex_terms_numpy(x, xhat, mass, f_ext, free, dt):
+    """:func:`vertex_terms` in NumPy (the reference)."""
+    d = x - xhat
+    potentials = np.where(free, 0.5 / dt ** 2 * mass * np.sum(d * d, axis=1) - np.sum(f_ext * x, axis=1), 0.0)
+    gradient = mass[:, None] * (x - xhat) / dt ** 2 + np.zeros_like(x) - f_ext
+    gradient[~free] = 0.0
+    return potentials, gradient
+
+
 def warm_up():
     """Compile (or load from the cache) the turn's kernels (:func:`lc_petsc.elements.
     compiled.warm_up` runs this: in turn over the ranks, before the first frame)."""
@@ -319,3 +406,5 @@ def warm_up():
     turn_curvature(np.eye(3)[None], np.eye(3)[None], np.ones((3, 1, 3)), np.ones((1, 3)), np.zeros(1, np.int64))
     turn_pcg(np.eye(3)[None], np.eye(3)[None], np.ones((1, 3)), np.ones(1, bool))
     turn_vertices(x, np.array([1]), np.array([0]), np.array([[0.0, 0.0, 1.0]]), np.ones(1), np.zeros(1))
+    turn_copies(layout, x, np.eye(3)[None])
+    vertex_terms(x, x, np.ones(2), x, np.ones(2, bool), 1.0)

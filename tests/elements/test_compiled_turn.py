@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lc_petsc.elements import compiled_turn
-from lc_petsc.root_rotation import _turn_numpy, axis_angle, root_pivots, turn
+from lc_petsc.root_rotation import ANGLE_STEP, _turn_numpy, axis_angle, root_pivots, rotate, turn
 
 
 def _case(seed, sizes=None):
@@ -168,3 +168,67 @@ def test_no_wisps_and_bad_arguments():
                                      [2])
     with pytest.raises(ValueError, match="idx, pivot"):
         compiled_turn.turn_vertices(x, [0, 11], [0, 0], np.zeros((2, 3)), np.ones(2), np.zeros(2))
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_compiled_turned_copies_are_numpys_bit_for_bit(seed):
+    """The central differences' turned copies of the across vertices (and the unturned
+    copy last): random turns and the model's own six, the identity (the unturned copy's
+    bits), vertices at their pivot (zero arms), none turned (a wisp pinned throughout)."""
+    layout, x, _, _, _, _ = _case(seed)
+    mask, pivot_of, offsets, near, near_moved = layout
+    rng = np.random.default_rng(seed)
+    eye = np.eye(3)
+    six = np.stack([rotate(eye, np.broadcast_to(s * ANGLE_STEP * e, (3, 3)))
+                    for s in (1, -1) for e in eye])
+    x[pivot_of[near[::3]]] = x[near[::3]]                 # some arms exactly zero
+    for turns in (six, rng.normal(size=(int(rng.integers(1, 5)), 3, 3)), eye[None]):
+        got = compiled_turn.turn_copies(layout, x, turns)
+        want = compiled_turn.turn_copies_numpy(layout, x, turns)
+        assert got.shape == ((len(turns) + 1) * len(near), 3)
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(want))
+        np.testing.assert_array_equal(got[-len(near):], x[near])
+        unmoved = np.tile(near_moved == 0.0, len(turns) + 1)
+        np.testing.assert_array_equal(got[unmoved], np.tile(x[near], (len(turns) + 1, 1))[unmoved])
+    # to round-off, each copy is its vertices' Rodrigues turn about their pivots
+    got = compiled_turn.turn_copies(layout, x, six).reshape(7, len(near), 3)
+    moved = near_moved != 0.0
+    for j, (s, e) in enumerate((s, e) for s in (1, -1) for e in eye):
+        arm = x[near] - x[pivot_of[near]]
+        want = x[pivot_of[near]] + rotate(arm, np.broadcast_to(s * ANGLE_STEP * e, arm.shape))
+        assert np.abs(got[j][moved] - want[moved]).max(initial=0.0) <= 1e-14 * max(np.abs(x).max(), 1.0)
+    none = compiled_turn.turn_layout(np.zeros_like(mask), pivot_of, offsets, near, np.zeros_like(near_moved))
+    np.testing.assert_array_equal(compiled_turn.turn_copies(none, x, six), np.tile(x[near], (7, 1)))
+    with pytest.raises(ValueError, match=r"turns must have shape \(J, 3, 3\)"):
+        compiled_turn.turn_copies(layout, x, eye)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_compiled_vertex_terms_are_numpys_bit_for_bit(seed):
+    """Inertia and gravity per vertex, potentials and gradient: random states over ten
+    decades, pinned vertices (zeros), vertices at their target (signed zeros kept), no
+    gravity; against plain arithmetic to round-off."""
+    rng = np.random.default_rng(seed)
+    nv = int(rng.integers(1, 300))
+    x = rng.normal(size=(nv, 3)) * 10 ** rng.uniform(-5, 5, (nv, 1))
+    xhat = x + rng.normal(size=(nv, 3)) * 10 ** rng.uniform(-8, 1, (nv, 1))
+    xhat[::4] = x[::4]
+    mass = rng.uniform(1e-4, 1.0, nv)
+    f_ext = mass[:, None] * np.array([0.0, 0.0, -981.0]) * (seed % 3 != 0)
+    free = rng.uniform(size=nv) < 0.8
+    dt = [1 / 30, 1 / 240, 0.1][seed % 3]
+    got = compiled_turn.vertex_terms(x, xhat, mass, f_ext, free, dt)
+    want = compiled_turn.vertex_terms_numpy(x, xhat, mass, f_ext, free, dt)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+        np.testing.assert_array_equal(np.signbit(g), np.signbit(w))
+    per, grad = got
+    assert np.all(per[~free] == 0.0) and np.all(grad[~free] == 0.0)
+    d = x - xhat
+    plain = 0.5 * mass * np.einsum("ij,ij->i", d, d) / dt ** 2 - np.einsum("ij,ij->i", f_ext, x)
+    scale = 0.5 * mass * np.einsum("ij,ij->i", d, d) / dt ** 2 + np.abs(np.einsum("ij,ij->i", f_ext, x))
+    assert np.all(np.abs(per - plain)[free] <= 1e-15 * scale[free] + 1e-300)
+    np.testing.assert_allclose(grad[free], (mass[:, None] * d / dt ** 2 - f_ext)[free], rtol=1e-15, atol=0.0)
+    with pytest.raises(ValueError, match=r"xhat must have shape"):
+        compiled_turn.vertex_terms(x, xhat[:-1], mass, f_ext, free, dt)

@@ -422,3 +422,26 @@ def test_the_newton_system_adds_the_heads_blocks_and_gradient_once():
             assert np.array_equal(g, g0 + grad)
     finally:
         sim.close()
+
+
+def test_the_root_turns_vertex_terms_are_the_integrators_bit_for_bit():
+    """The root turn's terms at x (``Integrator._turn_terms``: inertia and gravity in one
+    compiled pass, ``compiled_turn.vertex_terms``, plus the head's) and
+    ``_vertex_potentials`` equal grad G with a zero elastic gradient (``gradient``) and the
+    per-vertex potentials in NumPy's expressions, bit for bit, with vertices in the head."""
+    sim, x, _, _ = _vertices_in_the_head()
+    try:
+        it = sim.integrator
+        g, head, per = it._turn_terms(x)
+        assert head is not None and len(head[0]) > 10
+        d = x - it.xhat
+        want = np.where(it.free, 0.5 / it.dt ** 2 * it.scene.mass * np.sum(d * d, axis=1)
+                        - np.sum(it.f_ext * x, axis=1), 0.0)
+        e, idx = it._contact_terms(x, False, per_vertex=True)[:2]
+        want[idx] += e
+        assert np.abs(d).max() > 0.0 and np.abs(e).max() > 0.0
+        np.testing.assert_array_equal(per, want)
+        np.testing.assert_array_equal(it._vertex_potentials(x), want)
+        np.testing.assert_array_equal(g, it.gradient(x, np.zeros_like(x)))
+    finally:
+        sim.close()

@@ -52,7 +52,6 @@ from lc_petsc.io.summary import missed_frames
 from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
 from lc_petsc.parallel import global_max, global_wisp_offsets, on_root
 from lc_petsc.newton_stop import unconfirmed_note
-from lc_petsc.timing import peak_rss_mib
 from lc_petsc.options import diagnostic_option
 
 EXIT_OK, EXIT_USAGE, EXIT_RUN_FAILED = 0, 2, 3
@@ -1163,6 +1162,10 @@ class Job:
         it but not printed (the end of the run prints them once)."""
         from lc_petsc import __version__
         from lc_petsc.diagnostics import shape_measures
+        # here, not at the module's top: lc_petsc.timing imports PETSc, and lc_petsc.batch
+        # imports this module before petsc4py.init, which then never ran (the command
+        # line's -log_view was dropped)
+        from lc_petsc.timing import peak_rss_mib
         comm, cfg, sim = self.comm, self.cfg, self.sim
         start = 0 if self.restart is None else self.restart["frame"]
         loop_time = global_max(comm, time.perf_counter() - self.t_loop)

@@ -370,3 +370,18 @@ def test_frames_simulated_after_the_last_written_are_named(tmp_path, frames, eve
         assert f["positions"].shape[0] == frames // every + 1
     lead = f"time.frames = {frames} (time.frames / --frames) is not a multiple of output.every = {every}: "
     assert s["warnings"] == ([] if expected is None else [lead + expected]), s["warnings"]
+
+
+def test_log_view_on_the_command_line_prints_petsc_log(tmp_path):
+    """``drivers/simulate.py ... -log_view`` prints PETSc's performance summary: PETSc is
+    initialised with the command line (an import of PETSc by lc_petsc.batch's modules
+    before ``petsc4py.init`` skipped that, and -log_view was dropped and reported as an
+    option never used)."""
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(hairball_toml(n_wisps=2, frames=1, output="previews = false\nxdmf = false"))
+    proc = subprocess.run([sys.executable, str(ROOT / "drivers" / "simulate.py"), str(cfg), "--out",
+                           str(tmp_path / "out"), "--quiet", "-log_view"], capture_output=True, text=True,
+                          timeout=300, env=MPI_ENV, cwd=tmp_path, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "PETSc Performance Summary" in proc.stdout, proc.stdout[-3000:]
+    assert "-log_view was given but never used" not in proc.stdout + proc.stderr

@@ -144,3 +144,33 @@ def test_setting_frames_counts_iterations_strain_and_a_watched_function(capsys):
                        (["--frame", "2"], "--frame 2 is not among the 2 frames")):
         assert script.main(["--scene", "smash", "--frames", "2", *bad, "default=default"]) == 2
         assert words in capsys.readouterr().err
+
+
+def test_compare_trees_runs_each_tree_on_the_same_restart(tmp_path):
+    """``compare_trees.py`` with this checkout as both trees: each run continues the same
+    checkpoint (frame 2 -> 3 of a 3-wisp hairball) in its own folder, and the same code
+    gives the same positions bit for bit and the same CG iterations; a B / A ratio per
+    round of each CPU figure."""
+    import json
+    import subprocess
+    import sys
+    import h5py
+    from lc_petsc.batch import main
+    from sim_helpers import MPI_ENV, hairball_toml
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(hairball_toml(n_wisps=3, frames=3, output="previews = false\nxdmf = false\ncheckpoint_every = 2"))
+    assert main([str(cfg), "--out", str(tmp_path / "r"), "--quiet", "--frames", "2"]) == 0
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "compare_trees.py"), "--config", str(cfg),
+                           "--checkpoint", str(tmp_path / "r" / "checkpoints" / "checkpoint_000002.h5"),
+                           "--frames", "3", "--rounds", "1", "--out", str(tmp_path / "c"), str(ROOT), str(ROOT)],
+                          capture_output=True, text=True, timeout=300, env=MPI_ENV, cwd=tmp_path,
+                          stdin=subprocess.DEVNULL)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    result = json.loads((tmp_path / "c" / "compare.json").read_text())
+    (a,), (b,) = result["runs"]
+    assert a["dx"] == b["dx"] == 0.0 and a["ksp"] == b["ksp"] > 0
+    assert sorted(result["ratios"]) == ["collision_cpu", "cpu", "solve_cpu", "step"]
+    assert all(len(v) == 1 and v[0] > 0 for v in result["ratios"].values())
+    for name in ("a0", "b0"):
+        with h5py.File(tmp_path / "c" / name / "frames.h5", "r") as f:
+            assert f["frame_valid"][:].tolist() == [False, False, True, True]

@@ -1232,14 +1232,17 @@ class Integrator:
 
     def _solve_step(self, g, it, may_fail=False):
         """The Newton step dx (pinned rows zero).  With ``may_fail`` (the exact Hessian)
-        returns None instead when CG finds the matrix or preconditioner indefinite (that
-        solve is then not recorded: another one replaces it)."""
+        returns None instead when its linear solve fails: CG finds the matrix or
+        preconditioner indefinite, or stops at its iteration cap on a shifted block barely
+        definite, whose factorisation without pivoting CG cannot use (the extremes' stiffness
+        ratio 1e6 to a tolerance ended on DIVERGED_MAX_IT at frame 7, docs/studies.md); that
+        solve is then not recorded: another one replaces it."""
         with self.timers("solve"):
             self.bv.array[:] = -g.ravel()
             try:
                 self.solver.solve(self.bv, self.xv, self.frame, it)
             except SolverError:
-                if not (may_fail and "INDEFINITE" in self.solver.reasons[-1]):
+                if not may_fail:
                     raise
                 self.solver.forget_last()
                 return None

@@ -2,7 +2,7 @@
 expectations, PASS/FAIL and figures.
 
   python scripts/extremes.py [--quick] [--only NAME ...] [--start-increment-tol TOL]
-      [--out out/extremes] [PETSc options]
+      [--tolerance TOL [--cap N]] [--out out/extremes] [PETSc options]
 
 Cases (lc_petsc/studies/extremes.py): Smash 60%; compression 30% and 40% with each
 filter (analytic, numerical, none); filter none + CG/point-block Jacobi at dt 1 s;
@@ -11,6 +11,11 @@ Jitter; Straighten; curl radius 1 mm; dt 1/10 s; stretch/bend stiffness ratio 1e
 extremes.json and extremes.md to --out; exit status 1 if a case fails its expectation.
 ``--start-increment-tol``: every case (all run a fixed count) with its first frames to that
 tolerance (``time.start_increment_tol``, docs/newton.md "Twenty-second round").
+``--tolerance``: every case to that relative increment tolerance (``time.newton_increment_tol``)
+with at most ``--cap`` iterations per step (default 30), on the path a config file of the case
+naming the tolerance (and the case's filter, where it is about one) gets from the loader
+(``lc_petsc.config.tolerance_defaults``, listed as solver_path_defaulted), judged by the same
+expectations and reported with frames converged, iterations per frame and frames cut back.
 """
 
 import argparse
@@ -23,8 +28,8 @@ import petsc4py
 petsc4py.init(sys.argv)
 from mpi4py import MPI  # noqa: E402
 
-from lc_petsc.studies.command_line import bad_input, parse_args, positive_number  # noqa: E402
-from lc_petsc.studies.extremes import catalogue, run_cases  # noqa: E402
+from lc_petsc.studies.command_line import bad_input, integer_at_least, parse_args, positive_number  # noqa: E402
+from lc_petsc.studies.extremes import at_tolerance, catalogue, run_cases  # noqa: E402
 
 
 def main(argv=None):
@@ -33,14 +38,29 @@ def main(argv=None):
     ap.add_argument("--only", nargs="+", default=None, help="case names (prefixes)")
     ap.add_argument("--start-increment-tol", type=positive_number, default=None,
                     help="the cases' first frames to this tolerance (time.start_increment_tol)")
+    ap.add_argument("--tolerance", type=positive_number, default=None,
+                    help="every case to this relative increment tolerance (time.newton_increment_tol) "
+                         "on the path a config file naming it gets")
+    ap.add_argument("--cap", type=integer_at_least(1), default=None,
+                    help="with --tolerance: iterations per step at most (default 30)")
     ap.add_argument("--out", default="out/extremes")
     args = parse_args(ap, argv)
     comm = MPI.COMM_WORLD
+    if args.tolerance is not None and args.start_increment_tol is not None:
+        return bad_input(comm, "extremes.py", ValueError(
+            "--start-increment-tol converges the first frames of a fixed count; with --tolerance every "
+            "frame runs to the tolerance: give one of the two"))
+    if args.cap is not None and args.tolerance is None:
+        return bad_input(comm, "extremes.py", ValueError(
+            f"--cap {args.cap} caps the iterations of a run to --tolerance; add --tolerance TOL "
+            "(the cases run fixed counts otherwise)"))
     with tempfile.TemporaryDirectory(prefix="lc_extremes_") as folder:   # the cases' groom files
         cases = catalogue(quick=args.quick, tmpdir=folder)
         if args.start_increment_tol is not None:
             for c in cases:
                 c.settings = replace(c.settings, start_increment_tol=args.start_increment_tol)
+        if args.tolerance is not None:
+            cases = [at_tolerance(c, args.tolerance, 30 if args.cap is None else args.cap) for c in cases]
         return _run(args, comm, cases)
 
 

@@ -12,20 +12,27 @@ Expectations:
 * ``info``: no expectation of ours (e.g. the paper's "unfiltered Newton diverges"): the
   outcome is reported and not judged (``passed`` None, "INFO"): it cannot fail, so it
   is not counted as a pass either.
+
+The catalogue runs fixed counts; :func:`at_tolerance` runs a case to a tolerance on the
+path a user's config file gets (:func:`lc_petsc.config.tolerance_defaults`), judged by
+the same expectation and reported with its convergence (frames converged, iterations per
+frame, frames cut back).
 """
 
 from __future__ import annotations
 
 import copy
+import statistics
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from lc_petsc.config import ELASTIC_TERMS, MaterialConfig, PhysicsConfig, SceneConfig, SimConfig
+from lc_petsc.config import (ELASTIC_TERMS, MaterialConfig, PhysicsConfig, SceneConfig, SimConfig,
+                             tolerance_defaults)
 from lc_petsc.studies import report
 from lc_petsc.studies.measures import curl_radius, stretch_strain, wisp_lengths
-from lc_petsc.studies.tradeoff import Settings, run_trajectory
+from lc_petsc.studies.tradeoff import Settings, configure, run_trajectory
 
 
 @dataclass
@@ -42,6 +49,9 @@ class Case:
     retention_tol: float = 0.1
     strain_tol: float = 0.5
     meta: dict = field(default_factory=dict)
+    #: the Newton path's keys the case is about (dotted, as its config file names them,
+    #: e.g. its filter): kept when it runs to a tolerance (:func:`at_tolerance`)
+    names: tuple = ()
 
 
 def wisp(perturbation="none", factor=0.4, gravity=False, n_vertices=101, E=3.9e9, radius=None,
@@ -89,13 +99,13 @@ def catalogue(*, tmpdir, quick=False):
         for f in ("analytic", "numerical", "none"):
             cases.append(Case(f"compress{pct}_{f}", f"{pct}% compression, filter {f}",
                               wisp("smash", 1 - pct / 100), replace(dt30, filter=f), q(100),
-                              expect="recovers" if f != "none" else "info"))
+                              expect="recovers" if f != "none" else "info", names=("solver.filter",)))
     cases.append(Case("compress40_none_cg_pbjacobi",
                       "40% compression, filter none, dt 1 s, CG + point-block Jacobi "
                       "(CG needs an SPD matrix: the filters guarantee one)",
                       wisp("smash", 0.6), replace(dt30, dt=1.0, filter="none",
                                                   options="-pc_type pbjacobi -ksp_max_it 5000"),
-                      3, expect="fails_cleanly"))
+                      3, expect="fails_cleanly", names=("solver.filter",)))
     cases.append(Case("jitter", "Jitter: uniform offsets in [-0.5, 0.5] cm, no gravity",
                       wisp("jitter"), dt30, q(200)))
     cases.append(Case("straighten", "Straighten: 20-vertex curl on a vertical line (bends = pi), "
@@ -124,6 +134,35 @@ def catalogue(*, tmpdir, quick=False):
     return cases
 
 
+def at_tolerance(case: Case, tol: float, cap: int) -> Case:
+    """``case`` run to the relative increment tolerance ``tol`` (``time.newton_increment_tol``)
+    with at most ``cap`` iterations per step and the step cutback's default, as a user's
+    config file of the case that names the tolerance, the cap and ``case.names`` runs it:
+    the Newton path :func:`lc_petsc.config.tolerance_defaults` resolves for that file (listed
+    in ``meta["solver_path_defaulted"]``; nothing where the case names its filter) and the
+    code's Krylov tolerance for a tolerance (the catalogue's ``-ksp_rtol`` dropped)."""
+    s = replace(case.settings, newton_increment_tol=tol, newton_iterations=cap, ksp_rtol=None)
+    cfg = configure(case.config, s, case.frames * s.dt)
+    given = {("time", "newton_increment_tol"), ("time", "newton_iterations")} | \
+        {tuple(name.split(".")) for name in case.names}
+    resolved = tolerance_defaults(cfg, given)
+    keys = [name.split(".") for name in resolved]
+    s = replace(s, **{key: getattr(getattr(cfg, table), key) for table, key in keys})
+    return replace(case, settings=s, meta=dict(case.meta, solver_path_defaulted=list(resolved)))
+
+
+def convergence(res) -> dict:
+    """A tolerance run's convergence figures from :func:`run_trajectory`'s result: frames
+    converged of those run, Newton iterations per frame (median, worst and its frame; a
+    frame's substeps and discarded attempts included) and frames cut back into substeps."""
+    its = res.get("frame_iterations") or []
+    worst = max(its, default=None)
+    return {"frames_converged": res.get("newton_converged_frames"),
+            "newton_median": statistics.median(its) if its else None, "newton_worst": worst,
+            "newton_worst_frame": None if worst is None else its.index(worst),
+            "cut_back_frames": res.get("newton_cut_back_frames")}
+
+
 def judge(case: Case, res, traj, geo):
     """Figures and pass/fail of one case (rank 0)."""
     rest, offsets, pinned = geo
@@ -132,6 +171,8 @@ def judge(case: Case, res, traj, geo):
            "newton_total": res.get("newton_total"), "ksp_iterations_max": res.get("ksp_iterations_max"),
            "status": res["status"], "failure": res["failure"], "failed_frame": res["failed_frame"],
            "message": res["message"]}
+    if case.settings.newton_increment_tol is not None:
+        fig.update(convergence(res))
     if traj and traj["positions"]:
         x = traj["positions"][-1]
         fig["final_rms_from_rest"] = float(np.sqrt(np.mean(np.sum((x - rest) ** 2, axis=1)))) / L
@@ -173,6 +214,15 @@ def verdict(row) -> str:
     return "INFO" if row["passed"] is None else "PASS" if row["passed"] else "FAIL"
 
 
+def convergence_text(row) -> str:
+    """A tolerance run's convergence in a few words ("" for a fixed count)."""
+    if "frames_converged" not in row:
+        return ""
+    return (f"{row['frames_converged']}/{row['frames_run']} converged, iterations median "
+            f"{report.fmt(row['newton_median'])} worst {report.fmt(row['newton_worst'])} (frame "
+            f"{report.fmt(row['newton_worst_frame'])}), {row['cut_back_frames']} cut back")
+
+
 def run_cases(cases, comm, out_dir=None, log=print):
     """Run every case; one row (dict) per case on rank 0, optional trajectories in ``out_dir``."""
     rows = []
@@ -184,10 +234,12 @@ def run_cases(cases, comm, out_dir=None, log=print):
             continue
         row = judge(c, res, traj, geo)
         rows.append(row)
+        converged = convergence_text(row)
         log(f"{verdict(row)} {c.name:28s} {row['outcome'][:40]:40s} "
             f"rms-from-rest {report.fmt(row.get('final_rms_from_rest'))}  "
             f"curl {report.fmt(row.get('curl_retention'))}  strain {report.fmt(row.get('max_stretch_strain'))}  "
-            f"{row['wall_s'] or 0:.2f} s  {row['failure']} {row['message'][:90]}")
+            f"{row['wall_s'] or 0:.2f} s  {converged + '  ' if converged else ''}{row['failure']} "
+            f"{row['message'][:90]}")
     if comm.rank == 0 and out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -196,12 +248,14 @@ def run_cases(cases, comm, out_dir=None, log=print):
                 "ksp_iterations_max", "wall_s", "settings", "what", "expectation", "message"]
         report.write_csv(rows, out / "extremes.csv", cols)
         report.write_json(rows, out / "extremes.json")
+        tolerance = any("frames_converged" in r for r in rows)
         (out / "extremes.md").write_text("# Stability at the extremes\n\n" + report.markdown_table(
             ["case", "expectation", "result", "outcome", "RMS from rest (L)", "curl retention",
-             "max strain", "wall (s)", "failure"],
+             "max strain", "wall (s)"] + ["to the tolerance"] * tolerance + ["failure"],
             [[r["case"], r["expectation"], verdict(r), r["outcome"],
               report.fmt(r.get("final_rms_from_rest")), report.fmt(r.get("curl_retention")),
-              report.fmt(r.get("max_stretch_strain")), report.fmt(r.get("wall_s")),
-              (f"{r['failure']} at frame {r['failed_frame']}: {r['message'][:80]}" if r["failure"] else "")]
+              report.fmt(r.get("max_stretch_strain")), report.fmt(r.get("wall_s"))]
+             + [convergence_text(r)] * tolerance
+             + [f"{r['failure']} at frame {r['failed_frame']}: {r['message'][:80]}" if r["failure"] else ""]
              for r in rows]))
     return rows

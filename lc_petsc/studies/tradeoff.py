@@ -381,6 +381,9 @@ def run_trajectory(base_cfg, s: Settings, duration, out_dt, comm, blowup=5.0):
         summ = sim.summary()
         res.update(wall_s=summ["wall_time_s"], frames_run=sim.integrator.frame,
                    newton_total=int(sum(summ["newton_iterations"])),
+                   # per frame (a frame's substeps and discarded attempts included)
+                   frame_iterations=list(summ["newton_iterations"]),
+                   newton_converged_frames=sum(c is True for c in summ["newton_converged"]),
                    newton_unconverged_frames=sum(c is False for c in summ["newton_converged"]),
                    # frames split into substeps: not solutions of the variant's own dt
                    newton_cut_back_frames=sum(n > 1 for n in summ["newton_substeps"]),

@@ -101,6 +101,47 @@ def test_shifted_fallback_converges_where_the_analytic_one_stalls():
     assert sum(summ["newton_iterations"]) < sum(ref["newton_iterations"])
 
 
+@pytest.mark.mpi
+def test_an_exact_solve_stopped_at_its_cap_is_a_failed_exact_step_not_the_end_of_the_run():
+    """An exact attempt whose CG stops at its iteration cap (DIVERGED_MAX_IT) falls back as
+    one CG finds indefinite does (the shift ladder, then the filtered step): it had ended
+    the run with a SolverError (scripts/extremes.py's stiffness ratio 1e6 to 1e-6, frame 7:
+    1000 CG iterations on a shifted block barely definite).  Here every unshifted exact
+    solve is made to stop so (the real solve run, its reason replaced); the 3-wisp shake
+    still converges every frame, and the stopped solves are not recorded."""
+    from lc_petsc.errors import SolverError
+    cfg = small_hairball_config(n_wisps=3, frames=2, newton_iterations=30, newton_increment_tol=1e-6,
+                                newton_update="corotational")
+    cfg.solver.filter, cfg.solver.exact_fallback = "exact_or_analytic", "shifted"
+    sim = build_simulator(cfg.validate(), COMM)
+    it = sim.integrator
+    real_system, real_solve = it._exact_system, it.solver.solve
+    flag, stopped = [False], []
+
+    def exact_system(x, i, shift):
+        flag[0] = np.ndim(shift) == 0 and shift == 0.0
+        return real_system(x, i, shift)
+
+    def solve(b, x, frame, newton_it):
+        stop, flag[0] = flag[0], False
+        its = real_solve(b, x, frame, newton_it)
+        if stop:
+            it.solver.reasons[-1] = "DIVERGED_MAX_IT"
+            stopped.append(frame)
+            raise SolverError("stopped at the cap (emulated)", reason=-3)
+        return its
+
+    it._exact_system, it.solver.solve = exact_system, solve
+    try:
+        sim.run(2)
+        summ = sim.summary()
+    finally:
+        sim.close()
+    assert sorted(set(stopped)) == [0, 1] and len(stopped) >= 4
+    assert summ["newton_converged"] == [True, True]
+    assert "DIVERGED_MAX_IT" not in it.solver.reasons
+
+
 def test_newton_frames_study_starts_every_variant_from_the_reference_states():
     """scripts/newton_frames.py's study (lc_petsc/studies/newton_frames.py) on 2 frames of
     the 5-wisp hairball: the reference converges, both variants restart frame 1 from the

@@ -76,6 +76,13 @@ CASES = [
      "compare_solvers.py: error: argument --wisps: must be an integer >= 1, got 0"),
     ("scripts/extremes.py", ["--only", "nope"],
      "extremes.py: error: --only nope: no case name starts with that; the cases: smash60, "),
+    ("scripts/extremes.py", ["--cap", "20"],
+     "extremes.py: error: --cap 20 caps the iterations of a run to --tolerance; add --tolerance TOL"),
+    ("scripts/extremes.py", ["--tolerance", "1e-6", "--start-increment-tol", "1e-3"],
+     "extremes.py: error: --start-increment-tol converges the first frames of a fixed count; with "
+     "--tolerance every frame runs to the tolerance: give one of the two"),
+    ("scripts/extremes.py", ["--tolerance", "0"],
+     "extremes.py: error: argument --tolerance: must be a positive number, got 0"),
     ("scripts/count_crossings.py", ["STRANDS"],
      "/positions has shape (8, 3), a frames.h5 has (frames, 8 vertices, 3) (a strands file is a "
      "groom, not a run)"),

@@ -68,3 +68,72 @@ def test_every_judged_expectation_can_fail_and_info_is_not_a_pass(tmp_path):
     for res in (ok, failed):
         row = judge(info, res, traj, geo)
         assert row["passed"] is None and verdict(row) == "INFO"
+
+
+
+def test_a_tolerance_resolves_the_path_a_config_file_of_the_case_gets(tmp_path):
+    """``at_tolerance`` (``scripts/extremes.py --tolerance``): smash60 runs the path the TOML
+    loader resolves for a file of its scene naming only the tolerance and the cap (the
+    seven keys of ``solver_path_defaulted``, every [time] and [solver] value the same, the
+    code's Krylov tolerance); a case about its filter (compress30_numerical) names it, so,
+    as for such a file, nothing is resolved and the filter stays."""
+    from lc_petsc.config import config_from_dict
+    from lc_petsc.studies.extremes import at_tolerance
+    from lc_petsc.studies.tradeoff import configure
+    cases = {c.name: c for c in catalogue(quick=True, tmpdir=tmp_path)}
+    scene = {"kind": "wisp4c", "perturbation": "smash", "smash_factor": 0.4}
+    time = {"newton_increment_tol": 1e-6, "newton_iterations": 30}
+    resolved = {}
+    for name, solver in (("smash60", {}), ("compress30_numerical", {"filter": "numerical"})):
+        file_cfg = config_from_dict({"scene": scene, "physics": {"terms": ["stretch", "bend", "twist"]},
+                                     "time": time, "solver": solver})
+        case = at_tolerance(cases[name], 1e-6, 30)
+        resolved[name] = case.meta["solver_path_defaulted"]
+        assert resolved[name] == list(file_cfg.solver_path_defaulted)
+        ran = configure(case.config, case.settings, case.frames * case.settings.dt)
+        for table in ("time", "solver"):
+            for key, value in vars(getattr(file_cfg, table)).items():
+                if key not in ("frames", "options"):
+                    assert getattr(getattr(ran, table), key) == value, (name, table, key)
+        assert "-ksp_rtol" in cases[name].settings.options + configure(
+            cases[name].config, cases[name].settings, 1.0).solver.options
+        assert "-ksp_rtol" not in ran.solver.options
+    assert resolved == {"smash60": ["solver.filter", "solver.exact_fallback", "solver.exact_stay",
+                                    "time.newton_update", "solver.wisp_trust", "time.newton_stop",
+                                    "time.jolt_first_iterate"],
+                        "compress30_numerical": []}
+
+
+def test_a_tolerance_runs_convergence_figures_are_the_runs_own(tmp_path):
+    """smash60 (10 frames) to 1e-6: the row's frames converged, median and worst iterations
+    (and its frame) and cut-back frames are those of the same run stepped frame by frame,
+    and every frame it reports converged ends within the tolerance of the step solved to
+    1e-10 from the same start state (and not on it: a stop, not the reference).  Capped at
+    3 iterations without cutback, frame 0 (the release from 60% compression) is reported
+    not converged, as the stepped run finds."""
+    import statistics
+    from dataclasses import replace
+
+    from lc_petsc.studies.extremes import at_tolerance
+    from lc_petsc.studies.iteration_targets import REFERENCE, run_path, stop_distances, tolerance_config
+    from lc_petsc.studies.tradeoff import configure
+    case = at_tolerance({c.name: c for c in catalogue(quick=True, tmpdir=tmp_path)}["smash60"], 1e-6, 30)
+    capped = replace(case, name="capped", settings=replace(case.settings, newton_iterations=3, max_substeps=1))
+    rows = {r["case"]: r for r in run_cases([case, capped], comm, log=lambda *a: None)}
+    for c in (case, capped):
+        row = rows[c.name]
+        stepped, states = run_path(configure(c.config, c.settings, c.frames * c.settings.dt), comm)
+        its = [s["iterations"] for s in stepped]
+        assert row["frames_run"] == len(its) == 10
+        assert row["frames_converged"] == sum(s["converged"] for s in stepped)
+        assert (row["newton_median"], row["newton_worst"], row["newton_worst_frame"]) == \
+            (statistics.median(its), max(its), its.index(max(its)))
+        assert row["cut_back_frames"] == sum(s["substeps"] > 1 for s in stepped)
+        converged = {f for f, s in enumerate(stepped) if s["converged"]}
+        if c is case:
+            assert converged == set(range(10)) and row["newton_worst"] > 3
+            ref = tolerance_config(c.config, REFERENCE, 1e-6, 80, 10, 1)
+            dist = stop_distances(ref, comm, states, converged)
+            assert all(d["reference_converged"] and 0 < d["distance"] < 1e-6 for d in dist.values()), dist
+        else:
+            assert 0 not in converged and row["frames_converged"] < 10

@@ -2,7 +2,15 @@
 with lc_petsc.studies): what used to crash on them."""
 
 import importlib.util
+import json
 from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lc_petsc.config import load_config
+from lc_petsc.scene.sources import source_from_config
+from sim_helpers import touching_wisps_config, touching_wisps_source
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -174,3 +182,55 @@ def test_compare_trees_runs_each_tree_on_the_same_restart(tmp_path):
     for name in ("a0", "b0"):
         with h5py.File(tmp_path / "c" / name / "frames.h5", "r") as f:
             assert f["frame_valid"][:].tolist() == [False, False, True, True]
+
+
+def test_the_file_scene_is_the_tests_scene_with_the_tolerance_default(tmp_path):
+    """scripts/touching_wisps.py (the scene through the job, docs/newton.md "The
+    tolerance default measured where contact is active"): the strands file
+    holds six_wisps_ccd's vertices, radii and pins bit for bit; the config its physics,
+    material and time keys, ccd mode, the tolerance and the cap, and (no [solver] key) the
+    loader resolves the tolerance default with strand contact; ``--set`` adds a key, and
+    one of a table the script writes is refused."""
+    ts = _script("touching_wisps")
+    cfg = load_config(ts.write(tmp_path, 10, 1e-4, 60, ["time.max_substeps=1"]))
+    ref = touching_wisps_config(10)
+    src, want = source_from_config(cfg.scene, cfg.material, cfg.physics), touching_wisps_source(spin_step=0.0,
+                                                                                                 n_pinned=3)
+    got, exp = src.load(0, 6), want.load(0, 6)
+    for name in ("positions", "radius", "pinned", "offsets"):
+        assert np.array_equal(getattr(got, name), getattr(exp, name)), name
+    assert cfg.physics.strand_contact_mode == "ccd"
+    for table, keys in (("physics", ("terms", "head_motion", "head_amplitude", "head_period", "strand_thickness",
+                                     "strand_stiffness", "gravity", "head_radius")),
+                        ("material", ("youngs_modulus", "density")), ("time", ("dt", "initial_guess"))):
+        for key in keys:
+            assert getattr(getattr(cfg, table), key) == getattr(getattr(ref, table), key), (table, key)
+    assert (cfg.time.frames, cfg.time.newton_iterations, cfg.time.newton_increment_tol) == (10, 60, 1e-4)
+    assert cfg.time.max_substeps == 1
+    assert cfg.solver_path_defaulted == ("solver.filter", "solver.exact_fallback", "solver.exact_stay",
+                                         "time.newton_update")
+    with pytest.raises(ValueError, match="the script writes \\[physics\\] itself"):
+        ts.write(tmp_path, 10, 1e-4, 30, ["physics.strand_stiffness=1.0"])
+
+
+def test_the_table_lists_each_frame_and_the_totals(tmp_path, capsys):
+    """scripts/newton_contact_table.py: per frame converged / iterations / substeps / pairs / closest pair, then the
+    frames converged, iterations, frames cut back and crossings; a restart's frames are
+    numbered from its checkpoint's; a folder without summary.json is an error naming it."""
+    s = {"ranks": 2, "status": "finished", "newton_iterations": [5, 40, 12], "newton_converged": [True, False, True],
+         "newton_substeps": [1, 8, 2], "contact": {"pairs_per_frame": [0, 31, 7],
+                                                   "min_distance_per_frame": [0.2, 0.0035, 0.11]},
+         "crossings": {"between_wisps": 0, "within_wisps": 0, "steps": 3},
+         "solver_path_defaulted": ["solver.filter"], "restart": {"frame": 10}}
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "summary.json").write_text(json.dumps(s))
+    table = _script("newton_contact_table")
+    assert table.cli([str(tmp_path / "run")]) == 0
+    out = capsys.readouterr().out
+    assert "| 10 | y | 5 | 1 | 0 | 0.2 |" in out and "| 11 | n | 40 | 8 | 31 | 0.0035 |" in out
+    assert "| 12 | y | 12 | 2 | 7 | 0.11 |" in out
+    assert "frames converged 2/3, iterations 57, frames cut back 2, crossings between wisps 0 within 0 " \
+           "over 3 steps, defaulted solver.filter" in out
+    with pytest.raises(SystemExit):
+        table.cli([str(tmp_path)])
+    assert "has no summary.json" in capsys.readouterr().err

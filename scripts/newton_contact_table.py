@@ -1,0 +1,58 @@
+"""Per-frame Newton and contact figures of runs of drivers/simulate.py, side by side
+(docs/newton.md "The tolerance default measured where contact is active"):
+
+  .venv/bin/python scripts/newton_contact_table.py RUN_DIR [RUN_DIR ...]
+
+For each run folder (its summary.json): per frame converged (y / n), Newton iterations,
+substeps (1: no cutback), contact pairs at the frame's end and the closest pair; then the
+totals, the frames converged, the crossings of the end-of-run check (between / within
+wisps over the frame steps) and the keys the tolerance default resolved
+(``solver_path_defaulted``).  A restart's summary lists its own frames only: they are
+numbered from the checkpoint's frame on (frame k: the step from k to k + 1).
+"""
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def rows(s):
+    c = s["contact"]
+    first = (s.get("restart") or {}).get("frame", 0)
+    out = []
+    for k in range(len(s["newton_iterations"])):
+        conv = s["newton_converged"][k]
+        out.append((first + k, "-" if conv is None else "y" if conv else "n", s["newton_iterations"][k],
+                    s["newton_substeps"][k], c["pairs_per_frame"][k], c["min_distance_per_frame"][k]))
+    return out
+
+
+def report(run: Path) -> str:
+    s = json.loads((run / "summary.json").read_text())
+    r = rows(s)
+    lines = [f"## {run}  ({s['ranks']} rank(s), status {s.get('status')})",
+             "| frame | converged | iterations | substeps | pairs | closest (cm) |", "|---|---|---|---|---|---|"]
+    lines += [f"| {k} | {c} | {n} | {sub} | {p} | {d:.3g} |" for k, c, n, sub, p, d in r]
+    cr = s.get("crossings") or {}
+    conv = sum(x[1] == "y" for x in r)
+    lines.append(f"frames converged {conv}/{len(r)}, iterations {sum(x[2] for x in r)}, "
+                 f"frames cut back {sum(x[3] > 1 for x in r)}, crossings between wisps "
+                 f"{cr.get('between_wisps')} within {cr.get('within_wisps')} over {cr.get('steps')} steps, "
+                 f"defaulted {', '.join(s.get('solver_path_defaulted') or []) or '-'}")
+    return "\n".join(lines)
+
+
+def cli(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path, help="output folders of drivers/simulate.py")
+    a = ap.parse_args(argv)
+    for run in a.runs:
+        if not (run / "summary.json").is_file():
+            ap.error(f"{run} has no summary.json: give the --out folder of a run of drivers/simulate.py")
+        print(report(run) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

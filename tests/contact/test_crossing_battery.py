@@ -81,9 +81,10 @@ def test_every_brute_force_crossing_is_counted(name):
     assert not np.any(meets & ~got), d[meets & ~got]
     assert not np.any(meets & ~full), d[meets & ~full]
     assert not np.any(apart & (got | full)), d[apart & (got | full)]
-    # the battery is not vacuous: the brute force's verdicts as counted; a pair whose path
-    # distance lies on a band's edge moves with the platform's round-off (near_parallel:
-    # 16 meet on an AMD EPYC without AVX-512, 15 where the counts were taken)
+    # the battery is not vacuous: at least the brute force's verdicts as counted, less one
+    # pair on a band's edge, which moves with the platform's round-off (near_parallel: 16
+    # meet on an AMD EPYC without AVX-512, 17 on a Xeon whose OpenBLAS runs its generic
+    # kernels, 15 where the counts were taken); more decided pairs only check more
     expect_meets, expect_apart = BRUTE_FORCE[name]
-    assert abs(int(meets.sum()) - expect_meets) <= 1 and abs(int(apart.sum()) - expect_apart) <= 1, \
+    assert int(meets.sum()) >= expect_meets - 1 and int(apart.sum()) >= expect_apart - 1, \
         (int(meets.sum()), int(apart.sum()))

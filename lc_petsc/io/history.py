@@ -196,9 +196,11 @@ def join_history(out, retries=1):
             "segments": described, "keys": keys, "per_frame": per_frame}
 
 
-def history_table(history, columns=("newton_iterations", "newton_converged", "newton_increment",
+def history_table(history, columns=("newton_iterations", "newton_converged", "newton_capped", "newton_increment",
                                     "ksp_iterations", "contact.pairs_per_frame")):
-    """Lines for a person: the segments, then a row per frame of ``columns`` (those present)."""
+    """Lines for a person: the segments, then a row per frame of ``columns`` (those present;
+    ``newton_capped`` only where a frame was capped: a start/jolt frame ended by
+    ``time.start_iterations`` shows False under ``newton_converged``, and this says why)."""
     lines = [f"{history['out']}: frames 1-{history['frames']} from {len(history['segments'])} summar"
              f"{'y' if len(history['segments']) == 1 else 'ies'}"
              + (f" (the last says running: {history['running_state']['text']})" if history["running"] else "")]
@@ -216,7 +218,7 @@ def history_table(history, columns=("newton_iterations", "newton_converged", "ne
                      f"{seg['config_sha256'][:12]}, frames {a + 1}-{b} kept of {seg['frames'][0] + 1}-"
                      f"{seg['frames'][1]}")
     pf = history["per_frame"]
-    shown = ["frame", "segment", "ranks", *(c for c in columns if c in pf)]
+    shown = ["frame", "segment", "ranks", *(c for c in columns if c in pf and (c != "newton_capped" or any(pf[c])))]
     # a list (the frame's KSP solves) is shown as its sum
     names = {c: c.split(".")[-1] + (" (sum)" if c == "ksp_iterations" else "") for c in shown}
     lines.append("  " + "  ".join(names[c].rjust(8) for c in shown))

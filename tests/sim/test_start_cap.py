@@ -8,6 +8,7 @@ import json
 from mpi4py import MPI
 
 from lc_petsc.batch import main
+from lc_petsc.io.history import history_table, join_history
 from lc_petsc.job import outcome_warnings
 from sim_helpers import hairball_toml, jolt_hairball_config, run_positions
 
@@ -42,6 +43,13 @@ def test_a_capped_start_frame_is_no_missed_tolerance(tmp_path, capsys):
             f"time.max_substeps = 1): 2 of them, measure up to {max(s['newton_increment'][:2]):.3g}") in out
     assert "  converged: yes" in out and "Newton converged (the start frames' time.start_increment_tol) " \
         "in 0 of 2 frames" in out
+    # join_summaries' table says why those frames show False under newton_converged (the
+    # column only where a frame was capped: a run without a cap shows none)
+    table = history_table(join_history(tmp_path / "out"))
+    assert table[2].split() == ["frame", "segment", "ranks", "newton_iterations", "newton_converged",
+                                "newton_capped", "newton_increment", "ksp_iterations", "(sum)"], table[2]
+    assert [line.split()[3:6] for line in table[3:6]] == [[str(CAP), "False", "True"], [str(CAP), "False", "True"],
+                                                          ["3", "None", "False"]], table[3:6]
 
 
 def test_with_cutback_a_start_frame_above_the_tolerance_missed_it():

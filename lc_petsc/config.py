@@ -933,10 +933,6 @@ def config_from_dict(data: dict, base_dir=None) -> SimConfig:
     return cfg
 
 
-#: the converging path a run with a tolerance takes where its file leaves the keys unset
-#: (:func:`tolerance_defaults`): the exact Hessian once close with the analytic filter before,
-#: the shifted fallback, exact steps kept once taken, the corotational update (docs/newton.md
-#: "The default for tolerance runs"); a fixed count keeps the dataclass defaults, the paper's path
 #: config keys a restart may change: they touch neither the trajectory nor frames.h5's rows
 #: (here, not in lc_petsc.job, so that reading summaries needs no PETSc)
 RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.previews",
@@ -944,6 +940,12 @@ RESTART_FREE_KEYS = {"time.frames", "output.dir", "output.xdmf", "output.preview
                      "output.checkpoint_every", "output.checkpoints_kept",
                      "output.usd", "output.render_hairs", "output.render_hair_seed",
                      "output.render_hair_spread", "output.check_crossings", "scene.description"}
+
+
+#: the converging path a run with a tolerance takes where its file leaves the keys unset
+#: (:func:`tolerance_defaults`): the exact Hessian once close with the analytic filter before,
+#: the shifted fallback, exact steps kept once taken, the corotational update (docs/newton.md
+#: "The default for tolerance runs"); a fixed count keeps the dataclass defaults, the paper's path
 TOLERANCE_PATH = {("solver", "filter"): "exact_or_analytic", ("solver", "exact_fallback"): "shifted",
                   ("solver", "exact_stay"): True, ("time", "newton_update"): "corotational"}
 #: added without strand contact (which refuses the first two): the per-wisp trust region

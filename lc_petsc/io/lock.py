@@ -131,14 +131,14 @@ class OutputLock:
         else:  # pragma: no cover - would need 100 lost races in a row
             raise OSError(f"{self.path}: could not take the lock (the file keeps changing)")
         old = _read(self.fd, raw=True)
+        held = read_record(old.decode(errors="replace")) or {}      # the last run's record
         if old.strip():
             self.stale = describe_holder(old.decode(errors="replace"))
-            self.ended = (read_record(old.decode(errors="replace")) or {}).get("ended")
+            self.ended = held.get("ended")
         if before is not None:
             self.before = (old, *before)
-        foreign = read_record(old.decode(errors="replace")) or {}
         here = socket.gethostname()
-        if foreign.get("host") not in (None, here) and not foreign.get("ended"):
+        if held.get("host") not in (None, here) and not held.get("ended"):
             self._give_back()
             raise FolderBusy(f"output folder {str(self.folder)!r} holds the lock of a run on another host, "
                              f"{self.stale}: no process holds it as seen from {here}, but this filesystem may "

@@ -3,8 +3,9 @@ configs/solvers/*.opts): every file of the repository and every ``tests/X.py::te
 name exists, every ``-lc_*`` option they name is one the solver plan reads (and the
 README's table lists each one), every backquoted config key ``table.key`` is a field of
 the config, and every ``--flag`` they give a script or driver is one that script's
-command line (or the lc_petsc modules it imports) spells out.  A rename in the code that
-the docs miss fails here."""
+command line (or the lc_petsc modules it imports) spells out; and a /tmp path (a
+session's scratch file) is said to be one.  A rename in the code that the docs miss fails
+here."""
 
 import dataclasses
 import functools
@@ -23,6 +24,9 @@ LC_OPTION = re.compile(r"(?<![\w-])-(lc_[a-z0-9_]+)")
 CONFIG_KEY = re.compile(r"`((?:scene|material|physics|time|solver|output)\.[a-z_][a-z_0-9]*)(?: = [^`]*)?`")
 COMMAND = re.compile(r"\b((?:scripts|drivers)/\w+\.py)\b")
 FLAG = re.compile(r"(?<![\w-])(--[a-z][a-z0-9-]*)")
+#: a /tmp path a reader can use as it stands: the benchmarks' lock, a Numba cache folder
+TMP = re.compile(r"/tmp/(?!lc_bench\.lock)(?<!NUMBA_CACHE_DIR=/tmp/)[\w.{*-]")
+SAID_SCRATCH = re.compile(r"scratch|not kept|throwaway", re.I)
 #: the README's example of a misspelt option that the run refuses
 REFUSED_EXAMPLES = {"lc_wisp_blockz"}
 #: backquoted names that look like config keys and are not: summary.json's ``output``
@@ -114,3 +118,21 @@ def test_script_flags_are_on_their_command_lines():
                     unknown.append(f"{where}: {match.group(1)} {flag}")
     assert checked > 300
     assert not unknown, "flags the docs give scripts that their command lines do not have:\n" + "\n".join(unknown)
+
+
+def test_tmp_paths_are_said_to_be_scratch():
+    """A /tmp path in the docs is a session's scratch file (docs/architecture.md, "Commands
+    in the docs"): each paragraph or command block naming one says so, so that no reader
+    takes it for a command to run."""
+    unsaid, named = [], 0
+    for path in DOCS:
+        blocks = re.split(r"\n\s*\n", path.read_text())
+        for block in blocks:
+            if TMP.search(block):
+                named += 1
+                if not SAID_SCRATCH.search(block):
+                    line = next(text for text in block.splitlines() if TMP.search(text))
+                    unsaid.append(f"{path.relative_to(ROOT)}: {line.strip()[:160]}")
+    assert named > 100
+    assert not unsaid, ("/tmp paths in paragraphs that do not say 'scratch, not kept' (write the "
+                        "command with scripts/ and out/, or mark it):\n" + "\n".join(unsaid))

@@ -234,3 +234,27 @@ def test_the_table_lists_each_frame_and_the_totals(tmp_path, capsys):
     with pytest.raises(SystemExit):
         table.cli([str(tmp_path)])
     assert "has no summary.json" in capsys.readouterr().err
+
+
+def test_derive_config_changes_only_the_keys_set_and_refuses_a_bad_one(tmp_path, capsys):
+    """scripts/derive_config.py (the docs' benchmark configs, docs/architecture.md "Commands
+    in the docs"): the 2K hairball with two keys changed, written outside configs/, loads
+    to the shipped config's values but those two (its options file found from the new
+    folder); a misspelt key or an unquoted string is refused with exit 2 and no file."""
+    derive = _script("derive_config")
+    base = ROOT / "configs" / "hairball_2k.toml"
+    out = tmp_path / "sub" / "pen.toml"
+    assert derive.cli([str(base), str(out), "--set", "output.every=1",
+                       "--set", 'physics.strand_contact_mode="penalty"']) == 0
+    got, want = load_config(out).to_dict(), load_config(base).to_dict()
+    assert (got["output"]["every"], want["output"]["every"]) == (1, 3)
+    assert (got["physics"]["strand_contact_mode"], want["physics"]["strand_contact_mode"]) == ("penalty", "ccd")
+    got["output"]["every"], got["physics"]["strand_contact_mode"] = 3, "ccd"
+    got["output"]["dir"] = want["output"]["dir"] = ""     # named after the file
+    assert got == want
+    for bad, message in ((["--set", "output.evry=1"], "unknown key output.evry"),
+                         (["--set", "physics.strand_contact_mode=penalty"], "is not a TOML value")):
+        with pytest.raises(SystemExit) as e:
+            derive.cli([str(base), str(tmp_path / "bad.toml"), *bad])
+        assert e.value.code == 2 and message in capsys.readouterr().err
+        assert not (tmp_path / "bad.toml").exists()

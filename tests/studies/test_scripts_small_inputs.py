@@ -234,3 +234,28 @@ def test_the_table_lists_each_frame_and_the_totals(tmp_path, capsys):
     with pytest.raises(SystemExit):
         table.cli([str(tmp_path)])
     assert "has no summary.json" in capsys.readouterr().err
+
+
+def test_the_table_of_a_run_without_contact_or_with_capped_frames(tmp_path, capsys):
+    """newton_contact_table.py on a run without strand contact (no ``contact`` in its summary: a
+    KeyError traceback on main), a frame whose closest pair was not measured (``null``: a
+    TypeError on main), capped start frames (``newton_capped``: shown as capped, not n), and
+    a damaged summary.json (an error naming it, not json's traceback)."""
+    s = {"ranks": 1, "status": "finished", "newton_iterations": [30, 30, 3], "newton_converged": [False, False, None],
+         "newton_capped": [True, True, False], "newton_substeps": [1, 1, 1], "crossings": None,
+         "solver_path_defaulted": []}
+    for name, contact in (("plain", None), ("far", {"pairs_per_frame": [0, 0, 2],
+                                                    "min_distance_per_frame": [None, None, 0.25]})):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(json.dumps({**s, "contact": contact}
+                                                                 if contact else s))
+    table = _script("newton_contact_table")
+    assert table.cli([str(tmp_path / "plain"), str(tmp_path / "far")]) == 0
+    out = capsys.readouterr().out
+    assert "| 0 | capped | 30 | 1 | - | - |" in out and "| 2 | - | 3 | 1 | - | - |" in out
+    assert "| 1 | capped | 30 | 1 | 0 | - |" in out and "| 2 | - | 3 | 1 | 2 | 0.25 |" in out
+    assert out.count("frames converged 0/3 (2 capped), iterations 63, frames cut back 0") == 2
+    (tmp_path / "plain" / "summary.json").write_text('{"ranks": 1, "newton_it')
+    with pytest.raises(SystemExit):
+        table.cli([str(tmp_path / "plain")])
+    assert "summary.json is not a readable summary of drivers/simulate.py (JSONDecodeError" in capsys.readouterr().err

@@ -259,3 +259,32 @@ def test_the_table_of_a_run_without_contact_or_with_capped_frames(tmp_path, caps
     with pytest.raises(SystemExit):
         table.cli([str(tmp_path / "plain")])
     assert "summary.json is not a readable summary of drivers/simulate.py (JSONDecodeError" in capsys.readouterr().err
+
+
+def test_compare_trees_refuses_bad_input_and_names_a_failed_runs_log(tmp_path, capsys):
+    """compare_trees.py: a missing checkpoint, a TREE that is no checkout and a PETSc option
+    (which the runs never got) are one error line, exit 2, nothing written (on main: a
+    FileNotFoundError traceback after creating OUT/a0, a traceback from the first run's
+    mpiexec, and the option silently dropped); a run that fails (a config the job refuses)
+    is exit 3 naming its message and its log (on main: CalledProcessError's traceback)."""
+    ct = _script("compare_trees")
+    cfg = tmp_path / "s.toml"
+    cfg.write_text("[scene]\nkind = \"smash\"\n")
+    ck = tmp_path / "ck.h5"
+    ck.write_bytes(b"")
+    out = tmp_path / "c"
+    base = ["--config", str(cfg), "--frames", "3", "--out", str(out)]
+    for args, words in (([*base, "--checkpoint", str(tmp_path / "none.h5"), str(ROOT), str(ROOT)],
+                         f"--checkpoint {tmp_path / 'none.h5'}: no such file"),
+                        ([*base, "--checkpoint", str(ck), str(ROOT), str(tmp_path)],
+                         f"TREE {tmp_path}: not a checkout of lc_petsc (no drivers/simulate.py there)"),
+                        ([*base, "--checkpoint", str(ck), str(ROOT), str(ROOT), "-ksp_rtol", "1e-3"],
+                         "unrecognized arguments: -ksp_rtol 1e-3 (the runs get no PETSc options")):
+        with pytest.raises(SystemExit) as stop:
+            ct.main(args)
+        assert stop.value.code == 2 and words in capsys.readouterr().err
+        assert not out.exists()
+    assert ct.main([*base, "--checkpoint", str(ck), "--rounds", "1", str(ROOT), str(ROOT)]) == 3
+    err = capsys.readouterr().err
+    assert f"compare_trees.py: error: the run of {ROOT} into {out / 'a0'} ended with exit status 2: " in err
+    assert f"(all of it: {out / 'a0'}.log)" in err and "scene.kind must be one of" in err

@@ -288,3 +288,22 @@ def test_compare_trees_refuses_bad_input_and_names_a_failed_runs_log(tmp_path, c
     err = capsys.readouterr().err
     assert f"compare_trees.py: error: the run of {ROOT} into {out / 'a0'} ended with exit status 2: " in err
     assert f"(all of it: {out / 'a0'}.log)" in err and "scene.kind must be one of" in err
+
+
+def test_touching_wisps_refuses_a_set_that_would_write_a_broken_config(tmp_path, capsys):
+    """touching_wisps.py --set of a key it writes from a flag (time.frames: a key set twice)
+    or a value that is not TOML (an unquoted string) is refused naming the flag or the
+    quoting, nothing written; main wrote a config simulate.py then refused as invalid TOML.
+    --frames 0 is argparse's error (main wrote it)."""
+    ts = _script("touching_wisps")
+    for extra, words in ((["time.frames=5"], "--set time.frames: the script writes it from --frames"),
+                         (["time.newton_iterations=9"], "from --cap; give that instead"),
+                         (["solver.options=-ksp_rtol 1e-8"], "not TOML values or a key set twice")):
+        with pytest.raises(ValueError, match=words):
+            ts.write(tmp_path / "w", 10, 1e-4, 30, extra)
+        assert not (tmp_path / "w").exists()
+    cfg = load_config(ts.write(tmp_path / "w", 10, 1e-4, 30, ['solver.options="-ksp_rtol 1e-8"']))
+    assert cfg.solver.options == "-ksp_rtol 1e-8"
+    with pytest.raises(SystemExit):
+        ts.cli([str(tmp_path / "z"), "--frames", "0"])
+    assert "--frames: must be an integer >= 1" in capsys.readouterr().err and not (tmp_path / "z").exists()

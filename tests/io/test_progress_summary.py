@@ -535,3 +535,20 @@ def test_join_read_by_a_reader_that_leaves_after_the_table(tmp_path):
                            str(out)], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
     assert json.loads((out / "history.json").read_text())["per_frame"]["frame"][-1] == 6
+
+
+def test_join_names_a_segment_that_ran_no_frame(tmp_path):
+    """A restart at the last frame's checkpoint (its run killed while writing the end-of-run
+    outputs) runs no frame: its segment is "no frame run (the end-of-run outputs after frame
+    6)", where main printed "frames 7-6 kept of 7-6"."""
+    out = tmp_path / "o"
+    (out / "summaries").mkdir(parents=True)
+    write_summary(out / "summaries" / "summary_frames_000000-000006.json", _summary(6, status="running"))
+    entry = {"file": "summaries/summary_frames_000000-000006.json", "frames": [0, 6], "frames_kept": [0, 6]}
+    write_summary(out / "summary.json", _summary(6, first=6, earlier=[entry]))
+    lines = history_table(_script("join_summaries").join_history(out))
+    assert lines[1].endswith("killed (running), 1 rank(s), config " + lines[1].split("config ")[1][:12]
+                             + ", frames 1-6 kept of 1-6")
+    assert lines[2].startswith("  segment 1: summary.json, finished, 1 rank(s)")
+    assert lines[2].endswith(", no frame run (the end-of-run outputs after frame 6)")
+    assert lines[4].split() == ["1", "0", "1", "0", "0"] and len(lines) == 4 + 6

@@ -307,3 +307,14 @@ def test_touching_wisps_refuses_a_set_that_would_write_a_broken_config(tmp_path,
     with pytest.raises(SystemExit):
         ts.cli([str(tmp_path / "z"), "--frames", "0"])
     assert "--frames: must be an integer >= 1" in capsys.readouterr().err and not (tmp_path / "z").exists()
+
+
+def test_contact_work_stats_help_and_bad_input_write_nothing(tmp_path):
+    """contact_work_stats.py --help prints its usage (exit 0); a prefix without a script is one
+    error line (exit 2); neither writes a file: on main --help was taken as the PREFIX, the
+    empty script list an IndexError traceback, and its exit hook wrote ``--help.0.json``."""
+    proc = _run(tmp_path, "contact_work_stats.py", "--help")
+    assert proc.returncode == 0 and "mpiexec -n 2 python scripts/contact_work_stats.py PREFIX" in proc.stdout
+    proc = _run(tmp_path, "contact_work_stats.py", "stats")
+    assert proc.returncode == 2 and "error: give PREFIX SCRIPT.py [its arguments], got stats" in proc.stderr
+    assert "Traceback" not in proc.stderr and list(tmp_path.iterdir()) == []

@@ -115,7 +115,7 @@ def scene_config(scene, wisps=20):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="hairball")
     ap.add_argument("--wisps", type=integer_at_least(1), default=None,
                     help="wisps of the built-in hairball (default 10) or of a hairball CONFIG.toml "

@@ -123,7 +123,7 @@ def run(base, cap, substeps, dt, frames, tol, comm, newton=None, update="edge_re
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", nargs="+", default=["hairball10", "smash"])
     p.add_argument("--frames", type=integer_at_least(1), default=30)
     p.add_argument("--tol", type=positive_number, default=1e-6)

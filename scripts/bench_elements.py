@@ -65,7 +65,7 @@ def element_arrays(wisps, k):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--wisps", type=integer_at_least(1), default=2000)
     parser.add_argument("--vertices", type=integer_at_least(4), default=101)
     parser.add_argument("--repeats", type=integer_at_least(1), default=7)

@@ -14,7 +14,10 @@ and their medians.
 Every run uses ``--force`` (a checkpoint of another code version or rank count) and
 writes frames.h5 from the checkpoint's frame on (the earlier rows NaN).  Each tree needs
 its own compiled kernels: Numba's cache is per source path, so a tree's first run
-compiles them (minutes; run a round more, or warm each tree first).
+compiles them (minutes; run a round more, or warm each tree first).  Bad input (a TREE
+without drivers/simulate.py, a missing --config or --checkpoint, any other option: the runs
+take their PETSc options from the config) is one error line, exit 2, before anything runs;
+a run that fails stops the comparison, exit 3, with its last line and its log's path.
 """
 
 import argparse
@@ -29,9 +32,26 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from lc_petsc.studies.command_line import integer_at_least, parse_args
+from lc_petsc.studies.command_line import integer_at_least
 
 FIGURES = ("step", "cpu", "solve_cpu", "collision_cpu")
+
+
+class RunFailed(RuntimeError):
+    """A tree's run of drivers/simulate.py did not end with status 0."""
+
+
+def check_inputs(ap: argparse.ArgumentParser, args: argparse.Namespace, extra: list[str]) -> None:
+    """Bad input is argparse's error (one line, exit 2) before anything runs or is written."""
+    if extra:
+        ap.error(f"unrecognized arguments: {' '.join(extra)} (the runs get no PETSc options from this command "
+                 "line: both trees run the config, so put them in its solver.options)")
+    for tree in args.trees:
+        if not (tree / "drivers" / "simulate.py").is_file():
+            ap.error(f"TREE {tree}: not a checkout of lc_petsc (no drivers/simulate.py there)")
+    for flag, path in (("--config", args.config), ("--checkpoint", args.checkpoint)):
+        if not path.is_file():
+            ap.error(f"{flag} {path}: no such file")
 
 
 def run(tree: Path, config: Path, checkpoint: Path, frames: int, ranks: int, out: Path) -> dict:
@@ -44,7 +64,12 @@ def run(tree: Path, config: Path, checkpoint: Path, frames: int, ranks: int, out
            "--frames", str(frames), "--out", str(out), "--restart", str(ck), "--force", "--quiet"]
     env = dict(os.environ, PYTHONPATH=str(tree))
     with open(f"{out}.log", "w") as log:
-        subprocess.run(cmd, env=env, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, check=True)
+        code = subprocess.run(cmd, env=env, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT).returncode
+    if code:
+        said = [line for line in Path(f"{out}.log").read_text(errors="replace").splitlines() if line.strip()]
+        errors = [line for line in said if "error" in line.lower()] or said    # mpiexec's notes end the log
+        raise RunFailed(f"the run of {tree} into {out} ended with exit status {code}: "
+                        f"{errors[-1] if errors else 'no output'} (all of it: {out}.log)")
     s = json.loads((out / "summary.json").read_text())
     with h5py.File(out / "frames.h5", "r") as f:
         last = f["positions"][-1]
@@ -56,8 +81,8 @@ def run(tree: Path, config: Path, checkpoint: Path, frames: int, ranks: int, out
             "limiter_candidates": int(sum(c.get("limiter_candidates_per_frame", []))), "last": last}
 
 
-def main():
-    ap = argparse.ArgumentParser()
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("trees", nargs=2, type=Path, metavar="TREE", help="two checkouts (A, B)")
     ap.add_argument("--config", type=Path, required=True)
     ap.add_argument("--checkpoint", type=Path, required=True)
@@ -65,15 +90,20 @@ def main():
     ap.add_argument("--ranks", type=integer_at_least(1), default=1)
     ap.add_argument("--rounds", type=integer_at_least(1), default=3)
     ap.add_argument("--out", type=Path, required=True)
-    args = parse_args(ap)
+    args, extra = ap.parse_known_args(argv)
+    check_inputs(ap, args, extra)
     trees = [t.resolve() for t in args.trees]
     args.out.mkdir(parents=True, exist_ok=True)
     runs: list[list[dict]] = [[], []]
     ref = None
     for r in range(args.rounds):
         for k in ((0, 1) if r % 2 == 0 else (1, 0)):
-            fig = run(trees[k], args.config.resolve(), args.checkpoint.resolve(), args.frames, args.ranks,
-                      args.out / f"{'ab'[k]}{r}")
+            try:
+                fig = run(trees[k], args.config.resolve(), args.checkpoint.resolve(), args.frames, args.ranks,
+                          args.out / f"{'ab'[k]}{r}")
+            except RunFailed as e:
+                print(f"compare_trees.py: error: {e}", file=sys.stderr)
+                return 3
             ref = fig["last"] if ref is None else ref
             fig["dx"] = float(np.abs(fig.pop("last") - ref).max())
             runs[k].append(fig)
@@ -83,7 +113,8 @@ def main():
         print(f"B / A {n}: median {statistics.median(v):.3f} ({', '.join(f'{x:.3f}' for x in v)})")
     (args.out / "compare.json").write_text(json.dumps({"trees": [str(t) for t in trees], "runs": runs,
                                                        "ratios": ratios}, indent=1))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -87,9 +87,20 @@ def show(prefix, ranks):
 
 def main():
     """Show a run's table, or run a script instrumented."""
-    if sys.argv[1] == "--show":
-        show(sys.argv[2], int(sys.argv[3]))
-        return
+    args = sys.argv[1:]
+    if not args or args[0] in ("-h", "--help"):
+        print(__doc__)
+        return 0 if args else 2
+    if args[0] == "--show":
+        if len(args) != 3 or not args[2].isdigit():
+            print("contact_work_stats.py: error: --show PREFIX RANKS (the ranks as a number)", file=sys.stderr)
+            return 2
+        show(args[1], int(args[2]))
+        return 0
+    if len(args) < 2 or args[0].startswith("-") or not args[1].endswith(".py"):
+        print(f"contact_work_stats.py: error: give PREFIX SCRIPT.py [its arguments], got {' '.join(args)} "
+              "(--help)", file=sys.stderr)
+        return 2
     from mpi4py import MPI
     prefix = sys.argv[1]
     instrument()
@@ -97,7 +108,8 @@ def main():
                                       open(f"{prefix}.{MPI.COMM_WORLD.rank}.json", "w"), indent=1))
     sys.argv = sys.argv[2:]
     runpy.run_path(sys.argv[0], run_name="__main__")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -33,7 +33,7 @@ from lc_petsc.studies.extremes import at_tolerance, catalogue, run_cases  # noqa
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="a tenth of the frames")
     ap.add_argument("--only", nargs="+", default=None, help="case names (prefixes)")
     ap.add_argument("--start-increment-tol", type=positive_number, default=None,

@@ -40,18 +40,24 @@ def main(argv=None):
         print(f"join_summaries.py: error: {a.out}: {e}; nothing written", file=sys.stderr)
         return 2
     lines = history_table(history)
-    try:
-        print("\n".join(lines[:1 + len(history["segments"])] if a.quiet else lines), flush=True)
-    except BrokenPipeError:     # read by `| head`: the reader has what it wanted; still write the history
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    _say("\n".join(lines[:1 + len(history["segments"])] if a.quiet else lines))
     target = Path(a.json) if a.json else Path(a.out) / "history.json"
     try:
         write_summary(target, history)
     except OSError as e:
         print(f"join_summaries.py: error: {target}: {e.strerror or e}", file=sys.stderr)
         return 2
-    print(f"written: {target}")
+    _say(f"written: {target}")
     return 0
+
+
+def _say(text):
+    """Print ``text``; read by ``| head``, the reader may have left (before the table's end, or
+    after it and before the last line): it has what it wanted, and the rest goes nowhere."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 if __name__ == "__main__":

@@ -29,7 +29,7 @@ from lc_petsc.studies.newton import configure, error_history, parse_variant  # n
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", default="hairball10")
     p.add_argument("--frames", type=integer_at_least(1), default=10)
     p.add_argument("--iterations", type=integer_at_least(1), default=40)

@@ -41,7 +41,7 @@ DEFAULT_VARIANTS = [
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", default="hairball10")
     p.add_argument("--frames", type=integer_at_least(1), default=30)
     p.add_argument("--tol", type=positive_number, default=1e-6)

@@ -103,7 +103,7 @@ def check_variants(scenes, variants, iterations, frames):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", nargs="+", default=["hairball10", "smash"])
     p.add_argument("--frames", type=integer_at_least(1), default=10)
     p.add_argument("--iterations", type=integer_at_least(1), default=30)

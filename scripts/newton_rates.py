@@ -32,7 +32,7 @@ COMBOS = ([("all analytic", {t: "analytic" for t in TERMS}), ("all abs", {t: "ab
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", default="hairball10")
     p.add_argument("--frames", type=integer_at_least(1), default=3)
     p.add_argument("--margin-frames", type=integer_at_least(1), default=10)

@@ -24,7 +24,7 @@ import numpy as np
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--mpio", action="store_true", help="mpio driver (run under mpiexec)")
     args = ap.parse_args()
     import h5py

@@ -120,7 +120,7 @@ def _ended(converged, capped):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", default="hairball10")
     p.add_argument("--frames", type=integer_at_least(1), default=30)
     p.add_argument("--frame", type=integer_at_least(0), default=0, help="the frame --watch and --profile look at")

@@ -14,14 +14,18 @@ the tolerance default (``solver_path_defaulted`` in summary.json).  ``--set TABL
 
 import argparse
 import sys
+import tomllib
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from lc_petsc.scene import geometry
+from lc_petsc.studies.command_line import integer_at_least, positive_number
 
 N_WISPS, N_VERTICES, N_PINNED, SPACING = 6, 30, 3, 0.9
+#: the [time] keys the script writes from its flags
+FLAG_KEYS = {"time.frames": "--frames", "time.newton_iterations": "--cap", "time.newton_increment_tol": "--tol"}
 
 CONFIG = """\
 # the six touching wisps of tests/contact/test_mpi_ccd.py, written by scripts/touching_wisps.py
@@ -61,12 +65,6 @@ def write(out: Path, frames: int, tol: float, cap: int, extra: list[str]) -> Pat
                         for w in range(N_WISPS)])
     rad = np.concatenate([geometry.tapered_radius(N_VERTICES, 0.08, 0.05)] * N_WISPS)
     pin = np.tile(np.arange(N_VERTICES) < N_PINNED, N_WISPS)
-    out.mkdir(parents=True, exist_ok=True)
-    with h5py.File(out / "touching_wisps.h5", "w") as f:
-        f.create_dataset("positions", data=x)
-        f.create_dataset("wisp_offsets", data=np.arange(N_WISPS + 1, dtype=np.int64) * N_VERTICES)
-        f.create_dataset("radius", data=rad)
-        f.create_dataset("pinned", data=pin)
     tables: dict[str, list[str]] = {}
     for item in extra:
         key, _, value = item.partition("=")
@@ -75,20 +73,34 @@ def write(out: Path, frames: int, tol: float, cap: int, extra: list[str]) -> Pat
             raise ValueError(f"--set wants TABLE.KEY=VALUE (e.g. time.max_substeps=1), got {item!r}")
         if table in ("scene", "material", "physics", "output"):
             raise ValueError(f"--set {key}: the script writes [{table}] itself; only [time] and other tables")
+        if key in FLAG_KEYS:
+            raise ValueError(f"--set {key}: the script writes it from {FLAG_KEYS[key]}; give that instead")
         tables.setdefault(table, []).append(f"{name} = {value}")
     time_keys = "".join(f"{line}\n" for line in tables.pop("time", []))
     other = "".join(f"\n[{t}]\n" + "".join(f"{line}\n" for line in lines) for t, lines in tables.items())
+    text = CONFIG.format(n_pinned=N_PINNED, frames=frames, cap=cap, tol=tol, extra=time_keys) + other
+    try:
+        tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"--set {' '.join(extra)}: not TOML values or a key set twice ({e}); "
+                         f"strings need quotes, e.g. solver.options='\"-ksp_rtol 1e-8\"'") from None
+    out.mkdir(parents=True, exist_ok=True)
+    with h5py.File(out / "touching_wisps.h5", "w") as f:
+        f.create_dataset("positions", data=x)
+        f.create_dataset("wisp_offsets", data=np.arange(N_WISPS + 1, dtype=np.int64) * N_VERTICES)
+        f.create_dataset("radius", data=rad)
+        f.create_dataset("pinned", data=pin)
     path = out / "touching_wisps.toml"
-    path.write_text(CONFIG.format(n_pinned=N_PINNED, frames=frames, cap=cap, tol=tol, extra=time_keys) + other)
+    path.write_text(text)
     return path
 
 
 def cli(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("out", help="folder for touching_wisps.h5 and touching_wisps.toml")
-    ap.add_argument("--frames", type=int, default=10)
-    ap.add_argument("--tol", type=float, default=1e-4, help="time.newton_increment_tol")
-    ap.add_argument("--cap", type=int, default=30, help="time.newton_iterations")
+    ap.add_argument("--frames", type=integer_at_least(1), default=10)
+    ap.add_argument("--tol", type=positive_number, default=1e-4, help="time.newton_increment_tol")
+    ap.add_argument("--cap", type=integer_at_least(1), default=30, help="time.newton_iterations")
     ap.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE")
     a = ap.parse_args(argv)
     try:

@@ -214,9 +214,12 @@ def history_table(history, columns=("newton_iterations", "newton_converged", "ne
             f"{(seg.get('ended') or 'killed').split(':')[0]} (running)" if i < last \
             else RUNNING if history["running_state"]["state"] == RUNNING \
             else f"{history['running_state']['state']} (running)"
+        # a restart at the run's last checkpoint runs no frame: it writes the skipped outputs
+        span = (f"frames {a + 1}-{b} kept of {seg['frames'][0] + 1}-{seg['frames'][1]}"
+                if seg["frames"][1] > seg["frames"][0]
+                else f"no frame run (the end-of-run outputs after frame {seg['frames'][1]})")
         lines.append(f"  segment {i}: {seg['file']}, {status}, {seg['ranks']} rank(s), config "
-                     f"{seg['config_sha256'][:12]}, frames {a + 1}-{b} kept of {seg['frames'][0] + 1}-"
-                     f"{seg['frames'][1]}")
+                     f"{seg['config_sha256'][:12]}, {span}")
     pf = history["per_frame"]
     shown = ["frame", "segment", "ranks", *(c for c in columns if c in pf and (c != "newton_capped" or any(pf[c])))]
     # a list (the frame's KSP solves) is shown as its sum

@@ -503,3 +503,52 @@ def test_a_stale_lock_file_without_a_record_is_not_called_empty(tmp_path):
         assert running_state(out, _summary(4)) == (
             "killed", "killed after frame 4 (its lock .lc_petsc.lock is stale: a lock file without a run's record "
                       "(empty or damaged); no process holds it)")
+
+
+#: join_summaries.py's main() with its stdout a pipe whose reader leaves after the table,
+#: while the history is written (before the last line); in a process of its own (PETSc, loaded
+#: by this module, would take the SIGPIPE)
+LEAVES_AFTER_TABLE = """
+import importlib.util, os, sys
+spec = importlib.util.spec_from_file_location("join", sys.argv[1])
+script = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(script)
+read, write = os.pipe()
+sys.stdout = os.fdopen(write, "w")
+written = script.write_summary
+def reader_leaves(path, history):
+    os.close(read)
+    written(path, history)
+script.write_summary = reader_leaves
+sys.exit(script.main(sys.argv[2:]))
+"""
+
+
+def test_join_read_by_a_reader_that_leaves_after_the_table(tmp_path):
+    """`join_summaries.py OUT | head -8` where the whole table fits the pipe's buffer: the
+    reader leaves after the table, before the last line ("written: ..."), which met the
+    closed pipe (a BrokenPipeError traceback, exit 1, in 1 of 3 tries on a loaded machine;
+    here made certain by closing the reader while the history is written)."""
+    out, entry = _folder(tmp_path)
+    write_summary(out / "summary.json", _summary(6, first=2, earlier=[entry]))
+    proc = subprocess.run([sys.executable, "-c", LEAVES_AFTER_TABLE, str(ROOT / "scripts" / "join_summaries.py"),
+                           str(out)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    assert json.loads((out / "history.json").read_text())["per_frame"]["frame"][-1] == 6
+
+
+def test_join_names_a_segment_that_ran_no_frame(tmp_path):
+    """A restart at the last frame's checkpoint (its run killed while writing the end-of-run
+    outputs) runs no frame: its segment is "no frame run (the end-of-run outputs after frame
+    6)", where main printed "frames 7-6 kept of 7-6"."""
+    out = tmp_path / "o"
+    (out / "summaries").mkdir(parents=True)
+    write_summary(out / "summaries" / "summary_frames_000000-000006.json", _summary(6, status="running"))
+    entry = {"file": "summaries/summary_frames_000000-000006.json", "frames": [0, 6], "frames_kept": [0, 6]}
+    write_summary(out / "summary.json", _summary(6, first=6, earlier=[entry]))
+    lines = history_table(_script("join_summaries").join_history(out))
+    assert lines[1].endswith("killed (running), 1 rank(s), config " + lines[1].split("config ")[1][:12]
+                             + ", frames 1-6 kept of 1-6")
+    assert lines[2].startswith("  segment 1: summary.json, finished, 1 rank(s)")
+    assert lines[2].endswith(", no frame run (the end-of-run outputs after frame 6)")
+    assert lines[4].split() == ["1", "0", "1", "0", "0"] and len(lines) == 4 + 6

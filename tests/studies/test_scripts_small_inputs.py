@@ -258,3 +258,89 @@ def test_derive_config_changes_only_the_keys_set_and_refuses_a_bad_one(tmp_path,
             derive.cli([str(base), str(tmp_path / "bad.toml"), *bad])
         assert e.value.code == 2 and message in capsys.readouterr().err
         assert not (tmp_path / "bad.toml").exists()
+
+
+def test_the_table_of_a_run_without_contact_or_with_capped_frames(tmp_path, capsys):
+    """newton_contact_table.py on a run without strand contact (no ``contact`` in its summary: a
+    KeyError traceback on main), a frame whose closest pair was not measured (``null``: a
+    TypeError on main), capped start frames (``newton_capped``: shown as capped, not n), and
+    a damaged summary.json (an error naming it, not json's traceback)."""
+    s = {"ranks": 1, "status": "finished", "newton_iterations": [30, 30, 3], "newton_converged": [False, False, None],
+         "newton_capped": [True, True, False], "newton_substeps": [1, 1, 1], "crossings": None,
+         "solver_path_defaulted": []}
+    for name, contact in (("plain", None), ("far", {"pairs_per_frame": [0, 0, 2],
+                                                    "min_distance_per_frame": [None, None, 0.25]})):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(json.dumps({**s, "contact": contact}
+                                                                 if contact else s))
+    table = _script("newton_contact_table")
+    assert table.cli([str(tmp_path / "plain"), str(tmp_path / "far")]) == 0
+    out = capsys.readouterr().out
+    assert "| 0 | capped | 30 | 1 | - | - |" in out and "| 2 | - | 3 | 1 | - | - |" in out
+    assert "| 1 | capped | 30 | 1 | 0 | - |" in out and "| 2 | - | 3 | 1 | 2 | 0.25 |" in out
+    assert out.count("frames converged 0/3 (2 capped), iterations 63, frames cut back 0") == 2
+    (tmp_path / "plain" / "summary.json").write_text('{"ranks": 1, "newton_it')
+    with pytest.raises(SystemExit):
+        table.cli([str(tmp_path / "plain")])
+    assert "summary.json is not a readable summary of drivers/simulate.py (JSONDecodeError" in capsys.readouterr().err
+
+
+def test_compare_trees_refuses_bad_input_and_names_a_failed_runs_log(tmp_path, capsys, monkeypatch):
+    """compare_trees.py: a missing checkpoint, a TREE that is no checkout and a PETSc option
+    (which the runs never got) are one error line, exit 2, nothing written (on main: a
+    FileNotFoundError traceback after creating OUT/a0, a traceback from the first run's
+    mpiexec, and the option silently dropped); a run that fails (a config the job refuses)
+    is exit 3 naming its message and its log (on main: CalledProcessError's traceback)."""
+    for name in ("OMPI_ALLOW_RUN_AS_ROOT", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM"):   # the runs' mpiexec as root (CI)
+        monkeypatch.setenv(name, "1")
+    ct = _script("compare_trees")
+    cfg = tmp_path / "s.toml"
+    cfg.write_text("[scene]\nkind = \"smash\"\n")
+    ck = tmp_path / "ck.h5"
+    ck.write_bytes(b"")
+    out = tmp_path / "c"
+    base = ["--config", str(cfg), "--frames", "3", "--out", str(out)]
+    for args, words in (([*base, "--checkpoint", str(tmp_path / "none.h5"), str(ROOT), str(ROOT)],
+                         f"--checkpoint {tmp_path / 'none.h5'}: no such file"),
+                        ([*base, "--checkpoint", str(ck), str(ROOT), str(tmp_path)],
+                         f"TREE {tmp_path}: not a checkout of lc_petsc (no drivers/simulate.py there)"),
+                        ([*base, "--checkpoint", str(ck), str(ROOT), str(ROOT), "-ksp_rtol", "1e-3"],
+                         "unrecognized arguments: -ksp_rtol 1e-3 (the runs get no PETSc options")):
+        with pytest.raises(SystemExit) as stop:
+            ct.main(args)
+        assert stop.value.code == 2 and words in capsys.readouterr().err
+        assert not out.exists()
+    assert ct.main([*base, "--checkpoint", str(ck), "--rounds", "1", str(ROOT), str(ROOT)]) == 3
+    err = capsys.readouterr().err
+    assert f"compare_trees.py: error: the run of {ROOT} into {out / 'a0'} ended with exit status 2: " in err
+    assert f"(all of it: {out / 'a0'}.log)" in err and "scene.kind must be one of" in err
+
+
+def test_touching_wisps_refuses_a_set_that_would_write_a_broken_config(tmp_path, capsys):
+    """touching_wisps.py --set of a key it writes from a flag (time.frames: a key set twice)
+    or a value that is not TOML (an unquoted string) is refused naming the flag or the
+    quoting, nothing written; main wrote a config simulate.py then refused as invalid TOML.
+    --frames 0 is argparse's error (main wrote it)."""
+    ts = _script("touching_wisps")
+    for extra, words in ((["time.frames=5"], "--set time.frames: the script writes it from --frames"),
+                         (["time.newton_iterations=9"], "from --cap; give that instead"),
+                         (["solver.options=-ksp_rtol 1e-8"], "not TOML values or a key set twice")):
+        with pytest.raises(ValueError, match=words):
+            ts.write(tmp_path / "w", 10, 1e-4, 30, extra)
+        assert not (tmp_path / "w").exists()
+    cfg = load_config(ts.write(tmp_path / "w", 10, 1e-4, 30, ['solver.options="-ksp_rtol 1e-8"']))
+    assert cfg.solver.options == "-ksp_rtol 1e-8"
+    with pytest.raises(SystemExit):
+        ts.cli([str(tmp_path / "z"), "--frames", "0"])
+    assert "--frames: must be an integer >= 1" in capsys.readouterr().err and not (tmp_path / "z").exists()
+
+
+def test_contact_work_stats_help_and_bad_input_write_nothing(tmp_path):
+    """contact_work_stats.py --help prints its usage (exit 0); a prefix without a script is one
+    error line (exit 2); neither writes a file: on main --help was taken as the PREFIX, the
+    empty script list an IndexError traceback, and its exit hook wrote ``--help.0.json``."""
+    proc = _run(tmp_path, "contact_work_stats.py", "--help")
+    assert proc.returncode == 0 and "mpiexec -n 2 python scripts/contact_work_stats.py PREFIX" in proc.stdout
+    proc = _run(tmp_path, "contact_work_stats.py", "stats")
+    assert proc.returncode == 2 and "error: give PREFIX SCRIPT.py [its arguments], got stats" in proc.stderr
+    assert "Traceback" not in proc.stderr and list(tmp_path.iterdir()) == []

@@ -2,12 +2,12 @@
 by scripts/dump_system.py (docs/contact_solver.md, "Preconditioner prototypes on a dumped
 system").
 
-  python scripts/pc_prototype.py SYSTEM.npz [SYSTEM.npz ...] --variants blocks add:agg ...
-      [--rtol 1e-4] [--max-it 1000] [--theta 0.05] [--agg-cap 64] [--chunk 8]
+  python scripts/pc_prototype.py SYSTEM.npz [SYSTEM.npz ...] --variants blocks adef2:chunk@16x1 ...
+      [--rtol 1e-4] [--max-it 1000] [--chunk 16] [--agg-cap 8] [--theta 0]
       [--cluster-wisps 64] [--ilu-drop 1e-3] [--ilu-fill 4] [--json OUT.json]
 
 K = A + C.  PCG from x0 = 0 with PETSc's test for CG (the preconditioned residual norm
-below ``--rtol`` times its start).  Variants (``NAME`` or ``NAME:COARSE``):
+below ``--rtol`` times its start).  Variants (``NAME``, ``NAME:COARSE``, ``NAME:COARSE@LxM``):
 
 * ``blocks``: B^-1, B the per-wisp blocks as the default's fallback builds them: each
   wisp's band of A, plus its own self-contact blocks of C (a one-wisp cluster); it must
@@ -15,21 +15,22 @@ below ``--rtol`` times its start).  Variants (``NAME`` or ``NAME:COARSE``):
 * ``add:COARSE``, ``adef2:COARSE``, ``bnn:COARSE``: two levels, B as the first, the
   coarse space Z of COARSE, E = Z^T K Z (LU), Q = Z E^-1 Z^T: additive B^-1 + Q;
   A-DEF2 (I - Q K) B^-1 + Q, applied as y = B^-1 r, y + Q (r - K y) (one K product more);
-  balanced (I - Q K) B^-1 (I - K Q) + Q (two).  COARSE: ``agg`` aggregates of vertices
-  joined by strong contact couplings (|C_ij| >= theta sqrt(|K_ii| |K_jj|), Frobenius
-  norms of 3x3 blocks; merged strongest first, at most ``--agg-cap`` vertices) and,
-  for the other vertices, along-wisp chunks of ``--chunk`` vertices, translations as the
-  near-null space; ``aggrot`` the same with rotations about each aggregate's centre;
-  ``chunk`` the along-wisp chunks alone (every vertex); a trailing ``s`` (``aggs``,
-  ``chunks``) smooths Z once with the point-block Jacobi of K (smoothed aggregation).
+  balanced (I - Q K) B^-1 (I - K Q) + Q (two).  COARSE: ``agg``: every wisp cut into
+  chunks of L (``--chunk``) vertices, chunks joined by contact (C's blocks between them,
+  summed Frobenius norms at least ``--theta`` times the strongest) merged strongest first
+  into aggregates of at most M (``--agg-cap``) chunks; translations as the near-null
+  space; ``aggrot`` the same with rotations about each aggregate's centre; ``chunk`` the
+  chunks alone (M = 1); a trailing ``s`` (``aggs``) smooths Z once with the point-block
+  Jacobi of K (smoothed aggregation).  ``@LxM`` overrides L and M for this variant.
 * ``ilu``: the wisps grouped into clusters (connected components of the wisp contact
   graph, merged strongest first up to ``--cluster-wisps`` wisps), each cluster's block of
   A + C (inside it) factored incompletely (SuperLU's ILUTP, ``--ilu-drop``,
   ``--ilu-fill``), the other wisps by B; ``exact``: the same clusters factored exactly
   (what ``-lc_cluster_min_captured 0`` with these caps would do).
 
-Per variant it prints: iterations; extra (coarse) unknowns; set-up work (the extra
-factor's entries and flops, the Galerkin product's flops); the bytes read per CG
+Per variant it prints: iterations; the smallest and largest Ritz values of the
+preconditioned operator (from CG's coefficients); extra (coarse) unknowns; set-up work
+(the extra factor's entries and flops, the Galerkin product's flops); the bytes read per CG
 iteration (operator product, preconditioner and vectors) relative to ``blocks``; and a
 predicted time per system: ``T = T_setup + its * t_it * bytes / bytes_blocks + work /
 FLOPS`` with the default's measured set-up ``--t-setup`` and time per CG iteration
@@ -67,9 +68,10 @@ def row_wisps(wisp_rows):
     return np.repeat(np.arange(len(wisp_rows)), wisp_rows)
 
 
-def pcg(K, b, apply, rtol=1e-4, max_it=1000):
+def pcg(K, b, apply, rtol=1e-4, max_it=1000, coeffs=None):
     """PCG from x0 = 0 with PETSc's KSPCG test (preconditioned norm): stops at the first
-    iteration k with ||z_k|| <= rtol ||z_0||.  Returns (x, k, ||z_k|| / ||z_0||)."""
+    iteration k with ||z_k|| <= rtol ||z_0||.  Returns (x, k, ||z_k|| / ||z_0||); CG's
+    (alpha, beta) of every iteration are appended to the list ``coeffs`` if given."""
     x = np.zeros_like(b)
     r = b.copy()
     z = apply(r)
@@ -90,9 +92,22 @@ def pcg(K, b, apply, rtol=1e-4, max_it=1000):
         r -= a * q
         z = apply(r)
         rz_new = r @ z
+        if coeffs is not None:
+            coeffs.append((a, rz_new / rz))
         p = z + (rz_new / rz) * p
         rz = rz_new
     raise AssertionError("unreachable")
+
+
+def ritz_values(coeffs):
+    """The Ritz values of the preconditioned operator from CG's (alpha, beta): the
+    eigenvalues of the Lanczos tridiagonal matrix."""
+    if not coeffs:
+        return np.zeros(0)
+    a, b = np.array(coeffs).T
+    diag = 1.0 / a + np.r_[0.0, b[:-1] / a[:-1]]
+    off = np.sqrt(b[:-1]) / a[:-1]
+    return np.linalg.eigvalsh(np.diag(diag) + np.diag(off, 1) + np.diag(off, -1))
 
 
 def lu_work(lu):
@@ -141,30 +156,30 @@ def greedy_groups(n, i, j, weight, cap):
     return np.array([find(a) for a in range(n)])
 
 
-def aggregates(K, C, wisp_rows, theta, cap, chunk):
-    """Vertex aggregates: strong contact couplings (module doc) joined up to ``cap``
-    vertices, the rest cut into along-wisp chunks of ``chunk`` vertices (a chunk never
-    crosses an aggregated vertex or a wisp's end).  Returns the label of every vertex
-    (0..n_aggregates-1), and how many vertices are in contact aggregates."""
-    nv = K.shape[0] // 3
-    r, c, nrm = block_norms(K)
-    diag = np.zeros(nv)
-    on = r == c
-    diag[r[on]] = nrm[on]
+def aggregates(C, wisp_rows, chunk, cap, theta=0.0):
+    """Vertex aggregates: every wisp cut into chunks of ``chunk`` consecutive vertices,
+    then chunks joined by contact (the summed Frobenius norms of C's blocks between them,
+    at least ``theta`` times the largest) merged strongest first into aggregates of at
+    most ``cap`` chunks (``cap`` 1: the chunks alone).  Returns the aggregate of every
+    vertex (0..n-1) and the number of chunks in aggregates of several."""
+    vw = row_wisps(np.asarray(wisp_rows) // 3)
+    first = np.r_[0, np.cumsum(np.asarray(wisp_rows) // 3)][vw]
+    pos = np.arange(len(vw)) - first
+    per_wisp = -(-(np.asarray(wisp_rows) // 3) // chunk)
+    chunk_of = np.r_[0, np.cumsum(per_wisp)][vw] + pos // chunk
+    n_chunks = int(per_wisp.sum())
+    if cap <= 1:
+        return chunk_of, 0
     r, c, nrm = block_norms(C)
-    strong = (r < c) & (nrm >= theta * np.sqrt(diag[r] * diag[c]))
-    labels = greedy_groups(nv, r[strong], c[strong], nrm[strong] / np.sqrt(diag[r] * diag[c])[strong], cap)
-    in_agg = np.bincount(labels, minlength=nv)[labels] > 1
-    # along-wisp chunks of the rest: a new chunk at every wisp start, after every
-    # aggregated vertex and every ``chunk`` vertices of a run
-    vwisp = row_wisps(np.asarray(wisp_rows) // 3)
-    start = np.r_[True, (vwisp[1:] != vwisp[:-1]) | in_agg[:-1]]
-    run = np.cumsum(start) - 1
-    first = np.flatnonzero(start)
-    pos = np.arange(nv) - first[run]
-    chunk_id = run * (nv + 1) + pos // chunk
-    key = np.where(in_agg, labels, nv + chunk_id)
-    return np.unique(key, return_inverse=True)[1], int(in_agg.sum())
+    a, b = chunk_of[r], chunk_of[c]
+    keep = (a < b) & (nrm > 0)
+    pairs, inv = np.unique(np.stack([a[keep], b[keep]], axis=1), axis=0, return_inverse=True)
+    weight = np.bincount(inv.ravel(), nrm[keep])
+    strong = weight >= theta * weight.max()
+    labels = greedy_groups(n_chunks, pairs[strong, 0], pairs[strong, 1], weight[strong], cap)
+    labels = np.unique(labels, return_inverse=True)[1]
+    merged = int((np.bincount(labels)[labels] > 1).sum())
+    return labels[chunk_of], merged
 
 
 def coarse_space(labels, x=None, rotations=False):
@@ -234,13 +249,23 @@ COARSE = ("agg", "aggrot", "chunk")
 
 
 def parse_variant(name):
-    """(kind, coarse space, smoothed) of a variant name (module doc)."""
-    kind, _, coarse = name.partition(":")
+    """(kind, coarse space, smoothed, chunk, cap) of a variant name (module doc); chunk and
+    cap are None unless the name gives them (``@CHUNKxCAP``)."""
+    base, _, size = name.partition("@")
+    kind, _, coarse = base.partition(":")
     two_level = kind in ("add", "adef2", "bnn")
-    if kind not in KINDS or two_level != (coarse.removesuffix("s") in COARSE) or (coarse and not two_level):
+    chunk = cap = None
+    try:
+        if size:
+            chunk, cap = (int(v) for v in size.split("x"))
+    except ValueError:
+        chunk = -1
+    if (kind not in KINDS or two_level != (coarse.removesuffix("s") in COARSE) or (coarse and not two_level)
+            or (size and (not two_level or chunk is None or chunk < 1 or cap < 1))):
         raise ValueError(f"unknown variant {name!r}: blocks, ilu, exact, or add:/adef2:/bnn: with a "
-                         "coarse space agg, aggrot or chunk (a trailing s: smoothed), e.g. adef2:aggs")
-    return kind, coarse.removesuffix("s"), coarse.endswith("s")
+                         "coarse space agg, aggrot or chunk (a trailing s: smoothed) and optionally "
+                         "@CHUNKxCAP, e.g. adef2:aggs@16x8")
+    return kind, coarse.removesuffix("s"), coarse.endswith("s"), chunk, cap
 
 
 class Variant:
@@ -272,15 +297,12 @@ def build_variants(names, sys_, opts):
     base = b_prod + b_blocks + b_vec
     out = []
     for name in names:
-        kind, cs, smoothed = parse_variant(name)
+        kind, cs, smoothed, chunk, cap = parse_variant(name)
         if kind == "blocks":
             out.append(Variant(name, Blu.solve, base))
         elif kind in ("add", "adef2", "bnn"):
-            if cs == "chunk":
-                labels = aggregates(K, C, wisp_rows, np.inf, 1, opts.chunk)[0]
-                n_agg = 0
-            else:
-                labels, n_agg = aggregates(K, C, wisp_rows, opts.theta, opts.agg_cap, opts.chunk)
+            labels, n_agg = aggregates(C, wisp_rows, chunk or opts.chunk,
+                                       1 if cs == "chunk" else cap or opts.agg_cap, opts.theta)
             Z = coarse_space(labels, sys_["x"], rotations=cs == "aggrot")
             if smoothed:
                 Z = smooth(Z, K)
@@ -312,7 +334,7 @@ def build_variants(names, sys_, opts):
                     return y - q(K @ y) + qr
                 extra_bytes = 2 * coarse_bytes + 2 * b_prod
             out.append(Variant(name, apply, base + extra_bytes, Z.shape[1], entries, flops + galerkin,
-                               f"{labels.max() + 1} aggregates, {n_agg} vertices in contact ones, "
+                               f"{labels.max() + 1} aggregates, {n_agg} chunks merged by contact, "
                                f"Z {Z.nnz} entries, E {E.nnz} entries"))
         else:
             labels = wisp_clusters(C, wisp_rows, opts.cluster_wisps)
@@ -326,7 +348,7 @@ def build_variants(names, sys_, opts):
             Pc = P[rows][:, rows].tocsc()
             if kind == "ilu":
                 lu = spla.spilu(Pc, drop_tol=opts.ilu_drop, fill_factor=opts.ilu_fill,
-                                permc_spec="MMD_AT_PLUS_A")
+                                permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0)
             else:
                 lu = spla.splu(Pc, permc_spec="MMD_AT_PLUS_A")
             entries, flops = lu_work(lu)
@@ -350,9 +372,10 @@ def main(argv=None):
     ap.add_argument("--variants", nargs="+", default=["blocks"])
     ap.add_argument("--rtol", type=float, default=1e-4)
     ap.add_argument("--max-it", type=int, default=1000)
-    ap.add_argument("--theta", type=float, default=0.05, help="strong coupling threshold (agg)")
-    ap.add_argument("--agg-cap", type=int, default=64, help="vertices per contact aggregate")
-    ap.add_argument("--chunk", type=int, default=8, help="vertices per along-wisp chunk")
+    ap.add_argument("--theta", type=float, default=0.0,
+                    help="contact couplings joined: at least theta times the strongest (agg)")
+    ap.add_argument("--agg-cap", type=int, default=8, help="chunks per contact aggregate (agg)")
+    ap.add_argument("--chunk", type=int, default=16, help="vertices per along-wisp chunk")
     ap.add_argument("--cluster-wisps", type=int, default=64, help="wisps per cluster (ilu, exact)")
     ap.add_argument("--ilu-drop", type=float, default=1e-3)
     ap.add_argument("--ilu-fill", type=float, default=4.0)
@@ -376,17 +399,20 @@ def main(argv=None):
               f"{info['bytes_vectors'] / 1e6:.1f}); set-up {time.perf_counter() - t0:.1f} s", flush=True)
         K = (sys_["A"] + sys_["C"]).tocsr()
         for v in variants:
-            x, its, _ = pcg(K, sys_["b"], v.apply, opts.rtol, opts.max_it)
+            coeffs: list = []
+            x, its, _ = pcg(K, sys_["b"], v.apply, opts.rtol, opts.max_it, coeffs)
+            ritz = ritz_values(coeffs)
             res = np.linalg.norm(sys_["b"] - K @ x) / np.linalg.norm(sys_["b"])
             rel = v.bytes / info["bytes_blocks"]
             t = opts.t_setup + v.flops / opts.flops + its * opts.t_it * rel
             row = {"system": str(path), "variant": v.name, "iterations": its, "run_iterations": sys_["iterations"],
                    "extra_unknowns": v.extra, "factor_entries": v.entries, "setup_flops": v.flops,
-                   "bytes_rel": rel, "predicted_s": t, "true_rel_residual": res, "note": v.note}
+                   "bytes_rel": rel, "predicted_s": t, "true_rel_residual": res, "note": v.note,
+                   "ritz_smallest": ritz[:5].tolist(), "ritz_largest": ritz[-3:].tolist()}
             results.append(row)
             print(f"  {v.name:12s} its {its:4d}  extra {v.extra:7d}  factor {v.entries / 1e6:7.2f} M  "
                   f"flops {v.flops / 1e9:7.2f} G  bytes/it {rel:5.2f}x  predicted {t:6.3f} s  "
-                  f"|r|/|b| {res:.1e}  {v.note}", flush=True)
+                  f"|r|/|b| {res:.1e}  Ritz {ritz[0]:.2e} .. {ritz[-1]:.2f}  {v.note}", flush=True)
     if opts.json:
         Path(opts.json).write_text(json.dumps(results, indent=1))
     return 0

@@ -110,12 +110,19 @@ def test_dump_records_the_runs_systems_and_pcg_takes_the_runs_iterations(monkeyp
         runs.append(s["iterations"])
         K = (s["A"] + s["C"]).tocsr()
         _, lu = proto.block_jacobi(s["A"], s["C"], s["wisp_rows"])
-        x, its, red = proto.pcg(K, s["b"], lu.solve, rtol=1e-4)
+        coeffs = []
+        x, its, red = proto.pcg(K, s["b"], lu.solve, rtol=1e-4, coeffs=coeffs)
         # PETSc's CG and the prototype's: the same iterations but for round-off near the
         # stopping test
         assert abs(its - s["iterations"]) <= 1, (its, s["iterations"])
         assert red <= 1e-4
         assert np.linalg.norm(s["b"] - K @ x) <= 1e-2 * np.linalg.norm(s["b"])
+        # the Ritz values from CG's coefficients lie in the spectrum of B^-1 K, and the
+        # largest is its largest (CG finds the extremes first)
+        eig = np.sort(np.linalg.eigvals(lu.solve(K.toarray())).real)
+        ritz = proto.ritz_values(coeffs)
+        assert len(ritz) == its and eig[0] * (1 - 1e-8) <= ritz[0] and ritz[-1] <= eig[-1] * (1 + 1e-8)
+        assert abs(ritz[-1] - eig[-1]) <= 1e-3 * eig[-1] or its < 5, (ritz[-1], eig[-1])
     assert sum(runs) > 30, runs        # measured: 3, 23, 20 (CG has work to do)
     with pytest.raises(ValueError, match="one rank"):
         dump.dump(config(), tmp_path, comm=SimpleNamespace(size=2))
@@ -124,7 +131,8 @@ def test_dump_records_the_runs_systems_and_pcg_takes_the_runs_iterations(monkeyp
 def test_prototype_refuses_unknown_variants():
     with pytest.raises(ValueError, match="unknown variant"):
         script("pc_prototype").main(["x.npz", "--variants", "gauss-seidel"])
-    for bad in ("add", "add:aggx", "blocks:agg", "ilu:agg"):
+    for bad in ("add", "add:aggx", "blocks:agg", "ilu:agg", "add:agg@8", "add:agg@0x2", "ilu@8x2"):
         with pytest.raises(ValueError, match="unknown variant"):
             script("pc_prototype").parse_variant(bad)
-    assert script("pc_prototype").parse_variant("bnn:aggrots") == ("bnn", "aggrot", True)
+    assert script("pc_prototype").parse_variant("bnn:aggrots") == ("bnn", "aggrot", True, None, None)
+    assert script("pc_prototype").parse_variant("add:chunk@16x1") == ("add", "chunk", False, 16, 1)

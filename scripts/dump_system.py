@@ -106,7 +106,7 @@ def dump(config, out, restart=None, frames=1, max_systems=None, comm=MPI.COMM_WO
 def main(argv=None):
     from lc_petsc.config import load_config
     from lc_petsc.studies.command_line import integer_at_least, parse_args
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("config", help="scene TOML (the one the checkpoint ran with)")
     ap.add_argument("--restart", default=None, metavar="CHECKPOINT", help="start from this checkpoint")
     ap.add_argument("--frames", type=integer_at_least(1), default=1)

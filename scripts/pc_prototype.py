@@ -367,7 +367,7 @@ def build_variants(names, sys_, opts):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("systems", nargs="+")
     ap.add_argument("--variants", nargs="+", default=["blocks"])
     ap.add_argument("--rtol", type=float, default=1e-4)

@@ -24,9 +24,10 @@ below ``--rtol`` times its start).  Variants (``NAME``, ``NAME:COARSE``, ``NAME:
   Jacobi of K (smoothed aggregation).  ``@LxM`` overrides L and M for this variant.
 * ``ilu``: the wisps grouped into clusters (connected components of the wisp contact
   graph, merged strongest first up to ``--cluster-wisps`` wisps), each cluster's block of
-  A + C (inside it) factored incompletely (SuperLU's ILUTP, ``--ilu-drop``,
+  A + C (inside it) factored incompletely (SuperLU's ILUTP without pivoting, ``--ilu-drop``,
   ``--ilu-fill``), the other wisps by B; ``exact``: the same clusters factored exactly
-  (what ``-lc_cluster_min_captured 0`` with these caps would do).
+  (the cluster PC with ``-lc_cluster_min_captured 0``, this wisp cap and no block cap,
+  but clustered by this script's greedy merge, not ``contact_pc.cluster_labels``).
 
 Per variant it prints: iterations; the smallest and largest Ritz values of the
 preconditioned operator (from CG's coefficients); extra (coarse) unknowns; set-up work

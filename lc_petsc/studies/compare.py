@@ -18,7 +18,7 @@ from lc_petsc.studies.systems import SystemRecorder, destroy_systems, direct_sol
 from lc_petsc.timing import peak_rss_mib
 
 ROW_COLUMNS = ["wisps", "dofs", "ranks", "set", "repeat", "system", "frame", "newton_it", "status",
-               "setup_s", "solve_s", "total_s", "iterations", "reason", "true_rel_residual",
+               "setup_s", "solve_s", "total_s", "solve_cpu_s", "iterations", "reason", "true_rel_residual",
                "rel_error_vs_direct", "rss_delta_mib", "peak_rss_mib", "set_peak_mib", "memory_window",
                "cluster_fallback", "cluster_captured", "cluster_couplings", "cluster_rows",
                "mat_type", "message",

@@ -23,7 +23,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   contraction (:func:`contraction_factor`: an iteration contracting by q per step is
   still about d q / (1 - q) from its solution after a step of d; the analytic filter
   crawling at q ~ 0.97 had stopped 40x the tolerance from it, docs/newton.md "Twelfth
-  round"); per frame ``newton_converged`` and ``newton_increment`` record it.
+  round"); per frame ``newton_converged`` and ``newton_increment`` record it.  A step
+  at the positions' round-off (:func:`round_off_floor`) needs no contraction factor,
+  and above :data:`LOOSE_TOLERANCE` no confirmation and no model check: its
+  increments bounce and its line search halves at noise.
   Above :data:`LOOSE_TOLERANCE` a stop must be confirmed by the next iteration
   (:func:`confirms_stop`), and the stopping step and the one before it must be whole
   steps whose decrease of G agrees with their quadratic model (:func:`model_agrees`:

@@ -23,7 +23,10 @@ Each frame solves  G(x) = 1/(2 dt^2) (x - xhat)^T M (x - xhat) + V(x) - f_ext^T 
   contraction (:func:`contraction_factor`: an iteration contracting by q per step is
   still about d q / (1 - q) from its solution after a step of d; the analytic filter
   crawling at q ~ 0.97 had stopped 40x the tolerance from it, docs/newton.md "Twelfth
-  round"); per frame ``newton_converged`` and ``newton_increment`` record it.
+  round"); per frame ``newton_converged`` and ``newton_increment`` record it.  A step
+  at the positions' round-off (:func:`round_off_floor`) needs no contraction factor,
+  and above :data:`LOOSE_TOLERANCE` no confirmation and no model check: its
+  increments bounce and its line search halves at noise.
   Above :data:`LOOSE_TOLERANCE` a stop must be confirmed by the next iteration
   (:func:`confirms_stop`), and the stopping step and the one before it must be whole
   steps whose decrease of G agrees with their quadratic model (:func:`model_agrees`:
@@ -123,8 +126,8 @@ from lc_petsc.elements import compiled_turn, head_contact
 from lc_petsc.frame_end import FrameEnd
 from lc_petsc.newton_stop import (CHORD_TRY_C, ENERGY_FLOOR, EXACT_BELOW, LOOSE_TOLERANCE, QUADRATIC_SAFETY,
                                   NewtonState, SolveRecord, StepRecord, chord_basis, chord_stop, confirms_stop,
-                                  model_agrees, quadratic_error_estimate, saddle_note, step_contraction, stop_note,
-                                  unconfirmed_note, verify_note)
+                                  model_agrees, quadratic_error_estimate, round_off_floor, saddle_note,
+                                  step_contraction, stop_note, unconfirmed_note, verify_note)
 from lc_petsc.parallel import collectively, global_reduce
 from lc_petsc.root_rotation import RootRotation
 from lc_petsc.solver_plan import default_ksp_rtol
@@ -535,8 +538,11 @@ class Integrator:
         cfg = self.cfg
         if self.history is not None:
             self._force_scale = self.frame_force_scale()
+        # the positions' round-off, from the first iterate's largest coordinate
+        floor = round_off_floor(float(global_reduce(self.comm, [np.abs(x).max(initial=0.0)], "max")[0])) \
+            if cfg.time.newton_converges else 0.0
         s = NewtonState(x, confirms_stop(cfg.time.newton_increment_tol, cfg.time.newton_tol, self.shortest_wisp),
-                    Region() if self.trust is not None else None)
+                        Region() if self.trust is not None else None, floor)
         self._wisp_mu = np.zeros(len(self.scene.offsets) - 1)
         self._kept_exact = False
         extend = cfg.time.newton_extend_above is not None
@@ -574,7 +580,8 @@ class Integrator:
         s.reported = s.increment
         if self.history is not None:
             self._record_iteration(it, x_prev, s.x, g, s.increment, 1.0, exact)
-        s.converged = self._newton_converged(s.steps, absolute)
+        s.round_off = absolute <= s.floor
+        s.converged = self._newton_converged(s.steps, absolute, s.round_off)
         if s.converged is not None:         # a short step is not convergence
             s.converged = s.converged and region.interior
         # the loose-tolerance rule below, with the trust region's own rho (smash at
@@ -582,7 +589,7 @@ class Integrator:
         claim = bool(s.converged)
         step = dict(agrees=region.agrees)
         confirmed, refused = self._loose_verdict(s.loose, claim, s.claimed_before, s.increment, s.steps,
-                                                 (step, s.last_step, s.prior_step))
+                                                 (step, s.last_step, s.prior_step), round_off=s.round_off)
         s.converged = s.converged and confirmed and not refused
         s.settle(claim, step, confirmed, refused)
         self._counts["newton_stops_refused"] += refused
@@ -617,7 +624,8 @@ class Integrator:
         newton = (self._shift == 0.0 and self._fallback in ("", "armijo")) or round_off
         s.steps.append(StepRecord(measure, (whole and newton) or round_off,
                                   exact or cfg.solver.filter == "none", newton))
-        s.converged = self._newton_converged(s.steps, absolute)
+        s.round_off = absolute <= s.floor
+        s.converged = self._newton_converged(s.steps, absolute, s.round_off)
         chord_claim, based = self._estimate_stop(s, it, exact and whole)
         # a step (or chord check) whose solve ran no residual test and missed -ksp_rtol
         # is not a Newton step: its small increment certifies nothing (Jacobi's steps
@@ -633,6 +641,7 @@ class Integrator:
         verdict, refused = self._check_stop(s, it, step, measure, chord_claim, based)
         if self.monitor is not None:
             short = ", solve short of -ksp_rtol" if short_of_rtol else ""
+            short += ", at round-off" if s.round_off else ""
             short += stop_note(s.unconfirmed, refused) + (saddle_note(self._saddle_wisps) if s.saddle else "")
             short += verify_note(verdict, self._verifying)
             self._monitor(it, measure, self._step_kind(exact) + short, alpha, step_ksp,
@@ -761,7 +770,8 @@ class Integrator:
             s.claimed_before = False
         s.unbased_claim = claim and chord_claim and not based
         confirmed, refused = self._loose_verdict(s.loose, claim, s.claimed_before, measure, s.steps,
-                                                 (step, s.last_step, s.prior_step), chord_claim and based)
+                                                 (step, s.last_step, s.prior_step), chord_claim and based,
+                                                 s.round_off)
         s.converged = s.converged and confirmed and not refused
         # a stop on a saddle of G ends the solve unconverged (step cutback redoes it)
         checked = s.steps[-1].exact and self._shift == 0.0
@@ -1374,7 +1384,8 @@ class Integrator:
                 return x
         return y
 
-    def _loose_verdict(self, loose, claim, claimed_before, measure, steps, recent, measured=False):
+    def _loose_verdict(self, loose, claim, claimed_before, measure, steps, recent, measured=False,
+                       round_off=False):
         """(confirmed, refused) for this iteration's stop ``claim`` at a ``loose``
         tolerance (:func:`confirms_stop`; else (True, False)).  Confirmed: the last
         iteration claimed a stop too (``claimed_before``), or ``measure`` times the
@@ -1391,7 +1402,13 @@ class Integrator:
         needs the step before that claim on its model too: a claim made by the first
         step out of an off-model run, confirmed by one more step, had stopped two-step
         lulls of the crushed coil 1.6x and of the stiff smash 2.4x the tolerance away
-        (docs/newton.md "The two-step lull").  Collective."""
+        (docs/newton.md "The two-step lull").  A step at the positions' round-off
+        (``round_off``: :func:`round_off_floor`) is confirmed and agrees: its size, its
+        rate and its line search are noise, and nothing is left to converge (the 2K
+        hairball's frame 10 refused such stops for 14 iterations and cut back,
+        docs/newton.md "Stops at round-off").  Collective."""
+        if round_off:
+            return True, False
         shortcut = measure * step_contraction(steps) < LOOSE_TOLERANCE
         confirmed = not loose or claimed_before or shortcut
         needed = recent[:2] if shortcut or measured else recent
@@ -1491,16 +1508,18 @@ class Integrator:
                 step["agrees"] = model_agrees(G0 - G1, -0.5 * slope, max(abs(G0), abs(G1)))
         return step["agrees"]
 
-    def _newton_converged(self, steps, absolute):
+    def _newton_converged(self, steps, absolute, round_off=False):
         """True/False against the tolerances that are set (both when both are), None
         when neither is (a fixed iteration count).  ``steps``: this solve's steps so far
         (:class:`StepRecord`; the last one's absolute size ``absolute`` cm); the last one's
         measure, times the iteration's contraction factor (:func:`step_contraction`),
-        must be below each."""
+        must be below each; the measure alone where the step is at the positions'
+        round-off (``round_off``, :func:`round_off_floor`: increments of noise bounce, so
+        their factor is inf although nothing is left to converge)."""
         t = self.cfg.time
         if not t.newton_converges:
             return None
-        factor = step_contraction(steps)
+        factor = 1.0 if round_off else step_contraction(steps)
         ok = True
         if t.newton_increment_tol is not None:
             ok = steps[-1].measure * factor < t.newton_increment_tol

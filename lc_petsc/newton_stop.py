@@ -1,7 +1,8 @@
 """Newton's stopping arithmetic (docs/newton.md "Stopping rule"): pure functions of a
 solve's step measures that :class:`lc_petsc.integrator.Integrator` asks whether an
 iterate may stop.  The contraction factor that turns the last increment into an error
-bound (:func:`contraction_factor`, :func:`step_contraction`), the loose-tolerance rule
+bound (:func:`contraction_factor`, :func:`step_contraction`) and the positions' round-off
+below which a step needs no bound (:func:`round_off_floor`), the loose-tolerance rule
 (:func:`confirms_stop`, :func:`model_agrees`), and the estimates of
 ``time.newton_stop``: ``"quadratic_estimate"`` (:func:`quadratic_error_estimate`) and
 ``"chord_estimate"`` (:func:`chord_basis`, :func:`chord_stop`), with their constants; and
@@ -52,8 +53,10 @@ class NewtonState:
     """A backward-Euler step's Newton state (:meth:`lc_petsc.integrator.Integrator._newton`),
     updated by its iterations: the iterate and what the stop rules read across them."""
 
-    def __init__(self, x, loose, region):
+    def __init__(self, x, loose, region, floor=0.0):
         self.x = x                      # the iterate
+        self.floor = floor              # the positions' round-off, cm (round_off_floor)
+        self.round_off = False          # this iteration's step is at it
         self.n_it = 0
         self.converged = None
         self.increment = self.reported = np.inf     # the last step's; what newton_increment reports
@@ -133,6 +136,17 @@ def model_agrees(decrease, predicted, energy):
         return True
     return predicted > 0.0 and abs(decrease / predicted - 1.0) <= MODEL_AGREEMENT
 
+
+
+def round_off_floor(scale):
+    """The size (cm) below which a Newton step is round-off of the positions: the
+    largest coordinate ``scale`` (cm) of the iterate, times the machine epsilon, times
+    :data:`ROUND_OFF_STEPS`.  A step of that size carries no information: the gradient
+    it solves for is the round-off of G's terms, its increments bounce rather than
+    shrink (:func:`contraction_factor` is inf) and its line search halves at noise.  An
+    iterate whose step is below it (and below the tolerance) has converged as far as
+    the arithmetic allows (docs/newton.md "Stops at round-off")."""
+    return ROUND_OFF_STEPS * np.finfo(float).eps * scale
 
 
 def contraction_factor(increments, whole=None, exact=None, newton=None):
@@ -279,6 +293,10 @@ MODEL_AGREEMENT = 0.1
 #: ratio was noise, off by 1.5 to 6e3, below 1e-12 |G| on smash and 1e-15 |G| on the
 #: hairball)
 ENERGY_FLOOR = 1e-10
+#: :func:`round_off_floor`: a step no larger than this many epsilons of the largest
+#: coordinate is round-off (the 2K hairball's frame 10 at dt/4 bounced at 5.2e-16 to
+#: 6.1e-16 of its 59.6 cm wisps, 5.3-6.2 eps x 26.4 cm; docs/newton.md "Stops at round-off")
+ROUND_OFF_STEPS = 256.0
 #: solver.filter "exact_or_analytic": the exact Hessian is tried once the last relative
 #: increment is below EXACT_BELOW, and its step kept if Armijo's condition holds within
 #: EXACT_HALVINGS halvings (lc_petsc/integrator.py; measured, docs/newton.md: 3e-3 and 6

@@ -316,8 +316,15 @@ def kernels(args, comm):
     cl, pc, lu, cx, cy = _clusters(comm, rows, A, ctx)
     if cl.cluster is not None:          # the clusters' factor, and PETSc's LU of the same matrix
         m = cl.cluster_mat.getSize()[0]
-        factors = ((f"clusters' factor ({cl.cluster.getType()}, {m} rows)", cl.cluster),
-                   ("  the same matrix, PETSc's LU", lu))
+        print(f"rank {comm.rank}: clusters' factor {cl.cluster.getType()}, {m} rows", flush=True)
+        factors = (("clusters' factor (factor_cluster_matrix)", cl.cluster), ("  the same matrix, PETSc's LU", lu))
+        cy_lu = cy.duplicate()
+        cl.cluster.apply(cx, cy)
+        lu.apply(cx, cy_lu)
+        cy_lu.axpy(-1.0, cy)
+        print(f"rank {comm.rank}: the two factors' solves differ by {cy_lu.norm() / cy.norm():.2e} (relative)",
+              flush=True)
+        cy_lu.destroy()
         for what, f in factors:
             cases[what] = ((lambda f=f: f.apply(cx, cy)),
                            12 * int(f.getFactorMatrix().getInfo()["nz_used"]) + 4 * m + 16 * m)

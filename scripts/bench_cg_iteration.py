@@ -55,23 +55,31 @@ def record(args, comm):
     from lc_petsc.studies.compare import record as record_frames
     config = load_config(args.config)
     systems, wisp_rows, info = record_frames(config, comm, frames=args.frames, restart=args.restart)
-    out = Path(args.dir)
+    write_systems(Path(args.dir), systems, wisp_rows, info, comm)
+
+
+def write_systems(out, systems, wisp_rows, info, comm):
+    """Write the recorded systems with contact (:func:`lc_petsc.studies.compare.record`'s;
+    one without contact pairs is left out) into ``out``."""
+    keep = [i for i, s in enumerate(systems) if s.coupled]
+    if not keep:
+        raise SystemExit("no recorded system has a contact matrix: record a frame with strand contact")
     if comm.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
     comm.Barrier()
+    systems = [systems[i] for i in keep]
     for i, s in enumerate(systems):
-        if not s.coupled:
-            raise SystemExit(f"system {i} has no contact matrix: record a frame with strand contact")
         _save(comm, out / f"A{i}.bin", s.wisp_local)
         _save(comm, out / f"C{i}.bin", s.C)
         _save(comm, out / f"b{i}.bin", s.b)
     rows = comm.gather([int(r) for r in wisp_rows])
     if comm.rank == 0:
         layout = {"ranks": comm.size, "wisp_rows": rows, "systems": len(systems),
-                  "frames": [int(s.frame) for s in systems], "info": {k: info[k] for k in
-                  ("wisps", "dofs", "start_frame", "sim_ksp_iterations", "strand_contact_pairs")}}
+                  "frames": [int(s.frame) for s in systems],
+                  "run_ksp_iterations": [int(info["sim_ksp_iterations"][i]) for i in keep],
+                  "info": {k: info[k] for k in ("wisps", "dofs", "start_frame", "strand_contact_pairs")}}
         (out / "layout.json").write_text(json.dumps(layout, indent=1))
-        print(f"{len(systems)} systems in {out}; CG per solve in the run {info['sim_ksp_iterations']}")
+        print(f"{len(systems)} systems in {out}; CG per solve in the run {layout['run_ksp_iterations']}")
 
 
 def load(folder, comm):

@@ -45,7 +45,7 @@ C couples into **clusters** and solves each cluster's block of A + C exactly:
    factoring their cluster (one ``alltoall`` each), which puts them into one sequential
    matrix holding every cluster's block of A + C (clusters
    contiguous, so the matrix is block diagonal by cluster; AIJ, not BAIJ: see
-   :func:`factor_cluster_matrix`), factored by PETSc's LU
+   :func:`factor_cluster_matrix`), factored by PETSc's Cholesky (its LU until 2026-12-08)
    with the reverse Cuthill-McKee ordering (``-lc_cluster_ordering rcm``, the default;
    ``qmd`` (quotient minimum degree), ``nd`` accepted; an ordering never mixes the
    clusters).  On the 2K hairball's cluster matrices (28k-303k rows) RCM's fill is
@@ -122,8 +122,16 @@ def block_rows(M, rows=None):
 
 
 def factor_cluster_matrix(indptr, cols, blocks, ordering=ORDERING):
-    """(matrix, LU PC) of the clusters' block CSR (``indptr``, ``cols``: 3x3 ``blocks``
-    (k, 3, 3) row-major), factored by PETSc's LU with ``ordering``.
+    """(matrix, Cholesky PC) of the clusters' block CSR (``indptr``, ``cols``: 3x3
+    ``blocks`` (k, 3, 3) row-major), factored by PETSc's Cholesky with ``ordering``.
+
+    The matrix is symmetric positive definite (the module doc), so its Cholesky (PETSc's
+    SeqAIJ one: U^T D U of the permuted matrix, one triangle stored) is its LU's half:
+    on the 2K hairball's frame-90 systems (1.4-1.9M entries per rank, one-wisp clusters
+    of the self-contact wisps under the fallback) 0.76-0.99M factor entries against
+    1.47-1.89M, its solve 0.5x the LU's CPU time in every CG iteration, its set-up about
+    the same, the same CG iterations (docs/contact_solver.md, "One CG iteration against
+    the memory bandwidth"; the LU until 2026-12-08).
 
     The factor is of the point (AIJ) matrix, not of a BAIJ one: PETSc's BAIJ (and
     SBAIJ) factorisations invert each 3x3 pivot block explicitly, and a vertex held by a
@@ -144,7 +152,7 @@ def factor_cluster_matrix(indptr, cols, blocks, ordering=ORDERING):
     M = PETSc.Mat().createAIJWithArrays(size=(3 * n, 3 * n), csr=point, comm=PETSc.COMM_SELF)
     M.setBlockSizes(3, 3)                       # (createAIJWithArrays drops ``bsize``)
     pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
-    pc.setType(PETSc.PC.Type.LU)
+    pc.setType(PETSc.PC.Type.CHOLESKY)
     pc.setFactorOrdering(ordering)
     pc.setOperators(M, M)
     pc.setUp()

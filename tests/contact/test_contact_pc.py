@@ -280,12 +280,53 @@ def test_cluster_factor_solves_stiff_spd_blocks_accurately(seed, ordering):
         M.destroy()
 
 
+def rcm_factor(M, kind):
+    """PETSc's factor ``kind`` of the sequential matrix ``M`` with the RCM ordering (a PC)."""
+    pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
+    pc.setType(kind)
+    pc.setFactorOrdering("rcm")
+    pc.setOperators(M, M)
+    pc.setUp()
+    return pc
+
+
+@pytest.mark.parametrize("n", [1, 2, 40])
+def test_cluster_factor_is_a_cholesky_of_half_the_entries(n):
+    """The clusters' factor is PETSc's Cholesky of the SPD point matrix (one triangle
+    stored), not its LU (both): the factor holds one triangle of the LU's entries (on the
+    2K frame-90 systems 0.52x of them, and its solve 0.5x the LU's CPU per CG iteration,
+    docs/contact_solver.md, "One CG iteration against the memory bandwidth"), and solves
+    to round-off, on a stiff chain of n vertices with contact-like couplings (1 and 2
+    vertices: a lone vertex, the shortest wisp).  Fails on the LU (before 2026-12-08)."""
+    K = stiff_chain(max(n, 2), 0)[:3 * n, :3 * n]
+    blocks = K.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
+    r, c = np.nonzero(np.abs(blocks).sum(axis=(2, 3)))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=n))])
+    M, pc = factor_cluster_matrix(indptr, c, blocks[r, c])
+    lu = rcm_factor(M, PETSc.PC.Type.LU)
+    try:
+        assert pc.getType() == PETSc.PC.Type.CHOLESKY
+        entries = pc.getFactorMatrix().getInfo()["nz_used"]
+        both = lu.getFactorMatrix().getInfo()["nz_used"]                # L and U, the same ordering
+        assert (9 * len(r) + 3 * n) // 2 <= entries <= (both + 3 * n) // 2   # one triangle and the diagonal
+        x, y = M.createVecs()
+        x.array[:] = np.random.default_rng(n).standard_normal(3 * n)
+        pc.apply(x, y)
+        ref = np.linalg.solve(K, x.array)
+        assert np.abs(y.array - ref).max() <= 1e-5 * np.abs(ref).max()
+        x.destroy()
+        y.destroy()
+    finally:
+        for obj in (lu, pc, M):
+            obj.destroy()
+
+
 def test_cluster_matrix_is_filled_as_aij_not_converted():
     """factor_cluster_matrix fills the point (AIJ) matrix from the blocks: the matrix
     PETSc's conversion of the BAIJ one gives (pattern, values, explicit zeros, block size)
-    and the same LU solve, bit for bit, without a BAIJ matrix converted (MatConvert took
-    ~30-60 ms of a 2K set-up's ~220-460 ms CPU, docs/contact_solver.md, "Where the cluster
-    set-up goes")."""
+    and the same Cholesky solve, bit for bit, without a BAIJ matrix converted (MatConvert
+    took ~30-60 ms of a 2K set-up's ~220-460 ms CPU, docs/contact_solver.md, "Where the
+    cluster set-up goes")."""
     rng = np.random.default_rng(3)
     n = 60                                                  # block rows
     r = np.repeat(np.arange(n), 5)
@@ -296,6 +337,9 @@ def test_cluster_matrix_is_filled_as_aij_not_converted():
     blocks = rng.standard_normal((len(r), 3, 3))
     blocks[rng.random(blocks.shape) < 0.2] = 0.0            # zeros inside blocks stay entries
     blocks[r == c] += 20.0 * np.eye(3)
+    mirror = np.searchsorted(key, c * n + r)                # the matrix symmetric, as a cluster's is
+    blocks = np.where((r > c)[:, None, None], blocks[mirror].transpose(0, 2, 1), blocks)
+    blocks[r == c] = 0.5 * (blocks[r == c] + blocks[r == c].transpose(0, 2, 1))
     indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=n))])
     PETSc.Log.begin()
     converts = PETSc.Log.Event("MatConvert").getPerfInfo()["count"]
@@ -304,12 +348,8 @@ def test_cluster_matrix_is_filled_as_aij_not_converted():
     B = PETSc.Mat().createBAIJ(size=(3 * n, 3 * n), bsize=3, comm=PETSc.COMM_SELF,
                                csr=(indptr.astype(PETSc.IntType), c.astype(PETSc.IntType), blocks.ravel()))
     B = B.convert(PETSc.Mat.Type.SEQAIJ)
-    ref = PETSc.PC().create(comm=PETSc.COMM_SELF)
+    ref = rcm_factor(B, PETSc.PC.Type.CHOLESKY)
     try:
-        ref.setType(PETSc.PC.Type.LU)
-        ref.setFactorOrdering("rcm")
-        ref.setOperators(B, B)
-        ref.setUp()
         got, want = M.getValuesCSR(), B.getValuesCSR()
         assert len(got[2]) == 9 * len(r) and (got[2] == 0.0).sum() > 0
         for a, b in zip(got, want):

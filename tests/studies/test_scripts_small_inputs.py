@@ -344,3 +344,40 @@ def test_contact_work_stats_help_and_bad_input_write_nothing(tmp_path):
     proc = _run(tmp_path, "contact_work_stats.py", "stats")
     assert proc.returncode == 2 and "error: give PREFIX SCRIPT.py [its arguments], got stats" in proc.stderr
     assert "Traceback" not in proc.stderr and list(tmp_path.iterdir()) == []
+
+
+def test_bench_cg_iteration_times_every_part_of_the_recorded_solves(tmp_path, monkeypatch, capsys):
+    """``bench_cg_iteration.py``: the touching wisps' first frame recorded (A, C, b apart),
+    loaded back and solved with the default cluster preconditioner in the run's CG
+    iterations, the clusters' solve timed; without clusters (the contact left to CG) A's
+    and C's products, the band solve and KSP's rest timed per iteration; each kernel alone
+    with a positive rate."""
+    import lc_petsc.simulator as simulator
+    from mpi4py import MPI
+    from lc_petsc.studies.compare import record
+    from lc_petsc.studies.systems import destroy_systems
+    from sim_helpers import touching_wisps_source
+    monkeypatch.setattr(simulator, "source_from_config", lambda *a, **k: touching_wisps_source())
+    bench = _script("bench_cg_iteration")
+    systems, rows, info = record(touching_wisps_config(1, options=""), MPI.COMM_WORLD, frames=1)
+    try:
+        bench.write_systems(tmp_path / "sys", systems, rows, info, MPI.COMM_WORLD)
+    finally:
+        destroy_systems(systems)
+    run = json.loads((tmp_path / "sys" / "layout.json").read_text())["run_ksp_iterations"]
+    for options, parts in (([], ("cluster solve (CPU)",)),      # the contact in the clusters' exact solves
+                           (["--options", "-lc_cluster_max_wisps 1"],    # no cluster: the contact left to CG
+                            ("A product (CPU)", "C diagonal block (CPU)", "band solve (CPU)", "KSP rest (CPU)"))):
+        assert bench.main(["solve", str(tmp_path / "sys"), "--repeats", "1", *options]) == 0
+        out = capsys.readouterr().out
+        its = [int(v) for v in out.split("CG per solve: [")[1].split("]")[0].split(",")]
+        assert its == run if not options else (len(its) == len(run) and min(its) > 1)
+        times = {line[:44].strip(): float(line.split()[-1]) for line in out.splitlines()
+                 if line.startswith("  ") and line.split()[-1].replace(".", "").isdigit()}
+        for part in parts + ("solve (CPU)",):
+            assert times[part] > 0, part
+    assert bench.main(["kernels", str(tmp_path / "sys"), "--repeats", "1"]) == 0
+    out = capsys.readouterr().out
+    for kernel in ("A product", "band solve", "C diagonal block", "clusters' factor", "PETSc's LU"):
+        line = next(x for x in out.splitlines() if kernel in x and "GB/s" not in x[:20] and "|" in x)
+        assert float(line.split("(")[-1].split(")")[0]) > 0, line

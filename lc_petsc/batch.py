@@ -60,7 +60,8 @@ def make_parser():
                    help="with --restart: accept a config that differs from the checkpoint's, "
                         "and continue into a new frames.h5 when the run's cannot be appended "
                         "to (it is renamed aside, lost frames are NaN); without: start over in "
-                        "a folder whose run did not finish")
+                        "a folder whose run did not finish, or replace a finished run of another "
+                        "config")
     p.add_argument("-h", "--help", action="store_true", help="show this help and exit")
     return p
 

@@ -590,7 +590,38 @@ class Job:
             if unfinished:
                 self._warn(f"--force: starting over in {self.out}, whose run did not finish "
                            f"({unfinished}); its frames.h5 and checkpoints are removed")
+            else:
+                self._check_finished_run()
         self._check_disk(rows_kept)
+
+    def _check_finished_run(self):
+        """A new run into a folder that holds a finished run of *another* scene or
+        physics (its summary.json's config differs in a key that changes the trajectory;
+        the frame count, the output keys and the PETSc options, which the command line
+        changes freely too, do not count) is refused without --force:
+        it would replace that run's outputs, a run lost by a mistyped --out.  The same
+        config (a rerun, longer or shorter) reuses the folder.  Raises Refused."""
+        def read():
+            try:
+                summary = json.loads((self.out / "summary.json").read_text())
+            except (OSError, ValueError):
+                return None
+            if not isinstance(summary, dict) or summary.get("status") != "finished" \
+                    or not isinstance(summary.get("config"), dict):
+                return None
+            saved, now = summary["config"], self.cfg.to_dict()
+            diff = config_differences(saved, now, ignore=RESTART_FREE_KEYS | PETSC_OPTION_KEYS,
+                                      defaults=SimConfig().to_dict())
+            return _differences_text(diff, saved, now, ("finished run", "config")) if diff else None
+        from lc_petsc.io.checkpoint import config_differences
+        differs, problem = on_root(self.comm, read)
+        if problem is not None or differs is None:
+            return
+        if not self.args.force:
+            raise Refused(f"{self.out} holds a finished run of another config, which differs in {differs}; "
+                          f"this run would replace its outputs: give another --out, or add --force to "
+                          f"replace them")
+        self._warn(f"--force: replacing the finished run in {self.out}, whose config differs in {differs}")
 
     def _load_restart(self):
         """The checkpoint to continue from, checked against the config, the scene and
@@ -1581,16 +1612,22 @@ def _named_filter_hint(cfg, diff, saved):
             f"{', '.join(f'{k} = {json.dumps(v)}' for k, v in ran)} in the config to continue it as it ran")
 
 
-def _differences_text(keys, saved, now):
+#: a config's PETSc options: a new run may change them in a finished run's folder, as it
+#: may change the command line's (:meth:`Job._check_finished_run`)
+PETSC_OPTION_KEYS = {"solver.options", "solver.options_file"}
+
+
+def _differences_text(keys, saved, now, names=("checkpoint", "config")):
     """'time.dt (checkpoint: 0.0333, config: 0.02), ...' for the dotted config ``keys``
-    of the checkpoint's config dict ``saved`` and the run's ``now``."""
+    of the checkpoint's config dict ``saved`` and the run's ``now`` (``names``: what the
+    two are called)."""
     def value(d, key):
         for part in key.split("."):
             if not isinstance(d, dict) or part not in d:
                 return "unset"
             d = d[part]
         return repr(d)
-    return ", ".join(f"{k} (checkpoint: {value(saved, k)}, config: {value(now, k)})" for k in keys)
+    return ", ".join(f"{k} ({names[0]}: {value(saved, k)}, {names[1]}: {value(now, k)})" for k in keys)
 
 
 def _signal_name(signum):

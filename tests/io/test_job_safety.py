@@ -741,10 +741,11 @@ def test_ranges_paths_and_keys_without_effect(tmp_path, capsys):
     text = SMASH.format(frames=1, ce=0, previews="false", dt="0.03333333333333333", description="k")
     text = text.replace('kind = "wisp4c"', 'kind = "wisp4c"\nn_wisps = 3\njitter = 0.2')
     Path(tmp_path / "k2.toml").write_text(text)
-    e = err([str(tmp_path / "k2.toml"), "--out", out], code=0)
+    # another folder: o holds the finished run of k.toml, another config (n_wisps, jitter)
+    e = err([str(tmp_path / "k2.toml"), "--out", str(tmp_path / "o2")], code=0)
     assert "scene.n_wisps is set but has no effect: it only acts with scene.kind = 'hairball'" in e
     assert "scene.jitter is set but has no effect" in e
-    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    s = json.loads((tmp_path / "o2" / "summary.json").read_text())
     assert sum("has no effect" in w for w in s["warnings"]) == 2
 
 
@@ -979,3 +980,30 @@ def test_a_signal_during_the_usd_export_stops_it_between_frames(tmp_path, monkey
     assert s["preempted"] == "SIGTERM" and s["output"]["skipped"] == ["frames.usdc"]
     assert s["crossings"]["steps"] == 6 and [c["frame"] for c in s["checkpoints"]] == [4, 6]
     assert sorted(p.name for p in out.iterdir() if "usd" in p.name) == []
+
+
+def test_a_finished_run_of_another_config_is_not_replaced_without_force(tmp_path, capsys):
+    """A new run into a folder holding a finished run of another physics (here Young's
+    modulus) is refused, exit 2, the folder untouched, naming the key and both values (on
+    main it replaced that run's outputs without a word); the same config with another
+    frame count and another description reuses the folder, and --force replaces the other
+    config's run with a warning."""
+    out = tmp_path / "o"
+    cfg = _smash(tmp_path, frames=2, ce=0)
+    assert main([cfg, "--out", str(out), "--quiet"]) == 0
+    stiffer = _smash(tmp_path, "t.toml", frames=2, ce=0)
+    Path(stiffer).write_text(Path(stiffer).read_text().replace("youngs_modulus = 3.9e9", "youngs_modulus = 1e9"))
+    capsys.readouterr()
+    before = _snapshot(out)
+    assert main([stiffer, "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"{out} holds a finished run of another config, which differs in material.youngs_modulus " \
+           "(finished run: 3900000000.0, config: 1000000000.0); this run would replace its outputs: give " \
+           "another --out, or add --force to replace them" in err, err
+    assert "Traceback" not in err and _snapshot(out) == before
+    longer = _smash(tmp_path, "l.toml", frames=3, ce=0, description="the same smash, longer")
+    assert main([longer, "--out", str(out), "--quiet"]) == 0
+    assert json.loads((out / "summary.json").read_text())["frames"] == 3
+    assert main([stiffer, "--out", str(out), "--quiet", "--force"]) == 0
+    assert "--force: replacing the finished run in" in capsys.readouterr().err
+    assert json.loads((out / "summary.json").read_text())["config"]["material"]["youngs_modulus"] == 1e9

@@ -48,7 +48,7 @@ import numpy as np
 
 from lc_petsc.config import RESTART_FREE_KEYS, TOLERANCE_PATH, TOLERANCE_PATH_WITHOUT_STRAND_CONTACT, SimConfig
 from lc_petsc.io import hdf5
-from lc_petsc.io.summary import missed_frames
+from lc_petsc.io.summary import missed_frames, run_status
 from lc_petsc.errors import CheckpointError, OutputError, SimulationError, SolverError
 from lc_petsc.parallel import global_max, global_wisp_offsets, on_root
 from lc_petsc.newton_stop import unconfirmed_note
@@ -61,6 +61,9 @@ SETUP_DONE, SETUP_REFUSED, SETUP_INTERRUPTED = 0, 1, 2
 #: keys every row of frames.h5 and frames.usdc shares (its dt and every attributes, the
 #: USD's timeCodesPerSecond): refused in a restart even with --force
 RESTART_FIXED_KEYS = ("time.dt", "output.every")
+#: a config's PETSc options: a new run may change them in a finished run's folder, as it
+#: may change the command line's (:meth:`Job._check_finished_run`)
+PETSC_OPTION_KEYS = {"solver.options", "solver.options_file"}
 #: scene kinds read from a file, whose path a restart does not compare (the content is)
 GROOM_FILE_KINDS = ("file", "usd")
 PROG = "simulate.py"
@@ -157,18 +160,21 @@ def petsc_error_text(e):
     return f"{'; '.join(reversed(said)) or 'no message'} (PETSc {code}{where})"
 
 
-def finished_frames(out):
-    """The frame count (``frames``) of the run in the output folder ``out`` when its
-    summary.json says it finished (no signal, no error, not running: a killed run's), else
-    None (serial, read-only)."""
-    from lc_petsc.io.summary import run_status
+def finished_summary(out):
+    """The summary.json (a dict) of the run in the output folder ``out`` when it says the
+    run finished (no signal, no error, not running: a killed run's), else None (serial,
+    read-only)."""
     try:
         summary = json.loads((Path(out) / "summary.json").read_text())
     except (OSError, ValueError):
         return None
-    if not isinstance(summary, dict) or run_status(summary) != "finished":
-        return None
-    frames = summary.get("frames")
+    return summary if isinstance(summary, dict) and run_status(summary) == "finished" else None
+
+
+def finished_frames(out):
+    """The frame count (``frames``) of the finished run in ``out``
+    (:func:`finished_summary`), else None (serial, read-only)."""
+    frames = (finished_summary(out) or {}).get("frames")
     return frames if isinstance(frames, int) else None
 
 
@@ -601,19 +607,16 @@ class Job:
         changes freely too, do not count) is refused without --force:
         it would replace that run's outputs, a run lost by a mistyped --out.  The same
         config (a rerun, longer or shorter) reuses the folder.  Raises Refused."""
+        from lc_petsc.io.checkpoint import config_differences
+
         def read():
-            try:
-                summary = json.loads((self.out / "summary.json").read_text())
-            except (OSError, ValueError):
+            saved = (finished_summary(self.out) or {}).get("config")
+            if not isinstance(saved, dict):
                 return None
-            if not isinstance(summary, dict) or summary.get("status") != "finished" \
-                    or not isinstance(summary.get("config"), dict):
-                return None
-            saved, now = summary["config"], self.cfg.to_dict()
+            now = self.cfg.to_dict()
             diff = config_differences(saved, now, ignore=RESTART_FREE_KEYS | PETSC_OPTION_KEYS,
                                       defaults=SimConfig().to_dict())
             return _differences_text(diff, saved, now, ("finished run", "config")) if diff else None
-        from lc_petsc.io.checkpoint import config_differences
         differs, problem = on_root(self.comm, read)
         if problem is not None or differs is None:
             return
@@ -1610,11 +1613,6 @@ def _named_filter_hint(cfg, diff, saved):
             f"solver.filter unset, and this config names solver.filter, which keeps the keys it leaves unset "
             f"at their defaults (docs/newton.md \"The default for tolerance runs\"): set "
             f"{', '.join(f'{k} = {json.dumps(v)}' for k, v in ran)} in the config to continue it as it ran")
-
-
-#: a config's PETSc options: a new run may change them in a finished run's folder, as it
-#: may change the command line's (:meth:`Job._check_finished_run`)
-PETSC_OPTION_KEYS = {"solver.options", "solver.options_file"}
 
 
 def _differences_text(keys, saved, now, names=("checkpoint", "config")):
